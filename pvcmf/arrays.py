@@ -1,0 +1,186 @@
+"""The pvcmf data model: array names, label ids, boundary-condition codes and units.
+
+Every filter takes its array names, label ids and bc codes from here and nowhere else,
+and validates its inputs with :func:`require_array`.
+
+Units
+-----
+Lengths in millimetres, stresses and Young's moduli in MPa, time in seconds.
+User-facing angles (plans) are in degrees; radians are used internally.
+
+Coordinates (patient frame)
+---------------------------
+x horizontal (patient's left +), y anterior +, z superior +.
+A surgical plan's (horizontal, vertical, anterior-posterior) triple maps to (x, z, y):
+see :data:`PLAN_AXES`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# --------------------------------------------------------------------------- units
+LENGTH_UNIT = "mm"
+STRESS_UNIT = "MPa"
+TIME_UNIT = "s"
+ANGLE_UNIT = "deg"
+
+#: index of the (x, y, z) axis for the plan's (horizontal, vertical, anterior-posterior) triple
+PLAN_AXES = (0, 2, 1)
+
+# --------------------------------------------------------------------------- image arrays
+CT = "ct"  #: point, float32, Hounsfield units (or scanner units rescaled to HU)
+TISSUE = "tissue"  #: point (image) / cell (grid), uint8, tissue label, see TISSUE_LABELS
+MUSCLE = "muscle"  #: point (image) / cell (grid), uint8, 0 none, 1.. index into MUSCLES + 1
+BONE = "bone"  #: point (image), uint8, bone segment id, see BONE_LABELS
+
+# --------------------------------------------------------------------------- tissue labels
+AIR = 0
+FAT = 1  #: fat / generic soft tissue
+SOFT_TISSUE = FAT
+MUSCLE_TISSUE = 2
+BONE_TISSUE = 3
+TEETH = 4
+INTRACRANIAL = 5  #: what lies inside the skull (brain, CSF): not part of the face model
+
+TISSUE_LABELS = {
+    "air": AIR,
+    "fat": FAT,
+    "muscle": MUSCLE_TISSUE,
+    "bone": BONE_TISSUE,
+    "teeth": TEETH,
+    "intracranial": INTRACRANIAL,
+}
+#: labels that make up the facial soft-tissue model (meshed)
+SOFT_LABELS = (FAT, MUSCLE_TISSUE)
+#: labels that are hard tissue (move rigidly with their segment)
+HARD_LABELS = (BONE_TISSUE, TEETH)
+
+# --------------------------------------------------------------------------- bone segments
+BONE_NONE = 0
+CRANIUM = 1
+MAXILLA = 2
+MANDIBLE = 3
+BONE_LABELS = {"none": BONE_NONE, "cranium": CRANIUM, "maxilla": MAXILLA, "mandible": MANDIBLE}
+BONE_NAMES = {v: k for k, v in BONE_LABELS.items()}
+
+# --------------------------------------------------------------------------- muscles
+#: the six muscles of paper 000 Fig. 2a
+MUSCLE_KINDS = (
+    "orbicularis_oculi",
+    "levator_labii_superioris_alaeque_nasi",
+    "levator_labii_superioris",
+    "masseter",
+    "zygomaticus_major",
+    "zygomaticus_minor",
+)
+SIDES = ("left", "right")
+#: muscle names; the label id of MUSCLES[i] is i + 1 (0 = no muscle)
+MUSCLES = tuple(f"{kind}_{side}" for side in SIDES for kind in MUSCLE_KINDS)
+MUSCLE_IDS = {name: i + 1 for i, name in enumerate(MUSCLES)}
+MUSCLE_NONE = 0
+
+# --------------------------------------------------------------------------- grid arrays
+MUSCLE_FRACTION = "muscle_fraction"  #: cell, float64 in [0, 1]
+E_FIBER = "E_fiber"  #: cell, float64, MPa, Young's modulus along the fibre
+E_CROSS = "E_cross"  #: cell, float64, MPa, Young's modulus across the fibre
+NU = "nu"  #: cell, float64, Poisson ratio
+FIBER = "fiber"  #: cell (grid) / point (image), float64 (n, 3), unit vector, zero where isotropic
+BC = "bc"  #: point, int8, see BC_* codes
+BC_DISPLACEMENT = "bc_displacement"  #: point, float64 (n, 3), mm
+BC_NORMAL = "bc_normal"  #: point, float64 (n, 3), unit sliding normal
+DISPLACEMENT = "displacement"  #: point, float64 (n, 3), mm
+DISTANCE = "distance"  #: point, float64, mm, + anterior / - posterior of the truth
+REGION = "region"  #: point (skin), uint8, face region id, see FACE_REGIONS
+
+BC_FREE = 0
+BC_FIXED = 1
+BC_JOINT = 2
+BC_SLIDING = 3
+BC_CODES = {"free": BC_FREE, "fixed": BC_FIXED, "joint": BC_JOINT, "sliding": BC_SLIDING}
+
+FACE_REGIONS = {
+    "other": 0,
+    "upper_lip": 1,
+    "lower_lip": 2,
+    "chin": 3,
+    "nose": 4,
+    "cheek_left": 5,
+    "cheek_right": 6,
+}
+
+# --------------------------------------------------------------------------- validation
+_ASSOC = {"point": "point_data", "cell": "cell_data", "field": "field_data"}
+
+
+def require_array(dataset, name, association="point", dtype=None, ncomp=None, producer=None):
+    """Return ``dataset``'s array ``name`` after checking it exists with the right kind.
+
+    Parameters
+    ----------
+    dataset : pyvista.DataSet
+        Dataset holding the array.
+    name : str
+        Array name, one of the constants of this module.
+    association : {'point', 'cell', 'field'}
+        Where the array must live.
+    dtype : numpy dtype kind string or type, optional
+        ``'f'`` float, ``'i'`` signed int, ``'u'`` unsigned int, ``'iu'`` any integer, or a
+        numpy type that the array's dtype must equal.
+    ncomp : int, optional
+        Number of components (1 for scalars, 3 for vectors).
+    producer : str, optional
+        Name of the filter that produces the array, quoted in the error message.
+
+    Returns
+    -------
+    numpy.ndarray
+        The array (a view; do not modify it in place).
+
+    Raises
+    ------
+    ValueError
+        If the array is missing or has the wrong dtype or number of components.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> img = pv.ImageData(dimensions=(2, 2, 2))
+    >>> img[arrays.CT] = np.zeros(8, dtype=np.float32)
+    >>> arrays.require_array(img, arrays.CT, "point", dtype="f").shape
+    (8,)
+    """
+    if association not in _ASSOC:
+        raise ValueError(
+            f"association must be one of {sorted(_ASSOC)}, got {association!r}"
+        )
+    hint = f" (it is produced by {producer})" if producer else ""
+    data = getattr(dataset, _ASSOC[association])
+    if name not in data.keys():
+        raise ValueError(
+            f"{type(dataset).__name__} has no {association} array {name!r}{hint}; "
+            f"it has {sorted(data.keys())}"
+        )
+    arr = np.asarray(data[name])
+    if dtype is not None:
+        if isinstance(dtype, str):
+            ok = arr.dtype.kind in dtype
+            want = {"f": "float", "i": "signed int", "u": "unsigned int", "iu": "integer"}.get(
+                dtype, dtype
+            )
+        else:
+            ok = arr.dtype == np.dtype(dtype)
+            want = np.dtype(dtype).name
+        if not ok:
+            raise ValueError(
+                f"{association} array {name!r} must have dtype {want}, got {arr.dtype}{hint}"
+            )
+    if ncomp is not None:
+        have = 1 if arr.ndim == 1 else arr.shape[1]
+        if have != ncomp or arr.ndim > 2:
+            raise ValueError(
+                f"{association} array {name!r} must have {ncomp} component(s), "
+                f"got shape {arr.shape}{hint}"
+            )
+    return arr

@@ -1,0 +1,63 @@
+"""Pipeline steps as pure filters: ``f(dataset, *, options) -> new dataset``.
+
+One module per step of the papers, named after what it does:
+
+========================  ==========================  =====================================
+filter                    module                      paper step
+========================  ==========================  =====================================
+segment                   ``segment``                 000 sec. II: skin/skull/soft tissue
+classify_tissue           ``classify``                001 Fig. 1: per-slice GMM + EM, median
+embed_muscles             ``muscles``                 000 sec. II: atlas + TPS, Fig. 2b
+fiber_directions          ``fibers``                  000 Fig. 3: OBB fibre directions
+tetrahedralize            ``tetrahedralize``          000 Fig. 2c: labelled tetrahedral mesh
+sample_muscle_fraction    ``fractions``               000 Fig. 1: random-point sampling
+average_voxels            ``fractions``               001: per-tetrahedron voxel average
+assign_materials          ``materials``               000 Table I / 001 materials
+cut_bones, move_bones     ``osteotomy``               000 Fig. 5: bone segments and plan
+apply_plan                ``boundary_conditions``     000 Fig. 4: sliding / joint / fixed
+extract_skin              ``skin``                    skin surface of a label image or mesh
+register                  ``registration``            000 sec. V: ICP (point-to-plane)
+distance_to               ``distance``                000 Fig. 6: signed distance maps
+map_to_surface            ``surface_mapping``         001: tet -> dense skin, Gaussian
+========================  ==========================  =====================================
+
+Modules are imported lazily, so ``import pvcmf`` stays fast and a heavy dependency
+(gmsh, ...) is loaded only by the step that needs it.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_REGISTRY = {
+    "segment": "segment",
+    "classify_tissue": "classify",
+    "embed_muscles": "muscles",
+    "fiber_directions": "fibers",
+    "oriented_bounding_box": "fibers",
+    "tetrahedralize": "tetrahedralize",
+    "sample_muscle_fraction": "fractions",
+    "average_voxels": "fractions",
+    "assign_materials": "materials",
+    "cut_bones": "osteotomy",
+    "move_bones": "osteotomy",
+    "apply_plan": "boundary_conditions",
+    "extract_skin": "skin",
+    "register": "registration",
+    "distance_to": "distance",
+    "map_to_surface": "surface_mapping",
+}
+
+__all__ = sorted(_REGISTRY)
+
+
+def __getattr__(name):
+    try:
+        module = _REGISTRY[name]
+    except KeyError:
+        raise AttributeError(f"module 'pvcmf.filters' has no attribute {name!r}") from None
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_REGISTRY))

@@ -1,0 +1,66 @@
+"""Shared pytest set-up: offscreen rendering, the real-data folder, small cached inputs."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import pyvista as pv
+
+pv.OFF_SCREEN = True
+ROOT = Path(__file__).resolve().parents[1]
+
+# Tests find the shared real data through PVCMF_DATA_DIR, defaulting to ../shared/data.
+os.environ.setdefault("PVCMF_DATA_DIR", str(ROOT.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def data_dir():
+    """The shared real-data folder; skip cleanly when it is absent."""
+    path = Path(os.environ["PVCMF_DATA_DIR"])
+    if not path.is_dir():
+        pytest.skip(f"real data folder {path} not found (set PVCMF_DATA_DIR)")
+    return path
+
+
+@pytest.fixture()
+def verify_image_cache(verify_image_cache):
+    """pytest-pyvista image comparison with baselines in tests/image_cache."""
+    verify_image_cache.high_variance_test = False
+    return verify_image_cache
+
+
+CHART_DIR = ROOT / "tests" / "image_cache" / "charts"
+
+
+@pytest.fixture()
+def verify_chart(request):
+    """Compare a matplotlib figure with its baseline PNG in ``tests/image_cache/charts``.
+
+    Call ``verify_chart(fig)`` (optionally ``verify_chart(fig, "suffix", tol=...)``).
+    A missing baseline fails the test unless ``PVCMF_UPDATE_BASELINES=1`` is set, which
+    writes it (then inspect it and commit it). ``tol`` is matplotlib's RMS tolerance.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.testing.compare import compare_images
+
+    def check(fig, suffix="", tol=10.0, dpi=80):
+        name = request.node.name.replace("[", "_").replace("]", "") + (f"_{suffix}" if suffix else "")
+        baseline = CHART_DIR / f"{name}.png"
+        out_dir = ROOT / "tests" / "_image_failures"
+        out_dir.mkdir(parents=True, exist_ok=True)
+        actual = out_dir / f"{name}.png"
+        fig.savefig(actual, dpi=dpi)
+        if not baseline.exists():
+            if os.environ.get("PVCMF_UPDATE_BASELINES") == "1":
+                CHART_DIR.mkdir(parents=True, exist_ok=True)
+                fig.savefig(baseline, dpi=dpi)
+                return
+            pytest.fail(f"no chart baseline {baseline}; run with PVCMF_UPDATE_BASELINES=1 to create it")
+        result = compare_images(str(baseline), str(actual), tol=tol)
+        assert result is None, result
+
+    return check
