@@ -11,15 +11,69 @@ Conventions (as Table II states them)
 ``rotation`` is in degrees about the same three axes (horizontal x = pitch, vertical z =
 yaw, anterior-posterior y = roll), right-handed, applied in that order (x, then z, then y)
 about ``pivot`` (default: the segment's centroid).
+
+Cuts
+----
+``cut`` says where the segment is in the bone label image. Empty (the default) means
+the image already labels it (``bone == segment id``, as the virtual patients do). Otherwise
+it is a list of planes ``(point, normal)``: the segment is the bone on the side every
+normal points to (a Le Fort I plane above the upper tooth apices with its normal
+pointing down for the maxilla; the two sagittal split planes of a bilateral sagittal split
+with normals pointing forward for the mandible's tooth-bearing part). See
+:func:`pvcmf.filters.cut_bones`.
+
+Files
+-----
+Plans are read and written as TOML or JSON (:meth:`Plan.from_file`, :meth:`Plan.to_file`,
+:func:`read_plan`, :func:`write_plan`)::
+
+    name = "patient 1"
+
+    [[osteotomy]]
+    segment = "maxilla"              # "maxilla" (Le Fort I) or "mandible" (BSSO)
+    translation = [6.0, 5.0, -4.0]   # mm, (horizontal, vertical, anterior-posterior)
+    rotation = [0.0, 2.0, 5.0]       # degrees about the same axes
+    # pivot = [0.0, 60.0, -30.0]     # optional, patient xyz in mm (default: centroid)
+
+    [[osteotomy.cut]]                # optional planes; none = use the bone label
+    point = [0.0, 0.0, -20.0]
+    normal = [0.0, 0.0, -1.0]
+
+Unknown keys, non-finite numbers, rotations over :data:`MAX_ROTATION_DEG` and segments
+the bone label image does not contain (:meth:`Plan.check_segments`) raise
+:class:`ValueError` naming the key and the value. Reading delegates to :mod:`tomllib`
+(``tomli`` on Python 3.10) and :mod:`json`; writing is atomic (temp file + ``os.replace``).
 """
 
 from __future__ import annotations
 
+import json
+import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from . import arrays
+
+#: largest rotation (degrees, about any one axis) a plan may ask for
+MAX_ROTATION_DEG = 30.0
+#: segments a plan may move
+MOVABLE_SEGMENTS = tuple(k for k in arrays.BONE_LABELS if k not in ("none", "cranium"))
+_PLAN_KEYS = ("name", "osteotomy")
+_OSTEOTOMY_KEYS = ("segment", "translation", "rotation", "pivot", "cut")
+_CUT_KEYS = ("point", "normal")
+
+
+def _vector3(value, name):
+    """Return ``value`` as 3 finite floats or raise a ValueError naming ``name``."""
+    try:
+        vec = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}") from None
+    if vec.shape != (3,) or not np.all(np.isfinite(vec)):
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    return tuple(float(v) for v in vec)
 
 
 @dataclass(frozen=True)
@@ -37,27 +91,115 @@ class Osteotomy:
         Degrees about the (horizontal, vertical, anterior-posterior) axes.
     pivot : tuple of float or None
         Patient-frame xyz in mm; ``None`` means the segment's centroid.
+    cut : tuple of (point, normal) pairs
+        Planes that cut the segment out of the bone label (see the module docstring);
+        empty means the bone label already holds the segment.
+
+    Raises
+    ------
+    ValueError
+        Unknown segment, non-finite numbers, a rotation above :data:`MAX_ROTATION_DEG`
+        or a zero-length cut normal.
+
+    Examples
+    --------
+    >>> from pvcmf.plan import Osteotomy
+    >>> o = Osteotomy("mandible", translation=(0.0, 0.0, 5.0))
+    >>> o.matrix()[:3, 3].tolist()   # 5 mm anterior = +y
+    [0.0, 5.0, 0.0]
     """
 
     segment: str
     translation: tuple = (0.0, 0.0, 0.0)
     rotation: tuple = (0.0, 0.0, 0.0)
     pivot: tuple | None = None
+    cut: tuple = ()
 
     def __post_init__(self):
-        movable = [k for k in arrays.BONE_LABELS if k not in ("none", "cranium")]
-        if self.segment not in movable:
-            raise ValueError(f"segment must be one of {movable}, got {self.segment!r}")
+        if self.segment not in MOVABLE_SEGMENTS:
+            raise ValueError(
+                f"segment must be one of {list(MOVABLE_SEGMENTS)}, got {self.segment!r}"
+            )
         for name in ("translation", "rotation"):
-            value = np.asarray(getattr(self, name), dtype=float)
-            if value.shape != (3,) or not np.all(np.isfinite(value)):
-                raise ValueError(f"{name} must be 3 finite numbers, got {getattr(self, name)!r}")
-            object.__setattr__(self, name, tuple(float(v) for v in value))
+            object.__setattr__(self, name, _vector3(getattr(self, name), name))
+        big = [r for r in self.rotation if abs(r) > MAX_ROTATION_DEG]
+        if big:
+            raise ValueError(
+                f"rotation must be within +-{MAX_ROTATION_DEG:g} degrees about each axis "
+                f"(a larger angle is almost surely a unit error: degrees are expected), "
+                f"got {self.rotation!r} for segment {self.segment!r}"
+            )
         if self.pivot is not None:
-            pivot = np.asarray(self.pivot, dtype=float)
-            if pivot.shape != (3,) or not np.all(np.isfinite(pivot)):
-                raise ValueError(f"pivot must be None or 3 finite numbers, got {self.pivot!r}")
-            object.__setattr__(self, "pivot", tuple(float(v) for v in pivot))
+            try:
+                pivot = _vector3(self.pivot, "pivot")
+            except ValueError:
+                raise ValueError(
+                    f"pivot must be None or 3 finite numbers, got {self.pivot!r}"
+                ) from None
+            object.__setattr__(self, "pivot", pivot)
+        planes = []
+        for i, plane in enumerate(self.cut):
+            try:
+                point, normal = plane
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"cut[{i}] must be a (point, normal) pair, got {plane!r}"
+                ) from None
+            point = _vector3(point, f"cut[{i}].point")
+            normal = np.asarray(_vector3(normal, f"cut[{i}].normal"))
+            length = float(np.linalg.norm(normal))
+            if length < 1e-12:
+                raise ValueError(f"cut[{i}].normal must be non-zero, got {tuple(normal)!r}")
+            planes.append((point, tuple(float(v) for v in normal / length)))
+        object.__setattr__(self, "cut", tuple(planes))
+
+    def to_dict(self):
+        """Return the osteotomy as plain Python data (the file format)."""
+        out = {"segment": self.segment, "translation": list(self.translation),
+               "rotation": list(self.rotation)}
+        if self.pivot is not None:
+            out["pivot"] = list(self.pivot)
+        if self.cut:
+            out["cut"] = [{"point": list(p), "normal": list(n)} for p, n in self.cut]
+        return out
+
+    @classmethod
+    def from_dict(cls, data, where="osteotomy"):
+        """Build an osteotomy from plain data, rejecting unknown keys."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{where} must be a table/object, got {data!r}")
+        unknown = sorted(set(data) - set(_OSTEOTOMY_KEYS))
+        if unknown:
+            raise ValueError(
+                f"{where} has unknown key(s) {unknown}; allowed keys are {list(_OSTEOTOMY_KEYS)}"
+            )
+        if "segment" not in data:
+            raise ValueError(f"{where} needs a 'segment' (one of {list(MOVABLE_SEGMENTS)})")
+        cut = data.get("cut", ())
+        if not isinstance(cut, (list, tuple)):
+            raise ValueError(f"{where}.cut must be a list of planes, got {cut!r}")
+        planes = []
+        for i, plane in enumerate(cut):
+            if not isinstance(plane, dict):
+                raise ValueError(f"{where}.cut[{i}] must be a table with point and normal")
+            unknown = sorted(set(plane) - set(_CUT_KEYS))
+            missing = sorted(set(_CUT_KEYS) - set(plane))
+            if unknown or missing:
+                raise ValueError(
+                    f"{where}.cut[{i}] must have exactly the keys {list(_CUT_KEYS)}; "
+                    f"unknown {unknown}, missing {missing}"
+                )
+            planes.append((plane["point"], plane["normal"]))
+        try:
+            return cls(
+                segment=data["segment"],
+                translation=data.get("translation", (0.0, 0.0, 0.0)),
+                rotation=data.get("rotation", (0.0, 0.0, 0.0)),
+                pivot=data.get("pivot"),
+                cut=tuple(planes),
+            )
+        except ValueError as err:
+            raise ValueError(f"{where}: {err}") from None
 
     @property
     def segment_id(self):
@@ -94,7 +236,17 @@ class Osteotomy:
 
 @dataclass(frozen=True)
 class Plan:
-    """A surgical plan: one or more osteotomies."""
+    """A surgical plan: one or more osteotomies.
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> from pvcmf.plan import Plan, TABLE_II
+    >>> path = os.path.join(tempfile.mkdtemp(), "plan.toml")
+    >>> _ = TABLE_II[1].to_file(path)
+    >>> Plan.from_file(path) == TABLE_II[1]
+    True
+    """
 
     osteotomies: tuple = field(default_factory=tuple)
     name: str = ""
@@ -107,7 +259,137 @@ class Plan:
         segments = [o.segment for o in osteotomies]
         if len(set(segments)) != len(segments):
             raise ValueError(f"each segment may move once per plan, got {segments}")
+        if not isinstance(self.name, str):
+            raise TypeError(f"name must be a str, got {type(self.name).__name__}")
         object.__setattr__(self, "osteotomies", osteotomies)
+
+    @property
+    def segments(self):
+        """Names of the moved segments, in plan order."""
+        return tuple(o.segment for o in self.osteotomies)
+
+    # ------------------------------------------------------------------ plain data
+    def to_dict(self):
+        """Return the plan as plain Python data (what the TOML/JSON files hold)."""
+        out = {"name": self.name} if self.name else {}
+        out["osteotomy"] = [o.to_dict() for o in self.osteotomies]
+        return out
+
+    @classmethod
+    def from_dict(cls, data):
+        """Build a plan from plain data, rejecting unknown keys and bad values.
+
+        Raises
+        ------
+        ValueError
+            Naming the offending key (``osteotomy[1].rotation``) and its value.
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"a plan must be a table/object, got {type(data).__name__}")
+        unknown = sorted(set(data) - set(_PLAN_KEYS))
+        if unknown:
+            raise ValueError(
+                f"plan has unknown key(s) {unknown}; allowed keys are {list(_PLAN_KEYS)}"
+            )
+        items = data.get("osteotomy", [])
+        if isinstance(items, dict):
+            items = [items]
+        if not isinstance(items, list) or not items:
+            raise ValueError(
+                f"plan needs at least one [[osteotomy]] table, got {data.get('osteotomy')!r}"
+            )
+        name = data.get("name", "")
+        if not isinstance(name, str):
+            raise ValueError(f"plan name must be a string, got {name!r}")
+        osteotomies = tuple(Osteotomy.from_dict(item, f"osteotomy[{i}]")
+                            for i, item in enumerate(items))
+        return cls(osteotomies, name=name)
+
+    # ------------------------------------------------------------------ files
+    @classmethod
+    def from_file(cls, path, format=None):
+        """Read a plan from a TOML or JSON file (format from the suffix unless given).
+
+        Raises
+        ------
+        FileNotFoundError
+            If ``path`` does not exist.
+        ValueError
+            If the file is not valid TOML/JSON or the plan is invalid; the message names
+            the file.
+        """
+        path = Path(path)
+        fmt = _format(path, format)
+        text = path.read_text(encoding="utf-8")
+        try:
+            if fmt == "json":
+                data = json.loads(text, parse_constant=_reject_constant)
+            else:
+                data = _toml_loads(text)
+        except ValueError as err:  # JSONDecodeError and TOMLDecodeError are ValueErrors
+            raise ValueError(f"{path}: not a valid {fmt.upper()} plan file: {err}") from None
+        try:
+            return cls.from_dict(data)
+        except (ValueError, TypeError) as err:
+            raise ValueError(f"{path}: {err}") from None
+
+    def to_file(self, path, format=None):
+        """Write the plan as TOML or JSON (format from the suffix unless given), atomically.
+
+        Returns
+        -------
+        pathlib.Path
+            The written file.
+        """
+        from ._atomic import write_text
+
+        path = Path(path)
+        fmt = _format(path, format)
+        text = (json.dumps(self.to_dict(), indent=2) + "\n") if fmt == "json" else _toml_dumps(
+            self.to_dict())
+        return write_text(path, text)
+
+    # ------------------------------------------------------------------ checks
+    def check_segments(self, bones):
+        """Check every segment can be found in a bone label image.
+
+        A segment without cut planes must be labelled in ``bones``'s ``bone`` array; one
+        with cut planes needs some bone inside its planes.
+
+        Parameters
+        ----------
+        bones : pyvista.ImageData
+            Label image with a point array ``bone`` (from ``segment`` or a phantom's truth).
+
+        Raises
+        ------
+        ValueError
+            Naming the missing segment and the labels the image has.
+        """
+        labels = np.asarray(arrays.require_array(bones, arrays.BONE, "point", dtype="iu",
+                                                 producer="segment"))
+        present = {arrays.BONE_NAMES.get(int(v), int(v)) for v in np.unique(labels)} - {"none"}
+        points = None
+        for o in self.osteotomies:
+            if not o.cut:
+                if o.segment_id not in labels:
+                    raise ValueError(
+                        f"plan {self.name!r} moves segment {o.segment!r} but the bone label "
+                        f"image has only {sorted(map(str, present))}; give cut planes for "
+                        f"it or a label image that has it"
+                    )
+                continue
+            if points is None:
+                points = np.asarray(bones.points)[labels > 0]
+            inside = np.ones(len(points), dtype=bool)
+            for p, n in o.cut:
+                inside &= (points - np.asarray(p)) @ np.asarray(n) >= 0
+            if not inside.any():
+                raise ValueError(
+                    f"plan {self.name!r}: the cut planes of segment {o.segment!r} contain "
+                    f"no bone of the label image"
+                )
+        return self
 
 
 #: paper 000 Table II, one plan per patient
@@ -117,3 +399,89 @@ TABLE_II = {
     3: Plan((Osteotomy("mandible", (1.07, -0.74, 5.47), (0.0, 2.71, 0.0)),), name="patient 3"),
     4: Plan((Osteotomy("mandible", (0.67, 0.61, -3.24), (0.0, 0.0, 0.0)),), name="patient 4"),
 }
+
+
+def _format(path, format):
+    fmt = format or Path(path).suffix.lower().lstrip(".")
+    if fmt not in ("toml", "json"):
+        raise ValueError(
+            f"plan file format must be 'toml' or 'json' (from the suffix or format=), "
+            f"got {fmt!r} for {str(path)!r}"
+        )
+    return fmt
+
+
+def _reject_constant(name):
+    raise ValueError(f"non-finite number {name} is not allowed in a plan")
+
+
+def _toml_loads(text):
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        try:
+            import tomli as tomllib
+        except ModuleNotFoundError:
+            raise ModuleNotFoundError(
+                "reading TOML plans on Python 3.10 needs 'tomli' (pip install tomli)"
+            ) from None
+    return tomllib.loads(text)
+
+
+def _toml_value(value):
+    if isinstance(value, str):
+        return json.dumps(value)  # a JSON string is a valid TOML basic string
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else str(value)
+    return str(value)
+
+
+def _toml_dumps(data):
+    """Serialise a plan dict (the structure of :meth:`Plan.to_dict`) as TOML."""
+    lines = [f"{k} = {_toml_value(v)}" for k, v in data.items() if k != "osteotomy"]
+    for ost in data.get("osteotomy", []):
+        lines += ["", "[[osteotomy]]"]
+        lines += [f"{k} = {_toml_value(v)}" for k, v in ost.items() if k != "cut"]
+        for plane in ost.get("cut", []):
+            lines += ["", "[[osteotomy.cut]]"]
+            lines += [f"{k} = {_toml_value(v)}" for k, v in plane.items()]
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def read_plan(path, bones=None, format=None):
+    """Read a plan file (TOML or JSON); with ``bones``, check its segments exist there.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        ``.toml`` or ``.json`` file (see the module docstring for the format).
+    bones : pyvista.ImageData, optional
+        Bone label image (point array ``bone``) the plan will be applied to.
+    format : {'toml', 'json'}, optional
+        Overrides the suffix.
+
+    Returns
+    -------
+    Plan
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> from pvcmf.plan import read_plan, write_plan, TABLE_II
+    >>> path = write_plan(TABLE_II[3], os.path.join(tempfile.mkdtemp(), "p3.json"))
+    >>> read_plan(path).osteotomies[0].segment
+    'mandible'
+    """
+    plan = Plan.from_file(path, format=format)
+    if bones is not None:
+        plan.check_segments(bones)
+    return plan
+
+
+def write_plan(plan, path, format=None):
+    """Write ``plan`` to ``path`` (TOML or JSON by suffix), atomically; return the path."""
+    if not isinstance(plan, Plan):
+        raise TypeError(f"plan must be a pvcmf.Plan, got {type(plan).__name__}")
+    return plan.to_file(path, format=format)

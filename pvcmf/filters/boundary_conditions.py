@@ -1,0 +1,288 @@
+"""Boundary conditions from the surgical plan: joint, sliding and fixed nodes (paper 000 Fig. 4).
+
+Paper 000 section III: "a sliding contact surface was defined on the teeth area ... In
+the buccal region the bone displacements were projected directly on the surrounding
+tissue points ... The most posterior plane of the volumetric soft-tissue model was
+assumed to be spatially fixed. The remaining points are considered free."
+
+:func:`apply_plan` writes the point arrays of :mod:`pvcmf.arrays`:
+
+==========  ========  =====================================================================
+code        ``bc``    nodes and prescribed values
+==========  ========  =====================================================================
+joint       2         on the soft-tissue/bone interface of a moving segment;
+                      ``bc_displacement`` = that segment's rigid displacement at the node
+sliding     3         on the teeth contact (lips against teeth); ``bc_displacement`` = the
+                      tooth's rigid displacement at the node (zero for an unmoved jaw) of
+                      which only the normal part ``bc_displacement . bc_normal`` is imposed;
+                      ``bc_normal`` = unit outward normal of the hard surface (teeth and the
+                      alveolar bone around them) at the node
+fixed       1         within ``posterior_depth`` of the most posterior plane of the model;
+                      optionally on unmoved bone (``fix_unmoved_bone``)
+free        0         everything else
+==========  ========  =====================================================================
+
+Contact is decided on the boundary nodes of the tetrahedral mesh: a node touches hard
+tissue when the nearest hard-tissue voxel centre of ``bones`` (bone or teeth) lies within
+``contact_distance``, and it takes the class of that voxel (teeth -> sliding, bone of a
+moving segment -> joint, other bone -> free or fixed). Where several apply, joint and
+sliding win over fixed (a node glued to a moving bone moves with it).
+
+Delegates to :class:`scipy.spatial.cKDTree` (nearest hard voxel), :mod:`scipy.ndimage`
+(surface voxels, the smoothed hard-tissue indicator whose gradient gives the normals, trilinear
+interpolation) and VTK's surface extraction (:meth:`pyvista.DataSet.extract_surface`).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+import numpy as np
+import pyvista as pv
+
+from .. import arrays
+from ..plan import Plan
+from .osteotomy import cut_bones, segment_transforms
+
+log = logging.getLogger(__name__)
+
+__all__ = ["apply_plan", "boundary_points"]
+
+
+def boundary_points(grid):
+    """Indices of the points of ``grid`` that lie on its outer surface.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> from pvcmf.filters.boundary_conditions import boundary_points
+    >>> grid = pv.ImageData(dimensions=(3, 3, 3)).triangulate()
+    >>> len(boundary_points(grid))   # all but the centre point
+    26
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            surf = grid.extract_surface(pass_pointid=True, algorithm=None)
+        except TypeError:  # pyvista < 0.47
+            surf = grid.extract_surface(pass_pointid=True)
+    return np.unique(np.asarray(surf.point_data["vtkOriginalPointIds"], dtype=np.int64))
+
+
+def _positive(name, value, allow_none=False):
+    if value is None and allow_none:
+        return None
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a number, got {value!r}") from None
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return value
+
+
+def _surface_normals(bones, hard_mask, points, nearest, sigma):
+    """Unit outward normals of the hard-tissue surface (teeth and bone) at ``points``.
+
+    The gradient of the Gaussian-smoothed hard-tissue indicator, on a crop around the
+    points, interpolated trilinearly; where it vanishes, the direction from the nearest
+    hard voxel centre ``nearest`` to the point. Teeth and the alveolar bone around them
+    form one surface, so the normal of a thin tooth is not tilted by its own back face.
+    """
+    from scipy import ndimage
+
+    dims = np.asarray(bones.dimensions)
+    spacing = np.asarray(bones.spacing, dtype=float)
+    origin = np.asarray(bones.origin, dtype=float)
+    vol = hard_mask.reshape(tuple(dims), order="F")
+    ijk = (points - origin) / spacing
+    pad = int(np.ceil(4 * sigma)) + 2
+    lo = np.clip(np.floor(ijk.min(axis=0)).astype(int) - pad, 0, dims - 1)
+    hi = np.clip(np.ceil(ijk.max(axis=0)).astype(int) + pad + 1, 1, dims)
+    crop = vol[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.float64)
+    smooth = ndimage.gaussian_filter(crop, sigma, mode="nearest") if sigma > 0 else crop
+    grads = np.gradient(smooth, *spacing) if min(crop.shape) > 1 else [np.zeros_like(crop)] * 3
+    coords = (ijk - lo).T
+    normal = -np.stack([ndimage.map_coordinates(g, coords, order=1, mode="nearest")
+                        for g in grads], axis=1)
+    fallback = points - nearest
+    length = np.linalg.norm(normal, axis=1)
+    weak = length < 1e-6 * max(float(np.abs(normal).max(initial=0.0)), 1e-300)
+    normal[weak] = fallback[weak]
+    length = np.linalg.norm(normal, axis=1)
+    length[length == 0] = 1.0
+    return normal / length[:, None]
+
+
+def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_posterior=True,
+               posterior_depth=2.0, fix_unmoved_bone=False, contact_distance=None,
+               normal_sigma=1.0, progress_bar=False):
+    """Turn a surgical plan into the soft-tissue mesh's boundary conditions.
+
+    Parameters
+    ----------
+    grid : pyvista.UnstructuredGrid
+        Soft-tissue tetrahedral mesh in the patient frame (mm), as from
+        :func:`pvcmf.filters.tetrahedralize`.
+    plan : pvcmf.Plan
+        The surgical plan.
+    bones : pyvista.ImageData
+        The label image the mesh was made from, with point arrays ``bone`` (segment ids)
+        and ``tissue`` (teeth = ``arrays.TEETH``). Cut planes of the plan are applied to it
+        (:func:`pvcmf.filters.cut_bones`). Required.
+    joint : bool, default True
+        Paper 000: soft tissue on a moving bone moves with it (Fig. 4b).
+    sliding : bool, default True
+        Paper 000: nodes touching the teeth slide on them (Fig. 4a). With ``False`` they
+        are treated like bone of their segment.
+    fixed_posterior : bool, default True
+        Paper 000: fix the most posterior plane of the model (Fig. 4c).
+    posterior_depth : float, default 2.0
+        Nodes with ``y <= min(y) + posterior_depth`` (mm) form that plane.
+    fix_unmoved_bone : bool, default False
+        Also fix the soft tissue that touches bone which does not move (not in the paper;
+        useful for a whole-head model, where nothing else holds the scalp).
+    contact_distance : float, optional
+        A boundary node touches hard tissue when the nearest hard-tissue voxel centre is
+        within this distance (mm). Default: the largest voxel spacing of ``bones``.
+    normal_sigma : float, default 1.0
+        Gaussian sigma (voxels) smoothing the hard-tissue indicator whose gradient gives
+        the sliding normals.
+    progress_bar : bool, default False
+        Unused (the step is sub-second); accepted for a uniform pipeline signature.
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+        A copy of ``grid`` with point arrays ``bc`` (int8), ``bc_displacement`` (mm) and
+        ``bc_normal`` (unit, zero where not sliding).
+
+    Raises
+    ------
+    TypeError
+        If ``grid``, ``plan`` or ``bones`` have the wrong type.
+    ValueError
+        If ``bones`` is missing or lacks ``bone``/``tissue``, a planned segment is not in
+        it, an option is out of range, or a moved segment touches no node of the mesh
+        (the plan would move nothing).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> from pvcmf.plan import Plan, Osteotomy
+    >>> from pvcmf.filters import apply_plan
+    >>> img = pv.ImageData(dimensions=(11, 11, 11), origin=(-5, -5, -5))
+    >>> inner = (np.abs(img.points) <= 2).all(axis=1)
+    >>> img[arrays.BONE] = np.where(inner, arrays.MANDIBLE, 0).astype(np.uint8)
+    >>> img[arrays.TISSUE] = np.where(inner, arrays.BONE_TISSUE, arrays.FAT).astype(np.uint8)
+    >>> soft = ~(np.abs(img.cell_centers().points) < 2).all(axis=1)
+    >>> shell = img.extract_cells(np.flatnonzero(soft)).triangulate()
+    >>> grid = apply_plan(shell, Plan((Osteotomy("mandible", (0, 0, 1.0)),)), img)
+    >>> sorted(set(np.unique(grid[arrays.BC]).tolist()))
+    [0, 1, 2]
+    >>> grid[arrays.BC_DISPLACEMENT][grid[arrays.BC] == arrays.BC_JOINT][0].tolist()
+    [0.0, 1.0, 0.0]
+    """
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    if not isinstance(grid, pv.UnstructuredGrid):
+        raise TypeError(f"grid must be a pyvista.UnstructuredGrid, got {type(grid).__name__}")
+    if not isinstance(plan, Plan):
+        raise TypeError(f"plan must be a pvcmf.Plan, got {type(plan).__name__}")
+    if bones is None:
+        raise ValueError(
+            "bones must be the label image with 'bone' and 'tissue' point arrays that the "
+            "mesh was made from (e.g. ct.cmf.segment() or a phantom's truth), got None"
+        )
+    if not isinstance(bones, pv.ImageData):
+        raise TypeError(f"bones must be a pyvista.ImageData, got {type(bones).__name__}")
+    if grid.n_points == 0:
+        raise ValueError("grid must have points, got an empty mesh")
+    arrays.require_array(bones, arrays.BONE, "point", dtype="iu", ncomp=1, producer="segment")
+    tissue = np.asarray(arrays.require_array(bones, arrays.TISSUE, "point", dtype="iu",
+                                             ncomp=1, producer="segment"))
+    posterior_depth = _positive("posterior_depth", posterior_depth)
+    spacing = np.asarray(bones.spacing, dtype=float)
+    contact = _positive("contact_distance", contact_distance, allow_none=True)
+    if contact is None:
+        contact = float(spacing.max())
+    if not np.isfinite(normal_sigma) or normal_sigma < 0:
+        raise ValueError(f"normal_sigma must be a finite number >= 0, got {normal_sigma!r}")
+
+    labels = cut_bones(bones, plan)
+    transforms = segment_transforms(labels, plan)
+    bone = np.asarray(labels[arrays.BONE])
+    points = np.asarray(grid.points, dtype=np.float64)
+    n = len(points)
+    code = np.full(n, arrays.BC_FREE, dtype=np.int8)
+    disp = np.zeros((n, 3))
+    normal = np.zeros((n, 3))
+
+    # hard tissue: bone or teeth voxels; only their surface layer can be nearest to tissue
+    hard = (bone > 0) | np.isin(tissue, arrays.HARD_LABELS)
+    dims = tuple(bones.dimensions)
+    vol = hard.reshape(dims, order="F")
+    surface = vol & ~ndimage.binary_erosion(vol, border_value=0)
+    surf_ids = np.flatnonzero(surface.ravel(order="F"))
+    if len(surf_ids) == 0:
+        raise ValueError("bones has no bone or teeth voxels ('bone' > 0 or hard 'tissue')")
+    vox = np.asarray(labels.points)[surf_ids]
+
+    nodes = boundary_points(grid)
+    dist, near = cKDTree(vox).query(points[nodes],
+                                        distance_upper_bound=contact * (1 + 1e-9))
+    touching = np.isfinite(dist)
+    nodes, near = nodes[touching], near[touching]
+    near_ids = surf_ids[near]
+    seg = bone[near_ids]
+    is_teeth = tissue[near_ids] == arrays.TEETH
+    moved = np.isin(seg, list(transforms))
+
+    def rigid(idx, segs):
+        out = np.zeros((len(idx), 3))
+        for s, m in transforms.items():
+            sel = segs == s
+            p = points[idx[sel]]
+            out[sel] = p @ m[:3, :3].T + m[:3, 3] - p
+        return out
+
+    if fix_unmoved_bone:
+        code[nodes[~moved & ~(is_teeth & sliding)]] = arrays.BC_FIXED
+    if fixed_posterior:
+        y = points[:, 1]
+        back = y <= y.min() + posterior_depth
+        code[back & (code == arrays.BC_FREE)] = arrays.BC_FIXED
+    if joint:
+        sel = moved & ~(is_teeth & sliding)
+        code[nodes[sel]] = arrays.BC_JOINT
+        disp[nodes[sel]] = rigid(nodes[sel], seg[sel])
+    elif not sliding:
+        pass
+    if sliding and is_teeth.any():
+        sel = is_teeth
+        idx = nodes[sel]
+        code[idx] = arrays.BC_SLIDING
+        disp[idx] = rigid(idx, seg[sel])
+        normal[idx] = _surface_normals(labels, hard, points[idx], vox[near[sel]],
+                                       normal_sigma)
+
+    if joint or sliding:
+        for s in transforms:
+            if not np.any(seg == s):
+                raise ValueError(
+                    f"the plan moves {arrays.BONE_NAMES[s]!r} but no mesh node lies within "
+                    f"contact_distance={contact:g} mm of it: is the mesh in the same frame as "
+                    f"bones, or should contact_distance be larger?"
+                )
+
+    counts = {k: int(np.sum(code == v)) for k, v in arrays.BC_CODES.items()}
+    log.info("apply_plan: %s (contact %.2f mm, %d boundary nodes touch hard tissue)",
+             counts, contact, len(nodes))
+    out = grid.copy()
+    out.point_data[arrays.BC] = code
+    out.point_data[arrays.BC_DISPLACEMENT] = disp
+    out.point_data[arrays.BC_NORMAL] = normal
+    return out
