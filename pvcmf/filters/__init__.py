@@ -5,7 +5,7 @@ One module per step of the papers, named after what it does:
 ========================  ==========================  =====================================
 filter                    module                      paper step
 ========================  ==========================  =====================================
-segment                   ``segment``                 000 sec. II: skin/skull/soft tissue
+segment                   ``segmentation``            000 sec. II: skin/skull/soft tissue
 classify_tissue           ``classify``                001 Fig. 1: per-slice GMM + EM, median
 embed_muscles             ``muscles``                 000 sec. II: atlas + TPS, Fig. 2b
 fiber_directions          ``fibers``                  000 Fig. 3: OBB fibre directions
@@ -30,7 +30,8 @@ from __future__ import annotations
 import importlib
 
 _REGISTRY = {
-    "segment": "segment",
+    "segment": "segmentation",  # not "segment": importing a submodule named like
+    # its filter would shadow the filter with the module on the package
     "classify_tissue": "classify",
     "embed_muscles": "muscles",
     "fiber_directions": "fibers",
