@@ -1,0 +1,390 @@
+"""Parameter sweeps (pvcmf.sweeps) on Dask and paper 001's Figs. 2-5 (pvcmf.figures.parameter_studies).
+
+The engine is tested with the cheap deterministic ``synthetic_evaluate`` (pure numpy), so
+these tests do not depend on the pipeline. Cluster tests run a real Dask scheduler with two
+worker processes over loopback; a watchdog (faulthandler) ends the run instead of hanging CI.
+"""
+
+from __future__ import annotations
+
+import faulthandler
+import os
+import signal
+import sys
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pd = pytest.importorskip("pandas")
+distributed = pytest.importorskip("distributed")
+
+import pvcmf  # noqa: E402
+from pvcmf import sweeps  # noqa: E402
+from pvcmf.figures import parameter_studies as ps  # noqa: E402
+from pvcmf.sweeps import synthetic_evaluate, synthetic_skin  # noqa: E402
+
+# functions and classes of this module travel to worker processes by value
+import cloudpickle  # noqa: E402
+
+cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+METRIC_COLS = ["case", "nu", "n_tets", "p50", "p90", "p95", "mean_abs", "rms", "within_1mm",
+               "within_2mm", "n_skin", "n_cells"]
+GRID = {"n_tets": [8000, 30000], "nu": [0.0, 0.3, 0.46, 0.49]}
+
+
+class CountingEvaluation(sweeps.Evaluation):
+    """Synthetic evaluation that records every prepare/evaluate call as a file."""
+
+    def __init__(self, folder):
+        self.folder = str(folder)
+
+    def identity(self):
+        return {"name": "counting", "version": 1}
+
+    def _mark(self, kind):
+        Path(self.folder, f"{kind}-{uuid.uuid4().hex}").touch()
+
+    def prepare(self, case, **group):
+        self._mark("prepare")
+        return case, group
+
+    def evaluate(self, state, **params):
+        self._mark("evaluate")
+        case, group = state
+        return synthetic_evaluate(case, **group, **params)
+
+
+def count(folder, kind):
+    return len(list(Path(folder).glob(f"{kind}-*")))
+
+
+class KillOnce:
+    """Kill the worker process the first time case ``victim`` is evaluated (marker file)."""
+
+    def __init__(self, folder, victim=2):
+        self.folder, self.victim = str(folder), victim
+
+    def identity(self):
+        return {"name": "kill-once", "version": 1}
+
+    def __call__(self, case, **params):
+        marker = Path(self.folder, "killed")
+        if case == self.victim and not marker.exists():
+            marker.touch()
+            os.kill(os.getpid(), signal.SIGKILL)
+        Path(self.folder, f"evaluate-{uuid.uuid4().hex}").touch()
+        return synthetic_evaluate(case, **params)
+
+
+@pytest.fixture()
+def watchdog():
+    """Dump tracebacks and exit if a cluster test hangs (no pytest-timeout needed)."""
+    faulthandler.dump_traceback_later(240, exit=True)
+    yield
+    faulthandler.cancel_dump_traceback_later()
+
+
+@pytest.fixture(scope="module")
+def client():
+    """A real Dask scheduler with two single-threaded worker processes over loopback."""
+    faulthandler.dump_traceback_later(240, exit=True)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None, memory_limit="1GiB",
+                                  host="127.0.0.1") as cluster:
+        with distributed.Client(cluster, timeout="60s") as c:
+            faulthandler.cancel_dump_traceback_later()
+            yield c
+
+
+@pytest.fixture(scope="module")
+def local_table():
+    return pvcmf.sweep([1, 2, 3], GRID, evaluate=synthetic_evaluate, scheduler="synchronous")
+
+
+# --------------------------------------------------------------------------- grid validation
+
+
+@pytest.mark.parametrize("grid, words", [
+    ({"nu": [0.2, 0.5]}, ["'nu'", "[0, 0.5)", "0.5"]),
+    ({"nu": [0.499, 0.6]}, ["'nu'", "0.6"]),
+    ({"nu": [-0.1]}, ["'nu'", "-0.1"]),
+    ({"nu_fat": [0.3], "nu_muscle": [0.51]}, ["'nu_muscle'", "0.51"]),
+    ({"E_ratio": [1, 0]}, ["'E_ratio'", "> 0", "0"]),
+    ({"E_ratio": [-4]}, ["'E_ratio'", "-4"]),
+    ({"E_fat": [float("nan")]}, ["'E_fat'", "nan"]),
+    ({"nu": []}, ["'nu'", "empty"]),
+    ({"n_tets": [0]}, ["'n_tets'", "positive integers"]),
+    ({"n_tets": [30000.5]}, ["'n_tets'"]),
+    ({"poisson": [0.3]}, ["unknown parameter 'poisson'", "nu"]),
+    ({}, ["at least one parameter"]),
+    ({"nu": [0.3, 0.3]}, ["duplicated"]),
+    ({"nu": [0.3], "nu_fat": [0.4]}, ["either"]),
+])
+def test_invalid_grid_refused_before_anything_runs(tmp_path, grid, words):
+    evaluation = CountingEvaluation(tmp_path)
+    with pytest.raises(ValueError) as info:
+        # a bad address would fail too if anything tried to start: validation comes first
+        pvcmf.sweep([1, 2], grid, evaluate=evaluation, scheduler="tcp://127.0.0.1:9",
+                    cache_dir=tmp_path / "cache")
+    for word in words:
+        assert word in str(info.value)
+    assert count(tmp_path, "prepare") == count(tmp_path, "evaluate") == 0
+    assert not (tmp_path / "cache").exists()
+
+
+def test_bad_cases_and_scheduler_refused(tmp_path):
+    with pytest.raises(ValueError, match="at least one case"):
+        pvcmf.sweep([], {"nu": [0.3]}, evaluate=synthetic_evaluate, scheduler="synchronous")
+    with pytest.raises(ValueError, match="distinct"):
+        pvcmf.sweep([1, 1], {"nu": [0.3]}, evaluate=synthetic_evaluate, scheduler="synchronous")
+    with pytest.raises(ValueError, match="scheduler must be"):
+        pvcmf.sweep([1], {"nu": [0.3]}, evaluate=synthetic_evaluate, scheduler="gpu-cluster")
+    with pytest.raises(TypeError, match="scheduler"):
+        pvcmf.sweep([1], {"nu": [0.3]}, evaluate=synthetic_evaluate, scheduler=42)
+
+
+def test_validate_grid_normalises():
+    assert sweeps.validate_grid({"nu": np.array([0.1, 0.2]), "n_tets": 30000, "roi": [None, 20]}) == {
+        "nu": (0.1, 0.2), "n_tets": (30000,), "roi": (None, 20.0)}
+
+
+# --------------------------------------------------------------------------- table, grouping
+
+
+def test_table_is_tidy_and_in_grid_order(local_table):
+    df = local_table
+    assert len(df) == 3 * 2 * 4
+    assert list(df.columns[:3]) == ["case", "n_tets", "nu"]
+    assert df[["case", "n_tets", "nu"]].drop_duplicates().shape[0] == len(df)
+    assert df["case"].tolist()[:8] == ["P1"] * 8
+    assert df["nu"].tolist()[:4] == GRID["nu"]
+    for col in ("p50", "p90", "p95", "within_1mm", "within_2mm", "t_prepare", "t_eval"):
+        assert col in df
+    assert (df["p50"] <= df["p90"]).all() and (df["p90"] <= df["p95"]).all()
+    assert not df["cached"].any()
+    # each row equals a direct evaluation of its point (nothing mixed up between points)
+    row = df[(df["case"] == "P2") & (df["n_tets"] == 8000) & (df["nu"] == 0.3)].iloc[0]
+    direct = synthetic_evaluate(2, n_tets=8000, nu=0.3)
+    assert row["p90"] == direct["p90"] and row["within_2mm"] == direct["within_2mm"]
+
+
+def test_one_prepare_per_case_and_mesh(tmp_path):
+    """Each task prepares its case's mesh once and loops over the solve-level values."""
+    pvcmf.sweep([1, 2], {"nu": [0.1, 0.2, 0.3], "E_ratio": [1, 4], "n_tets": [5000, 9000]},
+                evaluate=CountingEvaluation(tmp_path), scheduler="synchronous")
+    assert count(tmp_path, "prepare") == 2 * 2
+    assert count(tmp_path, "evaluate") == 2 * 2 * 3 * 2
+
+
+def test_error_statistics_known_distribution():
+    d = np.linspace(-3.0, 3.0, 60001)  # |d| uniform on [0, 3]
+    s = sweeps.error_statistics(d)
+    np.testing.assert_allclose([s["p50"], s["p90"], s["p95"]], [1.5, 2.7, 2.85], atol=1e-3)
+    assert s["within_1mm"] == pytest.approx(100 / 3, abs=0.01)
+    assert s["within_2mm"] == pytest.approx(200 / 3, abs=0.01)
+    assert s["rms"] == pytest.approx(np.sqrt(3.0), rel=1e-4)
+    with pytest.raises(ValueError, match="finite"):
+        sweeps.error_statistics([np.nan])
+
+
+# --------------------------------------------------------------------------- cache
+
+
+def test_cached_rerun_computes_nothing(tmp_path):
+    marks, cache = tmp_path / "marks", tmp_path / "cache"
+    marks.mkdir()
+    evaluation = CountingEvaluation(marks)
+    grid = {"nu": [0.2, 0.46], "n_tets": [9000]}
+    first = pvcmf.sweep([1, 2], grid, evaluate=evaluation, scheduler="synchronous", cache_dir=cache)
+    assert count(marks, "evaluate") == 4 and count(marks, "prepare") == 2
+    again = pvcmf.sweep([1, 2], grid, evaluate=evaluation, scheduler="synchronous", cache_dir=cache)
+    assert count(marks, "evaluate") == 4 and count(marks, "prepare") == 2  # nothing recomputed
+    assert again["cached"].all() and again.attrs["n_computed"] == 0
+    pd.testing.assert_frame_equal(first[METRIC_COLS], again[METRIC_COLS])
+    # one more value: only its points are computed
+    pvcmf.sweep([1, 2], {**grid, "nu": [0.2, 0.46, 0.49]}, evaluate=evaluation,
+                scheduler="synchronous", cache_dir=cache)
+    assert count(marks, "evaluate") == 6
+    # another code version recomputes
+    pvcmf.sweep([1, 2], grid, evaluate=evaluation, scheduler="synchronous", cache_dir=cache,
+                version="other")
+    assert count(marks, "evaluate") == 10
+
+
+def test_corrupt_cache_entry_is_recomputed(tmp_path):
+    cache = tmp_path / "cache"
+    pvcmf.sweep(1, {"nu": [0.3]}, evaluate=synthetic_evaluate, scheduler="synchronous", cache_dir=cache)
+    (entry,) = cache.rglob("*.npz")
+    entry.write_bytes(b"not a npz")
+    df = pvcmf.sweep(1, {"nu": [0.3]}, evaluate=synthetic_evaluate, scheduler="synchronous",
+                     cache_dir=cache)
+    assert not df["cached"].any()
+    assert df["p90"].iloc[0] == synthetic_evaluate(1, nu=0.3)["p90"]
+
+
+def test_arrays_round_trip_through_cache(tmp_path):
+    kw = dict(evaluate=synthetic_evaluate, scheduler="synchronous", cache_dir=tmp_path, keep_arrays=True)
+    a = pvcmf.sweep(1, {"nu": [0.1, 0.4]}, **kw)
+    b = pvcmf.sweep(1, {"nu": [0.1, 0.4]}, **kw)
+    assert b["cached"].all()
+    for x, y in zip(a["distance"], b["distance"]):
+        np.testing.assert_array_equal(x, y)
+
+
+# --------------------------------------------------------------------------- Dask
+
+
+def test_cluster_gives_the_local_table(client, local_table, tmp_path, watchdog):
+    df = pvcmf.sweep([1, 2, 3], GRID, evaluate=synthetic_evaluate, scheduler=client)
+    pd.testing.assert_frame_equal(df[METRIC_COLS], local_table[METRIC_COLS])
+    assert df.attrs["n_tasks"] == 3 * 2
+    # the same through the scheduler's address, as a remote cluster is given
+    df2 = pvcmf.sweep([1, 2, 3], GRID, evaluate=synthetic_evaluate, scheduler=client.scheduler.address)
+    pd.testing.assert_frame_equal(df2[METRIC_COLS], local_table[METRIC_COLS])
+
+
+def test_killed_worker_is_retried_and_nothing_lost(client, local_table, tmp_path, watchdog):
+    cache = tmp_path / "cache"
+    df = pvcmf.sweep([1, 2, 3], GRID, evaluate=KillOnce(tmp_path), scheduler=client, cache_dir=cache,
+                     retries=2)
+    assert (tmp_path / "killed").exists()  # a worker really died mid-sweep
+    pd.testing.assert_frame_equal(df[METRIC_COLS], local_table[METRIC_COLS])
+    n = count(tmp_path, "evaluate")
+    assert n >= len(df)
+    again = pvcmf.sweep([1, 2, 3], GRID, evaluate=KillOnce(tmp_path), scheduler=client, cache_dir=cache)
+    assert again["cached"].all() and count(tmp_path, "evaluate") == n  # computes nothing
+    client.wait_for_workers(2, timeout=60)
+
+
+def test_failing_task_reports_case_and_keeps_finished_results(client, tmp_path, watchdog):
+    def fragile(case, **params):
+        if case == 3:
+            raise FloatingPointError("diverged")
+        return synthetic_evaluate(case, **params)
+
+    cache = tmp_path / "cache"
+    with pytest.raises(RuntimeError, match="'P3'.*FloatingPointError: diverged"):
+        pvcmf.sweep([1, 2, 3], {"nu": [0.3]}, evaluate=fragile, scheduler=client, cache_dir=cache,
+                    retries=1)
+    assert len(list(cache.rglob("*.npz"))) <= 2
+
+
+# --------------------------------------------------------------------------- saving, CLI
+
+
+def test_save_and_load_csv(local_table, tmp_path):
+    path = sweeps.save_table(local_table, tmp_path / "out" / "table.csv")
+    back = sweeps.load_table(path)
+    pd.testing.assert_frame_equal(back[METRIC_COLS], local_table[METRIC_COLS], check_dtype=False)
+    with pytest.raises(ValueError, match=r"\.csv or \.parquet"):
+        sweeps.save_table(local_table, tmp_path / "table.xlsx")
+
+
+def test_save_parquet_with_arrays(tmp_path):
+    pytest.importorskip("pyarrow")
+    df = pvcmf.sweep(1, {"nu": [0.1, 0.4]}, evaluate=synthetic_evaluate, scheduler="synchronous",
+                     keep_arrays=True)
+    back = sweeps.load_table(sweeps.save_table(df, tmp_path / "t.parquet"))
+    np.testing.assert_allclose(np.asarray(back["distance"].iloc[1]), df["distance"].iloc[1])
+
+
+def test_parse_grid_and_cli(tmp_path, monkeypatch):
+    assert sweeps.parse_grid(["nu=0:0.495:4", "E_ratio=1,64", "roi=none,20"]) == {
+        "nu": (0.0, 0.165, 0.33, 0.495), "E_ratio": (1.0, 64.0), "roi": (None, 20.0)}
+    with pytest.raises(ValueError, match="'nu'"):
+        sweeps.parse_grid(["nu=0:0.5:3"])
+    with pytest.raises(ValueError, match="NAME=V1"):
+        sweeps.parse_grid(["nu"])
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="pvcmf")
+    sweeps.add_sweep_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["sweep", "--patients", "1", "2", "--grid", "nu=0.3,0.46",
+                              "--out", str(tmp_path / "t.csv"), "--scheduler", "synchronous",
+                              "--synthetic", "--no-progress"])
+    path, df = args.func(args)
+    assert path.exists() and len(sweeps.load_table(path)) == 4
+
+
+# --------------------------------------------------------------------------- figures
+
+
+NUS = [0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.43, 0.45, 0.46, 0.47, 0.48, 0.49, 0.495]
+
+
+@pytest.fixture(scope="module")
+def poisson_table():
+    return pvcmf.sweep([1, 2, 3, 4], {"nu": NUS}, evaluate=synthetic_evaluate,
+                       scheduler="synchronous", keep_arrays=True)
+
+
+def test_poisson_optimum_matches_table(poisson_table):
+    opt = ps.poisson_optimum(poisson_table)
+    for case in ("P1", "P2", "P3", "P4"):
+        sub = poisson_table[poisson_table["case"] == case]
+        assert opt.loc[case, "nu_opt"] == sub.loc[sub["p90"].idxmin(), "nu"]
+        assert opt.loc[case, "d_046"] >= 0
+    mean = poisson_table.groupby("nu")["p90"].mean()
+    assert opt.loc["average", "nu_opt"] == mean.idxmin()
+
+
+def test_fig2_poisson(poisson_table, verify_chart):
+    verify_chart(ps.fig2_poisson(poisson_table))
+
+
+def _mesh_table():
+    df = pvcmf.sweep([1, 2, 4], {"n_tets": [2000, 5000, 10000, 20000, 30000, 60000, 120000, 240000]},
+                     evaluate=synthetic_evaluate, scheduler="synchronous")
+    df["t_eval"] = df["n_cells"] * 7e-5 * (1 + 0.1 * df["case"].str[1:].astype(int))  # deterministic
+    return df
+
+
+def test_mesh_size_table():
+    df = _mesh_table()
+    table = ps.mesh_size_table(df)
+    assert list(table.index) == ["P1", "P2", "P4", "Average"]
+    assert (table.loc[["P1", "P2", "P4"], "N_tetra"] == 30000).all()
+    p1 = df[df["case"] == "P1"].set_index("n_tets")
+    assert table.loc["P1", "D90"] == pytest.approx(p1.loc[30000, "p90"] - p1.loc[240000, "p90"])
+    assert table.loc["Average", "D90"] == pytest.approx(table["D90"].iloc[:3].abs().mean())
+
+
+def test_fig3_mesh_size(verify_chart):
+    verify_chart(ps.fig3_mesh_size(_mesh_table()))
+
+
+def test_fig4_inhomogeneous(verify_chart):
+    g = [0.0, 0.1, 0.2, 0.3, 0.4, 0.43, 0.46, 0.485, 0.495]
+    df = pvcmf.sweep([1, 2], {"E_ratio": [1, 4, 16, 64], "nu_fat": g, "nu_muscle": g},
+                     evaluate=synthetic_evaluate, scheduler="synchronous")
+    table = ps.inhomogeneous_table(df, case="P2")
+    sub = df[(df["case"] == "P2") & (df["E_ratio"] == 4.0)]
+    assert table.loc[4.0, "p90_max"] == sub["p90"].max()
+    assert table.loc[4.0, "p50_min"] == sub["p50"].min()
+    verify_chart(ps.fig4_inhomogeneous(df))
+
+
+def test_optimal_poisson_per_point(poisson_table):
+    skin = synthetic_skin()
+    face = ps.optimal_poisson(poisson_table, skin, case="P1", neighbours=1)
+    maps = np.stack(list(poisson_table[poisson_table["case"] == "P1"]["distance"]))
+    i = 123
+    assert face["nu_opt"][i] == NUS[int(np.argmin(np.abs(maps[:, i])))]
+    assert face["p90_spread"][i] == pytest.approx(np.abs(maps[:, i]).std())
+    with pytest.raises(ValueError, match="points"):
+        ps.optimal_poisson(poisson_table, synthetic_skin(500))
+
+
+def test_fig5_optimal_poisson(poisson_table, verify_image_cache):
+    pl = ps.fig5_optimal_poisson(poisson_table, synthetic_skin(), case="P2")
+    pl.show()
+
+
+def test_figures_refuse_tables_without_their_columns(local_table):
+    with pytest.raises(ValueError, match="E_ratio"):
+        ps.fig4_inhomogeneous(local_table)
+    with pytest.raises(TypeError, match="DataFrame"):
+        ps.fig2_poisson({"nu": [0.3]})
