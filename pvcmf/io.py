@@ -1,0 +1,439 @@
+"""Read CT volumes from disk into :class:`pyvista.ImageData` with a float32 ``ct`` array.
+
+:func:`read_ct` reads
+
+* a **DICOM series** (a folder of slice files) with pydicom: slices sorted along the slice
+  normal, RescaleSlope/RescaleIntercept applied (so a CT comes out in HU), geometry from
+  ImagePositionPatient / ImageOrientationPatient / PixelSpacing. (VTK's
+  ``vtkDICOMImageReader`` behind ``pyvista.DICOMReader`` flips the rows and can reverse the
+  slice order without saying so, so it is not used.)
+* **NIfTI** (``.nii``, ``.nii.gz``) with VTK's ``vtkNIFTIImageReader``; the sform (or qform)
+  matrix gives origin and orientation, ``scl_slope``/``scl_inter`` are applied.
+* **MetaImage** (``.mha``, ``.mhd``) with VTK's ``vtkMetaImageReader`` (Offset,
+  ElementSpacing and TransformMatrix honoured).
+* **VTK ImageData** (``.vti``) with ``pyvista.read`` (origin, spacing, direction).
+* **NRRD** (``.nrrd``, ``.nhdr``) with a small numpy reader of the NRRD header (raw, gzip,
+  bzip2 and ascii encodings; single, ``LIST`` and ``%d``-pattern data files; ``space
+  directions``/``space origin`` or ``spacings``). VTK's ``vtkNrrdReader`` is not used: in
+  VTK 9.7 it reads a 3-D volume whose first axis is short (e.g. 6 voxels) as a 2-D image with
+  vector components and crashes on some multi-file headers.
+
+Geometry and orientation
+------------------------
+No resampling and no axis flips are done: the returned image keeps the file's voxel order,
+its origin, spacing and orientation (as the ImageData's ``direction_matrix``) in the
+**file's own world frame**: LPS for DICOM, MetaImage and NRRD written by ITK/Slicer, RAS for
+NIfTI. Index axis 2 is the slice axis (axial for an axial scan), which is what the per-slice
+steps of :mod:`pvcmf.filters.classify` use.
+
+Values
+------
+``ct = scale * value + offset``, where ``value`` already includes the file's own rescale
+(DICOM RescaleSlope/Intercept, NIfTI scl_slope/scl_inter). Use ``offset``/``scale`` for
+scanner units that are not HU (e.g. :func:`pvcmf.datasets.headsq`).
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+import logging
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+
+from . import arrays
+
+log = logging.getLogger(__name__)
+
+#: suffixes read_ct understands, and what reads them
+SUPPORTED = {
+    ".nii": "NIfTI (vtkNIFTIImageReader)",
+    ".nii.gz": "NIfTI (vtkNIFTIImageReader)",
+    ".nrrd": "NRRD (numpy reader)",
+    ".nhdr": "NRRD detached header (numpy reader)",
+    ".mha": "MetaImage (vtkMetaImageReader)",
+    ".mhd": "MetaImage (vtkMetaImageReader)",
+    ".vti": "VTK ImageData (pyvista.read)",
+}
+_FORMATS = "a DICOM series folder, " + ", ".join(SUPPORTED)
+
+
+def read_ct(path, *, offset=0.0, scale=1.0):
+    """Read a CT volume as ImageData with a float32 point array ``ct``.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        A folder holding one DICOM series, or a ``.nii``, ``.nii.gz``, ``.nrrd``, ``.nhdr``,
+        ``.mha``, ``.mhd`` or ``.vti`` file.
+    offset, scale : float
+        Linear map to Hounsfield units: ``ct = scale * value + offset``. The defaults keep
+        the file's values (DICOM and NIfTI rescale slopes are applied before).
+
+    Returns
+    -------
+    pyvista.ImageData
+        Origin, spacing and orientation (``direction_matrix``) of the file, in the file's
+        world frame (see the module notes); one point array ``ct`` (float32).
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    ValueError
+        For an unsupported format, a corrupt or truncated file, a folder without a readable
+        DICOM series, a volume that is not 3-D scalar, or a bad ``offset``/``scale``.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv, pvcmf, tempfile, os
+    >>> img = pv.ImageData(dimensions=(8, 8, 4), spacing=(0.5, 0.5, 2.0))
+    >>> img["values"] = np.arange(img.n_points, dtype=np.int16)
+    >>> path = os.path.join(tempfile.mkdtemp(), "ct.vti")
+    >>> img.save(path)
+    >>> ct = pvcmf.read_ct(path, offset=-1000.0)
+    >>> ct["ct"].dtype, float(ct["ct"][0]), ct.spacing
+    (dtype('float32'), -1000.0, (0.5, 0.5, 2.0))
+    """
+    offset = _finite(offset, "offset")
+    scale = _finite(scale, "scale")
+    if scale == 0.0:
+        raise ValueError("scale must be non-zero, got 0.0")
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise FileNotFoundError(f"read_ct: {str(path)!r} does not exist (expected {_FORMATS})")
+    if path.is_dir():
+        image, values = _read_dicom_series(path)
+    else:
+        name = path.name.lower()
+        suffix = ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
+        if suffix not in SUPPORTED:
+            raise ValueError(
+                f"read_ct: unsupported file {str(path)!r} (suffix {suffix!r}); "
+                f"expected {_FORMATS}"
+            )
+        reader = {
+            ".nii": _read_nifti,
+            ".nii.gz": _read_nifti,
+            ".nrrd": _read_nrrd,
+            ".nhdr": _read_nrrd,
+            ".mha": _read_metaimage,
+            ".mhd": _read_metaimage,
+            ".vti": _read_vti,
+        }[suffix]
+        try:
+            image, values = reader(path)
+        except (ValueError, FileNotFoundError):
+            raise
+        except Exception as err:  # VTK execution errors, decoding errors, short reads...
+            raise ValueError(
+                f"read_ct: cannot read {str(path)!r} as {SUPPORTED[suffix]}: "
+                f"corrupt or unreadable file ({type(err).__name__}: {err})"
+            ) from err
+    values = np.asarray(values)
+    if values.ndim != 1 or values.size != image.n_points:
+        raise ValueError(
+            f"read_ct: {str(path)!r} holds {values.shape} values for a "
+            f"{image.dimensions} grid: expected one scalar per voxel"
+        )
+    if values.dtype.kind not in "biuf":
+        raise ValueError(f"read_ct: {str(path)!r} has non-numeric voxels ({values.dtype})")
+    ct = values.astype(np.float64) * scale + offset if (scale != 1.0 or offset != 0.0) else values
+    out = pv.ImageData(
+        dimensions=image.dimensions, spacing=image.spacing, origin=image.origin
+    )
+    out.direction_matrix = np.asarray(image.direction_matrix, dtype=float)
+    out.point_data[arrays.CT] = np.asarray(ct, dtype=np.float32)
+    log.info(
+        "read_ct %s: %s voxels, spacing %s mm, ct range [%.0f, %.0f]",
+        path, out.dimensions, tuple(round(s, 4) for s in out.spacing),
+        float(out[arrays.CT].min()), float(out[arrays.CT].max()),
+    )
+    return out
+
+
+# --------------------------------------------------------------------------- helpers
+def _finite(value, name):
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a real number, got {value!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    return value
+
+
+def _run_vtk(reader, path):
+    """Update a VTK reader, turning VTK error messages into a Python exception."""
+    from pyvista.core.utilities.observers import VtkErrorCatcher
+
+    reader.SetFileName(str(path))
+    with pv.vtk_verbosity("off"), VtkErrorCatcher(raise_errors=True, emit_warnings=False):
+        reader.Update()
+    out = pv.wrap(reader.GetOutput())
+    if out is None or out.n_points == 0 or out.point_data.active_scalars is None:
+        raise ValueError(f"read_ct: {str(path)!r} gave an empty image (corrupt file?)")
+    return out
+
+
+def _orthonormal(matrix, path):
+    """Return the rotation part of ``matrix`` (3x3); warn if it had shear or scaling."""
+    u, s, vt = np.linalg.svd(matrix)
+    rot = u @ vt
+    if not np.allclose(matrix, rot, atol=1e-4):
+        log.warning("%s: orientation matrix is not orthonormal; using its nearest rotation", path)
+    return rot
+
+
+def _read_vti(path):
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        image = pv.read(path)
+    if caught and (not isinstance(image, pv.ImageData) or image.n_points == 0):
+        raise ValueError(f"read_ct: cannot read {str(path)!r}: {caught[0].message}")
+    if not isinstance(image, pv.ImageData) or image.n_points == 0:
+        raise ValueError(f"read_ct: {str(path)!r} holds no ImageData (corrupt file?)")
+    names = image.point_data.keys()
+    if not names:
+        raise ValueError(f"read_ct: {str(path)!r} has no point array to read as CT")
+    name = arrays.CT if arrays.CT in names else (
+        image.point_data.active_scalars_name or names[0]
+    )
+    return image, image.point_data[name]
+
+
+def _read_metaimage(path):
+    import vtk
+
+    image = _run_vtk(vtk.vtkMetaImageReader(), path)
+    return image, image.point_data.active_scalars
+
+
+def _read_nifti(path):
+    import vtk
+
+    reader = vtk.vtkNIFTIImageReader()
+    image = _run_vtk(reader, path)
+    values = np.asarray(image.point_data.active_scalars)
+    slope, inter = reader.GetRescaleSlope(), reader.GetRescaleIntercept()
+    if slope not in (0.0, 1.0) or inter != 0.0:  # NIfTI: slope 0 means "no scaling"
+        values = values.astype(np.float64) * slope + inter
+    matrix = reader.GetSFormMatrix() or reader.GetQFormMatrix()
+    geometry = pv.ImageData(dimensions=image.dimensions, spacing=image.spacing)
+    if matrix is not None:
+        m = np.array([[matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+        # VTK's data coordinates are index * spacing from origin 0; the matrix maps them to
+        # NIfTI world (RAS) coordinates.
+        geometry.direction_matrix = _orthonormal(m[:3, :3], path)
+        geometry.origin = m[:3, 3] + m[:3, :3] @ np.asarray(image.origin)
+    return geometry, values
+
+
+# --------------------------------------------------------------------------- DICOM
+def _read_dicom_series(folder):
+    try:
+        import pydicom
+    except ImportError as err:  # pragma: no cover - pydicom is a dependency
+        raise ImportError("reading a DICOM series needs pydicom: pip install pydicom") from err
+    from pydicom.errors import InvalidDicomError
+
+    headers = []
+    for file in sorted(p for p in folder.iterdir() if p.is_file()):
+        try:
+            ds = pydicom.dcmread(file, stop_before_pixels=True)
+        except (InvalidDicomError, OSError, EOFError):
+            continue
+        if "ImagePositionPatient" in ds and "PixelSpacing" in ds and "Rows" in ds:
+            headers.append((file, ds))
+    if not headers:
+        raise ValueError(
+            f"read_ct: folder {str(folder)!r} holds no readable DICOM image slice "
+            f"(expected {_FORMATS})"
+        )
+    series = {}
+    for file, ds in headers:
+        series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((file, ds))
+    if len(series) > 1:
+        log.warning("%s holds %d DICOM series; reading the largest", folder, len(series))
+    slices = max(series.values(), key=len)
+    first = slices[0][1]
+    iop = np.array([float(v) for v in first.ImageOrientationPatient], dtype=float)
+    row_dir, col_dir = iop[:3], iop[3:]  # along a row (x index), down a column (y index)
+    normal = np.cross(row_dir, col_dir)
+    pos = np.array([[float(v) for v in ds.ImagePositionPatient] for _, ds in slices])
+    order = np.argsort(pos @ normal)
+    slices = [slices[i] for i in order]
+    dist = (pos @ normal)[order]
+    if len(slices) > 1:
+        steps = np.diff(dist)
+        dz = float(np.mean(steps))
+        if dz <= 0 or np.ptp(steps) > 0.01 * dz + 1e-3:
+            raise ValueError(
+                f"read_ct: DICOM series in {str(folder)!r} has non-uniform or duplicate slice "
+                f"positions (steps {np.unique(np.round(steps, 3))} mm); resample it first"
+            )
+    else:
+        dz = float(first.get("SliceThickness", 1.0) or 1.0)
+    rows, cols = int(first.Rows), int(first.Columns)
+    dy, dx = (float(v) for v in first.PixelSpacing)  # row spacing, column spacing
+    volume = np.empty((len(slices), rows, cols), dtype=np.float32)
+    for k, (file, _) in enumerate(slices):  # one file per slice: I/O, not a voxel loop
+        try:
+            ds = pydicom.dcmread(file)
+            pixels = ds.pixel_array
+        except Exception as err:
+            raise ValueError(
+                f"read_ct: cannot decode DICOM pixel data of {str(file)!r} "
+                f"({type(err).__name__}: {err})"
+            ) from err
+        if pixels.shape != (rows, cols):
+            raise ValueError(
+                f"read_ct: DICOM slice {str(file)!r} is {pixels.shape}, expected {(rows, cols)}"
+            )
+        slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
+        inter = float(ds.get("RescaleIntercept", 0.0) or 0.0)
+        volume[k] = pixels * slope + inter
+    image = pv.ImageData(dimensions=(cols, rows, len(slices)), spacing=(dx, dy, dz))
+    image.direction_matrix = np.column_stack([row_dir, col_dir, normal])
+    image.origin = pos[order[0]]
+    return image, volume.ravel()
+
+
+# --------------------------------------------------------------------------- NRRD
+_NRRD_TYPES = {
+    "i1": ("signed char", "int8", "int8_t"),
+    "u1": ("uchar", "unsigned char", "uint8", "uint8_t"),
+    "i2": ("short", "short int", "signed short", "signed short int", "int16", "int16_t"),
+    "u2": ("ushort", "unsigned short", "unsigned short int", "uint16", "uint16_t"),
+    "i4": ("int", "signed int", "int32", "int32_t"),
+    "u4": ("uint", "unsigned int", "uint32", "uint32_t"),
+    "i8": ("longlong", "long long", "long long int", "signed long long",
+           "signed long long int", "int64", "int64_t"),
+    "u8": ("ulonglong", "unsigned long long", "unsigned long long int", "uint64", "uint64_t"),
+    "f4": ("float",),
+    "f8": ("double",),
+}
+_NRRD_DTYPE = {name: code for code, names in _NRRD_TYPES.items() for name in names}
+
+
+def _nrrd_vector(text):
+    return np.array([float(v) for v in text.strip().strip("()").split(",")])
+
+
+def _read_nrrd(path):
+    raw = path.read_bytes()
+    if not raw.startswith(b"NRRD000"):
+        raise ValueError(f"read_ct: {str(path)!r} is not a NRRD file (no 'NRRD000x' magic)")
+    header_end = raw.find(b"\n\n")
+    attached = header_end >= 0
+    header = raw[: header_end if attached else len(raw)].decode("latin-1").splitlines()
+    fields, data_files = {}, []
+    lines = iter(header[1:])
+    for line in lines:
+        if not line or line.startswith("#") or ":=" in line:
+            continue
+        key, sep, value = line.partition(":")
+        if not sep:
+            raise ValueError(f"read_ct: bad NRRD header line {line!r} in {str(path)!r}")
+        key = key.strip().lower()
+        fields[key] = value.strip()
+        if key in ("data file", "datafile") and value.strip().upper().startswith("LIST"):
+            data_files = [ln.strip() for ln in lines if ln.strip()]
+    for key in ("type", "dimension", "sizes", "encoding"):
+        if key not in fields:
+            raise ValueError(f"read_ct: NRRD header of {str(path)!r} lacks the {key!r} field")
+    ndim = int(fields["dimension"])
+    sizes = [int(v) for v in fields["sizes"].split()]
+    if ndim != 3 or len(sizes) != 3:
+        raise ValueError(
+            f"read_ct: {str(path)!r} is a {ndim}-D NRRD with sizes {sizes}; expected a 3-D "
+            "scalar volume"
+        )
+    code = _NRRD_DTYPE.get(fields["type"].lower())
+    if code is None:
+        raise ValueError(f"read_ct: unsupported NRRD type {fields['type']!r} in {str(path)!r}")
+    endian = "<" if fields.get("endian", "little").lower() == "little" else ">"
+    dtype = np.dtype(endian + code)
+    encoding = fields["encoding"].lower()
+    if encoding not in ("raw", "gzip", "gz", "bzip2", "bz2", "ascii", "text", "txt"):
+        raise ValueError(f"read_ct: unsupported NRRD encoding {encoding!r} in {str(path)!r}")
+
+    # where the data lives
+    spec = fields.get("data file", fields.get("datafile"))
+    if spec is None:
+        if not attached:
+            raise ValueError(f"read_ct: NRRD {str(path)!r} has neither data nor a 'data file'")
+        chunks = [raw[header_end + 2:]]
+    else:
+        parts = spec.split()
+        if parts[0].upper() == "LIST":
+            names = data_files
+        elif len(parts) >= 4 and re.search(r"%\d*d", parts[0]):
+            lo, hi, step = int(parts[1]), int(parts[2]), int(parts[3])
+            names = [parts[0] % i for i in range(lo, hi + (1 if step > 0 else -1), step)]
+        else:
+            names = [spec]
+        chunks = []
+        for name in names:
+            file = (path.parent / name) if not Path(name).is_absolute() else Path(name)
+            if not file.is_file():
+                raise ValueError(f"read_ct: NRRD data file {str(file)!r} (from {str(path)!r}) is missing")
+            chunks.append(file.read_bytes())
+    count = int(np.prod(sizes))
+    decoded = []
+    for chunk in chunks:
+        if encoding in ("gzip", "gz"):
+            chunk = gzip.decompress(chunk)
+        elif encoding in ("bzip2", "bz2"):
+            chunk = bz2.decompress(chunk)
+        decoded.append(chunk)
+    if encoding in ("ascii", "text", "txt"):
+        values = np.array(b" ".join(decoded).split(), dtype=np.float64)
+    else:
+        per_file = count // len(decoded) * dtype.itemsize
+        skip = int(fields.get("byte skip", 0))
+        parts_ = []
+        for chunk in decoded:
+            if skip == -1:  # data at the end of the file
+                chunk = chunk[len(chunk) - per_file:] if len(chunk) >= per_file else chunk
+            else:
+                chunk = chunk[skip:]
+            parts_.append(chunk[:per_file])
+        buf = b"".join(parts_)
+        if len(buf) < count * dtype.itemsize:
+            raise ValueError(
+                f"read_ct: NRRD data of {str(path)!r} is truncated: {len(buf)} bytes for "
+                f"{count} voxels of {dtype.itemsize} bytes"
+            )
+        values = np.frombuffer(buf, dtype=dtype, count=count)
+    if values.size != count:
+        raise ValueError(f"read_ct: NRRD {str(path)!r} holds {values.size} values, expected {count}")
+
+    # geometry
+    origin = _nrrd_vector(fields["space origin"]) if "space origin" in fields else np.zeros(3)
+    direction = np.eye(3)
+    if "space directions" in fields:
+        vecs = re.findall(r"\(([^)]*)\)", fields["space directions"])
+        if len(vecs) != 3:
+            raise ValueError(
+                f"read_ct: NRRD {str(path)!r} 'space directions' must give 3 vectors, got "
+                f"{fields['space directions']!r}"
+            )
+        axes = np.column_stack([_nrrd_vector(v) for v in vecs])
+        spacing = np.linalg.norm(axes, axis=0)
+        direction = _orthonormal(axes / spacing, path)
+    elif "spacings" in fields:
+        spacing = np.array([float(v) for v in fields["spacings"].split()])
+    else:
+        spacing = np.ones(3)
+    if len(spacing) != 3 or not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise ValueError(f"read_ct: NRRD {str(path)!r} has bad spacing {spacing}")
+    image = pv.ImageData(dimensions=sizes, spacing=spacing, origin=origin)
+    image.direction_matrix = direction
+    return image, values.astype(np.float32) if values.dtype == np.float64 else values

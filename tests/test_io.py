@@ -1,0 +1,282 @@
+"""read_ct: every format round-trips a known volume (values, voxel order, geometry); bad
+paths and corrupt files raise clear errors; headsq loads from the shared data folder."""
+
+from __future__ import annotations
+
+import gzip
+
+import numpy as np
+import pytest
+import pyvista as pv
+import vtk
+
+import pvcmf
+from pvcmf import arrays
+
+DIMS = (12, 9, 7)  # x, y, z: all different so a transposed read cannot pass
+SPACING = (0.5, 0.8, 2.0)
+ORIGIN = (10.0, -20.0, 30.0)
+# a rotation (det +1) that is not a permutation-free identity: x->y, y->-x
+ROTATION = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def known_values():
+    """int16 volume whose value encodes its (i, j, k) index, x fastest (VTK point order)."""
+    i, j, k = np.meshgrid(*(np.arange(n) for n in DIMS), indexing="ij")
+    return (i + 20 * j + 200 * k - 700).astype(np.int16)  # (nx, ny, nz)
+
+
+def flat(vol):
+    return vol.ravel(order="F")
+
+
+def check(image, values, *, origin=ORIGIN, spacing=SPACING, direction=np.eye(3)):
+    assert isinstance(image, pv.ImageData)
+    assert image.dimensions == DIMS
+    np.testing.assert_allclose(image.spacing, spacing, rtol=1e-6)
+    np.testing.assert_allclose(image.origin, origin, atol=1e-5)
+    np.testing.assert_allclose(image.direction_matrix, direction, atol=1e-6)
+    ct = arrays.require_array(image, arrays.CT, "point", dtype=np.float32)
+    np.testing.assert_allclose(ct, flat(values).astype(np.float32), atol=1e-3)
+
+
+# --------------------------------------------------------------------------- formats
+def test_vti_roundtrip_with_direction(tmp_path):
+    img = pv.ImageData(dimensions=DIMS, spacing=SPACING, origin=ORIGIN)
+    img.direction_matrix = ROTATION
+    img["density"] = flat(known_values())
+    img.save(tmp_path / "a.vti")
+    check(pvcmf.read_ct(tmp_path / "a.vti"), known_values(), direction=ROTATION)
+
+
+def test_offset_and_scale_are_applied(tmp_path):
+    img = pv.ImageData(dimensions=DIMS, spacing=SPACING, origin=ORIGIN)
+    img["v"] = flat(known_values())
+    img.save(tmp_path / "a.vti")
+    out = pvcmf.read_ct(tmp_path / "a.vti", offset=-1024.0, scale=0.5)
+    check(out, 0.5 * known_values().astype(float) - 1024.0)
+
+
+def test_nifti_roundtrip_qform_and_rescale(tmp_path):
+    img = pv.ImageData(dimensions=DIMS, spacing=SPACING)
+    img["v"] = flat(known_values())
+    qform = vtk.vtkMatrix4x4()
+    for r in range(3):
+        for c in range(3):
+            qform.SetElement(r, c, ROTATION[r, c])
+        qform.SetElement(r, 3, ORIGIN[r])
+    for name in ("a.nii", "a.nii.gz"):
+        writer = vtk.vtkNIFTIImageWriter()
+        writer.SetInputData(img)
+        writer.SetQFormMatrix(qform)
+        writer.SetRescaleSlope(2.0)
+        writer.SetRescaleIntercept(-1000.0)
+        writer.SetFileName(str(tmp_path / name))
+        writer.Write()
+        out = pvcmf.read_ct(tmp_path / name)
+        check(out, 2.0 * known_values().astype(float) - 1000.0, direction=ROTATION)
+
+
+def test_metaimage_mha_written_by_vtk(tmp_path):
+    img = pv.ImageData(dimensions=DIMS, spacing=SPACING, origin=ORIGIN)
+    img["v"] = flat(known_values())
+    writer = vtk.vtkMetaImageWriter()
+    writer.SetInputData(img)
+    writer.SetFileName(str(tmp_path / "a.mha"))
+    writer.SetCompression(False)
+    writer.Write()
+    check(pvcmf.read_ct(tmp_path / "a.mha"), known_values())
+
+
+def test_metaimage_mhd_by_hand_with_transform(tmp_path):
+    flat(known_values()).astype("<i2").tofile(tmp_path / "a.raw")
+    (tmp_path / "a.mhd").write_text(
+        "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
+        "CompressedData = False\n"
+        f"TransformMatrix = {' '.join(str(v) for v in ROTATION.ravel())}\n"
+        f"Offset = {' '.join(map(str, ORIGIN))}\n"
+        f"ElementSpacing = {' '.join(map(str, SPACING))}\n"
+        f"DimSize = {' '.join(map(str, DIMS))}\n"
+        "ElementType = MET_SHORT\nElementDataFile = a.raw\n"
+    )
+    check(pvcmf.read_ct(tmp_path / "a.mhd"), known_values(), direction=ROTATION)
+
+
+def _nrrd_header(extra):
+    return (
+        "NRRD0004\n# a comment\ntype: short\ndimension: 3\n"
+        f"sizes: {' '.join(map(str, DIMS))}\nendian: little\n" + extra
+    )
+
+
+def test_nrrd_detached_header_with_space_directions(tmp_path):
+    flat(known_values()).astype("<i2").tofile(tmp_path / "a.raw")
+    axes = ROTATION * np.asarray(SPACING)  # columns: index axes in world, scaled by spacing
+    dirs = " ".join("(" + ",".join(str(v) for v in axes[:, c]) + ")" for c in range(3))
+    (tmp_path / "a.nhdr").write_text(
+        _nrrd_header(
+            "encoding: raw\nspace: left-posterior-superior\n"
+            f"space directions: {dirs}\nspace origin: ({','.join(map(str, ORIGIN))})\n"
+            "data file: a.raw\n"
+        )
+    )
+    check(pvcmf.read_ct(tmp_path / "a.nhdr"), known_values(), direction=ROTATION)
+
+
+def test_nrrd_attached_gzip_big_endian(tmp_path):
+    payload = gzip.compress(flat(known_values()).astype(">i2").tobytes())
+    header = _nrrd_header(f"spacings: {' '.join(map(str, SPACING))}\nencoding: gzip\n")
+    header = header.replace("endian: little", "endian: big")
+    (tmp_path / "a.nrrd").write_bytes(header.encode() + b"\n" + payload)
+    check(pvcmf.read_ct(tmp_path / "a.nrrd"), known_values(), origin=(0.0, 0.0, 0.0))
+
+
+def test_nrrd_one_file_per_slice(tmp_path):
+    vol = known_values()
+    for k in range(DIMS[2]):
+        flat(vol[:, :, k]).astype("<i2").tofile(tmp_path / f"s.{k + 1}")
+    (tmp_path / "s.nhdr").write_text(
+        _nrrd_header(
+            f"spacings: {' '.join(map(str, SPACING))}\nencoding: raw\n"
+            f"data file: s.%d 1 {DIMS[2]} 1\n"
+        )
+    )
+    check(pvcmf.read_ct(tmp_path / "s.nhdr"), vol, origin=(0.0, 0.0, 0.0))
+
+
+# --------------------------------------------------------------------------- DICOM
+def write_dicom_series(folder, raw, spacing, origin, *, slope=1.0, intercept=-1024.0,
+                       row_dir=(1, 0, 0), col_dir=(0, 1, 0), extra_file=True):
+    """Write ``raw`` (nx, ny, nz) as one CT slice file per k, in shuffled file order."""
+    pydicom = pytest.importorskip("pydicom")
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.uid import CTImageStorage, ExplicitVRLittleEndian, generate_uid
+
+    nx, ny, nz = raw.shape
+    row_dir, col_dir = np.asarray(row_dir, float), np.asarray(col_dir, float)
+    normal = np.cross(row_dir, col_dir)
+    series, study, frame = generate_uid(), generate_uid(), generate_uid()
+    names = np.random.default_rng(1).permutation(nz)  # file names do not follow z
+    for k in range(nz):
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = CTImageStorage
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = Dataset()
+        ds.file_meta = meta
+        ds.SOPClassUID, ds.SOPInstanceUID = CTImageStorage, meta.MediaStorageSOPInstanceUID
+        ds.Modality = "CT"
+        ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study, series, frame
+        ds.PatientName, ds.PatientID = "Virtual^Patient", "0"
+        ds.InstanceNumber = int(names[k]) + 1
+        ds.ImagePositionPatient = [float(v) for v in np.asarray(origin) + k * spacing[2] * normal]
+        ds.ImageOrientationPatient = [float(v) for v in (*row_dir, *col_dir)]
+        ds.PixelSpacing = [float(spacing[1]), float(spacing[0])]  # row spacing, column spacing
+        ds.SliceThickness = float(spacing[2])
+        ds.Rows, ds.Columns = ny, nx
+        ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
+        ds.RescaleSlope, ds.RescaleIntercept = slope, intercept
+        ds.PixelData = np.ascontiguousarray(raw[:, :, k].T.astype("<i2")).tobytes()
+        ds.save_as(folder / f"IM{names[k]:04d}.dcm", enforce_file_format=True)
+    if extra_file:
+        (folder / "DICOMDIR.txt").write_text("not a DICOM file")
+    return pydicom
+
+
+def test_dicom_series_sorted_rescaled_oriented(tmp_path):
+    raw = known_values()
+    write_dicom_series(tmp_path, raw, SPACING, ORIGIN, slope=2.0, intercept=-1024.0,
+                       row_dir=ROTATION[:, 0], col_dir=ROTATION[:, 1])
+    out = pvcmf.read_ct(tmp_path)
+    check(out, 2.0 * raw.astype(float) - 1024.0, direction=ROTATION)
+    # an independent check of the geometry: a voxel's world position is its slice position
+    k = 3
+    p = np.asarray(out.points[np.ravel_multi_index((0, 0, k), DIMS, order="F")])
+    np.testing.assert_allclose(p, np.asarray(ORIGIN) + k * SPACING[2] * ROTATION[:, 2], atol=1e-6)
+
+
+def test_dicom_folder_without_images(tmp_path):
+    pytest.importorskip("pydicom")
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(ValueError, match="no readable DICOM image"):
+        pvcmf.read_ct(tmp_path)
+
+
+def test_dicom_uneven_slices(tmp_path):
+    raw = known_values()
+    write_dicom_series(tmp_path, raw, SPACING, ORIGIN, extra_file=False)
+    victim = sorted(tmp_path.iterdir())[0]
+    pydicom = pytest.importorskip("pydicom")
+    ds = pydicom.dcmread(victim)
+    ds.ImagePositionPatient = [ORIGIN[0], ORIGIN[1], ORIGIN[2] + 0.3]
+    ds.save_as(victim)
+    with pytest.raises(ValueError, match="non-uniform or duplicate slice"):
+        pvcmf.read_ct(tmp_path)
+
+
+# --------------------------------------------------------------------------- errors
+def test_missing_path(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist.*DICOM series folder"):
+        pvcmf.read_ct(tmp_path / "nothing.nii")
+
+
+def test_unsupported_format_names_path_and_formats(tmp_path):
+    path = tmp_path / "scan.png"
+    path.write_bytes(b"\x89PNG")
+    with pytest.raises(ValueError, match=r"scan\.png.*\.nii\.gz.*\.nhdr.*\.mha.*\.vti"):
+        pvcmf.read_ct(path)
+
+
+@pytest.mark.parametrize("name", ["a.nii", "a.nii.gz", "a.mha", "a.vti", "a.nrrd"])
+def test_corrupt_file(tmp_path, name):
+    path = tmp_path / name
+    path.write_bytes(b"this is not an image" * 50)
+    with pytest.raises(ValueError, match=rf"{name.replace('.', '[.]')}"):
+        pvcmf.read_ct(path)
+
+
+def test_truncated_nifti_and_nrrd(tmp_path):
+    img = pv.ImageData(dimensions=DIMS, spacing=SPACING)
+    img["v"] = flat(known_values())
+    img.save(tmp_path / "a.nii")
+    data = (tmp_path / "a.nii").read_bytes()
+    (tmp_path / "a.nii").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="corrupt or unreadable"):
+        pvcmf.read_ct(tmp_path / "a.nii")
+    flat(known_values())[:100].astype("<i2").tofile(tmp_path / "short.raw")
+    (tmp_path / "a.nhdr").write_text(
+        _nrrd_header("encoding: raw\nspacings: 1 1 1\ndata file: short.raw\n")
+    )
+    with pytest.raises(ValueError, match="truncated"):
+        pvcmf.read_ct(tmp_path / "a.nhdr")
+
+
+@pytest.mark.parametrize("kwargs", [{"scale": 0.0}, {"offset": float("nan")}, {"scale": "x"}])
+def test_bad_offset_scale(tmp_path, kwargs):
+    with pytest.raises((ValueError, TypeError), match="offset|scale"):
+        pvcmf.read_ct(tmp_path, **kwargs)
+
+
+# --------------------------------------------------------------------------- headsq
+def test_headsq_from_data_dir(data_dir):
+    if not (data_dir / "headsq" / "quarter.nhdr").is_file():
+        pytest.skip("headsq not in the data folder")
+    raw = pvcmf.read_ct(data_dir / "headsq" / "quarter.nhdr")
+    ct = pvcmf.datasets.headsq(offset=-1000.0, scale=1.0)
+    assert ct.dimensions == (64, 64, 93)
+    np.testing.assert_allclose(ct.spacing, (3.2, 3.2, 1.5))
+    # the raw slices, read independently with numpy: slice 1 is file quarter.1
+    first = np.fromfile(data_dir / "headsq" / "quarter.1", dtype="<i2").reshape(64, 64)
+    vol = raw[arrays.CT].reshape(raw.dimensions, order="F")
+    np.testing.assert_array_equal(vol[:, :, 0], first.T)
+    # headsq is turned to the patient frame (y anterior, z superior): y and z reversed
+    hs = ct[arrays.CT].reshape(ct.dimensions, order="F")
+    np.testing.assert_array_equal(hs, vol[:, ::-1, ::-1] - 1000.0)
+    # default map puts the skin and bone iso-values on segment's default thresholds
+    from pvcmf.filters.segmentation import BONE_THRESHOLD, SKIN_THRESHOLD
+
+    d = pvcmf.datasets.headsq()[arrays.CT].reshape(ct.dimensions, order="F")
+    lo, hi = np.argwhere(hs == -500.0)[0], np.argwhere(hs == 150.0)[0]
+    assert d[tuple(lo)] == pytest.approx(SKIN_THRESHOLD, abs=1e-3)
+    assert d[tuple(hi)] == pytest.approx(BONE_THRESHOLD, abs=1e-3)
