@@ -353,8 +353,8 @@ def synthetic_evaluate(case, *, nu=0.46, n_tets=30_000, E_ratio=1.0, nu_fat=None
     Returns
     -------
     dict
-        :func:`error_statistics` of the map, plus ``distance`` (the map, an array),
-        ``points`` (their xyz), ``n_cells`` (= ``n_tets``).
+        :func:`error_statistics` of the map, plus ``distance`` (the map, an array on
+        the points of :func:`synthetic_skin`) and ``n_cells`` (= ``n_tets``).
 
     Examples
     --------
@@ -365,10 +365,7 @@ def synthetic_evaluate(case, *, nu=0.46, n_tets=30_000, E_ratio=1.0, nu_fat=None
     True
     """
     rng = np.random.default_rng(_case_seed(case))
-    k = np.arange(n_skin) + 0.5
-    phi = np.arccos(1 - k / n_skin)  # half sphere, y >= 0 is the face
-    theta = np.pi * (1 + 5**0.5) * k
-    pts = np.c_[np.sin(phi) * np.cos(theta), np.cos(phi), np.sin(phi) * np.sin(theta)]
+    pts, theta = _synthetic_points(n_skin)
     lips = np.exp(-((pts[:, 2] + 0.3) ** 2 + pts[:, 0] ** 2) / 0.05)
     case_opt = 0.46 + rng.uniform(-0.03, 0.02)
     nu_opt = case_opt * (1 - lips) + 0.1 * lips
@@ -382,8 +379,17 @@ def synthetic_evaluate(case, *, nu=0.46, n_tets=30_000, E_ratio=1.0, nu_fat=None
     err += 0.002 * np.log(E_ratio) * np.sign(base + 1e-12)
     err += 0.05 * (spacing - 1.0) * rng.normal(0.0, 1.0, n_skin) + min(tol, 1.0) * 10.0
     out = error_statistics(err)
-    out.update(distance=err, points=pts, n_cells=int(n_tets))
+    out.update(distance=err, n_cells=int(n_tets))
     return out
+
+
+def _synthetic_points(n_skin):
+    """Fibonacci points on the unit half sphere y >= 0, and their azimuth."""
+    k = np.arange(n_skin) + 0.5
+    phi = np.arccos(1 - k / n_skin)
+    theta = np.pi * (1 + 5**0.5) * k
+    pts = np.c_[np.sin(phi) * np.cos(theta), np.cos(phi), np.sin(phi) * np.sin(theta)]
+    return pts, theta
 
 
 synthetic_evaluate.version = "1"
@@ -412,7 +418,7 @@ def synthetic_skin(n_skin=2000):
     import pyvista as pv
     from scipy.spatial import Delaunay
 
-    pts = synthetic_evaluate(0, n_skin=n_skin)["points"]
+    pts, _ = _synthetic_points(int(n_skin))
     tri = Delaunay(pts[:, [0, 2]]).simplices
     faces = np.c_[np.full(len(tri), 3), tri].ravel()
     return pv.PolyData(pts, faces)
@@ -434,13 +440,15 @@ def _resolve_evaluation(evaluate):
 class PipelineEvaluation(Evaluation):
     """The pvcmf pipeline as a sweep evaluation (the default of :func:`sweep`).
 
-    ``prepare(case, spacing, n_tets, roi, conforming, n_points)`` builds the virtual
-    patient (``case`` is a patient number for :func:`pvcmf.datasets.phantom`, or a
-    ``Case``), segments it, embeds the muscles, meshes it once, applies the plan and keeps
-    a reusable :class:`pvcmf.mtm.Solver`; ``evaluate(state, nu=..., nu_fat=...,
-    nu_muscle=..., E_ratio=..., tol=..., method=...)`` assigns the materials, re-solves
-    (numeric refactorisation only) and measures the signed distance of the predicted skin
-    to the case's post-operative skin.
+    ``prepare(case, spacing=, n_tets=, roi=, conforming=)`` builds the virtual patient
+    (``case`` is a patient number for :func:`pvcmf.datasets.phantom`, a mapping of its
+    arguments, or a ``Case``), runs :func:`pvcmf.pipeline.simulate` once (segmentation,
+    muscles, labelled mesh, materials, plan -> boundary conditions) and keeps a reusable
+    :class:`pvcmf.mtm.Solver` (geometry, block pattern, elimination maps, symbolic
+    factorisation) and the pre-operative skin. ``evaluate(state, nu=..., ...)`` sets the
+    materials of the parameter set (:meth:`materials`), refactorises numerically, solves,
+    maps the displacement onto the skin and measures the signed distance to the case's
+    post-operative skin (:func:`pvcmf.filters.distance_to`).
 
     Parameters
     ----------
@@ -448,24 +456,28 @@ class PipelineEvaluation(Evaluation):
         Default image resolution (mm) when the grid does not sweep ``spacing``.
     n_tets : int
         Default tetrahedra count when the grid does not sweep ``n_tets``.
+    method : str
+        Default MTM solver (``"direct"``; the grid may sweep ``method`` and ``tol``).
     keep_distance : bool
-        Return the per-point ``distance`` map (and skin ``points``) with every row.
+        Return the per-point ``distance`` map and the skin (``skin_points``,
+        ``skin_faces``) with every row (for Fig. 5).
     """
 
     version = "1"
 
-    def __init__(self, spacing=1.0, n_tets=30_000, keep_distance=False):
+    def __init__(self, spacing=1.0, n_tets=30_000, method="direct", keep_distance=False):
         self.spacing = _positive("spacing", spacing)
         self.n_tets = _positive_int("n_tets", n_tets)
+        self.method = _solver_method("method", method)
         self.keep_distance = bool(keep_distance)
 
     def identity(self):
         return {**super().identity(), "spacing": self.spacing, "n_tets": self.n_tets,
-                "keep_distance": self.keep_distance}
+                "method": self.method, "keep_distance": self.keep_distance}
 
     def prepare(self, case, *, spacing=None, n_tets=None, roi=None, conforming=True, n_points=None):
         import pvcmf
-        from pvcmf import mtm
+        from pvcmf.pipeline import simulate
 
         spacing = self.spacing if spacing is None else spacing
         n_tets = self.n_tets if n_tets is None else n_tets
@@ -474,39 +486,105 @@ class PipelineEvaluation(Evaluation):
         elif isinstance(case, Mapping):
             case = pvcmf.datasets.phantom(**{"spacing": spacing, **case})
         postop = _postop_skin(case)
-        labels = case.ct.cmf.segment()
-        landmarks = getattr(case, "landmarks", None)
-        labels = labels.cmf.embed_muscles(landmarks=landmarks) if conforming or n_points else labels
-        mesh_options = {"n_tets": n_tets}
+        mesh_options = {}
         if roi is not None:
             mesh_options["roi"] = roi
         if not conforming:
             mesh_options["conforming"] = False
-        grid = labels.cmf.tetrahedralize(**mesh_options)
+        result = simulate(case.ct, case.plan, bones=getattr(case, "truth", None),
+                          landmarks=getattr(case, "landmarks", None), n_tets=n_tets,
+                          mesh_options=mesh_options, figures=False)
+        if result.mesh is None or result.skin_pre is None:
+            raise RuntimeError(f"the pipeline did not produce a mesh and skin for {case.name!r}; "
+                               f"skipped steps: {result.skipped}")
+        grid = result.mesh
         if not conforming and n_points:
-            grid = grid.cmf.sample_muscle_fraction(labels, n_points=n_points)
-        grid = grid.cmf.assign_materials()
-        grid = grid.cmf.apply_plan(case.plan)
-        solver = mtm.Solver(grid)
-        return {"case": case, "grid": grid, "solver": solver, "postop": postop}
+            grid = grid.cmf.sample_muscle_fraction(result.labels, n_points=n_points)
+        return {"case": case, "grid": grid, "skin": result.skin_pre, "postop": postop,
+                "solvers": {}}
+
+    @staticmethod
+    def materials(grid, *, nu=None, nu_fat=None, nu_muscle=None, E_ratio=None, E_fat=None,
+                  E_muscle=None):
+        """Per-cell material overrides of one parameter set (paper 001 sec. 2.1 / 2.2).
+
+        ``nu``: homogeneous isotropic material (E = ``E_fat`` or 1; the displacement-driven
+        MTM does not depend on E). Any of ``nu_fat``, ``nu_muscle``, ``E_ratio``, ``E_fat``,
+        ``E_muscle``: isotropic fat and muscle (defaults nu_fat 0.485, nu_muscle 0.43,
+        E_muscle = E_ratio * E_fat), mixed per cell by ``muscle_fraction`` when the grid
+        has it (the baselines) or by the cell's ``tissue`` label. None of them: the grid's
+        own materials (``{}``).
+        """
+        from pvcmf import arrays
+
+        if nu is not None:
+            e = 1.0 if E_fat is None else E_fat
+            return {"E_fiber": e, "E_cross": e, "nu": nu}
+        if all(v is None for v in (nu_fat, nu_muscle, E_ratio, E_fat, E_muscle)):
+            return {}
+        if arrays.MUSCLE_FRACTION in grid.cell_data.keys():
+            f = np.clip(np.asarray(grid.cell_data[arrays.MUSCLE_FRACTION], float), 0.0, 1.0)
+        else:
+            tissue = arrays.require_array(grid, arrays.TISSUE, "cell", producer="tetrahedralize")
+            f = (np.asarray(tissue) == arrays.MUSCLE_TISSUE).astype(float)
+        e_fat = 1.0 if E_fat is None else E_fat
+        e_muscle = E_muscle if E_muscle is not None else e_fat * (1.0 if E_ratio is None else E_ratio)
+        e = (1 - f) * e_fat + f * e_muscle
+        nu_cells = (1 - f) * (0.485 if nu_fat is None else nu_fat) + f * (0.43 if nu_muscle is None else nu_muscle)
+        return {"E_fiber": e, "E_cross": e, "nu": nu_cells}
 
     def evaluate(self, state, *, nu=None, nu_fat=None, nu_muscle=None, E_ratio=None, E_fat=None,
                  E_muscle=None, tol=None, method=None, sigma=None):
-        material = {k: v for k, v in dict(nu=nu, nu_fat=nu_fat, nu_muscle=nu_muscle,
-                                          E_ratio=E_ratio, E_fat=E_fat, E_muscle=E_muscle).items()
-                    if v is not None}
-        grid = state["grid"].cmf.assign_materials(**material) if material else state["grid"]
-        solve_options = {k: v for k, v in dict(tol=tol, method=method).items() if v is not None}
-        post = state["solver"].solve(grid, **solve_options)
-        skin = post.cmf.skin()
-        warped = skin.warp_by_vector("displacement") if "displacement" in skin.point_data else skin
-        dist = warped.cmf.distance_to(state["postop"])
-        d = np.asarray(dist.point_data["distance"])
+        from pvcmf import arrays, mtm
+
+        grid = state["grid"]
+        method = self.method if method is None else method
+        key = (method, tol)
+        material = self.materials(grid, nu=nu, nu_fat=nu_fat, nu_muscle=nu_muscle, E_ratio=E_ratio,
+                                  E_fat=E_fat, E_muscle=E_muscle)
+        solver = state["solvers"].get(key)
+        if solver is None:  # first parameter set of this method: structure + symbolic analysis
+            options = {} if tol is None else {"tol": tol}
+            solver = state["solvers"][key] = mtm.Solver(grid, method, **options, **material)
+        elif material:  # numeric refactorisation only
+            solver.update_materials(**material)
+        u = solver.solve()
+        t_solve = float(solver.info.get("time", np.nan))
+        post = solver.to_grid(u)
+        pred = _map_to_skin(post, state["skin"], sigma)
+        dist = pred.cmf.distance_to(state["postop"])
+        d = np.asarray(dist.point_data[arrays.DISTANCE])
         out = error_statistics(d)
-        out["n_cells"] = int(state["grid"].n_cells)
+        out.update(n_cells=int(grid.n_cells), t_solve=t_solve,
+                   residual=float(solver.info.get("residual", np.nan)))
         if self.keep_distance:
-            out.update(distance=d, points=np.asarray(skin.points))
+            skin = state["skin"]
+            out.update(distance=d, skin_points=np.asarray(skin.points, float),
+                       skin_faces=np.asarray(skin.faces))
         return out
+
+
+def _map_to_skin(post, skin, sigma):
+    """Predicted skin: ``skin`` moved by the mesh displacement (paper 001's mapping when
+    :func:`pvcmf.filters.map_to_surface` is available, else probing the tetrahedra)."""
+    from pvcmf import arrays, filters
+
+    try:
+        mapper = filters.map_to_surface
+    except (ImportError, AttributeError):
+        mapper = None
+    if mapper is not None:
+        mapped = mapper(post, skin) if sigma is None else mapper(post, skin, sigma=sigma)
+        disp = np.asarray(mapped.point_data[arrays.DISPLACEMENT], float)
+    else:
+        base = skin.copy()
+        base.clear_data()
+        disp = np.asarray(base.sample(post, snap_to_closest_point=True)[arrays.DISPLACEMENT], float)
+    pred = skin.copy()
+    pred.clear_data()
+    pred.points = np.asarray(skin.points) + disp
+    pred.point_data[arrays.DISPLACEMENT] = disp
+    return pred
 
 
 def _postop_skin(case):
@@ -1033,6 +1111,7 @@ def add_sweep_parser(subparsers):
     p.add_argument("--synthetic", action="store_true",
                    help="use the cheap synthetic evaluation instead of the pipeline (demo/test)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="log more (-v info, -vv debug)")
     p.set_defaults(func=run_sweep)
     return p
 

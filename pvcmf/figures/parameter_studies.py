@@ -36,7 +36,52 @@ __all__ = [
     "inhomogeneous_table",
     "optimal_poisson",
     "fig5_optimal_poisson",
+    "run_study",
 ]
+
+
+def run_study(cases, grid, name, out, *, synthetic=False, scheduler=None, keep_arrays=False,
+              progress_bar=True, **options):
+    """Run a figure's sweep as the gallery does: cached in ``out``, table saved as CSV.
+
+    Parameters
+    ----------
+    cases : sequence
+        Virtual patient numbers.
+    grid : mapping
+        Parameter grid (:func:`pvcmf.sweep`).
+    name : str
+        File stem of the saved table ``out / f"{name}.csv"``.
+    out : pathlib.Path
+        Output folder; results are cached in ``out / "sweep-cache"``.
+    synthetic : bool
+        Use :func:`pvcmf.sweeps.synthetic_evaluate` instead of the pipeline.
+    scheduler : optional
+        As :func:`pvcmf.sweep`.
+    keep_arrays : bool
+        Keep per-point maps (Fig. 5); the pipeline then returns them too.
+    progress_bar : bool
+        Show the sweep's progress bar.
+    **options
+        :class:`pvcmf.sweeps.PipelineEvaluation` options (``spacing``, ``n_tets``, ...).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The sweep table.
+    """
+    from pathlib import Path
+
+    from pvcmf.sweeps import PipelineEvaluation, save_table, sweep, synthetic_evaluate
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    evaluate = synthetic_evaluate if synthetic else PipelineEvaluation(keep_distance=keep_arrays,
+                                                                       **options)
+    df = sweep(cases, grid, evaluate=evaluate, scheduler=scheduler, cache_dir=out / "sweep-cache",
+               progress_bar=progress_bar, keep_arrays=keep_arrays)
+    save_table(df, out / f"{name}.csv")
+    return df
 
 
 def _require(df, columns, who):

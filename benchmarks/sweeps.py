@@ -1,0 +1,70 @@
+"""Sweep engine: scheduler overhead, cache, and the full Poisson sweep on the pipeline.
+
+Prints whole numbers (milliseconds) measured in this run:
+
+1. the same 4 cases x 20 Poisson ratios x 2 mesh sizes (160 points) with the cheap
+   synthetic evaluation on ``synchronous`` (no Dask), ``threads`` (in-process Dask cluster)
+   and ``processes`` (local Dask cluster of worker processes, the default), each with its
+   start-up, and a cached rerun: the engine's own cost;
+2. with ``--pipeline``: the full Poisson sweep of the issue (20 ratios x 4 virtual
+   patients at 30k tetrahedra) on the default scheduler, split into the one-off
+   preparation per patient (phantom, segmentation, muscles, mesh, boundary conditions) and
+   the sweep proper (numeric refactorisation + solve + distance per ratio).
+
+Run: ``python benchmarks/sweeps.py [--pipeline] [--spacing 1.0]``.
+"""
+
+import argparse
+import tempfile
+import time
+
+import numpy as np
+
+import pvcmf
+from pvcmf.sweeps import PipelineEvaluation, synthetic_evaluate
+
+
+def engine():
+    grid = {"n_tets": [10_000, 30_000], "nu": list(np.round(np.linspace(0, 0.495, 20), 4))}
+    cases = [1, 2, 3, 4]
+    ref = None
+    for scheduler in ("synchronous", "threads", "processes"):
+        t = time.perf_counter()
+        df = pvcmf.sweep(cases, grid, evaluate=synthetic_evaluate, scheduler=scheduler)
+        ms = 1000 * (time.perf_counter() - t)
+        work = 1000 * df["t_eval"].sum()
+        same = ref is None or np.array_equal(ref, df["p90"].to_numpy())
+        ref = df["p90"].to_numpy() if ref is None else ref
+        print(f"{scheduler:12s} {len(df)} points: wall {ms:6.0f} ms (evaluation {work:4.0f} ms), "
+              f"same table: {same}")
+    with tempfile.TemporaryDirectory() as cache:
+        pvcmf.sweep(cases, grid, evaluate=synthetic_evaluate, scheduler="synchronous", cache_dir=cache)
+        t = time.perf_counter()
+        df = pvcmf.sweep(cases, grid, evaluate=synthetic_evaluate, scheduler="processes", cache_dir=cache)
+        print(f"cached rerun {len(df)} points: wall {1000 * (time.perf_counter() - t):6.0f} ms, "
+              f"computed {df.attrs['n_computed']}")
+
+
+def pipeline(spacing):
+    ev = PipelineEvaluation(spacing=spacing, n_tets=30_000)
+    nus = list(np.round(np.linspace(0, 0.495, 20), 4))
+    t = time.perf_counter()
+    df = pvcmf.sweep([1, 2, 3, 4], {"nu": nus}, evaluate=ev, progress_bar=True)
+    wall = time.perf_counter() - t
+    prep = df.groupby("case")["t_prepare"].first()
+    per_case_sweep = df.groupby("case")["t_eval"].sum()
+    print(f"Poisson sweep 20 x 4 at ~{int(df['n_cells'].mean())} tetrahedra: wall {wall:.0f} s; "
+          f"preparation per patient {prep.mean():.0f} s (once), sweep proper per patient "
+          f"{per_case_sweep.mean():.1f} s ({1000 * df['t_eval'].mean():.0f} ms per ratio, "
+          f"solve {1000 * df['t_solve'].mean():.0f} ms)")
+    print(df.groupby("case")[["p50", "p90", "p95"]].min().round(3).to_string())
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--pipeline", action="store_true")
+    ap.add_argument("--spacing", type=float, default=1.0)
+    a = ap.parse_args()
+    engine()
+    if a.pipeline:
+        pipeline(a.spacing)
