@@ -230,7 +230,7 @@ def error_statistics(distance):
     dict
         ``p50``, ``p90``, ``p95`` (percentiles of ``|distance|``, mm), ``mean_abs``,
         ``rms`` (mm), ``within_1mm``, ``within_2mm`` (% of points with ``|d|`` below 1 and
-        2 mm) and ``n_skin`` (number of points).
+        2 mm, inclusive, as :func:`pvcmf.validation.summary`) and ``n_skin`` (number of points).
 
     Examples
     --------
@@ -250,8 +250,8 @@ def error_statistics(distance):
         "p95": float(p95),
         "mean_abs": float(d.mean()),
         "rms": float(np.sqrt(np.mean(d**2))),
-        "within_1mm": float(100.0 * np.mean(d < 1.0)),
-        "within_2mm": float(100.0 * np.mean(d < 2.0)),
+        "within_1mm": float(100.0 * np.mean(d <= 1.0)),
+        "within_2mm": float(100.0 * np.mean(d <= 2.0)),
         "n_skin": int(d.size),
     }
 
