@@ -1,0 +1,218 @@
+"""The outer skin surface of a label image, a CT, or a tetrahedral soft-tissue grid.
+
+* Image (``tissue`` labels, or ``ct`` thresholded): the air/head boundary. Everything that
+  is not air, plus every cavity enclosed by the head (sinuses, airway pockets: scipy's
+  :func:`scipy.ndimage.binary_fill_holes`), lightly smoothed
+  (:func:`scipy.ndimage.gaussian_filter`) and contoured at one half by VTK's flying edges
+  (:meth:`pyvista.ImageDataFilters.contour`); the largest connected piece is kept
+  (``vtkPolyDataConnectivityFilter``) with outward point normals (``vtkPolyDataNormals``).
+  The image is padded with air first, so the surface is closed where the head leaves the
+  field of view.
+* Tetrahedral grid: its boundary triangles (``vtkDataSetSurfaceFilter`` via
+  :meth:`pyvista.DataSet.extract_surface`), oriented outward, restricted to the *skin*
+  part: the faces whose three points are free (``bc == BC_FREE``) when the grid carries
+  boundary conditions — the faces touching bone (joint / sliding) and the fixed posterior
+  cut are left out — or else, given ``labels``, the faces that face air in the label
+  image. Without either, the whole boundary is returned (and a warning logged).
+  The skin keeps its correspondence with the grid through the point array
+  ``vtkOriginalPointIds`` (grid point ids) and carries the grid's point arrays, so
+  displacements carry over; with ``warp=True`` (default) the points are moved by the
+  grid's ``displacement`` when it has one (the predicted skin).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pyvista as pv
+
+from .. import arrays
+
+log = logging.getLogger(__name__)
+
+#: point array of a grid skin: index of each skin point in the tetrahedral grid
+ORIGINAL_POINT_IDS = "vtkOriginalPointIds"
+
+
+def _outward_normals(surface):
+    """Point normals (and consistent winding) of a closed surface, pointing outward."""
+    return surface.compute_normals(
+        cell_normals=False, point_normals=True, split_vertices=False,
+        consistent_normals=True, auto_orient_normals=True,
+    )
+
+
+def _image_skin(image, threshold, smooth, fill_holes):
+    from scipy import ndimage
+
+    if arrays.TISSUE in image.point_data:
+        lab = arrays.require_array(image, arrays.TISSUE, "point", dtype="iu", ncomp=1)
+        head = lab != arrays.AIR
+    elif arrays.CT in image.point_data:
+        ct = arrays.require_array(image, arrays.CT, "point", dtype="f", ncomp=1)
+        head = ct > threshold
+    else:
+        raise ValueError(
+            f"extract_skin needs point array {arrays.TISSUE!r} (produced by segment) or "
+            f"{arrays.CT!r} on the image; it has {sorted(image.point_data.keys())}"
+        )
+    dims = tuple(int(d) for d in image.dimensions)
+    if min(dims) < 2:
+        raise ValueError(f"image must be 3-D, got dimensions {dims}")
+    vol = head.reshape(dims[::-1]).transpose(2, 1, 0)  # VTK x-fastest -> (x, y, z)
+    if not vol.any():
+        raise ValueError("image has no head voxels (all air): no skin to extract")
+    vol = np.pad(vol, 2, constant_values=False)
+    if fill_holes:
+        vol = ndimage.binary_fill_holes(vol)
+    field = vol.astype(np.float32)
+    if smooth:
+        field = ndimage.gaussian_filter(field, smooth)
+    spacing = np.asarray(image.spacing, dtype=float)
+    origin = np.asarray(image.origin, dtype=float) - 2 * spacing
+    if hasattr(image, "direction_matrix") and not np.allclose(image.direction_matrix, np.eye(3)):
+        raise ValueError("extract_skin supports axis-aligned images only (identity direction)")
+    grid = pv.ImageData(dimensions=field.shape, spacing=spacing, origin=origin)
+    grid.point_data["head"] = field.transpose(2, 1, 0).ravel()
+    surf = grid.contour([0.5], scalars="head", method="flying_edges", progress_bar=False)
+    if surf.n_points == 0:
+        raise ValueError("the head mask produced an empty contour (too small an object?)")
+    surf = surf.connectivity("largest").extract_surface(algorithm="dataset_surface")
+    surf = surf.triangulate().clean()
+    surf.clear_data()
+    return _outward_normals(surf)
+
+
+def _boundary_faces(grid):
+    """Boundary triangles of a tetrahedral grid as grid point ids, wound outward."""
+    surf = grid.extract_surface(
+        pass_pointid=True, pass_cellid=True, algorithm="dataset_surface"
+    ).triangulate()
+    faces = surf.faces.reshape(-1, 4)[:, 1:]
+    pid = np.asarray(surf.point_data[ORIGINAL_POINT_IDS], dtype=np.int64)
+    cid = np.asarray(surf.cell_data["vtkOriginalCellIds"], dtype=np.int64)
+    tri = pid[faces]
+    pts = np.asarray(grid.points, dtype=float)
+    # orient each face away from the centroid of the tetrahedron it bounds
+    cells = grid.cells_dict[pv.CellType.TETRA] if pv.CellType.TETRA in grid.cells_dict else None
+    if cells is None or len(cells) != grid.n_cells:
+        raise ValueError("extract_skin of a grid needs an all-tetrahedral UnstructuredGrid")
+    tet_centre = pts[cells[cid]].mean(axis=1)
+    a, b, c = pts[tri[:, 0]], pts[tri[:, 1]], pts[tri[:, 2]]
+    normal = np.cross(b - a, c - a)
+    flip = np.einsum("ij,ij->i", normal, (a + b + c) / 3 - tet_centre) < 0
+    tri[flip] = tri[flip][:, ::-1]
+    return tri
+
+
+def _grid_skin(grid, labels, warp, part):
+    if grid.n_cells == 0:
+        raise ValueError("grid is empty: no skin to extract")
+    tri = _boundary_faces(grid)
+    if part == "skin":
+        if arrays.BC in grid.point_data:
+            bc = arrays.require_array(grid, arrays.BC, "point", dtype="iu", ncomp=1)
+            keep = (bc[tri] == arrays.BC_FREE).all(axis=1)
+        elif labels is not None:
+            keep = _faces_air(grid.points, tri, labels)
+        else:
+            log.warning(
+                "extract_skin: grid has no %r array and no labels were given; returning the "
+                "whole boundary (faces touching bone included)", arrays.BC,
+            )
+            keep = np.ones(len(tri), dtype=bool)
+        tri = tri[keep]
+        if not len(tri):
+            raise ValueError("no boundary face of the grid is skin (all touch bone or are fixed)")
+    ids, local = np.unique(tri, return_inverse=True)
+    local = local.reshape(-1, 3)
+    pts = np.asarray(grid.points, dtype=float)[ids]
+    skin = pv.PolyData(pts, np.column_stack([np.full(len(local), 3), local]).ravel())
+    for name in grid.point_data.keys():
+        skin.point_data[name] = np.asarray(grid.point_data[name])[ids]
+    skin.point_data[ORIGINAL_POINT_IDS] = ids
+    if warp and arrays.DISPLACEMENT in grid.point_data:
+        u = arrays.require_array(grid, arrays.DISPLACEMENT, "point", dtype="f", ncomp=3)
+        skin.points = pts + u[ids]
+    return skin.compute_normals(
+        cell_normals=False, split_vertices=False, consistent_normals=False,
+        auto_orient_normals=False,
+    )
+
+
+def _faces_air(points, tri, labels, step=1.5):
+    """Faces whose outward neighbourhood is air in the label image."""
+    arrays.require_array(labels, arrays.TISSUE, "point", dtype="iu", ncomp=1, producer="segment")
+    pts = np.asarray(points, dtype=float)
+    a, b, c = pts[tri[:, 0]], pts[tri[:, 1]], pts[tri[:, 2]]
+    n = np.cross(b - a, c - a)
+    n /= np.maximum(np.linalg.norm(n, axis=1), 1e-30)[:, None]
+    h = step * float(np.max(labels.spacing))
+    probe = pv.PolyData((a + b + c) / 3 + h * n).sample(labels, progress_bar=False)
+    valid = np.asarray(probe["vtkValidPointMask"], dtype=bool)
+    # outside the image counts as air
+    return ~valid | (np.asarray(probe[arrays.TISSUE]) == arrays.AIR)
+
+
+def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labels=None,
+                 warp=True, part="skin", progress_bar=False):
+    """The outer skin surface of a label image / CT, or of a tetrahedral grid.
+
+    Parameters
+    ----------
+    dataset : pyvista.ImageData or pyvista.UnstructuredGrid
+        Label image with point array ``arrays.TISSUE`` (or a CT with ``arrays.CT``), or
+        a tetrahedral soft-tissue grid.
+    threshold : float, default -300.0
+        HU threshold of the head when an image has ``ct`` but no ``tissue``.
+    smooth : float, default 1.0
+        Gaussian smoothing (in voxels) of the head mask before contouring; 0 keeps the
+        voxel staircase.
+    fill_holes : bool, default True
+        Fill enclosed air (sinuses, pockets) so only the outer skin is contoured.
+    labels : pyvista.ImageData, optional
+        Grid only, when it has no ``bc`` array: the label image used to keep the faces
+        that face air.
+    warp : bool, default True
+        Grid only: move the skin points by the grid's ``displacement`` (the predicted
+        skin). The rest skin is ``extract_skin(grid, warp=False)``.
+    part : {'skin', 'boundary'}, default 'skin'
+        Grid only: the skin faces (see the module docs) or the whole boundary.
+    progress_bar : bool, default False
+        Show VTK's progress (image contour).
+
+    Returns
+    -------
+    pyvista.PolyData
+        Triangle surface with outward point normals. From a grid it also has the grid's
+        point arrays and ``vtkOriginalPointIds`` (grid point ids).
+
+    Raises
+    ------
+    TypeError
+        Neither an ImageData nor an UnstructuredGrid.
+    ValueError
+        Missing arrays, an all-air image, an empty grid, or no skin faces.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv, pvcmf
+    >>> from pvcmf import arrays
+    >>> img = pv.ImageData(dimensions=(30, 30, 30), spacing=(2.0, 2.0, 2.0))
+    >>> r = np.linalg.norm(img.points - img.center, axis=1)
+    >>> img[arrays.TISSUE] = (r < 20).astype(np.uint8)
+    >>> skin = img.cmf.skin()
+    >>> bool(abs(np.linalg.norm(skin.points - img.center, axis=1).mean() - 20) < 1)
+    True
+    """
+    if part not in ("skin", "boundary"):
+        raise ValueError(f"part must be 'skin' or 'boundary', got {part!r}")
+    if isinstance(dataset, pv.ImageData):
+        return _image_skin(dataset, threshold, smooth, fill_holes)
+    if isinstance(dataset, pv.UnstructuredGrid):
+        return _grid_skin(dataset, labels, warp, part)
+    raise TypeError(
+        f"dataset must be a pyvista.ImageData (labels / CT) or an UnstructuredGrid "
+        f"(tetrahedra), got {type(dataset).__name__}"
+    )
