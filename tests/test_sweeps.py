@@ -291,6 +291,13 @@ def test_save_parquet_with_arrays(tmp_path):
     np.testing.assert_allclose(np.asarray(back["distance"].iloc[1]), df["distance"].iloc[1])
 
 
+def test_parquet_without_pyarrow_says_how_to_get_it(local_table, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyarrow", None)  # import pyarrow -> ImportError
+    with pytest.raises(ImportError, match="pip install pyarrow"):
+        sweeps.save_table(local_table, tmp_path / "t.parquet")
+    assert not list(tmp_path.iterdir())  # nothing half-written
+
+
 def test_parse_grid_and_cli(tmp_path, monkeypatch):
     assert sweeps.parse_grid(["nu=0:0.495:4", "E_ratio=1,64", "roi=none,20"]) == {
         "nu": (0.0, 0.165, 0.33, 0.495), "E_ratio": (1.0, 64.0), "roi": (None, 20.0)}
