@@ -1,0 +1,765 @@
+"""Solvers of the MTM rest position: direct, cg, relaxation and an optional GPU path.
+
+The rest position of the free vertices makes every elastic force ``K_jj u_j + sum K_jk u_k``
+zero (paper 001 eq. 2). After eliminating the constraints (:mod:`pvcmf.mtm.constraints`) this
+is one sparse symmetric positive definite system ``K_ff y = -K_fp y_p``.
+
+Methods
+-------
+``direct``
+    Sparse Cholesky: CHOLMOD through scikit-sparse when importable, else MKL PARDISO
+    through pypardiso (``pip install pvcmf[fast]``), else scipy's SuperLU with a symmetric
+    ordering (sound but ~10x slower on large meshes). One step of iterative refinement
+    estimates the forward error; an :class:`IllConditionedWarning` says how many digits the
+    answer lost when that estimate is large.
+``cg``
+    Conjugate gradient (scipy) preconditioned by smoothed-aggregation algebraic multigrid
+    (pyamg, with the rigid motions as near-null space) or by block Jacobi; warm-startable.
+``relaxation``
+    The paper's local iteration ``u_j <- -K_jj^-1 sum_k K_jk u_k``, vectorised as a
+    multicolour block Gauss-Seidel (one colour at a time, all vertices of a colour at once).
+    Kept to measure what the other methods gain; slow and it stalls for nu near 0.5.
+``gpu``
+    Jacobi-preconditioned conjugate gradient on the GPU through CuPy (only when CuPy and a
+    CUDA device are present).
+
+:class:`Solver` keeps everything that does not depend on the material (geometry, sparsity
+pattern, elimination maps, the symbolic factorisation), so a Poisson-ratio sweep only refactors
+numerically, and a new bone move only re-solves. Delegates to scikit-sparse / pypardiso /
+scipy.sparse.linalg, pyamg and CuPy.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import warnings
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .. import arrays
+from .assembly import Assembler, grid_materials, tetrahedra
+from .constraints import Constraints
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "Solver",
+    "solve",
+    "ConvergenceError",
+    "IllConditionedWarning",
+    "direct_backends",
+    "gpu_available",
+    "METHODS",
+    "FIELD_METHOD",
+    "FIELD_BACKEND",
+    "FIELD_RESIDUAL",
+    "FIELD_ITERATIONS",
+    "FIELD_TIME",
+    "FIELD_ERROR_ESTIMATE",
+    "FIELD_LOST_DIGITS",
+]
+
+METHODS = ("direct", "cg", "relaxation", "gpu")
+#: field-data names written by :func:`solve`
+FIELD_METHOD = "mtm_method"
+FIELD_BACKEND = "mtm_backend"
+FIELD_RESIDUAL = "mtm_residual"  #: relative residual ||K_ff y - b|| / ||b||
+FIELD_ITERATIONS = "mtm_iterations"
+FIELD_TIME = "mtm_time"  #: seconds: assembly + factorisation/setup + solve
+FIELD_ERROR_ESTIMATE = "mtm_error_estimate"  #: estimated relative forward error (direct)
+FIELD_LOST_DIGITS = "mtm_lost_digits"  #: estimated significant digits lost (direct)
+
+_EPS = np.finfo(float).eps
+
+
+class ConvergenceError(RuntimeError):
+    """An MTM solve did not reach its tolerance."""
+
+
+class IllConditionedWarning(UserWarning):
+    """The MTM system is so ill conditioned that the solution lost many digits."""
+
+
+def direct_backends():
+    """Names of the importable direct backends, fastest first (``'superlu'`` always).
+
+    Examples
+    --------
+    >>> from pvcmf.mtm import direct_backends
+    >>> direct_backends()[-1]
+    'superlu'
+    """
+    out = []
+    try:
+        import sksparse.cholmod  # noqa: F401
+
+        out.append("cholmod")
+    except ImportError:
+        pass
+    try:
+        import pypardiso  # noqa: F401
+
+        out.append("pardiso")
+    except ImportError:
+        pass
+    return out + ["superlu"]
+
+
+def gpu_available():
+    """True when CuPy imports and sees a CUDA device."""
+    try:
+        import cupy
+
+        return cupy.cuda.runtime.getDeviceCount() > 0
+    except Exception:  # ImportError, CUDARuntimeError, ...
+        return False
+
+
+# ---------------------------------------------------------------------- direct backends
+class _Cholmod:
+    name = "cholmod"
+
+    def __init__(self, pattern):
+        from sksparse.cholmod import analyze
+
+        self._factor = analyze(pattern, mode="supernodal")
+
+    def factor(self, K):
+        from sksparse.cholmod import CholmodNotPositiveDefiniteError
+
+        try:
+            self._factor.cholesky_inplace(K)
+        except CholmodNotPositiveDefiniteError as err:
+            raise _not_pd(err) from err
+
+    def solve(self, b):
+        return self._factor(b)
+
+
+class _Pardiso:
+    name = "pardiso"
+
+    def __init__(self, upper):
+        from pypardiso import PyPardisoSolver
+
+        self._s = PyPardisoSolver(mtype=2)  # real symmetric positive definite
+        self._upper = upper
+        self._call(11, np.zeros((upper.shape[0], 1)))  # symbolic analysis (METIS ordering)
+
+    def _call(self, phase, b):
+        from pypardiso.pardiso_wrapper import PyPardisoError
+
+        self._s.set_phase(phase)
+        try:
+            return self._s._call_pardiso(self._upper, np.asfortranarray(b))
+        except PyPardisoError as err:
+            if err.value == -4:
+                raise _not_pd(err) from err
+            raise
+
+    def factor(self, upper):
+        self._upper = upper
+        self._call(22, np.zeros((upper.shape[0], 1)))
+
+    def solve(self, b):
+        return self._call(33, b.reshape(-1, 1)).ravel()
+
+
+class _SuperLU:
+    name = "superlu"
+
+    def __init__(self, pattern):
+        self._lu = None
+
+    def factor(self, K):
+        try:
+            self._lu = spla.splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                 options={"SymmetricMode": True})
+        except RuntimeError as err:
+            raise _not_pd(err) from err
+
+    def solve(self, b):
+        return self._lu.solve(b)
+
+
+def _not_pd(err):
+    return np.linalg.LinAlgError(
+        f"the reduced MTM stiffness is not positive definite ({err}): a part of the mesh may be "
+        "held only through one edge or one vertex (a mechanism), or a material is indefinite"
+    )
+
+
+_BACKENDS = {"cholmod": _Cholmod, "pardiso": _Pardiso, "superlu": _SuperLU}
+
+
+# ---------------------------------------------------------------------- helpers
+def _pattern_submatrix(M, rows, cols):
+    sub = M[rows][:, cols].tocsr()
+    sub.sort_indices()
+    return sub
+
+
+def _rigid_modes(points):
+    """(3 n, 6) translations and small rotations about the centroid."""
+    x = points - points.mean(axis=0)
+    n = len(points)
+    B = np.zeros((n, 3, 6))
+    B[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    for k, w in enumerate(np.eye(3)):
+        B[:, :, 3 + k] = np.cross(w, x)
+    return B.reshape(3 * n, 6)
+
+
+def _colour(indptr, indices, active, seed=0):
+    """Vectorised Jones-Plassmann colouring of the node graph (only ``active`` nodes)."""
+    n = len(indptr) - 1
+    rng = np.random.default_rng(seed)
+    weight = rng.random(n)
+    colour = np.full(n, -1)
+    colour[~active] = -2
+    rows = np.repeat(np.arange(n), np.diff(indptr))
+    off = rows != indices
+    rows, cols = rows[off], indices[off]
+    c = 0
+    while np.any(colour == -1):
+        todo = colour == -1
+        w = np.where(todo, weight, -1.0)
+        nb = np.full(n, -1.0)
+        np.maximum.at(nb, rows, w[cols])
+        pick = todo & (w > nb)
+        colour[pick] = c
+        c += 1
+    return colour
+
+
+class _Progress:
+    def __init__(self, enabled, total, desc):
+        self.bar = None
+        if enabled:
+            try:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=total, desc=desc)
+            except ImportError:
+                log.info("progress_bar=True needs tqdm; logging progress instead")
+
+    def update(self, k):
+        if self.bar is not None:
+            self.bar.update(k)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+# ---------------------------------------------------------------------- the solver
+class Solver:
+    """Reusable MTM solver for one mesh and one set of boundary-condition types.
+
+    Keeps the geometry, the block sparsity pattern, the elimination maps and the symbolic
+    factorisation (``direct``); :meth:`update_materials` re-assembles and refactors
+    numerically only, and :meth:`solve` accepts new prescribed displacements without any
+    refactorisation.
+
+    Parameters
+    ----------
+    grid : pyvista.UnstructuredGrid
+        Linear tetrahedra with materials (cell ``E_fiber``, ``nu``, optional ``E_cross``,
+        ``fiber``) and boundary conditions (point ``bc``, ``bc_displacement``, ``bc_normal``).
+    method : {'direct', 'cg', 'relaxation', 'gpu'}
+    tol : float
+        Relative residual ``||K_ff y - b|| / ||b||`` to reach (iterative methods) or to check
+        (``direct``, which raises :class:`ConvergenceError` above it after refinement).
+    backend : {'cholmod', 'pardiso', 'superlu'}, optional
+        Direct backend; default the first of :func:`direct_backends`.
+    maxiter : int, optional
+        Iteration cap (default 2000 for cg/gpu, 20000 sweeps for relaxation).
+    preconditioner : {'amg', 'jacobi'}, optional
+        For ``cg``; default AMG when pyamg imports.
+    omega : float
+        Over-relaxation factor of ``relaxation`` (1 = Gauss-Seidel).
+    warn_lost_digits : float
+        ``direct`` warns (:class:`IllConditionedWarning`) when the estimated number of lost
+        significant digits reaches this.
+    progress_bar : bool
+        Show a tqdm bar for iterative methods (when tqdm is installed).
+    E_fiber, E_cross, nu, fiber : optional
+        Override the grid's materials (scalars or per-cell arrays).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> import pvcmf
+    >>> from pvcmf import arrays
+    >>> grid = pv.ImageData(dimensions=(5, 5, 5)).triangulate()
+    >>> grid.cell_data[arrays.E_FIBER] = np.ones(grid.n_cells)
+    >>> grid.cell_data[arrays.NU] = np.full(grid.n_cells, 0.46)
+    >>> z = grid.points[:, 2]
+    >>> grid.point_data[arrays.BC] = np.where((z == 0) | (z == 4), arrays.BC_JOINT,
+    ...                                       arrays.BC_FREE).astype(np.int8)
+    >>> d = np.zeros((grid.n_points, 3)); d[z == 4, 2] = -0.4
+    >>> grid.point_data[arrays.BC_DISPLACEMENT] = d
+    >>> solver = pvcmf.mtm.Solver(grid)
+    >>> u = solver.solve()
+    >>> solver.update_materials(nu=0.3)      # numeric refactorisation only
+    >>> u2 = solver.solve()
+    >>> bool(np.allclose(u[z == 4], d[z == 4]))
+    True
+    """
+
+    def __init__(self, grid, method="direct", *, tol=1e-10, backend=None, maxiter=None,
+                 preconditioner=None, omega=1.0, warn_lost_digits=8.0, progress_bar=False,
+                 E_fiber=None, E_cross=None, nu=None, fiber=None):
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        tol = float(tol)
+        if not 0 < tol < 1:
+            raise ValueError(f"tol must be in (0, 1), got {tol}")
+        if method == "gpu" and not gpu_available():
+            raise RuntimeError(
+                "method='gpu' needs CuPy and a CUDA device, and none was found; "
+                "use method='direct' or 'cg'"
+            )
+        if method == "direct":
+            names = direct_backends()
+            backend = names[0] if backend is None else backend
+            if backend not in _BACKENDS:
+                raise ValueError(f"backend must be one of {sorted(_BACKENDS)}, got {backend!r}")
+            if backend not in names:
+                raise ValueError(f"backend {backend!r} is not importable here; available: {names}")
+        elif backend is not None:
+            raise ValueError(f"backend applies to method='direct' only, got method={method!r}")
+        if preconditioner not in (None, "amg", "jacobi"):
+            raise ValueError(f"preconditioner must be 'amg' or 'jacobi', got {preconditioner!r}")
+        self.method, self.tol, self.backend_name = method, tol, backend
+        self.maxiter = maxiter
+        self.preconditioner = preconditioner
+        self.omega = float(omega)
+        self.warn_lost_digits = float(warn_lost_digits)
+        self.progress_bar = progress_bar
+        self.grid = grid
+        t0 = time.perf_counter()
+        self.points, cells = tetrahedra(grid)
+        self.assembler = asm = Assembler(self.points, cells)
+        self.constraints = cons = Constraints(grid, used=asm.used)
+        cons.check_rigid_modes(self.points, asm.indptr, asm.indices)
+        if np.any(~asm.used):
+            log.warning("%d point(s) belong to no tetrahedron; they keep their prescribed "
+                        "displacement (0 if free)", int(np.sum(~asm.used)))
+        self.materials = grid_materials(grid, E_fiber=E_fiber, E_cross=E_cross, nu=nu, fiber=fiber)
+        self._build_maps()
+        self.timings = {"setup": time.perf_counter() - t0}
+        self._backend = None
+        self._assemble_and_factor()
+
+    # ------------------------------------------------------------------ structure
+    def _build_maps(self):
+        asm, cons = self.assembler, self.constraints
+        nnzb = asm.nnzb
+        idx = np.arange(1, nnzb * 9 + 1, dtype=np.int64).reshape(nnzb, 3, 3)
+        M = asm.bsr(idx).tocsr()
+        self.F = np.flatnonzero(cons.free)
+        self.P = np.flatnonzero(~cons.free)
+        Mf = M[self.F]
+        ff = _pattern_submatrix(Mf, slice(None), self.F)
+        fp = _pattern_submatrix(Mf, slice(None), self.P)
+        self._ff = (ff.indptr, ff.indices, ff.data - 1)
+        self._fp = (fp.indptr, fp.indices, fp.data - 1)
+        if self.method == "direct" and self.backend_name == "pardiso":
+            up = sp.triu(ff, format="csr")
+            up.sort_indices()
+            self._ffu = (up.indptr, up.indices, up.data - 1)
+        nf = self.F.size
+        log.debug("MTM system: %d unknowns of %d dofs", nf, 3 * asm.n_points)
+
+    def _csr(self, flat, parts, shape):
+        indptr, indices, where = parts
+        return sp.csr_matrix((flat[where], indices, indptr), shape=shape)
+
+    # ------------------------------------------------------------------ materials
+    def update_materials(self, *, E_fiber=None, E_cross=None, nu=None, fiber=None):
+        """Re-assemble with new materials and refactor numerically (symbolic analysis kept).
+
+        Each argument is a scalar or a per-cell array; omitted ones keep their value.
+        """
+        ef, ec, nu_, a = self.materials
+        m = self.assembler.n_cells
+
+        def pick(new, old):
+            if new is None:
+                return old
+            v = np.asarray(new, dtype=float)
+            if v.ndim == 0:
+                return np.full(m, float(v))
+            if v.shape != (m,):
+                raise ValueError(f"material arrays must be scalars or have shape ({m},), got {v.shape}")
+            return v.copy()
+
+        ef2 = pick(E_fiber, ef)
+        ec2 = ef2 if (E_cross is None and E_fiber is not None and np.array_equal(ec, ef)) \
+            else pick(E_cross, ec)
+        nu2 = pick(nu, nu_)
+        if fiber is not None:
+            a = np.broadcast_to(np.asarray(fiber, dtype=float), (m, 3)).copy()
+            nrm = np.linalg.norm(a, axis=1)
+            a[nrm > 0] /= nrm[nrm > 0, None]
+        missing = (ef2 != ec2) & ~(np.linalg.norm(a, axis=1) > 0)
+        if np.any(missing):
+            raise ValueError(
+                f"fiber must be a nonzero vector where E_fiber != E_cross; {int(missing.sum())} "
+                f"cell(s) have none, e.g. cell {int(np.flatnonzero(missing)[0])}"
+            )
+        from .materials import check_positive_definite
+
+        check_positive_definite(ef2, ec2, nu2)
+        self.materials = (ef2, ec2, nu2, a)
+        self._assemble_and_factor()
+
+    def _assemble_and_factor(self):
+        asm, cons = self.assembler, self.constraints
+        t0 = time.perf_counter()
+        ef, ec, nu, a = self.materials
+        data = asm.full_blocks(asm.upper_blocks(ef, ec, nu, a))
+        cons.rotate_blocks(data, asm.rows, asm.indices)
+        self._data = data
+        flat = data.reshape(-1)
+        nf, npres = self.F.size, self.P.size
+        self.K_ff = self._csr(flat, self._ff, (nf, nf))
+        self.K_fp = self._csr(flat, self._fp, (nf, npres))
+        t1 = time.perf_counter()
+        self.timings["assembly"] = t1 - t0
+        if nf:
+            getattr(self, f"_setup_{self.method}")()
+        self.timings["factor"] = time.perf_counter() - t1
+        log.debug("assembly %.3f s, factor/setup %.3f s", t1 - t0, self.timings["factor"])
+
+    def _setup_direct(self):
+        if self._backend is None:
+            t = time.perf_counter()
+            if self.backend_name == "pardiso":
+                self._backend = _Pardiso(self._csr(self._data.reshape(-1), self._ffu,
+                                                   self.K_ff.shape))
+            else:
+                self._backend = _BACKENDS[self.backend_name](self.K_ff.tocsc())
+            self.timings["analysis"] = time.perf_counter() - t
+        if self.backend_name == "pardiso":
+            self._backend.factor(self._csr(self._data.reshape(-1), self._ffu, self.K_ff.shape))
+        else:
+            self._backend.factor(self.K_ff.tocsc())
+
+    def _setup_cg(self):
+        use_amg = self.preconditioner == "amg"
+        if self.preconditioner is None:
+            try:
+                import pyamg  # noqa: F401
+
+                use_amg = True
+            except ImportError:
+                use_amg = False
+        if use_amg:
+            import pyamg
+
+            B = np.stack([self.constraints.to_local(c.reshape(-1, 3))
+                          for c in _rigid_modes(self.points).T], axis=1)[self.F]
+            self._ml = pyamg.smoothed_aggregation_solver(self.K_ff, B=B, symmetry="symmetric")
+            self._M = self._ml.aspreconditioner(cycle="V")
+            self._prec_name = "amg"
+        else:
+            dinv = self._masked_diag_inverse()
+            n = self.assembler.n_points
+            D = sp.bsr_matrix((dinv, np.arange(n), np.arange(n + 1)), shape=(3 * n, 3 * n)).tocsr()
+            self._M = D[self.F][:, self.F]
+            self._prec_name = "jacobi"
+
+    def _setup_gpu(self):
+        import cupyx.scipy.sparse as csp
+
+        self._gpu_K = csp.csr_matrix(self.K_ff)
+        self._gpu_dinv = 1.0 / self.K_ff.diagonal()
+
+    def _masked_diag_inverse(self):
+        """Inverses of the node blocks of K (local frame), identity-scaled on prescribed dofs."""
+        asm = self.assembler
+        n = asm.n_points
+        diag_pos = np.flatnonzero(asm.rows == asm.indices)
+        D = np.zeros((n, 3, 3))
+        D[asm.rows[diag_pos]] = self._data[diag_pos]
+        fm = self.constraints.free.reshape(n, 3)
+        D *= fm[:, :, None] & fm[:, None, :]
+        scale = np.where(fm, 0.0, np.maximum(np.abs(np.trace(D, axis1=1, axis2=2)) / 3, 1.0)[:, None])
+        scale[~asm.used] = 1.0
+        D[:, [0, 1, 2], [0, 1, 2]] += scale
+        return np.linalg.inv(D)
+
+    def _setup_relaxation(self):
+        asm, cons = self.assembler, self.constraints
+        n = asm.n_points
+        fm = cons.free.reshape(n, 3)
+        A = self._data * (fm[asm.rows][:, :, None] & fm[asm.indices][:, None, :])
+        A = asm.bsr(A).tocsr()
+        self._A = A
+        self._dinv = self._masked_diag_inverse()
+        if not hasattr(self, "_colours"):
+            active = asm.used & fm.any(axis=1)
+            colour = _colour(asm.indptr, asm.indices, active)
+            self._colours = [np.flatnonzero(colour == c) for c in range(colour.max() + 1)]
+            log.debug("relaxation: %d colours", len(self._colours))
+        self._rows = []
+        for nodes in self._colours:
+            r = (3 * nodes[:, None] + np.arange(3)).ravel()
+            self._rows.append((nodes, r, A[r]))
+
+    # ------------------------------------------------------------------ solve
+    def solve(self, bc_displacement=None, *, x0=None):
+        """Solve for the displacement of every point, shape ``(n, 3)``.
+
+        Parameters
+        ----------
+        bc_displacement : (n, 3) array, optional
+            New prescribed displacements (same ``bc`` codes and normals); no refactorisation.
+        x0 : (n, 3) array, optional
+            Initial guess for ``cg``, ``gpu`` and ``relaxation`` (warm start).
+
+        Returns
+        -------
+        numpy.ndarray (n, 3)
+            Also sets :attr:`info` (method, backend, residual, iterations, times, error estimate).
+        """
+        cons = self.constraints
+        if bc_displacement is not None:
+            cons.set_displacement(bc_displacement)
+        t0 = time.perf_counter()
+        yp = cons.prescribed[self.P]
+        b = -(self.K_fp @ yp)
+        nb = np.linalg.norm(b)
+        info = {"method": self.method, "backend": self.backend_name or "", "iterations": 0,
+                "error_estimate": np.nan, "lost_digits": np.nan}
+        if self.F.size == 0 or nb == 0:
+            y = np.zeros(self.F.size)
+            info["residual"] = 0.0
+        else:
+            y0 = None
+            if x0 is not None:
+                x0 = np.asarray(x0, dtype=float)
+                if x0.shape != (cons.n_points, 3):
+                    raise ValueError(f"x0 must have shape ({cons.n_points}, 3), got {x0.shape}")
+                y0 = cons.to_local(x0)[self.F]
+            y = getattr(self, f"_solve_{self.method}")(b, nb, y0, info)
+        if not np.all(np.isfinite(y)):
+            raise ConvergenceError(f"method={self.method!r} produced non-finite values")
+        full = cons.prescribed.copy()
+        full[self.F] = y
+        u = cons.to_global(full)
+        self.timings["solve"] = time.perf_counter() - t0
+        info["assembly_time"] = self.timings["assembly"]
+        info["factor_time"] = self.timings["factor"]
+        info["solve_time"] = self.timings["solve"]
+        info["time"] = info["assembly_time"] + info["factor_time"] + info["solve_time"]
+        self.info = info
+        return u
+
+    def _residual(self, y, b, nb):
+        return float(np.linalg.norm(b - self.K_ff @ y) / nb)
+
+    def _solve_direct(self, b, nb, y0, info):
+        y = self._backend.solve(b)
+        # one refinement step: its size estimates the forward error of the first solve
+        d = self._backend.solve(b - self.K_ff @ y)
+        ny = np.linalg.norm(y)
+        err = float(np.linalg.norm(d) / ny) if ny > 0 else 0.0
+        y = y + d
+        res = self._residual(y, b, nb)
+        steps = 1
+        while res > self.tol and steps < 4 and np.isfinite(res):
+            y = y + self._backend.solve(b - self.K_ff @ y)
+            res, steps = self._residual(y, b, nb), steps + 1
+        lost = float(np.log10(max(err, _EPS) / _EPS))
+        info.update(residual=res, iterations=steps, error_estimate=err, lost_digits=lost)
+        if not np.isfinite(res) or res > max(self.tol, 1e-8):
+            raise ConvergenceError(
+                f"direct solve ({self.backend_name}) left a relative residual {res:.2e} > tol "
+                f"{self.tol:.0e} after {steps} refinement steps: the system is numerically singular"
+            )
+        if lost >= self.warn_lost_digits:
+            warnings.warn(
+                f"the MTM system is ill conditioned: estimated relative error of the solution "
+                f"{err:.1e}, about {lost:.0f} of 16 significant digits lost "
+                "(extreme stiffness ratios, nu near 0.5 or degenerate tetrahedra?)",
+                IllConditionedWarning, stacklevel=3,
+            )
+        return y
+
+    def _solve_cg(self, b, nb, y0, info):
+        maxiter = 2000 if self.maxiter is None else int(self.maxiter)
+        count = [0]
+        bar = _Progress(self.progress_bar, maxiter, "MTM cg")
+
+        def cb(_):
+            count[0] += 1
+            bar.update(1)
+
+        y, flag = spla.cg(self.K_ff, b, x0=y0, rtol=self.tol, atol=0.0, maxiter=maxiter,
+                          M=self._M, callback=cb)
+        bar.close()
+        res = self._residual(y, b, nb)
+        info.update(residual=res, iterations=count[0], preconditioner=self._prec_name)
+        if flag != 0 or not np.isfinite(res) or res > 10 * self.tol:
+            raise ConvergenceError(
+                f"cg ({self._prec_name}) did not reach tol {self.tol:.0e} in {count[0]} "
+                f"iterations (relative residual {res:.2e}); raise maxiter or use method='direct'"
+            )
+        return y
+
+    def _solve_gpu(self, b, nb, y0, info):
+        import cupy as cp
+        import cupyx.scipy.sparse.linalg as cla
+
+        maxiter = 5000 if self.maxiter is None else int(self.maxiter)
+        dinv = cp.asarray(self._gpu_dinv)
+        M = cla.LinearOperator(self._gpu_K.shape, matvec=lambda x: dinv * x, dtype=float)
+        count = [0]
+
+        def cb(_):
+            count[0] += 1
+
+        bg = cp.asarray(b)
+        x0 = None if y0 is None else cp.asarray(y0)
+        try:
+            yg, flag = cla.cg(self._gpu_K, bg, x0=x0, tol=self.tol, atol=0.0, maxiter=maxiter,
+                              M=M, callback=cb)
+        except TypeError:  # newer CuPy names it rtol
+            yg, flag = cla.cg(self._gpu_K, bg, x0=x0, rtol=self.tol, atol=0.0, maxiter=maxiter,
+                              M=M, callback=cb)
+        y = cp.asnumpy(yg)
+        res = self._residual(y, b, nb)
+        info.update(residual=res, iterations=count[0])
+        if not np.isfinite(res) or res > 10 * self.tol:
+            raise ConvergenceError(
+                f"gpu cg did not reach tol {self.tol:.0e} in {count[0]} iterations "
+                f"(relative residual {res:.2e}); raise maxiter or use method='direct'"
+            )
+        return y
+
+    def _solve_relaxation(self, b, nb, y0, info):
+        cons = self.constraints
+        n = cons.n_points
+        maxiter = 20000 if self.maxiter is None else int(self.maxiter)
+        bfull = np.zeros(3 * n)
+        bfull[self.F] = b
+        y = cons.prescribed.copy()
+        if y0 is not None:
+            y[self.F] = y0
+        # prescribed rows are decoupled: A_PP = diag(d) with the same d as in dinv
+        dinv = self._dinv
+        # scale prescribed rows to keep y_p fixed: b_p = d_p * y_p is implied by starting there
+        omega = self.omega
+        check = 10
+        bar = _Progress(self.progress_bar, maxiter, "MTM relaxation")
+        res = np.inf
+        sweeps = 0
+        free = cons.free
+        while sweeps < maxiter:
+            for nodes, rows, Ar in self._rows:
+                r = (bfull[rows] - Ar @ y).reshape(-1, 3)
+                r *= free[rows].reshape(-1, 3)
+                y[rows] += omega * np.einsum("nij,nj->ni", dinv[nodes], r).ravel()
+            sweeps += 1
+            bar.update(1)
+            if sweeps % check == 0 or sweeps == maxiter:
+                res = self._residual(y[self.F], b, nb)
+                if not np.isfinite(res):
+                    break
+                if res <= self.tol:
+                    break
+        bar.close()
+        info.update(residual=float(res), iterations=sweeps)
+        if not res <= self.tol:
+            raise ConvergenceError(
+                f"relaxation did not reach tol {self.tol:.0e} in {sweeps} sweeps (relative "
+                f"residual {res:.2e}); the paper's local method converges slowly, and not at all "
+                "usefully for nu near 0.5: use method='direct' or 'cg'"
+            )
+        return y[self.F]
+
+    # ------------------------------------------------------------------ output
+    def to_grid(self, u, grid=None):
+        """Copy of ``grid`` (default the solver's) with point ``displacement`` and field data."""
+        grid = self.grid if grid is None else grid
+        out = grid.copy(deep=False)
+        out.point_data[arrays.DISPLACEMENT] = np.asarray(u, dtype=float)
+        info = getattr(self, "info", {})
+        for key, name in ((FIELD_METHOD, "method"), (FIELD_BACKEND, "backend")):
+            out.field_data[key] = np.array([str(info.get(name, ""))])
+        for key, name in ((FIELD_RESIDUAL, "residual"), (FIELD_ITERATIONS, "iterations"),
+                          (FIELD_TIME, "time"), (FIELD_ERROR_ESTIMATE, "error_estimate"),
+                          (FIELD_LOST_DIGITS, "lost_digits")):
+            out.field_data[key] = np.array([float(info.get(name, np.nan))])
+        return out
+
+
+def solve(grid, method="direct", tol=1e-10, progress_bar=False, **kwargs):
+    """Rest position of the MTM under the grid's boundary conditions.
+
+    Parameters
+    ----------
+    grid : pyvista.UnstructuredGrid
+        Linear tetrahedra with cell materials (``E_fiber``, ``nu``, optional ``E_cross``,
+        ``fiber``; see :func:`pvcmf.filters.assign_materials`) and point ``bc``,
+        ``bc_displacement``, ``bc_normal`` (see :func:`pvcmf.filters.apply_plan`).
+    method : {'direct', 'cg', 'relaxation', 'gpu'}
+        See :mod:`pvcmf.mtm.solvers`.
+    tol : float
+        Relative residual tolerance.
+    progress_bar : bool
+        Show progress for iterative methods.
+    **kwargs
+        Passed to :class:`Solver` (``backend``, ``maxiter``, ``preconditioner``, ``omega``,
+        ``warn_lost_digits``, material overrides) except ``x0`` (warm start, (n, 3)).
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+        A copy with point array ``displacement`` (n, 3) and field data ``mtm_method``,
+        ``mtm_backend``, ``mtm_residual``, ``mtm_iterations``, ``mtm_time``,
+        ``mtm_error_estimate``, ``mtm_lost_digits``.
+
+    Raises
+    ------
+    ValueError
+        Missing or invalid arrays, indefinite materials, or a part of the mesh with rigid
+        motions left (:class:`pvcmf.mtm.RigidModeError`).
+    ConvergenceError
+        The method did not reach ``tol``.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> import pvcmf
+    >>> from pvcmf import arrays
+    >>> grid = pv.ImageData(dimensions=(4, 4, 4)).triangulate()
+    >>> grid.cell_data[arrays.E_FIBER] = np.ones(grid.n_cells)
+    >>> grid.cell_data[arrays.NU] = np.full(grid.n_cells, 0.3)
+    >>> boundary = np.any((grid.points == 0) | (grid.points == 3), axis=1)
+    >>> grid.point_data[arrays.BC] = np.where(boundary, arrays.BC_JOINT,
+    ...                                       arrays.BC_FREE).astype(np.int8)
+    >>> grid.point_data[arrays.BC_DISPLACEMENT] = 0.01 * grid.points   # a linear field
+    >>> post = grid.cmf.solve()
+    >>> bool(np.allclose(post[arrays.DISPLACEMENT], 0.01 * grid.points))
+    True
+    """
+    x0 = kwargs.pop("x0", None)
+    if not hasattr(grid, "point_data") or arrays.BC not in grid.point_data.keys():
+        name = type(grid).__name__
+        raise ValueError(
+            f"solve needs point array {arrays.BC!r} (boundary conditions; it is produced by "
+            f"apply_plan); the {name} has point arrays "
+            f"{sorted(grid.point_data.keys()) if hasattr(grid, 'point_data') else []}"
+        )
+    solver = Solver(grid, method=method, tol=tol, progress_bar=progress_bar, **kwargs)
+    u = solver.solve(x0=x0)
+    log.info("MTM %s: residual %.1e, %d iterations, %.3f s", method, solver.info["residual"],
+             solver.info["iterations"], solver.info["time"])
+    return solver.to_grid(u)
