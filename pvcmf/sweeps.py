@@ -152,7 +152,7 @@ PARAMETERS = {
 }
 
 #: Metric columns every evaluation returns (|distance| statistics, mm and %).
-METRICS = ("p50", "p90", "p95", "mean_abs", "rms", "within_1mm", "within_2mm", "n_skin")
+METRICS = ("p50", "p90", "p95", "median", "mean_abs", "rms", "within_1mm", "within_2mm", "n_skin")
 #: Timing columns (s): ``t_prepare`` is the task's shared cost (mesh, structure), once per
 #: task and repeated on each of its rows; ``t_eval`` the cost of this row's parameter set.
 TIMES = ("t_prepare", "t_eval")
@@ -218,7 +218,10 @@ def validate_grid(grid):
 
 
 def error_statistics(distance):
-    """Statistics of a signed error map, as paper 001 reports them.
+    """Statistics of a signed error map, as paper 001 reports them (one sweep row).
+
+    Delegates to :func:`pvcmf.validation.summary`, renaming its point count ``n`` to
+    ``n_skin``.
 
     Parameters
     ----------
@@ -228,9 +231,14 @@ def error_statistics(distance):
     Returns
     -------
     dict
-        ``p50``, ``p90``, ``p95`` (percentiles of ``|distance|``, mm), ``mean_abs``,
-        ``rms`` (mm), ``within_1mm``, ``within_2mm`` (% of points with ``|d|`` below 1 and
-        2 mm, inclusive, as :func:`pvcmf.validation.summary`) and ``n_skin`` (number of points).
+        ``p50``, ``p90``, ``p95`` (percentiles of ``|distance|``, mm), ``median`` (signed),
+        ``mean_abs``, ``rms`` (mm), ``within_1mm``, ``within_2mm`` (% of points with
+        ``|d| <= 1`` and ``<= 2`` mm) and ``n_skin`` (number of points).
+
+    Raises
+    ------
+    ValueError
+        If there is no finite distance.
 
     Examples
     --------
@@ -239,21 +247,14 @@ def error_statistics(distance):
     >>> s["within_1mm"], s["within_2mm"]
     (50.0, 75.0)
     """
+    from pvcmf.validation import summary
+
     d = np.asarray(distance, dtype=float).ravel()
-    d = np.abs(d[np.isfinite(d)])
-    if d.size == 0:
+    if not np.isfinite(d).any():
         raise ValueError("distance must hold at least one finite value, got none")
-    p50, p90, p95 = np.percentile(d, [50, 90, 95])
-    return {
-        "p50": float(p50),
-        "p90": float(p90),
-        "p95": float(p95),
-        "mean_abs": float(d.mean()),
-        "rms": float(np.sqrt(np.mean(d**2))),
-        "within_1mm": float(100.0 * np.mean(d <= 1.0)),
-        "within_2mm": float(100.0 * np.mean(d <= 2.0)),
-        "n_skin": int(d.size),
-    }
+    stats = summary(d)
+    stats["n_skin"] = int(stats.pop("n"))
+    return stats
 
 
 # --------------------------------------------------------------------------- evaluations
