@@ -1,0 +1,209 @@
+"""The ``pvcmf`` command line.
+
+``pvcmf demo --out DIR [--patient N]``
+    Runs the whole prediction on a virtual patient (:func:`pvcmf.datasets.phantom`) with
+    its Table II plan and writes the predicted skin, the deformed mesh, PNGs and a summary
+    of seconds per step into ``DIR``. Steps not installed yet are skipped with a note.
+``pvcmf simulate --ct PATH --plan PLAN.toml --out DIR``
+    The same on a CT file/folder (DICOM, NIfTI, NRRD, MHA/MHD, VTI) and a plan file;
+    ``--ct headsq`` takes VTK's real head CT (:func:`pvcmf.datasets.headsq`), for which
+    ``examples/headsq_plan.toml`` is written.
+
+Every file is written atomically (temporary file + ``os.replace``), so an interrupted
+run leaves no half-written file. Delegates to :mod:`argparse` and
+:func:`pvcmf.pipeline.simulate`. This is the only module of pvcmf that prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+#: defaults of ``pvcmf demo``: coarse enough to finish in well under 2 minutes on 2 cores
+DEMO_SPACING = 2.0
+DEMO_N_TETS = 25_000
+
+
+def _positive_int(text):
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _positive_float(text):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def _common(parser):
+    parser.add_argument("--out", required=True, type=Path,
+                        help="output folder (created if missing)")
+    parser.add_argument("--n-tets", type=_positive_int, default=DEMO_N_TETS,
+                        help=f"requested number of tetrahedra (default {DEMO_N_TETS})")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-figures", action="store_true", help="do not render PNGs")
+    parser.add_argument("--no-predict", action="store_true",
+                        help="only segment, cut the bones and draw the plan (no mesh/solve)")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log more (-v info, -vv debug)")
+
+
+def build_parser():
+    """The argument parser of the ``pvcmf`` command."""
+    from . import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="pvcmf",
+        description="Predict the face after cranio-maxillofacial surgery (PyVista + MTM).")
+    parser.add_argument("--version", action="version", version=f"pvcmf {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="predict a virtual patient's face after its Table II plan")
+    _common(demo)
+    demo.add_argument("--patient", type=int, choices=(1, 2, 3, 4), default=1,
+                      help="virtual patient 1-4 (default 1)")
+    demo.add_argument("--spacing", type=_positive_float, default=DEMO_SPACING,
+                      help=f"voxel size of the virtual CT in mm (default {DEMO_SPACING})")
+
+    sim = sub.add_parser("simulate", help="predict the face from a CT and a plan file")
+    _common(sim)
+    sim.add_argument("--ct", required=True, type=Path,
+                     help="CT file or DICOM folder (read by pvcmf.read_ct), or 'headsq' for "
+                          "VTK's real head CT (pvcmf.datasets.headsq, in the patient frame)")
+    sim.add_argument("--plan", required=True, type=Path, help="plan file (.toml or .json)")
+    sim.add_argument("--offset", type=float, default=None,
+                     help="HU = scale * value + offset (for scanner units; default 0, "
+                          "headsq: its loader's default)")
+    sim.add_argument("--scale", type=float, default=None, help="see --offset (default 1)")
+    sim.add_argument("--flip", default="",
+                     help="mirror the CT along these axes to reach the patient frame (x left, "
+                          "y anterior, z superior), e.g. 'yz' for VTK's headsq")
+    return parser
+
+
+def _setup_logging(verbose):
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s",
+                        stream=sys.stderr)
+
+
+def _demo(args):
+    from . import datasets
+
+    start = time.perf_counter()
+    case = datasets.phantom(patient=args.patient, spacing=args.spacing)
+    seconds = time.perf_counter() - start
+    print(f"virtual patient {args.patient} at {args.spacing:g} mm ({seconds:.1f} s): "
+          f"{case.plan.name or 'plan'}: "
+          + "; ".join(f"{o.segment} T{o.translation} R{o.rotation}"
+                      for o in case.plan.osteotomies))
+    from .pipeline import simulate
+
+    result = simulate(case.ct, case.plan, args.out, bones=case.truth,
+                      landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
+                      predict=not args.no_predict, figures=not args.no_figures,
+                      progress_bar=not args.no_progress)
+    result.timings = {"phantom": seconds, **result.timings}
+    return result
+
+
+def _simulate(args):
+    from .io import read_ct
+
+    args.offset_given, args.scale_given = args.offset is not None, args.scale is not None
+    args.offset = 0.0 if args.offset is None else args.offset
+    args.scale = 1.0 if args.scale is None else args.scale
+    from .pipeline import simulate
+    from .plan import read_plan
+
+    plan = read_plan(args.plan)  # fail on a bad plan before reading the CT
+    start = time.perf_counter()
+    if str(args.ct) == "headsq" and not args.ct.exists():
+        from .datasets import headsq
+
+        ct = headsq(offset=args.offset if args.offset_given else None,
+                    scale=args.scale if args.scale_given else None)
+    else:
+        ct = read_ct(args.ct, offset=args.offset, scale=args.scale)
+    if args.flip:
+        from .pipeline import flip_axes
+
+        ct = flip_axes(ct, args.flip)
+    seconds = time.perf_counter() - start
+    result = simulate(ct, plan, args.out, n_tets=args.n_tets, predict=not args.no_predict,
+                      figures=not args.no_figures, progress_bar=not args.no_progress)
+    result.timings = {"read": seconds, **result.timings}
+    return result
+
+
+def _report(result):
+    from .pipeline import STEPS
+
+    width = max(len(s) for s in (*STEPS, "phantom"))
+    print("\nseconds per step")
+    for step, seconds in result.timings.items():
+        print(f"  {step:<{width}}  {seconds:7.2f}")
+    print(f"  {'total':<{width}}  {sum(result.timings.values()):7.2f}")
+    for step, why in result.skipped.items():
+        if "given" not in why and "no output" not in why:
+            print(f"  skipped {step}: {why}")
+    if result.post is not None:
+        import numpy as np
+
+        from . import arrays
+
+        u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)
+        print(f"\nprediction: {result.post.n_cells} tetrahedra, max displacement {u.max():.2f} mm")
+    else:
+        print("\nno prediction (meshing / materials / solver not available): "
+              "segmentation and figures only")
+    print("\nwrote:")
+    for path in result.files.values():
+        print(f"  {path}")
+
+
+def main(argv=None):
+    """Entry point of the ``pvcmf`` console script; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose)
+    import pyvista as pv
+
+    pv.OFF_SCREEN = True
+    try:
+        result = {"demo": _demo, "simulate": _simulate}[args.command](args)
+    except KeyboardInterrupt:
+        print("interrupted: no partial files were left behind", file=sys.stderr)
+        return 130
+    except (ValueError, TypeError, FileNotFoundError) as err:  # bad input
+        if args.verbose >= 2:
+            raise
+        print(f"pvcmf {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except Exception as err:  # a step failed: say which, keep the traceback for -vv
+        if args.verbose >= 2:
+            raise
+        print(f"pvcmf {args.command}: failed: {type(err).__name__}: {err}\n"
+              f"(run with -vv for the traceback; no partial files were left behind)",
+              file=sys.stderr)
+        return 1
+    _report(result)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,619 @@
+"""End-to-end prediction: CT + surgical plan -> predicted post-operative face.
+
+:func:`simulate` chains the pipeline steps of :mod:`pvcmf.filters` and :mod:`pvcmf.mtm`
+(segmentation, muscles, meshing, materials, plan -> boundary conditions, MTM solve,
+skin), times every step, and, given an output folder, writes the predicted skin (VTP),
+the deformed mesh (VTU) and offscreen PNGs, each atomically (temporary file in the same
+folder + ``os.replace``: an interrupted run leaves no half-written file).
+
+Steps are looked up lazily by their registry names; a step whose module is not installed
+yet is skipped with a logged note and recorded in :attr:`Result.skipped`, so a partial
+installation still segments and draws what it can. Rendering delegates to PyVista
+(off screen), writing to VTK's XML writers.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+
+from . import arrays
+from ._atomic import atomic_path, write_text
+from .plan import Plan, read_plan
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Result", "simulate", "STEPS", "write_outputs"]
+
+#: the steps of :func:`simulate`, in order, as named in the timing summary
+STEPS = ("read", "segment", "bone segments", "muscles", "mesh", "fibres", "materials",
+         "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
+
+#: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
+DEFAULT_N_TETS = 25_000
+#: default anterior share of the head that is meshed (the face model of paper 000)
+DEFAULT_FACE_FRACTION = 0.5
+
+
+class StepUnavailable(RuntimeError):
+    """A pipeline step's implementation is not available in this installation."""
+
+
+@dataclass
+class Result:
+    """What :func:`simulate` produced, with the time spent per step.
+
+    Attributes
+    ----------
+    labels : pyvista.ImageData
+        Tissue / muscle / bone labels (``bone`` holds the planned segments).
+    mesh : pyvista.UnstructuredGrid or None
+        Pre-operative tetrahedral mesh with materials and ``bc`` arrays.
+    post : pyvista.UnstructuredGrid or None
+        ``mesh`` with the point array ``displacement`` (rest positions, not warped).
+    skin_pre, skin_post : pyvista.PolyData or None
+        Pre-operative and predicted skin (``skin_post`` carries ``displacement``).
+    skeleton : pyvista.MultiBlock or None
+        Post-operative bone segment surfaces (:func:`pvcmf.filters.move_bones`).
+    timings : dict
+        Step name -> seconds.
+    skipped : dict
+        Step name -> why it did not run.
+    files : dict
+        Output name -> written path.
+    """
+
+    plan: Plan
+    labels: pv.ImageData | None = None
+    mesh: pv.UnstructuredGrid | None = None
+    post: pv.UnstructuredGrid | None = None
+    skin_pre: pv.PolyData | None = None
+    skin_post: pv.PolyData | None = None
+    skeleton: pv.MultiBlock | None = None
+    timings: dict = field(default_factory=dict)
+    skipped: dict = field(default_factory=dict)
+    files: dict = field(default_factory=dict)
+
+    @property
+    def complete(self):
+        """True when the prediction ran (mesh, boundary conditions and solve)."""
+        return self.post is not None
+
+    def summary(self):
+        """A small text table of seconds per step (and the skipped steps)."""
+        width = max(len(s) for s in STEPS)
+        lines = [f"{'step':<{width}}  seconds"]
+        for step in STEPS:
+            if step in self.timings:
+                lines.append(f"{step:<{width}}  {self.timings[step]:7.2f}")
+            elif step in self.skipped:
+                lines.append(f"{step:<{width}}  skipped: {self.skipped[step]}")
+        lines.append(f"{'total':<{width}}  {sum(self.timings.values()):7.2f}")
+        if self.post is not None:
+            u = np.linalg.norm(np.asarray(self.post[arrays.DISPLACEMENT]), axis=1)
+            lines.append(f"max displacement {u.max():.2f} mm, mesh {self.post.n_cells} tetrahedra, "
+                         f"{self.post.n_points} points")
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- step look-up
+def _filter(name):
+    """The registered filter ``name`` or :class:`StepUnavailable` if not implemented yet."""
+    from . import filters
+
+    try:
+        return getattr(filters, name)
+    except ModuleNotFoundError as err:
+        if err.name and err.name.startswith("pvcmf"):
+            raise StepUnavailable(f"pvcmf.filters.{name} is not implemented yet") from None
+        raise StepUnavailable(f"pvcmf.filters.{name} needs {err.name!r} (not installed)") \
+            from None
+    except AttributeError:
+        raise StepUnavailable(f"pvcmf.filters.{name} is not implemented yet") from None
+
+
+def _solver():
+    try:
+        mtm = importlib.import_module("pvcmf.mtm")
+        return mtm.solve
+    except (ImportError, AttributeError):
+        raise StepUnavailable("pvcmf.mtm.solve is not implemented yet") from None
+
+
+class _Progress:
+    """tqdm over the steps when available and wanted, else nothing (logging only)."""
+
+    def __init__(self, enabled, total):
+        self.bar = None
+        if enabled:
+            try:
+                from tqdm.auto import tqdm
+
+                self.bar = tqdm(total=total, unit="step", file=sys.stderr,
+                                bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}]")
+            except ImportError:
+                self.bar = _SimpleBar(total)
+
+    def step(self, name):
+        if self.bar is not None:
+            self.bar.set_description(name)
+
+    def update(self):
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+class _SimpleBar:
+    """Fallback text progress bar on stderr."""
+
+    def __init__(self, total):
+        self.total, self.n, self.desc = total, 0, ""
+
+    def set_description(self, desc):
+        self.desc = desc
+        self._draw()
+
+    def update(self, k):
+        self.n += k
+        self._draw()
+
+    def _draw(self):
+        done = int(30 * self.n / max(self.total, 1))
+        sys.stderr.write(f"\r{self.desc:<20} [{'#' * done}{'.' * (30 - done)}] "
+                         f"{self.n}/{self.total}")
+        sys.stderr.flush()
+
+    def close(self):
+        sys.stderr.write("\n")
+
+
+class _Runner:
+    def __init__(self, result, progress):
+        self.result, self.progress = result, progress
+
+    def run(self, step, func, *args, **kwargs):
+        """Run ``func`` as ``step``; a missing implementation is skipped (returns None)."""
+        self.progress.step(step)
+        start = time.perf_counter()
+        try:
+            value = func(*args, **kwargs)
+        except (StepUnavailable, ImportError) as err:  # a piece not installed/landed yet
+            self.result.skipped[step] = str(err)
+            log.warning("step %r skipped: %s", step, err)
+            value = None
+        else:
+            self.result.timings[step] = time.perf_counter() - start
+            log.info("step %r took %.2f s", step, self.result.timings[step])
+        self.progress.update()
+        return value
+
+    def skip(self, step, why):
+        self.result.skipped[step] = why
+        log.info("step %r skipped: %s", step, why)
+        self.progress.update()
+
+
+# --------------------------------------------------------------------------- steps
+def _transfer_bone_segments(labels, bones):
+    """Give every segmented bone voxel the segment id of the nearest ``bones`` voxel."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    ref = np.asarray(arrays.require_array(bones, arrays.BONE, "point", dtype="iu"))
+    ours = np.asarray(labels[arrays.BONE]) if arrays.BONE in labels.point_data else None
+    tissue = np.asarray(labels[arrays.TISSUE])
+    hard = np.isin(tissue, arrays.HARD_LABELS) | ((ours > 0) if ours is not None else False)
+    same = (tuple(bones.dimensions) == tuple(labels.dimensions)
+            and np.allclose(bones.origin, labels.origin)
+            and np.allclose(bones.spacing, labels.spacing))
+    new = np.zeros(labels.n_points, dtype=np.uint8)
+    if same:
+        vol = ref.reshape(tuple(bones.dimensions), order="F")
+        _, idx = ndimage.distance_transform_edt(vol == 0, sampling=bones.spacing,
+                                                return_indices=True)
+        nearest = vol[tuple(idx)].ravel(order="F")
+        new[hard] = nearest[hard]
+    else:
+        ref_pts = np.asarray(bones.points)[ref > 0]
+        _, near = cKDTree(ref_pts).query(np.asarray(labels.points)[hard])
+        new[hard] = ref[ref > 0][near]
+    out = labels.copy()
+    out[arrays.BONE] = new
+    return out
+
+
+def _segment(ct, options):
+    seg = _filter("segment")
+    return seg(ct, **options)
+
+
+def _muscles(labels, landmarks):
+    embed = _filter("embed_muscles")
+    return embed(labels, landmarks=landmarks) if landmarks is not None else embed(labels)
+
+
+def face_box(labels, face_fraction):
+    """Box (xmin, xmax, ymin, ymax, zmin, zmax) of the head's anterior ``face_fraction``.
+
+    The model is the face in front of a coronal plane, as in paper 000 where the most
+    posterior plane of the soft-tissue model is fixed (Fig. 4c).
+    """
+    head = np.asarray(labels[arrays.TISSUE]) != arrays.AIR
+    if not head.any():
+        raise ValueError("labels has no tissue: the 'tissue' array is all air")
+    pts = np.asarray(labels.points)[head]
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    pad = np.asarray(labels.spacing)
+    y0 = hi[1] - face_fraction * (hi[1] - lo[1])
+    return (lo[0] - pad[0], hi[0] + pad[0], y0, hi[1] + pad[1], lo[2] - pad[2], hi[2] + pad[2])
+
+
+def _mesh(labels, n_tets, options, progress_bar, face_fraction):
+    tet = _filter("tetrahedralize")
+    options = dict(options)
+    if face_fraction is not None and "roi" not in options:
+        options["roi"] = face_box(labels, face_fraction)
+    return tet(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
+
+
+def _fibres(grid):
+    if arrays.MUSCLE not in grid.cell_data or not np.any(grid.cell_data[arrays.MUSCLE]):
+        return grid
+    return _filter("fiber_directions")(grid)
+
+
+def _materials(grid, options):
+    return _filter("assign_materials")(grid, **options)
+
+
+def _skin_from_labels(labels):
+    """Outer skin of a label image: flying edges on the smoothed head indicator."""
+    from scipy import ndimage
+
+    tissue = np.asarray(labels[arrays.TISSUE])
+    dims = tuple(labels.dimensions)
+    vol = (tissue != arrays.AIR).reshape(dims, order="F").astype(np.float32)
+    vol = ndimage.gaussian_filter(vol, 0.8, mode="constant")
+    img = pv.ImageData(dimensions=dims, spacing=labels.spacing, origin=labels.origin)
+    img["head"] = vol.ravel(order="F")
+    skin = img.contour([0.5], scalars="head", method="flying_edges")
+    skin = skin.connectivity("largest")
+    skin.clear_data()
+    return skin
+
+
+def _skin(labels, post):
+    """Pre-operative skin and, with a solved mesh, the predicted skin.
+
+    The skin comes from :func:`pvcmf.filters.extract_skin` where available, else from the
+    label image; the mesh displacement is mapped onto it by probing the tetrahedra
+    (nearest mesh point for skin points just outside the mesh).
+    """
+    try:
+        pre = _filter("extract_skin")(labels)
+    except StepUnavailable as err:
+        log.info("extract_skin unavailable (%s): skin from the label image", err)
+        pre = _skin_from_labels(labels)
+    if post is None:
+        return pre, None
+    pre = pre.copy()
+    pre.clear_data()
+    probe = pre.sample(post, snap_to_closest_point=True)
+    disp = np.asarray(probe[arrays.DISPLACEMENT], dtype=np.float64)
+    pre.point_data[arrays.DISPLACEMENT] = disp
+    moved = pre.copy()
+    moved.points = np.asarray(pre.points) + disp
+    return pre, moved
+
+
+def flip_axes(image, axes):
+    """Mirror an image along some of its axes, in place of a reorientation.
+
+    Flipping two axes is a 180 degree rotation (patient left/right kept): use it to bring
+    a scan whose superior is -z and anterior -y (VTK's headsq) into pvcmf's patient frame
+    (x left, y anterior, z superior). Every point array is flipped; bounds are unchanged.
+
+    Parameters
+    ----------
+    image : pyvista.ImageData
+    axes : str or sequence of str
+        Subset of ``"xyz"``, e.g. ``"yz"``.
+
+    Returns
+    -------
+    pyvista.ImageData
+        A new image.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf.pipeline import flip_axes
+    >>> img = pv.ImageData(dimensions=(2, 3, 4))
+    >>> img["z"] = img.points[:, 2].copy()
+    >>> flip_axes(img, "z")["z"][:3].tolist()
+    [3.0, 3.0, 3.0]
+    """
+    axes = "".join(axes)
+    if not isinstance(image, pv.ImageData):
+        raise TypeError(f"image must be a pyvista.ImageData, got {type(image).__name__}")
+    bad = set(axes) - set("xyz")
+    if bad or len(set(axes)) != len(axes):
+        raise ValueError(f"axes must be distinct letters of 'xyz', got {axes!r}")
+    out = image.copy()
+    dims = tuple(image.dimensions)
+    for name in image.point_data.keys():
+        data = np.asarray(image.point_data[name])
+        vol = data.reshape(dims + data.shape[1:], order="F")
+        for axis in axes:
+            vol = np.flip(vol, "xyz".index(axis))
+        out.point_data[name] = vol.reshape(data.shape, order="F").copy()
+    return out
+
+
+# --------------------------------------------------------------------------- main entry
+def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
+             n_tets=DEFAULT_N_TETS, segment_options=None, mesh_options=None,
+             material_options=None, bc_options=None, solve_options=None, muscles=True,
+             face_fraction=DEFAULT_FACE_FRACTION, predict=True, figures=True,
+             progress_bar=False):
+    """Predict the post-operative face from a CT and a surgical plan.
+
+    Parameters
+    ----------
+    ct : pyvista.ImageData or str or pathlib.Path
+        CT with point array ``ct`` in HU (or a file/folder :func:`pvcmf.read_ct` reads).
+    plan : pvcmf.Plan or str or pathlib.Path
+        The surgical plan, or a TOML/JSON plan file.
+    out : str or pathlib.Path, optional
+        Folder for the outputs (see :func:`write_outputs`); nothing is written if None.
+    labels : pyvista.ImageData, optional
+        Precomputed ``tissue``/``bone`` labels: skips segmentation.
+    bones : pyvista.ImageData, optional
+        A label image whose ``bone`` array names the segments (e.g. a virtual patient's
+        ``truth``): each segmented bone voxel takes the id of its nearest ``bones`` voxel.
+        Without it the plan's cut planes (or the segmentation's own ids) define segments.
+    landmarks : dict, optional
+        Patient landmarks for the muscle atlas (``embed_muscles``); automatic without.
+    n_tets : int, default 25000
+        Requested number of tetrahedra (the speed/accuracy knob).
+    segment_options, mesh_options, material_options, bc_options, solve_options : dict
+        Keyword arguments passed to ``segment``, ``tetrahedralize``, ``assign_materials``,
+        ``apply_plan`` and ``mtm.solve``.
+    face_fraction : float or None, default 0.5
+        Mesh only the anterior fraction of the head (a region of interest in front of a
+        coronal plane, whose nodes are the fixed posterior plane of paper 000); None
+        meshes the whole head.
+    predict : bool, default True
+        Run the prediction (mesh, materials, boundary conditions, solve); ``False`` only
+        segments, cuts and draws the plan.
+    muscles : bool, default True
+        Embed the facial muscles (``embed_muscles``); without, the soft tissue is
+        homogeneous.
+    figures : bool, default True
+        Render the PNGs when ``out`` is given.
+    progress_bar : bool, default False
+        Show a progress bar over the steps on stderr.
+
+    Returns
+    -------
+    Result
+        Datasets, seconds per step (:meth:`Result.summary`), skipped steps, written files.
+
+    Raises
+    ------
+    TypeError, ValueError
+        For a bad ``ct``/``plan``/option, before anything is written.
+
+    Examples
+    --------
+    >>> import pvcmf                                        # doctest: +SKIP
+    >>> case = pvcmf.datasets.phantom(1, spacing=2.0)       # doctest: +SKIP
+    >>> res = pvcmf.pipeline.simulate(case.ct, case.plan, bones=case.truth)  # doctest: +SKIP
+    >>> print(res.summary())                                # doctest: +SKIP
+    """
+    if isinstance(plan, (str, Path)):
+        plan = read_plan(plan)
+    if not isinstance(plan, Plan):
+        raise TypeError(f"plan must be a pvcmf.Plan or a plan file path, got {type(plan).__name__}")
+    if isinstance(n_tets, bool) or not isinstance(n_tets, (int, np.integer)) or n_tets <= 0:
+        raise ValueError(f"n_tets must be a positive integer, got {n_tets!r}")
+    opts = {}
+    for name, value in (("segment_options", segment_options), ("mesh_options", mesh_options),
+                        ("material_options", material_options), ("bc_options", bc_options),
+                        ("solve_options", solve_options)):
+        if value is not None and not isinstance(value, dict):
+            raise TypeError(f"{name} must be a dict or None, got {type(value).__name__}")
+        opts[name] = dict(value or {})
+    if face_fraction is not None and not (0 < float(face_fraction) <= 1):
+        raise ValueError(f"face_fraction must be in (0, 1] or None, got {face_fraction!r}")
+    if bones is not None and not isinstance(bones, pv.ImageData):
+        raise TypeError(f"bones must be a pyvista.ImageData or None, got {type(bones).__name__}")
+
+    result = Result(plan=plan)
+    progress = _Progress(progress_bar, len(STEPS))
+    run = _Runner(result, progress)
+    try:
+        if isinstance(ct, (str, Path)):
+            from .io import read_ct
+
+            ct = run.run("read", read_ct, ct)
+        else:
+            run.skip("read", "CT given in memory")
+        if labels is None:
+            if not isinstance(ct, pv.ImageData):
+                raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
+            arrays.require_array(ct, arrays.CT, "point", dtype="f", producer="pvcmf.read_ct")
+            labels = run.run("segment", _segment, ct, opts["segment_options"])
+            if labels is None:
+                raise StepUnavailable("segmentation is required and not available")
+        else:
+            run.skip("segment", "labels given")
+        if bones is not None:
+            labels = run.run("bone segments", _transfer_bone_segments, labels, bones)
+        else:
+            run.skip("bone segments", "segments from the plan's cut planes / the labels")
+        from .filters.osteotomy import cut_bones
+
+        labels = cut_bones(labels, plan)
+        if muscles and predict:
+            with_muscles = run.run("muscles", _muscles, labels, landmarks)
+            if with_muscles is not None:
+                labels = with_muscles
+        else:
+            run.skip("muscles", "muscles=False" if predict else "predict=False")
+        result.labels = labels
+
+        if predict:
+            grid = run.run("mesh", _mesh, labels, n_tets, opts["mesh_options"], progress_bar,
+                           face_fraction)
+        else:
+            grid = None
+            run.skip("mesh", "predict=False")
+        if grid is not None:
+            grid = run.run("fibres", _fibres, grid) or grid
+            with_materials = run.run("materials", _materials, grid, opts["material_options"])
+            if with_materials is None:
+                grid = None  # no materials: the MTM cannot run
+        else:
+            for step in ("fibres", "materials"):
+                run.skip(step, "no mesh")
+        if grid is not None:
+            grid = run.run("boundary conditions", _filter("apply_plan"), with_materials, plan,
+                           labels, **opts["bc_options"])
+            result.mesh = grid
+            result.post = run.run("solve", lambda g: _solver()(g, **opts["solve_options"]), grid)
+        else:
+            for step in ("boundary conditions", "solve"):
+                run.skip(step, "no mesh with materials")
+
+        skins = run.run("skin", _skin, labels, result.post)
+        if skins is not None:
+            result.skin_pre, result.skin_post = skins
+        from .filters.osteotomy import move_bones
+
+        result.skeleton = run.run("skeleton", move_bones, labels, plan)
+        if out is not None:
+            start = time.perf_counter()
+            progress.step("figures")
+            pngs = _render(result, Path(out)) if figures else {}
+            result.timings["figures"] = time.perf_counter() - start
+            progress.update()
+            run.run("write", write_outputs, result, out, pngs)
+        else:
+            run.skip("figures", "no output folder")
+            run.skip("write", "no output folder")
+    finally:
+        progress.close()
+    log.info("simulate finished:\n%s", result.summary())
+    return result
+
+
+# --------------------------------------------------------------------------- outputs
+def _front_camera(plotter, bounds, zoom=1.0):
+    """Look at the face from the front (patient frame: anterior +y, superior +z)."""
+    b = np.asarray(bounds).reshape(3, 2)
+    center = b.mean(axis=1)
+    size = float(np.linalg.norm(b[:, 1] - b[:, 0]))
+    plotter.camera_position = [tuple(center + [0.0, 2.5 * size, 0.0]), tuple(center),
+                               (0.0, 0.0, 1.0)]
+    plotter.camera.zoom(zoom)
+
+
+def _plot_surface(surface, scalars=None, cmap=None, clim=None, title=None, color="peachpuff",
+                  window_size=(600, 700), scalar_bar_title=None):
+    p = pv.Plotter(off_screen=True, window_size=list(window_size))
+    p.set_background("white")
+    kwargs = dict(smooth_shading=True, specular=0.2)
+    if scalars is not None:
+        p.add_mesh(surface, scalars=scalars, cmap=cmap, clim=clim,
+                   scalar_bar_args={"title": scalar_bar_title or scalars, "color": "black",
+                                    "vertical": True, "position_x": 0.82},
+                   **kwargs)
+    else:
+        p.add_mesh(surface, color=color, **kwargs)
+    if title:
+        p.add_text(title, font_size=11, color="black")
+    _front_camera(p, surface.bounds, zoom=1.3)
+    return p
+
+
+def _render(result, out):
+    """Render the output PNGs into memory; returns name -> image array."""
+    images = {}
+    if result.skin_pre is not None:
+        p = _plot_surface(result.skin_pre, title="pre-operative face")
+        images["face_pre.png"] = p.screenshot(return_img=True)
+        p.close()
+    if result.skin_post is not None:
+        p = _plot_surface(result.skin_post, title="predicted post-operative face")
+        images["face_post.png"] = p.screenshot(return_img=True)
+        p.close()
+        mag = np.linalg.norm(result.skin_post[arrays.DISPLACEMENT], axis=1)
+        skin = result.skin_pre.copy()
+        skin["|displacement| (mm)"] = mag
+        p = _plot_surface(skin, scalars="|displacement| (mm)", cmap="viridis",
+                          clim=(0.0, max(float(mag.max()), 1e-3)), title="displacement magnitude")
+        images["displacement.png"] = p.screenshot(return_img=True)
+        p.close()
+    if result.skeleton is not None and result.labels is not None:
+        from .figures.osteotomy import osteotomy_panel
+
+        p = osteotomy_panel(result.labels, result.plan, skin=result.skin_pre,
+                            skeleton=result.skeleton)
+        images["osteotomy.png"] = p.screenshot(return_img=True)
+        p.close()
+    return images
+
+
+def write_outputs(result, out, images=None):
+    """Write a result's files into ``out``, each atomically.
+
+    Files: ``predicted_skin.vtp`` (predicted skin with ``displacement``),
+    ``deformed_mesh.vtu`` (the mesh at its predicted position, with ``displacement`` and
+    the ``bc`` arrays), ``skin_pre.vtp``, the PNGs in ``images`` and ``summary.json``
+    (seconds per step, skipped steps, the plan). Returns ``result.files``.
+    """
+    from PIL import Image
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = result.files
+    if result.skin_post is not None:
+        files["predicted_skin"] = _save(result.skin_post, out / "predicted_skin.vtp")
+    if result.skin_pre is not None:
+        files["skin_pre"] = _save(result.skin_pre, out / "skin_pre.vtp")
+    if result.post is not None:
+        deformed = result.post.copy()
+        deformed.points = np.asarray(deformed.points) + np.asarray(deformed[arrays.DISPLACEMENT])
+        files["deformed_mesh"] = _save(deformed, out / "deformed_mesh.vtu")
+    for name, img in (images or {}).items():
+        with atomic_path(out / name) as tmp:
+            Image.fromarray(np.asarray(img)).save(tmp, format="PNG")
+        files[Path(name).stem] = out / name
+    summary = {"plan": result.plan.to_dict(), "seconds": result.timings,
+               "skipped": result.skipped, "complete": result.complete,
+               "files": {k: Path(v).name for k, v in files.items()}}
+    if result.post is not None:
+        u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)
+        summary.update(n_tets=int(result.post.n_cells), n_points=int(result.post.n_points),
+                       max_displacement_mm=float(u.max()))
+    files["summary"] = write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return files
+
+
+def _save(dataset, path):
+    with atomic_path(path) as tmp:
+        dataset.save(tmp)
+    return Path(path)
