@@ -765,7 +765,8 @@ def _progress(total, enabled, desc="sweep"):
 
 
 def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progress_bar=False,
-          retries=2, keep_arrays=False, n_workers=None, memory_limit="auto", version=None):
+          retries=2, keep_arrays=False, n_workers=None, memory_limit="auto", version=None,
+          on_error="raise"):
     """Run a parameter study over cases and return a tidy table.
 
     Parameters
@@ -803,6 +804,11 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     version : str, optional
         Code version in the cache key; default :func:`code_version` (pvcmf's version
         and a hash of its sources), so changed code recomputes.
+    on_error : {'raise', 'skip'}
+        A task that still fails after its retries: ``'raise'`` stops the sweep with a
+        :class:`RuntimeError` naming the case; ``'skip'`` finishes the other tasks and
+        gives the failed points NaN metrics and the message in an ``error`` column
+        (failures are not cached, so a rerun tries them again).
 
     Returns
     -------
@@ -817,7 +823,8 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     ValueError
         Invalid grid or cases (before anything runs).
     RuntimeError
-        A task failed after its retries; results of finished tasks stay cached.
+        A task failed after its retries (``on_error='raise'``); results of finished
+        tasks stay cached.
 
     Examples
     --------
@@ -841,6 +848,8 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     labels = [lab for lab, _ in identities]
     if len(set(labels)) != len(labels):
         raise ValueError(f"cases must have distinct names, got {labels}")
+    if on_error not in ("raise", "skip"):
+        raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
     if not isinstance(retries, numbers.Integral) or retries < 0:
         raise ValueError(f"retries must be an integer >= 0, got {retries!r}")
     if scheduler is not None and not isinstance(scheduler, str):
@@ -889,11 +898,23 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
              len(cases), len(group_combos) * len(inner_combos), len(points), len(cached), n_todo,
              len(tasks))
 
+    failed = {}
+
     def accept(task, task_results):
         for key, res in zip(task[3], task_results):
             results[key] = res
             if cache_dir is not None:
                 _cache_store(cache_dir, key, res)
+
+    def fail(task, err):
+        ci, gparams = task[0], task[1]
+        message = (f"sweep task for case {labels[ci]!r} with {gparams or 'the default mesh'} "
+                   f"failed: {type(err).__name__}: {err}")
+        if on_error == "raise":
+            raise RuntimeError(message) from err
+        log.error("%s (skipped)", message)
+        for key in task[3]:
+            failed[key] = f"{type(err).__name__}: {err}"
 
     with _progress(len(points), progress_bar) as bar:
         if bar is not None:
@@ -901,16 +922,21 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
         if tasks and scheduler == "synchronous":
             for task in tasks.values():
                 ci, gparams, iparams_list, keys = task
-                accept(task, _run_group(evaluation, cases[ci], gparams, iparams_list))
+                try:
+                    outcome = _run_group(evaluation, cases[ci], gparams, iparams_list)
+                except Exception as err:
+                    fail(task, err)
+                else:
+                    accept(task, outcome)
                 if bar is not None:
                     bar.update(len(keys))
         elif tasks:
-            _run_on_dask(evaluation, cases, labels, tasks, accept, bar, scheduler, retries,
+            _run_on_dask(evaluation, cases, labels, tasks, accept, fail, bar, scheduler, retries,
                          n_workers, memory_limit)
 
     rows = []
     for ci, gparams, iparams, key in points:
-        res = results[key]
+        res = results.get(key, {"error": failed.get(key)})
         row = {"case": labels[ci], **gparams, **iparams}
         for name, value in res.items():
             if isinstance(value, np.ndarray) and not keep_arrays:
@@ -921,20 +947,23 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
         row["cached"] = key in cached
         rows.append(row)
     df = pd.DataFrame(rows)
+    for m in ("p50", "p90", "p95"):
+        if m not in df:
+            df[m] = np.nan
     front = ["case", *grid, *[m for m in METRICS if m in df], *(["n_cells"] if "n_cells" in df else [])]
     back = [c for c in (*TIMES, "cached") if c in df]
     df = df[front + [c for c in df.columns if c not in front and c not in back] + back]
     df.attrs.update(
         grid={k: list(v) for k, v in grid.items()}, n_tasks=len(tasks), n_computed=n_todo,
-        n_cached=len(cached), wall_time=time.perf_counter() - t_start,
+        n_cached=len(cached), n_failed=len(failed), wall_time=time.perf_counter() - t_start,
     )
     log.info("sweep done in %.2f s (%d computed, %d from cache)", df.attrs["wall_time"], n_todo,
              len(cached))
     return df
 
 
-def _run_on_dask(evaluation, cases, labels, tasks, accept, bar, scheduler, retries, n_workers,
-                 memory_limit):
+def _run_on_dask(evaluation, cases, labels, tasks, accept, fail, bar, scheduler, retries,
+                 n_workers, memory_limit):
     from distributed import as_completed
 
     client, stack = _make_client(scheduler, len(tasks), n_workers, memory_limit)
@@ -960,12 +989,9 @@ def _run_on_dask(evaluation, cases, labels, tasks, accept, bar, scheduler, retri
                 try:
                     task_results = fut.result()
                 except Exception as err:
-                    ci, gparams = task[0], task[1]
-                    raise RuntimeError(
-                        f"sweep task for case {labels[ci]!r} with {gparams or 'the default mesh'} "
-                        f"failed after {retries} retries: {type(err).__name__}: {err}"
-                    ) from err
-                accept(task, task_results)
+                    fail(task, err)
+                else:
+                    accept(task, task_results)
                 if bar is not None:
                     bar.update(len(task[3]))
         finally:

@@ -272,6 +272,26 @@ def test_failing_task_reports_case_and_keeps_finished_results(client, tmp_path, 
     assert len(list(cache.rglob("*.npz"))) <= 2
 
 
+def _fragile(case, **params):
+    if case == 3:
+        raise FloatingPointError("diverged")
+    return synthetic_evaluate(case, **params)
+
+
+def test_on_error_skip_finishes_the_others_and_caches_no_failure(tmp_path):
+    cache = tmp_path / "cache"
+    df = pvcmf.sweep([1, 3, 2], {"nu": [0.3, 0.4]}, evaluate=_fragile, scheduler="synchronous",
+                     cache_dir=cache, on_error="skip")
+    bad = df["case"] == "P3"
+    assert df.loc[bad, "p90"].isna().all() and df.loc[~bad, "p90"].notna().all()
+    assert (df.loc[bad, "error"] == "FloatingPointError: diverged").all()
+    assert df.attrs["n_failed"] == 2 and len(list(cache.rglob("*.npz"))) == 4
+    with pytest.raises(RuntimeError, match="'P3'.*diverged"):
+        pvcmf.sweep([3], {"nu": [0.3]}, evaluate=_fragile, scheduler="synchronous")
+    with pytest.raises(ValueError, match="on_error"):
+        pvcmf.sweep([3], {"nu": [0.3]}, evaluate=_fragile, on_error="ignore")
+
+
 # --------------------------------------------------------------------------- saving, CLI
 
 
