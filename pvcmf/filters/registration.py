@@ -12,7 +12,7 @@ a region the surgery does not change, and never taken on the target's open borde
 
 Result API: :func:`register` returns a transformed copy of ``source``; its field data
 holds ``ICP_MATRIX`` (4x4, maps the input source onto the target), ``ICP_RMS`` (mm,
-point-to-plane RMS of the kept pairs), ``ICP_ITERATIONS`` and ``ICP_CONVERGED``.
+point-to-plane RMS of the kept pairs), ``ICP_ITERATIONS``, ``ICP_OVERLAP`` and ``ICP_CONVERGED``.
 :func:`registration_result` reads them back as a ``(matrix, rms, converged)`` tuple.
 """
 
@@ -31,6 +31,7 @@ ICP_MATRIX = "icp_matrix"
 ICP_RMS = "icp_rms"
 ICP_ITERATIONS = "icp_iterations"
 ICP_CONVERGED = "icp_converged"
+ICP_OVERLAP = "icp_overlap"
 
 
 class RegistrationError(RuntimeError):
@@ -90,16 +91,17 @@ def _surface(dataset, name):
 
 def _target_normals(target):
     """Unit point normals of the target (computed by VTK when it has no 'Normals')."""
-    if isinstance(target, pv.PolyData) and target.n_cells and "Normals" in target.point_data:
+    polys = isinstance(target, pv.PolyData) and target.faces.size > 0
+    if polys and "Normals" in target.point_data:
         n = np.asarray(target.point_data["Normals"], dtype=float)
-    elif isinstance(target, pv.PolyData) and target.n_cells:
+    elif polys:
         n = np.asarray(
             target.compute_normals(cell_normals=False, split_vertices=False)["Normals"], float
         )
     else:
         raise ValueError(
-            "target must be a PolyData surface with cells (point-to-plane ICP needs its "
-            f"normals), got {type(target).__name__} with {target.n_cells} cells"
+            "target must be a PolyData surface with polygons (point-to-plane ICP needs its "
+            f"normals), got {type(target).__name__} with {target.n_cells} cells and no polygons"
         )
     norm = np.linalg.norm(n, axis=1)
     return n / np.where(norm > 0, norm, 1.0)[:, None]
@@ -131,6 +133,8 @@ def register(
     n_samples=20_000,
     initial=None,
     min_pairs=50,
+    overlap_distance=2.0,
+    min_overlap=0.5,
     allow_unconverged=False,
     seed=0,
     progress_bar=False,
@@ -167,9 +171,17 @@ def register(
         Starting pose of the source. Default: identity.
     min_pairs : int, default 50
         Fewer usable pairs than this raises ``ValueError`` (surfaces do not overlap).
+    overlap_distance : float, default 2.0
+        After convergence, the overlap is the share of the source points matched in the
+        region whose closest target point is within this distance (mm), stored as
+        ``ICP_OVERLAP``.
+    min_overlap : float, default 0.5
+        A smaller overlap means the surfaces do not overlap (or ICP fell into a wrong
+        pose): treated like non-convergence.
     allow_unconverged : bool, default False
         Return the flagged result (field ``ICP_CONVERGED`` = 0) instead of raising
-        :class:`RegistrationError` when ``max_iterations`` is reached.
+        :class:`RegistrationError` when ``max_iterations`` is reached or the overlap is
+        below ``min_overlap``.
     seed : int, default 0
         Seed of the subsampling (the result is deterministic).
     progress_bar : bool, default False
@@ -180,14 +192,15 @@ def register(
     pyvista.DataSet
         Transformed copy of ``source`` (points and vectors moved) with field data
         ``ICP_MATRIX`` (4x4 float, maps the input source to the target), ``ICP_RMS`` (mm),
-        ``ICP_ITERATIONS`` and ``ICP_CONVERGED`` (1 or 0).
+        ``ICP_ITERATIONS``, ``ICP_OVERLAP`` (0-1) and ``ICP_CONVERGED`` (1 or 0).
 
     Raises
     ------
     TypeError, ValueError
         Bad inputs, or too few pairs (no overlap).
     RegistrationError
-        Not converged within ``max_iterations`` (unless ``allow_unconverged``).
+        Not converged within ``max_iterations``, or overlap below ``min_overlap``
+        (unless ``allow_unconverged``); or a degenerate (flat / symmetric) match.
 
     Examples
     --------
@@ -253,15 +266,17 @@ def register(
         p, q, n = moved[rows], tgt_pts[ids], normals[ids]
         # linearised point-to-plane: minimise sum(((p x n).w + n.t + (p - q).n)^2)
         pc = p - centre  # rotate about the centre for a well-conditioned system
-        a = np.hstack([np.cross(pc, n), n])
+        a = np.hstack([np.cross(pc, n) / scale, n])  # unknowns (scale * w, t): same units
         b = -np.einsum("ij,ij->i", p - q, n)
         ata = a.T @ a
-        if np.linalg.cond(ata) > 1e12:
-            raise ValueError(
-                "point-to-plane ICP is degenerate: the region is too flat or symmetric to "
-                "fix all six degrees of freedom"
+        if np.linalg.cond(ata) > 1e10:
+            raise RegistrationError(
+                f"point-to-plane ICP is degenerate at iteration {it}: the matched part is too "
+                "flat or symmetric to fix all six degrees of freedom (a region too small, or "
+                "surfaces that do not overlap)"
             )
         x = np.linalg.solve(ata, a.T @ b)
+        x[:3] /= scale
         rot = _rotation(x[:3])
         step = np.eye(4)
         step[:3, :3] = rot
@@ -272,16 +287,28 @@ def register(
         if move < tol:
             converged = True
             break
-    # final RMS with every source point
+    # final RMS and overlap with every source point
     moved_all = src_all @ matrix[:3, :3].T + matrix[:3, 3]
+    dist, idx = tree.query(moved_all, workers=-1)
+    in_region = usable[idx]
+    overlap = float(np.mean(dist[in_region] <= overlap_distance)) if in_region.any() else 0.0
     rows, ids = pairs(moved_all)
     res = np.einsum("ij,ij->i", moved_all[rows] - tgt_pts[ids], normals[ids])
     rms = float(np.sqrt(np.mean(res**2)))
+    msg = None
     if not converged:
         msg = (
             f"ICP did not converge in max_iterations={max_iterations} (last update "
             f"{move:.3g} mm > tol={tol} mm, RMS {rms:.3g} mm)"
         )
+    elif overlap < min_overlap:
+        converged = False
+        msg = (
+            f"ICP ended with overlap {overlap:.2f} < min_overlap={min_overlap}: only that "
+            f"share of the matched source lies within {overlap_distance} mm of the target "
+            "(surfaces do not overlap, or a wrong initial pose)"
+        )
+    if msg:
         if not allow_unconverged:
             raise RegistrationError(msg)
         log.warning(msg)
@@ -290,6 +317,7 @@ def register(
     out.field_data[ICP_MATRIX] = matrix
     out.field_data[ICP_RMS] = np.array([rms])
     out.field_data[ICP_ITERATIONS] = np.array([it])
+    out.field_data[ICP_OVERLAP] = np.array([overlap])
     out.field_data[ICP_CONVERGED] = np.array([int(converged)])
     return out
 
