@@ -92,6 +92,9 @@ def build_parser():
     sim.add_argument("--flip", default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
+    from .sweeps import add_sweep_parser
+
+    add_sweep_parser(sub)  # `pvcmf sweep`: parameter studies on Dask (pvcmf/sweeps.py)
     return parser
 
 
@@ -185,7 +188,7 @@ def main(argv=None):
 
     pv.OFF_SCREEN = True
     try:
-        result = {"demo": _demo, "simulate": _simulate}[args.command](args)
+        result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep}[args.command](args)
     except KeyboardInterrupt:
         print("interrupted: no partial files were left behind", file=sys.stderr)
         return 130
@@ -201,8 +204,24 @@ def main(argv=None):
               f"(run with -vv for the traceback; no partial files were left behind)",
               file=sys.stderr)
         return 1
-    _report(result)
+    (_report_sweep if args.command == "sweep" else _report)(result)
     return 0
+
+
+def _sweep(args):
+    from .sweeps import run_sweep
+
+    return run_sweep(args)
+
+
+def _report_sweep(result):
+    path, df = result
+    cols = [c for c in ("case", *df.attrs.get("grid", {}), "p50", "p90", "p95", "within_2mm", "error")
+            if c in df]
+    print(df[cols].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    print(f"\n{len(df)} rows ({df.attrs['n_computed']} computed, {df.attrs['n_cached']} from the "
+          f"cache, {df.attrs['n_failed']} failed) in {df.attrs['wall_time']:.1f} s")
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -336,6 +336,25 @@ def test_parse_grid_and_cli(tmp_path, monkeypatch):
     assert path.exists() and len(sweeps.load_table(path)) == 4
 
 
+def test_pvcmf_sweep_command(tmp_path, capsys):
+    from pvcmf.cli import main
+
+    out = tmp_path / "poisson.csv"
+    argv = ["sweep", "--patients", "1", "2", "--grid", "nu=0:0.45:4", "--out", str(out),
+            "--scheduler", "synchronous", "--synthetic", "--no-progress",
+            "--cache-dir", str(tmp_path / "cache")]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "8 rows (8 computed, 0 from the cache, 0 failed)" in text and str(out) in text
+    assert sweeps.load_table(out)["nu"].tolist() == [0.0, 0.15, 0.3, 0.45] * 2
+    assert main(argv) == 0
+    assert "(0 computed, 8 from the cache" in capsys.readouterr().out
+    bad = ["sweep", "--grid", "nu=0.2,0.5", "--out", str(tmp_path / "bad.csv"), "--synthetic"]
+    assert main(bad) == 2
+    err = capsys.readouterr().err
+    assert "'nu'" in err and "0.5" in err and not (tmp_path / "bad.csv").exists()
+
+
 # --------------------------------------------------------------------------- figures
 
 
