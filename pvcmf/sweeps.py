@@ -462,19 +462,29 @@ class PipelineEvaluation(Evaluation):
     keep_distance : bool
         Return the per-point ``distance`` map and the skin (``skin_points``,
         ``skin_faces``) with every row (for Fig. 5).
+    truth : callable, optional
+        ``truth(case) -> pyvista.PolyData``: the case's post-operative skin in the
+        pre-operative frame. Default: the case's ``postop_skin`` attribute, else the
+        virtual post-operative truth of :mod:`pvcmf.reference`. Must be picklable (a
+        module-level function) to run on Dask workers.
     """
 
     version = "1"
 
-    def __init__(self, spacing=1.0, n_tets=30_000, method="direct", keep_distance=False):
+    def __init__(self, spacing=1.0, n_tets=30_000, method="direct", keep_distance=False,
+                 truth=None):
         self.spacing = _positive("spacing", spacing)
         self.n_tets = _positive_int("n_tets", n_tets)
         self.method = _solver_method("method", method)
         self.keep_distance = bool(keep_distance)
+        if truth is not None and not callable(truth):
+            raise TypeError(f"truth must be callable(case) -> PolyData or None, got {type(truth).__name__}")
+        self.truth = truth
 
     def identity(self):
+        truth = None if self.truth is None else FunctionEvaluation(self.truth).identity()
         return {**super().identity(), "spacing": self.spacing, "n_tets": self.n_tets,
-                "method": self.method, "keep_distance": self.keep_distance}
+                "method": self.method, "keep_distance": self.keep_distance, "truth": truth}
 
     def prepare(self, case, *, spacing=None, n_tets=None, roi=None, conforming=True, n_points=None):
         import pvcmf
@@ -486,7 +496,7 @@ class PipelineEvaluation(Evaluation):
             case = pvcmf.datasets.phantom(patient=int(case), spacing=spacing)
         elif isinstance(case, Mapping):
             case = pvcmf.datasets.phantom(**{"spacing": spacing, **case})
-        postop = _postop_skin(case)
+        postop = _postop_skin(case) if self.truth is None else self.truth(case)
         mesh_options = {}
         if roi is not None:
             mesh_options["roi"] = roi
@@ -589,14 +599,18 @@ def _map_to_skin(post, skin, sigma):
 
 
 def _postop_skin(case):
-    for name in ("postop_skin", "post_skin", "truth_skin"):
-        skin = getattr(case, name, None)
-        if skin is not None:
-            return skin
-    raise ValueError(
-        f"case {getattr(case, 'name', case)!r} has no post-operative skin (attribute "
-        "'postop_skin'); the sweep needs one to measure errors"
-    )
+    skin = getattr(case, "postop_skin", None)
+    if skin is not None:
+        return skin
+    try:
+        from pvcmf import reference
+    except ImportError as err:
+        raise ValueError(
+            f"case {getattr(case, 'name', case)!r} has no post-operative skin (attribute "
+            f"'postop_skin') and pvcmf.reference is not available ({err}); pass "
+            "PipelineEvaluation(truth=callable) to measure errors"
+        ) from err
+    return reference.postop_skin(case)
 
 
 # --------------------------------------------------------------------------- cases, keys
