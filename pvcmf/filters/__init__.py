@@ -9,7 +9,7 @@ segment                   ``segmentation``            000 sec. II: skin/skull/so
 classify_tissue           ``classify``                001 Fig. 1: per-slice GMM + EM, median
 embed_muscles             ``muscles``                 000 sec. II: atlas + TPS, Fig. 2b
 fiber_directions          ``fibers``                  000 Fig. 3: OBB fibre directions
-tetrahedralize            ``tetrahedralize``          000 Fig. 2c: labelled tetrahedral mesh
+tetrahedralize            ``meshing``                 000 Fig. 2c: labelled tetrahedral mesh
 sample_muscle_fraction    ``fractions``               000 Fig. 1: random-point sampling
 average_voxels            ``fractions``               001: per-tetrahedron voxel average
 assign_materials          ``materials``               000 Table I / 001 materials
@@ -36,7 +36,7 @@ _REGISTRY = {
     "embed_muscles": "muscles",
     "fiber_directions": "fibers",
     "oriented_bounding_box": "fibers",
-    "tetrahedralize": "tetrahedralize",
+    "tetrahedralize": "meshing",  # not "tetrahedralize": same shadowing as segment
     "sample_muscle_fraction": "fractions",
     "average_voxels": "fractions",
     "assign_materials": "materials",

@@ -1,0 +1,767 @@
+"""Labelled tetrahedral meshing of the facial soft tissue (paper 000, sec. II, Fig. 2c).
+
+One step from the tissue + muscle label image to a tetrahedral mesh in which every
+tetrahedron lies in exactly one region (fat or one muscle) and the element faces follow
+the muscle surfaces:
+
+1. the soft tissue (``arrays.SOFT_LABELS``, optionally cropped to a region of interest) is
+   resampled by nearest neighbour on a working grid whose spacing is chosen from the
+   requested number of tetrahedra (the surface triangles are about that size);
+2. every connected region of the working grid gets its own label and VTK's SurfaceNets
+   (PyVista's :meth:`pyvista.ImageDataFilters.contour_labels`) builds conforming multi-label
+   surfaces: an interface between two regions is one set of triangles shared by both;
+3. the surfaces are checked (every region's boundary must be closed and manifold) and a
+   volume per region is meshed by gmsh (HXT Delaunay, multithreaded, algorithm 10; gmsh
+   keeps the input surface triangles, so the interfaces stay conforming), with gmsh's
+   tetrahedral optimisation. When gmsh rejects the surfaces (self-intersections from the
+   SurfaceNets smoothing), the smoothing is halved and finally switched off, with a warning;
+4. the region label is written on every element (``arrays.TISSUE``, ``arrays.MUSCLE``) and
+   the element quality (dihedral angles, radius ratio) and the timings are written to the
+   field data (names in :data:`QUALITY_FIELDS`).
+
+``conforming=False`` meshes the soft tissue as one homogeneous region (muscles ignored):
+the paper's state of the art, completed by :func:`pvcmf.filters.sample_muscle_fraction`
+or :func:`pvcmf.filters.average_voxels`.
+
+Delegates to PyVista/VTK (``contour_labels`` = ``vtkSurfaceNets3D``), scipy.ndimage
+(connected components, distance transform for the bone ROI) and the gmsh Python API.
+"""
+
+from __future__ import annotations
+
+import logging
+import numbers
+import time
+import warnings
+
+import numpy as np
+import pyvista as pv
+
+from .. import arrays
+
+log = logging.getLogger(__name__)
+
+#: range of ``n_tets`` accepted (the count is calibrated within +-20 % from 5k to 500k)
+N_TETS_RANGE = (1_000, 2_000_000)
+
+#: field-data names written by :func:`tetrahedralize`
+MIN_DIHEDRAL = "min_dihedral_deg"
+P1_DIHEDRAL = "p1_dihedral_deg"
+MIN_RADIUS_RATIO = "min_radius_ratio"
+P1_RADIUS_RATIO = "p1_radius_ratio"
+N_TETS_REQUESTED = "n_tets_requested"
+SURFACE_SPACING = "surface_spacing_mm"
+SMOOTHING_SCALE = "smoothing_scale"
+TIME_SURFACE = "time_surface_s"
+TIME_VOLUME = "time_volume_s"
+TIME_TOTAL = "time_total_s"
+QUALITY_FIELDS = (
+    MIN_DIHEDRAL,
+    P1_DIHEDRAL,
+    MIN_RADIUS_RATIO,
+    P1_RADIUS_RATIO,
+    N_TETS_REQUESTED,
+    SURFACE_SPACING,
+    SMOOTHING_SCALE,
+    TIME_SURFACE,
+    TIME_VOLUME,
+    TIME_TOTAL,
+)
+
+#: tetrahedra per (volume / spacing**3): first guess of the size calibration, refined
+#: from the measured count when it misses by more than ``_RETRY_TOLERANCE``
+_TETS_PER_CELL = 5.5
+_RETRY_TOLERANCE = 0.12
+_MAX_ATTEMPTS = 3
+
+# working-grid codes: 0 air (SurfaceNets background), 1 not meshed (bone, teeth, brain...),
+# 2 fat, 3 + m muscle m (m = 0 for muscle tissue without a muscle id)
+_AIR, _OTHER, _FAT, _MUSCLE0 = 0, 1, 2, 3
+_N_CODES = _MUSCLE0 + len(arrays.MUSCLES) + 1
+
+
+class SurfaceError(RuntimeError):
+    """The multi-label surfaces are not a valid input for the volume mesher."""
+
+
+# ----------------------------------------------------------------------------- validation
+def _check_image(labels, conforming):
+    if not isinstance(labels, pv.ImageData):
+        raise TypeError(
+            f"labels must be a pyvista.ImageData label image, got {type(labels).__name__}"
+        )
+    if not np.allclose(labels.direction_matrix, np.eye(3)):
+        raise ValueError("labels must be axis aligned (identity direction_matrix)")
+    tissue = arrays.require_array(labels, arrays.TISSUE, "point", producer="segment")
+    if tissue.dtype.kind not in "iu":
+        raise ValueError(
+            f"labels: point array {arrays.TISSUE!r} must hold integer labels, "
+            f"got dtype {tissue.dtype}"
+        )
+    muscle = None
+    if arrays.MUSCLE in labels.point_data.keys():
+        muscle = np.asarray(labels.point_data[arrays.MUSCLE])
+        if muscle.dtype.kind not in "iu":
+            raise ValueError(
+                f"labels: point array {arrays.MUSCLE!r} must hold integer labels, "
+                f"got dtype {muscle.dtype}"
+            )
+    elif conforming and np.any(tissue == arrays.MUSCLE_TISSUE):
+        arrays.require_array(labels, arrays.MUSCLE, "point", producer="embed_muscles")
+    return tissue, muscle
+
+
+def _check_n_tets(n_tets):
+    if isinstance(n_tets, bool) or not isinstance(n_tets, numbers.Integral):
+        raise TypeError(f"n_tets must be an integer, got {type(n_tets).__name__} {n_tets!r}")
+    lo, hi = N_TETS_RANGE
+    if not lo <= n_tets <= hi:
+        raise ValueError(f"n_tets must lie in [{lo}, {hi}], got {n_tets}")
+
+
+def _roi_mask(labels, roi, shape_zyx):
+    """Boolean (z, y, x) mask of the image points kept by ``roi`` (None: all)."""
+    if roi is None:
+        return None
+    pts_axes = [
+        labels.origin[k] + labels.spacing[k] * np.arange(labels.dimensions[k]) for k in range(3)
+    ]
+    if callable(roi):
+        mask = np.asarray(roi(labels.points), dtype=bool)
+        if mask.shape != (labels.n_points,):
+            raise ValueError(
+                f"roi callable must return a boolean array of shape ({labels.n_points},), "
+                f"got shape {mask.shape}"
+            )
+        return mask.reshape(shape_zyx)
+    arr = np.asarray(roi)
+    if arr.dtype == bool:
+        if arr.shape != (labels.n_points,):
+            raise ValueError(
+                f"roi mask must have shape ({labels.n_points},) (one per image point), "
+                f"got {arr.shape}"
+            )
+        return arr.reshape(shape_zyx)
+    if arr.shape == (6,):
+        box = arr.astype(float)
+        if np.any(box[1::2] <= box[0::2]):
+            raise ValueError(f"roi box must be (xmin, xmax, ymin, ymax, zmin, zmax), got {roi}")
+        inside = [(a >= box[2 * k]) & (a <= box[2 * k + 1]) for k, a in enumerate(pts_axes)]
+        return inside[2][:, None, None] & inside[1][None, :, None] & inside[0][None, None, :]
+    if arr.shape == (2,):
+        from scipy import ndimage
+
+        bone_id, distance = int(arr[0]), float(arr[1])
+        if distance <= 0:
+            raise ValueError(f"roi distance must be > 0 mm, got {distance}")
+        bone = arrays.require_array(labels, arrays.BONE, "point", dtype="iu", producer="segment")
+        seg = bone.reshape(shape_zyx) == bone_id
+        if not seg.any():
+            raise ValueError(
+                f"roi bone id {bone_id} not found in point array {arrays.BONE!r}; "
+                f"ids present: {sorted(np.unique(bone).tolist())}"
+            )
+        sampling = np.asarray(labels.spacing)[::-1]
+        dist = ndimage.distance_transform_edt(~seg, sampling=sampling)
+        return dist <= distance
+    raise ValueError(
+        "roi must be None, a box (xmin, xmax, ymin, ymax, zmin, zmax), a (bone_id, distance) "
+        f"pair, a boolean mask of length n_points or a callable; got {roi!r}"
+    )
+
+
+# ----------------------------------------------------------------------------- working grid
+def _codes(tissue, muscle, conforming):
+    """Working-grid code per image point (see the ``_AIR`` ... ``_MUSCLE0`` codes)."""
+    code = np.full(tissue.shape, _OTHER, dtype=np.uint8)
+    code[tissue == arrays.AIR] = _AIR
+    code[tissue == arrays.FAT] = _FAT
+    is_muscle = tissue == arrays.MUSCLE_TISSUE
+    if not conforming:
+        code[is_muscle] = _FAT
+    else:
+        m = muscle[is_muscle].astype(np.int64) if muscle is not None else 0
+        if np.any(np.asarray(m) > len(arrays.MUSCLES)):
+            raise ValueError(
+                f"labels: point array {arrays.MUSCLE!r} holds ids up to {int(np.max(m))}, "
+                f"expected 0..{len(arrays.MUSCLES)}"
+            )
+        code[is_muscle] = _MUSCLE0 + m
+    return code
+
+
+def _check_muscles(code, voxel_volume):
+    """Warn about muscles that are too small to be meshed (a voxel or two)."""
+    counts = np.bincount(code.ravel(), minlength=_N_CODES)[_MUSCLE0 + 1 :]
+    tiny = np.flatnonzero((counts > 0) & (counts < 8))
+    if tiny.size:
+        names = ", ".join(f"{arrays.MUSCLES[i]} ({counts[i]} voxel(s))" for i in tiny)
+        warnings.warn(
+            f"muscle(s) {names} are too small to be meshed as their own region "
+            f"(< 8 voxels, {8 * voxel_volume:.3g} mm^3); they are merged into the fat",
+            stacklevel=3,
+        )
+        for i in tiny:
+            code[code == _MUSCLE0 + 1 + i] = _FAT
+
+
+def _working_grid(code_zyx, labels, s):
+    """Resample the code volume by nearest neighbour on a grid of spacing ``s``."""
+    sp = np.asarray(labels.spacing, float)
+    soft = code_zyx >= _FAT
+    lo, hi = [], []
+    for axis in range(3):  # x, y, z -> array axes 2, 1, 0
+        any_ = soft.any(axis=tuple(a for a in range(3) if a != 2 - axis))
+        idx = np.flatnonzero(any_)
+        lo.append(idx[0])
+        hi.append(idx[-1])
+    lo, hi = np.array(lo), np.array(hi)
+    extent = (hi - lo) * sp
+    n = np.floor(extent / s + 1e-9).astype(int) + 1
+    # centre the working grid on the soft-tissue box
+    start = lo * sp + 0.5 * (extent - (n - 1) * s)
+    idx = [
+        np.clip(np.rint((start[k] + np.arange(n[k]) * s) / sp[k]).astype(int), 0, code_zyx.shape[2 - k] - 1)
+        for k in range(3)
+    ]
+    sub = code_zyx[np.ix_(idx[2], idx[1], idx[0])]
+    origin = np.asarray(labels.origin, float) + start
+    return sub, origin
+
+
+def _repair_topology(sub, max_iter=20):
+    """Remove the label configurations that make SurfaceNets surfaces non-manifold.
+
+    A label occupying only one diagonal of a 2x2 square (regions touching along an
+    edge) or only two opposite corners of a 2x2x2 cube (touching at a vertex) is made
+    face-connected by giving one neighbouring voxel its label. Vectorised over the grid,
+    repeated until clean; returns the number of voxels changed.
+    """
+    v = sub
+    changed = 0
+    for _ in range(max_iter):
+        n_fix = 0
+        for ax1, ax2 in ((0, 1), (0, 2), (1, 2)):
+            w = np.moveaxis(v, (ax1, ax2), (0, 1))  # a view: writes go to v
+            a, b = w[:-1, :-1], w[1:, 1:]
+            c, d = w[1:, :-1], w[:-1, 1:]
+            bad = (a == b) & (c != a) & (d != a)
+            if bad.any():
+                c[bad] = a[bad]
+                n_fix += int(bad.sum())
+            bad = (c == d) & (a != c) & (b != c)
+            if bad.any():
+                a[bad] = c[bad]
+                n_fix += int(bad.sum())
+        corners = [(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+        views = {q: v[q[0] : v.shape[0] - 1 + q[0], q[1] : v.shape[1] - 1 + q[1], q[2] : v.shape[2] - 1 + q[2]] for q in corners}
+        for p in corners[:4]:
+            q = tuple(1 - x for x in p)
+            bad = views[p] == views[q]
+            for o in corners:
+                if o not in (p, q):
+                    bad &= views[o] != views[p]
+            if bad.any():
+                o = (q[0], p[1], p[2])
+                views[o][bad] = views[p][bad]
+                n_fix += int(bad.sum())
+        changed += n_fix
+        if n_fix == 0:
+            break
+    return changed
+
+
+def _components(sub):
+    """Label each connected region of every meshed code; returns (comp_zyx, comp -> code)."""
+    from scipy import ndimage
+
+    comp = np.where(sub == _OTHER, 1, 0).astype(np.int32)
+    comp_code = [_AIR, _OTHER]
+    nxt = 2
+    for c in np.unique(sub):
+        if c < _FAT:
+            continue
+        lab, n = ndimage.label(sub == c)
+        m = lab > 0
+        comp[m] = lab[m] + (nxt - 1)
+        comp_code.extend([int(c)] * n)
+        nxt += n
+    return comp, np.asarray(comp_code, dtype=np.int64)
+
+
+# ----------------------------------------------------------------------------- surfaces
+def _surfaces(comp, origin, s, smoothing_scale):
+    """Multi-label SurfaceNets surfaces: (points, triangles, side labels (n, 2)).
+
+    SurfaceNets runs unsmoothed: where three regions meet in one cell without sharing a
+    face (a muscle touching the skin diagonally), it makes one vertex per sheet at the
+    same place, and its own smoothing then pulls the sheets through each other. Here the
+    coincident vertices are merged first and the merged surface is smoothed with VTK's
+    ``vtkConstrainedSmoothingFilter`` (every vertex stays within
+    ``smoothing_scale * s * sqrt(3) / 2`` of its cell centre).
+    """
+    img = pv.ImageData(dimensions=comp.shape[::-1], spacing=(s, s, s), origin=origin)
+    img.point_data["comp"] = comp.ravel()
+    surf = img.contour_labels(
+        "all", smoothing=False, output_mesh_type="triangles", pad_background=True
+    )
+    sides = np.asarray(surf.cell_data["boundary_labels"]).astype(np.int64)
+    keep = (sides >= 2).any(axis=1)  # at least one side is a meshed region
+    grid_ijk = np.rint((np.asarray(surf.points, float) - origin) / (0.5 * s)).astype(np.int64)
+    uniq, merged = np.unique(grid_ijk, axis=0, return_inverse=True)
+    tri = merged.ravel()[surf.regular_faces]
+    points = uniq * (0.5 * s) + origin
+    if smoothing_scale > 0:
+        import vtk
+
+        poly = pv.PolyData.from_regular_faces(points, tri)
+        f = vtk.vtkConstrainedSmoothingFilter()
+        f.SetInputData(poly)
+        f.SetConstraintDistance(smoothing_scale * s * np.sqrt(3.0) / 2.0)
+        f.SetNumberOfIterations(16)
+        f.SetRelaxationFactor(0.5)
+        f.Update()
+        points = np.asarray(pv.wrap(f.GetOutput()).points, float)
+    tri, sides = tri[keep], sides[keep]
+    used, inverse = np.unique(tri, return_inverse=True)
+    return points[used], inverse.reshape(-1, 3), sides
+
+
+def _check_surfaces(tri, sides, comp_code):
+    """Raise :class:`SurfaceError` unless every region's boundary is closed."""
+    n_pts = int(tri.max()) + 1
+    edges = np.sort(tri[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    rows = []
+    for side in range(2):
+        reg = np.repeat(sides[:, side], 3)
+        ok = reg >= 2
+        rows.append((reg[ok] * n_pts + edges[ok, 0]) * n_pts + edges[ok, 1])
+    keys, counts = np.unique(np.concatenate(rows), return_counts=True)
+    bad = counts % 2 == 1  # open; an even count > 2 is a pinch, which gmsh accepts
+    if bad.any():
+        regs = np.unique(keys[bad] // (n_pts * n_pts))
+        names = sorted({_code_name(comp_code[r]) for r in regs})
+        raise SurfaceError(
+            f"{int(bad.sum())} surface edge(s) are open on the boundary of {', '.join(names)}"
+        )
+    n_pinch = int(np.count_nonzero(counts > 2))
+    if n_pinch:
+        log.debug("tetrahedralize: %d surface edge(s) where a region touches itself", n_pinch)
+
+
+def _code_name(code):
+    if code == _FAT:
+        return "fat"
+    if code == _MUSCLE0:
+        return "muscle tissue without id"
+    return arrays.MUSCLES[code - _MUSCLE0 - 1]
+
+
+def _split_patches(tri, sides, n_pts):
+    """Split the triangles into patches: one per (side pair, connected piece)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pair_keys, pair_id = np.unique(sides, axis=0, return_inverse=True)
+    pair_id = pair_id.ravel()
+    # vertices are shared between patches of different pairs: connect per pair by
+    # making (pair, vertex) graph nodes
+    node = pair_id[:, None] * n_pts + tri
+    e = np.concatenate([node[:, [0, 1]], node[:, [1, 2]]])
+    uniq, inv = np.unique(e, return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(uniq),) * 2)
+    _, comp = connected_components(graph, directed=False)
+    tri_comp = comp[inv[: len(tri), 0]]
+    patch_ids, patch = np.unique(tri_comp, return_inverse=True)
+    patch = patch.ravel()
+    first = np.zeros(len(patch_ids), dtype=np.int64)
+    first[patch[::-1]] = np.arange(len(patch))[::-1]
+    return patch, sides[first]
+
+
+# ----------------------------------------------------------------------------- gmsh
+def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize):
+    """Volume mesh of every meshed region; returns (nodes, tets, comp id per tet)."""
+    import gmsh
+
+    own = not gmsh.isInitialized()
+    if own:
+        gmsh.initialize(interruptible=False)
+    gmsh.model.add("pvcmf_tetrahedralize")
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", threads)
+        gmsh.option.setNumber("Mesh.Algorithm3D", 10)  # HXT
+        gmsh.option.setNumber("Mesh.Optimize", 1 if optimize else 0)
+        gmsh.option.setNumber("Mesh.OptimizeNetgen", 0)
+        order = np.argsort(patch, kind="stable")
+        bounds = np.searchsorted(patch[order], np.arange(len(patch_sides) + 1))
+        for p in range(len(patch_sides)):
+            gmsh.model.addDiscreteEntity(2, p + 1)
+            if p == 0:
+                gmsh.model.mesh.addNodes(2, 1, np.arange(1, len(points) + 1), points.ravel())
+            tris = tri[order[bounds[p] : bounds[p + 1]]]
+            gmsh.model.mesh.addElementsByType(p + 1, 2, [], (tris + 1).ravel())
+        gmsh.model.mesh.createTopology(False, True)
+        regions = np.unique(patch_sides)
+        regions = regions[regions >= 2]
+        for r in regions:
+            bounding = (np.flatnonzero((patch_sides == r).any(axis=1)) + 1).tolist()
+            loop = gmsh.model.geo.addSurfaceLoop(bounding)
+            gmsh.model.geo.addVolume([loop], int(r))
+        gmsh.model.geo.synchronize()
+        gmsh.model.mesh.generate(3)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        lut = np.zeros(int(tags.max()) + 1, dtype=np.int64)
+        lut[tags.astype(np.int64)] = np.arange(len(tags))
+        tets, comp = [], []
+        for r in regions:
+            _, nodes = gmsh.model.mesh.getElementsByType(4, int(r))
+            cells = lut[nodes.astype(np.int64)].reshape(-1, 4)
+            tets.append(cells)
+            comp.append(np.full(len(cells), r, dtype=np.int64))
+        return coords.reshape(-1, 3), np.concatenate(tets), np.concatenate(comp)
+    except Exception as exc:  # gmsh raises a bare Exception with its last error
+        raise SurfaceError(f"gmsh could not mesh the surfaces: {exc}") from exc
+    finally:
+        gmsh.model.remove()
+        if own:
+            gmsh.finalize()
+
+
+# ----------------------------------------------------------------------------- quality
+def tet_quality(points, tets):
+    """Dihedral angles (degrees, (n, 6)), signed volumes and normalised radius ratios.
+
+    The radius ratio is ``3 r_in / R_circ`` (1 for the regular tetrahedron, 0 for a
+    degenerate one).
+
+    Parameters
+    ----------
+    points : (n_points, 3) array
+    tets : (n_tets, 4) int array
+
+    Returns
+    -------
+    dihedral : (n_tets, 6) float array
+    volume : (n_tets,) float array
+    radius_ratio : (n_tets,) float array
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from pvcmf.filters.meshing import tet_quality
+    >>> p = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    >>> d, v, rr = tet_quality(p, np.array([[0, 1, 2, 3]]))
+    >>> np.round(d, 2)[0, 0], round(float(rr[0]), 6)
+    (np.float64(70.53), 1.0)
+    """
+    p = np.asarray(points, float)[np.asarray(tets)]
+    a, b, c = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]
+    volume = np.einsum("ij,ij->i", np.cross(a, b), c) / 6.0
+    # outward normal of the face opposite each vertex
+    opp = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))
+    normals, areas = [], []
+    for k, (i, j, l) in enumerate(opp):
+        n = np.cross(p[:, j] - p[:, i], p[:, l] - p[:, i])
+        flip = np.einsum("ij,ij->i", n, p[:, k] - p[:, i]) > 0
+        n[flip] *= -1
+        norm = np.linalg.norm(n, axis=1)
+        areas.append(0.5 * norm)
+        normals.append(n / np.maximum(norm, 1e-300)[:, None])
+    dihedral = []
+    for i in range(4):  # the edge (i, j) is shared by the faces opposite k and l
+        for j in range(i + 1, 4):
+            k, l = (m for m in range(4) if m not in (i, j))
+            cos = np.einsum("ij,ij->i", normals[k], normals[l])
+            dihedral.append(180.0 - np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    r_in = 3.0 * np.abs(volume) / np.maximum(np.sum(areas, axis=0), 1e-300)
+    num = (
+        np.einsum("ij,ij->i", a, a)[:, None] * np.cross(b, c)
+        + np.einsum("ij,ij->i", b, b)[:, None] * np.cross(c, a)
+        + np.einsum("ij,ij->i", c, c)[:, None] * np.cross(a, b)
+    )
+    r_circ = np.linalg.norm(num, axis=1) / np.maximum(12.0 * np.abs(volume), 1e-300)
+    return np.stack(dihedral, axis=1), volume, 3.0 * r_in / np.maximum(r_circ, 1e-300)
+
+
+# ----------------------------------------------------------------------------- filter
+def tetrahedralize(
+    labels,
+    *,
+    n_tets=30_000,
+    conforming=True,
+    roi=None,
+    smoothing_scale=0.25,
+    spacing=None,
+    optimize=True,
+    threads=2,
+    progress_bar=False,
+):
+    """Labelled tetrahedral mesh of the facial soft tissue of a label image.
+
+    Parameters
+    ----------
+    labels : pyvista.ImageData
+        Label image with integer point arrays ``arrays.TISSUE`` and (for
+        ``conforming=True`` when muscles are present) ``arrays.MUSCLE``. The soft tissue
+        ``arrays.SOFT_LABELS`` (fat and muscle) is meshed; air, bone, teeth and the
+        intracranial space are not.
+    n_tets : int, default 30_000
+        Requested number of tetrahedra, the speed/accuracy knob. The working spacing is
+        calibrated from the soft-tissue volume and refined (re-meshing up to twice) until
+        the count lies within about +-12 % of the request.
+    conforming : bool, default True
+        ``True``: fat and every muscle are separate regions whose interfaces are element
+        faces. ``False``: one homogeneous soft-tissue mesh, muscles ignored (every cell
+        gets ``TISSUE = FAT`` and ``MUSCLE = 0``), the paper's baseline.
+    roi : optional
+        Region of interest, applied before meshing (only the soft tissue inside it is
+        meshed):
+
+        * ``(xmin, xmax, ymin, ymax, zmin, zmax)``: a box in mm;
+        * ``(bone_id, distance)``: the tissue within ``distance`` mm of the bone segment
+          ``bone_id`` of point array ``arrays.BONE`` (for example the moved mandible);
+        * a boolean array of length ``labels.n_points``;
+        * a callable ``f(points) -> bool array`` evaluated on the image points.
+    smoothing_scale : float, default 0.25
+        SurfaceNets smoothing strength (``contour_labels(smoothing_scale=...)``); 0
+        switches smoothing off (staircase surfaces). Stronger smoothing can make the
+        multi-label surfaces self-intersect; when gmsh rejects them the smoothing is
+        halved, then switched off, with a warning.
+    spacing : float, optional
+        Working-grid spacing in mm (surface triangle size). Overrides the calibration
+        from ``n_tets`` (the count is then not controlled).
+    optimize : bool, default True
+        Run gmsh's tetrahedral optimisation (``Mesh.Optimize``).
+    threads : int, default 2
+        Threads for gmsh's HXT mesher.
+    progress_bar : bool, default False
+        Log each step at INFO level (the steps are short; there is no bar).
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+        Linear tetrahedra (``VTK_TETRA``) with uint8 cell arrays ``arrays.TISSUE`` (FAT
+        or MUSCLE_TISSUE) and ``arrays.MUSCLE`` (0 or the muscle id), and field data
+        :data:`QUALITY_FIELDS` (min and 1st-percentile dihedral angle in degrees, min and
+        1st-percentile radius ratio ``3 r_in / R_circ``, the requested count, working
+        spacing, smoothing used and timings in s).
+
+    Raises
+    ------
+    TypeError
+        ``labels`` is not an ImageData or ``n_tets`` is not an integer.
+    ValueError
+        Missing or non-integer label arrays, no soft tissue, ``n_tets`` out of range,
+        a malformed ``roi``.
+    SurfaceError
+        The surfaces stay invalid for gmsh even without smoothing.
+
+    Warns
+    -----
+    UserWarning
+        A muscle with fewer than 8 voxels (merged into the fat), or a fallback to weaker
+        smoothing.
+
+    Examples
+    --------
+    >>> from pvcmf import arrays
+    >>> from pvcmf.filters.meshing import shell_labels, tetrahedralize
+    >>> grid = tetrahedralize(shell_labels(spacing=2.0), n_tets=5_000)
+    >>> 4_000 <= grid.n_cells <= 6_000
+    True
+    >>> sorted(set(grid.cell_data[arrays.TISSUE].tolist()))
+    [1, 2]
+    """
+    t_start = time.perf_counter()
+    tissue, muscle = _check_image(labels, conforming)
+    _check_n_tets(n_tets)
+    if not isinstance(smoothing_scale, numbers.Real) or smoothing_scale < 0:
+        raise ValueError(f"smoothing_scale must be a number >= 0, got {smoothing_scale!r}")
+    if spacing is not None and (not isinstance(spacing, numbers.Real) or spacing <= 0):
+        raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
+    shape_zyx = tuple(labels.dimensions[::-1])
+    code = _codes(np.asarray(tissue), muscle, conforming).reshape(shape_zyx)
+    mask = _roi_mask(labels, roi, shape_zyx)
+    if mask is not None:
+        code = np.where(mask | (code < _FAT), code, _AIR).astype(np.uint8)
+    voxel_volume = float(np.prod(labels.spacing))
+    n_soft = int(np.count_nonzero(code >= _FAT))
+    if n_soft == 0:
+        where = " inside the roi" if roi is not None else ""
+        raise ValueError(
+            f"labels: no soft tissue{where} (point array {arrays.TISSUE!r} has no "
+            f"{arrays.FAT} (fat) or {arrays.MUSCLE_TISSUE} (muscle) labels)"
+        )
+    if conforming:
+        _check_muscles(code, voxel_volume)
+    volume = n_soft * voxel_volume
+    min_spacing = float(min(labels.spacing))
+    if spacing is None:
+        s = max(min_spacing, (_TETS_PER_CELL * volume / n_tets) ** (1.0 / 3.0))
+    else:
+        s = float(spacing)
+    if progress_bar:
+        log.info("tetrahedralize: %d soft voxels, %.0f mm^3, start spacing %.2f mm", n_soft, volume, s)
+
+    smoothing = float(smoothing_scale)
+    t_surface = t_volume = 0.0
+    for attempt in range(_MAX_ATTEMPTS):
+        nodes, tets, comp_code, cell_comp, smoothing, dt_s, dt_v = _mesh_once(
+            code, labels, s, smoothing, threads, optimize
+        )
+        t_surface += dt_s
+        t_volume += dt_v
+        ratio = len(tets) / n_tets
+        log.info(
+            "tetrahedralize: spacing %.3f mm -> %d tets (%.2f x requested) in %.2f s",
+            s, len(tets), ratio, dt_s + dt_v,
+        )
+        if spacing is not None or abs(ratio - 1.0) <= _RETRY_TOLERANCE:
+            break
+        new_s = max(min_spacing, s * ratio ** (1.0 / 3.0))
+        if new_s == s:
+            break
+        s = new_s
+
+    # orientation and labels
+    vol = np.einsum(
+        "ij,ij->i",
+        np.cross(nodes[tets[:, 1]] - nodes[tets[:, 0]], nodes[tets[:, 2]] - nodes[tets[:, 0]]),
+        nodes[tets[:, 3]] - nodes[tets[:, 0]],
+    )
+    neg = vol < 0
+    tets[neg] = tets[neg][:, [0, 2, 1, 3]]
+    dihedral, volumes, rr = tet_quality(nodes, tets)
+    if np.any(volumes <= 0):
+        raise RuntimeError(
+            f"gmsh returned {int(np.sum(volumes <= 0))} zero-volume tetrahedra"
+        )
+    codes = comp_code[cell_comp]
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, nodes)
+    grid.cell_data[arrays.TISSUE] = np.where(codes == _FAT, arrays.FAT, arrays.MUSCLE_TISSUE).astype(
+        np.uint8
+    )
+    grid.cell_data[arrays.MUSCLE] = np.where(codes >= _MUSCLE0, codes - _MUSCLE0, 0).astype(np.uint8)
+    min_dih = dihedral.min(axis=1)
+    fd = grid.field_data
+    fd[MIN_DIHEDRAL] = [float(min_dih.min())]
+    fd[P1_DIHEDRAL] = [float(np.percentile(min_dih, 1))]
+    fd[MIN_RADIUS_RATIO] = [float(rr.min())]
+    fd[P1_RADIUS_RATIO] = [float(np.percentile(rr, 1))]
+    fd[N_TETS_REQUESTED] = [int(n_tets)]
+    fd[SURFACE_SPACING] = [float(s)]
+    fd[SMOOTHING_SCALE] = [float(smoothing)]
+    fd[TIME_SURFACE] = [t_surface]
+    fd[TIME_VOLUME] = [t_volume]
+    fd[TIME_TOTAL] = [time.perf_counter() - t_start]
+    if progress_bar:
+        log.info(
+            "tetrahedralize: %d tets, min dihedral %.1f deg (1st pct %.1f), %.2f s",
+            grid.n_cells, fd[MIN_DIHEDRAL][0], fd[P1_DIHEDRAL][0], fd[TIME_TOTAL][0],
+        )
+    return grid
+
+
+def _mesh_once(code, labels, s, smoothing, threads, optimize):
+    """One surface + volume meshing pass at spacing ``s``, falling back on weaker smoothing."""
+    t0 = time.perf_counter()
+    sub, origin = _working_grid(code, labels, s)
+    n_fix = _repair_topology(sub)
+    if n_fix:
+        log.info("tetrahedralize: %d voxel(s) relabelled to keep the surfaces manifold", n_fix)
+    comp, comp_code = _components(sub)
+    if len(comp_code) <= 2:
+        raise ValueError(
+            f"labels: the soft tissue vanishes on a {s:.3g} mm working grid; "
+            "request more tetrahedra or a smaller spacing"
+        )
+    scales = [smoothing] + [x for x in (smoothing / 2, 0.0) if x < smoothing]
+    errors = []
+    dt_s, dt_v = time.perf_counter() - t0, 0.0
+    for scale in scales:
+        t1 = t2 = time.perf_counter()
+        try:
+            points, tri, sides = _surfaces(comp, origin, s, scale)
+            _check_surfaces(tri, sides, comp_code)
+            patch, patch_sides = _split_patches(tri, sides, len(points))
+            t2 = time.perf_counter()
+            nodes, tets, cell_comp = _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize)
+        except SurfaceError as exc:
+            errors.append(f"smoothing_scale={scale:g}: {exc}")
+            continue
+        finally:
+            dt_s += t2 - t1
+            dt_v += time.perf_counter() - t2
+        if errors:
+            warnings.warn(
+                "SurfaceNets surfaces were invalid for meshing ("
+                + "; ".join(errors)
+                + f"); used smoothing_scale={scale:g} instead",
+                stacklevel=3,
+            )
+        return nodes, tets, comp_code, cell_comp, scale, dt_s, dt_v
+    raise SurfaceError(
+        f"no valid surfaces at spacing {s:.3g} mm: " + "; ".join(errors)
+    )
+
+
+# ----------------------------------------------------------------------------- example data
+def shell_labels(spacing=1.0, radii=(60.0, 75.0, 85.0), soft=12.0, bone=5.0, tube_radius=3.0):
+    """A small analytic head-shell label image: soft tissue over a bone shell, 4 muscle tubes.
+
+    An ellipsoid of radii ``radii`` (mm): the outer ``soft`` mm are fat, the next ``bone`` mm
+    bone, the inside intracranial. Four muscle tubes of radius ``tube_radius`` run
+    horizontally (along x) at mid-depth of the soft tissue in the anterior half (y > 0),
+    with muscle ids 1-4. The bone below ``z = -0.3 radii[2]`` is the mandible, the rest the
+    cranium (point array ``arrays.BONE``). For examples, tests and benchmarks.
+
+    Parameters
+    ----------
+    spacing : float
+        Voxel size in mm.
+    radii : 3 floats
+        Ellipsoid semi-axes in mm.
+    soft, bone : float
+        Thickness (mm, measured along the smallest semi-axis) of the soft tissue and bone.
+    tube_radius : float
+        Radius of the muscle tubes in mm.
+
+    Returns
+    -------
+    pyvista.ImageData
+        With uint8 point arrays ``arrays.TISSUE``, ``arrays.MUSCLE`` and ``arrays.BONE``.
+
+    Examples
+    --------
+    >>> from pvcmf import arrays
+    >>> from pvcmf.filters.meshing import shell_labels
+    >>> img = shell_labels(spacing=3.0)
+    >>> sorted(set(img[arrays.MUSCLE].tolist()))
+    [0, 1, 2, 3, 4]
+    """
+    r = np.asarray(radii, float)
+    pad = 3 * spacing
+    dims = np.ceil(2 * (r + pad) / spacing).astype(int) + 1
+    origin = -(dims - 1) * spacing / 2.0
+    img = pv.ImageData(dimensions=dims, spacing=(spacing,) * 3, origin=origin)
+    x, y, z = (origin[k] + spacing * np.arange(dims[k]) for k in range(3))
+    X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
+    depth = (1.0 - np.sqrt((X / r[0]) ** 2 + (Y / r[1]) ** 2 + (Z / r[2]) ** 2)) * r.min()
+    tissue = np.zeros(X.shape, np.uint8)
+    tissue[depth >= 0] = arrays.FAT
+    tissue[depth >= soft] = arrays.BONE_TISSUE
+    tissue[depth >= soft + bone] = arrays.INTRACRANIAL
+    bone_seg = np.where(Z < -0.3 * r[2], arrays.MANDIBLE, arrays.CRANIUM).astype(np.uint8)
+    bone_seg[tissue != arrays.BONE_TISSUE] = arrays.BONE_NONE
+    muscle = np.zeros(X.shape, np.uint8)
+    for k, z0 in enumerate(np.linspace(-0.5, 0.5, 4) * r[2]):
+        tube = (np.hypot(depth - soft / 2.0, Z - z0) <= tube_radius) & (Y > 0) & (np.abs(X) < 0.6 * r[0])
+        muscle[tube] = k + 1
+        tissue[tube] = arrays.MUSCLE_TISSUE
+    img.point_data[arrays.TISSUE] = tissue.ravel(order="F")
+    img.point_data[arrays.MUSCLE] = muscle.ravel(order="F")
+    img.point_data[arrays.BONE] = bone_seg.ravel(order="F")
+    return img
