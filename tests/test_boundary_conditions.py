@@ -19,14 +19,14 @@ from pvcmf.filters import apply_plan
 from pvcmf.plan import Osteotomy, Plan
 
 
-def synthetic_head(cranium=True, spacing=1.0):
+def synthetic_head(cranium=True, spacing=1.0, half_width=8, thickness=4):
     """Label image (bone, tissue) and soft-tissue tetrahedral mesh of a toy jaw."""
     img = pv.ImageData(dimensions=(27, 27, 31), origin=(-13, -13, -15),
                        spacing=(spacing,) * 3)
     x, y, z = (img.points / spacing).T
     bone = np.zeros(img.n_points, dtype=np.uint8)
     tissue = np.zeros(img.n_points, dtype=np.uint8)
-    inx = np.abs(x) <= 8
+    inx = np.abs(x) <= half_width
     maxilla = inx & (y >= -4) & (y <= 6) & (z >= 1) & (z <= 7)
     mandible = inx & (y >= -4) & (y <= 6) & (z >= -9) & (z <= -1)
     upper_teeth = inx & (y >= 7) & (y <= 8) & (z >= 1) & (z <= 7)
@@ -44,7 +44,7 @@ def synthetic_head(cranium=True, spacing=1.0):
     from scipy import ndimage
 
     vol = hard.reshape(img.dimensions, order="F")
-    soft = ndimage.binary_dilation(vol, np.ones((3, 3, 3)), iterations=4) & ~vol
+    soft = ndimage.binary_dilation(vol, np.ones((3, 3, 3)), iterations=thickness) & ~vol
     tissue[soft.ravel(order="F")] = arrays.FAT
     img[arrays.BONE] = bone
     img[arrays.TISSUE] = tissue
@@ -193,6 +193,12 @@ def test_accessor_delegates(head):
 
 
 # --------------------------------------------------------------------------- with the MTM
+@pytest.fixture(scope="module")
+def small_head():
+    """A narrower jaw with 2 mm of soft tissue: a few thousand tetrahedra for the solver."""
+    return synthetic_head(half_width=3, thickness=2)
+
+
 def _solver():
     try:
         mtm = importlib.import_module("pvcmf.mtm")
@@ -211,9 +217,9 @@ def _materials(grid):
     return grid
 
 
-def test_zero_plan_predicts_zero_displacement(head):
+def test_zero_plan_predicts_zero_displacement(small_head):
     solve = _solver()
-    labels, grid = head
+    labels, grid = small_head
     post = solve(apply_plan(_materials(grid), Plan((Osteotomy("maxilla"),)), labels))
     np.testing.assert_allclose(post[arrays.DISPLACEMENT], 0.0, atol=1e-12)
 
@@ -221,7 +227,7 @@ def test_zero_plan_predicts_zero_displacement(head):
 def test_uniform_translation_moves_everything_uniformly():
     """Every constrained node translated by t (no fixed plane) -> u = t everywhere."""
     solve = _solver()
-    labels, grid = synthetic_head(cranium=False)
+    labels, grid = synthetic_head(cranium=False, half_width=3, thickness=2)
     t = (1.5, -0.5, 2.0)
     plan = Plan((Osteotomy("maxilla", t), Osteotomy("mandible", t)))
     bc = apply_plan(_materials(grid), plan, labels, fixed_posterior=False)
@@ -231,9 +237,9 @@ def test_uniform_translation_moves_everything_uniformly():
                                np.tile(want, (post.n_points, 1)), atol=1e-8)
 
 
-def test_joint_nodes_move_exactly_with_the_mandible(head):
+def test_joint_nodes_move_exactly_with_the_mandible(small_head):
     solve = _solver()
-    labels, grid = head
+    labels, grid = small_head
     plan = Plan((Osteotomy("mandible", (1.07, -0.74, 5.47), (0.0, 2.71, 0.0)),))
     post = solve(apply_plan(_materials(grid), plan, labels))
     joint = post[arrays.BC] == arrays.BC_JOINT
@@ -245,3 +251,24 @@ def test_joint_nodes_move_exactly_with_the_mandible(head):
                                np.sum(post[arrays.BC_DISPLACEMENT][slide] * n, axis=1),
                                atol=1e-10)
     assert np.abs(u[post[arrays.BC] == arrays.BC_FREE]).max() > 0.1  # the tissue follows
+
+
+# --------------------------------------------------------------------------- figures
+def test_figure_4_boundary_conditions(head, verify_image_cache):
+    """Paper 000 Fig. 4 on the synthetic jaw: teeth sliding, mandible joint, posterior fixed."""
+    from pvcmf.figures.boundary_conditions import figure_4
+
+    labels, grid = head
+    bc = apply_plan(grid, Plan((Osteotomy("mandible", (0, 0, 3.0)),)), labels)
+    figure_4(bc, labels, window_size=(900, 320), point_size=5).show()
+
+
+def test_figure_5_osteotomy(head, verify_image_cache):
+    """Paper 000 Fig. 5 layout: face next to white (pre) and green (planned) segments."""
+    from pvcmf.figures.osteotomy import figure_5
+    from pvcmf.plan import TABLE_II
+
+    labels, _ = head
+    figure_5([(labels, TABLE_II[1]), (labels, TABLE_II[3])], window_size=(1000, 300)).show()
+    with pytest.raises(ValueError, match="at least one"):
+        figure_5([])

@@ -20,7 +20,7 @@ POST_COLOR = "limegreen"
 SKIN_COLOR = "peachpuff"
 
 
-def _camera(plotter, bounds, side):
+def _camera(plotter, bounds, side, zoom=1.7):
     b = np.asarray(bounds).reshape(3, 2)
     center = b.mean(axis=1)
     size = float(np.linalg.norm(b[:, 1] - b[:, 0]))
@@ -28,6 +28,7 @@ def _camera(plotter, bounds, side):
     direction = np.asarray(direction) / np.linalg.norm(direction)
     plotter.camera_position = [tuple(center + 2.6 * size * direction), tuple(center),
                                (0.0, 0.0, 1.0)]
+    plotter.camera.zoom(zoom)
 
 
 def draw_osteotomy(plotter, labels, plan, skeleton=None):
