@@ -498,8 +498,8 @@ class PipelineEvaluation(Evaluation):
             case = pvcmf.datasets.phantom(**{"spacing": spacing, **case})
         postop = _postop_skin(case) if self.truth is None else self.truth(case)
         mesh_options = {}
-        if roi is not None:
-            mesh_options["roi"] = roi
+        if roi is not None:  # the soft tissue within `roi` mm of the (first) moved segment
+            mesh_options["roi"] = (case.plan.osteotomies[0].segment_id, roi)
         if not conforming:
             mesh_options["conforming"] = False
         result = simulate(case.ct, case.plan, bones=getattr(case, "truth", None),
