@@ -273,10 +273,10 @@ def test_headsq_from_data_dir(data_dir):
     # headsq is turned to the patient frame (y anterior, z superior): y and z reversed
     hs = ct[arrays.CT].reshape(ct.dimensions, order="F")
     np.testing.assert_array_equal(hs, vol[:, ::-1, ::-1] - 1000.0)
-    # default map puts the skin and bone iso-values on segment's default thresholds
-    from pvcmf.filters.segmentation import BONE_THRESHOLD, SKIN_THRESHOLD
+    # the default map: skin iso-value on segment's default skin threshold, bone iso at 150
+    from pvcmf.datasets.realct import HEADSQ_BONE_ISO, HEADSQ_SKIN_ISO
+    from pvcmf.filters.segmentation import SKIN_THRESHOLD
 
-    d = pvcmf.datasets.headsq()[arrays.CT].reshape(ct.dimensions, order="F")
-    lo, hi = np.argwhere(hs == -500.0)[0], np.argwhere(hs == 150.0)[0]
-    assert d[tuple(lo)] == pytest.approx(SKIN_THRESHOLD, abs=1e-3)
-    assert d[tuple(hi)] == pytest.approx(BONE_THRESHOLD, abs=1e-3)
+    d = pvcmf.datasets.headsq()
+    assert HEADSQ_SKIN_ISO - 1000.0 == SKIN_THRESHOLD and HEADSQ_BONE_ISO - 1000.0 == 150.0
+    np.testing.assert_array_equal(d[arrays.CT], ct[arrays.CT])

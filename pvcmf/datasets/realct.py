@@ -31,28 +31,23 @@ HEADSQ_SHA256 = "00464eb712c0f191bc05667ca3df70c9efcd25ec43351959fcd5b6b4b18ed77
 #: iso-values of this scan in its scanner units (VTK's examples use them for skin and bone)
 HEADSQ_SKIN_ISO = 500.0
 HEADSQ_BONE_ISO = 1150.0
-
-
-def _default_map():
-    """(offset, scale) that put the skin and bone iso-values on segment's HU thresholds."""
-    from ..filters.segmentation import BONE_THRESHOLD, SKIN_THRESHOLD
-
-    scale = (BONE_THRESHOLD - SKIN_THRESHOLD) / (HEADSQ_BONE_ISO - HEADSQ_SKIN_ISO)
-    return SKIN_THRESHOLD - scale * HEADSQ_SKIN_ISO, scale
+#: default map to HU: HU = HEADSQ_SCALE * value + HEADSQ_OFFSET
+HEADSQ_OFFSET = -1000.0
+HEADSQ_SCALE = 1.0
 
 
 def headsq(*, offset=None, scale=None):
     """VTK's real head CT (64 x 64 x 93 voxels, 3.2 x 3.2 x 1.5 mm) as ImageData.
 
     The scan is stored in scanner units, not HU: ``ct = scale * value + offset``. The
-    defaults map the scan's skin iso-value (500) to :func:`pvcmf.filters.segment`'s default
-    ``skin_threshold`` (-500 HU) and its bone iso-value (1150) to the default
-    ``bone_threshold`` (250 HU), i.e. ``scale = 750 / 650 ~ 1.154`` and
-    ``offset ~ -1076.9``, so that ``headsq().cmf.segment()`` works with its defaults.
-    With them air is about -1080 HU and the soft-tissue peak of the scan (~1030 units) about
-    110 HU: fine for the skin and bone masks, but not calibrated HU for fat/muscle
-    classification. Pass ``offset=-1000.0, scale=1.0`` for values closer to HU in the soft
-    tissue (then use ``bone_threshold=150``).
+    defaults (``offset=-1000``, ``scale=1``) put air at -1000 HU, the scan's fat peak (~900
+    units) at about -100 HU, its soft-tissue peak (~1030) at about 30 HU, and its skin
+    iso-value (500) at -500 HU, :func:`pvcmf.filters.segment`'s default ``skin_threshold``.
+    VTK's bone iso-value (1150) lands at 150 HU: a rendering choice for this blurred
+    quarter-resolution scan that also takes dense soft tissue; ``segment``'s default
+    ``bone_threshold`` (500 HU = 1500 units) keeps skull, jaws and spine, so
+    ``headsq().cmf.segment()`` works with its defaults (one skin component with the bone
+    inside it, tested). Pass ``bone_threshold=150`` to segment at VTK's bone iso-value.
 
     Parameters
     ----------
@@ -81,9 +76,8 @@ def headsq(*, offset=None, scale=None):
     """
     from ..io import read_ct
 
-    d_offset, d_scale = _default_map()
-    offset = d_offset if offset is None else offset
-    scale = d_scale if scale is None else scale
+    offset = HEADSQ_OFFSET if offset is None else offset
+    scale = HEADSQ_SCALE if scale is None else scale
     local = data_path("headsq", "quarter.nhdr", required=False)
     if local is not None and local.is_file():
         header = local
