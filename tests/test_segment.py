@@ -142,6 +142,36 @@ def test_defaults_are_hu():
     assert -1000.0 < SKIN_THRESHOLD < HU["fat"] < HU["muscle"] < BONE_THRESHOLD < TEETH_THRESHOLD
 
 
+# --------------------------------------------------------------------------- virtual patients
+PHANTOM_SPACING = 2.0  # the spacing test_phantom.py uses: the phantom's cache serves both
+
+
+@pytest.fixture(scope="module")
+def patients():
+    out = {}
+    for p in (1, 2, 3, 4):
+        case = pvcmf.datasets.phantom(patient=p, spacing=PHANTOM_SPACING)
+        out[p] = (case, case.ct.cmf.segment())
+    return out
+
+
+@pytest.mark.parametrize("patient", [1, 2, 3, 4])
+def test_phantom_dice(patients, patient):
+    case, seg = patients[patient]
+    t, s = case.truth[arrays.TISSUE], seg[arrays.TISSUE]
+    soft = dice(np.isin(s, arrays.SOFT_LABELS), np.isin(t, arrays.SOFT_LABELS))
+    hard = dice(np.isin(s, arrays.HARD_LABELS), np.isin(t, arrays.HARD_LABELS))
+    intra = dice(s == arrays.INTRACRANIAL, t == arrays.INTRACRANIAL)
+    assert soft >= 0.95, f"soft-tissue Dice {soft:.3f}"
+    assert hard >= 0.95, f"hard-tissue Dice {hard:.3f}"
+    assert intra >= 0.95, f"intracranial Dice {intra:.3f}"
+    # the patient table (-150 HU, below the head) is dropped: no label far from the head
+    near_head = ndimage.binary_dilation(labels(case.truth) != arrays.AIR, iterations=2)
+    assert not np.any((labels(seg) != arrays.AIR) & ~near_head)
+    # bone segments: CRANIUM on every hard voxel (cut_bones splits them later)
+    assert np.array_equal(seg[arrays.BONE] == arrays.CRANIUM, np.isin(s, arrays.HARD_LABELS))
+
+
 # --------------------------------------------------------------------------- real CT
 def test_headsq_one_skin_component_bone_inside(data_dir):
     if not (data_dir / "headsq" / "quarter.nhdr").is_file():
