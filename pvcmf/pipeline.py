@@ -39,6 +39,8 @@ STEPS = ("read", "segment", "bone segments", "muscles", "mesh", "fibres", "mater
 
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
 DEFAULT_N_TETS = 25_000
+#: boundary-condition options of the pipeline (see :func:`pvcmf.filters.apply_plan`)
+DEFAULT_BC_OPTIONS = {"fix_unmoved_bone": True}
 #: default anterior share of the head that is meshed (the face model of paper 000)
 DEFAULT_FACE_FRACTION = 0.5
 
@@ -240,8 +242,13 @@ def _segment(ct, options):
 
 
 def _muscles(labels, landmarks):
+    """Embed the muscles; a failing fit falls back to homogeneous tissue with a warning."""
     embed = _filter("embed_muscles")
-    return embed(labels, landmarks=landmarks) if landmarks is not None else embed(labels)
+    try:
+        return embed(labels, landmarks=landmarks) if landmarks is not None else embed(labels)
+    except (ValueError, RuntimeError) as err:
+        raise StepUnavailable(f"embed_muscles failed, soft tissue left homogeneous: "
+                              f"{type(err).__name__}: {str(err)[:300]}") from None
 
 
 def face_box(labels, face_fraction):
@@ -278,6 +285,44 @@ def _materials(grid, options):
     return _filter("assign_materials")(grid, **options)
 
 
+def drop_floating_parts(grid, min_constrained=3):
+    """Remove connected parts of a mesh that the boundary conditions do not hold.
+
+    A part with fewer than ``min_constrained`` fixed/joint/sliding nodes would keep rigid
+    motions the solver cannot remove (small islands a mesher leaves behind, e.g. tissue
+    in a nostril); the MTM's answer does not depend on them elsewhere, so they go.
+
+    Parameters
+    ----------
+    grid : pyvista.UnstructuredGrid
+        Mesh with the point array ``bc``.
+    min_constrained : int, default 3
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+        The mesh itself when every part is held, else a new mesh without the others.
+    """
+    bc = np.asarray(arrays.require_array(grid, arrays.BC, "point", producer="apply_plan"))
+    conn = grid.connectivity("all")
+    region = np.asarray(conn.point_data["RegionId"])
+    counts = np.bincount(region[bc != arrays.BC_FREE], minlength=region.max() + 1)
+    held = counts >= min_constrained
+    if held.all():
+        return grid
+    keep_cells = held[np.asarray(conn.cell_data["RegionId"])]
+    dropped = np.flatnonzero(~held)
+    sizes = np.bincount(region, minlength=region.max() + 1)[dropped]
+    log.warning("dropping %d mesh part(s) held by fewer than %d constrained nodes "
+                "(%d points in all)", len(dropped), min_constrained, int(sizes.sum()))
+    out = conn.extract_cells(np.flatnonzero(keep_cells))
+    for name in ("RegionId", "vtkOriginalPointIds", "vtkOriginalCellIds"):
+        for data in (out.point_data, out.cell_data):
+            if name in data:
+                data.remove(name)
+    return out
+
+
 def _skin_from_labels(labels):
     """Outer skin of a label image: flying edges on the smoothed head indicator."""
     from scipy import ndimage
@@ -294,24 +339,39 @@ def _skin_from_labels(labels):
     return skin
 
 
+def _apply_plan(grid, plan, labels, options):
+    return drop_floating_parts(_filter("apply_plan")(grid, plan, labels, **options))
+
+
 def _skin(labels, post):
     """Pre-operative skin and, with a solved mesh, the predicted skin.
 
-    The skin comes from :func:`pvcmf.filters.extract_skin` where available, else from the
-    label image; the mesh displacement is mapped onto it by probing the tetrahedra
-    (nearest mesh point for skin points just outside the mesh).
+    The skin comes from :func:`pvcmf.filters.extract_skin` of the label image where
+    available (else a contour of the labels). The mesh displacement is carried onto it by
+    the finite-element interpolation inside the tetrahedra (VTK's probe filter,
+    :meth:`pyvista.DataSet.sample`); skin points just outside the mesh (the label skin and
+    the smoothed mesh surface differ by up to a voxel) take the nearest mesh point's
+    displacement, so skin behind the meshed face takes that of the fixed plane: zero.
     """
+    from scipy.spatial import cKDTree
+
     try:
         pre = _filter("extract_skin")(labels)
     except StepUnavailable as err:
         log.info("extract_skin unavailable (%s): skin from the label image", err)
         pre = _skin_from_labels(labels)
-    if post is None:
-        return pre, None
     pre = pre.copy()
     pre.clear_data()
-    probe = pre.sample(post, snap_to_closest_point=True)
-    disp = np.asarray(probe[arrays.DISPLACEMENT], dtype=np.float64)
+    if post is None:
+        return pre, None
+    probe = pre.sample(post)
+    disp = np.asarray(probe[arrays.DISPLACEMENT], dtype=np.float64).copy()
+    outside = np.asarray(probe["vtkValidPointMask"]) == 0
+    if outside.any():
+        near = cKDTree(np.asarray(post.points)).query(np.asarray(pre.points)[outside])[1]
+        disp[outside] = np.asarray(post[arrays.DISPLACEMENT])[near]
+    log.info("skin: %d points, %d interpolated in tetrahedra, %d from the nearest mesh point",
+             pre.n_points, int((~outside).sum()), int(outside.sum()))
     pre.point_data[arrays.DISPLACEMENT] = disp
     moved = pre.copy()
     moved.points = np.asarray(pre.points) + disp
@@ -390,7 +450,11 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         Requested number of tetrahedra (the speed/accuracy knob).
     segment_options, mesh_options, material_options, bc_options, solve_options : dict
         Keyword arguments passed to ``segment``, ``tetrahedralize``, ``assign_materials``,
-        ``apply_plan`` and ``mtm.solve``.
+        ``apply_plan`` and ``mtm.solve``. ``bc_options`` defaults to
+        :data:`DEFAULT_BC_OPTIONS`: the paper's conditions plus soft tissue on unmoved bone
+        fixed (without it, the tissue over the skull, free in the paper, follows a moved
+        jaw as a whole, e.g. the forehead moves 5 mm with a Le Fort I; pass
+        ``bc_options={"fix_unmoved_bone": False}`` for the paper's exact setting).
     face_fraction : float or None, default 0.5
         Mesh only the anterior fraction of the head (a region of interest in front of a
         coronal plane, whose nodes are the fixed posterior plane of paper 000); None
@@ -400,7 +464,8 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         segments, cuts and draws the plan.
     muscles : bool, default True
         Embed the facial muscles (``embed_muscles``); without, the soft tissue is
-        homogeneous.
+        homogeneous. A muscle fit that fails (e.g. bad landmarks) is logged as a warning,
+        recorded in :attr:`Result.skipped`, and the prediction goes on without muscles.
     figures : bool, default True
         Render the PNGs when ``out`` is given.
     progress_bar : bool, default False
@@ -436,6 +501,8 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         if value is not None and not isinstance(value, dict):
             raise TypeError(f"{name} must be a dict or None, got {type(value).__name__}")
         opts[name] = dict(value or {})
+    if bc_options is None:
+        opts["bc_options"] = dict(DEFAULT_BC_OPTIONS)
     if face_fraction is not None and not (0 < float(face_fraction) <= 1):
         raise ValueError(f"face_fraction must be in (0, 1] or None, got {face_fraction!r}")
     if bones is not None and not isinstance(bones, pv.ImageData):
@@ -490,8 +557,8 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
             for step in ("fibres", "materials"):
                 run.skip(step, "no mesh")
         if grid is not None:
-            grid = run.run("boundary conditions", _filter("apply_plan"), with_materials, plan,
-                           labels, **opts["bc_options"])
+            grid = run.run("boundary conditions", _apply_plan, with_materials, plan, labels,
+                           opts["bc_options"])
             result.mesh = grid
             result.post = run.run("solve", lambda g: _solver()(g, **opts["solve_options"]), grid)
         else:

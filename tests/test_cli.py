@@ -182,3 +182,20 @@ def test_simulate_headsq(data_dir, tmp_path, capsys):
     if summary["complete"]:
         assert (tmp_path / "predicted_skin.vtp").is_file()
         assert (tmp_path / "deformed_mesh.vtu").is_file()
+
+
+def test_drop_floating_parts():
+    """A mesh island without constraints is removed; held parts and their arrays stay."""
+    from pvcmf.pipeline import drop_floating_parts
+
+    held = pv.ImageData(dimensions=(3, 3, 3)).triangulate()
+    island = held.translate((10.0, 0.0, 0.0), inplace=False)
+    grid = held.merge(island, merge_points=False)
+    bc = np.zeros(grid.n_points, dtype=np.int8)
+    bc[grid.points[:, 0] < 0.5] = arrays.BC_FIXED
+    grid.point_data[arrays.BC] = bc
+    out = drop_floating_parts(grid)
+    assert out.n_points == held.n_points and out.n_cells == held.n_cells
+    assert out.points[:, 0].max() <= 2.0
+    np.testing.assert_array_equal(np.sort(out[arrays.BC]), np.sort(bc[grid.points[:, 0] <= 2.0]))
+    assert drop_floating_parts(out) is out  # nothing to drop: the same mesh
