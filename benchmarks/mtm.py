@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import argparse
 import resource
+import os
 import statistics
+import subprocess
 import sys
 import time
-import tracemalloc
 
 import numpy as np
 import pyvista as pv
@@ -82,12 +83,14 @@ def peak_rss_mb():
 
 
 def timed(fn, repeat=1):
-    ts, out = [], None
+    """Median wall time, median CPU time (all threads) and the last result."""
+    walls, cpus, out = [], [], None
     for _ in range(repeat):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = fn()
-        ts.append(time.perf_counter() - t)
-    return statistics.median(ts), out
+        walls.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
+    return statistics.median(walls), statistics.median(cpus), out
 
 
 def skfem_assemble_solve(grid):
@@ -116,64 +119,66 @@ def skfem_assemble_solve(grid):
 
 
 def bench(n, args):
+    t = time.perf_counter()
     grid = shell_mesh(n)
-    print(f"\n== {grid.n_cells} tetrahedra, {grid.n_points} points", flush=True)
-    tracemalloc.start()
-    t_setup, solver = timed(lambda: pvcmf.mtm.Solver(grid))
-    _, peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    t_solve, u = timed(solver.solve, 3)
+    print(f"\n== {grid.n_cells} tetrahedra, {grid.n_points} points (mesh built in "
+          f"{time.perf_counter() - t:.1f} s)", flush=True)
+    rep = 3 if n < 500_000 else 1
+    method = "direct" if grid.n_points <= pvcmf.mtm.AUTO_DIRECT_MAX_POINTS else "cg"
+    w_total, c_total, solver = timed(lambda: _setup_and_solve(grid, method=method, tol=1e-8
+                                                              if method == "cg" else 1e-10), rep)
+    u = solver.solve()
     asm = solver.assembler
     ef, ec, nu, a = solver.materials
-    t_asm, _ = timed(lambda: asm.matrix(ef, ec, nu, a), 3)
-    t_upd, _ = timed(lambda: solver.update_materials(nu=solver.materials[2]), 3)
-    print(f"unknowns {solver.F.size}, backend {solver.backend_name}")
-    print(f"assembly (BSR, materials only)   {1000 * t_asm:8.0f} ms")
-    print(f"first Solver (geometry+pattern+symbolic+numeric) {1000 * t_setup:8.0f} ms")
-    print(f"  of which numeric factor        {1000 * solver.timings['factor']:8.0f} ms")
-    print(f"re-assembly + numeric refactor   {1000 * t_upd:8.0f} ms")
-    print(f"solve (2 triangular solves + refinement) {1000 * t_solve:8.0f} ms")
-    total = t_setup + t_solve
-    print(f"assembled + solved               {1000 * total:8.0f} ms   residual "
+    w_asm, c_asm, _ = timed(lambda: asm.matrix(ef, ec, nu, a), rep)
+    w_upd, c_upd, _ = timed(lambda: solver.update_materials(nu=solver.materials[2]), rep)
+    w_sol, c_sol, _ = timed(solver.solve, rep)
+    ms = lambda x: f"{1000 * x:7.0f} ms"  # noqa: E731
+    print(f"unknowns {solver.F.size}, method {method} ({solver.backend_name or 'amg'}); "
+          f"wall (cpu, all threads), median of {rep}")
+    print(f"assembled + solved (from grid)   {ms(w_total)} ({ms(c_total)})   residual "
           f"{solver.info['residual']:.1e}, est. error {solver.info['error_estimate']:.1e}")
-    print(f"python heap peak during setup    {peak / 2**20:8.0f} MB; process peak RSS "
-          f"{peak_rss_mb():.0f} MB")
+    print(f"  assembly (BSR, new materials)  {ms(w_asm)} ({ms(c_asm)})")
+    if method == "direct":
+        print(f"  symbolic analysis (first only) {ms(solver.timings['analysis'])}")
+    print(f"  re-assembly + numeric factor / AMG setup {ms(w_upd)} ({ms(c_upd)})")
+    print(f"  solve (+1 refinement step)     {ms(w_sol)} ({ms(c_sol)})", flush=True)
+    total = w_total
     if not args.skip_skfem and n <= args.skfem_max:
-        import scipy.sparse.linalg as spla
         from skfem import condense
+        from skfem import solve as sksolve
 
-        t = time.perf_counter()
-        K, basis = skfem_assemble_solve(grid)
-        t_skasm = time.perf_counter() - t
-        cons = solver.constraints
-        # scikit-fem cannot express sliding frames: compare on the joint/fixed-only variant
+        # scikit-fem has no sliding frames: compare on the variant with sliding -> joint
         g2 = grid.copy()
         bc = np.array(g2[arrays.BC])
         bc[bc == arrays.BC_SLIDING] = arrays.BC_JOINT
-        d2 = np.array(g2[arrays.BC_DISPLACEMENT])
         g2[arrays.BC] = bc
-        dofs = basis.nodal_dofs  # (3, n)
-        D = dofs[:, bc != arrays.BC_FREE].T.ravel()
+        t = time.perf_counter()
+        K, basis = skfem_assemble_solve(g2)
+        t_skasm = time.perf_counter() - t
+        dofs = basis.nodal_dofs
+        D = dofs[:, bc != arrays.BC_FREE].ravel()
         x = np.zeros(basis.N)
-        x[dofs.T.ravel()] = d2.ravel() * (bc != arrays.BC_FIXED)[:, None].repeat(3, 1).ravel()
+        x[dofs.T.ravel()] = np.asarray(g2[arrays.BC_DISPLACEMENT]).ravel()
         t = time.perf_counter()
-        usk = condense(K, np.zeros(basis.N), x=x, D=D)
-        from skfem import solve as sksolve
-
-        xs = sksolve(*usk)
+        xs = sksolve(*condense(K, np.zeros(basis.N), x=x, D=D))
         t_sksolve = time.perf_counter() - t
-        t = time.perf_counter()
-        s2 = pvcmf.mtm.Solver(g2)
-        u2 = s2.solve()
-        t_ours = time.perf_counter() - t
+        t_ours, _, s2 = timed(lambda: _setup_and_solve(g2), 1)
         ref = xs[dofs.T.ravel()].reshape(-1, 3)
-        err = np.abs(u2 - ref).max() / np.abs(ref).max()
-        print(f"scikit-fem assemble {1000 * t_skasm:.0f} ms + solve {1000 * t_sksolve:.0f} ms; "
-              f"pvcmf {1000 * t_ours:.0f} ms -> ratio {(t_skasm + t_sksolve) / t_ours:.1f}x; "
-              f"max rel. difference {err:.1e}")
+        err = np.abs(s2.solve() - ref).max() / np.abs(ref).max()
+        print(f"scikit-fem assemble {ms(t_skasm)} + solve {ms(t_sksolve)}; pvcmf {ms(t_ours)} "
+              f"-> pvcmf is {(t_skasm + t_sksolve) / t_ours:.1f}x faster; max rel. difference "
+              f"{err:.1e}", flush=True)
+    if not args.skip_cg and method == "direct":
+        w_cg, _, cs = timed(lambda: _setup_and_solve(grid, method="cg", tol=1e-8), 1)
+        uc = cs.solve()
+        print(f"cg + AMG to 1e-8 {ms(w_cg)} ({cs.info['iterations']} iterations) -> "
+              f"{w_cg / total:.1f}x the direct time; max rel. diff "
+              f"{np.abs(uc - u).max() / np.abs(u).max():.1e}", flush=True)
     if not args.skip_relaxation:
+        sweeps = args.relax_sweeps if n <= 40_000 else max(args.relax_sweeps // 10, 100)
         t = time.perf_counter()
-        rs = pvcmf.mtm.Solver(grid, method="relaxation", tol=1e-8, maxiter=args.relax_sweeps)
+        rs = pvcmf.mtm.Solver(grid, method="relaxation", tol=1e-8, maxiter=sweeps)
         try:
             ur = rs.solve()
             msg = f"converged to 1e-8 in {rs.info['iterations']} sweeps"
@@ -181,51 +186,57 @@ def bench(n, args):
             msg = f"NOT converged: {err}"
             ur = None
         t_rel = time.perf_counter() - t
-        print(f"relaxation {1000 * t_rel:.0f} ms ({msg}) -> ratio {t_rel / total:.0f}x direct")
+        print(f"relaxation {ms(t_rel)} ({msg}) -> {t_rel / total:.0f}x the {method} time")
         if ur is not None:
-            print(f"  max |u_relax - u_direct| / max|u| = "
-                  f"{np.abs(ur - u).max() / np.abs(u).max():.1e}")
-    if not args.skip_cg:
-        t = time.perf_counter()
-        cs = pvcmf.mtm.Solver(grid, method="cg", tol=1e-8)
-        uc = cs.solve()
-        t_cg = time.perf_counter() - t
-        print(f"cg+amg {1000 * t_cg:.0f} ms ({cs.info['iterations']} iterations) -> "
-              f"{t_cg / total:.1f}x direct; max diff {np.abs(uc - u).max() / np.abs(u).max():.1e}")
-    return grid, solver
+            print(f"  max |u_relax - u_direct| / max|u| = {np.abs(ur - u).max() / np.abs(u).max():.1e}")
+    print(f"process peak RSS (mesh generation included) {peak_rss_mb():.0f} MB", flush=True)
+    if n == args.sweep_size:
+        sweep(grid)
+
+
+def _setup_and_solve(grid, **kw):
+    solver = pvcmf.mtm.Solver(grid, **kw)
+    solver.solve()
+    return solver
 
 
 def sweep(grid):
     nus = np.linspace(0.0, 0.495, 20)
-    t = time.perf_counter()
-    solver = pvcmf.mtm.Solver(grid)
-    us = []
-    for nu in nus:
-        solver.update_materials(nu=nu)
-        us.append(solver.solve())
-    dt = time.perf_counter() - t
-    print(f"\n20-value Poisson sweep (nu 0..0.495) incl. first setup: {1000 * dt:.0f} ms "
-          f"({grid.n_cells} tets)")
+
+    def run():
+        solver = pvcmf.mtm.Solver(grid)
+        for nu in nus:
+            solver.update_materials(nu=nu)
+            solver.solve()
+
+    w, c, _ = timed(run, 3)
+    print(f"\n20-value Poisson sweep (nu 0..0.495, one Solver, numeric refactorisations) at "
+          f"{grid.n_cells} tets: {1000 * w:.0f} ms wall ({1000 * c:.0f} ms cpu)", flush=True)
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--sizes", type=int, nargs="+", default=[30_000, 150_000, 1_000_000])
+    p.add_argument("--sizes", type=int, nargs="+", default=[30_000, 50_000, 150_000, 1_000_000])
     p.add_argument("--skip-skfem", action="store_true")
-    p.add_argument("--skfem-max", type=int, default=200_000)
+    p.add_argument("--skfem-max", type=int, default=160_000)
     p.add_argument("--skip-relaxation", action="store_true")
     p.add_argument("--skip-cg", action="store_true")
     p.add_argument("--relax-sweeps", type=int, default=20000)
-    p.add_argument("--sweep", action="store_true", help="only the Poisson sweep at 30k")
+    p.add_argument("--sweep-size", type=int, default=30_000)
+    p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    print(f"pvcmf MTM benchmark; direct backends here: {pvcmf.mtm.direct_backends()}")
-    if args.sweep:
-        sweep(shell_mesh(30_000))
-        return
+    if args.one:  # one size in this process (its peak RSS is that size's)
+        bench(args.sizes[0], args)
+        return 0
+    print(f"pvcmf MTM benchmark; direct backends here: {pvcmf.mtm.direct_backends()}; "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores", flush=True)
+    flags = [f"--skfem-max={args.skfem_max}", f"--relax-sweeps={args.relax_sweeps}",
+             f"--sweep-size={args.sweep_size}"]
+    flags += [f"--{k.replace('_', '-')}" for k in ("skip_skfem", "skip_relaxation", "skip_cg")
+              if getattr(args, k)]
     for n in args.sizes:
-        grid, _ = bench(n, args)
-        if n == 30_000:
-            sweep(grid)
+        subprocess.run([sys.executable, __file__, "--one", "--sizes", str(n), *flags], check=False)
+    return 0
 
 
 if __name__ == "__main__":

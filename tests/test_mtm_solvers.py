@@ -339,6 +339,7 @@ def test_solve_input_validation_and_no_mutation(mixed):
         assert key in out.field_data.keys()
     with pytest.raises(ValueError, match="method must be one of"):
         solve(mixed, method="lu")
+    assert str(solve(mixed, method="auto").field_data[pvcmf.mtm.FIELD_METHOD][0]) == "direct"
     bad = mixed.copy()
     bad.point_data[arrays.BC][0] = 7
     with pytest.raises(ValueError, match="codes .* got value 7 at point 0"):

@@ -31,6 +31,7 @@ from .materials import (
     positive_definite_mask,
 )
 from .solvers import (
+    AUTO_DIRECT_MAX_POINTS,
     FIELD_BACKEND,
     FIELD_ERROR_ESTIMATE,
     FIELD_ITERATIONS,
@@ -48,7 +49,7 @@ from .solvers import (
 )
 
 __all__ = [
-    "Assembler", "Constraints", "InvertedTetrahedraWarning", "ConvergenceError", "IllConditionedWarning", "METHODS",
+    "AUTO_DIRECT_MAX_POINTS", "Assembler", "Constraints", "InvertedTetrahedraWarning", "ConvergenceError", "IllConditionedWarning", "METHODS",
     "RigidModeError", "Solver", "TABLES", "VOIGT_PAIRS", "check_positive_definite",
     "constitutive_matrix", "direct_backends", "elastic_coefficients", "gpu_available",
     "grid_materials", "material_table", "positive_definite_mask", "sliding_frames", "solve",

@@ -21,7 +21,12 @@ Methods
     Kept to measure what the other methods gain; slow and it stalls for nu near 0.5.
 ``gpu``
     Jacobi-preconditioned conjugate gradient on the GPU through CuPy (only when CuPy and a
-    CUDA device are present).
+    CUDA device are present; not verified on a GPU yet).
+``auto``
+    ``direct`` up to :data:`AUTO_DIRECT_MAX_POINTS` points, ``cg`` above (memory).
+
+Iterative methods and triangular solves run with one BLAS thread (threadpoolctl, when
+installed): they are memory bound, and threaded BLAS calls on short vectors only spin.
 
 :class:`Solver` keeps everything that does not depend on the material (geometry, sparsity
 pattern, elimination maps, the symbolic factorisation), so a Poisson-ratio sweep only refactors
@@ -31,6 +36,7 @@ scipy.sparse.linalg, pyamg and CuPy.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 import warnings
@@ -53,6 +59,7 @@ __all__ = [
     "direct_backends",
     "gpu_available",
     "METHODS",
+    "AUTO_DIRECT_MAX_POINTS",
     "FIELD_METHOD",
     "FIELD_BACKEND",
     "FIELD_RESIDUAL",
@@ -62,7 +69,10 @@ __all__ = [
     "FIELD_LOST_DIGITS",
 ]
 
-METHODS = ("direct", "cg", "relaxation", "gpu")
+METHODS = ("direct", "cg", "relaxation", "gpu", "auto")
+#: ``method="auto"`` uses ``direct`` up to this many points, else ``cg`` (a sparse Cholesky of a
+#: 3D mesh grows faster than linearly: 1M tetrahedra / 213k points passed 4.4 GB here)
+AUTO_DIRECT_MAX_POINTS = 100_000
 #: field-data names written by :func:`solve`
 FIELD_METHOD = "mtm_method"
 FIELD_BACKEND = "mtm_backend"
@@ -73,6 +83,33 @@ FIELD_ERROR_ESTIMATE = "mtm_error_estimate"  #: estimated relative forward error
 FIELD_LOST_DIGITS = "mtm_lost_digits"  #: estimated significant digits lost (direct)
 
 _EPS = np.finfo(float).eps
+
+
+_CONTROLLER = []
+
+
+def _single_threaded_blas():
+    """Context limiting BLAS to one thread (threadpoolctl, when installed).
+
+    Iterative methods and triangular solves are memory bound: a threaded BLAS only spins,
+    and on a busy 2-core machine it made CG 4x slower in CPU time. Factorisations keep
+    their threads.
+    """
+    if not _CONTROLLER:
+        try:
+            from threadpoolctl import ThreadpoolController
+
+            _CONTROLLER.append(ThreadpoolController())
+        except ImportError:
+            _CONTROLLER.append(None)
+    ctl = _CONTROLLER[0]
+    return contextlib.nullcontext() if ctl is None else ctl.limit(limits=1, user_api="blas")
+
+
+def _norm(x):
+    """2-norm without BLAS (a threaded ddot stalls on a busy 2-core machine)."""
+    x = np.asarray(x)
+    return float(np.sqrt(np.einsum("i,i->", x, x)))
 
 
 class ConvergenceError(RuntimeError):
@@ -269,7 +306,8 @@ class Solver:
     grid : pyvista.UnstructuredGrid
         Linear tetrahedra with materials (cell ``E_fiber``, ``nu``, optional ``E_cross``,
         ``fiber``) and boundary conditions (point ``bc``, ``bc_displacement``, ``bc_normal``).
-    method : {'direct', 'cg', 'relaxation', 'gpu'}
+    method : {'direct', 'cg', 'relaxation', 'gpu', 'auto'}
+        ``auto``: ``direct`` up to :data:`AUTO_DIRECT_MAX_POINTS` points, else ``cg``.
     tol : float
         Relative residual ``||K_ff y - b|| / ||b||`` to reach (iterative methods) or to check
         (``direct``, which raises :class:`ConvergenceError` above it after refinement).
@@ -315,6 +353,8 @@ class Solver:
                  E_fiber=None, E_cross=None, nu=None, fiber=None):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        if method == "auto":
+            method = "direct" if grid.n_points <= AUTO_DIRECT_MAX_POINTS else "cg"
         tol = float(tol)
         if not 0 < tol < 1:
             raise ValueError(f"tol must be in (0, 1), got {tol}")
@@ -432,7 +472,9 @@ class Solver:
         t1 = time.perf_counter()
         self.timings["assembly"] = t1 - t0
         if nf:
-            getattr(self, f"_setup_{self.method}")()
+            threads = contextlib.nullcontext() if self.method == "direct" else _single_threaded_blas()
+            with threads:
+                getattr(self, f"_setup_{self.method}")()
         self.timings["factor"] = time.perf_counter() - t1
         log.debug("assembly %.3f s, factor/setup %.3f s", t1 - t0, self.timings["factor"])
 
@@ -534,7 +576,7 @@ class Solver:
         t0 = time.perf_counter()
         yp = cons.prescribed[self.P]
         b = -(self.K_fp @ yp)
-        nb = np.linalg.norm(b)
+        nb = _norm(b)
         info = {"method": self.method, "backend": self.backend_name or "", "iterations": 0,
                 "error_estimate": np.nan, "lost_digits": np.nan}
         if self.F.size == 0 or nb == 0:
@@ -547,7 +589,8 @@ class Solver:
                 if x0.shape != (cons.n_points, 3):
                     raise ValueError(f"x0 must have shape ({cons.n_points}, 3), got {x0.shape}")
                 y0 = cons.to_local(x0)[self.F]
-            y = getattr(self, f"_solve_{self.method}")(b, nb, y0, info)
+            with _single_threaded_blas():
+                y = getattr(self, f"_solve_{self.method}")(b, nb, y0, info)
         if not np.all(np.isfinite(y)):
             raise ConvergenceError(f"method={self.method!r} produced non-finite values")
         full = cons.prescribed.copy()
@@ -562,14 +605,14 @@ class Solver:
         return u
 
     def _residual(self, y, b, nb):
-        return float(np.linalg.norm(b - self.K_ff @ y) / nb)
+        return float(_norm(b - self.K_ff @ y) / nb)
 
     def _solve_direct(self, b, nb, y0, info):
         y = self._backend.solve(b)
         # one refinement step: its size estimates the forward error of the first solve
         d = self._backend.solve(b - self.K_ff @ y)
-        ny = np.linalg.norm(y)
-        err = float(np.linalg.norm(d) / ny) if ny > 0 else 0.0
+        ny = _norm(y)
+        err = _norm(d) / ny if ny > 0 else 0.0
         y = y + d
         res = self._residual(y, b, nb)
         steps = 1
@@ -709,8 +752,10 @@ def solve(grid, method="direct", tol=1e-10, progress_bar=False, **kwargs):
         Linear tetrahedra with cell materials (``E_fiber``, ``nu``, optional ``E_cross``,
         ``fiber``; see :func:`pvcmf.filters.assign_materials`) and point ``bc``,
         ``bc_displacement``, ``bc_normal`` (see :func:`pvcmf.filters.apply_plan`).
-    method : {'direct', 'cg', 'relaxation', 'gpu'}
-        See :mod:`pvcmf.mtm.solvers`.
+    method : {'direct', 'cg', 'relaxation', 'gpu', 'auto'}
+        See :mod:`pvcmf.mtm.solvers`; ``auto`` picks ``cg`` above
+        :data:`AUTO_DIRECT_MAX_POINTS` points (about 400k tetrahedra), where a direct
+        factorisation no longer fits a few GB.
     tol : float
         Relative residual tolerance.
     progress_bar : bool
