@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 import pvcmf
 from pvcmf import arrays
-from pvcmf.filters.distance import closest_points, signed_distance
+from pvcmf.filters.distance import signed_distance
 from pvcmf.filters.registration import (
     ICP_OVERLAP,
     RegistrationError,
@@ -153,27 +153,84 @@ def test_distance_exact_on_coarse_target_not_nearest_vertex():
     assert (nearest_vertex - np.abs(q[:, 2])).max() > 10  # nearest vertex is far off
 
 
-def test_distance_matches_vtk_implicit_distance():
-    """Curved coarse closed target, points near and far: VTK's implicit distance agrees."""
-    import vtk
-
+def test_distance_matches_brute_force_closest_points():
+    """Curved coarse target, points near and far: an independent exact brute force agrees."""
     target = pv.Icosphere(radius=20.0, nsub=2)
     rng = np.random.default_rng(1)
-    dirs = rng.normal(size=(3000, 3))
-    q = dirs / np.linalg.norm(dirs, axis=1)[:, None] * rng.uniform(5, 35, 3000)[:, None]
-    mine = signed_distance(q, target)
-    imp = vtk.vtkImplicitPolyDataDistance()
-    imp.SetInput(target)
-    ref = np.array([imp.EvaluateFunction(p) for p in q])
-    np.testing.assert_allclose(mine, ref, atol=1e-9)
-    dist, closest, cell, _ = closest_points(q, target)
-    np.testing.assert_allclose(np.linalg.norm(q - closest, axis=1), dist, atol=1e-12)
+    dirs = rng.normal(size=(1500, 3))
+    q = dirs / np.linalg.norm(dirs, axis=1)[:, None] * rng.uniform(5, 35, 1500)[:, None]
+    d = signed_distance(q, target)
+    tri = target.faces.reshape(-1, 4)[:, 1:]
+    pts = np.asarray(target.points, dtype=float)
+    cp, _ = closest_point_on_triangles(q[:, None, :], pts[tri[:, 0]][None], pts[tri[:, 1]][None],
+                                       pts[tri[:, 2]][None])
+    brute = np.linalg.norm(cp - q[:, None, :], axis=2).min(axis=1)
+    np.testing.assert_allclose(np.abs(d), brute, atol=1e-9)
+    # the icosphere is convex, its vertices at r = 20, its faces beyond r = 18
+    r = np.linalg.norm(q, axis=1)
+    assert (d[r < 18] < 0).all() and (d[r > 20] > 0).all()
+
+
+def closest_point_on_triangles(p, a, b, c):
+    """Brute-force reference: closest point on triangles (Ericson 5.1.5), vectorised."""
+    def dot(u, v):
+        return np.einsum("...i,...i->...", u, v)
+
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    bp = p - b
+    d3, d4 = dot(ab, bp), dot(ac, bp)
+    cp = p - c
+    d5, d6 = dot(ab, cp), dot(ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    shape = np.broadcast_shapes(p.shape, a.shape)[:-1]
+    # default: face interior, barycentric (u, v, w) weights of a, b, c
+    denom = va + vb + vc
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = np.where(denom != 0, vb / denom, 0.0)
+        w = np.where(denom != 0, vc / denom, 0.0)
+        feature = np.full(shape, 0, dtype=np.int8)
+        # edge bc
+        d43, d56 = d4 - d3, d5 - d6
+        m = (va <= 0) & (d43 >= 0) & (d56 >= 0)
+        t = d43 / (d43 + d56)
+        v = np.where(m, 1 - t, v)
+        w = np.where(m, t, w)
+        feature[m] = 5
+        # edge ca
+        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        t = d2 / (d2 - d6)
+        v = np.where(m, 0.0, v)
+        w = np.where(m, t, w)
+        feature[m] = 6
+        # later assignments take precedence, in Ericson's order of tests reversed
+        m = (d6 >= 0) & (d5 <= d6)
+        v, w = np.where(m, 0.0, v), np.where(m, 1.0, w)
+        feature[m] = 3
+        # edge ab
+        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+        t = d1 / (d1 - d3)
+        v = np.where(m, t, v)
+        w = np.where(m, 0.0, w)
+        feature[m] = 4
+    m = (d3 >= 0) & (d4 <= d3)
+    v, w = np.where(m, 1.0, v), np.where(m, 0.0, w)
+    feature[m] = 2
+    m = (d1 <= 0) & (d2 <= 0)
+    v, w = np.where(m, 0.0, v), np.where(m, 0.0, w)
+    feature[m] = 1
+    closest = a + ab * v[..., None] + ac * w[..., None]
+    return closest, feature
+
+
 
 
 def test_distance_to_bad_input_and_no_mutation():
     s = pv.Sphere()
     with pytest.raises(ValueError, match="actual must be a non-empty surface"):
-        s.cmf.distance_to(pv.PolyData())
+        s.cmf.distance_to(pv.PolyData(s.points))
     with pytest.raises(TypeError, match="actual must be a pyvista.PolyData"):
         s.cmf.distance_to(pv.ImageData(dimensions=(3, 3, 3)))
     with pytest.raises(ValueError, match="pred must have points"):
