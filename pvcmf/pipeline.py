@@ -612,7 +612,7 @@ def _plot_surface(surface, scalars=None, cmap=None, clim=None, title=None, color
         p.add_mesh(surface, color=color, **kwargs)
     if title:
         p.add_text(title, font_size=11, color="black")
-    _front_camera(p, surface.bounds, zoom=1.3)
+    _front_camera(p, surface.bounds, zoom=1.6)
     return p
 
 
