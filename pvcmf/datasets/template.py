@@ -273,7 +273,7 @@ CRANIUM_INNER = (62.0, 89.0, 82.0)
 
 def _cranial_floor(y):
     """Height of the inner cranial floor: anterior, middle and posterior fossae."""
-    anterior = 37.0 * _smoothstep(y, 15.0, 35.0)
+    anterior = 37.0 * _smoothstep(y, 12.0, 42.0)
     posterior = 20.0 * _smoothstep(y, -35.0, -15.0)
     return -25.0 + posterior + anterior
 
@@ -469,10 +469,11 @@ def thickness_field(P):
 _THICKNESS_BUMPS = [(5.5, (0.0, 90.0, -96.0), (20.0, 14.0, 14.0))]  # chin
 for _sx in (-1.0, 1.0):
     _THICKNESS_BUMPS += [
-        (14.5, (_sx * 44.0, 62.0, -34.0), (13.0, 16.0, 17.0)),  # cheek
-        (8.0, (_sx * 56.0, 25.0, -58.0), (12.0, 20.0, 18.0)),  # masseter region
+        (16.0, (_sx * 44.0, 60.0, -34.0), (15.0, 18.0, 18.0)),  # cheek
+        (9.0, (_sx * 56.0, 22.0, -45.0), (14.0, 22.0, 24.0)),  # masseter region
         (6.0, (_sx * 62.0, 20.0, 28.0), (15.0, 28.0, 22.0)),  # temporalis
         (-2.5, (_sx * 33.0, 88.0, 12.0), (9.0, 9.0, 9.0)),  # eyelids
+        (5.0, (_sx * 24.0, 88.0, -20.0), (10.0, 10.0, 12.0)),  # infraorbital / paranasal
     ]
 
 
@@ -485,21 +486,21 @@ def eyes_sdf(P):
 
 
 def _nose(P):
-    d = _capsule(P, (0.0, 97.0, 18.0), (0.0, 119.0, -20.0), 6.0, 8.0)
-    d = _smin(d, _ellipsoid(P, (0.0, 119.0, -26.0), (9.0, 9.5, 8.5)), 4.0)  # tip
+    d = _capsule(P, (0.0, 96.0, 18.0), (0.0, 116.0, -20.0), 7.0, 9.5)
+    d = _smin(d, _ellipsoid(P, (0.0, 117.0, -26.0), (10.0, 10.5, 9.0)), 5.0)  # tip
     for sx in (-1.0, 1.0):
-        d = _smin(d, _ellipsoid(P, (sx * 13.0, 105.0, -32.0), (8.0, 10.0, 7.0)), 4.0)  # ala
+        d = _smin(d, _ellipsoid(P, (sx * 13.0, 104.0, -31.0), (8.5, 11.0, 8.0)), 5.0)  # ala
     return d
 
 
 def _lips(P):
-    d = _ellipsoid(P, (0.0, 95.0, -51.0), (24.0, 11.0, 10.0))  # upper lip
-    d = _smin(d, _ellipsoid(P, (0.0, 93.0, -70.0), (23.0, 11.0, 9.0)), 3.0)  # lower lip
+    d = _ellipsoid(P, (0.0, 93.5, -51.0), (24.0, 11.0, 10.0))  # upper lip
+    d = _smin(d, _ellipsoid(P, (0.0, 92.0, -70.0), (23.0, 11.0, 9.0)), 4.0)  # lower lip
     return d
 
 
 def _neck(P):
-    cyl = np.sqrt((P[0] / 52.0) ** 2 + ((P[1] + 8.0) / 55.0) ** 2) * 52.0 - 52.0
+    cyl = np.sqrt((P[0] / 50.0) ** 2 + ((P[1] + 10.0) / 52.0) ** 2) * 50.0 - 50.0
     return np.maximum(np.maximum(cyl, P[2] - (-10.0)), (-145.0) - P[2])
 
 
@@ -536,7 +537,7 @@ def airway_sdf(P):
 
 def oral_air_sdf(P):
     """Air between the tongue and the palate."""
-    return _ellipsoid(P, (0.0, 52.0, -50.0), (15.0, 28.0, 3.5))
+    return _box(P, (0.0, 52.0, -50.0), (15.0, 28.0, 3.5), 3.4)
 
 
 def tongue_sdf(P):
@@ -550,6 +551,13 @@ def temporalis_sdf(P):
     region = np.minimum(*[_ellipsoid(P, (sx * 60.0, 15.0, 25.0), (30.0, 45.0, 38.0))
                           for sx in (-1.0, 1.0)])
     return np.maximum(shell, region)
+
+
+def neck_muscles_sdf(P):
+    """Neck muscles (prevertebral, sternocleidomastoid, nuchal) under 9 mm of fat."""
+    cyl = np.sqrt((P[0] / 41.0) ** 2 + ((P[1] + 10.0) / 43.0) ** 2) * 41.0 - 41.0
+    top = -85.0 + 50.0 * (1.0 - _smoothstep(P[1], -45.0, 0.0))
+    return np.maximum(np.maximum(cyl, P[2] - top), (-138.0) - P[2])
 
 
 # =========================================================================== landmarks
@@ -727,11 +735,11 @@ def _ring(center, rx, rz, tilt_y, n=16):
 
 
 def _masseter(sx):
-    curve = np.array([[sx * 58.0, 33.0, -14.0], [sx * 59.0, 26.0, -40.0],
-                      [sx * 57.5, 18.0, -66.0]])
+    curve = np.array([[sx * 57.0, 34.0, -15.0], [sx * 57.5, 27.0, -40.0],
+                      [sx * 56.0, 19.0, -66.0]])
     curve = _spline(curve, 60)
     normals = np.tile([sx * 1.0, 0.0, 0.0], (len(curve), 1))
-    return _Sweep(curve, normals, [14.0, 15.0, 13.0], [4.0, 5.5, 4.0])
+    return _Sweep(curve, normals, [13.0, 15.0, 13.0], [3.5, 5.0, 3.5])
 
 
 @functools.lru_cache(maxsize=1)
@@ -742,21 +750,21 @@ def _muscle_models():
         specs.append((_ring((sx * 33.0, 100.0, 11.0), 21.0, 18.0, -sx * 4.0), 3.0, 6.5, 1.6,
                       160, True))
         names.append(f"levator_labii_superioris_alaeque_nasi_{side}")
-        specs.append(([[sx * 9.0, 110.0, 14.0], [sx * 12.0, 110.0, -8.0],
-                       [sx * 16.0, 120.0, -34.0], [sx * 14.0, 120.0, -45.0]],
-                      [3.5, 3.5, 3.5, 4.5], [3.0, 4.0, 5.0], [1.6, 1.8, 1.8], 120, False))
+        specs.append(([[sx * 11.0, 95.0, 10.0], [sx * 15.0, 92.0, -10.0],
+                       [sx * 20.0, 95.0, -31.0], [sx * 18.0, 94.0, -45.0]],
+                      [2.6, 3.5, 4.0, 4.5], [3.0, 4.0, 5.0], [1.3, 1.6, 1.8], 120, False))
         names.append(f"levator_labii_superioris_{side}")
-        specs.append(([[sx * 30.0, 110.0, -5.0], [sx * 25.0, 110.0, -22.0],
-                       [sx * 17.0, 120.0, -46.0]],
-                      [5.0, 6.5, 5.0], [8.0, 6.5, 4.5], [1.6, 2.0, 1.8], 120, False))
+        specs.append(([[sx * 30.0, 87.0, -4.0], [sx * 26.0, 88.0, -20.0],
+                       [sx * 20.0, 93.0, -45.0]],
+                      [3.5, 4.5, 4.5], [8.0, 6.5, 4.5], [1.5, 1.8, 1.8], 120, False))
         names.append(f"zygomaticus_minor_{side}")
-        specs.append(([[sx * 44.0, 110.0, -9.0], [sx * 33.0, 110.0, -28.0],
-                       [sx * 20.0, 120.0, -48.0]],
+        specs.append(([[sx * 42.0, 78.0, -8.0], [sx * 33.0, 84.0, -28.0],
+                       [sx * 22.0, 92.0, -48.0]],
                       [4.0, 5.0, 4.5], [3.5, 3.5, 3.0], [1.6, 1.8, 1.6], 120, False))
         names.append(f"zygomaticus_major_{side}")
-        specs.append(([[sx * 57.0, 80.0, -12.0], [sx * 43.0, 110.0, -38.0],
-                       [sx * 27.0, 120.0, -59.0]],
-                      [5.5, 7.0, 5.0], [5.0, 4.5, 4.0], [2.0, 2.5, 2.2], 120, False))
+        specs.append(([[sx * 55.0, 72.0, -12.0], [sx * 44.0, 80.0, -38.0],
+                       [sx * 29.0, 88.0, -59.0]],
+                      [5.5, 6.5, 4.5], [5.0, 4.5, 4.0], [2.0, 2.5, 2.2], 120, False))
     models = dict(zip(names, _straps(specs)))
     for side, sx in (("left", 1.0), ("right", -1.0)):
         models[f"masseter_{side}"] = _masseter(sx)
@@ -801,7 +809,7 @@ def _muscle_surfaces_cached(spacing):
         img = pv.ImageData(dimensions=dims, spacing=(spacing,) * 3, origin=lo)
         pts = img.points
         img["sdf"] = model(_tuple(pts))
-        surf = img.contour([0.0], scalars="sdf", method="flying_edges").triangulate().clean()
+        surf = img.contour([0.0], scalars="sdf", method="flying_edges")
         surf = surf.compute_normals(auto_orient_normals=True, consistent_normals=True,
                                     split_vertices=False, cell_normals=False)
         surf.point_data.clear()
@@ -922,13 +930,13 @@ def _soft_weights(P):
 
 
 _FIELD_LO = np.array([-100.0, -130.0, -160.0])
-_FIELD_STEP = 3.0
+_FIELD_STEP = 4.0
 
 
 @functools.lru_cache(maxsize=1)
 def _template_fields():
     """Skin and bony-envelope SDFs of the template on a 3 mm grid (bounds, radial map)."""
-    ax = [_FIELD_LO[i] + _FIELD_STEP * np.arange(n) for i, n in enumerate((67, 94, 101))]
+    ax = [_FIELD_LO[i] + _FIELD_STEP * np.arange(n) for i, n in enumerate((51, 71, 76))]
     X, Y, Z = np.meshgrid(*[a.astype(F32) for a in ax], indexing="ij")
     return skin_sdf((X, Y, Z)), _bone_envelope((X, Y, Z)), (X, Y, Z)
 
@@ -1167,7 +1175,7 @@ def _box_lattice(lo, hi, n=5):
 _BOXES = {
     "cranium": ((-70, -102, -45), (70, 92, 120)),
     "face": ((-70, 15, -62), (70, 108, 55)),
-    "upper_teeth": ((-38, 30, -66), (38, 97, -30)),
+    "upper_teeth": ((-38, 22, -66), (38, 97, -30)),
     "lower_teeth": ((-36, 28, -92), (36, 95, -60)),
     "mandible": ((-62, -8, -112), (62, 100, -15)),
     "spine": ((-12, -34, -142), (12, -10, -40)),
@@ -1176,29 +1184,51 @@ _BOXES = {
     "tongue": ((-23, 23, -77), (23, 87, -51)),
     "eyes": ((-47, 65, -2), (47, 93, 26)),
     "temporalis": ((-80, -35, -20), (80, 65, 70)),
+    "neck": ((-45, -56, -140), (45, 36, -33)),
 }
 
 
 class _Rasterizer:
     """Evaluate template components on a patient grid through a :class:`PatientWarp`.
 
-    Each component is evaluated coarse-to-fine: first on every ``factor``-th voxel of its
-    sub-box, then exactly on the voxels whose coarse value lies within a band of the
-    zero level (the SDFs change by at most ~2 mm per mm), so the sign, i.e. the label, is
-    exact everywhere while the costly evaluations stay near the surfaces.
+    Each component is evaluated coarse-to-fine (factors 4, 2, 1 at 1 mm): a lattice point
+    is evaluated only where the value of its parent block lies within a band of the zero
+    level wider than the SDF can change across the block (the SDFs change by at most
+    ``LIPSCHITZ`` mm per mm), so the sign, i.e. the label, is exact everywhere while the
+    costly evaluations stay near the surfaces. Below 2 mm the patient -> template map is
+    tabulated on a 2 mm grid and interpolated trilinearly (error < 0.05 mm).
     """
 
-    LIPSCHITZ = 2.2
+    LIPSCHITZ = 1.8
+    MAP_STEP = 2.0
 
     def __init__(self, grid, warp):
         self.grid = grid
         self.warp = warp
         self.shape = grid.dims[::-1]
         self.axes = grid.axes()
-        self.factor = max(1, int(round(4.0 / grid.spacing)))
+        self.factor = 1
+        while self.factor * 2 * grid.spacing <= 4.0 + 1e-9:
+            self.factor *= 2
         self._subs = {}
         self._kinds = {"soft": warp.soft, "face": warp.face, "mandible": warp.mandible,
                        "cranium": lambda s: s}
+        self._table = None
+        if grid.spacing < self.MAP_STEP and not warp.identity:
+            self._tabulate()
+
+    def _tabulate(self):
+        h = self.MAP_STEP
+        lo = self.grid.origin
+        n = np.ceil((np.asarray(self.grid.dims) - 1) * self.grid.spacing / h).astype(int) + 2
+        ax = [(lo[i] + h * np.arange(n[i])).astype(F32) for i in range(3)]
+        Z, Y, X = np.meshgrid(ax[2], ax[1], ax[0], indexing="ij")
+        S = self.warp.base_inverse((X, Y, Z))
+        del X, Y, Z
+        fields = {"base": [np.asarray(c, F32) for c in S]}
+        for kind in ("soft", "face", "mandible"):
+            fields[kind] = np.asarray(self._kinds[kind](S)[1], F32) - fields["base"][1]
+        self._table = fields
 
     def sub(self, lo, hi, kind):
         """Slices of the patient grid covering template box [lo, hi] for a map kind."""
@@ -1206,46 +1236,76 @@ class _Rasterizer:
             return (slice(0, self.shape[0]), slice(0, self.shape[1]), slice(0, self.shape[2]))
         key = (tuple(np.ravel(lo)), tuple(np.ravel(hi)), kind)
         if key not in self._subs:
-            self._subs[key] = self._sub(lo, hi, kind)
+            X = self.warp.forward_kind(_box_lattice(lo, hi), kind)
+            pad = 2.0 + self.grid.spacing
+            self._subs[key] = self.grid.slices(X.min(0) - pad, X.max(0) + pad)
         return self._subs[key]
 
-    def _sub(self, lo, hi, kind):
-        X = self.warp.forward_kind(_box_lattice(lo, hi), kind)
-        pad = 2.0 + self.grid.spacing
-        return self.grid.slices(X.min(0) - pad, X.max(0) + pad)
-
     def _points(self, iz, iy, ix, kind):
-        X = (self.axes[0][ix], self.axes[1][iy], self.axes[2][iz])
-        return self._kinds[kind](self.warp.base_inverse(X))
+        if self._table is None:
+            X = (self.axes[0][ix], self.axes[1][iy], self.axes[2][iz])
+            return self._kinds[kind](self.warp.base_inverse(X))
+        r = self.grid.spacing / self.MAP_STEP
+        coords = [np.ravel(iz) * r, np.ravel(iy) * r, np.ravel(ix) * r]
+        shape = np.shape(iz)
 
-    def evaluate(self, fn, box, kind):
-        """``fn`` on the sub-box of template box ``box``; returns (values, slices)."""
+        def interp(f):
+            return ndimage.map_coordinates(f, coords, order=1, mode="nearest",
+                                           prefilter=False).reshape(shape)
+
+        S = [interp(f) for f in self._table["base"]]
+        if kind != "cranium":
+            S[1] = S[1] + interp(self._table[kind])
+        return tuple(S)
+
+    def evaluate(self, fn, box, kind, lipschitz=None):
+        """``fn`` on the sub-box of template box ``box``; returns (values, slices).
+
+        ``fn`` may return several channels (an array of shape (k, ...)); a point is then
+        refined where any channel is near its zero level.
+        """
+        lipschitz = self.LIPSCHITZ if lipschitz is None else lipschitz
         sl = self.sub(*(box if box is not None else (None, None)), kind)
         n = [s.stop - s.start for s in sl]
         if min(n) <= 0:
             return np.zeros((0, 0, 0), F32), sl
+        start = [s.start for s in sl]
         c = self.factor
-        if c == 1 or min(n) < 2 * c:
-            iz, iy, ix = np.meshgrid(*[np.arange(s.start, s.stop) for s in sl], indexing="ij")
-            return fn(self._points(iz, iy, ix, kind)).astype(F32), sl
-        idx = [np.minimum(np.arange(s.start + c // 2, s.stop + c - 1, c), s.stop - 1) for s in sl]
+        while c > 1 and min(n) < 2 * c:
+            c //= 2
+
+        def lattice(f):
+            return [np.minimum(np.arange(f // 2, m + f - 1, f)[: -(-m // f)], m - 1) for m in n]
+
+        idx = lattice(c)
         iz, iy, ix = np.meshgrid(*idx, indexing="ij")
-        coarse = fn(self._points(iz, iy, ix, kind)).astype(F32)
-        up = coarse
-        for axis in range(3):
-            up = np.repeat(up, c, axis=axis)
-        up = np.ascontiguousarray(up[:n[0], :n[1], :n[2]])
-        band = self.LIPSCHITZ * (np.sqrt(3.0) * c / 2.0) * self.grid.spacing + 2.0
-        near = np.nonzero(np.abs(up) < band)
-        if len(near[0]):
-            fine = fn(self._points(near[0] + sl[0].start, near[1] + sl[1].start,
-                                   near[2] + sl[2].start, kind))
-            up[near] = fine
-        return up, sl
+        values = np.asarray(fn(self._points(iz + start[0], iy + start[1], ix + start[2], kind)),
+                            F32)
+        multi = values.ndim == 4
+        if not multi:
+            values = values[None]
+        while c > 1:
+            band = lipschitz * (np.sqrt(3.0) * c / 2.0) * self.grid.spacing + 0.5
+            c //= 2
+            idx = lattice(c)
+            up = values
+            for axis in (1, 2, 3):
+                up = np.repeat(up, 2, axis=axis)
+            values = np.ascontiguousarray(up[:, :len(idx[0]), :len(idx[1]), :len(idx[2])])
+            near = np.nonzero((np.abs(values) < band).any(axis=0))
+            if len(near[0]):
+                pts = self._points(idx[0][near[0]] + start[0], idx[1][near[1]] + start[1],
+                                   idx[2][near[2]] + start[2], kind)
+                fine = np.asarray(fn(pts), F32)
+                values[(slice(None),) + near] = fine if multi else fine[None]
+        return (values if multi else values[0]), sl
 
 
-def rasterize(grid, warp, progress_bar=False):
+def rasterize(grid, warp, factor=None, progress_bar=False):
     """Truth labels and helper fields of the template through ``warp`` on ``grid``.
+
+    ``factor`` is the coarsest sampling step (voxels, a power of 2) of the coarse-to-fine
+    evaluation; default: about 4 mm; 1 evaluates every voxel.
 
     Returns
     -------
@@ -1254,41 +1314,59 @@ def rasterize(grid, warp, progress_bar=False):
         (float32 mm inside bone, for cortical/cancellous HU), ``eye`` (bool).
     """
     R = _Rasterizer(grid, warp)
+    if factor is not None:
+        R.factor = int(factor)
     shape = R.shape
 
-    def mask(fn, name, kind):
-        d, sl = R.evaluate(fn, _BOXES.get(name), kind)
-        out = np.zeros(shape, bool)
-        out[sl] = d < 0
+    def masks(fn, name, kind, lipschitz=1.8):
+        d, sl = R.evaluate(fn, _BOXES.get(name), kind, lipschitz)
+        d = d if d.ndim == 4 else d[None]
+        out = np.zeros((len(d),) + shape, bool)
+        out[(slice(None),) + sl] = d < 0
         return out, d, sl
 
-    inside, _, _ = mask(skin_sdf, None, "soft")  # the thickness factor lives in the warp
+    inside = masks(skin_sdf, None, "soft", 2.0)[0][0]  # the thickness factor lives in the warp
     tissue = np.zeros(shape, np.uint8)
     bone = np.zeros(shape, np.uint8)
     muscle = np.zeros(shape, np.uint8)
     depth = np.zeros(shape, F32)
     tissue[inside] = arrays.FAT
-    # generic muscle tissue: tongue and temporalis
-    for fn, name in ((tongue_sdf, "tongue"), (temporalis_sdf, "temporalis")):
-        m, _, _ = mask(fn, name, "soft")
-        tissue[m & inside] = arrays.MUSCLE_TISSUE
-    # bones
-    for fn, name, kind, label in ((cranium_vault_sdf, "cranium", "cranium", arrays.CRANIUM),
-                                  (spine_sdf, "spine", "cranium", arrays.CRANIUM),
-                                  (face_bone_sdf, "face", "face", None),
-                                  (mandible_sdf, "mandible", "mandible", arrays.MANDIBLE)):
-        m, d, sl = mask(fn, name, kind)
+    # generic muscle tissue: tongue, temporalis, neck
+    for fn, name, lip in ((tongue_sdf, "tongue", 1.8), (temporalis_sdf, "temporalis", 1.8),
+                          (neck_muscles_sdf, "neck", 2.2)):
+        tissue[masks(fn, name, "soft", lip)[0][0] & inside] = arrays.MUSCLE_TISSUE
+
+    def set_depth(d, sl):
         sub = depth[sl]
-        sub[d < 0] = np.maximum(sub[d < 0], -d[d < 0])
-        if label is None:
-            low, _, _ = mask(lambda P: P[2] - Z_LEFORT, name, kind)
-            bone[m & ~low] = arrays.CRANIUM
-            bone[m & low] = arrays.MAXILLA
-        else:
-            bone[m] = label
+        m = d < 0
+        sub[m] = np.maximum(sub[m], -d[m])
+
+    # cranium (vault and braincase share one evaluation), spine
+    m, d, sl = masks(lambda P: np.stack([cranium_vault_sdf(P), braincase_sdf(P)]), "cranium",
+                     "cranium", 2.4)
+    vault, brain = m
+    bone[vault] = arrays.CRANIUM
+    set_depth(d[0], sl)
+    m, d, sl = masks(spine_sdf, "spine", "cranium")
+    bone[m[0]] = arrays.CRANIUM
+    set_depth(d[0], sl)
+    # mid-face: bone, air cavities, oral air, upper teeth and the Le Fort I level at once
+    m, d, sl = masks(lambda P: np.stack([face_bone_sdf(P), face_cavities_sdf(P),
+                                         P[2] - Z_LEFORT]), "face", "face")
+    face, air, low = m
+    bone[face & ~low] = arrays.CRANIUM
+    bone[face & low] = arrays.MAXILLA
+    set_depth(d[0], sl)
+    m, _, _ = masks(lambda P: np.stack([upper_teeth_sdf(P), oral_air_sdf(P)]), "upper_teeth",
+                    "face")
+    upper, oral = m
+    air |= oral
+    m, d, sl = masks(lambda P: np.stack([mandible_sdf(P), lower_teeth_sdf(P)]), "mandible",
+                     "mandible")
+    mand, lower = m
+    bone[mand] = arrays.MANDIBLE
+    set_depth(d[0], sl)
     tissue[bone > 0] = arrays.BONE_TISSUE
-    upper, _, _ = mask(upper_teeth_sdf, "upper_teeth", "face")
-    lower, _, _ = mask(lower_teeth_sdf, "lower_teeth", "mandible")
     teeth = upper | lower
     tissue[teeth] = arrays.TEETH
     bone[upper] = arrays.MAXILLA
@@ -1296,19 +1374,16 @@ def rasterize(grid, warp, progress_bar=False):
     depth[teeth] = 0.0
     # air inside the head
     soft = (tissue == arrays.FAT) | (tissue == arrays.MUSCLE_TISSUE)
-    air, _, _ = mask(face_cavities_sdf, "face", "face")
-    air |= mask(airway_sdf, "airway", "soft")[0]
-    air |= mask(oral_air_sdf, "oral_air", "face")[0]
-    eye = mask(eyes_sdf, "eyes", "soft")[0] & soft
+    air |= masks(airway_sdf, "airway", "soft")[0][0]
+    eye = masks(eyes_sdf, "eyes", "soft")[0][0] & soft
     tissue[air & soft & ~eye] = arrays.AIR
-    brain = mask(braincase_sdf, "cranium", "cranium")[0]
     tissue[brain] = arrays.INTRACRANIAL
     bone[brain] = arrays.BONE_NONE
     depth[brain] = 0.0
     # the 12 facial muscles, only in soft tissue
     soft = ((tissue == arrays.FAT) | (tissue == arrays.MUSCLE_TISSUE)) & ~eye
     for name, model in _muscle_models().items():
-        d, sl = R.evaluate(model, model.bounds, "soft")
+        d, sl = R.evaluate(model, model.bounds, "soft", 1.8)
         if d.size == 0:
             continue
         m = (d < 0) & soft[sl]
