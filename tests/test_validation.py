@@ -141,6 +141,12 @@ def test_signed_distance_concentric_spheres():
                                      flipped.faces.reshape(-1, 4)[:, 1:][:, ::-1]]).ravel()
     np.testing.assert_allclose(pv.Sphere(radius=14.0).cmf.distance_to(flipped)[arrays.DISTANCE],
                                2.0, atol=tess)
+    # ... or inconsistently wound (every other face flipped)
+    tri = truth.faces.reshape(-1, 4)[:, 1:].copy()
+    tri[::2] = tri[::2, ::-1]
+    mixed = pv.PolyData(truth.points, np.column_stack([np.full(len(tri), 3), tri]).ravel())
+    np.testing.assert_allclose(pv.Sphere(radius=10.0).cmf.distance_to(mixed)[arrays.DISTANCE],
+                               -2.0, atol=tess)
 
 
 def test_distance_exact_on_coarse_target_not_nearest_vertex():

@@ -36,24 +36,41 @@ def _check_surface(surface, name):
         )
 
 
+def _edge_counts(tris, n_points):
+    """(winding consistent?, surface closed?) from directed-edge counts (numpy)."""
+    directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    key = np.sort(directed[:, 0] * n_points + directed[:, 1])
+    consistent = not (key[1:] == key[:-1]).any()  # no directed edge used twice
+    lo, hi = np.minimum(directed[:, 0], directed[:, 1]), np.maximum(directed[:, 0], directed[:, 1])
+    und = np.sort(lo * n_points + hi)
+    starts = np.flatnonzero(np.r_[True, und[1:] != und[:-1]])
+    count = np.diff(np.r_[starts, und.size])
+    return consistent, bool((count == 2).all())
+
+
 def _outward(surface):
     """Triangulated, data-free copy of ``surface`` whose winding points outward.
 
     Closed surfaces: the winding with positive signed volume. Open surfaces (a face scan):
-    consistent winding (vtkPolyDataNormals) turned to point away from the centroid.
+    consistent winding turned to point away from the centroid. The winding is made
+    consistent by ``vtkPolyDataNormals`` only when a numpy edge count finds it is not.
     """
     surf = surface.triangulate() if not surface.is_all_triangles else surface.copy()
     surf.clear_data()
-    surf = surf.compute_normals(
-        cell_normals=False, point_normals=True, consistent_normals=True,
-        auto_orient_normals=False, split_vertices=False,
-    )
-    surf.clear_data()
-    points, tris = np.asarray(surf.points, float), surf.faces.reshape(-1, 4)[:, 1:]
+    tris = surf.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
+    consistent, closed = _edge_counts(tris, surf.n_points)
+    if not consistent:
+        surf = surf.compute_normals(
+            cell_normals=False, point_normals=True, consistent_normals=True,
+            auto_orient_normals=False, split_vertices=False,
+        )
+        surf.clear_data()
+        tris = surf.faces.reshape(-1, 4)[:, 1:].astype(np.int64)
+    points = np.asarray(surf.points, float)
     a, b, c = points[tris[:, 0]], points[tris[:, 1]], points[tris[:, 2]]
     cross = np.cross(b - a, c - a)
-    if surf.n_open_edges == 0:
-        outward = np.einsum("ij,ij->", a, cross) > 0  # 6 x signed volume
+    if closed:
+        outward = np.einsum("ij,ij->", a - points.mean(axis=0), cross) > 0  # 6 x volume
     else:
         centre = points.mean(axis=0)
         outward = np.einsum("ij,ij->", (a + b + c) / 3 - centre, cross) > 0
