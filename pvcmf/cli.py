@@ -56,6 +56,8 @@ def _common(parser):
                         help=f"requested number of tetrahedra (default {DEMO_N_TETS})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--no-figures", action="store_true", help="do not render PNGs")
+    parser.add_argument("--no-muscles", action="store_true",
+                        help="homogeneous soft tissue: skip the muscle atlas (faster)")
     parser.add_argument("--no-predict", action="store_true",
                         help="only segment, cut the bones and draw the plan (no mesh/solve)")
     parser.add_argument("-v", "--verbose", action="count", default=0,
@@ -118,8 +120,8 @@ def _demo(args):
 
     result = simulate(case.ct, case.plan, args.out, bones=case.truth,
                       landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
-                      predict=not args.no_predict, figures=not args.no_figures,
-                      progress_bar=not args.no_progress)
+                      predict=not args.no_predict, muscles=not args.no_muscles,
+                      figures=not args.no_figures, progress_bar=not args.no_progress)
     result.timings = {"phantom": seconds, **result.timings}
     return result
 
@@ -148,7 +150,8 @@ def _simulate(args):
         ct = flip_axes(ct, args.flip)
     seconds = time.perf_counter() - start
     result = simulate(ct, plan, args.out, n_tets=args.n_tets, predict=not args.no_predict,
-                      figures=not args.no_figures, progress_bar=not args.no_progress)
+                      muscles=not args.no_muscles, figures=not args.no_figures,
+                      progress_bar=not args.no_progress)
     result.timings = {"read": seconds, **result.timings}
     return result
 
