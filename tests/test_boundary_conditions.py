@@ -144,6 +144,26 @@ def test_options_switch_each_bc_off(head):
     assert np.sum(deeper == arrays.BC_FIXED) > np.sum(base == arrays.BC_FIXED)
 
 
+def test_teeth_rim_labelled_bone_still_slides(head):
+    """A CT segmentation labels the teeth's partial-volume rim as bone: the lips on that rim
+    slide with the default teeth_margin (one voxel) and are joint with teeth_margin=0."""
+    labels, grid = head
+    rim = labels.copy()
+    tissue = rim[arrays.TISSUE].copy()
+    front = (np.abs(rim.points[:, 1] - 8.0) < 1e-9) & (tissue == arrays.TEETH)
+    tissue[front] = arrays.BONE_TISSUE  # only y = 7 keeps the TEETH label
+    rim[arrays.TISSUE] = tissue
+    plan = Plan((Osteotomy("mandible", (0, 0, 2.0)),))
+    lips = (np.abs(grid.points[:, 1] - 8.0) < 1e-9) & (np.abs(grid.points[:, 0]) < 6) \
+        & (np.abs(grid.points[:, 2]) >= 2) & (np.abs(grid.points[:, 2]) <= 6)
+    assert lips.sum() > 10
+    assert np.all(apply_plan(grid, plan, rim)[arrays.BC][lips] == arrays.BC_SLIDING)
+    strict = apply_plan(grid, plan, rim, teeth_margin=0)[arrays.BC][lips]
+    assert not np.any(strict == arrays.BC_SLIDING)
+    lower = grid.points[lips, 2] < 0
+    assert np.all(strict[lower] == arrays.BC_JOINT)  # on the moving mandible's "bone"
+
+
 def test_zero_plan_prescribes_zero(head):
     labels, grid = head
     out = apply_plan(grid, Plan((Osteotomy("mandible"),)), labels)
@@ -157,6 +177,7 @@ def test_zero_plan_prescribes_zero(head):
     ({"contact_distance": "far"}, TypeError, "contact_distance must be a number"),
     ({"posterior_depth": np.nan}, ValueError, "posterior_depth must be a finite"),
     ({"normal_sigma": -1}, ValueError, "normal_sigma"),
+    ({"teeth_margin": -1.0}, ValueError, "teeth_margin must be a finite number >= 0"),
 ])
 def test_bad_arguments(head, kwargs, error, match):
     labels, grid = head

@@ -117,7 +117,7 @@ def _surface_normals(bones, hard_mask, points, nearest, sigma):
 
 def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_posterior=True,
                posterior_depth=2.0, fix_unmoved_bone=False, contact_distance=None,
-               normal_sigma=1.0, progress_bar=False):
+               teeth_margin=None, normal_sigma=1.0, progress_bar=False):
     """Turn a surgical plan into the soft-tissue mesh's boundary conditions.
 
     Parameters
@@ -146,6 +146,11 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     contact_distance : float, optional
         A boundary node touches hard tissue when the nearest hard-tissue voxel centre is
         within this distance (mm). Default: the largest voxel spacing of ``bones``.
+    teeth_margin : float, optional
+        Hard-tissue voxels within this distance (mm) of a tooth voxel count as tooth
+        surface: a CT segmentation labels the partial-volume rim of the teeth as bone, so
+        the lips touch that rim, not the enamel. Default: the largest voxel spacing; 0
+        uses the ``TEETH`` label alone.
     normal_sigma : float, default 1.0
         Gaussian sigma (voxels) smoothing the hard-tissue indicator whose gradient gives
         the sliding normals.
@@ -211,6 +216,10 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         contact = float(spacing.max())
     if not np.isfinite(normal_sigma) or normal_sigma < 0:
         raise ValueError(f"normal_sigma must be a finite number >= 0, got {normal_sigma!r}")
+    if teeth_margin is None:
+        teeth_margin = float(spacing.max())
+    elif not np.isfinite(teeth_margin) or teeth_margin < 0:
+        raise ValueError(f"teeth_margin must be a finite number >= 0 (mm), got {teeth_margin!r}")
 
     labels = cut_bones(bones, plan)
     transforms = segment_transforms(labels, plan)
@@ -238,7 +247,12 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     nodes, near = nodes[touching], near[touching]
     near_ids = surf_ids[near]
     seg = bone[near_ids]
-    is_teeth = tissue[near_ids] == arrays.TEETH
+    teeth = tissue == arrays.TEETH
+    if teeth_margin > 0 and teeth.any():
+        dist_teeth = ndimage.distance_transform_edt(
+            ~teeth.reshape(dims, order="F"), sampling=spacing).ravel(order="F")
+        teeth = hard & (dist_teeth <= teeth_margin * (1 + 1e-9))
+    is_teeth = teeth[near_ids]
     moved = np.isin(seg, list(transforms))
 
     def rigid(idx, segs):
