@@ -174,8 +174,9 @@ def phantom_fits():
     out = {}
     for p in (1, 2, 3, 4):
         case = pvcmf.datasets.phantom(patient=p, spacing=2.0)  # shared with test_phantom
-        labelled, mix = case.ct.cmf.segment().cmf.classify_tissue(return_mixtures=True)
-        out[p] = (case, labelled, mix)
+        segmented = case.ct.cmf.segment()
+        labelled, mix = segmented.cmf.classify_tissue(return_mixtures=True)
+        out[p] = (case, labelled, mix, segmented)
     return out
 
 
@@ -183,7 +184,7 @@ def phantom_fits():
 def test_phantom_fat_muscle_hu(phantom_fits, patient):
     from pvcmf.datasets.phantom import HU
 
-    case, labelled, mix = phantom_fits[patient]
+    case, labelled, mix, _ = phantom_fits[patient]
     own = (mix.n_voxels > 0) & ~mix.fallback
     assert own.sum() >= 10  # slices through the muscles get their own mixture
     fat = np.average(mix.fat_mean[own], weights=mix.n_voxels[own])
@@ -200,6 +201,17 @@ def test_phantom_fat_muscle_hu(phantom_fits, patient):
     soft = np.isin(t, arrays.SOFT_LABELS) & np.isin(c, arrays.SOFT_LABELS)
     assert np.mean(c[soft & (t == arrays.FAT)] == arrays.FAT) > 0.85
     assert np.mean(c[soft & (t == arrays.MUSCLE_TISSUE)] == arrays.MUSCLE_TISSUE) > 0.5
+
+
+def test_fig1_gmm_chart(phantom_fits, verify_chart):
+    """Paper 001 Fig. 1 on virtual patient 1 (the gallery draws it at 1 mm)."""
+    from pvcmf.figures.gmm import fig1_gmm, pick_slice
+
+    _, _, mix, segmented = phantom_fits[1]
+    k = pick_slice(mix)
+    assert not mix.fallback[k] and mix.n_voxels[k] > 0
+    fig = fig1_gmm(segmented, slice_index=k)
+    verify_chart(fig)
 
 
 def test_bad_input():
@@ -220,3 +232,18 @@ def test_bad_input():
         pvcmf.filters.classify_tissue(img, n_components=1)
     with pytest.raises(ValueError, match="hu_range"):
         pvcmf.filters.classify_tissue(img, hu_range=(100.0, -100.0))
+
+
+def test_peak_prominences_match_scipy():
+    """The initialisation's peak finder against scipy.signal.find_peaks (independent)."""
+    from scipy.signal import find_peaks
+
+    from pvcmf.filters.classify import _prominences
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        row = np.convolve(rng.random(60), np.ones(3), "same") * (rng.random(60) > 0.2)
+        idx, props = find_peaks(np.concatenate([[0.0], row, [0.0]]), prominence=0.0)
+        mine, prom = _prominences(row)
+        np.testing.assert_array_equal(mine, idx - 1)
+        np.testing.assert_allclose(prom, props["prominences"])

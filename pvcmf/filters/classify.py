@@ -536,18 +536,16 @@ def _pair(weights, means, stds):
 def _peaks(hist, x, k, separation):
     """Deterministic initial means: the ``k`` most prominent peaks of each smoothed row.
 
-    Peaks are local maxima ranked by their topographic prominence
-    (:func:`scipy.signal.find_peaks`), so the shoulder of a big peak is never taken for a
+    Peaks are local maxima ranked by their topographic prominence (as
+    :func:`scipy.signal.peak_prominences` defines it, see :func:`_prominences`), so the shoulder of a big peak is never taken for a
     second tissue. Rows with fewer than ``k`` peaks get the rest greedily: the maximum of the
     histogram damped by ``1 - exp(-d^2 / (2 separation^2))`` around the means already chosen.
     """
-    from scipy.signal import find_peaks
-
     smooth = ndimage.gaussian_filter1d(hist, 2.0, axis=1, mode="constant")
     means = np.full((hist.shape[0], k), np.nan)
     for r, row in enumerate(smooth):  # one row per slice (or the pooled one), not voxels
-        idx, props = find_peaks(np.concatenate([[0.0], row, [0.0]]), prominence=0.0)
-        best = idx[np.argsort(props["prominences"])[::-1][:k]] - 1
+        idx, prom = _prominences(row)
+        best = idx[np.argsort(prom, kind="stable")[::-1][:k]]
         means[r, : best.size] = x[best]
         score = row.copy()
         for j in range(k):
@@ -555,6 +553,24 @@ def _peaks(hist, x, k, separation):
                 means[r, j] = x[np.argmax(score)]
             score = score * -np.expm1(-0.5 * ((x - means[r, j]) / separation[r]) ** 2)
     return means
+
+
+def _prominences(row):
+    """Local maxima of a 1-D array (zero beyond its ends) and their prominences: the height
+    above the higher of the two lowest points between the peak and the nearest higher point
+    on each side. (``scipy.signal.find_peaks`` does the same, but importing scipy.signal
+    costs seconds.)"""
+    h = np.concatenate([[0.0], row, [0.0]])
+    left, right = h[:-2], h[2:]
+    idx = np.flatnonzero((h[1:-1] > left) & (h[1:-1] >= right)) + 1
+    prom = np.empty(idx.size)
+    for n, i in enumerate(idx):  # a few peaks per histogram
+        higher_left = np.flatnonzero(h[:i] > h[i])
+        higher_right = np.flatnonzero(h[i + 1:] > h[i])
+        lo = higher_left[-1] if higher_left.size else 0
+        hi = i + 1 + higher_right[0] if higher_right.size else h.size - 1
+        prom[n] = h[i] - max(h[lo:i + 1].min(), h[i:hi + 1].min())
+    return idx - 1, prom
 
 
 def _fat_muscle(weights, means, stds):

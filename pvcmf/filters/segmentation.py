@@ -1,6 +1,7 @@
 """CT -> tissue and bone labels (paper 000 section II): skin, skull, soft tissue, cavities.
 
-The steps, all on the voxel grid with ``scipy.ndimage`` (``label``, ``distance_transform_edt``)
+The steps, all on the voxel grid with ``scipy.ndimage`` (``label``, ``binary_closing``,
+``binary_erosion``)
 and numpy boolean algebra, vectorised over the whole volume:
 
 1. **head**: ``ct >= skin_threshold``, largest face-connected component (drops the table,
@@ -10,8 +11,9 @@ and numpy boolean algebra, vectorised over the whole volume:
    TEETH (enamel and dentine are denser than bone), the rest BONE. The ``bone`` segment array
    is ``CRANIUM`` on every hard voxel: splitting maxilla and mandible is
    :func:`pvcmf.filters.cut_bones`.
-3. **intracranial volume**: the skull is closed with a ball of radius ``skull_closing`` mm (via
-   two Euclidean distance transforms, so the cost does not grow with the radius), each axial
+3. **intracranial volume**: the skull is closed with a ball of radius ``skull_closing`` mm
+   (``scipy.ndimage.binary_closing``; 2.8x faster than a distance-transform closing at 3 mm,
+   ``benchmarks/segment.py``), each axial
    slice of the closed skull has its holes filled (a slice-wise fill, so the foramen magnum
    and a skull vault cut off by the scan do not open the cavity), and the largest 3-D
    connected non-bone, non-air region enclosed this way is ``INTRACRANIAL``.
@@ -227,16 +229,20 @@ def _fill(mask, structure, z_open=False):
     return mask | keep[lab]
 
 
+def _ball(spacing, radius):
+    """Ellipsoidal structuring element: the ball of ``radius`` mm (>= 1 voxel per axis)."""
+    r_vox = np.maximum(radius / np.maximum(np.asarray(spacing, float), 1e-12), 1.0)
+    half = np.floor(r_vox).astype(int)
+    grid = np.meshgrid(*(np.arange(-h, h + 1) for h in half), indexing="ij")
+    return sum((g / r) ** 2 for g, r in zip(grid, r_vox)) <= 1.0 + 1e-9
+
+
 def _closing(mask, spacing, radius):
-    """Binary closing with a ball of ``radius`` mm (>= 1 voxel per axis), via EDTs."""
-    step = np.maximum(np.asarray(spacing), 1e-12)
-    r_vox = np.maximum(radius / step, 1.0)
-    sampling = 1.0 / r_vox  # in these units the ball is the unit ball
-    pad = np.ceil(r_vox).astype(int) + 1
-    padded = np.pad(mask, [(p, p) for p in pad])
-    dilated = ndimage.distance_transform_edt(~padded, sampling=sampling) <= 1.0
-    closed = ndimage.distance_transform_edt(dilated, sampling=sampling) > 1.0
-    return closed[pad[0]:-pad[0], pad[1]:-pad[1], pad[2]:-pad[2]]
+    """Binary closing with a ball of ``radius`` mm, padded so the border does not erode."""
+    ball = _ball(spacing, radius)
+    pad = [(h + 1, h + 1) for h in np.array(ball.shape) // 2]
+    closed = ndimage.binary_closing(np.pad(mask, pad), structure=ball)
+    return closed[tuple(slice(a, -b) for a, b in pad)]
 
 
 def _intracranial(hard, head, spacing, radius):
