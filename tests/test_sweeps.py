@@ -460,17 +460,9 @@ def test_pipeline_materials_homogeneous_and_inhomogeneous():
     np.testing.assert_allclose(out["E_cross"], 2.0)
 
 
-def test_pipeline_evaluation_reuses_solver_and_finds_the_exact_ratio():
-    """A cube squeezed between two plates with free sides: with nu = 0 the exact answer is
-    the uniform strain u_z = -0.1 z (no lateral bulge). Taking that as the post-operative
-    truth, the evaluation must report ~0 error at nu = 0 and more as nu grows, reusing one
-    solver for all ratios."""
-    try:
-        from pvcmf import filters, mtm
-
-        mtm.Solver, filters.distance_to  # noqa: B018
-    except (ImportError, AttributeError) as err:
-        pytest.skip(f"MTM solver or distance filter not available yet: {err}")
+def _squeezed_cube():
+    """A cube squeezed between two plates (joint nodes), sides free; its skin; and the
+    exact nu = 0 answer (uniform strain u_z = -0.1 z, no lateral bulge) as the truth."""
     import pyvista as pv
 
     from pvcmf import arrays
@@ -488,10 +480,63 @@ def test_pipeline_evaluation_reuses_solver_and_finds_the_exact_ratio():
     skin = grid.extract_surface(algorithm="dataset_surface").triangulate().clean()
     truth = skin.copy()
     truth.points = truth.points + np.c_[np.zeros((truth.n_points, 2)), -0.1 * truth.points[:, 2]]
-    state = {"grid": grid, "skin": skin, "postop": truth, "solvers": {}}
+    return {"grid": grid, "skin": skin, "postop": truth, "solvers": {}}
+
+
+def _need_mtm():
+    try:
+        from pvcmf import filters, mtm
+
+        mtm.Solver, filters.distance_to  # noqa: B018
+    except (ImportError, AttributeError) as err:
+        pytest.skip(f"MTM solver or distance filter not available yet: {err}")
+
+
+def test_pipeline_evaluation_reuses_solver_and_finds_the_exact_ratio():
+    """With nu = 0 the squeezed cube's exact answer is the truth: ~0 error there and more as
+    nu grows, with one solver refactorised for all ratios."""
+    _need_mtm()
+    state = _squeezed_cube()
+    grid, skin = state["grid"], state["skin"]
     ev = sweeps.PipelineEvaluation(keep_distance=True)
     rows = [ev.evaluate(state, nu=nu) for nu in (0.0, 0.2, 0.45)]
     assert len(state["solvers"]) == 1  # one solver, refactorised per ratio
     assert rows[0]["p95"] < 1e-6
     assert rows[0]["p90"] < rows[1]["p90"] < rows[2]["p90"]
     assert rows[2]["n_cells"] == grid.n_cells and rows[2]["distance"].shape == (skin.n_points,)
+
+
+class CubePipeline(sweeps.PipelineEvaluation):
+    """PipelineEvaluation whose preparation is the squeezed cube, counted by marker files."""
+
+    def __init__(self, marks, **kw):
+        super().__init__(**kw)
+        self.marks = str(marks)
+
+    def _prepare(self, case, **group):
+        Path(self.marks, f"prepare-{uuid.uuid4().hex}").touch()
+        return _squeezed_cube()
+
+
+def test_prepared_cases_are_cached_on_disk(tmp_path):
+    _need_mtm()
+    ev = CubePipeline(tmp_path, cache_dir=tmp_path / "prepared")
+    a = pvcmf.sweep([1], {"nu": [0.0, 0.3]}, evaluate=ev, scheduler="synchronous")
+    b = pvcmf.sweep([1], {"nu": [0.0, 0.3], "E_fat": [2.0]}, evaluate=ev, scheduler="synchronous")
+    assert count(tmp_path, "prepare") == 1  # the second sweep loaded the mesh, skin and truth
+    np.testing.assert_allclose(b["p90"], a["p90"], rtol=1e-9, atol=1e-12)  # E does not matter
+    assert a["p95"].iloc[0] < 1e-6
+    pvcmf.sweep([1], {"nu": [0.0], "n_tets": [5000]}, evaluate=ev, scheduler="synchronous")
+    assert count(tmp_path, "prepare") == 2  # another mesh-level setting is another preparation
+
+
+def test_face_only_keeps_the_face_regions():
+    import pyvista as pv
+
+    from pvcmf import arrays
+
+    head = pv.ParametricEllipsoid(70, 95, 110).triangulate()
+    face = sweeps._face_only(head, None)
+    assert 0 < face.n_points < head.n_points and face.is_all_triangles
+    assert (face[arrays.REGION] > 0).all()
+    assert face.points[:, 1].min() > 0  # anterior half only

@@ -53,7 +53,8 @@ def run_study(cases, grid, name, out, *, synthetic=False, scheduler=None, keep_a
     name : str
         File stem of the saved table ``out / f"{name}.csv"``.
     out : pathlib.Path
-        Output folder; results are cached in ``out / "sweep-cache"``.
+        Output folder; results are cached in ``out / "sweep-cache"``, prepared cases
+        (meshes) in ``out / "sweep-cache" / "prepared"``, shared by all figures.
     synthetic : bool
         Use :func:`pvcmf.sweeps.synthetic_evaluate` instead of the pipeline.
     scheduler : optional
@@ -76,8 +77,8 @@ def run_study(cases, grid, name, out, *, synthetic=False, scheduler=None, keep_a
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    evaluate = synthetic_evaluate if synthetic else PipelineEvaluation(keep_distance=keep_arrays,
-                                                                       **options)
+    evaluate = synthetic_evaluate if synthetic else PipelineEvaluation(
+        keep_distance=keep_arrays, cache_dir=out / "sweep-cache" / "prepared", **options)
     df = sweep(cases, grid, evaluate=evaluate, scheduler=scheduler, cache_dir=out / "sweep-cache",
                progress_bar=progress_bar, keep_arrays=keep_arrays)
     save_table(df, out / f"{name}.csv")
