@@ -18,6 +18,7 @@ import logging
 import numpy as np
 import pyvista as pv
 from scipy.interpolate import RBFInterpolator
+from scipy.spatial import cKDTree
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +26,7 @@ log = logging.getLogger(__name__)
 COINCIDENT_TOL = 1e-6
 
 
-def landmark_arrays(source, target, *, name="landmarks", min_points=4):
+def landmark_arrays(source, target, *, name="landmarks", min_points=4, check_target=True):
     """Validate two landmark sets and return them as matching ``(n, 3)`` arrays.
 
     Parameters
@@ -38,6 +39,9 @@ def landmark_arrays(source, target, *, name="landmarks", min_points=4):
         Parameter name quoted in error messages.
     min_points : int
         Least number of landmarks (4 non-coplanar points fix a 3-D affine map).
+    check_target : bool
+        Also reject coincident or coplanar target points (a spline is still defined for
+        them, but as patient landmarks they are a mistake).
 
     Returns
     -------
@@ -93,11 +97,11 @@ def landmark_arrays(source, target, *, name="landmarks", min_points=4):
             )
     if len(src) < min_points:
         raise ValueError(f"{name}: need at least {min_points} landmarks, got {len(src)}")
-    for label, pts in (("source", src), ("target", dst)):
-        d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
-        i, j = np.nonzero(np.triu(d <= COINCIDENT_TOL, k=1))
-        if len(i):
-            pairs = [(names[a], names[b]) for a, b in zip(i, j)]
+    checks = (("source", src), ("target", dst)) if check_target else (("source", src),)
+    for label, pts in checks:
+        close = sorted(cKDTree(pts).query_pairs(COINCIDENT_TOL))
+        if close:
+            pairs = [(names[a], names[b]) for a, b in close]
             raise ValueError(
                 f"{name}: {label} landmarks coincide (closer than {COINCIDENT_TOL} mm): {pairs}"
             )
@@ -119,9 +123,12 @@ class ThinPlateSpline:
     source, target : dict[str, array_like] or (n, 3) array_like
         Landmarks in the source (e.g. atlas) and target (e.g. patient) frames; see
         :func:`landmark_arrays`.
-    smoothing : float
-        0 (default) interpolates exactly; larger values trade exactness for smoothness
-        (scipy's ``smoothing``).
+    smoothing : float or array_like of shape (n,)
+        0 (default) interpolates exactly; larger values (mm) trade exactness for
+        smoothness (scipy's ``smoothing``); an array gives each landmark its own value
+        (0 keeps that landmark exact).
+    check_target : bool
+        See :func:`landmark_arrays` (internal fits with many points turn it off).
 
     Examples
     --------
@@ -134,11 +141,18 @@ class ThinPlateSpline:
     True
     """
 
-    def __init__(self, source, target, *, smoothing=0.0):
-        if not np.isfinite(smoothing) or smoothing < 0:
-            raise ValueError(f"smoothing must be a finite number >= 0, got {smoothing!r}")
-        self.names, self.source, self.target = landmark_arrays(source, target)
-        self.smoothing = float(smoothing)
+    def __init__(self, source, target, *, smoothing=0.0, check_target=True):
+        self.names, self.source, self.target = landmark_arrays(
+            source, target, check_target=check_target
+        )
+        sm = np.asarray(smoothing, dtype=float)
+        if sm.ndim > 1 or (sm.ndim == 1 and sm.shape != (len(self.source),)):
+            raise ValueError(
+                f"smoothing must be a number or {len(self.source)} numbers, got shape {sm.shape}"
+            )
+        if not np.isfinite(sm).all() or (sm < 0).any():
+            raise ValueError(f"smoothing must be finite and >= 0, got {smoothing!r}")
+        self.smoothing = float(sm) if sm.ndim == 0 else sm
         # the spline of the displacement keeps the numbers small and the identity exact
         self._rbf = RBFInterpolator(
             self.source,
@@ -167,7 +181,8 @@ class ThinPlateSpline:
         return out
 
     def __repr__(self):
-        return f"ThinPlateSpline({len(self.source)} landmarks, smoothing={self.smoothing})"
+        sm = self.smoothing if np.ndim(self.smoothing) == 0 else "per point"
+        return f"ThinPlateSpline({len(self.source)} landmarks, smoothing={sm})"
 
 
 def vtk_transform(source, target):

@@ -1,0 +1,622 @@
+"""The facial muscle atlas and its fitting to a patient (paper 000, sec. II).
+
+An :class:`Atlas` holds a template head's landmarks, its twelve facial muscles (the six
+of paper 000 Fig. 2a on both sides, closed surfaces named as :data:`pvcmf.arrays.MUSCLES`)
+and its skin and skull surfaces, all in the template frame (mm, patient axes).
+:func:`default` builds it from :mod:`pvcmf.datasets.template`.
+
+Fitting to a patient is a 3-D thin-plate spline (:mod:`pvcmf.tps`, scipy
+``RBFInterpolator``) from the atlas landmarks to the patient's (:meth:`Atlas.warp`, the
+paper's method). :meth:`Atlas.register` refines it with the patient's label image: the
+spline keeps the landmarks exact and also carries atlas skin and skull points onto the
+patient's surfaces (regularised, point-to-plane closest points), so the soft-tissue
+thickness between landmarks follows the patient. Without patient landmarks,
+:meth:`Atlas.fit` finds them: a similarity ICP (scale, rotation, translation; Umeyama
+and point-to-plane steps on ``scipy.spatial.cKDTree`` closest points) of the atlas skin
+and skull to the patient's (contoured with PyVista's ``ImageData.contour``), a non-rigid
+ICP with regularised thin-plate splines of decreasing smoothing, then the atlas
+landmarks carried over and snapped onto the patient's skin or bone.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyvista as pv
+from scipy.spatial import cKDTree
+
+from . import arrays
+from .tps import ThinPlateSpline, landmark_arrays
+
+log = logging.getLogger(__name__)
+
+#: spacing (mm) at which surfaces are extracted for automatic fitting
+FIT_SPACING = 2.0
+#: spacing (mm) at which the template muscles are contoured (0.5 costs 6x the time for a
+#: ~0.1 mm gain on 3-5 mm thick muscles)
+MUSCLE_SPACING = 1.0
+
+
+# --------------------------------------------------------------------------- surfaces
+def label_surfaces(labels, *, spacing=FIT_SPACING):
+    """Skin and skull surfaces of a tissue label image (for registration).
+
+    The skin is the outer boundary of the head (everything that is not air, with the
+    cavities enclosed in it filled); the skull is the boundary of bone and teeth. Images
+    finer than ``spacing`` are subsampled first; the masks are contoured at 0.5
+    (``ImageData.contour``, flying edges; ``scipy.ndimage.binary_fill_holes``).
+
+    Parameters
+    ----------
+    labels : pyvista.ImageData
+        Image with point array ``tissue``.
+    spacing : float
+        Approximate spacing (mm) to contour at.
+
+    Returns
+    -------
+    skin, skull : pyvista.PolyData
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> from pvcmf.atlas import label_surfaces
+    >>> img = pv.ImageData(dimensions=(30, 30, 30), origin=(-29, -29, -29), spacing=(2, 2, 2))
+    >>> r = np.linalg.norm(img.points, axis=1)
+    >>> img[arrays.TISSUE] = np.select([r < 10, r < 20], [arrays.BONE_TISSUE, arrays.FAT], 0).astype(np.uint8)
+    >>> skin, skull = label_surfaces(img)
+    >>> bool(19 < np.linalg.norm(skin.points, axis=1).mean() < 21)
+    True
+    """
+    from scipy import ndimage
+
+    tissue = arrays.require_array(labels, arrays.TISSUE, "point", dtype="iu", ncomp=1)
+    dims = np.asarray(labels.dimensions)
+    rate = np.maximum(1, np.floor(spacing / np.asarray(labels.spacing) + 1e-9)).astype(int)
+    vol = np.asarray(tissue).reshape(dims, order="F")[:: rate[0], :: rate[1], :: rate[2]]
+    direction = np.asarray(labels.direction_matrix, dtype=float)
+    origin = np.asarray(labels.origin) + direction @ (
+        np.asarray(labels.offset) * np.asarray(labels.spacing)
+    )
+    img = pv.ImageData(
+        dimensions=vol.shape,
+        spacing=np.asarray(labels.spacing) * rate,
+        origin=origin,
+        direction_matrix=direction,
+    )
+    head = ndimage.binary_fill_holes(vol != arrays.AIR)
+    bone = np.isin(vol, arrays.HARD_LABELS)
+    out = []
+    for mask in (head, bone):
+        img.point_data["mask"] = mask.ravel(order="F").astype(np.float32)
+        out.append(img.contour([0.5], scalars="mask", method="flying_edges").clean())
+    return out[0], out[1]
+
+
+def _downsample(points, cell):
+    """One point per ``cell``-mm voxel (the first), vectorised."""
+    pts = np.asarray(points, dtype=float)
+    if len(pts) == 0:
+        return pts
+    return pts[_subsample_index(pts, cell)]
+
+
+def _unique_rows(points, classes, tol):
+    """Drop every point closer than ``tol`` to an earlier one (with its class)."""
+    drop = {j for i, j in cKDTree(points).query_pairs(tol)} if len(points) else set()
+    keep = np.setdiff1d(np.arange(len(points)), np.fromiter(drop, int, len(drop)))
+    return points[keep], classes[keep]
+
+
+def _umeyama(src, dst, weights=None):
+    """Least-squares similarity (s, R, t) with dst ~ s R src + t (Umeyama 1991)."""
+    w = np.ones(len(src)) if weights is None else weights
+    w = w / w.sum()
+    ms, md = w @ src, w @ dst
+    a, b = src - ms, dst - md
+    cov = (b * w[:, None]).T @ a
+    u, d, vt = np.linalg.svd(cov)
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2, 2] = -1
+    rot = u @ sign @ vt
+    var = (w * (a**2).sum(axis=1)).sum()
+    scale = np.trace(np.diag(d) @ sign) / var
+    return scale, rot, md - scale * rot @ ms
+
+
+def _correspond(moving, trees, classes, trim):
+    """Closest patient points (per class) of moving points; mask of the pairs kept."""
+    target = np.empty_like(moving)
+    dist = np.empty(len(moving))
+    for c, tree in enumerate(trees):
+        sel = classes == c
+        if sel.any():
+            dist[sel], i = tree.query(moving[sel])
+            target[sel] = tree.data[i]
+    keep = dist <= np.quantile(dist, trim)
+    return target, dist, keep
+
+
+def _plane_step(p, q, n):
+    """One linearised point-to-plane similarity step about the centroid of ``p``.
+
+    Minimises sum(((1+d)(R p - c) + c + t - q) . n)^2 over a small rotation, scale
+    change d and translation t; returns (scale, R, t) in the form p -> scale R p + t."""
+    c = p.mean(axis=0)
+    pc = p - c
+    a = np.column_stack([np.cross(pc, n), n, (pc * n).sum(1)])
+    b = ((q - p) * n).sum(1)
+    x = np.linalg.lstsq(a, b, rcond=None)[0]
+    w, t, d = x[:3], x[3:6], x[6]
+    from scipy.spatial.transform import Rotation
+
+    rot = Rotation.from_rotvec(w).as_matrix()
+    scale = 1.0 + d
+    # p -> scale (R (p - c)) + c + t  ==  scale R p + (c + t - scale R c)
+    return scale, rot, c + t - scale * rot @ c
+
+
+def _subsample_index(points, cell):
+    key = np.floor(np.asarray(points) / cell).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def _symmetric_goal(current, classes, trees, patient, trim=0.95):
+    """Target of each moving point: mean of its closest patient point and of the patient
+    points (``patient``, per class, a sparse sample) that have it as their closest
+    (same class); NaN where it has neither."""
+    target, dist, keep = _correspond(current, trees, classes, trim)
+    acc = np.zeros_like(current)
+    cnt = np.zeros(len(current))
+    for c in range(len(trees)):
+        idx_c = np.flatnonzero(classes == c)
+        if len(idx_c) == 0:
+            continue
+        d, j = cKDTree(current[idx_c]).query(patient[c])
+        ok = d <= np.quantile(d, trim)
+        owner = idx_c[j[ok]]
+        cnt += np.bincount(owner, minlength=len(current))
+        for k in range(3):
+            acc[:, k] += np.bincount(owner, weights=patient[c][ok, k], minlength=len(current))
+    goal = np.full_like(current, np.nan)
+    has = cnt > 0
+    rev = np.zeros_like(current)
+    rev[has] = acc[has] / cnt[has, None]
+    both = has & keep
+    goal[both] = 0.5 * (target[both] + rev[both])
+    goal[keep & ~has] = target[keep & ~has]
+    goal[has & ~keep] = rev[has & ~keep]
+    return goal
+
+
+@dataclass
+class FitInfo:
+    """Diagnostics of :meth:`Atlas.fit` / :meth:`Atlas.register` (distances in mm).
+
+    ``rms_*`` are RMS point-to-plane distances of the atlas skin/skull control points to
+    the patient's after the similarity, the non-rigid fit, the landmark spline and the
+    refinement."""
+
+    scale: float = 1.0
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    rms_similarity: float = np.nan
+    rms_nonrigid: float = np.nan
+    rms_landmarks: float = np.nan
+    rms_refined: float = np.nan
+    n_control: int = 0
+    seconds: float = 0.0
+
+
+# --------------------------------------------------------------------------- atlas
+@dataclass
+class Atlas:
+    """A facial muscle atlas: landmarks, muscle surfaces and template skin/skull.
+
+    Parameters
+    ----------
+    landmarks : dict[str, numpy.ndarray]
+        Landmark name -> (3,) position in the atlas frame (mm).
+    muscles : dict[str, pyvista.PolyData]
+        Muscle name (:data:`pvcmf.arrays.MUSCLES`) -> closed triangulated surface.
+    skin, skull : pyvista.PolyData, optional
+        Template surfaces used by :meth:`fit` (automatic fitting needs them).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf.atlas import Atlas
+    >>> lm = {"a": (0, 0, 0), "b": (50, 0, 0), "c": (0, 50, 0), "d": (0, 0, 50), "e": (20, 20, 20)}
+    >>> at = Atlas(lm, {"masseter_left": pv.Sphere(center=(10, 10, 10), radius=3)})
+    >>> moved = at.warp({k: np.add(v, 5.0) for k, v in lm.items()})
+    >>> np.round(moved.muscles["masseter_left"].center, 6).tolist()
+    [15.0, 15.0, 15.0]
+    """
+
+    landmarks: dict
+    muscles: dict
+    skin: pv.PolyData | None = None
+    skull: pv.PolyData | None = None
+
+    def __post_init__(self):
+        self.landmarks = {k: np.asarray(v, dtype=float).reshape(3) for k, v in self.landmarks.items()}
+        unknown = [m for m in self.muscles if m not in arrays.MUSCLE_IDS]
+        if unknown:
+            raise ValueError(
+                f"muscles: unknown names {unknown}; expected names of arrays.MUSCLES"
+            )
+        for name, surf in self.muscles.items():
+            if not isinstance(surf, pv.PolyData):
+                raise TypeError(f"muscles[{name!r}] must be a PolyData, got {type(surf).__name__}")
+            if not surf.is_all_triangles:  # keep the triangles only (drop stray lines/verts)
+                tri = surf.triangulate()
+                self.muscles[name] = pv.PolyData(tri.points, faces=tri.faces)
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def names(self):
+        """Landmark names, in order."""
+        return list(self.landmarks)
+
+    def copy(self):
+        """Deep copy (surfaces copied)."""
+        return Atlas(
+            {k: v.copy() for k, v in self.landmarks.items()},
+            {k: v.copy() for k, v in self.muscles.items()},
+            None if self.skin is None else self.skin.copy(),
+            None if self.skull is None else self.skull.copy(),
+        )
+
+    def transform_to(self, landmarks, *, smoothing=0.0):
+        """Thin-plate spline from the atlas landmarks to ``landmarks`` (patient frame).
+
+        ``landmarks`` must hold every atlas landmark name (extra names are ignored); a
+        missing name, a NaN or coincident points raise ``ValueError`` naming them.
+        """
+        if not isinstance(landmarks, dict):
+            raise TypeError(
+                f"landmarks must be a dict name -> (x, y, z), got {type(landmarks).__name__}"
+            )
+        return ThinPlateSpline(self.landmarks, landmarks, smoothing=smoothing)
+
+    def warp(self, landmarks):
+        """The atlas carried to the patient: a new Atlas in the patient frame.
+
+        Parameters
+        ----------
+        landmarks : dict[str, array_like]
+            Patient landmarks with every atlas name.
+        """
+        t = self.transform_to(landmarks)
+        return Atlas(
+            {k: np.asarray(landmarks[k], dtype=float) for k in self.landmarks},
+            {k: t.warp(v) for k, v in self.muscles.items()},
+            None if self.skin is None else t.warp(self.skin),
+            None if self.skull is None else t.warp(self.skull),
+        )
+
+    def landmark_kinds(self, tol=3.0):
+        """``{name: 'skin' | 'bone' | 'inner'}``: the template surface a landmark lies on."""
+        out = {}
+        pts = np.array(list(self.landmarks.values()))
+        ds = cKDTree(self.skin.points).query(pts)[0] if self.skin is not None else np.full(len(pts), np.inf)
+        db = cKDTree(self.skull.points).query(pts)[0] if self.skull is not None else np.full(len(pts), np.inf)
+        for name, a, b in zip(self.landmarks, ds, db):
+            out[name] = "inner" if min(a, b) > tol else ("skin" if a <= b else "bone")
+        return out
+
+    def apply(self, transform):
+        """A new Atlas with every point mapped by ``transform`` ((n, 3) -> (n, 3))."""
+
+        def move(ds):
+            out = ds.copy()
+            out.points = transform(np.asarray(ds.points))
+            return out
+
+        names = self.names
+        pts = transform(np.array([self.landmarks[n] for n in names]))
+        return Atlas(
+            dict(zip(names, pts)),
+            {k: move(v) for k, v in self.muscles.items()},
+            None if self.skin is None else move(self.skin),
+            None if self.skull is None else move(self.skull),
+        )
+
+    # ------------------------------------------------------------------ registration
+    def _controls(self, n):
+        """About ``n`` atlas skin and skull points, evenly spread, and their class (0/1)."""
+        key = (int(n), self.skin.n_points, self.skull.n_points)
+        cache = self.__dict__.setdefault("_control_cache", {})
+        if key not in cache:
+            cache.clear()
+            cache[key] = self._make_controls(n)
+        pts, classes = cache[key]
+        return pts.copy(), classes.copy()
+
+    def _make_controls(self, n):
+        cell = float(np.sqrt((self.skin.area + self.skull.area) / max(int(n), 10)))
+        pts = [_downsample(self.skin.points, cell), _downsample(self.skull.points, cell)]
+        classes = np.concatenate([np.zeros(len(pts[0]), int), np.ones(len(pts[1]), int)])
+        # where bone reaches the skin both surfaces hold the same points: keep one
+        return _unique_rows(np.vstack(pts), classes, 0.25 * cell)
+
+    def register(
+        self,
+        labels,
+        landmarks=None,
+        *,
+        spacing=FIT_SPACING,
+        n_control=1500,
+        smoothing=(100.0, 30.0, 10.0, 3.0),
+        iterations=3,
+        max_distance=8.0,
+        progress_bar=False,
+    ):
+        """Thin-plate spline from the atlas to a patient's label image.
+
+        With ``landmarks`` the spline passes exactly through them and is refined so that
+        the atlas skin and skull land on the patient's (point-to-plane closest points of
+        about ``n_control`` atlas surface points, regularised by ``smoothing``):
+        the soft-tissue thickness between landmarks then follows the patient, which
+        landmarks alone cannot tell. Without ``landmarks`` they are found first
+        (:meth:`fit`).
+
+        Parameters
+        ----------
+        labels : pyvista.ImageData
+            Patient label image with point array ``tissue``.
+        landmarks : dict, optional
+            Patient landmarks with every atlas name.
+        spacing : float
+            Spacing (mm) the patient surfaces are contoured at.
+        n_control : int
+            About how many atlas skin/skull control points drive the refinement.
+        smoothing : sequence of float
+            Smoothing (mm) of the control points, one refinement round per value; empty
+            for the landmark spline alone.
+        iterations : int
+            Closest-point updates per round.
+        max_distance : float
+            Control points farther than this (mm) from the patient surface are ignored.
+        progress_bar : bool
+            Log the steps at INFO level.
+
+        Returns
+        -------
+        transform : pvcmf.tps.ThinPlateSpline
+            Atlas frame -> patient frame (``transform.warp(dataset)``).
+        landmarks : dict
+            The patient landmarks used (given or found).
+        info : FitInfo
+            Residuals (mm) and timing.
+        """
+        say = log.info if progress_bar else log.debug
+        t0 = time.perf_counter()
+        if self.skin is None or self.skull is None:
+            raise ValueError("atlas registration needs an atlas with skin and skull surfaces")
+        target = _PatientSurfaces(labels, spacing)
+        if landmarks is None:
+            landmarks, info = self._fit(target, progress_bar=progress_bar)
+        else:
+            info = FitInfo()
+        lm_names, lm_src, lm_dst = landmark_arrays(self.landmarks, landmarks, name="landmarks")
+        ctrl, classes = self._controls(n_control)
+        # drop control points next to a landmark: the landmark rules there
+        far = cKDTree(lm_src).query(ctrl)[0] > 2.0
+        ctrl, classes = ctrl[far], classes[far]
+        warp = ThinPlateSpline(lm_src, lm_dst)
+        cur = warp(ctrl)
+        info.rms_landmarks = target.rms(cur, classes, max_distance)
+        for lam in smoothing:
+            for _ in range(iterations):
+                q, n, dist = target.closest(cur, classes)
+                keep = dist <= max_distance
+                goal = cur[keep] + (((q - cur) * n).sum(1)[:, None] * n)[keep]
+                warp = ThinPlateSpline(
+                    np.vstack([lm_src, ctrl[keep]]),
+                    np.vstack([lm_dst, goal]),
+                    smoothing=np.concatenate([np.zeros(len(lm_src)), np.full(keep.sum(), lam)]),
+                    check_target=False,
+                )
+                cur = warp(ctrl)
+            say("atlas refine: smoothing %g, rms %.2f mm", lam, target.rms(cur, classes, max_distance))
+        info.rms_refined = target.rms(cur, classes, max_distance)
+        info.n_control = len(ctrl)
+        info.seconds = time.perf_counter() - t0
+        say("atlas registration: %.2f s", info.seconds)
+        return warp, {k: np.asarray(landmarks[k], dtype=float) for k in lm_names}, info
+
+    def fit(self, labels, *, spacing=FIT_SPACING, return_info=False, progress_bar=False, **options):
+        """Find the patient's landmarks automatically from a tissue label image.
+
+        1. skin and skull of the patient (:func:`label_surfaces`);
+        2. similarity ICP (scale, rotation, translation) of the atlas skin and skull onto
+           them: point-to-point then point-to-plane steps from a centroid/size start;
+        3. non-rigid ICP: regularised thin-plate splines through atlas surface points
+           moved to their symmetric closest points, for decreasing smoothing;
+        4. the atlas landmarks carried through, and skin and bone landmarks snapped onto
+           the patient's skin and bone along the surface normal.
+
+        Parameters
+        ----------
+        labels : pyvista.ImageData
+            Patient label image with point array ``tissue`` (air, soft tissue, bone).
+        spacing : float
+            Spacing (mm) the surfaces are extracted at.
+        return_info : bool
+            Also return a :class:`FitInfo`.
+        progress_bar : bool
+            Log the steps at INFO level.
+        **options
+            ``n_control`` (1000), ``smoothing`` (schedule, mm),
+            ``iterations`` per value, ``project`` (bool).
+
+        Returns
+        -------
+        dict[str, numpy.ndarray] (and FitInfo)
+            Patient landmarks for :meth:`warp` / ``embed_muscles``.
+        """
+        if self.skin is None or self.skull is None:
+            raise ValueError("automatic fitting needs an atlas with skin and skull surfaces")
+        out, info = self._fit(_PatientSurfaces(labels, spacing), progress_bar=progress_bar, **options)
+        return (out, info) if return_info else out
+
+    def _fit(
+        self,
+        target,
+        *,
+        n_control=1000,
+        smoothing=(1000.0, 300.0, 100.0, 30.0),
+        iterations=4,
+        project=True,
+        progress_bar=False,
+    ):
+        say = log.info if progress_bar else log.debug
+        t0 = time.perf_counter()
+        src, classes = self._controls(n_control)
+
+        # ---- similarity from a centroid / RMS-size start: point-to-point, then point-to-plane
+        mov_all = np.vstack([self.skin.points, self.skull.points])
+        pat_all = np.vstack(target.points)
+        s = np.sqrt(((pat_all - pat_all.mean(0)) ** 2).sum(1).mean()) / np.sqrt(
+            ((mov_all - mov_all.mean(0)) ** 2).sum(1).mean()
+        )
+        rot = np.eye(3)
+        tr = pat_all.mean(0) - s * mov_all.mean(0)
+        for _ in range(5):
+            q, _, dist = target.closest(s * src @ rot.T + tr, classes)
+            keep = dist <= np.quantile(dist, 0.9)
+            s, rot, tr = _umeyama(src[keep], q[keep])
+        for it in range(50):
+            moved = s * src @ rot.T + tr
+            q, n, dist = target.closest(moved, classes)
+            keep = dist <= np.quantile(dist, 0.9)
+            ds, drot, dtr = _plane_step(moved[keep], q[keep], n[keep])
+            s, rot, tr = ds * s, drot @ rot, ds * drot @ tr + dtr
+            if np.linalg.norm(dtr) < 1e-3 and abs(ds - 1) < 1e-5:
+                break
+        cur = s * src @ rot.T + tr
+        info = FitInfo(scale=s, rotation=rot, translation=tr)
+        info.rms_similarity = target.rms(cur, classes)
+        say("atlas fit: similarity s=%.3f, rms %.2f mm (%d its)", s, info.rms_similarity, it + 1)
+
+        # ---- non-rigid: regularised thin-plate splines through symmetric closest points
+        warp = None
+        for lam in smoothing:
+            for _ in range(iterations):
+                goal = _symmetric_goal(cur, classes, target.trees, target.sparse)
+                ok = np.isfinite(goal[:, 0])
+                warp = ThinPlateSpline(src[ok], goal[ok], smoothing=lam, check_target=False)
+                cur = warp(src)
+            say("atlas fit: smoothing %g, rms %.2f mm", lam, target.rms(cur, classes))
+        info.rms_nonrigid = target.rms(cur, classes)
+
+        names = self.names
+        pts = np.array([self.landmarks[n] for n in names])
+        pts = warp(pts) if warp is not None else s * pts @ rot.T + tr
+        if project:
+            kinds = self.landmark_kinds()
+            for c, kind in enumerate(("skin", "bone")):
+                sel = np.array([kinds[n] == kind for n in names])
+                if sel.any():
+                    cls = np.full(sel.sum(), c)
+                    q, n, d = target.closest(pts[sel], cls)
+                    near = (d <= 6.0)[:, None]
+                    # move along the surface normal only: no sliding on the surface
+                    pts[sel] = np.where(near, pts[sel] + ((q - pts[sel]) * n).sum(1)[:, None] * n, pts[sel])
+        info.seconds = time.perf_counter() - t0
+        say("atlas fit: %.2f s", info.seconds)
+        return dict(zip(names, pts)), info
+
+
+class _PatientSurfaces:
+    """Skin and skull of a label image, with closest-point queries (for registration)."""
+
+    def __init__(self, labels, spacing):
+        skin, skull = label_surfaces(labels, spacing=spacing)
+        if skin.n_points == 0 or skull.n_points == 0:
+            raise ValueError(
+                f"labels: atlas registration needs skin and bone in the image, found "
+                f"{skin.n_points} skin and {skull.n_points} bone surface points"
+            )
+        self.points, self.normals, self.trees, self.sparse = [], [], [], []
+        for surf in (skin, skull):
+            smooth = surf.smooth_taubin(n_iter=20, pass_band=0.1)
+            nrm = smooth.compute_normals(cell_normals=False, split_vertices=False)
+            self.points.append(np.asarray(surf.points))
+            self.normals.append(np.asarray(nrm.point_data["Normals"]))
+            self.trees.append(cKDTree(self.points[-1]))
+            self.sparse.append(_downsample(self.points[-1], 1.5 * spacing))
+
+    def closest(self, pts, classes):
+        """Closest patient points of ``pts`` on the surface of each one's class."""
+        q = np.empty_like(pts)
+        n = np.empty_like(pts)
+        d = np.empty(len(pts))
+        for c, tree in enumerate(self.trees):
+            sel = classes == c
+            if sel.any():
+                d[sel], i = tree.query(pts[sel])
+                q[sel] = self.points[c][i]
+                n[sel] = self.normals[c][i]
+        return q, n, d
+
+    def rms(self, pts, classes, max_distance=np.inf):
+        """RMS point-to-plane distance (mm) of the points within ``max_distance``."""
+        q, n, d = self.closest(pts, classes)
+        r = ((q - pts) * n).sum(1)[d <= max_distance]
+        return float(np.sqrt((r**2).mean())) if len(r) else np.nan
+
+
+# --------------------------------------------------------------------------- default
+@functools.lru_cache(maxsize=1)
+def _default_parts():
+    try:
+        from .datasets import template
+    except ImportError as exc:  # pragma: no cover - depends on the template module
+        raise ImportError(
+            "pvcmf.atlas.default() needs pvcmf.datasets.template (landmarks, muscle surfaces)"
+        ) from exc
+    lms = template.landmarks()
+    muscles = template.muscle_surfaces(spacing=MUSCLE_SPACING)
+    labels = template.label_image(FIT_SPACING)
+    skin, skull = label_surfaces(labels, spacing=FIT_SPACING)
+    return Atlas(lms, muscles, skin, skull)
+
+
+def default():
+    """The project's facial muscle atlas, built from :mod:`pvcmf.datasets.template`.
+
+    The template is built once per process and cached; each call returns an independent
+    copy (a few milliseconds).
+
+    Returns
+    -------
+    Atlas
+
+    Examples
+    --------
+    >>> import pvcmf.atlas
+    >>> at = pvcmf.atlas.default()
+    >>> len(at.muscles)
+    12
+    """
+    return _default_parts().copy()
+
+
+def dice(a, b):
+    """Dice overlap ``2|A & B| / (|A| + |B|)`` of two boolean masks (1.0 if both empty)."""
+    a = np.asarray(a, dtype=bool)
+    b = np.asarray(b, dtype=bool)
+    n = a.sum() + b.sum()
+    return 1.0 if n == 0 else float(2.0 * (a & b).sum() / n)
+
+
+__all__ = ["Atlas", "FitInfo", "default", "dice", "label_surfaces", "landmark_arrays"]
