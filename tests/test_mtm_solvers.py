@@ -152,6 +152,20 @@ def test_cg_warm_start_and_solver_reuse(mixed):
                                solve(g2, nu=0.3)[arrays.DISPLACEMENT], atol=1e-12 * np.abs(fresh).max())
 
 
+def test_poisson_sweep_reusing_the_factorisation(mixed):
+    s = Solver(mixed, nu=0.40)
+    for nu, reused in ((0.41, True), (0.42, True), (0.4999, False)):
+        s.update_materials(nu=nu, refactor=False)
+        u = s.solve()
+        ref = solve(mixed, nu=nu)[arrays.DISPLACEMENT]
+        assert s.info["residual"] <= 1e-10
+        assert np.abs(u - ref).max() <= 1e-8 * np.abs(ref).max()
+        # a small step reuses the old factor; the jump to 0.4999 needs a refactorisation
+        assert bool(s.info.get("reused_factor")) == reused, nu
+        if reused:
+            assert 0 < s.info["iterations"] <= s.max_reuse_iterations
+
+
 def test_rigid_motion_of_all_constraints_moves_everything_rigidly(mixed):
     p = mixed.points
     W = np.array([[0, -0.002, 0.001], [0.002, 0, -0.003], [-0.001, 0.003, 0]])

@@ -420,10 +420,17 @@ class Solver:
         return sp.csr_matrix((flat[where], indices, indptr), shape=shape)
 
     # ------------------------------------------------------------------ materials
-    def update_materials(self, *, E_fiber=None, E_cross=None, nu=None, fiber=None):
+    def update_materials(self, *, E_fiber=None, E_cross=None, nu=None, fiber=None,
+                         refactor=True):
         """Re-assemble with new materials and refactor numerically (symbolic analysis kept).
 
         Each argument is a scalar or a per-cell array; omitted ones keep their value.
+
+        ``refactor=False`` (``direct`` only) keeps the previous numeric factorisation and
+        makes the next :meth:`solve` a conjugate gradient preconditioned by it (a few
+        triangular solves when the materials changed little, e.g. the next value of a
+        Poisson sweep); when that needs more than ``max_reuse_iterations`` (20) iterations
+        the solve refactors and answers directly. The answer meets ``tol`` either way.
         """
         ef, ec, nu_, a = self.materials
         m = self.assembler.n_cells
@@ -456,9 +463,9 @@ class Solver:
 
         check_positive_definite(ef2, ec2, nu2)
         self.materials = (ef2, ec2, nu2, a)
-        self._assemble_and_factor()
+        self._assemble_and_factor(refactor=refactor or self.method != "direct")
 
-    def _assemble_and_factor(self):
+    def _assemble_and_factor(self, refactor=True):
         asm, cons = self.assembler, self.constraints
         t0 = time.perf_counter()
         ef, ec, nu, a = self.materials
@@ -471,7 +478,8 @@ class Solver:
         self.K_fp = self._csr(flat, self._fp, (nf, npres))
         t1 = time.perf_counter()
         self.timings["assembly"] = t1 - t0
-        if nf:
+        self._stale = bool(nf) and not refactor and self._backend is not None
+        if nf and not self._stale:
             threads = contextlib.nullcontext() if self.method == "direct" else _single_threaded_blas()
             with threads:
                 getattr(self, f"_setup_{self.method}")()
@@ -607,7 +615,34 @@ class Solver:
     def _residual(self, y, b, nb):
         return float(_norm(b - self.K_ff @ y) / nb)
 
+    max_reuse_iterations = 20
+
+    def _solve_stale(self, b, nb, info):
+        """CG preconditioned by the factorisation of earlier materials; None if too slow."""
+        n = self.K_ff.shape[0]
+        M = spla.LinearOperator((n, n), matvec=self._backend.solve, dtype=float)
+        count = [0]
+
+        def cb(_):
+            count[0] += 1
+
+        y, flag = spla.cg(self.K_ff, b, x0=self._backend.solve(b), rtol=self.tol, atol=0.0,
+                          maxiter=self.max_reuse_iterations, M=M, callback=cb)
+        res = self._residual(y, b, nb)
+        if flag != 0 or not res <= self.tol:
+            return None
+        info.update(residual=res, iterations=count[0], reused_factor=True)
+        return y
+
     def _solve_direct(self, b, nb, y0, info):
+        if self._stale:
+            y = self._solve_stale(b, nb, info)
+            if y is not None:
+                return y
+            t = time.perf_counter()
+            self._setup_direct()
+            self._stale = False
+            self.timings["factor"] += time.perf_counter() - t
         y = self._backend.solve(b)
         # one refinement step: its size estimates the forward error of the first solve
         d = self._backend.solve(b - self.K_ff @ y)
