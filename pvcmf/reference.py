@@ -1,0 +1,343 @@
+"""Virtual post-operative truth: a richer finite-element model than the one being judged.
+
+No public pair of pre/post-operative scans exists, so pvcmf makes the post-operative face
+of its virtual patients with a model that is deliberately *not* the MTM:
+
+* large deformation: compressible neo-Hookean,
+  ``W = mu/2 (I1 - 3 - 2 ln J) + lambda/2 (ln J)^2``, nearly incompressible at the
+  tissue's Poisson ratios (``mu``, ``lambda`` per element from ``E_cross`` and ``nu``);
+* fibre reinforcement: ``+ k/2 (I4 - 1)^2`` with ``I4 = a.C a`` along the element's fibre
+  ``a`` and ``k = max(E_fiber - E_cross, 0)`` (zero for Table I, where muscle is softer
+  along its fibres than across: then the muscle is isotropic in this model);
+* quadratic (P2) elements on the tetrahedral mesh (and the study meshes several times
+  finer than the MTM);
+* boundary conditions from the plan (``apply_plan``): fixed and joint nodes prescribed
+  (on the boundary faces whose three nodes are all fixed/joint), sliding teeth contact as
+  a penalty on the normal displacement over the sliding faces, tangential motion free;
+* load stepping with Newton's method and an energy line search (no inverted elements);
+  a step that does not converge raises.
+
+Solved by NGSolve (``pip install pvcmf[reference]``), not by pvcmf's MTM code: the mesh
+is handed to Netgen (``netgen.meshing.Mesh.AddPoints/AddElements``), the energy to an
+NGSolve ``BilinearForm`` ``Variation``, the solve to ``ngsolve.solvers.NewtonMinimization``.
+:func:`postop_skin` builds the whole truth for a virtual patient (its true labels, a fine
+conforming mesh, this model, the dense skin) and caches it on disk by input hash.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+
+from . import arrays
+
+log = logging.getLogger(__name__)
+
+#: bumped when the model changes, so cached truths are recomputed
+MODEL_VERSION = "1"
+
+
+def _ngsolve():
+    try:
+        import netgen.meshing as ngm
+        import ngsolve as ngs
+    except ImportError as err:  # pragma: no cover - depends on the optional extra
+        raise ImportError(
+            "pvcmf.reference needs NGSolve: pip install 'pvcmf[reference]' (or ngsolve)"
+        ) from err
+    return ngm, ngs
+
+
+def _boundary_faces(grid):
+    surf = grid.extract_surface(pass_pointid=True, algorithm="dataset_surface").triangulate()
+    pid = np.asarray(surf.point_data["vtkOriginalPointIds"], dtype=np.int64)
+    return pid[surf.faces.reshape(-1, 4)[:, 1:]]
+
+
+def _netgen_mesh(ngm, points, tets, faces, face_region):
+    """Netgen mesh of the tetrahedra with boundary faces in regions 1 dirichlet,
+    2 sliding, 3 free (all faces added at once, no Python loop over elements)."""
+    mesh = ngm.Mesh(dim=3)
+    mesh.AddPoints(np.ascontiguousarray(points, dtype=np.float64))
+    names = ("dirichlet", "sliding", "free")
+    for k, name in enumerate(names, start=1):
+        mesh.Add(ngm.FaceDescriptor(surfnr=k, domin=1, bc=k))
+        mesh.SetBCName(k - 1, name)
+    mesh.AddElements(dim=3, index=1, data=np.ascontiguousarray(tets, dtype=np.int32), base=0)
+    for k in (1, 2, 3):
+        sel = faces[face_region == k]
+        if len(sel):
+            mesh.AddElements(dim=2, index=k, data=np.ascontiguousarray(sel, dtype=np.int32),
+                             base=0)
+    return mesh
+
+
+def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-8, max_newton=30,
+                    inverse="sparsecholesky", progress_bar=False):
+    """Large-deformation neo-Hookean solve of a planned tetrahedral grid with NGSolve.
+
+    Parameters
+    ----------
+    grid : pyvista.UnstructuredGrid
+        Linear tetrahedra with point arrays ``bc``, ``bc_displacement`` (and ``bc_normal``
+        where there are sliding nodes) from ``apply_plan``, and cell arrays ``E_cross`` and
+        ``nu`` (``E_fiber`` and ``fiber`` optional) from ``assign_materials``.
+    order : int, default 2
+        Polynomial order of the elements (2: quadratic).
+    steps : int, default 4
+        Load steps (the prescribed displacements are ramped linearly; a step whose Newton
+        solve fails is halved, up to 6 times).
+    penalty : float, default 1e3
+        Sliding-contact penalty, times the largest stiffness over the mean edge length.
+    tol : float, default 1e-8
+        Newton tolerance (NGSolve's energy-norm error of the update).
+    max_newton : int, default 30
+        Newton iterations per step.
+    inverse : str, default 'sparsecholesky'
+        NGSolve direct solver.
+    progress_bar : bool, default False
+        Log each load step at INFO level.
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+        Copy of ``grid`` with point array ``arrays.DISPLACEMENT`` (the P2 solution at the
+        vertices, mm).
+
+    Raises
+    ------
+    ImportError
+        NGSolve is not installed.
+    ValueError
+        Missing arrays, or a grid that is not all tetrahedra.
+    RuntimeError
+        Newton did not converge even after halving the load step 6 times.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> from pvcmf.reference import solve_reference
+    >>> g = pv.ImageData(dimensions=(3, 3, 3)).cast_to_unstructured_grid().triangulate()
+    >>> g[arrays.BC] = np.where(np.isin(g.points, [0, 2]).any(1), arrays.BC_JOINT, 0).astype(np.int8)
+    >>> g[arrays.BC_DISPLACEMENT] = 0.1 * g.points
+    >>> g.cell_data[arrays.E_CROSS] = np.full(g.n_cells, 0.003)
+    >>> g.cell_data[arrays.NU] = np.full(g.n_cells, 0.46)
+    >>> u = solve_reference(g)[arrays.DISPLACEMENT]         # doctest: +SKIP
+    >>> bool(np.allclose(u, 0.1 * g.points))                # doctest: +SKIP
+    True
+    """
+    ngm, ngs = _ngsolve()
+    from ngsolve.solvers import NewtonMinimization
+
+    if not isinstance(grid, pv.UnstructuredGrid):
+        raise TypeError(f"grid must be a pyvista.UnstructuredGrid, got {type(grid).__name__}")
+    cells = grid.cells_dict
+    if set(cells) != {pv.CellType.TETRA} or len(cells[pv.CellType.TETRA]) != grid.n_cells:
+        raise ValueError("grid must hold linear tetrahedra only")
+    bc = arrays.require_array(grid, arrays.BC, "point", dtype="iu", ncomp=1, producer="apply_plan")
+    g = arrays.require_array(grid, arrays.BC_DISPLACEMENT, "point", dtype="f", ncomp=3,
+                             producer="apply_plan")
+    e_cross = arrays.require_array(grid, arrays.E_CROSS, "cell", dtype="f", ncomp=1,
+                                   producer="assign_materials")
+    nu = arrays.require_array(grid, arrays.NU, "cell", dtype="f", ncomp=1,
+                              producer="assign_materials")
+    if not (np.all(e_cross > 0) and np.all((nu > -1) & (nu < 0.5))):
+        raise ValueError("E_cross must be > 0 and nu in (-1, 0.5) in every cell")
+    points = np.asarray(grid.points, dtype=np.float64)
+    tets = np.asarray(cells[pv.CellType.TETRA], dtype=np.int64).copy()
+    p = points[tets]
+    vol = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
+    tets[vol < 0] = tets[vol < 0][:, [0, 2, 1, 3]]  # positive orientation for Netgen
+    faces = _boundary_faces(grid)
+    constrained = np.isin(bc, (arrays.BC_FIXED, arrays.BC_JOINT))
+    sliding = bc == arrays.BC_SLIDING
+    region = np.full(len(faces), 3)
+    region[(sliding[faces] | constrained[faces]).all(axis=1) & sliding[faces].any(axis=1)] = 2
+    region[constrained[faces].all(axis=1)] = 1
+    mesh = ngs.Mesh(_netgen_mesh(ngm, points, tets, faces, region))
+    if mesh.nv != len(points) or mesh.ne != len(tets):
+        raise RuntimeError("Netgen renumbered the mesh; cannot map the solution back")
+
+    # piecewise-constant materials, in cell order
+    l2 = ngs.L2(mesh, order=0)
+
+    def cellwise(values):
+        f = ngs.GridFunction(l2)
+        f.vec.FV().NumPy()[:] = np.asarray(values, dtype=np.float64)
+        return f
+
+    e_cross = np.asarray(e_cross, dtype=np.float64)
+    nu = np.asarray(nu, dtype=np.float64)
+    mu = cellwise(e_cross / (2 * (1 + nu)))
+    lam = cellwise(e_cross * nu / ((1 + nu) * (1 - 2 * nu)))
+    k_fib = np.zeros(grid.n_cells)
+    fib = np.zeros((grid.n_cells, 3))
+    if arrays.E_FIBER in grid.cell_data and arrays.FIBER in grid.cell_data:
+        k_fib = np.maximum(np.asarray(grid.cell_data[arrays.E_FIBER], float) - e_cross, 0.0)
+        fib = np.asarray(grid.cell_data[arrays.FIBER], float)
+
+    fes = ngs.H1(mesh, order=order, dim=3, dirichlet="dirichlet")
+    u = fes.TrialFunction()
+    F = ngs.Id(3) + ngs.Grad(u)
+    C = F.trans * F
+    J = ngs.Det(F)
+    energy = mu / 2 * (ngs.Trace(C) - 3 - 2 * ngs.log(J)) + lam / 2 * ngs.log(J) ** 2
+    if np.any(k_fib > 0):
+        a = ngs.CoefficientFunction(tuple(cellwise(fib[:, i]) for i in range(3)))
+        i4 = ngs.InnerProduct(a, C * a)
+        energy = energy + cellwise(k_fib) / 2 * (i4 - 1) ** 2
+    form = ngs.BilinearForm(fes, symmetric=True)
+    form += ngs.Variation(energy.Compile() * ngs.dx)
+
+    # prescribed data as P1 fields (vertex dofs = vertex numbers), ramped by `load`
+    p1 = ngs.H1(mesh, order=1, dim=3)
+    g_p1 = ngs.GridFunction(p1)
+    g_p1.vec.FV().NumPy().reshape(-1, 3)[:] = np.asarray(g, dtype=np.float64)
+    load = ngs.Parameter(0.0)
+    if np.any(region == 2):
+        n = arrays.require_array(grid, arrays.BC_NORMAL, "point", dtype="f", ncomp=3,
+                                 producer="apply_plan")
+        n_p1 = ngs.GridFunction(p1)
+        n_p1.vec.FV().NumPy().reshape(-1, 3)[:] = np.asarray(n, dtype=np.float64)
+        edge = np.linalg.norm(p[:, 1] - p[:, 0], axis=1).mean()
+        kappa = penalty * float((e_cross / (2 * (1 + nu))).max() + (e_cross * nu / (
+            (1 + nu) * (1 - 2 * nu))).max()) / edge
+        gap = ngs.InnerProduct(u - load * g_p1, n_p1)
+        form += ngs.Variation(kappa / 2 * gap**2 * ngs.ds(definedon=mesh.Boundaries("sliding")))
+
+    gfu = ngs.GridFunction(fes)
+    prescribed = ngs.GridFunction(fes)
+    prescribed.Set(g_p1, definedon=mesh.Boundaries("dirichlet"))
+    fixed = ~np.array(fes.FreeDofs(), dtype=bool)  # dofs on the dirichlet faces
+    values = gfu.vec.FV().NumPy()
+    target = prescribed.vec.FV().NumPy().reshape(-1, 3)[fixed].copy()
+    # load stepping: proportional predictor, halved steps where Newton fails
+    done, step_size, halvings = 0.0, 1.0 / steps, 0
+    while done < 1.0 - 1e-12:  # a few load steps, each a vectorised Newton solve
+        t = min(done + step_size, 1.0)
+        saved = values.copy()
+        if done > 0:
+            values *= t / done  # the last solution scaled: a proportional predictor
+        values.reshape(-1, 3)[fixed] = t * target
+        load.Set(t)
+        status, its = NewtonMinimization(form, gfu, freedofs=fes.FreeDofs(), maxit=max_newton,
+                                         maxerr=tol, inverse=inverse, linesearch=True,
+                                         printing=False)
+        disp = gfu.vec.FV().NumPy().reshape(-1, 3)[: mesh.nv]
+        if status != 0 or not np.all(np.isfinite(values)):
+            values[:] = saved
+            halvings += 1
+            if halvings > 6:
+                raise RuntimeError(
+                    f"reference model: Newton did not converge at load {t:.3g} even with "
+                    f"steps of {step_size:.3g} ({its} iterations, tol={tol})"
+                )
+            step_size /= 2
+            log.info("reference: Newton failed at load %.3g, halving the step", t)
+            continue
+        done = t
+        (log.info if progress_bar else log.debug)(
+            "reference: load %.3g converged in %d Newton iterations", t, its)
+    out = grid.copy()
+    out.point_data[arrays.DISPLACEMENT] = np.array(disp, dtype=np.float64)
+    return out
+
+
+def _cache_dir(cache_dir):
+    if cache_dir is not None:
+        return Path(cache_dir)
+    return Path(os.environ.get("PVCMF_CACHE_DIR", Path.home() / ".cache" / "pvcmf")) / "reference"
+
+
+def _case_hash(case, params):
+    h = hashlib.sha256(f"{MODEL_VERSION}|{params}|{case.plan!r}".encode())
+    truth = case.truth
+    for attr in ("dimensions", "spacing", "origin"):
+        h.update(repr(tuple(getattr(truth, attr))).encode())
+    for name in sorted(truth.point_data.keys()):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(truth.point_data[name]).tobytes())
+    return h.hexdigest()[:32]
+
+
+def postop_skin(case, *, n_tets=120_000, order=2, steps=4, face_fraction=0.5, cache=True,
+                cache_dir=None, progress_bar=False):
+    """The virtual post-operative skin of a virtual patient (the truth of the study).
+
+    The patient's *true* labels (``case.truth``, not a segmentation) are cut by the plan,
+    meshed finely with the muscles embedded (``tetrahedralize(conforming=True)``),
+    given fibres and Table I materials, constrained by ``apply_plan``, and solved by
+    :func:`solve_reference`; the skin of the labels (``extract_skin``) follows the mesh
+    by linear interpolation inside the tetrahedra (VTK probe), the nearest mesh point
+    outside. Cached on disk (``PVCMF_CACHE_DIR`` or ``~/.cache/pvcmf``) by a hash of the
+    labels, the plan, the options and :data:`MODEL_VERSION`.
+
+    Parameters
+    ----------
+    case : pvcmf.datasets.Case
+        Virtual patient (``truth`` labels and ``plan``).
+    n_tets : int, default 120000
+        Tetrahedra of the fine mesh (several times the MTM's).
+    order, steps :
+        See :func:`solve_reference`.
+    face_fraction : float, default 0.5
+        Anterior share of the head that is meshed (as the pipeline).
+    cache : bool, default True
+        Read / write the on-disk cache.
+    cache_dir : path, optional
+        Cache folder.
+    progress_bar : bool, default False
+        Log the steps at INFO level.
+
+    Returns
+    -------
+    pyvista.PolyData
+        Post-operative skin (patient frame) with point array ``arrays.DISPLACEMENT``.
+
+    Examples
+    --------
+    >>> import pvcmf                                                  # doctest: +SKIP
+    >>> truth = pvcmf.reference.postop_skin(pvcmf.datasets.phantom(1, spacing=2.0))  # doctest: +SKIP
+    """
+    from scipy.spatial import cKDTree
+
+    from . import filters
+    from .pipeline import drop_floating_parts, face_box
+
+    params = f"n_tets={n_tets}|order={order}|steps={steps}|face={face_fraction}"
+    path = _cache_dir(cache_dir) / f"postop_skin_{_case_hash(case, params)}.vtp"
+    if cache and path.exists():
+        log.info("reference: cached truth %s", path)
+        return pv.read(path)
+    labels = filters.cut_bones(case.truth, case.plan)
+    grid = filters.tetrahedralize(labels, n_tets=n_tets, conforming=True,
+                                  roi=face_box(labels, face_fraction), progress_bar=progress_bar)
+    if arrays.MUSCLE in grid.cell_data and np.any(grid.cell_data[arrays.MUSCLE]):
+        grid = filters.fiber_directions(grid)
+    grid = filters.assign_materials(grid)
+    grid = drop_floating_parts(filters.apply_plan(grid, case.plan, labels,
+                                                  fix_unmoved_bone=True))
+    post = solve_reference(grid, order=order, steps=steps, progress_bar=progress_bar)
+    skin = filters.extract_skin(labels)
+    probe = skin.sample(post, progress_bar=False)
+    disp = np.asarray(probe[arrays.DISPLACEMENT], dtype=np.float64)
+    outside = ~np.asarray(probe["vtkValidPointMask"], dtype=bool)
+    if outside.any():
+        _, idx = cKDTree(post.points).query(skin.points[outside])
+        disp[outside] = np.asarray(post[arrays.DISPLACEMENT])[idx]
+    out = skin.copy()
+    out.clear_data()
+    out.points = np.asarray(skin.points, dtype=np.float64) + disp
+    out.point_data[arrays.DISPLACEMENT] = disp
+    if cache:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.vtp")
+        out.save(tmp)
+        os.replace(tmp, path)  # atomic: no half-written cache entry
+    return out
