@@ -6,7 +6,9 @@ Virtual patient 1 is segmented, its muscles embedded and its facial soft tissue 
 becomes boundary conditions (``mesh.cmf.apply_plan(plan, labels)``):
 a) the sliding-contact segment where the lips touch the teeth (blue), b) the joint sections
 where soft tissue lies on the moving maxilla and moves with it (red), c) the fixed points
-of the most posterior plane of the model (green). All other nodes are free.
+of the most posterior plane of the model (green). All other nodes are free. The
+boundary conditions are the paper's own (``fix_unmoved_bone=False``; the pipeline's default
+also fixes tissue lying on bone that does not move).
 """
 
 import os
@@ -24,7 +26,7 @@ OUT.mkdir(parents=True, exist_ok=True)
 
 case = pvcmf.datasets.phantom(1, spacing=2.0)
 result = simulate(case.ct, case.plan, bones=case.truth, landmarks=case.landmarks,
-                  n_tets=25_000)
+                  n_tets=25_000, bc_options={"fix_unmoved_bone": False})
 print(result.summary())
 plotter = figure_4(result.mesh, result.labels)
 plotter.screenshot(OUT / "fig4_boundary_conditions.png")
