@@ -380,7 +380,9 @@ class Plan:
                     )
                 continue
             if points is None:
-                points = np.asarray(bones.points)[labels > 0]
+                from .filters.osteotomy import voxel_points
+
+                points = voxel_points(bones, np.flatnonzero(labels > 0))
             inside = np.ones(len(points), dtype=bool)
             for p, n in o.cut:
                 inside &= (points - np.asarray(p)) @ np.asarray(n) >= 0

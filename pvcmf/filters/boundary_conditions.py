@@ -43,7 +43,7 @@ import pyvista as pv
 
 from .. import arrays
 from ..plan import Plan
-from .osteotomy import cut_bones, segment_transforms
+from .osteotomy import cut_bones, segment_transforms, voxel_points
 
 log = logging.getLogger(__name__)
 
@@ -238,7 +238,7 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     surf_ids = np.flatnonzero(surface.ravel(order="F"))
     if len(surf_ids) == 0:
         raise ValueError("bones has no bone or teeth voxels ('bone' > 0 or hard 'tissue')")
-    vox = np.asarray(labels.points)[surf_ids]
+    vox = voxel_points(labels, surf_ids)
 
     nodes = boundary_points(grid)
     dist, near = cKDTree(vox).query(points[nodes],
@@ -249,9 +249,17 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     seg = bone[near_ids]
     teeth = tissue == arrays.TEETH
     if teeth_margin > 0 and teeth.any():
-        dist_teeth = ndimage.distance_transform_edt(
-            ~teeth.reshape(dims, order="F"), sampling=spacing).ravel(order="F")
-        teeth = hard & (dist_teeth <= teeth_margin * (1 + 1e-9))
+        # distance to the teeth on a crop around them (the margin is a few voxels)
+        vol_teeth = teeth.reshape(dims, order="F")
+        idx = np.argwhere(vol_teeth)
+        pad = np.ceil(teeth_margin / spacing).astype(int) + 1
+        lo = np.maximum(idx.min(axis=0) - pad, 0)
+        hi = np.minimum(idx.max(axis=0) + pad + 1, dims)
+        box = tuple(slice(a, b) for a, b in zip(lo, hi))
+        near_teeth = np.zeros(dims, dtype=bool)
+        near_teeth[box] = ndimage.distance_transform_edt(
+            ~vol_teeth[box], sampling=spacing) <= teeth_margin * (1 + 1e-9)
+        teeth = hard & near_teeth.ravel(order="F")
     is_teeth = teeth[near_ids]
     moved = np.isin(seg, list(transforms))
 

@@ -32,7 +32,27 @@ from ..plan import Plan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["cut_bones", "move_bones", "segment_transforms"]
+__all__ = ["cut_bones", "move_bones", "segment_transforms", "voxel_points"]
+
+
+def voxel_points(image, ids):
+    """Coordinates (mm) of the voxels ``ids`` (flat point ids) of an ImageData.
+
+    Computed from origin, spacing and dimensions, without materialising every point of
+    the image (``image.points`` builds an (n, 3) array for the whole volume).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf.filters.osteotomy import voxel_points
+    >>> img = pv.ImageData(dimensions=(3, 4, 5), spacing=(1, 2, 3), origin=(10, 0, 0))
+    >>> bool(np.allclose(voxel_points(img, [0, 7, 59]), img.points[[0, 7, 59]]))
+    True
+    """
+    ids = np.asarray(ids, dtype=np.int64)
+    nx, ny, _ = image.dimensions
+    ijk = np.stack([ids % nx, (ids // nx) % ny, ids // (nx * ny)], axis=1)
+    return np.asarray(image.origin, dtype=float) + ijk * np.asarray(image.spacing, dtype=float)
 
 
 def _check_inputs(labels, plan, func):
@@ -91,18 +111,20 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
     bone = _check_inputs(labels, plan, "cut_bones")
     out = labels.copy()
     new = bone.astype(np.uint8, copy=True)
-    points = None
     planned = {o.segment_id for o in plan.osteotomies if not o.cut}
     for o in plan.osteotomies:
         if not o.cut:
             continue
-        if points is None:
-            points = np.asarray(labels.points)
-        inside = new > 0
+        candidates = new > 0
         if keep_labelled:
-            inside &= ~np.isin(new, list(planned - {o.segment_id}))
+            candidates &= ~np.isin(new, list(planned - {o.segment_id}))
+        ids = np.flatnonzero(candidates)
+        points = voxel_points(labels, ids)
+        keep = np.ones(len(ids), dtype=bool)
         for p, n in o.cut:
-            inside &= (points - np.asarray(p)) @ np.asarray(n) >= 0
+            keep &= (points - np.asarray(p)) @ np.asarray(n) >= 0
+        inside = np.zeros(len(new), dtype=bool)
+        inside[ids[keep]] = True
         new[inside] = o.segment_id
         planned.add(o.segment_id)
         log.info("cut_bones: %s = %d voxels inside %d plane(s)", o.segment, int(inside.sum()),
@@ -135,8 +157,7 @@ def segment_transforms(labels, plan):
     for o in plan.osteotomies:
         centroid = None
         if o.pivot is None:
-            mask = bone == o.segment_id
-            centroid = np.asarray(labels.points)[mask].mean(axis=0)
+            centroid = voxel_points(labels, np.flatnonzero(bone == o.segment_id)).mean(axis=0)
         out[o.segment_id] = o.matrix(centroid)
     return out
 
@@ -232,7 +253,7 @@ def _move_labels(labels, bone, transforms):
     dims = tuple(labels.dimensions)
     vol = bone.reshape(dims, order="F")
     new = np.where(np.isin(bone, list(transforms)), arrays.BONE_NONE, bone).astype(np.uint8)
-    points = np.asarray(labels.points)
+    points = voxel_points(labels, np.arange(labels.n_points))
     origin, spacing = np.asarray(labels.origin), np.asarray(labels.spacing)
     for seg, matrix in transforms.items():
         inv = np.linalg.inv(matrix)
