@@ -50,6 +50,9 @@ _FACES_2D[:, :, 1] = ndimage.generate_binary_structure(2, 1)  # in-slice 4-conne
 SKIN_THRESHOLD = -500.0
 BONE_THRESHOLD = 500.0
 TEETH_THRESHOLD = 2000.0
+#: smallest radius (voxels) of the skull-closing ball: 1.5 takes the in-slice diagonal
+#: neighbours, which bridge a one-voxel gap in a one-voxel-thin skull ring
+MIN_BALL_VOXELS = 1.5
 
 
 def segment(
@@ -79,7 +82,7 @@ def segment(
     skull_closing : float
         Radius (mm) of the morphological closing that seals gaps in the skull (thin bone lost
         to partial volume, sutures, small foramina) before the intracranial fill; at least
-        one voxel along each axis.
+        ``MIN_BALL_VOXELS`` (1.5) voxels along each axis.
     progress_bar : bool
         Log each stage at INFO level (otherwise DEBUG).
 
@@ -230,8 +233,9 @@ def _fill(mask, structure, z_open=False):
 
 
 def _ball(spacing, radius):
-    """Ellipsoidal structuring element: the ball of ``radius`` mm (>= 1 voxel per axis)."""
-    r_vox = np.maximum(radius / np.maximum(np.asarray(spacing, float), 1e-12), 1.0)
+    """Ellipsoidal structuring element: the ball of ``radius`` mm (>= MIN_BALL_VOXELS voxels
+    per axis)."""
+    r_vox = np.maximum(radius / np.maximum(np.asarray(spacing, float), 1e-12), MIN_BALL_VOXELS)
     half = np.floor(r_vox).astype(int)
     grid = np.meshgrid(*(np.arange(-h, h + 1) for h in half), indexing="ij")
     return sum((g / r) ** 2 for g, r in zip(grid, r_vox)) <= 1.0 + 1e-9
