@@ -187,3 +187,14 @@ def test_headsq_one_skin_component_bone_inside(data_dir):
     outside, _ = ndimage.label(~ndimage.binary_fill_holes(head))
     touching = hard & ndimage.binary_dilation(outside > 0)
     assert touching.sum() < 0.05 * hard.sum()
+
+
+def test_progress_bar_logs_stages(caplog):
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="pvcmf.filters"):
+        seg = pvcmf.filters.segment(_ball(), progress_bar=True)
+        pvcmf.filters.classify_tissue(seg, progress_bar=True)
+    text = caplog.text
+    assert "segment: head mask" in text and "segment: intracranial" in text
+    assert "classify_tissue: EM" in text
