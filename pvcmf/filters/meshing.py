@@ -73,6 +73,8 @@ QUALITY_FIELDS = (
 _TETS_PER_CELL = 5.5
 _RETRY_TOLERANCE = 0.12
 _MAX_ATTEMPTS = 3
+#: (spacing factor, smoothing factor) tried in turn when gmsh rejects the surfaces
+_FALLBACKS = ((1.0, 1.0), (0.97, 1.0), (0.97, 0.5), (0.93, 0.0), (0.86, 0.0), (0.75, 0.0))
 
 # working-grid codes: 0 air (SurfaceNets background), 1 not meshed (bone, teeth, brain...),
 # 2 fat, 3 + m muscle m (m = 0 for muscle tissue without a muscle id)
@@ -234,7 +236,10 @@ def _repair_topology(sub, max_iter=20):
 
     A label occupying only one diagonal of a 2x2 square (regions touching along an
     edge) or only two opposite corners of a 2x2x2 cube (touching at a vertex) is made
-    face-connected by giving one neighbouring voxel its label. Vectorised over the grid,
+    face-connected by giving one neighbouring voxel its label, or cut by taking the
+    neighbour's label, whichever raises the code (air < other < fat < muscle, so muscles
+    are never cut); two different labels alone at opposite corners of a cube are
+    separated by relabelling the lower one. Vectorised over the grid,
     repeated until clean; returns the number of voxels changed.
     """
     v = sub
@@ -245,14 +250,18 @@ def _repair_topology(sub, max_iter=20):
             w = np.moveaxis(v, (ax1, ax2), (0, 1))  # a view: writes go to v
             a, b = w[:-1, :-1], w[1:, 1:]
             c, d = w[1:, :-1], w[:-1, 1:]
-            bad = (a == b) & (c != a) & (d != a)
-            if bad.any():
-                c[bad] = a[bad]
-                n_fix += int(bad.sum())
-            bad = (c == d) & (a != c) & (b != c)
-            if bad.any():
-                a[bad] = c[bad]
-                n_fix += int(bad.sum())
+            for p, q, o1, o2 in ((a, b, c, d), (c, d, a, b)):
+                bad = (p == q) & (o1 != p) & (o2 != p)
+                if bad.any():
+                    # labels only grow in code order (air < other < fat < muscle), so
+                    # a muscle is never cut by the repair and the loop terminates
+                    up1 = bad & (p > o1)
+                    up2 = bad & ~up1 & (p > o2)
+                    down = bad & ~up1 & ~up2
+                    o1[up1] = p[up1]
+                    o2[up2] = p[up2]
+                    p[down] = np.maximum(o1[down], o2[down])
+                    n_fix += int(bad.sum())
         corners = [(i, j, k) for i in (0, 1) for j in (0, 1) for k in (0, 1)]
         views = {q: v[q[0] : v.shape[0] - 1 + q[0], q[1] : v.shape[1] - 1 + q[1], q[2] : v.shape[2] - 1 + q[2]] for q in corners}
         for p in corners[:4]:
@@ -263,12 +272,56 @@ def _repair_topology(sub, max_iter=20):
                     bad &= views[o] != views[p]
             if bad.any():
                 o = (q[0], p[1], p[2])
-                views[o][bad] = views[p][bad]
+                up = bad & (views[p] > views[o])
+                down = bad & ~up
+                views[o][up] = views[p][up]
+                views[p][down] = views[o][down]
+                n_fix += int(bad.sum())
+            # two different labels alone at opposite corners: SurfaceNets gives their
+            # sheets one vertex each at the same place; the lower code (air < other <
+            # fat < muscle) takes the label of a neighbouring corner
+            bad = views[p] != views[q]
+            for o in corners:
+                if o not in (p, q):
+                    bad &= (views[o] != views[p]) & (views[o] != views[q])
+            if bad.any():
+                low_p = bad & (views[p] < views[q])
+                low_q = bad & ~low_p
+                op, oq = (q[0], p[1], p[2]), (p[0], q[1], q[2])
+                views[p][low_p] = views[op][low_p]
+                views[q][low_q] = views[oq][low_q]
                 n_fix += int(bad.sum())
         changed += n_fix
         if n_fix == 0:
             break
     return changed
+
+
+def _image_pieces(code):
+    """Number of 6-connected pieces of every muscle code in the full-resolution image."""
+    from scipy import ndimage
+
+    pieces = {}
+    for c, box in enumerate(ndimage.find_objects(np.where(code > _MUSCLE0, code, 0)), start=0):
+        if box is not None and c + 1 > _MUSCLE0:
+            pieces[c + 1] = ndimage.label(code[box] == c + 1)[1]
+    return pieces
+
+
+def _drop_fragments(sub, pieces):
+    """Give to the fat the muscle fragments the coarse grid adds to the image's pieces."""
+    from scipy import ndimage
+
+    dropped = 0
+    for c, n_image in pieces.items():
+        lab, n = ndimage.label(sub == c)
+        if n > n_image:
+            sizes = np.bincount(lab.ravel())[1:]
+            keep = np.argsort(sizes)[::-1][:n_image] + 1
+            frag = (lab > 0) & ~np.isin(lab, keep)
+            sub[frag] = _FAT
+            dropped += int(frag.sum())
+    return dropped
 
 
 def _components(sub):
@@ -597,6 +650,7 @@ def tetrahedralize(
         )
     if conforming:
         _check_muscles(code, voxel_volume)
+    pieces = _image_pieces(code) if conforming else {}
     volume = n_soft * voxel_volume
     min_spacing = float(min(labels.spacing))
     if spacing is None:
@@ -607,24 +661,53 @@ def tetrahedralize(
         log.info("tetrahedralize: %d soft voxels, %.0f mm^3, start spacing %.2f mm", n_soft, volume, s)
 
     smoothing = float(smoothing_scale)
+    # when gmsh rejects the surfaces: weaker smoothing (self-intersections), then slightly
+    # finer grids (coarse grids pinch thin tissue; another grid avoids the pinch)
+    if spacing is None:
+        fallbacks = [(f, smoothing * k) for f, k in _FALLBACKS]
+    else:
+        fallbacks = [(1.0, smoothing), (1.0, smoothing / 2), (1.0, 0.0)]
     t_surface = t_volume = 0.0
-    for attempt in range(_MAX_ATTEMPTS):
-        nodes, tets, comp_code, cell_comp, smoothing, dt_s, dt_v = _mesh_once(
-            code, labels, s, smoothing, threads, optimize
-        )
+    result, failures, step, n_calibrations = None, [], 0, 0
+    while step < len(fallbacks):
+        factor, smooth = fallbacks[step]
+        s_try = max(min_spacing, s * factor)
+        t0 = time.perf_counter()
+        try:
+            out = _mesh_once(code, labels, s_try, smooth, threads, optimize, pieces)
+        except SurfaceError as exc:
+            failures.append(str(exc))
+            t_volume += time.perf_counter() - t0
+            step += 1
+            continue
+        nodes, tets, comp_code, cell_comp, dt_s, dt_v = out
+        result = (nodes, tets, comp_code, cell_comp, smooth, s_try)
         t_surface += dt_s
         t_volume += dt_v
         ratio = len(tets) / n_tets
         log.info(
             "tetrahedralize: spacing %.3f mm -> %d tets (%.2f x requested) in %.2f s",
-            s, len(tets), ratio, dt_s + dt_v,
+            s_try, len(tets), ratio, dt_s + dt_v,
         )
         if spacing is not None or abs(ratio - 1.0) <= _RETRY_TOLERANCE:
             break
-        new_s = max(min_spacing, s * ratio ** (1.0 / 3.0))
-        if new_s == s:
+        if n_calibrations >= _MAX_ATTEMPTS - 1:
             break
-        s = new_s
+        n_calibrations += 1
+        new_s = max(min_spacing, s_try * ratio ** (1.0 / 3.0))
+        if new_s == s_try:
+            break
+        s, step = new_s, 0
+    if result is None:
+        raise SurfaceError("no valid surfaces for gmsh: " + "; ".join(failures))
+    nodes, tets, comp_code, cell_comp, smoothing, s = result
+    if failures:
+        warnings.warn(
+            f"gmsh rejected {len(failures)} surface(s) ({failures[0]}); meshed at "
+            f"spacing {s:.3g} mm, smoothing_scale {smoothing:g}: {len(tets)} tetrahedra "
+            f"for {n_tets} requested",
+            stacklevel=2,
+        )
 
     # orientation and labels
     vol = np.einsum(
@@ -640,6 +723,16 @@ def tetrahedralize(
             f"gmsh returned {int(np.sum(volumes <= 0))} zero-volume tetrahedra"
         )
     codes = comp_code[cell_comp]
+    if conforming:
+        wanted = set(np.unique(code[code > _MUSCLE0]).tolist())
+        lost = sorted(wanted - set(np.unique(codes).tolist()))
+        if lost:
+            warnings.warn(
+                f"muscle(s) {', '.join(_code_name(c) for c in lost)} are thinner than the "
+                f"{s:.3g} mm working spacing and are not in the mesh; request more "
+                "tetrahedra (or a region of interest) to keep them",
+                stacklevel=2,
+            )
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, nodes)
     grid.cell_data[arrays.TISSUE] = np.where(codes == _FAT, arrays.FAT, arrays.MUSCLE_TISSUE).astype(
         np.uint8
@@ -665,11 +758,15 @@ def tetrahedralize(
     return grid
 
 
-def _mesh_once(code, labels, s, smoothing, threads, optimize):
-    """One surface + volume meshing pass at spacing ``s``, falling back on weaker smoothing."""
+def _mesh_once(code, labels, s, smoothing, threads, optimize, pieces):
+    """One surface + volume meshing pass at spacing ``s``; raises SurfaceError."""
     t0 = time.perf_counter()
     sub, origin = _working_grid(code, labels, s)
     n_fix = _repair_topology(sub)
+    n_drop = _drop_fragments(sub, pieces)
+    if n_drop:
+        n_fix += _repair_topology(sub)
+        log.info("tetrahedralize: %d muscle voxel(s) of coarse-grid fragments given to the fat", n_drop)
     if n_fix:
         log.info("tetrahedralize: %d voxel(s) relabelled to keep the surfaces manifold", n_fix)
     comp, comp_code = _components(sub)
@@ -678,42 +775,27 @@ def _mesh_once(code, labels, s, smoothing, threads, optimize):
             f"labels: the soft tissue vanishes on a {s:.3g} mm working grid; "
             "request more tetrahedra or a smaller spacing"
         )
-    scales = [smoothing] + [x for x in (smoothing / 2, 0.0) if x < smoothing]
-    errors = []
-    dt_s, dt_v = time.perf_counter() - t0, 0.0
-    for scale in scales:
-        t1 = t2 = time.perf_counter()
-        try:
-            points, tri, sides = _surfaces(comp, origin, s, scale)
-            _check_surfaces(tri, sides, comp_code)
-            patch, patch_sides = _split_patches(tri, sides, len(points))
-            t2 = time.perf_counter()
-            nodes, tets, cell_comp = _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize)
-        except SurfaceError as exc:
-            errors.append(f"smoothing_scale={scale:g}: {exc}")
-            continue
-        finally:
-            dt_s += t2 - t1
-            dt_v += time.perf_counter() - t2
-        if errors:
-            warnings.warn(
-                "SurfaceNets surfaces were invalid for meshing ("
-                + "; ".join(errors)
-                + f"); used smoothing_scale={scale:g} instead",
-                stacklevel=3,
-            )
-        return nodes, tets, comp_code, cell_comp, scale, dt_s, dt_v
-    raise SurfaceError(
-        f"no valid surfaces at spacing {s:.3g} mm: " + "; ".join(errors)
-    )
+    points, tri, sides = _surfaces(comp, origin, s, smoothing)
+    try:
+        _check_surfaces(tri, sides, comp_code)
+    except SurfaceError as exc:
+        raise SurfaceError(f"spacing {s:.3g} mm, smoothing_scale {smoothing:g}: {exc}") from exc
+    patch, patch_sides = _split_patches(tri, sides, len(points))
+    t1 = time.perf_counter()
+    try:
+        nodes, tets, cell_comp = _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize)
+    except SurfaceError as exc:
+        raise SurfaceError(f"spacing {s:.3g} mm, smoothing_scale {smoothing:g}: {exc}") from exc
+    return nodes, tets, comp_code, cell_comp, t1 - t0, time.perf_counter() - t1
 
 
 # ----------------------------------------------------------------------------- example data
-def shell_labels(spacing=1.0, radii=(60.0, 75.0, 85.0), soft=12.0, bone=5.0, tube_radius=3.0):
+def shell_labels(spacing=1.0, radii=(60.0, 75.0, 85.0), soft=14.0, bone=5.0, tube_radius=4.0):
     """A small analytic head-shell label image: soft tissue over a bone shell, 4 muscle tubes.
 
-    An ellipsoid of radii ``radii`` (mm): the outer ``soft`` mm are fat, the next ``bone`` mm
-    bone, the inside intracranial. Four muscle tubes of radius ``tube_radius`` run
+    An ellipsoid of radii ``radii`` (mm): the outer ``soft`` mm are fat on the front
+    (``y > -0.3 radii[1]``, a face) and air at the back, the next ``bone`` mm bone, the
+    inside intracranial. Four muscle tubes of radius ``tube_radius`` run
     horizontally (along x) at mid-depth of the soft tissue in the anterior half (y > 0),
     with muscle ids 1-4. The bone below ``z = -0.3 radii[2]`` is the mandible, the rest the
     cranium (point array ``arrays.BONE``). For examples, tests and benchmarks.
@@ -751,7 +833,7 @@ def shell_labels(spacing=1.0, radii=(60.0, 75.0, 85.0), soft=12.0, bone=5.0, tub
     X, Y, Z = np.meshgrid(x, y, z, indexing="ij")
     depth = (1.0 - np.sqrt((X / r[0]) ** 2 + (Y / r[1]) ** 2 + (Z / r[2]) ** 2)) * r.min()
     tissue = np.zeros(X.shape, np.uint8)
-    tissue[depth >= 0] = arrays.FAT
+    tissue[(depth >= 0) & (Y > -0.3 * r[1])] = arrays.FAT
     tissue[depth >= soft] = arrays.BONE_TISSUE
     tissue[depth >= soft + bone] = arrays.INTRACRANIAL
     bone_seg = np.where(Z < -0.3 * r[2], arrays.MANDIBLE, arrays.CRANIUM).astype(np.uint8)

@@ -1,0 +1,199 @@
+"""Benchmark: labelled tetrahedral meshing against the homogeneous mesh + muscle-fraction baselines.
+
+Not run by CI. Prints whole numbers (ms, MiB, degrees x10, per-mille) measured in this
+run. Every case runs in a fresh subprocess so that its peak memory (ru_maxrss) is its own.
+
+1. ``tetrahedralize`` (conforming, the proposed method) on the 1 mm virtual patient at
+   10k/30k/100k/300k requested tetrahedra: wall and CPU time, peak memory, count hit,
+   min / 1st-percentile dihedral angle, label agreement at the centroids.
+2. the baseline: the homogeneous mesh (``conforming=False``) + ``sample_muscle_fraction``
+   at 10/100/1000 points per tetrahedron and ``average_voxels``: time, and the fraction
+   error against the exact fraction on an analytic half-space muscle (exact = volume of
+   the clipped tetrahedra, VTK ``clip``) and on the patient against 4000 points.
+
+Run::
+
+    python benchmarks/meshing.py                 # all cases, 1 mm patient 1
+    python benchmarks/meshing.py --spacing 2 --counts 10000 30000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+CACHE = Path("/tmp/pvcmf_benchmark_meshing")
+
+
+def _labels(patient, spacing):
+    import pyvista as pv
+
+    import pvcmf
+
+    CACHE.mkdir(exist_ok=True)
+    path = CACHE / f"truth_p{patient}_{spacing:g}mm.vti"
+    if path.exists():
+        return pv.read(path)
+    truth = pvcmf.datasets.phantom(patient, spacing=spacing).truth
+    truth.save(path)
+    return truth
+
+
+def _agreement(labels, grid):
+    from pvcmf import arrays
+
+    c = grid.cell_centers().points
+    ijk = np.rint((c - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(int)
+    ijk = np.clip(ijk, 0, np.asarray(labels.dimensions) - 1)
+    d = labels.dimensions
+    lab = np.asarray(labels[arrays.TISSUE])[ijk[:, 0] + d[0] * (ijk[:, 1] + d[1] * ijk[:, 2])]
+    soft = np.isin(lab, arrays.SOFT_LABELS)
+    agree = lab == grid.cell_data[arrays.TISSUE]
+    return float(soft.mean()), float(agree[soft].mean()), float(agree.mean())
+
+
+def _timed(func, *args, **kwargs):
+    w, c = time.perf_counter(), time.process_time()
+    out = func(*args, **kwargs)
+    return out, time.perf_counter() - w, time.process_time() - c
+
+
+def case_mesh(patient, spacing, n_tets, conforming):
+    from pvcmf.filters import tetrahedralize
+    from pvcmf.filters import meshing
+
+    labels = _labels(patient, spacing)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    grid, wall, cpu = _timed(tetrahedralize, labels, n_tets=n_tets, conforming=conforming)
+    inside, agree_soft, agree_all = _agreement(labels, grid)
+    fd = grid.field_data
+    return {
+        "n_tets": n_tets,
+        "conforming": conforming,
+        "cells": grid.n_cells,
+        "wall_ms": round(wall * 1000),
+        "cpu_ms": round(cpu * 1000),
+        "surface_ms": round(fd[meshing.TIME_SURFACE][0] * 1000),
+        "volume_ms": round(fd[meshing.TIME_VOLUME][0] * 1000),
+        "spacing_x100": round(fd[meshing.SURFACE_SPACING][0] * 100),
+        "peak_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+        "image_mib": round(rss0 / 1024),
+        "min_dihedral_x10": round(fd[meshing.MIN_DIHEDRAL][0] * 10),
+        "p1_dihedral_x10": round(fd[meshing.P1_DIHEDRAL][0] * 10),
+        "min_radius_ratio_x1000": round(fd[meshing.MIN_RADIUS_RATIO][0] * 1000),
+        "centroids_in_soft_permille": round(inside * 1000),
+        "label_agree_in_soft_permille": round(agree_soft * 1000),
+        "label_agree_all_permille": round(agree_all * 1000),
+    }
+
+
+def _halfspace(n_tets):
+    """Homogeneous shell mesh and a half-space muscle x >= 0 with its exact fractions."""
+    import pyvista as pv
+
+    from pvcmf import arrays
+    from pvcmf.filters import tetrahedralize
+    from pvcmf.filters.meshing import shell_labels
+
+    labels = shell_labels(spacing=1.0)
+    grid = tetrahedralize(labels, n_tets=n_tets, conforming=False)
+    x = labels.points[:, 0]
+    # nearest-voxel lookup: muscle exactly where x >= -spacing / 2
+    labels.point_data[arrays.TISSUE] = np.where(x >= 0, arrays.MUSCLE_TISSUE, arrays.FAT).astype(np.uint8)
+    labels.point_data[arrays.MUSCLE] = np.where(x >= 0, 1, 0).astype(np.uint8)
+    g = grid.copy()
+    g.cell_data["cid"] = np.arange(g.n_cells)
+    part = g.clip(normal=(-1, 0, 0), origin=(-0.5, 0, 0), invert=True)
+    vol = part.compute_cell_sizes(length=False, area=False)["Volume"]
+    exact = np.bincount(part.cell_data["cid"], weights=vol, minlength=g.n_cells)
+    exact /= grid.compute_cell_sizes(length=False, area=False)["Volume"]
+    return grid, labels, np.clip(exact, 0, 1), pv
+
+
+def case_fractions(patient, spacing, n_tets):
+    from pvcmf import arrays
+    from pvcmf.filters import average_voxels, sample_muscle_fraction, tetrahedralize
+
+    out = {"n_tets": n_tets}
+    grid, labels, exact, _ = _halfspace(n_tets)
+    cut = (exact > 0) & (exact < 1)
+    for n in (10, 100, 1000):
+        res, wall, _ = _timed(sample_muscle_fraction, grid, labels, n_points=n)
+        err = res[arrays.MUSCLE_FRACTION] - exact
+        out[f"halfspace_rms_err_permille_n{n}"] = round(float(np.sqrt(np.mean(err[cut] ** 2))) * 1000)
+    res, wall, _ = _timed(average_voxels, grid, labels)
+    err = res[arrays.MUSCLE_FRACTION] - exact
+    out["halfspace_rms_err_permille_voxels"] = round(float(np.sqrt(np.mean(err[cut] ** 2))) * 1000)
+    out["halfspace_cut_cells"] = int(cut.sum())
+
+    labels = _labels(patient, spacing)
+    grid, wall, _ = _timed(tetrahedralize, labels, n_tets=n_tets, conforming=False)
+    out["homogeneous_mesh_ms"] = round(wall * 1000)
+    out["homogeneous_cells"] = grid.n_cells
+    ref = sample_muscle_fraction(grid, labels, n_points=4000, seed=99)[arrays.MUSCLE_FRACTION]
+    has = ref > 0
+    for n in (10, 100, 1000):
+        res, wall, _ = _timed(sample_muscle_fraction, grid, labels, n_points=n)
+        out[f"sample_ms_n{n}"] = round(wall * 1000)
+        err = res[arrays.MUSCLE_FRACTION] - ref
+        out[f"patient_rms_err_permille_n{n}"] = round(float(np.sqrt(np.mean(err[has] ** 2))) * 1000)
+    res, wall, _ = _timed(average_voxels, labels=labels, grid=grid)
+    out["average_voxels_ms"] = round(wall * 1000)
+    err = res[arrays.MUSCLE_FRACTION] - ref
+    out["patient_rms_err_permille_voxels"] = round(float(np.sqrt(np.mean(err[has] ** 2))) * 1000)
+    out["cells_with_muscle"] = int(has.sum())
+    return out
+
+
+def _run_child(args):
+    cmd = [sys.executable, __file__, "--child", json.dumps(args)]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        return {"case": args, "error": res.stderr.strip().splitlines()[-1:]}
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--patient", type=int, default=1)
+    p.add_argument("--spacing", type=float, default=1.0)
+    p.add_argument("--counts", type=int, nargs="+", default=[10_000, 30_000, 100_000, 300_000])
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.child:
+        spec = json.loads(a.child)
+        kind = spec.pop("kind")
+        result = case_mesh(**spec) if kind == "mesh" else case_fractions(**spec)
+        print(json.dumps(result))
+        return
+    _labels(a.patient, a.spacing)  # build the phantom once, cached on disk
+    print(f"# patient {a.patient} at {a.spacing:g} mm; wall and CPU in ms")
+    rows = []
+    for n in a.counts:
+        for conforming in (True, False):
+            row = _run_child(
+                {"kind": "mesh", "patient": a.patient, "spacing": a.spacing, "n_tets": n,
+                 "conforming": conforming}
+            )
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    frac = _run_child({"kind": "fractions", "patient": a.patient, "spacing": a.spacing, "n_tets": 30_000})
+    print(json.dumps(frac), flush=True)
+    conf = {r["n_tets"]: r for r in rows if r.get("conforming") is True and "wall_ms" in r}
+    if 30_000 in conf and "homogeneous_mesh_ms" in frac:
+        base = frac["homogeneous_mesh_ms"] + frac["sample_ms_n100"]
+        print(
+            f"# 30k: conforming {conf[30_000]['wall_ms']} ms vs homogeneous + 100-point sampling "
+            f"{base} ms (ratio x100 = {round(100 * conf[30_000]['wall_ms'] / base)})"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,258 @@
+"""Labelled tetrahedral meshing: labels, quality, count, connectivity, ROI and errors.
+
+Geometry is checked against independent computations: dihedral angles by projecting the
+faces on the plane normal to each edge, regions against ``scipy.ndimage.label`` on the
+image, the count against the request.
+"""
+
+from __future__ import annotations
+
+import itertools
+import warnings
+
+import numpy as np
+import pytest
+import pyvista as pv
+from scipy import ndimage
+
+import pvcmf
+from pvcmf import arrays
+from pvcmf.filters import meshing, tetrahedralize
+from pvcmf.filters.meshing import shell_labels, tet_quality
+
+
+def _nearest(labels, points, name=arrays.TISSUE):
+    ijk = np.rint((points - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(int)
+    ijk = np.clip(ijk, 0, np.asarray(labels.dimensions) - 1)
+    d = labels.dimensions
+    return np.asarray(labels[name])[ijk[:, 0] + d[0] * (ijk[:, 1] + d[1] * ijk[:, 2])]
+
+
+@pytest.fixture(scope="module")
+def shell():
+    return shell_labels(spacing=2.0)
+
+
+@pytest.fixture(scope="module")
+def shell_mesh(shell):
+    return tetrahedralize(shell, n_tets=10_000)
+
+
+def test_tetrahedra_only_positive_volume_and_labels(shell_mesh):
+    assert np.all(shell_mesh.celltypes == pv.CellType.TETRA)
+    _, vol, rr = tet_quality(shell_mesh.points, shell_mesh.cells_dict[pv.CellType.TETRA])
+    assert vol.min() > 0
+    assert rr.min() > 0
+    tissue = shell_mesh.cell_data[arrays.TISSUE]
+    muscle = shell_mesh.cell_data[arrays.MUSCLE]
+    assert tissue.dtype == np.uint8 and muscle.dtype == np.uint8
+    assert set(np.unique(tissue)) == {arrays.FAT, arrays.MUSCLE_TISSUE}
+    # every cell in exactly one region: muscle id set iff tissue is muscle
+    assert np.array_equal(muscle > 0, tissue == arrays.MUSCLE_TISSUE)
+    assert set(np.unique(muscle)) == {0, 1, 2, 3, 4}
+
+
+def test_quality_in_field_data_matches_brute_force(shell_mesh):
+    tets = shell_mesh.cells_dict[pv.CellType.TETRA]
+    p = np.asarray(shell_mesh.points)
+    dihedral, _, _ = tet_quality(p, tets)
+    # independent: angle between the two faces' in-plane directions normal to each edge
+    worst = np.argsort(dihedral.min(axis=1))[:20]
+    for c in worst:
+        q = p[tets[c]]
+        angles = []
+        for i, j in itertools.combinations(range(4), 2):
+            k, l = (m for m in range(4) if m not in (i, j))
+            e = (q[j] - q[i]) / np.linalg.norm(q[j] - q[i])
+            u = q[k] - q[i] - np.dot(q[k] - q[i], e) * e
+            w = q[l] - q[i] - np.dot(q[l] - q[i], e) * e
+            angles.append(np.degrees(np.arccos(np.dot(u, w) / np.linalg.norm(u) / np.linalg.norm(w))))
+        np.testing.assert_allclose(dihedral[c], angles, atol=1e-6)
+    fd = shell_mesh.field_data
+    assert fd[meshing.MIN_DIHEDRAL][0] == pytest.approx(dihedral.min())
+    assert fd[meshing.MIN_DIHEDRAL][0] >= 5.0
+    assert fd[meshing.P1_DIHEDRAL][0] >= 15.0
+    for name in meshing.QUALITY_FIELDS:
+        assert name in fd.keys()
+
+
+def test_regular_tet_quality():
+    p = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    d, v, rr = tet_quality(p, np.array([[0, 1, 2, 3]]))
+    np.testing.assert_allclose(d, np.degrees(np.arccos(1 / 3)))
+    assert abs(v[0]) == pytest.approx(8 / 3)
+    assert rr[0] == pytest.approx(1.0)
+
+
+def _label_agreement(labels, grid):
+    """(share of centroids in soft tissue, share of those whose label agrees)."""
+    c = grid.cell_centers().points
+    lab = _nearest(labels, c)
+    soft = np.isin(lab, arrays.SOFT_LABELS)
+    return soft.mean(), np.mean(lab[soft] == grid.cell_data[arrays.TISSUE][soft])
+
+
+def test_label_agreement_shell(shell, shell_mesh):
+    inside, agree = _label_agreement(shell, shell_mesh)
+    assert agree >= 0.95
+    assert inside >= 0.8  # coarse surfaces: ~s/2 of geometric error on a 14 mm shell
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limitation: at 10k tetrahedra the isotropic working grid (~7 mm) puts the "
+    "muscle boundaries within s/2; 96-97 % of the centroids agree, not 98 %",
+)
+def test_label_agreement_goal_98_percent(shell, shell_mesh):
+    _, agree = _label_agreement(shell, shell_mesh)
+    assert agree >= 0.98
+
+
+def test_regions_connected_like_the_image(shell, shell_mesh):
+    muscle = np.asarray(shell[arrays.MUSCLE]).reshape(shell.dimensions[::-1])
+    for m in range(1, 5):
+        _, n_image = ndimage.label(muscle == m)
+        part = shell_mesh.extract_cells(shell_mesh.cell_data[arrays.MUSCLE] == m)
+        assert part.connectivity().point_data["RegionId"].max() + 1 == n_image == 1
+        # element faces follow the muscle surface: its boundary is a closed surface
+        assert part.extract_surface(algorithm="dataset_surface").n_open_edges == 0
+    fat = shell_mesh.extract_cells(shell_mesh.cell_data[arrays.TISSUE] == arrays.FAT)
+    assert fat.connectivity().point_data["RegionId"].max() == 0
+
+
+def test_volume_close_to_image(shell, shell_mesh):
+    voxel = np.prod(shell.spacing)
+    soft = np.isin(shell[arrays.TISSUE], arrays.SOFT_LABELS).sum() * voxel
+    assert shell_mesh.volume == pytest.approx(soft, rel=0.1)
+
+
+@pytest.mark.parametrize("n_tets", [5_000, 12_000])
+def test_n_tets_hit(shell, n_tets):
+    grid = tetrahedralize(shell, n_tets=n_tets)
+    assert abs(grid.n_cells / n_tets - 1) <= 0.2
+    assert grid.field_data[meshing.N_TETS_REQUESTED][0] == n_tets
+
+
+def test_homogeneous_baseline(shell):
+    grid = tetrahedralize(shell, n_tets=5_000, conforming=False)
+    assert np.all(grid.cell_data[arrays.TISSUE] == arrays.FAT)
+    assert np.all(grid.cell_data[arrays.MUSCLE] == 0)
+    assert abs(grid.n_cells / 5_000 - 1) <= 0.2
+
+
+def test_roi_box_and_bone_distance(shell):
+    box = (-70.0, 70.0, 0.0, 90.0, -30.0, 30.0)
+    grid = tetrahedralize(shell, spacing=6.0, roi=box)
+    b = np.asarray(grid.bounds)
+    s = grid.field_data[meshing.SURFACE_SPACING][0]
+    assert b[2] >= box[2] - s and b[4] >= box[4] - s and b[5] <= box[5] + s
+    near = tetrahedralize(shell, spacing=6.0, roi=(arrays.MANDIBLE, 15.0))
+    s = near.field_data[meshing.SURFACE_SPACING][0]
+    z_mandible = shell.points[np.asarray(shell[arrays.BONE]) == arrays.MANDIBLE][:, 2].max()
+    assert near.points[:, 2].max() <= z_mandible + 15.0 + s
+
+
+def test_roi_mask_and_callable_agree(shell):
+    mask = shell.points[:, 1] > 0
+    a = tetrahedralize(shell, spacing=8.0, roi=mask)
+    b = tetrahedralize(shell, spacing=8.0, roi=lambda p: p[:, 1] > 0)
+    assert a.n_cells == b.n_cells
+    assert a.points[:, 1].min() >= -a.field_data[meshing.SURFACE_SPACING][0]
+
+
+def test_input_unchanged(shell):
+    before = {k: np.array(shell.point_data[k]) for k in shell.point_data.keys()}
+    tetrahedralize(shell, spacing=8.0)
+    for k, v in before.items():
+        assert np.array_equal(shell.point_data[k], v)
+    assert set(shell.point_data.keys()) == set(before)
+
+
+def test_bad_inputs(shell):
+    with pytest.raises(TypeError, match="ImageData"):
+        tetrahedralize(pv.Sphere())
+    with pytest.raises(TypeError, match="n_tets"):
+        tetrahedralize(shell, n_tets=3.5)
+    with pytest.raises(ValueError, match="n_tets must lie in"):
+        tetrahedralize(shell, n_tets=10)
+    floats = shell.copy()
+    floats.point_data[arrays.TISSUE] = np.asarray(shell[arrays.TISSUE], float)
+    with pytest.raises(ValueError, match="integer"):
+        tetrahedralize(floats)
+    empty = shell.copy()
+    empty.point_data[arrays.TISSUE] = np.where(
+        np.isin(shell[arrays.TISSUE], arrays.SOFT_LABELS), arrays.AIR, shell[arrays.TISSUE]
+    ).astype(np.uint8)
+    with pytest.raises(ValueError, match="no soft tissue"):
+        tetrahedralize(empty)
+    with pytest.raises(ValueError, match="roi"):
+        tetrahedralize(shell, roi=(1, 2, 3))
+    with pytest.raises(ValueError, match="roi bone id"):
+        tetrahedralize(shell, roi=(7, 10.0))
+
+
+def test_one_voxel_muscle_warns_by_name(shell):
+    tiny = shell.copy()
+    tissue = np.array(shell[arrays.TISSUE])
+    muscle = np.array(shell[arrays.MUSCLE])
+    fat = np.flatnonzero(tissue == arrays.FAT)[len(np.flatnonzero(tissue == arrays.FAT)) // 2]
+    tissue[fat], muscle[fat] = arrays.MUSCLE_TISSUE, 9
+    tiny.point_data[arrays.TISSUE] = tissue
+    tiny.point_data[arrays.MUSCLE] = muscle
+    with pytest.warns(UserWarning, match=arrays.MUSCLES[8]):
+        grid = tetrahedralize(tiny, spacing=8.0)
+    assert 9 not in grid.cell_data[arrays.MUSCLE]
+
+
+def test_invalid_surfaces_fall_back_then_fail_clearly(shell, monkeypatch):
+    calls = []
+    real = meshing._gmsh_mesh
+
+    def flaky(*args):
+        calls.append(1)
+        if len(calls) == 1:
+            raise meshing.SurfaceError("gmsh could not mesh the surfaces: self-intersection")
+        return real(*args)
+
+    monkeypatch.setattr(meshing, "_gmsh_mesh", flaky)
+    with pytest.warns(UserWarning, match="smoothing_scale 0.125"):
+        grid = tetrahedralize(shell, spacing=8.0, smoothing_scale=0.25)
+    assert grid.field_data[meshing.SMOOTHING_SCALE][0] == 0.125
+    assert len(calls) == 2
+
+    def broken(*args):
+        raise meshing.SurfaceError("gmsh could not mesh the surfaces: self-intersection")
+
+    monkeypatch.setattr(meshing, "_gmsh_mesh", broken)
+    with pytest.raises(meshing.SurfaceError, match="no valid surfaces"):
+        tetrahedralize(shell, spacing=8.0)
+
+
+def test_accessor_delegates(shell):
+    grid = shell.cmf.tetrahedralize(spacing=8.0, conforming=False)
+    assert grid.n_cells > 0
+    assert np.all(grid.cell_data[arrays.MUSCLE] == 0)
+
+
+# ----------------------------------------------------------------------------- phantom
+@pytest.mark.parametrize("patient", [1, 2, 3, 4])
+def test_every_virtual_patient(patient):
+    truth = pvcmf.datasets.phantom(patient, spacing=4.0).truth
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # thin muscles vanish at this size (warned)
+        grid = tetrahedralize(truth, spacing=9.0, roi=(arrays.MANDIBLE, 25.0))
+    inside, agree = _label_agreement(truth, grid)
+    # a 4 mm image meshed at ~9 mm: 93-95 % (the 1 mm numbers are in the benchmark)
+    assert agree >= 0.9
+    _, vol, _ = tet_quality(grid.points, grid.cells_dict[pv.CellType.TETRA])
+    assert vol.min() > 0
+    assert grid.field_data[meshing.MIN_DIHEDRAL][0] >= 1.0
+    assert grid.field_data[meshing.P1_DIHEDRAL][0] >= 15.0
+    # one piece per muscle, like the image
+    muscle = np.asarray(truth[arrays.MUSCLE]).reshape(truth.dimensions[::-1])
+    for m in np.unique(grid.cell_data[arrays.MUSCLE]):
+        if m == 0:
+            continue
+        part = grid.extract_cells(grid.cell_data[arrays.MUSCLE] == m)
+        n_mesh = part.connectivity().point_data["RegionId"].max() + 1
+        assert n_mesh <= ndimage.label(muscle == m)[1]
