@@ -184,13 +184,22 @@ def test_simulate_headsq(data_dir, tmp_path, capsys):
         pytest.skip(f"{nhdr} not found")
     code, out = _run_or_skip_upstream(
         ["simulate", "--ct", "headsq", "--plan", str(ROOT / "examples" / "headsq_plan.toml"),
-         "--out", str(tmp_path), "--n-tets", "8000", "--no-progress", "--no-muscles"], capsys)
+         "--out", str(tmp_path), "--n-tets", "15000", "--no-progress", "--no-muscles"], capsys)
     assert code == 0, out
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert (tmp_path / "skin_pre.vtp").is_file() and (tmp_path / "osteotomy.png").is_file()
-    if summary["complete"]:
-        assert (tmp_path / "predicted_skin.vtp").is_file()
-        assert (tmp_path / "deformed_mesh.vtu").is_file()
+    assert summary["complete"], summary["skipped"]
+    for name in ("predicted_skin.vtp", "deformed_mesh.vtu", "skin_pre.vtp", "face_pre.png",
+                 "face_post.png", "displacement.png", "osteotomy.png"):
+        assert (tmp_path / name).is_file(), name
+    mesh = pv.read(tmp_path / "deformed_mesh.vtu")
+    assert mesh.n_cells == summary["n_tets"] and arrays.BC in mesh.point_data
+    # the chin follows the 5 mm mandibular advancement, the skull top does not move
+    skin = pv.read(tmp_path / "predicted_skin.vtp")
+    pts, u = skin.points - skin[arrays.DISPLACEMENT], skin[arrays.DISPLACEMENT]
+    chin = (pts[:, 2] < np.percentile(pts[:, 2], 20)) & (pts[:, 1] > np.percentile(pts[:, 1], 85))
+    assert 1.0 < np.median(u[chin, 1]) < 6.0
+    top = pts[:, 2] > np.percentile(pts[:, 2], 90)
+    assert np.abs(u[top]).max() < 0.5
 
 
 def test_drop_floating_parts():
