@@ -33,7 +33,16 @@ class RigidModeError(ValueError):
 
 
 def sliding_frames(normals):
-    """Orthonormal frames ``R = [t1, t2, n]`` (columns) for unit normals ``n`` (k, 3)."""
+    """Orthonormal frames ``R = [t1, t2, n]`` (columns) for normals ``n`` (k, 3).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from pvcmf.mtm import sliding_frames
+    >>> R = sliding_frames([[0.0, 0.0, 2.0]])[0]
+    >>> bool(np.allclose(R.T @ R, np.eye(3))), R[:, 2].tolist()
+    (True, [0.0, 0.0, 1.0])
+    """
     n = np.asarray(normals, dtype=float)
     n = n / np.linalg.norm(n, axis=1)[:, None]
     helper = np.zeros_like(n)
@@ -53,6 +62,19 @@ class Constraints:
     sliding : (k,) indices of sliding nodes; ``frames`` (k, 3, 3) their ``[t1, t2, n]``
     free : (3 n,) bool, unknown dofs in local coordinates
     prescribed : (3 n,) float, prescribed local values (zero on unknown dofs)
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> from pvcmf.mtm import Constraints
+    >>> grid = pv.ImageData(dimensions=(2, 2, 2)).triangulate()
+    >>> grid.point_data[arrays.BC] = np.array([1, 0, 0, 0, 0, 0, 0, 3], dtype=np.int8)
+    >>> grid.point_data[arrays.BC_DISPLACEMENT] = np.ones((8, 3))
+    >>> grid.point_data[arrays.BC_NORMAL] = np.tile([0.0, 0.0, 1.0], (8, 1))
+    >>> c = Constraints(grid)
+    >>> int(c.free.sum()), float(c.prescribed[-1])    # 3 fixed + 1 normal dof prescribed
+    (20, 1.0)
     """
 
     def __init__(self, grid, used=None):

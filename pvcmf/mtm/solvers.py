@@ -730,9 +730,9 @@ class Solver:
         y = cons.prescribed.copy()
         if y0 is not None:
             y[self.F] = y0
-        # prescribed rows are decoupled: A_PP = diag(d) with the same d as in dinv
+        # the masked A has no coupling to prescribed dofs (that is in b) and the residual is
+        # masked to the unknowns, so prescribed values stay where they start
         dinv = self._dinv
-        # scale prescribed rows to keep y_p fixed: b_p = d_p * y_p is implied by starting there
         omega = self.omega
         check = 10
         bar = _Progress(self.progress_bar, maxiter, "MTM relaxation")
