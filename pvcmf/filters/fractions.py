@@ -54,9 +54,13 @@ def _check_inputs(grid, labels):
     return np.asarray(tissue), np.asarray(muscle)
 
 
-def _voxel_values(labels, tissue, muscle, points):
-    """(is_muscle, muscle id) of the voxel nearest to each point (outside: no muscle)."""
-    ijk = np.rint((points - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(np.int64)
+def _voxel_values(labels, tissue, muscle, points, relative=False):
+    """(is_muscle, muscle id) of the voxel nearest to each point (outside: no muscle).
+
+    ``relative``: the points are already relative to the image origin.
+    """
+    origin = 0.0 if relative else np.asarray(labels.origin)
+    ijk = np.rint((points - origin) / np.asarray(labels.spacing, dtype=points.dtype)).astype(np.int64)
     dims = np.asarray(labels.dimensions)
     inside = np.all((ijk >= 0) & (ijk < dims), axis=-1)
     flat = ijk[..., 0] + dims[0] * (ijk[..., 1] + dims[1] * ijk[..., 2])
@@ -122,6 +126,7 @@ def sample_muscle_fraction(grid, labels, *, n_points=100, seed=0, progress_bar=F
     rng = np.random.default_rng(seed)
     corners = np.asarray(grid.points, float)[grid.cells_dict[pv.CellType.TETRA]]  # (n, 4, 3)
     n = len(corners)
+    corners32 = (corners - np.asarray(labels.origin)).astype(np.float32)  # image frame
     hits = np.zeros(n, dtype=np.int64)
     id_counts = np.zeros(n * _N_IDS, dtype=np.int64)
     per_chunk = max(1, _CHUNK // n)
@@ -129,10 +134,10 @@ def sample_muscle_fraction(grid, labels, *, n_points=100, seed=0, progress_bar=F
     done = 0
     while done < n_points:
         k = min(per_chunk, n_points - done)
-        lam = rng.exponential(size=(n, k, 4))
+        lam = rng.standard_exponential(size=(n, k, 4), dtype=np.float32)
         lam /= lam.sum(axis=2, keepdims=True)
-        pts = np.einsum("nkj,njd->nkd", lam, corners)
-        is_muscle, ids = _voxel_values(labels, tissue, muscle, pts)
+        pts = np.einsum("nkj,njd->nkd", lam, corners32)
+        is_muscle, ids = _voxel_values(labels, tissue, muscle, pts, relative=True)
         hits += is_muscle.sum(axis=1)
         id_counts += np.bincount((cell * _N_IDS + ids).ravel(), minlength=n * _N_IDS)
         done += k
