@@ -217,3 +217,43 @@ def test_drop_floating_parts():
     assert out.points[:, 0].max() <= 2.0
     np.testing.assert_array_equal(np.sort(out[arrays.BC]), np.sort(bc[grid.points[:, 0] <= 2.0]))
     assert drop_floating_parts(out) is out  # nothing to drop: the same mesh
+
+
+def test_flip_axes_is_a_rotation_for_two_axes():
+    from pvcmf.pipeline import flip_axes
+
+    img = pv.ImageData(dimensions=(4, 5, 6), spacing=(1.0, 2.0, 3.0))
+    img["z"] = img.points[:, 2].astype(np.float32)
+    img["v"] = img.points.copy()
+    out = flip_axes(img, "yz")
+    assert out.bounds == img.bounds
+    np.testing.assert_allclose(out["z"], img.bounds[5] - img.points[:, 2])  # z reversed
+    np.testing.assert_array_equal(flip_axes(out, "zy")["v"], img["v"])       # involution
+    np.testing.assert_array_equal(img["z"], img.points[:, 2])                # input untouched
+    with pytest.raises(ValueError, match="axes must be distinct letters"):
+        flip_axes(img, "yy")
+    with pytest.raises(ValueError, match="axes must be distinct letters"):
+        flip_axes(img, "w")
+
+
+def test_progress_bar_without_tqdm(tmp_path, monkeypatch, capsys):
+    """The text fallback bar reaches the last step on stderr; off by default."""
+    import builtins
+
+    from test_boundary_conditions import synthetic_head
+
+    real_import = builtins.__import__
+
+    def no_tqdm(name, *args, **kwargs):
+        if name.startswith("tqdm"):
+            raise ImportError("no tqdm here")
+        return real_import(name, *args, **kwargs)
+
+    labels, _ = synthetic_head()
+    plan = Plan((Osteotomy("mandible", (0, 0, 3.0)),))
+    simulate(None, plan, labels=labels, predict=False)
+    assert capsys.readouterr().err == ""
+    monkeypatch.setattr(builtins, "__import__", no_tqdm)
+    simulate(None, plan, labels=labels, predict=False, progress_bar=True)
+    err = capsys.readouterr().err
+    assert "13/13" in err and "#" * 30 in err
