@@ -11,7 +11,10 @@ Prints whole numbers (milliseconds) measured in this run:
    preparation per patient (phantom, segmentation, muscles, mesh, boundary conditions) and
    the sweep proper (numeric refactorisation + solve + distance per ratio).
 
-Run: ``python benchmarks/sweeps.py [--pipeline] [--spacing 1.0]``.
+Run: ``python benchmarks/sweeps.py [--pipeline] [--spacing 1.0] [--cache DIR]
+[--stand-in-truth]`` (the last measures times before :mod:`pvcmf.reference` exists, with the
+pre-operative skin as the "truth"). Run it twice with ``--cache DIR``: the second run loads
+the prepared cases (meshes) and measures the sweep proper alone.
 """
 
 import argparse
@@ -45,8 +48,17 @@ def engine():
               f"computed {df.attrs['n_computed']}")
 
 
-def pipeline(spacing):
-    ev = PipelineEvaluation(spacing=spacing, n_tets=30_000)
+def preop_truth(case):
+    """Timing stand-in for the post-operative truth: the pre-operative skin (the "errors"
+    are then the predicted motion, not an accuracy)."""
+    from pvcmf.filters import extract_skin
+
+    return extract_skin(case.truth)
+
+
+def pipeline(spacing, stand_in, cache):
+    ev = PipelineEvaluation(spacing=spacing, n_tets=30_000, truth=preop_truth if stand_in else None,
+                            cache_dir=cache)
     nus = list(np.round(np.linspace(0, 0.495, 20), 4))
     t = time.perf_counter()
     df = pvcmf.sweep([1, 2, 3, 4], {"nu": nus}, evaluate=ev, progress_bar=True)
@@ -64,7 +76,13 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--pipeline", action="store_true")
     ap.add_argument("--spacing", type=float, default=1.0)
+    ap.add_argument("--stand-in-truth", action="store_true",
+                    help="measure times with the pre-operative skin as 'truth' (no pvcmf.reference)")
+    ap.add_argument("--cache", default=None,
+                    help="folder keeping prepared cases (results are never cached here)")
+    ap.add_argument("--no-engine", action="store_true")
     a = ap.parse_args()
-    engine()
+    if not a.no_engine:
+        engine()
     if a.pipeline:
-        pipeline(a.spacing)
+        pipeline(a.spacing, a.stand_in_truth, a.cache)

@@ -21,12 +21,13 @@ from pvcmf.sweeps import synthetic_skin
 pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
 SYNTHETIC = os.environ.get("PVCMF_SYNTHETIC") == "1"
+SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 1.5))  # as Figs. 6-8: shares their truth
 
 
 def main():
     grid = {"nu": np.round(np.linspace(0.0, 0.495, 20), 4)}
     df = run_study([2], grid, "fig5_optimal_poisson", OUT, synthetic=SYNTHETIC, keep_arrays=True,
-                   scheduler=os.environ.get("PVCMF_SCHEDULER"), n_tets=30_000)
+                   scheduler=os.environ.get("PVCMF_SCHEDULER"), spacing=SPACING, n_tets=30_000)
     if SYNTHETIC:
         skin = synthetic_skin()
     else:  # the skin the maps were measured on, stored with them
