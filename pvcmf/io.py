@@ -20,11 +20,14 @@
 
 Geometry and orientation
 ------------------------
-No resampling and no axis flips are done: the returned image keeps the file's voxel order,
-its origin, spacing and orientation (as the ImageData's ``direction_matrix``) in the
-**file's own world frame**: LPS for DICOM, MetaImage and NRRD written by ITK/Slicer, RAS for
-NIfTI. Index axis 2 is the slice axis (axial for an axial scan), which is what the per-slice
-steps of :mod:`pvcmf.filters.classify` use.
+By default (``frame='file'``) no resampling and no axis flips are done: the returned image
+keeps the file's voxel order, its origin, spacing and orientation (as the ImageData's
+``direction_matrix``) in the **file's own world frame**: LPS for DICOM and MetaImage, RAS for
+NIfTI, NRRD's ``space``. ``frame='patient'`` reorders and flips the voxel axes of an
+axis-aligned scan so that it lies in the pvcmf patient frame (x patient's left, y anterior,
+z superior) with an identity direction matrix, as the virtual patients do. Index axis 2 is
+the slice axis (axial for an axial scan), which is what the per-slice steps of
+:mod:`pvcmf.filters.classify` use.
 
 Values
 ------
@@ -62,7 +65,7 @@ SUPPORTED = {
 _FORMATS = "a DICOM series folder, " + ", ".join(SUPPORTED)
 
 
-def read_ct(path, *, offset=0.0, scale=1.0):
+def read_ct(path, *, offset=0.0, scale=1.0, frame="file"):
     """Read a CT volume as ImageData with a float32 point array ``ct``.
 
     Parameters
@@ -73,6 +76,14 @@ def read_ct(path, *, offset=0.0, scale=1.0):
     offset, scale : float
         Linear map to Hounsfield units: ``ct = scale * value + offset``. The defaults keep
         the file's values (DICOM and NIfTI rescale slopes are applied before).
+    frame : {'file', 'patient'}
+        ``'file'`` keeps the file's voxel order, origin, spacing and orientation in its own
+        world frame. ``'patient'`` turns the image into the pvcmf patient frame (x patient's
+        left, y anterior, z superior; :mod:`pvcmf.arrays`) by reordering and flipping voxel
+        axes, so that the direction matrix becomes the identity: the file's world frame is
+        LPS for DICOM and MetaImage, RAS for NIfTI, NRRD's ``space`` field (LPS, RAS or LAS),
+        and VTI is taken as already in the patient frame. Only for scans whose axes are
+        aligned with the patient axes (an oblique scan raises ``ValueError``: resample it).
 
     Returns
     -------
@@ -85,7 +96,8 @@ def read_ct(path, *, offset=0.0, scale=1.0):
     FileNotFoundError
         If ``path`` does not exist.
     ValueError
-        For an unsupported format, a corrupt or truncated file, a folder without a readable
+        For an unsupported format, an unknown ``frame`` or world frame, an oblique scan
+        with ``frame='patient'``, a corrupt or truncated file, a folder without a readable
         DICOM series, a volume that is not 3-D scalar, or a bad ``offset``/``scale``.
 
     Examples
@@ -101,6 +113,8 @@ def read_ct(path, *, offset=0.0, scale=1.0):
     """
     offset = _finite(offset, "offset")
     scale = _finite(scale, "scale")
+    if frame not in ("file", "patient"):
+        raise ValueError(f"frame must be 'file' or 'patient', got {frame!r}")
     if scale == 0.0:
         raise ValueError("scale must be non-zero, got 0.0")
     path = Path(path).expanduser()
@@ -108,6 +122,7 @@ def read_ct(path, *, offset=0.0, scale=1.0):
         raise FileNotFoundError(f"read_ct: {str(path)!r} does not exist (expected {_FORMATS})")
     if path.is_dir():
         image, values = _read_dicom_series(path)
+        world = "LPS"
     else:
         name = path.name.lower()
         suffix = ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
@@ -134,6 +149,8 @@ def read_ct(path, *, offset=0.0, scale=1.0):
                 f"read_ct: cannot read {str(path)!r} as {SUPPORTED[suffix]}: "
                 f"corrupt or unreadable file ({type(err).__name__}: {err})"
             ) from err
+        world = {".nii": "RAS", ".nii.gz": "RAS", ".mha": "LPS", ".mhd": "LPS",
+                 ".vti": "patient"}.get(suffix) or _nrrd_space(path)
     values = np.asarray(values)
     if values.ndim != 1 or values.size != image.n_points:
         raise ValueError(
@@ -148,12 +165,67 @@ def read_ct(path, *, offset=0.0, scale=1.0):
     )
     out.direction_matrix = np.asarray(image.direction_matrix, dtype=float)
     out.point_data[arrays.CT] = np.asarray(ct, dtype=np.float32)
+    if frame == "patient":
+        out = _to_patient_frame(out, world, path)
     log.info(
         "read_ct %s: %s voxels, spacing %s mm, ct range [%.0f, %.0f]",
         path, out.dimensions, tuple(round(s, 4) for s in out.spacing),
         float(out[arrays.CT].min()), float(out[arrays.CT].max()),
     )
     return out
+
+
+# --------------------------------------------------------------------------- frames
+#: world frame -> pvcmf patient frame (x left, y anterior, z superior)
+_TO_PATIENT = {
+    "LPS": np.diag([1.0, -1.0, 1.0]),
+    "RAS": np.diag([-1.0, 1.0, 1.0]),
+    "LAS": np.eye(3),
+    "patient": np.eye(3),
+}
+
+
+def _to_patient_frame(image, world, path):
+    """Reorder / flip the voxel axes so the image lies in the patient frame, direction I."""
+    if world not in _TO_PATIENT:
+        raise ValueError(
+            f"read_ct: the world frame of {str(path)!r} is {world!r}, not LPS, RAS or LAS: "
+            "cannot turn it into the patient frame; use frame='file'"
+        )
+    flip = _TO_PATIENT[world]
+    direction = flip @ np.asarray(image.direction_matrix, dtype=float)
+    axis = np.argmax(np.abs(direction), axis=0)  # patient axis of each voxel axis
+    sign = np.sign(direction[axis, np.arange(3)])
+    if sorted(axis) != [0, 1, 2] or np.any(np.abs(direction[axis, np.arange(3)]) < 0.999):
+        raise ValueError(
+            f"read_ct: {str(path)!r} is oblique (direction {np.round(direction, 3).tolist()} "
+            "in the patient frame); frame='patient' needs axis-aligned slices: resample it "
+            "or use frame='file'"
+        )
+    dims = np.asarray(image.dimensions)
+    vol = image.point_data[arrays.CT].reshape(tuple(dims), order="F")
+    # the voxel that becomes index (0, 0, 0): the low end of every patient axis
+    corner = np.where(sign > 0, 0, dims - 1)
+    origin = flip @ (np.asarray(image.origin) + np.asarray(image.direction_matrix)
+                     @ (corner * np.asarray(image.spacing)))
+    vol = vol[tuple(slice(None, None, -1) if s < 0 else slice(None) for s in sign)]
+    order = np.argsort(axis)  # new axis a takes old voxel axis order[a]
+    vol = np.transpose(vol, order)
+    out = pv.ImageData(dimensions=vol.shape, spacing=np.asarray(image.spacing)[order],
+                       origin=origin)
+    out.point_data[arrays.CT] = np.ascontiguousarray(vol).ravel(order="F")
+    return out
+
+
+def _nrrd_space(path):
+    """World frame of a NRRD header's ``space`` field ('LPS', 'RAS', 'LAS' or as written)."""
+    head = path.read_bytes()[:4096].split(b"\n\n")[0].decode("latin-1").splitlines()
+    space = next((ln.split(":", 1)[1].strip().lower() for ln in head
+                  if ln.lower().startswith("space:")), "")
+    names = {"left-posterior-superior": "LPS", "lps": "LPS",
+             "right-anterior-superior": "RAS", "ras": "RAS",
+             "left-anterior-superior": "LAS", "las": "LAS"}
+    return names.get(space, space or "unknown")
 
 
 # --------------------------------------------------------------------------- helpers

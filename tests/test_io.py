@@ -196,6 +196,63 @@ def test_dicom_series_sorted_rescaled_oriented(tmp_path):
     np.testing.assert_allclose(p, np.asarray(ORIGIN) + k * SPACING[2] * ROTATION[:, 2], atol=1e-6)
 
 
+def _positions_by_value(image):
+    """World position of every voxel, keyed by its (unique) value."""
+    order = np.argsort(image[arrays.CT])
+    return image[arrays.CT][order], np.asarray(image.points)[order]
+
+
+@pytest.mark.parametrize("fmt", ["dicom", "nifti", "nrrd-ras"])
+def test_patient_frame(tmp_path, fmt):
+    """frame='patient': identity direction, every voxel at its file position mapped to
+    (x left, y anterior, z superior): LPS flips y, RAS flips x."""
+    raw = known_values()
+    if fmt == "dicom":
+        write_dicom_series(tmp_path, raw, SPACING, ORIGIN, intercept=0.0,
+                           row_dir=ROTATION[:, 0], col_dir=ROTATION[:, 1], extra_file=False)
+        path, flip = tmp_path, np.diag([1.0, -1.0, 1.0])
+    elif fmt == "nifti":
+        img = pv.ImageData(dimensions=DIMS, spacing=SPACING, origin=ORIGIN)
+        img.direction_matrix = ROTATION
+        img["v"] = flat(raw)
+        path, flip = tmp_path / "a.nii.gz", np.diag([-1.0, 1.0, 1.0])
+        img.save(path)
+    else:
+        flat(raw).astype("<i2").tofile(tmp_path / "a.raw")
+        axes = ROTATION * np.asarray(SPACING)
+        dirs = " ".join("(" + ",".join(str(v) for v in axes[:, c]) + ")" for c in range(3))
+        (tmp_path / "a.nhdr").write_text(_nrrd_header(
+            "encoding: raw\nspace: right-anterior-superior\n"
+            f"space directions: {dirs}\nspace origin: ({','.join(map(str, ORIGIN))})\n"
+            "data file: a.raw\n"))
+        path, flip = tmp_path / "a.nhdr", np.diag([-1.0, 1.0, 1.0])
+    as_file = pvcmf.read_ct(path)
+    patient = pvcmf.read_ct(path, frame="patient")
+    np.testing.assert_allclose(patient.direction_matrix, np.eye(3))
+    v_file, p_file = _positions_by_value(as_file)
+    v_pat, p_pat = _positions_by_value(patient)
+    np.testing.assert_array_equal(v_file, v_pat)
+    np.testing.assert_allclose(p_pat, p_file @ flip.T, atol=1e-4)
+    assert np.all(np.asarray(patient.spacing) > 0)
+
+
+def test_patient_frame_refuses_oblique_and_unknown(tmp_path):
+    c, s_ = np.cos(0.3), np.sin(0.3)
+    img = pv.ImageData(dimensions=DIMS, spacing=SPACING)
+    img.direction_matrix = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    img["v"] = flat(known_values())
+    img.save(tmp_path / "a.vti")
+    with pytest.raises(ValueError, match="oblique"):
+        pvcmf.read_ct(tmp_path / "a.vti", frame="patient")
+    with pytest.raises(ValueError, match="frame must be"):
+        pvcmf.read_ct(tmp_path / "a.vti", frame="RAS")
+    flat(known_values()).astype("<i2").tofile(tmp_path / "b.raw")
+    (tmp_path / "b.nhdr").write_text(_nrrd_header(
+        "encoding: raw\nspace: 3D-left-handed\nspacings: 1 1 1\ndata file: b.raw\n"))
+    with pytest.raises(ValueError, match="3d-left-handed.*frame='file'"):
+        pvcmf.read_ct(tmp_path / "b.nhdr", frame="patient")
+
+
 def test_dicom_folder_without_images(tmp_path):
     pytest.importorskip("pydicom")
     (tmp_path / "notes.txt").write_text("hello")
