@@ -33,6 +33,7 @@ def _view(plotter, bounds, where):
     direction = np.asarray(direction) / np.linalg.norm(direction)
     plotter.camera_position = [tuple(center + 2.2 * size * direction), tuple(center),
                                (0.0, 0.0, 1.0)]
+    plotter.camera.zoom(1.5)
 
 
 def figure_4(grid, labels=None, window_size=(1500, 520), point_size=9.0):
