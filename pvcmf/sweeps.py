@@ -508,7 +508,8 @@ class PipelineEvaluation(Evaluation):
         if self.cache_dir is None:
             return self._prepare(case, **group)
         _, ident = _case_identity(case)
-        folder = Path(self.cache_dir) / _point_key(ident, group, self.identity(), code_version())
+        what = {k: v for k, v in self.identity().items() if k not in ("method", "keep_distance")}
+        folder = Path(self.cache_dir) / _point_key(ident, group, what, code_version())
         names = {"grid": "grid.vtu", "skin": "skin.vtp", "postop": "postop.vtp"}
         if (folder / "done").exists():
             try:
