@@ -65,6 +65,18 @@ _OSTEOTOMY_KEYS = ("segment", "translation", "rotation", "pivot", "cut")
 _CUT_KEYS = ("point", "normal")
 
 
+def _check_keys(data, allowed, where, required=()):
+    """Raise a ValueError naming ``where`` if ``data`` is no dict or has unknown keys."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where} must be a table/object, got {data!r}")
+    unknown = sorted(set(data) - set(allowed))
+    if unknown:
+        raise ValueError(f"{where} has unknown key(s) {unknown}; allowed keys are {list(allowed)}")
+    missing = [k for k in required if k not in data]
+    if missing:
+        raise ValueError(f"{where} is missing key(s) {missing}")
+
+
 def _vector3(value, name):
     """Return ``value`` as 3 finite floats or raise a ValueError naming ``name``."""
     try:
@@ -166,13 +178,7 @@ class Osteotomy:
     @classmethod
     def from_dict(cls, data, where="osteotomy"):
         """Build an osteotomy from plain data, rejecting unknown keys."""
-        if not isinstance(data, dict):
-            raise ValueError(f"{where} must be a table/object, got {data!r}")
-        unknown = sorted(set(data) - set(_OSTEOTOMY_KEYS))
-        if unknown:
-            raise ValueError(
-                f"{where} has unknown key(s) {unknown}; allowed keys are {list(_OSTEOTOMY_KEYS)}"
-            )
+        _check_keys(data, _OSTEOTOMY_KEYS, where)
         if "segment" not in data:
             raise ValueError(f"{where} needs a 'segment' (one of {list(MOVABLE_SEGMENTS)})")
         cut = data.get("cut", ())
@@ -180,15 +186,7 @@ class Osteotomy:
             raise ValueError(f"{where}.cut must be a list of planes, got {cut!r}")
         planes = []
         for i, plane in enumerate(cut):
-            if not isinstance(plane, dict):
-                raise ValueError(f"{where}.cut[{i}] must be a table with point and normal")
-            unknown = sorted(set(plane) - set(_CUT_KEYS))
-            missing = sorted(set(_CUT_KEYS) - set(plane))
-            if unknown or missing:
-                raise ValueError(
-                    f"{where}.cut[{i}] must have exactly the keys {list(_CUT_KEYS)}; "
-                    f"unknown {unknown}, missing {missing}"
-                )
+            _check_keys(plane, _CUT_KEYS, f"{where}.cut[{i}]", required=_CUT_KEYS)
             planes.append((plane["point"], plane["normal"]))
         try:
             return cls(
@@ -284,13 +282,7 @@ class Plan:
         ValueError
             Naming the offending key (``osteotomy[1].rotation``) and its value.
         """
-        if not isinstance(data, dict):
-            raise ValueError(f"a plan must be a table/object, got {type(data).__name__}")
-        unknown = sorted(set(data) - set(_PLAN_KEYS))
-        if unknown:
-            raise ValueError(
-                f"plan has unknown key(s) {unknown}; allowed keys are {list(_PLAN_KEYS)}"
-            )
+        _check_keys(data, _PLAN_KEYS, "plan")
         items = data.get("osteotomy", [])
         if isinstance(items, dict):
             items = [items]
