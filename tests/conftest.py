@@ -64,3 +64,18 @@ def verify_chart(request):
         assert result is None, result
 
     return check
+
+
+@pytest.fixture(scope="session")
+def segmented_patients():
+    """The four virtual patients at 2 mm with their ``segment()`` output, built once.
+
+    ``{patient: (case, labels)}``; shared by test_segment.py and test_classify.py.
+    """
+    import pvcmf
+
+    out = {}
+    for p in (1, 2, 3, 4):
+        case = pvcmf.datasets.phantom(patient=p, spacing=2.0)
+        out[p] = (case, case.ct.cmf.segment())
+    return out

@@ -170,11 +170,10 @@ def test_fat_only_slice_uses_pooled_threshold():
 
 # --------------------------------------------------------------------------- virtual patients
 @pytest.fixture(scope="module")
-def phantom_fits():
+def phantom_fits(segmented_patients):
+    """Virtual patients at 2 mm, segmented once (conftest), then classified."""
     out = {}
-    for p in (1, 2, 3, 4):
-        case = pvcmf.datasets.phantom(patient=p, spacing=2.0)  # shared with test_phantom
-        segmented = case.ct.cmf.segment()
+    for p, (case, segmented) in segmented_patients.items():
         labelled, mix = segmented.cmf.classify_tissue(return_mixtures=True)
         out[p] = (case, labelled, mix, segmented)
     return out

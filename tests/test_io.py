@@ -337,3 +337,38 @@ def test_headsq_from_data_dir(data_dir):
     d = pvcmf.datasets.headsq()
     assert HEADSQ_SKIN_ISO - 1000.0 == SKIN_THRESHOLD and HEADSQ_BONE_ISO - 1000.0 == 150.0
     np.testing.assert_array_equal(d[arrays.CT], ct[arrays.CT])
+
+
+def test_headsq_download_path_without_network(data_dir, tmp_path, monkeypatch):
+    """Without $PVCMF_DATA_DIR, headsq fetches its 94 files with pooch into the cache and
+    checks them; here pooch.retrieve is replaced by a copy from the shared folder."""
+    import shutil
+
+    import pooch
+
+    src = data_dir / "headsq"
+    if not (src / "quarter.nhdr").is_file():
+        pytest.skip("headsq not in the data folder")
+    calls = []
+
+    def fake_retrieve(url, known_hash, fname, path, progressbar):
+        calls.append(url)
+        target = tmp_path / "cache" / "headsq" / fname
+        assert str(path) == str(target.parent)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if not target.exists():
+            shutil.copy(src / fname, target)
+        return str(target)
+
+    monkeypatch.delenv("PVCMF_DATA_DIR")
+    monkeypatch.setenv("PVCMF_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(pooch, "retrieve", fake_retrieve)
+    ct = pvcmf.datasets.headsq()
+    assert len(calls) == 94 and calls[0].endswith("Data/headsq/quarter.nhdr")
+    ref = pvcmf.read_ct(src / "quarter.nhdr", offset=-1000.0)
+    vol = ref[arrays.CT].reshape(ref.dimensions, order="F")[:, ::-1, ::-1]
+    np.testing.assert_array_equal(ct[arrays.CT], vol.ravel(order="F"))
+    # a corrupted download is refused
+    (tmp_path / "cache" / "headsq" / "quarter.7").write_bytes(b"\0" * 8192)
+    with pytest.raises(ValueError, match="SHA-256"):
+        pvcmf.datasets.headsq()

@@ -143,16 +143,10 @@ def test_defaults_are_hu():
 
 
 # --------------------------------------------------------------------------- virtual patients
-PHANTOM_SPACING = 2.0  # the spacing test_phantom.py uses: the phantom's cache serves both
-
-
 @pytest.fixture(scope="module")
-def patients():
-    out = {}
-    for p in (1, 2, 3, 4):
-        case = pvcmf.datasets.phantom(patient=p, spacing=PHANTOM_SPACING)
-        out[p] = (case, case.ct.cmf.segment())
-    return out
+def patients(segmented_patients):
+    """conftest's session fixture: phantoms at 2 mm (as test_phantom.py) and segment()."""
+    return segmented_patients
 
 
 @pytest.mark.parametrize("patient", [1, 2, 3, 4])
