@@ -186,7 +186,7 @@ def bench(n, args):
             msg = f"NOT converged: {err}"
             ur = None
         t_rel = time.perf_counter() - t
-        print(f"relaxation {ms(t_rel)} ({msg}) -> {t_rel / total:.0f}x the {method} time")
+        print(f"relaxation {ms(t_rel)} ({msg}) -> {t_rel / total:.1f}x the {method} time")
         if ur is not None:
             print(f"  max |u_relax - u_direct| / max|u| = {np.abs(ur - u).max() / np.abs(u).max():.1e}")
     print(f"process peak RSS (mesh generation included) {peak_rss_mb():.0f} MB", flush=True)
