@@ -27,6 +27,8 @@ Methods
 
 Iterative methods and triangular solves run with one BLAS thread (threadpoolctl, when
 installed): they are memory bound, and threaded BLAS calls on short vectors only spin.
+Factorisations keep the BLAS default unless the machine is already busy (load average at
+least the number of cores).
 
 :class:`Solver` keeps everything that does not depend on the material (geometry, sparsity
 pattern, elimination maps, the symbolic factorisation), so a Poisson-ratio sweep only refactors
@@ -38,6 +40,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import time
 import warnings
 
@@ -104,6 +107,18 @@ def _single_threaded_blas():
             _CONTROLLER.append(None)
     ctl = _CONTROLLER[0]
     return contextlib.nullcontext() if ctl is None else ctl.limit(limits=1, user_api="blas")
+
+
+def _factor_threads():
+    """BLAS threads for a factorisation: the library's default, but one thread when the
+    machine is already busy (load average >= cores), where extra threads only spin: at 30k
+    tetrahedra under load 8 on 2 cores, CHOLMOD + solve took 0.36 s CPU single-threaded
+    against 0.73 s with two threads."""
+    try:
+        busy = os.getloadavg()[0] >= (os.cpu_count() or 1)
+    except OSError:  # no load average on this platform
+        busy = False
+    return _single_threaded_blas() if busy else contextlib.nullcontext()
 
 
 def _norm(x):
@@ -480,7 +495,7 @@ class Solver:
         self.timings["assembly"] = t1 - t0
         self._stale = bool(nf) and not refactor and self._backend is not None
         if nf and not self._stale:
-            threads = contextlib.nullcontext() if self.method == "direct" else _single_threaded_blas()
+            threads = _factor_threads() if self.method == "direct" else _single_threaded_blas()
             with threads:
                 getattr(self, f"_setup_{self.method}")()
         self.timings["factor"] = time.perf_counter() - t1
