@@ -720,7 +720,7 @@ class Solver:
 
         bg = cp.asarray(b)
         x0 = None if y0 is None else cp.asarray(y0)
-        try:  # CuPy >= 14 names the relative tolerance rtol (keyword-only), older ones tol
+        try:  # newer CuPy names the relative tolerance rtol (keyword-only), older ones tol
             yg, flag = cla.cg(self._gpu_K, bg, x0=x0, rtol=self.tol, atol=0.0, maxiter=maxiter,
                               M=M, callback=cb)
         except TypeError:
