@@ -305,7 +305,7 @@ def _face_outer(P):
     d = _smin(d, _capsule(P, (0.0, 92.0, 20.0), (0.0, 101.0, -2.0), 7.0, 4.5), 3.0)  # nasal
     d = _smin(d, _capsule(P, (0.0, 88.0, -41.0), (0.0, 97.0, -39.0), 2.5), 2.0)  # ANS
     d = _smin(d, _box(P, (0.0, 30.0, -22.0), (28.0, 10.0, 22.0), 4.0), 4.0)  # pterygoid
-    d = _smin(d, _cull(UPPER_ALVEOLUS, P, (-45, 30, -66), (45, 106, -26), 1e3), 3.0)
+    d = _smin(d, _cull(UPPER_ALVEOLUS, P, *_grow((-36, 38, -56), (36, 97, -35)), 1e3), 3.0)
     return d
 
 
@@ -411,12 +411,12 @@ MANDIBLE_BODY = _Arch(_mandible_curve(), [7.0, 6.5, 6.0, 6.5, 7.0],
 
 def mandible_sdf(P):
     """Mandible: body, chin, angles, rami, condyles and coronoid processes."""
-    d = _cull(MANDIBLE_BODY, P, (-65, -8, -115), (65, 105, -55), 1e3)
+    d = _cull(MANDIBLE_BODY, P, *_grow((-56, 0, -105), (56, 95, -67)), 1e3)
     d = _smin(d, _ellipsoid(P, (0.0, 86.0, -95.0), (14.0, 7.5, 10.0)), 4.0)  # chin
     for sx in (-1.0, 1.0):
-        lo, hi = (35.0, -15.0, -90.0), (70.0, 45.0, -8.0)
+        lo, hi = _grow((38.0, -5.0, -78.0), (62.0, 33.0, -18.0))
         if sx < 0:
-            lo, hi = (-70.0, -15.0, -90.0), (-35.0, 45.0, -8.0)
+            lo, hi = _grow((-62.0, -5.0, -78.0), (-38.0, 33.0, -18.0))
         d = _smin(d, _cull(functools.partial(_ramus, sx=sx), P, lo, hi, 1e3), 4.0)
     return d
 
@@ -515,11 +515,11 @@ def _ears(P):
 def skin_sdf(P, thickness=1.0):
     """Outer skin surface: bony envelope offset by the thickness field, nose, lips, ears, neck."""
     d = _bone_envelope(P) - thickness * thickness_field(P)
-    d = _smin(d, _cull(eyes_sdf, P, *_grow((-47, 65, -2), (47, 93, 26), 16), 1e3) - 2.5, 4.0)
-    d = _smin(d, _cull(_nose, P, *_grow((-22, 88, -40), (22, 129, 25), 12), 1e3), 5.0)
-    d = _smin(d, _cull(_lips, P, *_grow((-25, 82, -80), (25, 107, -40), 12), 1e3), 4.0)
+    d = _smin(d, _cull(eyes_sdf, P, *_grow((-47, 65, -2), (47, 93, 26)), 1e3) - 2.5, 4.0)
+    d = _smin(d, _cull(_nose, P, *_grow((-22, 88, -40), (22, 129, 25)), 1e3), 5.0)
+    d = _smin(d, _cull(_lips, P, *_grow((-25, 82, -80), (25, 107, -40)), 1e3), 4.0)
     d = _smin(d, _cull(_neck, P, *_grow((-55, -65, -146), (55, 50, -10), 30), 1e3), 14.0)
-    d = _smin(d, _cull(_ears, P, *_grow((-78, -22, -24), (78, 6, 28), 8), 1e3), 2.0)
+    d = _smin(d, _cull(_ears, P, *_grow((-78, -22, -24), (78, 6, 28), 12), 1e3), 2.0)
     return d
 
 
@@ -574,7 +574,10 @@ _LANDMARK_SPECS = [
     ("zygion_right", "bone", (-130, 35, -6), (1, 0, 0), "cranium"),
     ("frontozygomatic_left", "bone", (130, 75, 14), (-1, 0, 0), "cranium"),
     ("frontozygomatic_right", "bone", (-130, 75, 14), (1, 0, 0), "cranium"),
+    ("anterior_nasal_spine", "bone", (0, 160, -39.5), (0, -1, 0), "maxilla"),
     ("A_point", "bone", (0, 160, -45), (0, -1, 0), "maxilla"),
+    ("infraorbital_left", "bone", (27, 160, -14), (0, -1, 0), "cranium"),
+    ("infraorbital_right", "bone", (-27, 160, -14), (0, -1, 0), "cranium"),
     ("upper_incisor", "tooth", (2, 160, -58), (0, -1, 0), "maxilla"),
     ("lower_incisor", "tooth", (2, 160, -69), (0, -1, 0), "mandible"),
     ("B_point", "bone", (0, 160, -82), (0, -1, 0), "mandible"),
@@ -582,6 +585,18 @@ _LANDMARK_SPECS = [
     ("menton", "bone", (0, 84, -160), (0, 0, 1), "mandible"),
     ("gonion_left", "bone", (75, -10, -100), (-0.5, 0.3, 0.55), "mandible"),
     ("gonion_right", "bone", (-75, -10, -100), (0.5, 0.3, 0.55), "mandible"),
+    ("supraorbital_left", "bone", (30, 160, 30), (0, -1, 0), "cranium"),
+    ("supraorbital_right", "bone", (-30, 160, 30), (0, -1, 0), "cranium"),
+    ("zygomaxillare_left", "bone", (40, 160, -22), (0, -1, 0), "cranium"),
+    ("zygomaxillare_right", "bone", (-40, 160, -22), (0, -1, 0), "cranium"),
+    ("piriform_left", "bone", (15, 160, -20), (0, -1, 0), "cranium"),
+    ("piriform_right", "bone", (-15, 160, -20), (0, -1, 0), "cranium"),
+    ("canine_eminence_left", "bone", (17, 160, -44), (0, -1, 0), "maxilla"),
+    ("canine_eminence_right", "bone", (-17, 160, -44), (0, -1, 0), "maxilla"),
+    ("ramus_left", "bone", (130, 22, -45), (-1, 0, 0), "mandible"),
+    ("ramus_right", "bone", (-130, 22, -45), (1, 0, 0), "mandible"),
+    ("mental_left", "bone", (20, 160, -92), (0, -1, 0), "mandible"),
+    ("mental_right", "bone", (-20, 160, -92), (0, -1, 0), "mandible"),
     ("soft_tissue_glabella", "skin", (0, 160, 38), (0, -1, 0), None),
     ("soft_tissue_nasion", "skin", (0, 160, 19), (0, -1, 0), None),
     ("pronasale", "skin", (0, 160, -25), (0, -1, 0), None),
@@ -589,7 +604,12 @@ _LANDMARK_SPECS = [
     ("alare_left", "skin", (60, 106, -31), (-1, 0, 0), None),
     ("alare_right", "skin", (-60, 106, -31), (1, 0, 0), None),
     ("labrale_superius", "skin", (0, 160, -52), (0, -1, 0), None),
+    ("stomion", "skin", (0, 160, -61), (0, -1, 0), None),
     ("labrale_inferius", "skin", (0, 160, -70), (0, -1, 0), None),
+    ("soft_tissue_infraorbital_left", "skin", (27, 160, -14), (0, -1, 0), None),
+    ("soft_tissue_infraorbital_right", "skin", (-27, 160, -14), (0, -1, 0), None),
+    ("nasolabial_left", "skin", (30, 160, -45), (0, -1, 0), None),
+    ("nasolabial_right", "skin", (-30, 160, -45), (0, -1, 0), None),
     ("cheilion_left", "skin", (25, 160, -61), (0, -1, 0), None),
     ("cheilion_right", "skin", (-25, 160, -61), (0, -1, 0), None),
     ("soft_tissue_B_point", "skin", (0, 160, -82), (0, -1, 0), None),
@@ -603,6 +623,18 @@ _LANDMARK_SPECS = [
     ("soft_tissue_zygion_right", "skin", (-130, 40, -6), (1, 0, 0), None),
     ("soft_tissue_gonion_left", "skin", (130, 8, -72), (-1, 0, 0), None),
     ("soft_tissue_gonion_right", "skin", (-130, 8, -72), (1, 0, 0), None),
+    ("supraorbital_soft_left", "skin", (30, 160, 30), (0, -1, 0), None),
+    ("supraorbital_soft_right", "skin", (-30, 160, 30), (0, -1, 0), None),
+    ("malar_left", "skin", (40, 160, -10), (0, -1, 0), None),
+    ("malar_right", "skin", (-40, 160, -10), (0, -1, 0), None),
+    ("buccal_left", "skin", (40, 160, -50), (0, -1, 0), None),
+    ("buccal_right", "skin", (-40, 160, -50), (0, -1, 0), None),
+    ("subalare_left", "skin", (14, 160, -37), (0, -1, 0), None),
+    ("subalare_right", "skin", (-14, 160, -37), (0, -1, 0), None),
+    ("mental_soft_left", "skin", (20, 160, -92), (0, -1, 0), None),
+    ("mental_soft_right", "skin", (-20, 160, -92), (0, -1, 0), None),
+    ("masseteric_left", "skin", (130, 22, -45), (-1, 0, 0), None),
+    ("masseteric_right", "skin", (-130, 22, -45), (1, 0, 0), None),
     ("tragion_left", "skin", (130, 8, 0), (-1, 0, 0), None),
     ("tragion_right", "skin", (-130, 8, 0), (1, 0, 0), None),
 ]
@@ -913,8 +945,8 @@ def _check_patient(patient):
 
 
 def _maxilla_weight(z):
-    """1 on the Le Fort I segment, fading to 0 over the 20 mm above the cut."""
-    return 1.0 - _smoothstep(z, Z_LEFORT, Z_LEFORT + 20.0)
+    """1 on the Le Fort I segment, fading to 0 over the 40 mm above the cut (mid-face)."""
+    return 1.0 - _smoothstep(z, Z_LEFORT, Z_LEFORT + 40.0)
 
 
 def _mandible_weight(y):
@@ -923,8 +955,9 @@ def _mandible_weight(y):
 
 
 def _soft_weights(P):
-    lower = 1.0 - _smoothstep(P[2], -66.0, -58.0)
-    a = _maxilla_weight(P[2]) * (1.0 - lower) * _smoothstep(P[1], 20.0, 50.0)
+    """Share of the maxillary (a) and mandibular (b) displacement the soft tissue follows."""
+    lower = 1.0 - _smoothstep(P[2], -70.0, -56.0)
+    a = _maxilla_weight(P[2]) * (1.0 - lower) * _smoothstep(P[1], 0.0, 60.0)
     b = lower * _mandible_weight(P[1]) * _smoothstep(P[2], -150.0, -115.0)
     return a, b
 
@@ -946,34 +979,19 @@ def _sample_field(field, pts):
     return ndimage.map_coordinates(field, idx, order=1, mode="nearest")
 
 
-@functools.lru_cache(maxsize=1)
-def _radial_envelope():
-    """Radius of the bony envelope seen from CENTER, on a (theta, phi) grid, smoothed."""
-    skin_f, bone_f, _ = _template_fields()
-    th = np.radians(np.arange(0.0, 180.1, 3.0))
-    ph = np.radians(np.arange(-180.0, 180.0, 3.0))
-    T, PH = np.meshgrid(th, ph, indexing="ij")
-    u = np.stack([np.sin(T) * np.cos(PH), np.sin(T) * np.sin(PH), np.cos(T)], -1).reshape(-1, 3)
-    r = np.arange(0.0, 190.0, 1.0)
-    pts = (CENTER + u[:, None, :] * r[None, :, None]).reshape(-1, 3)
-    bone = (_sample_field(bone_f, pts) < 0).reshape(len(u), len(r))
-    skin = (_sample_field(skin_f, pts) < 0).reshape(len(u), len(r))
-    last = lambda m: np.where(m.any(1), len(r) - 1 - np.argmax(m[:, ::-1], axis=1), 0)  # noqa
-    rb = np.minimum(r[last(bone)], r[last(skin)] - 4.0).reshape(T.shape)
-    rb = ndimage.gaussian_filter(rb, 1.5, mode=("nearest", "wrap"))
-    return rb.astype(F32)
+#: semi-axes (mm) of the inner ellipsoid (about CENTER) beyond which the radial soft-tissue
+#: map stretches: inside the skull and the facial skeleton, so the map is smooth and the
+#: soft tissue (and the outer bone) scale by the patient's thickness factor
+INNER_AXES = (42.0, 52.0, 62.0)
 
 
 def _envelope_radius(u):
-    """Interpolated bony-envelope radius along unit directions ``u`` (tuple of arrays)."""
-    rb = _radial_envelope()
-    theta = np.degrees(np.arccos(np.clip(u[2], -1.0, 1.0))) / 3.0
-    phi = (np.degrees(np.arctan2(u[1], u[0])) + 180.0) / 3.0
-    return ndimage.map_coordinates(rb, [np.ravel(theta), np.ravel(phi)], order=1,
-                                   mode="grid-wrap").reshape(np.shape(u[0])).astype(F32)
+    """Radius of the inner ellipsoid along unit directions ``u`` (tuple of arrays)."""
+    a = INNER_AXES
+    return (1.0 / np.sqrt((u[0] / a[0]) ** 2 + (u[1] / a[1]) ** 2 + (u[2] / a[2]) ** 2)).astype(F32)
 
 
-_SOFTPLUS_W = 2.0
+_SOFTPLUS_W = 5.0
 
 
 def _psi(v, f):
@@ -1325,7 +1343,7 @@ def rasterize(grid, warp, factor=None, progress_bar=False):
         out[(slice(None),) + sl] = d < 0
         return out, d, sl
 
-    inside = masks(skin_sdf, None, "soft", 2.0)[0][0]  # the thickness factor lives in the warp
+    inside = masks(skin_sdf, None, "soft", 2.6)[0][0]  # the thickness factor lives in the warp
     tissue = np.zeros(shape, np.uint8)
     bone = np.zeros(shape, np.uint8)
     muscle = np.zeros(shape, np.uint8)
