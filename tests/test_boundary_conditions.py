@@ -221,11 +221,7 @@ def small_head():
 
 
 def _solver():
-    try:
-        mtm = importlib.import_module("pvcmf.mtm")
-        return mtm.solve
-    except (ImportError, AttributeError):
-        pytest.skip("pvcmf.mtm.solve is not available yet (issue 5)")
+    return importlib.import_module("pvcmf.mtm").solve
 
 
 def _materials(grid):
