@@ -5,16 +5,23 @@ tetrahedron lies in exactly one region (fat or one muscle) and the element faces
 the muscle surfaces:
 
 1. the soft tissue (``arrays.SOFT_LABELS``, optionally cropped to a region of interest) is
-   resampled by nearest neighbour on a working grid whose spacing is chosen from the
-   requested number of tetrahedra (the surface triangles are about that size);
+   resampled by nearest neighbour on an isotropic working grid whose spacing is calibrated
+   from the requested number of tetrahedra (the surface triangles are about that size);
+   configurations that would make the surfaces non-manifold (a label touching itself or
+   another only along an edge or at a corner) are repaired, muscles never losing voxels,
+   and muscle fragments the coarse grid adds are given to the fat;
 2. every connected region of the working grid gets its own label and VTK's SurfaceNets
-   (PyVista's :meth:`pyvista.ImageDataFilters.contour_labels`) builds conforming multi-label
-   surfaces: an interface between two regions is one set of triangles shared by both;
-3. the surfaces are checked (every region's boundary must be closed and manifold) and a
-   volume per region is meshed by gmsh (HXT Delaunay, multithreaded, algorithm 10; gmsh
-   keeps the input surface triangles, so the interfaces stay conforming), with gmsh's
-   tetrahedral optimisation. When gmsh rejects the surfaces (self-intersections from the
-   SurfaceNets smoothing), the smoothing is halved and finally switched off, with a warning;
+   (PyVista's :meth:`pyvista.ImageDataFilters.contour_labels`, unsmoothed) builds conforming
+   multi-label surfaces: an interface between two regions is one set of triangles shared
+   by both. Coincident sheet vertices are merged, then the surface is smoothed with VTK's
+   ``vtkConstrainedSmoothingFilter`` (``smoothing_scale``): SurfaceNets' own smoothing pulls
+   coincident sheets through each other (the self-intersections DESIGN.md warns about);
+3. the surfaces are checked (every region's boundary must be closed) and a volume per
+   region is meshed by gmsh (HXT Delaunay, algorithm 10, multithreaded; gmsh keeps the
+   input surface triangles, so the interfaces stay conforming) with HXT's optimiser, and
+   gmsh's Netgen optimiser on the regions that still hold a sliver. When gmsh rejects the
+   surfaces the next step of :data:`_FALLBACKS` (a slightly different grid, weaker
+   smoothing) is tried and a warning says so;
 4. the region label is written on every element (``arrays.TISSUE``, ``arrays.MUSCLE``) and
    the element quality (dihedral angles, radius ratio) and the timings are written to the
    field data (names in :data:`QUALITY_FIELDS`).
@@ -23,8 +30,13 @@ the muscle surfaces:
 the paper's state of the art, completed by :func:`pvcmf.filters.sample_muscle_fraction`
 or :func:`pvcmf.filters.average_voxels`.
 
-Delegates to PyVista/VTK (``contour_labels`` = ``vtkSurfaceNets3D``), scipy.ndimage
-(connected components, distance transform for the bone ROI) and the gmsh Python API.
+Limitation: the working grid is isotropic, so muscles thinner than its spacing vanish (a
+warning names them) and thin tissue is resolved to about half a spacing; request more
+tetrahedra or a region of interest for the thin facial muscles.
+
+Delegates to PyVista/VTK (``contour_labels`` = ``vtkSurfaceNets3D``,
+``vtkConstrainedSmoothingFilter``), scipy.ndimage (connected components, distance transform
+for the bone ROI), scipy.sparse.csgraph (surface patches) and the gmsh Python API.
 """
 
 from __future__ import annotations
