@@ -302,6 +302,7 @@ def _face_outer(P):
     for sx in (-1.0, 1.0):
         d = _smin(d, _ellipsoid(P, (sx * 47.0, 62.0, -5.0), (11.0, 13.0, 14.0)), 4.0)
         d = _smin(d, _capsule(P, (sx * 50.0, 55.0, -5.0), (sx * 64.0, 8.0, -6.0), 4.5), 3.0)
+        d = _smin(d, _capsule(P, (sx * 47.0, 76.0, 30.0), (sx * 50.0, 68.0, -4.0), 5.0), 4.0)
     d = _smin(d, _capsule(P, (0.0, 92.0, 20.0), (0.0, 101.0, -2.0), 7.0, 4.5), 3.0)  # nasal
     d = _smin(d, _capsule(P, (0.0, 88.0, -41.0), (0.0, 97.0, -39.0), 2.5), 2.0)  # ANS
     d = _smin(d, _box(P, (0.0, 30.0, -22.0), (28.0, 10.0, 22.0), 4.0), 4.0)  # pterygoid
@@ -319,7 +320,7 @@ def face_cavities_sdf(P):
 
 def orbits_sdf(P):
     """The orbits (filled with the eyes and orbital fat)."""
-    return np.minimum(*[_ellipsoid(P, (sx * 34.0, 72.0, 12.0), (17.0, 30.0, 15.0))
+    return np.minimum(*[_ellipsoid(P, (sx * 33.0, 72.0, 12.0), (16.0, 30.0, 15.0))
                         for sx in (-1.0, 1.0)])
 
 
@@ -561,82 +562,62 @@ def neck_muscles_sdf(P):
 
 
 # =========================================================================== landmarks
-#: (name, surface, start point, direction or None for closest point, bone segment)
+def _pair(name, surface, start, direction, segment):
+    """Left and right landmark specs (the right one mirrored in x)."""
+    mirror = lambda v: None if v is None else (-v[0], v[1], v[2])  # noqa: E731
+    return [(f"{name}_left", surface, start, direction, segment),
+            (f"{name}_right", surface, mirror(start), mirror(direction), segment)]
+
+
+#: (name, surface, ray start, ray direction (None: fixed point), bone segment or None)
 _LANDMARK_SPECS = [
     ("nasion", "bone", (0, 160, 21), (0, -1, 0), "cranium"),
     ("glabella", "bone", (0, 160, 38), (0, -1, 0), "cranium"),
     ("sella", "fixed", (0, 14, -2), None, "cranium"),
-    ("orbitale_left", "bone", (33, 110, -3), (0, -1, 0.25), "cranium"),
-    ("orbitale_right", "bone", (-33, 110, -3), (0, -1, 0.25), "cranium"),
-    ("porion_left", "bone", (130, 0, 0), (-1, 0, 0), "cranium"),
-    ("porion_right", "bone", (-130, 0, 0), (1, 0, 0), "cranium"),
-    ("zygion_left", "bone", (130, 35, -6), (-1, 0, 0), "cranium"),
-    ("zygion_right", "bone", (-130, 35, -6), (1, 0, 0), "cranium"),
-    ("frontozygomatic_left", "bone", (130, 75, 14), (-1, 0, 0), "cranium"),
-    ("frontozygomatic_right", "bone", (-130, 75, 14), (1, 0, 0), "cranium"),
+    *_pair("orbitale", "bone", (33, 80, 12), (0, 0, -1), "cranium"),
+    *_pair("porion", "bone", (130, 0, 0), (-1, 0, 0), "cranium"),
+    *_pair("zygion", "bone", (130, 35, -6), (-1, 0, 0), "cranium"),
+    *_pair("frontozygomatic", "bone", (130, 75, 14), (-1, 0, 0), "cranium"),
     ("anterior_nasal_spine", "bone", (0, 160, -39.5), (0, -1, 0), "maxilla"),
     ("A_point", "bone", (0, 160, -45), (0, -1, 0), "maxilla"),
-    ("infraorbital_left", "bone", (27, 160, -14), (0, -1, 0), "cranium"),
-    ("infraorbital_right", "bone", (-27, 160, -14), (0, -1, 0), "cranium"),
+    *_pair("infraorbital", "bone", (27, 160, -14), (0, -1, 0), "cranium"),
     ("upper_incisor", "tooth", (2, 160, -58), (0, -1, 0), "maxilla"),
     ("lower_incisor", "tooth", (2, 160, -69), (0, -1, 0), "mandible"),
     ("B_point", "bone", (0, 160, -82), (0, -1, 0), "mandible"),
     ("pogonion", "bone", (0, 160, -95), (0, -1, 0), "mandible"),
     ("menton", "bone", (0, 84, -160), (0, 0, 1), "mandible"),
-    ("gonion_left", "bone", (75, -10, -100), (-0.5, 0.3, 0.55), "mandible"),
-    ("gonion_right", "bone", (-75, -10, -100), (0.5, 0.3, 0.55), "mandible"),
-    ("supraorbital_left", "bone", (30, 160, 30), (0, -1, 0), "cranium"),
-    ("supraorbital_right", "bone", (-30, 160, 30), (0, -1, 0), "cranium"),
-    ("zygomaxillare_left", "bone", (40, 160, -22), (0, -1, 0), "cranium"),
-    ("zygomaxillare_right", "bone", (-40, 160, -22), (0, -1, 0), "cranium"),
-    ("piriform_left", "bone", (15, 160, -20), (0, -1, 0), "cranium"),
-    ("piriform_right", "bone", (-15, 160, -20), (0, -1, 0), "cranium"),
-    ("canine_eminence_left", "bone", (17, 160, -44), (0, -1, 0), "maxilla"),
-    ("canine_eminence_right", "bone", (-17, 160, -44), (0, -1, 0), "maxilla"),
-    ("ramus_left", "bone", (130, 22, -45), (-1, 0, 0), "mandible"),
-    ("ramus_right", "bone", (-130, 22, -45), (1, 0, 0), "mandible"),
-    ("mental_left", "bone", (20, 160, -92), (0, -1, 0), "mandible"),
-    ("mental_right", "bone", (-20, 160, -92), (0, -1, 0), "mandible"),
+    *_pair("gonion", "bone", (75, -10, -100), (-0.5, 0.3, 0.55), "mandible"),
+    *_pair("supraorbital", "bone", (30, 160, 30), (0, -1, 0), "cranium"),
+    *_pair("zygomaxillare", "bone", (40, 160, -22), (0, -1, 0), "cranium"),
+    *_pair("piriform", "bone", (15, 160, -20), (0, -1, 0), "cranium"),
+    *_pair("canine_eminence", "bone", (17, 160, -44), (0, -1, 0), "maxilla"),
+    *_pair("ramus", "bone", (130, 22, -45), (-1, 0, 0), "mandible"),
+    *_pair("mental", "bone", (20, 160, -92), (0, -1, 0), "mandible"),
     ("soft_tissue_glabella", "skin", (0, 160, 38), (0, -1, 0), None),
     ("soft_tissue_nasion", "skin", (0, 160, 19), (0, -1, 0), None),
     ("pronasale", "skin", (0, 160, -25), (0, -1, 0), None),
     ("subnasale", "skin", (0, 160, -40.5), (0, -1, 0), None),
-    ("alare_left", "skin", (60, 106, -31), (-1, 0, 0), None),
-    ("alare_right", "skin", (-60, 106, -31), (1, 0, 0), None),
+    *_pair("alare", "skin", (60, 106, -31), (-1, 0, 0), None),
     ("labrale_superius", "skin", (0, 160, -52), (0, -1, 0), None),
     ("stomion", "skin", (0, 160, -61), (0, -1, 0), None),
     ("labrale_inferius", "skin", (0, 160, -70), (0, -1, 0), None),
-    ("soft_tissue_infraorbital_left", "skin", (27, 160, -14), (0, -1, 0), None),
-    ("soft_tissue_infraorbital_right", "skin", (-27, 160, -14), (0, -1, 0), None),
-    ("nasolabial_left", "skin", (30, 160, -45), (0, -1, 0), None),
-    ("nasolabial_right", "skin", (-30, 160, -45), (0, -1, 0), None),
-    ("cheilion_left", "skin", (25, 160, -61), (0, -1, 0), None),
-    ("cheilion_right", "skin", (-25, 160, -61), (0, -1, 0), None),
+    *_pair("soft_tissue_infraorbital", "skin", (27, 160, -14), (0, -1, 0), None),
+    *_pair("nasolabial", "skin", (30, 160, -45), (0, -1, 0), None),
+    *_pair("cheilion", "skin", (25, 160, -61), (0, -1, 0), None),
     ("soft_tissue_B_point", "skin", (0, 160, -82), (0, -1, 0), None),
     ("soft_tissue_pogonion", "skin", (0, 160, -95), (0, -1, 0), None),
     ("soft_tissue_menton", "skin", (0, 80, -160), (0, 0, 1), None),
-    ("exocanthion_left", "skin", (45, 160, 12), (0, -1, 0), None),
-    ("exocanthion_right", "skin", (-45, 160, 12), (0, -1, 0), None),
-    ("cheek_left", "skin", (48, 160, -30), (0, -1, 0), None),
-    ("cheek_right", "skin", (-48, 160, -30), (0, -1, 0), None),
-    ("soft_tissue_zygion_left", "skin", (130, 40, -6), (-1, 0, 0), None),
-    ("soft_tissue_zygion_right", "skin", (-130, 40, -6), (1, 0, 0), None),
-    ("soft_tissue_gonion_left", "skin", (130, 8, -72), (-1, 0, 0), None),
-    ("soft_tissue_gonion_right", "skin", (-130, 8, -72), (1, 0, 0), None),
-    ("supraorbital_soft_left", "skin", (30, 160, 30), (0, -1, 0), None),
-    ("supraorbital_soft_right", "skin", (-30, 160, 30), (0, -1, 0), None),
-    ("malar_left", "skin", (40, 160, -10), (0, -1, 0), None),
-    ("malar_right", "skin", (-40, 160, -10), (0, -1, 0), None),
-    ("buccal_left", "skin", (40, 160, -50), (0, -1, 0), None),
-    ("buccal_right", "skin", (-40, 160, -50), (0, -1, 0), None),
-    ("subalare_left", "skin", (14, 160, -37), (0, -1, 0), None),
-    ("subalare_right", "skin", (-14, 160, -37), (0, -1, 0), None),
-    ("mental_soft_left", "skin", (20, 160, -92), (0, -1, 0), None),
-    ("mental_soft_right", "skin", (-20, 160, -92), (0, -1, 0), None),
-    ("masseteric_left", "skin", (130, 22, -45), (-1, 0, 0), None),
-    ("masseteric_right", "skin", (-130, 22, -45), (1, 0, 0), None),
-    ("tragion_left", "skin", (130, 8, 0), (-1, 0, 0), None),
-    ("tragion_right", "skin", (-130, 8, 0), (1, 0, 0), None),
+    *_pair("exocanthion", "skin", (45, 160, 12), (0, -1, 0), None),
+    *_pair("cheek", "skin", (48, 160, -30), (0, -1, 0), None),
+    *_pair("soft_tissue_zygion", "skin", (130, 40, -6), (-1, 0, 0), None),
+    *_pair("soft_tissue_gonion", "skin", (130, 8, -72), (-1, 0, 0), None),
+    *_pair("supraorbital_soft", "skin", (30, 160, 30), (0, -1, 0), None),
+    *_pair("malar", "skin", (40, 160, -10), (0, -1, 0), None),
+    *_pair("buccal", "skin", (40, 160, -50), (0, -1, 0), None),
+    *_pair("subalare", "skin", (14, 160, -37), (0, -1, 0), None),
+    *_pair("mental_soft", "skin", (20, 160, -92), (0, -1, 0), None),
+    *_pair("masseteric", "skin", (130, 22, -45), (-1, 0, 0), None),
+    *_pair("tragion", "skin", (130, 8, 0), (-1, 0, 0), None),
 ]
 
 
