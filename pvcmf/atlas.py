@@ -340,9 +340,20 @@ class Atlas:
         pts, classes = cache[key]
         return pts.copy(), classes.copy()
 
-    def _make_controls(self, n):
-        cell = float(np.sqrt((self.skin.area + self.skull.area) / max(int(n), 10)))
-        pts = [_downsample(self.skin.points, cell), _downsample(self.skull.points, cell)]
+    def _make_controls(self, n, margin=20.0, coarse=2.5):
+        """Control points: ``coarse`` times sparser away from the muscles (``margin`` mm
+        around their bounding box) than near them, about ``n`` in all."""
+        lo = np.min([m.bounds[::2] for m in self.muscles.values()], axis=0) - margin
+        hi = np.max([m.bounds[1::2] for m in self.muscles.values()], axis=0) + margin
+        surfs = [np.asarray(self.skin.points), np.asarray(self.skull.points)]
+        near = [((p >= lo) & (p <= hi)).all(axis=1) for p in surfs]
+        area = self.skin.area + self.skull.area
+        frac = sum(m.sum() for m in near) / sum(len(p) for p in surfs)
+        cell = float(np.sqrt(area * (frac + (1 - frac) / coarse**2) / max(int(n), 10)))
+        pts = [
+            np.vstack([_downsample(p[m], cell), _downsample(p[~m], coarse * cell)])
+            for p, m in zip(surfs, near)
+        ]
         classes = np.concatenate([np.zeros(len(pts[0]), int), np.ones(len(pts[1]), int)])
         # where bone reaches the skin both surfaces hold the same points: keep one
         return _unique_rows(np.vstack(pts), classes, 0.25 * cell)
@@ -353,8 +364,8 @@ class Atlas:
         landmarks=None,
         *,
         spacing=FIT_SPACING,
-        n_control=1500,
-        smoothing=(100.0, 30.0, 10.0, 3.0),
+        n_control=1200,
+        smoothing=(1000.0, 300.0, 100.0),
         iterations=3,
         max_distance=8.0,
         progress_bar=False,

@@ -99,12 +99,12 @@ def _camera(plotter, labels, where="front"):
 
 #: short legend names
 SHORT = {
-    "orbicularis_oculi": "orbicularis oculi",
+    "orbicularis_oculi": "orb. oculi",
     "levator_labii_superioris_alaeque_nasi": "LLSAN",
     "levator_labii_superioris": "LLS",
     "masseter": "masseter",
-    "zygomaticus_major": "zygomaticus major",
-    "zygomaticus_minor": "zygomaticus minor",
+    "zygomaticus_major": "zyg. major",
+    "zygomaticus_minor": "zyg. minor",
 }
 
 

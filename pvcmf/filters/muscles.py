@@ -140,7 +140,7 @@ def embed_muscles(
         Raise instead of warn when a muscle falls mostly outside the soft tissue.
     min_soft_fraction : float
         Least share (0-1) of a muscle's voxels that must lie in soft tissue (and of its
-        volume inside the image) before a :class:`MuscleOutsideWarning` names it.
+        surface inside the image) before a :class:`MuscleOutsideWarning` names it.
     progress_bar : bool
         Log each muscle at INFO level (the step takes ~1 s at 1 mm).
 
@@ -225,7 +225,7 @@ def embed_muscles(
 
     soft = _soft_mask(new_tissue)
     assigned = np.zeros(tissue.shape, dtype=bool)
-    voxel_volume = float(np.prod(labels.spacing))
+    dims = np.asarray(labels.dimensions)
     problems = []
     for name in arrays.MUSCLES:
         surf = warped.muscles.get(name)
@@ -235,13 +235,13 @@ def embed_muscles(
         n_in = int(inside.sum())
         in_soft = inside & soft
         n_soft = int(in_soft.sum())
-        volume = abs(float(surf.volume))
         share_soft = n_soft / n_in if n_in else 0.0
-        share_image = n_in * voxel_volume / volume if volume > 0 else 1.0
+        ijk = to_index(labels, surf.points)
+        share_image = float(np.mean(((ijk >= -0.5) & (ijk <= dims - 0.5)).all(axis=1)))
         if n_in == 0 or share_soft < min_soft_fraction or share_image < min_soft_fraction:
             problems.append(
                 f"{name}: {100 * share_soft:.0f}% of its {n_in} voxels in soft tissue, "
-                f"{100 * min(share_image, 1):.0f}% of its volume inside the image"
+                f"{100 * share_image:.0f}% of its surface inside the image"
             )
         put = in_soft
         overlap = int((in_soft & assigned).sum())
