@@ -516,8 +516,21 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
         except Exception as exc:  # gmsh raises a bare Exception with its last error
             raise SurfaceError(f"gmsh could not mesh the surfaces: {exc}") from exc
         nodes, tets, comp = _gmsh_tets(regions)
+        node_tags = gmsh.model.mesh.getNodes()[0].astype(np.int64)
+
+        def tags_of(cells):
+            return node_tags[cells]
+
         if min_dihedral is not None and (accept is None or accept(len(tets))):
             worst = tet_quality(nodes, tets)[0].min(axis=1)
+            sliver = worst < min_dihedral
+            on_surface = np.all(tags_of(tets) <= len(points), axis=1)
+            if sliver.any() and np.all(on_surface[sliver]):
+                # flat tetrahedra spanning four surface points (a crease where a region
+                # pinches): dropping them changes the volume by ~0 and keeps conformity
+                log.info("tetrahedralize: %d flat surface tetrahedra dropped", int(sliver.sum()))
+                tets, comp = tets[~sliver], comp[~sliver]
+                worst = worst[~sliver]
             if worst.min() < min_dihedral:
                 # a sliver the HXT optimiser left (usually where a region pinches):
                 # Netgen's optimiser (swaps + smoothing) of the regions holding one
