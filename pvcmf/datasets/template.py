@@ -446,15 +446,35 @@ _MANDIBLE_BOX = _grow((-62, -8, -112), (62, 100, -15))
 _DENT_BOX = _grow((-30, 48, -70), (30, 92, -46))
 
 
+def _face_mask(P):
+    """Large, smooth parts of the facial skeleton that shape the face (no small bony detail)."""
+    d = _ellipsoid(P, (0.0, 60.0, -25.0), (42.0, 32.0, 28.0))  # maxillary body
+    d = _smin(d, _ellipsoid(P, (0.0, 55.0, 10.0), (56.0, 38.0, 40.0)), 12.0)  # orbital region
+    for sx in (-1.0, 1.0):
+        d = _smin(d, _ellipsoid(P, (sx * 47.0, 62.0, -5.0), (11.0, 13.0, 14.0)), 10.0)  # zygoma
+        d = _smin(d, _box(P, (sx * 49.0, 17.0, -48.0), (5.0, 14.0, 22.0), 4.0), 12.0)  # ramus
+    d = _smin(d, _capsule(P, (0.0, 92.0, 20.0), (0.0, 101.0, -2.0), 7.0, 4.5), 6.0)  # nasal
+    d = _smin(d, _ellipsoid(P, (0.0, 70.0, -58.0), (30.0, 22.0, 12.0)), 10.0)  # dentition
+    d = _smin(d, _cull(UPPER_ALVEOLUS, P, *_grow((-36, 38, -56), (36, 97, -35)), 1e3), 8.0)
+    d = _smin(d, _cull(MANDIBLE_BODY, P, *_grow((-56, 0, -105), (56, 95, -67)), 1e3), 12.0)
+    return _smin(d, _ellipsoid(P, (0.0, 86.0, -95.0), (14.0, 7.5, 10.0)), 8.0)  # chin
+
+
 def _bone_envelope(P):
     """Smooth outline of the skeleton (without cavities): the skin follows it."""
     d = _ellipsoid(P, CRANIUM_CENTER, CRANIUM_OUTER)
     d = np.maximum(d, (_cranial_floor(P[1]) - 30.0) - P[2])
-    d = _smin(d, _cull(_face_outer, P, *_FACE_BOX, 1e3), 8.0)
-    d = _smin(d, _cull(mandible_sdf, P, *_MANDIBLE_BOX, 1e3), 6.0)
-    dent = _cull(lambda Q: _ellipsoid(Q, (0.0, 70.0, -58.0), (30.0, 22.0, 12.0)), P, *_DENT_BOX,
-                 1e3)
-    return _smin(d, dent, 6.0)
+    return _smin(d, _cull(_face_mask, P, *_FACE_MASK_BOX, 1e3), 14.0)
+
+
+_FACE_MASK_BOX = _grow((-62, -5, -112), (62, 108, 55))
+
+
+def _bone_cover(P):
+    """Every bone grown by 2.5 mm: the skin always covers the skeleton."""
+    d = np.minimum(_cull(_face_outer, P, *_grow((-70, 15, -62), (70, 108, 55), 4.0), 1e3),
+                   _cull(mandible_sdf, P, *_grow((-62, -8, -112), (62, 100, -15), 4.0), 1e3))
+    return d + 2.5
 
 
 def thickness_field(P):
@@ -516,6 +536,7 @@ def _ears(P):
 def skin_sdf(P, thickness=1.0):
     """Outer skin surface: bony envelope offset by the thickness field, nose, lips, ears, neck."""
     d = _bone_envelope(P) - thickness * thickness_field(P)
+    d = _smin(d, _bone_cover(P), 2.0)
     d = _smin(d, _cull(eyes_sdf, P, *_grow((-47, 65, -2), (47, 93, 26)), 1e3) - 2.5, 4.0)
     d = _smin(d, _cull(_nose, P, *_grow((-22, 88, -40), (22, 129, 25)), 1e3), 5.0)
     d = _smin(d, _cull(_lips, P, *_grow((-25, 82, -80), (25, 107, -40)), 1e3), 4.0)
