@@ -18,8 +18,9 @@ the muscle surfaces:
    coincident sheets through each other (the self-intersections DESIGN.md warns about);
 3. the surfaces are checked (every region's boundary must be closed) and a volume per
    region is meshed by gmsh (HXT Delaunay, algorithm 10, multithreaded; gmsh keeps the
-   input surface triangles, so the interfaces stay conforming) with HXT's optimiser, and
-   gmsh's Netgen optimiser on the regions that still hold a sliver. When gmsh rejects the
+   input surface triangles, so the interfaces stay conforming) with HXT's optimiser; a
+   remaining flat sliver spanning four surface points is dropped, any other sliver sends
+   its region through gmsh's Netgen optimiser. When gmsh rejects the
    surfaces the next step of :data:`_FALLBACKS` (a slightly different grid, weaker
    smoothing) is tried and a warning says so;
 4. the region label is written on every element (``arrays.TISSUE``, ``arrays.MUSCLE``) and
@@ -660,11 +661,11 @@ def tetrahedralize(
     optimize : bool, default True
         Run gmsh's tetrahedral optimisation (``Mesh.Optimize``).
     min_dihedral : float or None, default 2.0
-        When ``optimize`` and the smallest dihedral angle (degrees) is below this, gmsh's
-        Netgen optimiser runs on the regions holding such a sliver (the rare one HXT's
-        optimiser leaves where a region pinches). It costs about as much again as the
-        meshing (4-5 s of CPU at 30k tetrahedra, 30 s at 300k), hence the low default;
-        5.0 guarantees the paper's CGAL quality, None skips the check.
+        Slivers below this dihedral angle (degrees) that HXT's optimiser leaves (where a
+        region pinches): flat ones spanning four surface points are dropped (volume ~0,
+        the mesh stays conforming); otherwise gmsh's Netgen optimiser runs on the regions
+        holding them, which costs about as much again as the meshing (5 s of CPU at 30k
+        tetrahedra, 30 s at 300k). None skips the check.
     threads : int, default 2
         Threads for gmsh's HXT mesher.
     progress_bar : bool, default False
