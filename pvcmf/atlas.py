@@ -312,8 +312,10 @@ class Atlas:
             out[name] = "inner" if min(a, b) > tol else ("skin" if a <= b else "bone")
         return out
 
-    def apply(self, transform):
-        """A new Atlas with every point mapped by ``transform`` ((n, 3) -> (n, 3))."""
+    def apply(self, transform, *, surfaces=True):
+        """A new Atlas with every point mapped by ``transform`` ((n, 3) -> (n, 3)).
+
+        ``surfaces=False`` maps the landmarks and muscles only (skin/skull dropped)."""
 
         def move(ds):
             out = ds.copy()
@@ -325,8 +327,8 @@ class Atlas:
         return Atlas(
             dict(zip(names, pts)),
             {k: move(v) for k, v in self.muscles.items()},
-            None if self.skin is None else move(self.skin),
-            None if self.skull is None else move(self.skull),
+            None if self.skin is None or not surfaces else move(self.skin),
+            None if self.skull is None or not surfaces else move(self.skull),
         )
 
     # ------------------------------------------------------------------ registration

@@ -200,7 +200,7 @@ def embed_muscles(
         if landmarks is not None:  # fail fast on bad landmarks, before any contouring
             atlas.transform_to(landmarks)
         transform, landmarks, info = atlas.register(labels, landmarks, progress_bar=progress_bar)
-        warped = atlas.apply(transform)
+        warped = atlas.apply(transform, surfaces=False)
         log.info(
             "embed_muscles: registration in %.2f s (surface rms %.2f mm)",
             info.seconds,
