@@ -180,7 +180,16 @@ def voxel_cells(grid, labels):
 
     source = pv.UnstructuredGrid({pv.CellType.TETRA: grid.cells_dict[pv.CellType.TETRA]}, grid.points)
     source.cell_data["cell_id"] = np.arange(grid.n_cells, dtype=np.int64)
-    probe = pv.ImageData(dimensions=labels.dimensions, spacing=labels.spacing, origin=labels.origin)
+    result = np.full(labels.n_points, -1, dtype=np.int64)
+    # probe only the block of voxels inside the mesh's bounding box
+    dims = np.asarray(labels.dimensions)
+    origin, spacing = np.asarray(labels.origin, float), np.asarray(labels.spacing, float)
+    b = np.asarray(grid.bounds, float).reshape(3, 2)
+    lo = np.clip(np.ceil((b[:, 0] - origin) / spacing - 1e-9).astype(int), 0, dims - 1)
+    hi = np.clip(np.floor((b[:, 1] - origin) / spacing + 1e-9).astype(int), 0, dims - 1)
+    if np.any(hi < lo):
+        return result
+    probe = pv.ImageData(dimensions=hi - lo + 1, spacing=spacing, origin=origin + lo * spacing)
     f = vtk.vtkProbeFilter()
     f.SetInputData(probe)
     f.SetSourceData(source)
@@ -188,7 +197,10 @@ def voxel_cells(grid, labels):
     out = pv.wrap(f.GetOutput())
     cid = np.asarray(out.point_data["cell_id"]).astype(np.int64)
     valid = np.asarray(out.point_data[f.GetValidPointMaskArrayName()]).astype(bool)
-    return np.where(valid, cid, -1)
+    i, j, k = np.meshgrid(*(np.arange(lo[a], hi[a] + 1) for a in range(3)), indexing="ij")
+    flat = (i + dims[0] * (j + dims[1] * k)).ravel(order="F")  # probe points, x fastest
+    result[flat] = np.where(valid, cid, -1)
+    return result
 
 
 def average_voxels(grid, labels, *, progress_bar=False):
