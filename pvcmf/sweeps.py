@@ -43,6 +43,7 @@ interrupted one restarts where it stopped.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import inspect
 import itertools
@@ -304,6 +305,9 @@ class FunctionEvaluation(Evaluation):
 
     def identity(self):
         func = self.func
+        if isinstance(func, functools.partial):  # the bound arguments change results too
+            return {"partial": FunctionEvaluation(func.func).identity(),
+                    "args": repr(func.args), "keywords": repr(sorted(func.keywords.items()))}
         target = func if inspect.isfunction(func) or inspect.ismethod(func) else type(func)
         name = f"{getattr(target, '__module__', '?')}.{getattr(target, '__qualname__', repr(target))}"
         try:

@@ -540,3 +540,12 @@ def test_face_only_keeps_the_face_regions():
     assert 0 < face.n_points < head.n_points and face.is_all_triangles
     assert (face[arrays.REGION] > 0).all()
     assert face.points[:, 1].min() > 0  # anterior half only
+
+
+def test_partial_arguments_enter_the_cache_key(tmp_path):
+    import functools
+
+    kw = dict(scheduler="synchronous", cache_dir=tmp_path)
+    a = pvcmf.sweep(1, {"nu": [0.3]}, evaluate=functools.partial(synthetic_evaluate, n_skin=500), **kw)
+    b = pvcmf.sweep(1, {"nu": [0.3]}, evaluate=functools.partial(synthetic_evaluate, n_skin=800), **kw)
+    assert not b["cached"].any() and (a["n_skin"].iloc[0], b["n_skin"].iloc[0]) == (500, 800)
