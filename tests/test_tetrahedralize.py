@@ -256,3 +256,12 @@ def test_every_virtual_patient(patient):
         part = grid.extract_cells(grid.cell_data[arrays.MUSCLE] == m)
         n_mesh = part.connectivity().point_data["RegionId"].max() + 1
         assert n_mesh <= ndimage.label(muscle == m)[1]
+
+
+def test_deterministic_output():
+    labels = shell_labels(spacing=3.0)
+    a = tetrahedralize(labels, spacing=8.0)
+    b = tetrahedralize(labels, spacing=8.0)
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.cells, b.cells)
+    np.testing.assert_array_equal(a.cell_data[arrays.MUSCLE], b.cell_data[arrays.MUSCLE])

@@ -801,6 +801,21 @@ def tetrahedralize(
             stacklevel=2,
         )
 
+    # canonical order (gmsh numbers nodes differently from run to run): unused nodes
+    # dropped, nodes sorted by position, cells by their sorted nodes
+    used = np.unique(tets)
+    nodes = nodes[used]
+    tets = np.searchsorted(used, tets)
+    order = np.lexsort(np.round(nodes, 6).T)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    nodes, tets = nodes[order], rank[tets]
+    key = np.sort(tets, axis=1)
+    cell_order = np.lexsort(key.T[::-1])
+    tets, cell_comp = tets[cell_order], cell_comp[cell_order]
+    start = np.argmin(tets, axis=1)  # rotate to the smallest node, keeping orientation
+    even = [[0, 1, 2, 3], [1, 2, 0, 3], [2, 0, 1, 3], [3, 1, 0, 2]]
+    tets = np.take_along_axis(tets, np.asarray(even)[start], axis=1)
     # orientation and labels
     vol = np.einsum(
         "ij,ij->i",
