@@ -38,8 +38,18 @@ def _labels(patient, spacing):
 
     import pvcmf
 
+    import hashlib
+    import importlib
+
+    phantom_module = importlib.import_module("pvcmf.datasets.phantom")
+    template = importlib.import_module("pvcmf.datasets.template")
+
+    # the cache is keyed on the phantom's source, so a changed virtual patient is rebuilt
+    digest = hashlib.sha1(
+        Path(template.__file__).read_bytes() + Path(phantom_module.__file__).read_bytes()
+    ).hexdigest()[:10]
     CACHE.mkdir(exist_ok=True)
-    path = CACHE / f"truth_p{patient}_{spacing:g}mm.vti"
+    path = CACHE / f"truth_p{patient}_{spacing:g}mm_{digest}.vti"
     if path.exists():
         return pv.read(path)
     truth = pvcmf.datasets.phantom(patient, spacing=spacing).truth
