@@ -30,7 +30,7 @@ import pvcmf
 from pvcmf import arrays, filters, mtm
 from pvcmf.datasets import phantom
 from pvcmf.figures.validation import fig6_error_maps, fig7_boxplots, fig8_cumulative
-from pvcmf.pipeline import simulate
+from pvcmf.pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
 from pvcmf.validation import run_study
 
 pv.OFF_SCREEN = True
@@ -42,7 +42,7 @@ SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 1.5))
 N_TETS = int(os.environ.get("PVCMF_STUDY_TETS", 30_000))
 TRUTH_TETS = int(os.environ.get("PVCMF_STUDY_TRUTH_TETS", 4 * N_TETS))  # finer truth mesh
 PATIENTS = tuple(int(p) for p in os.environ.get("PVCMF_STUDY_PATIENTS", "1,2,3,4").split(","))
-SIGMA = 2.0  # mm, Gaussian width of the tetrahedra -> dense skin mapping
+SIGMA = 2.0  # mm, smallest Gaussian width of the tetrahedra -> dense skin mapping
 
 try:
     from pvcmf import reference
@@ -86,12 +86,16 @@ def predict(patient, method):
         grid = filters.fiber_directions(grid)
         post = mtm.solve(filters.assign_materials(grid))
     skin = filters.extract_skin(res.labels)
-    pred = post.cmf.map_to_surface(skin, sigma=SIGMA)
+    # the Gaussian must span the element size, or coarse meshes leave holes in the skin
+    edges = post.extract_all_edges().compute_cell_sizes(length=True, area=False, volume=False)
+    sigma = max(SIGMA, 0.5 * float(np.median(edges["Length"])))
+    pred = post.cmf.map_to_surface(skin, sigma=sigma)
     pred = pvcmf.validation.label_face_regions(pred, landmarks=c.landmarks)
     truth = truth_in_scanner(patient)
     out = pred.cmf.distance_to(truth, max_distance=10.0)
     # only the face the model simulates (the meshed, anterior part) is judged
-    face = out["mapping_support"] > 0
+    y0 = face_box(res.labels, DEFAULT_FACE_FRACTION)[2]
+    face = (out["mapping_support"] > 0) & (out.points[:, 1] >= y0)
     return out.extract_points(face, adjacent_cells=False).extract_surface(
         algorithm="dataset_surface")
 
