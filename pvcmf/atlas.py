@@ -468,8 +468,10 @@ class Atlas:
         progress_bar : bool
             Log the steps at INFO level.
         **options
-            ``n_control`` (1000), ``smoothing`` (schedule, mm),
-            ``iterations`` per value, ``project`` (bool).
+            ``n_control`` (1000), ``smoothing`` (schedule, mm; default (1000, 300):
+            stiffer fits found the landmarks better on the virtual patients than ones
+            that follow the surfaces closely), ``iterations`` per value (3), ``project``
+            (bool, True).
 
         Returns
         -------
@@ -486,8 +488,8 @@ class Atlas:
         target,
         *,
         n_control=1000,
-        smoothing=(1000.0, 300.0, 100.0, 30.0),
-        iterations=4,
+        smoothing=(1000.0, 300.0),
+        iterations=3,
         project=True,
         progress_bar=False,
     ):

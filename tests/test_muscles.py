@@ -278,8 +278,8 @@ def test_phantom_dice_true_landmarks(embedded, patient):
     union, per = _dices(true, case.truth)
     print(f"patient {patient} true landmarks: union {union:.3f}",
           {k: round(v, 2) for k, v in per.items()})
-    assert union >= 0.9, union  # measured 0.94-0.96
-    assert np.mean(list(per.values())) >= 0.88, per  # measured 0.90-0.97
+    assert union >= 0.9, union  # measured 0.938-0.963
+    assert np.mean(list(per.values())) >= 0.88, per  # measured 0.904-0.965
     assert min(per.values()) >= 0.75, per  # thinnest straps (LLSAN, orbicularis oculi)
     # muscles only where the input had soft tissue, the rest of the image untouched
     m = true[arrays.MUSCLE] > 0
@@ -295,9 +295,9 @@ def test_phantom_dice_automatic_fit(embedded, patient):
     union, per = _dices(auto, case.truth)
     print(f"patient {patient} automatic: union {union:.3f}",
           {k: round(v, 2) for k, v in per.items()})
-    assert union >= 0.75, union  # measured 0.838-0.886
-    assert np.mean(list(per.values())) >= 0.6, per  # measured 0.69-0.83
-    assert min(per.values()) >= 0.4, per  # measured 0.51 (thin straps)
+    assert union >= 0.75, union  # measured 0.853-0.908
+    assert np.mean(list(per.values())) >= 0.6, per  # measured 0.72-0.85
+    assert min(per.values()) >= 0.4, per  # measured 0.57 (thin straps)
 
 
 def test_refinement_against_the_landmark_spline_alone(embedded):
