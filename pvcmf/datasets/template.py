@@ -1030,8 +1030,6 @@ class PatientWarp:
         e = rng.normal(size=(3, 3))
         self.e = params.wave * e / np.linalg.norm(e, axis=1, keepdims=True)
         self.phase = rng.uniform(0, 2 * np.pi, 3)
-        self.identity = (np.allclose(self.scale, 1) and params.thickness == 1.0
-                         and params.wave == 0 and params.maxilla == 0 and params.mandible == 0)
 
     # ---- W: affine + waves, defined by its inverse
     def _g(self, Y):
@@ -1215,12 +1213,11 @@ class _Rasterizer:
     is evaluated only where the value of its parent block lies within a band of the zero
     level wider than the SDF can change across the block (the SDFs change by at most
     ``LIPSCHITZ`` mm per mm), so the sign, i.e. the label, is exact everywhere while the
-    costly evaluations stay near the surfaces. Below 2 mm the patient -> template map is
-    tabulated on a 2 mm grid and interpolated trilinearly (error < 0.05 mm).
+    costly evaluations stay near the surfaces. The patient -> template map is evaluated
+    exactly at every point that is evaluated (it is analytic and cheap).
     """
 
     LIPSCHITZ = 1.8
-    MAP_STEP = 2.0
 
     def __init__(self, grid, warp):
         self.grid = grid
@@ -1233,22 +1230,6 @@ class _Rasterizer:
         self._subs = {}
         self._kinds = {"soft": warp.soft, "face": warp.face, "mandible": warp.mandible,
                        "cranium": lambda s: s}
-        self._table = None
-        if grid.spacing < self.MAP_STEP and not warp.identity:
-            self._tabulate()
-
-    def _tabulate(self):
-        h = self.MAP_STEP
-        lo = self.grid.origin
-        n = np.ceil((np.asarray(self.grid.dims) - 1) * self.grid.spacing / h).astype(int) + 2
-        ax = [(lo[i] + h * np.arange(n[i])).astype(F32) for i in range(3)]
-        Z, Y, X = np.meshgrid(ax[2], ax[1], ax[0], indexing="ij")
-        S = self.warp.base_inverse((X, Y, Z))
-        del X, Y, Z
-        fields = {"base": [np.asarray(c, F32) for c in S]}
-        for kind in ("soft", "face", "mandible"):
-            fields[kind] = np.asarray(self._kinds[kind](S)[1], F32) - fields["base"][1]
-        self._table = fields
 
     def sub(self, lo, hi, kind):
         """Slices of the patient grid covering template box [lo, hi] for a map kind."""
@@ -1262,21 +1243,8 @@ class _Rasterizer:
         return self._subs[key]
 
     def _points(self, iz, iy, ix, kind):
-        if self._table is None:
-            X = (self.axes[0][ix], self.axes[1][iy], self.axes[2][iz])
-            return self._kinds[kind](self.warp.base_inverse(X))
-        r = self.grid.spacing / self.MAP_STEP
-        coords = [np.ravel(iz) * r, np.ravel(iy) * r, np.ravel(ix) * r]
-        shape = np.shape(iz)
-
-        def interp(f):
-            return ndimage.map_coordinates(f, coords, order=1, mode="nearest",
-                                           prefilter=False).reshape(shape)
-
-        S = [interp(f) for f in self._table["base"]]
-        if kind != "cranium":
-            S[1] = S[1] + interp(self._table[kind])
-        return tuple(S)
+        X = (self.axes[0][ix], self.axes[1][iy], self.axes[2][iz])
+        return self._kinds[kind](self.warp.base_inverse(X))
 
     def evaluate(self, fn, box, kind, lipschitz=None):
         """``fn`` on the sub-box of template box ``box``; returns (values, slices).
