@@ -64,7 +64,8 @@ def muscle_surfaces(labels, smoothing_scale=0.5):
         name = arrays.MUSCLES[int(mid) - 1]
         cells = np.flatnonzero((pair == mid).any(axis=1)) if pair.ndim == 2 else np.flatnonzero(pair == mid)
         if len(cells):
-            out[name] = surf.extract_cells(cells).extract_surface()
+            faces = np.asarray(surf.faces).reshape(-1, 4)[cells]  # triangles
+            out[name] = pv.PolyData(surf.points, faces.ravel()).clean()
     return out
 
 
@@ -78,7 +79,7 @@ def _skin(labels):
     img = pv.ImageData(dimensions=labels.dimensions, spacing=labels.spacing,
                        origin=labels.origin)
     img.point_data["head"] = head.ravel(order="F").astype(np.float32)
-    surf = img.contour([0.5], scalars="head").extract_largest().extract_surface()
+    surf = img.contour([0.5], scalars="head").extract_largest()
     return surf.smooth_taubin(n_iter=20, pass_band=0.1)
 
 
