@@ -500,19 +500,21 @@ class Atlas:
         # ---- similarity from a centroid / RMS-size start: point-to-point, then point-to-plane
         mov_all = np.vstack([self.skin.points, self.skull.points])
         pat_all = np.vstack(target.points)
-        s = np.sqrt(((pat_all - pat_all.mean(0)) ** 2).sum(1).mean()) / np.sqrt(
-            ((mov_all - mov_all.mean(0)) ** 2).sum(1).mean()
-        )
-        rot = np.eye(3)
-        tr = pat_all.mean(0) - s * mov_all.mean(0)
-        for _ in range(5):
-            q, _, dist = target.closest(s * src @ rot.T + tr, classes)
-            keep = dist <= np.quantile(dist, 0.9)
+        # heads differ by ~10 % in size: start at scale 1 (an RMS-size ratio is biased when
+        # the scan crops the head); atlas points mapped outside the scan are ignored
+        s, rot = 1.0, np.eye(3)
+        tr = pat_all.mean(0) - mov_all.mean(0)
+        for _ in range(10):
+            moved = s * src @ rot.T + tr
+            q, _, dist = target.closest(moved, classes)
+            keep = target.inside(moved)
+            keep &= dist <= np.quantile(dist[keep], 0.9)
             s, rot, tr = _umeyama(src[keep], q[keep])
         for it in range(50):
             moved = s * src @ rot.T + tr
             q, n, dist = target.closest(moved, classes)
-            keep = dist <= np.quantile(dist, 0.9)
+            keep = target.inside(moved)
+            keep &= dist <= np.quantile(dist[keep], 0.9)
             ds, drot, dtr = _plane_step(moved[keep], q[keep], n[keep])
             s, rot, tr = ds * s, drot @ rot, ds * drot @ tr + dtr
             if np.linalg.norm(dtr) < 1e-3 and abs(ds - 1) < 1e-5:
@@ -561,6 +563,9 @@ class _PatientSurfaces:
                 f"labels: atlas registration needs skin and bone in the image, found "
                 f"{skin.n_points} skin and {skull.n_points} bone surface points"
             )
+        b = np.asarray(labels.bounds, dtype=float).reshape(3, 2)
+        pad = 2.0 * np.asarray(labels.spacing, dtype=float)
+        self.lo, self.hi = b[:, 0] + pad, b[:, 1] - pad
         self.points, self.normals, self.trees, self.sparse = [], [], [], []
         for surf in (skin, skull):
             smooth = surf.smooth_taubin(n_iter=20, pass_band=0.1)
@@ -569,6 +574,10 @@ class _PatientSurfaces:
             self.normals.append(np.asarray(nrm.point_data["Normals"]))
             self.trees.append(cKDTree(self.points[-1]))
             self.sparse.append(_downsample(self.points[-1], 1.5 * spacing))
+
+    def inside(self, pts):
+        """Which points lie inside the patient image (less a 2-voxel border)."""
+        return ((pts >= self.lo) & (pts <= self.hi)).all(axis=1)
 
     def closest(self, pts, classes):
         """Closest patient points of ``pts`` on the surface of each one's class."""
