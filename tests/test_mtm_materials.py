@@ -104,6 +104,24 @@ def test_assign_materials_by_label_and_does_not_mutate():
     np.testing.assert_array_equal(same[arrays.E_FIBER], out[arrays.E_FIBER])
 
 
+def test_muscle_without_fibre_direction_is_isotropic_mean():
+    """Muscle outside the atlas muscles (zero fibre) gets E = (0.5 + 0.79) / 2, no fibre."""
+    grid = _labelled(seed=3)
+    fib = np.array(grid.cell_data[arrays.FIBER])
+    musc = grid[arrays.TISSUE] == arrays.MUSCLE_TISSUE
+    unknown = musc & (np.arange(grid.n_cells) % 2 == 0)
+    fib[unknown] = 0.0
+    grid.cell_data[arrays.FIBER] = fib
+    out = grid.cmf.assign_materials(table="paper000")
+    np.testing.assert_allclose(out[arrays.E_FIBER][unknown], 0.645)
+    np.testing.assert_allclose(out[arrays.E_CROSS][unknown], 0.645)
+    np.testing.assert_allclose(out[arrays.NU][unknown], 0.43)
+    assert np.all(out[arrays.FIBER][unknown] == 0)
+    known = musc & ~unknown
+    np.testing.assert_allclose(out[arrays.E_FIBER][known], 0.5)
+    np.testing.assert_allclose(np.linalg.norm(out[arrays.FIBER][known], axis=1), 1.0)
+
+
 def test_assign_materials_paper001_and_isotropic_muscle_needs_no_fiber():
     grid = _labelled()
     del grid.cell_data[arrays.FIBER]

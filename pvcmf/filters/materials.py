@@ -35,7 +35,10 @@ def assign_materials(grid, table="paper000", *, e_ratio=None, fat=None, muscle=N
     linearly, ``p = (1 - f) p_fat + f p_muscle`` for each of ``E_fiber``, ``E_cross`` and
     ``nu`` (the rule of mixtures; paper 001 averages E and nu over the voxels of a tetrahedron
     the same way), and the ``tissue`` labels are not used. Cells with ``f > 0`` take the muscle
-    fibre when the muscle is anisotropic.
+    fibre when the muscle is anisotropic. Muscle cells whose ``fiber`` is zero (muscle that
+    ``fiber_directions`` knows no direction for, e.g. the tongue or a neck muscle found by
+    ``classify_tissue`` outside the atlas muscles) are made isotropic with
+    ``E = (E_fiber + E_cross) / 2`` and the muscle's ``nu``.
 
     Transverse-isotropy convention: see :mod:`pvcmf.mtm.materials` (e3 = fibre, ``nu`` over
     ``E_cross``); every cell is checked to be positive definite.
@@ -131,10 +134,14 @@ def assign_materials(grid, table="paper000", *, e_ratio=None, fat=None, muscle=N
         norm = np.linalg.norm(src, axis=1)
         zero = needs_fiber & ~(norm > 0)
         if np.any(zero):
-            raise ValueError(
-                f"cell array {arrays.FIBER!r} must be nonzero in muscle cells; "
-                f"{int(zero.sum())} are zero, e.g. cell {int(np.flatnonzero(zero)[0])}"
-            )
+            # muscle with no known fibre (e.g. tongue or neck muscle found by
+            # classify_tissue outside the atlas muscles): isotropic, mean of the two moduli
+            e_iso = 0.5 * (out_vals["E_fiber"][zero] + out_vals["E_cross"][zero])
+            out_vals["E_fiber"][zero] = e_iso
+            out_vals["E_cross"][zero] = e_iso
+            log.info("assign_materials: %d muscle cell(s) without a fibre direction made "
+                     "isotropic (E = mean of E_fiber and E_cross)", int(zero.sum()))
+            needs_fiber = needs_fiber & ~zero
         fib[needs_fiber] = src[needs_fiber] / norm[needs_fiber, None]
     iso = out_vals["E_fiber"] == out_vals["E_cross"]
     fib[iso] = 0.0
