@@ -424,6 +424,12 @@ def test_map_to_surface_smooths_noise(block_grid):
     # the noise (0.5 mm per node) is averaged away; the field's own slope is 0.05 * sqrt(3)
     assert err[3.0] < 0.5 * err[1.0] and err[3.0] < 0.05
     assert slope[3.0] < 0.15 < slope[1.0]
+    # at the edge of the mesh (a skin reaching 3 mm beyond it) nothing is extrapolated
+    curved = block_grid.copy()
+    curved[arrays.DISPLACEMENT] = 0.02 * curved.points ** 2
+    edge = curved.cmf.map_to_surface(pv.Sphere(radius=18.0), sigma=2.0)
+    u = edge[arrays.DISPLACEMENT][edge["mapping_support"] > 0]
+    assert u.min() >= 0.0 and u.max() <= 0.02 * 15.0 ** 2 + 1e-12
     far = pv.Sphere(radius=2.0, center=(100.0, 0, 0))
     out = grid.cmf.map_to_surface(far, sigma=1.0)
     assert (out["mapping_support"] == 0).all() and not out[arrays.DISPLACEMENT].any()

@@ -15,7 +15,10 @@ Properties: an affine displacement field is reproduced exactly (no smoothing bia
 a curved field the bias is of order ``sigma^2 |d^2 u|`` (second derivatives), which is the
 smoothing; noise of the grid field is averaged over the ~``sigma``-ball.
 Where a skin point has too few neighbours for the affine fit (a singular 4x4 moment
-matrix: fewer than four non-coplanar nodes), the Gaussian-weighted mean is used; skin
+matrix: fewer than four non-coplanar nodes), the Gaussian-weighted mean is used; the
+result is clamped, per component, to the range of the neighbours' displacements (no new
+extrema: at the edge of the mesh the affine fit would extrapolate, and an affine field is
+then reproduced only where the point lies among its neighbours); skin
 points with no grid node within ``radius`` (parts of the head that are not simulated) get
 zero displacement, and point array ``SUPPORT`` (the sum of the weights) tells which.
 
@@ -144,4 +147,11 @@ def _mls(p, x, u, sigma, radius):
         disp[fit] = np.linalg.solve(moments[fit], rhs[fit])[:, 0, :]
     mean = idx[~cond_ok]
     disp[mean] = rhs[mean, 0, :] / support[mean, None]
+    # no new extrema: where the skin point lies outside its neighbours' cloud (the edge of
+    # the mesh) the affine fit extrapolates; clamp each component to the neighbours' range
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    np.minimum.at(lo, i, u[j])
+    np.maximum.at(hi, i, u[j])
+    disp[has] = np.clip(disp[has], lo[has], hi[has])
     return disp, support
