@@ -30,7 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-CACHE = Path("/tmp/pvcmf_benchmark_meshing")
+import os
+import tempfile
+
+CACHE = Path(os.environ.get("PVCMF_CACHE_DIR", tempfile.gettempdir())) / "pvcmf_benchmark_meshing"
 
 
 def _labels(patient, spacing):
@@ -48,7 +51,7 @@ def _labels(patient, spacing):
     digest = hashlib.sha1(
         Path(template.__file__).read_bytes() + Path(phantom_module.__file__).read_bytes()
     ).hexdigest()[:10]
-    CACHE.mkdir(exist_ok=True)
+    CACHE.mkdir(parents=True, exist_ok=True)
     path = CACHE / f"truth_p{patient}_{spacing:g}mm_{digest}.vti"
     if path.exists():
         return pv.read(path)
