@@ -6,15 +6,14 @@ skin), times every step, and, given an output folder, writes the predicted skin 
 the deformed mesh (VTU) and offscreen PNGs, each atomically (temporary file in the same
 folder + ``os.replace``: an interrupted run leaves no half-written file).
 
-Steps are looked up lazily by their registry names; a step whose module is not installed
-yet is skipped with a logged note and recorded in :attr:`Result.skipped`, so a partial
-installation still segments and draws what it can. Rendering delegates to PyVista
+Steps are looked up lazily by their registry names; steps the caller turns off (muscles,
+prediction) or that decline on purpose (a failed muscle fit leaves homogeneous tissue) are
+recorded in :attr:`Result.skipped`; any other failure raises. Rendering delegates to PyVista
 (off screen), writing to VTK's XML writers.
 """
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import sys
@@ -46,7 +45,11 @@ DEFAULT_FACE_FRACTION = 0.5
 
 
 class StepUnavailable(RuntimeError):
-    """A pipeline step's implementation is not available in this installation."""
+    """A step declined and the pipeline goes on without it (recorded in ``Result.skipped``).
+
+    Raised on purpose only, e.g. when the muscle fit fails and the soft tissue stays
+    homogeneous; a bug or a missing dependency in a step is raised, not skipped.
+    """
 
 
 @dataclass
@@ -108,26 +111,16 @@ class Result:
 
 # --------------------------------------------------------------------------- step look-up
 def _filter(name):
-    """The registered filter ``name`` or :class:`StepUnavailable` if not implemented yet."""
+    """The registered filter ``name`` of :mod:`pvcmf.filters`."""
     from . import filters
 
-    try:
-        return getattr(filters, name)
-    except ModuleNotFoundError as err:
-        if err.name and err.name.startswith("pvcmf"):
-            raise StepUnavailable(f"pvcmf.filters.{name} is not implemented yet") from None
-        raise StepUnavailable(f"pvcmf.filters.{name} needs {err.name!r} (not installed)") \
-            from None
-    except AttributeError:
-        raise StepUnavailable(f"pvcmf.filters.{name} is not implemented yet") from None
+    return getattr(filters, name)
 
 
 def _solver():
-    try:
-        mtm = importlib.import_module("pvcmf.mtm")
-        return mtm.solve
-    except (ImportError, AttributeError):
-        raise StepUnavailable("pvcmf.mtm.solve is not implemented yet") from None
+    from . import mtm
+
+    return mtm.solve
 
 
 class _Progress:
@@ -186,12 +179,13 @@ class _Runner:
         self.result, self.progress = result, progress
 
     def run(self, step, func, *args, **kwargs):
-        """Run ``func`` as ``step``; a missing implementation is skipped (returns None)."""
+        """Run ``func`` as ``step``; a step that declines (:class:`StepUnavailable`, e.g. a
+        failed muscle fit falling back to homogeneous tissue) is recorded as skipped."""
         self.progress.step(step)
         start = time.perf_counter()
         try:
             value = func(*args, **kwargs)
-        except (StepUnavailable, ImportError) as err:  # a piece not installed/landed yet
+        except StepUnavailable as err:
             self.result.skipped[step] = str(err)
             log.warning("step %r skipped: %s", step, err)
             value = None
@@ -346,8 +340,7 @@ def _apply_plan(grid, plan, labels, options):
 def _skin(labels, post):
     """Pre-operative skin and, with a solved mesh, the predicted skin.
 
-    The skin comes from :func:`pvcmf.filters.extract_skin` of the label image where
-    available (else a contour of the labels). The mesh displacement is carried onto it by
+    The skin comes from :func:`pvcmf.filters.extract_skin` of the label image. The mesh displacement is carried onto it by
     the finite-element interpolation inside the tetrahedra (VTK's probe filter,
     :meth:`pyvista.DataSet.sample`); skin points just outside the mesh (the label skin and
     the smoothed mesh surface differ by up to a voxel) take the nearest mesh point's
@@ -355,12 +348,7 @@ def _skin(labels, post):
     """
     from scipy.spatial import cKDTree
 
-    try:
-        pre = _filter("extract_skin")(labels)
-    except StepUnavailable as err:
-        log.info("extract_skin unavailable (%s): skin from the label image", err)
-        pre = _skin_from_labels(labels)
-    pre = pre.copy()
+    pre = _filter("extract_skin")(labels).copy()
     pre.clear_data()
     if post is None:
         return pre, None
@@ -523,8 +511,6 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
                 raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
             arrays.require_array(ct, arrays.CT, "point", dtype="f", producer="pvcmf.read_ct")
             labels = run.run("segment", _segment, ct, opts["segment_options"])
-            if labels is None:
-                raise StepUnavailable("segmentation is required and not available")
         else:
             run.skip("segment", "labels given")
         if bones is not None:
