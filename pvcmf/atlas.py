@@ -602,12 +602,7 @@ class _PatientSurfaces:
 # --------------------------------------------------------------------------- default
 @functools.lru_cache(maxsize=1)
 def _default_parts():
-    try:
-        from .datasets import template
-    except ImportError as exc:  # pragma: no cover - depends on the template module
-        raise ImportError(
-            "pvcmf.atlas.default() needs pvcmf.datasets.template (landmarks, muscle surfaces)"
-        ) from exc
+    from .datasets import template
     lms = template.landmarks()
     muscles = template.muscle_surfaces(spacing=MUSCLE_SPACING)
     labels = template.label_image(FIT_SPACING)
