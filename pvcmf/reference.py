@@ -28,9 +28,12 @@ conforming mesh, this model, the dense skin) and caches it on disk by input hash
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
+import socket
+import time
 from pathlib import Path
 
 import numpy as np
@@ -294,6 +297,104 @@ def _cache_dir(cache_dir):
     return Path(os.environ.get("PVCMF_CACHE_DIR", Path.home() / ".cache" / "pvcmf")) / "reference"
 
 
+def _lock_is_stale(lock, stale_after):
+    """A lock is stale when it is older than ``stale_after`` seconds, or when it was
+    written on this host by a process that no longer exists."""
+    try:
+        age = time.time() - lock.stat().st_mtime
+        owner = lock.read_text().split()
+    except (FileNotFoundError, OSError):
+        return False  # released meanwhile (or unreadable for a moment): not stale
+    if age > stale_after:
+        return True
+    if len(owner) >= 2 and owner[1] == socket.gethostname():
+        try:
+            os.kill(int(owner[0]), 0)
+        except ProcessLookupError:
+            return True
+        except (PermissionError, ValueError):
+            return False
+    return False
+
+
+def cached(path, compute, *, cache=True, stale_after=7200.0, poll=0.5):
+    """Read ``path`` if it exists, else compute it once across processes and write it.
+
+    The first caller takes an exclusive lock file ``<path>.lock`` (``os.open`` with
+    ``O_CREAT | O_EXCL``, atomic on local and NFSv3+ file systems), computes, writes the
+    result atomically (temporary file + ``os.replace``) and releases the lock. Any other
+    caller asking for the same ``path`` meanwhile (another process, thread or dask worker)
+    waits for the lock to go and then reads the result instead of recomputing. A lock left
+    by a crashed caller is broken when its process no longer exists (same host) or when
+    it is older than ``stale_after`` seconds; if the holder failed without writing, the
+    next waiter computes.
+
+    Parameters
+    ----------
+    path : path-like
+        Cache file (any format ``pyvista.read`` / ``DataObject.save`` know, e.g. ``.vtp``).
+    compute : callable
+        ``compute() -> pyvista.DataSet``, called at most once per missing entry.
+    cache : bool, default True
+        False: just ``compute()``, no reading, writing or locking.
+    stale_after : float, default 7200
+        Seconds after which another process's lock is considered abandoned.
+    poll : float, default 0.5
+        Seconds between checks while waiting.
+
+    Returns
+    -------
+    pyvista.DataSet
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> import pyvista as pv
+    >>> from pvcmf.reference import cached
+    >>> path = Path(tempfile.mkdtemp()) / "sphere.vtp"
+    >>> cached(path, pv.Sphere).n_points == cached(path, lambda: None).n_points
+    True
+    """
+    if not cache:
+        return compute()
+    path = Path(path)
+    lock = path.with_name(path.name + ".lock")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    waited = False
+    while True:
+        if path.exists():
+            log.info("reference: cached truth %s%s", path, " (computed by another caller)"
+                     if waited else "")
+            return pv.read(path)
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            if _lock_is_stale(lock, stale_after):
+                log.warning("reference: breaking the stale lock %s", lock)
+                with contextlib.suppress(FileNotFoundError):
+                    lock.unlink()
+                continue
+            if not waited:
+                log.info("reference: %s is being computed by another caller; waiting", path)
+            waited = True
+            time.sleep(poll)
+            continue
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(f"{os.getpid()} {socket.gethostname()} {time.time():.0f}\n")
+            if path.exists():  # written between our check and our lock
+                return pv.read(path)
+            out = compute()
+            tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp{path.suffix}")
+            out.save(tmp)
+            os.replace(tmp, path)  # atomic: no half-written cache entry
+            return out
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                lock.unlink()
+
+
 def _case_hash(case, params):
     h = hashlib.sha256(f"{MODEL_VERSION}|{params}|{case.plan!r}".encode())
     truth = case.truth
@@ -315,7 +416,9 @@ def postop_skin(case, *, n_tets=120_000, order=2, steps=4, face_fraction=0.5, ca
     :func:`solve_reference`; the skin of the labels (``extract_skin``) follows the mesh
     by linear interpolation inside the tetrahedra (VTK probe), the nearest mesh point
     outside. Cached on disk (``PVCMF_CACHE_DIR`` or ``~/.cache/pvcmf``) by a hash of the
-    labels, the plan, the options and :data:`MODEL_VERSION`.
+    labels, the plan, the options and :data:`MODEL_VERSION`; concurrent callers (processes,
+    threads, dask workers) asking for the same truth compute it once: the others wait on
+    a lock file and read the cache (:func:`cached`).
 
     Parameters
     ----------
@@ -344,16 +447,18 @@ def postop_skin(case, *, n_tets=120_000, order=2, steps=4, face_fraction=0.5, ca
     >>> import pvcmf                                                  # doctest: +SKIP
     >>> truth = pvcmf.reference.postop_skin(pvcmf.datasets.phantom(1, spacing=2.0))  # doctest: +SKIP
     """
+    params = f"n_tets={n_tets}|order={order}|steps={steps}|face={face_fraction}"
+    path = _cache_dir(cache_dir) / f"postop_skin_{_case_hash(case, params)}.vtp"
+    return cached(path, lambda: _postop_skin(case, n_tets, order, steps, face_fraction,
+                                             progress_bar), cache=cache)
+
+
+def _postop_skin(case, n_tets, order, steps, face_fraction, progress_bar):
     from scipy.spatial import cKDTree
 
     from . import filters
     from .pipeline import drop_floating_parts, face_box
 
-    params = f"n_tets={n_tets}|order={order}|steps={steps}|face={face_fraction}"
-    path = _cache_dir(cache_dir) / f"postop_skin_{_case_hash(case, params)}.vtp"
-    if cache and path.exists():
-        log.info("reference: cached truth %s", path)
-        return pv.read(path)
     labels = filters.cut_bones(case.truth, case.plan)
     grid = filters.tetrahedralize(labels, n_tets=n_tets, conforming=True,
                                   roi=face_box(labels, face_fraction), progress_bar=progress_bar)
@@ -379,9 +484,4 @@ def postop_skin(case, *, n_tets=120_000, order=2, steps=4, face_fraction=0.5, ca
     out.clear_data()
     out.points = np.asarray(skin.points, dtype=np.float64) + disp
     out.point_data[arrays.DISPLACEMENT] = disp
-    if cache:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.vtp")
-        out.save(tmp)
-        os.replace(tmp, path)  # atomic: no half-written cache entry
     return out
