@@ -5,13 +5,17 @@ Paper 000 Fig. 6 colours the predicted face by its distance to the post-operativ
 *closest point on the triangles* of the truth (not to its nearest vertex), signed
 positive where the prediction lies anterior to (outside of) the truth.
 
-Delegates to VTK's ``vtkImplicitPolyDataDistance`` (closest point on the cells through a
-cell locator, in C++, for the whole point array at once via ``FunctionValue``). The
-sign follows the truth's winding, which is first made outward here (closed surface:
-positive volume; open face scan: consistent winding facing away from its centroid,
-``vtkPolyDataNormals``). ``benchmarks/validation.py`` measures it against the nearest
-vertex (scipy ``cKDTree``); a vectorised numpy closest-point-on-triangle with a KD-tree
-certificate of exactness was tried and was 3.5x slower than VTK at 200k x 200k.
+Delegates the closest points to libigl's AABB tree (``igl.point_mesh_squared_distance``,
+C++, multithreaded; optional dependency ``pvcmf[fast]``) and signs them in numpy with
+the pseudo-normal of the closest feature (face, edge or vertex; Baerentzen & Aanaes
+2005). Without libigl it delegates to VTK's ``vtkImplicitPolyDataDistance`` (closest
+point on the cells through a cell locator, the whole point array at once via
+``FunctionValue``). The sign follows the truth's winding, which is first made outward
+here (closed surface: positive volume; open face scan: consistent winding facing away
+from its centroid, ``vtkPolyDataNormals``). ``benchmarks/registration_distance.py``
+measures both against each other and the nearest vertex (scipy ``cKDTree``); a
+vectorised numpy closest-point-on-triangle with a KD-tree certificate of exactness was
+tried in session 1 and was 3.5x slower than VTK at 200k x 200k.
 """
 
 from __future__ import annotations
@@ -79,11 +83,80 @@ def _outward(surface):
     return surf
 
 
-def signed_distance(query, surface):
+def _igl():
+    try:
+        import igl
+    except ImportError:
+        return None
+    return igl
+
+
+def _pseudonormal_sign(query, points, tris, fid, closest):
+    """Sign of ``query - closest`` along the pseudo-normal of the closest feature.
+
+    Baerentzen & Aanaes (2005): the closest point lies inside a triangle (its normal), on
+    an edge (sum of the normals of the edge's triangles) or on a vertex (angle-weighted
+    sum of its triangles' normals); the sign of the dot product with that pseudo-normal
+    is the side of a closed, consistently wound surface (and locally of an open one).
+    All numpy: barycentric coordinates of the closest points, ``np.bincount`` sums.
+    """
+    a, b, c = points[tris[:, 0]], points[tris[:, 1]], points[tris[:, 2]]
+    fn = np.cross(b - a, c - a)
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    n_pts = len(points)
+    # vertex pseudo-normals: angle-weighted face normals
+    corners = (a, b, c)
+    vnormal = np.zeros((n_pts, 3))
+    for k in range(3):
+        e1 = corners[(k + 1) % 3] - corners[k]
+        e2 = corners[(k + 2) % 3] - corners[k]
+        cosang = np.einsum("ij,ij->i", e1, e2) / np.maximum(
+            np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300)
+        w = np.arccos(np.clip(cosang, -1.0, 1.0))
+        for j in range(3):
+            vnormal[:, j] += np.bincount(tris[:, k], w * fn[:, j], minlength=n_pts)
+    # edge pseudo-normals: sum of the normals of the (one or two) triangles of the edge;
+    # local edge k of a triangle is opposite its vertex k
+    lo = np.minimum(tris[:, [1, 2, 0]], tris[:, [2, 0, 1]])
+    hi = np.maximum(tris[:, [1, 2, 0]], tris[:, [2, 0, 1]])
+    _, edge_id = np.unique((lo * n_pts + hi).ravel(), return_inverse=True)
+    edge_id = edge_id.reshape(-1, 3)
+    enormal = np.zeros((edge_id.max() + 1, 3))
+    for j in range(3):
+        enormal[:, j] = np.bincount(edge_id.ravel(), np.repeat(fn[:, j], 3),
+                                    minlength=len(enormal))
+    # barycentric coordinates of the closest points in their triangles
+    ta, tb, tc = a[fid], b[fid], c[fid]
+    v0, v1, v2 = tb - ta, tc - ta, closest - ta
+    d00 = np.einsum("ij,ij->i", v0, v0)
+    d01 = np.einsum("ij,ij->i", v0, v1)
+    d11 = np.einsum("ij,ij->i", v1, v1)
+    d20 = np.einsum("ij,ij->i", v2, v0)
+    d21 = np.einsum("ij,ij->i", v2, v1)
+    den = d00 * d11 - d01 * d01
+    den = np.where(den != 0, den, 1.0)
+    bv = (d11 * d20 - d01 * d21) / den
+    bw = (d00 * d21 - d01 * d20) / den
+    bary = np.column_stack([1.0 - bv - bw, bv, bw])
+    small = bary <= 1e-9
+    n_small = small.sum(axis=1)
+    normal = fn[fid].copy()
+    edge = n_small == 1  # on the edge opposite the vertex whose coordinate vanishes
+    if edge.any():
+        k = np.argmax(small[edge], axis=1)
+        normal[edge] = enormal[edge_id[fid[edge], k]]
+    vert = n_small >= 2  # on the vertex whose coordinate does not vanish
+    if vert.any():
+        k = np.argmax(bary[vert], axis=1)
+        normal[vert] = vnormal[tris[fid[vert], k]]
+    side = np.einsum("ij,ij->i", query - closest, normal)
+    return np.where(side < 0, -1.0, 1.0)
+
+
+def signed_distance(query, surface, *, method="auto"):
     """Exact signed distance of points to a triangle surface, by its winding.
 
-    Positive on the side the winding's normals point to. Delegates to VTK's
-    ``vtkImplicitPolyDataDistance.FunctionValue`` (one call for all points).
+    Positive on the side the winding's normals point to.
 
     Parameters
     ----------
@@ -91,11 +164,23 @@ def signed_distance(query, surface):
         ``(n, 3)`` points.
     surface : pyvista.PolyData
         Surface with polygons (triangulated if needed); its winding gives the sign.
+    method : {'auto', 'igl', 'vtk'}, default 'auto'
+        ``'igl'``: closest points on the triangles by libigl's AABB tree
+        (``igl.point_mesh_squared_distance``, optional dependency ``pvcmf[fast]``), sign
+        from the pseudo-normal of the closest feature (face, edge or vertex; numpy).
+        ``'vtk'``: VTK's ``vtkImplicitPolyDataDistance.FunctionValue`` (one call for all
+        points; sign from the closest cell's normal). ``'auto'``: igl when installed.
+        Both are exact (closest point on the triangles, not the nearest vertex).
 
     Returns
     -------
     numpy.ndarray
         ``(n,)`` signed distances (mm).
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``method``; ImportError for ``'igl'`` without libigl.
 
     Examples
     --------
@@ -105,13 +190,24 @@ def signed_distance(query, surface):
     >>> signed_distance(np.array([[0.0, 0.0, 2.0], [0.0, 0.1, 0.0]]), cube).round(3).tolist()
     [1.5, -0.4]
     """
-    import vtk
-    from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
-
+    if method not in ("auto", "igl", "vtk"):
+        raise ValueError(f"method must be 'auto', 'igl' or 'vtk', got {method!r}")
     _check_surface(surface, "surface")
     surf = surface.triangulate() if not surface.is_all_triangles else surface.copy()
     surf.clear_data()  # VTK would sign by a stale 'Normals' array
     q = np.ascontiguousarray(np.asarray(query, dtype=np.float64).reshape(-1, 3))
+    igl = _igl() if method != "vtk" else None
+    if method == "igl" and igl is None:
+        raise ImportError("method='igl' needs libigl: pip install 'pvcmf[fast]' (or libigl)")
+    if igl is not None:
+        points = np.ascontiguousarray(surf.points, dtype=np.float64)
+        tris = np.ascontiguousarray(surf.faces.reshape(-1, 4)[:, 1:], dtype=np.int64)
+        d2, fid, closest = igl.point_mesh_squared_distance(q, points, tris)
+        sign = _pseudonormal_sign(q, points, tris, fid, closest)
+        return sign * np.sqrt(d2)
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+
     func = vtk.vtkImplicitPolyDataDistance()
     func.SetInput(surf)
     out = vtk.vtkDoubleArray()
@@ -119,7 +215,7 @@ def signed_distance(query, surface):
     return vtk_to_numpy(out).astype(np.float64, copy=True)
 
 
-def distance_to(pred, actual, *, orient=True, max_distance=None):
+def distance_to(pred, actual, *, orient=True, max_distance=None, method="auto"):
     """Signed distance from each point of the predicted skin to the actual skin.
 
     Parameters
@@ -134,6 +230,9 @@ def distance_to(pred, actual, *, orient=True, max_distance=None):
     max_distance : float, optional
         If given, raise ``ValueError`` when the median unsigned distance exceeds it
         (surfaces that do not overlap, e.g. not registered).
+    method : {'auto', 'igl', 'vtk'}, default 'auto'
+        Closest-point engine, see :func:`signed_distance` (libigl when installed, else
+        VTK; both exact).
 
     Returns
     -------
@@ -163,7 +262,7 @@ def distance_to(pred, actual, *, orient=True, max_distance=None):
         raise ValueError("pred must have points, got an empty dataset")
     _check_surface(actual, "actual")
     target = _outward(actual) if orient else actual
-    d = signed_distance(pred.points, target)
+    d = signed_distance(pred.points, target, method=method)
     if max_distance is not None:
         med = float(np.median(np.abs(d)))
         if med > max_distance:
