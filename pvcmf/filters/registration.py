@@ -131,6 +131,35 @@ def _border_mask(target, tree):
     return mask
 
 
+def _surface_pairs(target, closest):
+    """(closest-point function, face normals, usable triangles) or None for vertex pairs."""
+    if closest not in ("auto", "surface", "vertex"):
+        raise ValueError(f"closest must be 'auto', 'surface' or 'vertex', got {closest!r}")
+    if closest == "vertex":
+        return None
+    try:
+        import igl
+    except ImportError:
+        if closest == "surface":
+            raise ImportError("closest='surface' needs libigl: pip install 'pvcmf[fast]'") from None
+        return None
+    if not (isinstance(target, pv.PolyData) and target.faces.size and target.is_all_triangles):
+        if closest == "surface":
+            raise ValueError("closest='surface' needs a target made of triangles only")
+        return None
+    points = np.ascontiguousarray(target.points, dtype=np.float64)
+    tris = np.ascontiguousarray(target.faces.reshape(-1, 4)[:, 1:], dtype=np.int64)
+    fn = np.cross(points[tris[:, 1]] - points[tris[:, 0]], points[tris[:, 2]] - points[tris[:, 0]])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+
+    def closest_on(query):
+        d2, fid, cpt = igl.point_mesh_squared_distance(
+            np.ascontiguousarray(query, dtype=np.float64), points, tris)
+        return np.sqrt(d2), fid, cpt
+
+    return closest_on, fn, tris
+
+
 def register(
     source,
     target,
@@ -146,6 +175,7 @@ def register(
     overlap_distance=2.0,
     min_overlap=0.5,
     allow_unconverged=False,
+    closest="auto",
     seed=0,
     progress_bar=False,
 ):
@@ -196,6 +226,14 @@ def register(
         Return the flagged result (field ``ICP_CONVERGED`` = 0) instead of raising
         :class:`RegistrationError` when ``max_iterations`` is reached or the overlap is
         below ``min_overlap``.
+    closest : {'auto', 'surface', 'vertex'}, default 'auto'
+        Pairs of the final iterations. ``'vertex'``: nearest target vertex and its point
+        normal throughout (scipy ``cKDTree``). ``'surface'``: once the vertex pairs have
+        converged, a few more iterations pair each point with its closest point *on the
+        target's triangles* and that triangle's normal (libigl's AABB tree,
+        ``pvcmf[fast]``): no tangent-plane bias on curved, coarse surfaces (e.g. skins of
+        2-3 mm voxels, ~3x lower pose error there). ``'auto'``: ``'surface'`` when libigl is
+        installed and the target is all triangles.
     seed : int, default 0
         Seed of the subsampling (the result is deterministic).
     progress_bar : bool, default False
@@ -272,16 +310,8 @@ def register(
             )
         return rows, idx[rows]
 
-    # coarse to fine: a small subset until the pose is within ~0.1 mm, then all samples
-    coarse = src[:: max(1, len(src) // 2000)]
-    converged = False
-    it, last_move = 0, np.inf
-    for it in range(1, max_iterations + 1):
-        pts = coarse if coarse is not None else src
-        moved = pts @ matrix[:3, :3].T + matrix[:3, 3]
-        rows, ids = pairs(moved)
-        p, q, n = moved[rows], tgt_pts[ids], normals[ids]
-        # linearised point-to-plane: minimise sum(((p x n).w + n.t + (p - q).n)^2)
+    def solve_step(p, q, n, it):
+        """Linearised point-to-plane update: minimise sum(((p x n).w + n.t + (p - q).n)^2)."""
         pc = p - centre  # rotate about the centre for a well-conditioned system
         a = np.hstack([np.cross(pc, n) / scale, n])  # unknowns (scale * w, t): same units
         b = -np.einsum("ij,ij->i", p - q, n)
@@ -298,17 +328,54 @@ def register(
         step = np.eye(4)
         step[:3, :3] = rot
         step[:3, 3] = centre + x[3:] - rot @ centre
+        return step, np.linalg.norm(x[:3]) * scale + np.linalg.norm(x[3:])
+
+    surface = _surface_pairs(target, closest)
+    # vertex pairs only bring the pose near the optimum when surface pairs follow
+    vertex_tol = tol if surface is None else max(tol, 0.02)
+    # coarse to fine: a small subset until the pose is within ~0.1 mm, then all samples
+    coarse = src[:: max(1, len(src) // 2000)]
+    converged = False
+    it, last_move = 0, np.inf
+    for it in range(1, max_iterations + 1):
+        pts = coarse if coarse is not None else src
+        moved = pts @ matrix[:3, :3].T + matrix[:3, 3]
+        rows, ids = pairs(moved)
+        step, move = solve_step(moved[rows], tgt_pts[ids], normals[ids], it)
         matrix = step @ matrix
-        move = np.linalg.norm(x[:3]) * scale + np.linalg.norm(x[3:])
         log.debug("ICP iteration %d: %d pairs, update %.3g mm", it, rows.size, move)
         if coarse is not None:
             if move < 0.02 or it >= max_iterations // 2:
                 coarse = None
             continue
-        if move < tol or (move < 10 * tol and abs(move - last_move) < 1e-3 * move):
+        if move < vertex_tol or (move < 10 * tol and abs(move - last_move) < 1e-3 * move):
             converged = True
             break
         last_move = move
+    if surface is not None and converged:
+        # closest points on the triangles: a few more iterations from the converged pose
+        closest_on, face_normal, tris = surface
+        tri_ok = usable[tris].all(axis=1)
+        converged = False
+        for sub in range(1, 21):
+            it += 1
+            moved = src @ matrix[:3, :3].T + matrix[:3, 3]
+            dist, fid, cpt = closest_on(moved)
+            ok = tri_ok[fid]
+            if ok.sum() < min_pairs:
+                break
+            gate = max_distance if max_distance is not None else max(5 * np.median(dist[ok]), 1.0)
+            rows = np.flatnonzero(ok & (dist <= gate))
+            if trim < 1 and rows.size > min_pairs:
+                keep = max(int(trim * rows.size), min_pairs)
+                rows = rows[np.argpartition(dist[rows], keep - 1)[:keep]]
+            step, move = solve_step(moved[rows], cpt[rows], face_normal[fid[rows]], it)
+            matrix = step @ matrix
+            log.debug("ICP surface iteration %d: %d pairs, update %.3g mm", sub, rows.size, move)
+            if move < tol:
+                converged = True
+                break
+        converged = converged or move < 10 * tol  # settled within a few um
     # final RMS and overlap with the samples
     moved_all = src @ matrix[:3, :3].T + matrix[:3, 3]
     dist, idx = tree.query(moved_all, workers=-1)
