@@ -105,3 +105,23 @@ def test_delaunay_slivers_assemble_finite():
     assert np.all(np.isfinite(K.data))
     u = np.tile([0.3, -0.2, 0.1], grid.n_points)
     assert np.abs(K @ u).max() <= 1e-11 * abs(K).max()
+
+
+def test_linear_reassembly_equals_scikit_fem_after_material_and_fibre_changes(grid):
+    """The cached coefficient -> blocks map used by sweeps (new nu, new moduli, new fibres)."""
+    pts, cells = tetrahedra(grid)
+    asm = Assembler(pts, cells)
+    rng = np.random.default_rng(3)
+    ef, ec = np.array(grid[arrays.E_FIBER]), np.array(grid[arrays.E_CROSS])
+    fib = np.array(grid[arrays.FIBER])
+    for nu, scale, turn in ((0.3, 1.0, False), (0.49, 2.0, False), (0.1, 1.0, True)):
+        if turn:  # rotate every fibre: the map must be rebuilt, not reused
+            fib = np.where(np.linalg.norm(fib, axis=1)[:, None] > 0, rng.normal(size=fib.shape), 0.0)
+            fib /= np.maximum(np.linalg.norm(fib, axis=1), 1e-300)[:, None]
+        g = grid.copy()
+        set_materials(g, scale * ef, scale * ec, nu, fib)
+        Ksk, dofs = skfem_stiffness(g)
+        perm = dofs.T.ravel()
+        Kref = Ksk[perm][:, perm].toarray()
+        K = asm.bsr(asm.full_blocks(asm.linear_upper_blocks(scale * ef, scale * ec, nu, fib)))
+        assert np.abs(K.toarray() - Kref).max() <= 1e-12 * np.abs(Kref).max(), (nu, scale, turn)

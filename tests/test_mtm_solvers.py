@@ -154,6 +154,7 @@ def test_cg_warm_start_and_solver_reuse(mixed):
 
 def test_poisson_sweep_reusing_the_factorisation(mixed):
     s = Solver(mixed, nu=0.40)
+    s.adaptive_reuse = False  # decide from the materials only (timings vary with the load)
     for nu, reused in ((0.41, True), (0.42, True), (0.4999, False)):
         s.update_materials(nu=nu, refactor=False)
         u = s.solve()

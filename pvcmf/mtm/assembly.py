@@ -13,6 +13,7 @@ scipy.sparse (the BSR container).
 from __future__ import annotations
 
 import logging
+import time
 import warnings
 
 import numpy as np
@@ -35,6 +36,8 @@ PAIR_A = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3])
 PAIR_B = np.array([0, 1, 2, 3, 1, 2, 3, 2, 3, 3])
 _CHUNK = 1 << 17  # cells per assembly chunk (bounds the temporaries to ~200 MB)
 _CACHE_CELLS = 400_000  # keep the geometric products (800 B per cell) up to this many cells
+#: build the sparse coefficient -> blocks map (about 2.2 kB per cell) up to this many cells
+_LINEAR_CELLS = 200_000
 
 
 def _transpose_where(blocks, swap):
@@ -277,6 +280,61 @@ class Assembler:
             for c in range(9):
                 out[c] += np.bincount(idx, weights=k[c].ravel(), minlength=self.n_upper)
         return out.T.reshape(-1, 3, 3)
+
+    def linear_upper_blocks(self, E_fiber, E_cross, nu, fiber=None):
+        """:meth:`upper_blocks` as one sparse matrix-vector product (for repeated assembly).
+
+        The assembled blocks are linear in the per-cell coefficients ``(lambda, mu_T)`` (every
+        cell) and ``(alpha, mu_L - mu_T, beta)`` (anisotropic cells). The first call builds
+        the sparse map ``S`` (90 entries per cell and coefficient) from the cached geometric
+        products; afterwards a new material costs one CSR product instead of nine scatters
+        (at 30k tetrahedra 6 ms instead of 21 ms CPU; building it costs about 80 ms). The map is rebuilt when the anisotropic
+        cells or their fibres change. Falls back to :meth:`upper_blocks` above
+        ``_LINEAR_CELLS`` cells (memory).
+        """
+        m = self.n_cells
+        if m > _LINEAR_CELLS:
+            return self.upper_blocks(E_fiber, E_cross, nu, fiber)
+        ef, ec, nu = (np.broadcast_to(np.asarray(x, dtype=float), (m,)) for x in (E_fiber, E_cross, nu))
+        check_positive_definite(ef, ec, nu)
+        lam, muT, alpha, muL, beta = elastic_coefficients(ef, ec, nu)
+        ani = np.flatnonzero(ef != ec)
+        if ani.size:
+            if fiber is None:
+                raise ValueError("fiber is required where E_fiber != E_cross")
+            a = np.array(np.broadcast_to(np.asarray(fiber, dtype=float), (m, 3))[ani])
+        else:
+            a = np.zeros((0, 3))
+        key = getattr(self, "_linear_key", None)
+        if key is None or not (np.array_equal(key[0], ani) and np.array_equal(key[1], a)):
+            self._linear = self._build_linear(ani, a)
+            self._linear_key = (ani, a)
+        x = np.concatenate([lam, muT, alpha[ani], (muL - muT)[ani], beta[ani]])
+        return (self._linear @ x).reshape(9, self.n_upper).T.reshape(-1, 3, 3)
+
+    def _build_linear(self, ani, a):
+        t = time.perf_counter()
+        m, nu_ = self.n_cells, self.n_upper
+        q, dot = self._geometry_products(slice(0, m))
+        transpose = [3 * (c % 3) + c // 3 for c in range(9)]
+        qmu = q[transpose]
+        qmu[[0, 4, 8]] += dot
+        parts = [q, qmu]
+        if ani.size:
+            one, zero = np.ones(ani.size), np.zeros(ani.size)
+            for coef in ((one, zero, zero), (zero, one, zero), (zero, zero, one)):
+                parts.append(self._aniso_terms(ani, a, *coef))
+        # column j of S holds the 90 block entries one cell contributes per unit coefficient
+        data = np.concatenate([np.ascontiguousarray(p.transpose(2, 0, 1)).ravel() for p in parts])
+        rows_cell = (np.arange(9)[None, :, None] * nu_ + self._scatter.T[:, None, :])  # (m, 9, 10)
+        rows = [rows_cell.reshape(m, 90)] * 2 + [rows_cell[ani].reshape(-1, 90)] * (3 if ani.size else 0)
+        rows = np.concatenate(rows).ravel().astype(np.int32 if 9 * nu_ < 2**31 else np.int64)
+        ncol = rows.size // 90
+        # CSC as built (no conversion: a CSR copy costs 80 ms at 30k and multiplies as fast)
+        S = sp.csc_matrix((data, rows, np.arange(0, rows.size + 1, 90)), shape=(9 * nu_, ncol))
+        log.debug("linear assembly map: %d x %d, %d entries, %.3f s", S.shape[0], ncol, S.nnz,
+                  time.perf_counter() - t)
+        return S
 
     def _aniso_terms(self, cells, a, alpha, dmu, beta):
         """Fibre terms of the invariant form, (9, 10, k) in the oriented pair layout.
