@@ -11,13 +11,14 @@ Prints whole numbers (milliseconds) measured in this run:
    preparation per patient (phantom, segmentation, muscles, mesh, boundary conditions) and
    the sweep proper (numeric refactorisation + solve + distance per ratio).
 
-Run: ``python benchmarks/sweeps.py [--pipeline] [--spacing 1.0] [--cache DIR]
+Run: ``python benchmarks/sweeps.py [--pipeline] [--spacing 1.5] [--cache DIR]
 [--stand-in-truth]`` (the last measures times before :mod:`pvcmf.reference` exists, with the
 pre-operative skin as the "truth"). Run it twice with ``--cache DIR``: the second run loads
 the prepared cases (meshes) and measures the sweep proper alone.
 """
 
 import argparse
+import os
 import tempfile
 import time
 
@@ -60,9 +61,11 @@ def pipeline(spacing, stand_in, cache):
     ev = PipelineEvaluation(spacing=spacing, n_tets=30_000, truth=preop_truth if stand_in else None,
                             cache_dir=cache)
     nus = list(np.round(np.linspace(0, 0.495, 20), 4))
+    print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     t = time.perf_counter()
     df = pvcmf.sweep([1, 2, 3, 4], {"nu": nus}, evaluate=ev, progress_bar=True)
     wall = time.perf_counter() - t
+    print(f"load average after: {os.getloadavg()[0]:.1f}")
     prep = df.groupby("case")["t_prepare"].first()
     per_case_sweep = df.groupby("case")["t_eval"].sum()
     print(f"Poisson sweep 20 x 4 at ~{int(df['n_cells'].mean())} tetrahedra: wall {wall:.0f} s; "
@@ -75,7 +78,7 @@ def pipeline(spacing, stand_in, cache):
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--pipeline", action="store_true")
-    ap.add_argument("--spacing", type=float, default=1.0)
+    ap.add_argument("--spacing", type=float, default=1.5)
     ap.add_argument("--stand-in-truth", action="store_true",
                     help="measure times with the pre-operative skin as 'truth' (no pvcmf.reference)")
     ap.add_argument("--cache", default=None,

@@ -279,18 +279,23 @@ def _materials(grid, options):
     return _filter("assign_materials")(grid, **options)
 
 
-def drop_floating_parts(grid, min_constrained=3):
+def drop_floating_parts(grid, min_constrained=3, collinear_tol=0.05):
     """Remove connected parts of a mesh that the boundary conditions do not hold.
 
-    A part with fewer than ``min_constrained`` fixed/joint/sliding nodes would keep rigid
-    motions the solver cannot remove (small islands a mesher leaves behind, e.g. tissue
-    in a nostril); the MTM's answer does not depend on them elsewhere, so they go.
+    A part with fewer than ``min_constrained`` fixed/joint/sliding nodes, or with all of
+    them (nearly) on one line, would keep rigid motions the solver cannot remove (small
+    islands a mesher leaves behind, e.g. tissue in a nostril, or slivers cut off on the
+    fixed posterior plane); the MTM's answer does not depend on them elsewhere, so they go.
 
     Parameters
     ----------
     grid : pyvista.UnstructuredGrid
         Mesh with the point array ``bc``.
     min_constrained : int, default 3
+    collinear_tol : float, default 0.05
+        A part whose constrained nodes lie within this fraction of their extent of one
+        line (second singular value of their centred coordinates below ``collinear_tol``
+        times the first) is not held: it could rotate about that line.
 
     Returns
     -------
@@ -298,19 +303,42 @@ def drop_floating_parts(grid, min_constrained=3):
         The mesh itself when every part is held, else a new mesh without the others.
     """
     bc = np.asarray(arrays.require_array(grid, arrays.BC, "point", producer="apply_plan"))
-    conn = grid.connectivity("all")
-    region = np.asarray(conn.point_data["RegionId"])
-    counts = np.bincount(region[bc != arrays.BC_FREE], minlength=region.max() + 1)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    # parts = connected components of the cells' node graph (scipy; the MTM checks the
+    # same graph). VTK's connectivity filter reorders points, so it is not used here.
+    conn_ids = np.asarray(grid.cell_connectivity, dtype=np.int64)
+    offsets = np.asarray(grid.cell_offsets, dtype=np.int64)
+    sizes_ = np.diff(offsets)
+    first = np.repeat(conn_ids[offsets[:-1]], sizes_)
+    n = grid.n_points
+    graph = coo_matrix((np.ones(first.size, dtype=np.int8), (first, conn_ids)), shape=(n, n))
+    _, region = connected_components(graph, directed=False)
+    used = np.zeros(n, dtype=bool)
+    used[conn_ids] = True
+    cell_region = region[conn_ids[offsets[:-1]]]
+    n_regions = int(region.max()) + 1
+    constrained = used & (bc != arrays.BC_FREE)
+    counts = np.bincount(region[constrained], minlength=n_regions)
     held = counts >= min_constrained
-    if held.all():
+    held &= np.bincount(cell_region, minlength=n_regions) > 0  # unused points are no part
+    # constrained nodes (nearly) on one line leave the rotation about it free (slivers cut
+    # off on the fixed posterior plane): such a part is not held either
+    pts = np.asarray(grid.points, float)
+    for part in np.flatnonzero(held):  # a loop over the few parts, not over points
+        c = pts[(region == part) & constrained]
+        sv = np.linalg.svd(c - c.mean(axis=0), compute_uv=False)
+        held[part] = sv[1] > collinear_tol * sv[0]
+    keep_cells = held[cell_region]
+    if keep_cells.all():
         return grid
-    keep_cells = held[np.asarray(conn.cell_data["RegionId"])]
-    dropped = np.flatnonzero(~held)
-    sizes = np.bincount(region, minlength=region.max() + 1)[dropped]
-    log.warning("dropping %d mesh part(s) held by fewer than %d constrained nodes "
-                "(%d points in all)", len(dropped), min_constrained, int(sizes.sum()))
-    out = conn.extract_cells(np.flatnonzero(keep_cells))
-    for name in ("RegionId", "vtkOriginalPointIds", "vtkOriginalCellIds"):
+    dropped = np.unique(cell_region[~keep_cells])
+    n_dropped = int(np.isin(region[used], dropped).sum())
+    log.warning("dropping %d mesh part(s) held by fewer than %d non-collinear constrained "
+                "nodes (%d points in all)", len(dropped), min_constrained, n_dropped)
+    out = grid.extract_cells(np.flatnonzero(keep_cells))
+    for name in ("vtkOriginalPointIds", "vtkOriginalCellIds"):
         for data in (out.point_data, out.cell_data):
             if name in data:
                 data.remove(name)
@@ -414,7 +442,7 @@ def flip_axes(image, axes):
 def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              n_tets=DEFAULT_N_TETS, segment_options=None, mesh_options=None,
              material_options=None, bc_options=None, solve_options=None, muscles=True,
-             face_fraction=DEFAULT_FACE_FRACTION, predict=True, figures=True,
+             face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
              progress_bar=False):
     """Predict the post-operative face from a CT and a surgical plan.
 
@@ -450,6 +478,11 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     predict : bool, default True
         Run the prediction (mesh, materials, boundary conditions, solve); ``False`` only
         segments, cuts and draws the plan.
+    solve : bool, default True
+        ``False`` stops after the boundary conditions: :attr:`Result.mesh` and
+        :attr:`Result.skin_pre` are made, but no solve, no predicted skin, no skeleton and
+        no outputs. This is what a parameter sweep needs once per mesh
+        (:class:`pvcmf.sweeps.PipelineEvaluation` then solves per parameter set).
     muscles : bool, default True
         Embed the facial muscles (``embed_muscles``); without, the soft tissue is
         homogeneous. A muscle fit that fails (e.g. bad landmarks) is logged as a warning,
@@ -546,7 +579,11 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
             grid = run.run("boundary conditions", _apply_plan, with_materials, plan, labels,
                            opts["bc_options"])
             result.mesh = grid
-            result.post = run.run("solve", lambda g: _solver()(g, **opts["solve_options"]), grid)
+            if solve:
+                result.post = run.run("solve", lambda g: _solver()(g, **opts["solve_options"]),
+                                      grid)
+            else:
+                run.skip("solve", "solve=False")
         else:
             for step in ("boundary conditions", "solve"):
                 run.skip(step, "no mesh with materials")
@@ -554,6 +591,10 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         skins = run.run("skin", _skin, labels, result.post)
         if skins is not None:
             result.skin_pre, result.skin_post = skins
+        if not solve:
+            for step in ("skeleton", "figures", "write"):
+                run.skip(step, "solve=False")
+            return result
         from .filters.osteotomy import move_bones
 
         result.skeleton = run.run("skeleton", move_bones, labels, plan)

@@ -71,6 +71,9 @@ __all__ = [
     "PipelineEvaluation",
     "sweep",
     "validate_grid",
+    "study_truth",
+    "code_version",
+    "source_hash",
     "error_statistics",
     "synthetic_evaluate",
     "synthetic_skin",
@@ -155,8 +158,10 @@ PARAMETERS = {
 #: Metric columns every evaluation returns (|distance| statistics, mm and %).
 METRICS = ("p50", "p90", "p95", "median", "mean_abs", "rms", "within_1mm", "within_2mm", "n_skin")
 #: Timing columns (s): ``t_prepare`` is the task's shared cost (mesh, structure), once per
-#: task and repeated on each of its rows; ``t_eval`` the cost of this row's parameter set.
-TIMES = ("t_prepare", "t_eval")
+#: task and repeated on each of its rows; ``t_eval`` the cost of this row's parameter set;
+#: ``cpu_*`` the same as CPU time of the worker process (what a loaded machine does not
+#: inflate: wall time there includes waiting for a core).
+TIMES = ("t_prepare", "t_eval", "cpu_prepare", "cpu_eval")
 
 
 def validate_grid(grid):
@@ -447,18 +452,23 @@ class PipelineEvaluation(Evaluation):
 
     ``prepare(case, spacing=, n_tets=, roi=, conforming=)`` builds the virtual patient
     (``case`` is a patient number for :func:`pvcmf.datasets.phantom`, a mapping of its
-    arguments, or a ``Case``), runs :func:`pvcmf.pipeline.simulate` once (segmentation,
-    muscles, labelled mesh, materials, plan -> boundary conditions) and keeps a reusable
-    :class:`pvcmf.mtm.Solver` (geometry, block pattern, elimination maps, symbolic
-    factorisation) and the pre-operative skin. ``evaluate(state, nu=..., ...)`` sets the
-    materials of the parameter set (:meth:`materials`), refactorises numerically, solves,
-    maps the displacement onto the skin and measures the signed distance to the case's
-    post-operative skin (:func:`pvcmf.filters.distance_to`).
+    arguments, or a ``Case``) and runs :func:`pvcmf.pipeline.simulate` once *without
+    solving* (``solve=False``: segmentation, muscles, labelled mesh, materials, plan ->
+    boundary conditions, pre-operative skin), then keeps what does not depend on the
+    material: the face skin, the post-operative truth cropped to the face and oriented
+    (:class:`_TruthSurface`), and, built on first use, the skin mapping operator
+    (:class:`_SkinMapping`, per ``sigma``) and a :class:`pvcmf.mtm.Solver` (geometry,
+    block pattern, elimination maps, symbolic factorisation; per ``method``/``tol``).
+    ``evaluate(state, nu=..., ...)`` then only sets the materials of the parameter set
+    (:meth:`materials`), refactorises numerically, solves, applies the mapping operator
+    and measures the signed distance to the truth (:func:`pvcmf.filters.distance.signed_distance`).
 
     Parameters
     ----------
     spacing : float
-        Default image resolution (mm) when the grid does not sweep ``spacing``.
+        Default image resolution (mm) when the grid does not sweep ``spacing``; default
+        1.5 mm, the study default at which :func:`pvcmf.reference.postop_skin` caches the
+        truths.
     n_tets : int
         Default tetrahedra count when the grid does not sweep ``n_tets``.
     method : str
@@ -470,7 +480,7 @@ class PipelineEvaluation(Evaluation):
         ``truth(case) -> pyvista.PolyData``: the case's post-operative skin in the
         pre-operative frame. Default: the case's ``postop_skin`` attribute, else the
         virtual post-operative truth of :mod:`pvcmf.reference`. Must be picklable (a
-        module-level function) to run on Dask workers.
+        module-level function, e.g. :func:`study_truth`) to run on Dask workers.
     region : {'face', 'skin'}
         Where errors are measured: ``'face'`` (default) the skin points of the face
         regions of :func:`pvcmf.validation.label_face_regions` (nose, lips, chin,
@@ -481,12 +491,15 @@ class PipelineEvaluation(Evaluation):
         skin; VTK XML files) under a hash of (case, mesh-level parameters, options, code
         version), so later sweeps on the same meshes (Figs. 2, 4, 5, the trade
         benchmark) skip the phantom, segmentation, muscles and meshing.
+    mesh_threads : int, default 1
+        gmsh threads per task. A sweep runs one task per worker process and as many
+        workers as cores, so more threads only oversubscribe the machine.
     """
 
-    version = "2"
+    version = "3"
 
-    def __init__(self, spacing=1.0, n_tets=30_000, method="direct", keep_distance=False,
-                 truth=None, region="face", cache_dir=None):
+    def __init__(self, spacing=1.5, n_tets=30_000, method="direct", keep_distance=False,
+                 truth=None, region="face", cache_dir=None, mesh_threads=1):
         self.cache_dir = None if cache_dir is None else str(cache_dir)
         if region not in ("face", "skin"):
             raise ValueError(f"region must be 'face' or 'skin', got {region!r}")
@@ -498,19 +511,26 @@ class PipelineEvaluation(Evaluation):
         if truth is not None and not callable(truth):
             raise TypeError(f"truth must be callable(case) -> PolyData or None, got {type(truth).__name__}")
         self.truth = truth
+        if isinstance(mesh_threads, bool) or not isinstance(mesh_threads, numbers.Integral) \
+                or mesh_threads < 1:
+            raise ValueError(f"mesh_threads must be an integer >= 1, got {mesh_threads!r}")
+        self.mesh_threads = int(mesh_threads)
 
     def identity(self):
         truth = None if self.truth is None else FunctionEvaluation(self.truth).identity()
+        own = "".join(inspect.getsource(o) for o in (type(self), _TruthSurface, _SkinMapping,
+                                                     _face_only, _postop_skin, error_statistics))
         return {**super().identity(), "spacing": self.spacing, "n_tets": self.n_tets,
                 "method": self.method, "keep_distance": self.keep_distance, "truth": truth,
-                "region": self.region}
+                "region": self.region, "mesh_threads": self.mesh_threads,
+                "code": source_hash(), "own": hashlib.sha256(own.encode()).hexdigest()[:16]}
 
     def prepare(self, case, *, spacing=None, n_tets=None, roi=None, conforming=True, n_points=None):
         group = {"spacing": self.spacing if spacing is None else spacing,
                  "n_tets": self.n_tets if n_tets is None else n_tets,
                  "roi": roi, "conforming": conforming, "n_points": n_points}
         if self.cache_dir is None:
-            return self._prepare(case, **group)
+            return self._finish(self._prepare(case, **group))
         _, ident = _case_identity(case)
         what = {k: v for k, v in self.identity().items() if k not in ("method", "keep_distance")}
         folder = Path(self.cache_dir) / _point_key(ident, group, what, code_version())
@@ -521,7 +541,7 @@ class PipelineEvaluation(Evaluation):
 
                 state = {k: pv.read(folder / f) for k, f in names.items()}
                 log.info("prepared case %s loaded from %s", ident, folder)
-                return {**state, "solvers": {}}
+                return self._finish(state)
             except Exception as err:  # unreadable: prepare again
                 log.warning("ignoring unreadable prepared case %s (%s)", folder, err)
         state = self._prepare(case, **group)
@@ -543,7 +563,16 @@ class PipelineEvaluation(Evaluation):
                 import shutil
 
                 shutil.rmtree(tmp, ignore_errors=True)
-        return state
+        return self._finish(state)
+
+    @staticmethod
+    def _finish(state):
+        """Add the material-independent operators to a prepared (or loaded) state."""
+        t0 = time.perf_counter()
+        truth = _TruthSurface(state["postop"], np.asarray(state["skin"].points, float))
+        log.info("truth cropped to the face: %d of %d points (%.2f s)", truth.surface.n_points,
+                 state["postop"].n_points, time.perf_counter() - t0)
+        return {"solvers": {}, **state, "truth": truth, "mappings": {}}
 
     def _prepare(self, case, *, spacing, n_tets, roi, conforming, n_points):
         import pvcmf
@@ -554,14 +583,15 @@ class PipelineEvaluation(Evaluation):
         elif isinstance(case, Mapping):
             case = pvcmf.datasets.phantom(**{"spacing": spacing, **case})
         postop = _postop_skin(case) if self.truth is None else self.truth(case)
-        mesh_options = {}
+        mesh_options = {"threads": self.mesh_threads}
         if roi is not None:  # the soft tissue within `roi` mm of the (first) moved segment
             mesh_options["roi"] = (case.plan.osteotomies[0].segment_id, roi)
         if not conforming:
             mesh_options["conforming"] = False
+        # no solve, no predicted skin, no skeleton: evaluate() solves per parameter set
         result = simulate(case.ct, case.plan, bones=getattr(case, "truth", None),
                           landmarks=getattr(case, "landmarks", None), n_tets=n_tets,
-                          mesh_options=mesh_options, figures=False)
+                          mesh_options=mesh_options, figures=False, solve=False)
         if result.mesh is None or result.skin_pre is None:
             raise RuntimeError(f"the pipeline did not produce a mesh and skin for {case.name!r}; "
                                f"skipped steps: {result.skipped}")
@@ -571,7 +601,7 @@ class PipelineEvaluation(Evaluation):
         skin = result.skin_pre
         if self.region == "face":
             skin = _face_only(skin, getattr(case, "landmarks", None))
-        return {"grid": grid, "skin": skin, "postop": postop, "solvers": {}}
+        return {"grid": grid, "skin": skin, "postop": postop}
 
     @staticmethod
     def materials(grid, *, nu=None, nu_fat=None, nu_muscle=None, E_ratio=None, E_fat=None,
@@ -605,8 +635,10 @@ class PipelineEvaluation(Evaluation):
 
     def evaluate(self, state, *, nu=None, nu_fat=None, nu_muscle=None, E_ratio=None, E_fat=None,
                  E_muscle=None, tol=None, method=None, sigma=None):
-        from pvcmf import arrays, mtm
+        from pvcmf import mtm
 
+        if "truth" not in state:  # a state built by hand: add the reusable operators
+            state.update(self._finish(state))
         grid = state["grid"]
         method = self.method if method is None else method
         key = (method, tol)
@@ -616,14 +648,17 @@ class PipelineEvaluation(Evaluation):
         if solver is None:  # first parameter set of this method: structure + symbolic analysis
             options = {} if tol is None else {"tol": tol}
             solver = state["solvers"][key] = mtm.Solver(grid, method, **options, **material)
-        elif material:  # numeric refactorisation only
-            solver.update_materials(**material)
+        elif material:  # no symbolic analysis; direct: the previous factor preconditions CG
+            # (to the same tolerance; it refactors when that needs > 20 iterations)
+            solver.update_materials(**material, refactor=False)
         u = solver.solve()
         t_solve = float(solver.info.get("time", np.nan))
-        post = solver.to_grid(u)
-        pred = _map_to_skin(post, state["skin"], sigma)
-        dist = pred.cmf.distance_to(state["postop"])
-        d = np.asarray(dist.point_data[arrays.DISTANCE])
+        mapping = state["mappings"].get(sigma)
+        if mapping is None:  # the mapping does not depend on the material: once per sigma
+            mapping = state["mappings"][sigma] = _SkinMapping(grid.points, state["skin"].points,
+                                                              sigma=sigma)
+        pred = np.asarray(state["skin"].points, float) + mapping(u)
+        d = state["truth"].distance(pred)
         out = error_statistics(d)
         out.update(n_cells=int(grid.n_cells), t_solve=t_solve,
                    residual=float(solver.info.get("residual", np.nan)))
@@ -632,6 +667,159 @@ class PipelineEvaluation(Evaluation):
             out.update(distance=d, skin_points=np.asarray(skin.points, float),
                        skin_faces=np.asarray(skin.faces))
         return out
+
+
+def study_truth(case):
+    """The post-operative truth of the study for any image spacing of a virtual patient.
+
+    :func:`pvcmf.reference.postop_skin` of ``phantom(case.patient, spacing=1.5)`` (the
+    study default, whose truths are cached), whatever ``case.spacing`` is: a sweep over the
+    image resolution must judge every resolution against the same truth. A module-level
+    function, so it travels to Dask workers (``PipelineEvaluation(truth=study_truth)``).
+    """
+    import pvcmf
+    from pvcmf import reference
+
+    if float(case.spacing) == STUDY_SPACING:
+        return reference.postop_skin(case)
+    return reference.postop_skin(pvcmf.datasets.phantom(patient=case.patient, spacing=STUDY_SPACING))
+
+
+#: image spacing (mm) of the study's virtual patients, at which the truths are cached
+STUDY_SPACING = 1.5
+#: the truth is cropped to the points within this distance (mm) of the pre-operative face:
+#: far more than any predicted displacement (< 20 mm) plus any error, so every predicted
+#: point's closest truth point is kept (tested against the uncropped distance)
+TRUTH_MARGIN = 40.0
+
+
+class _TruthSurface:
+    """The truth, oriented outward once and cropped to the face, for repeated distances.
+
+    The exact point-to-triangle distance of :func:`pvcmf.filters.distance_to`, for every
+    query point whose closest truth point lies within ``margin`` of ``near``, but with the
+    orientation, the crop and VTK's cell locator (``vtkImplicitPolyDataDistance``, sign
+    from the closest cell's normal) built once per truth instead of once per call. A
+    closed truth is oriented by its signed volume before cropping; an open one (or one
+    with inconsistent winding) is left to :func:`pvcmf.filters.distance_to` on each call.
+    """
+
+    def __init__(self, surface, near, margin=TRUTH_MARGIN):
+        import pyvista as pv
+        from scipy.spatial import cKDTree
+
+        self.closed = surface.n_open_edges == 0 if isinstance(surface, pv.PolyData) else False
+        self._full = surface
+        self._implicit = None
+        self.surface = surface
+        if not self.closed:  # a crop of an open surface cannot be oriented reliably
+            return
+        surf = surface.triangulate() if not surface.is_all_triangles else surface
+        tris = np.asarray(surf.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
+        pts = np.asarray(surf.points, float)
+        directed = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+                           @ np.array([len(pts), 1]))
+        if (directed[1:] == directed[:-1]).any():  # inconsistent winding: leave it to distance_to
+            self.closed = False
+            return
+        a, b, c = pts[tris[:, 0]], pts[tris[:, 1]], pts[tris[:, 2]]
+        if np.einsum("ij,ij->", a - pts.mean(axis=0), np.cross(b - a, c - a)) < 0:
+            tris = tris[:, ::-1]  # outward: positive signed volume
+        dist, _ = cKDTree(np.asarray(near, float)).query(pts, distance_upper_bound=margin)
+        kept = tris[np.isfinite(dist)[tris].all(axis=1)]
+        used = np.unique(kept)
+        new_id = np.full(len(pts), -1)
+        new_id[used] = np.arange(used.size)
+        self.surface = pv.PolyData(pts[used], np.c_[np.full(len(kept), 3), new_id[kept]].ravel())
+
+    def distance(self, points):
+        """Signed distances (mm) of ``(n, 3)`` points, positive outside (anterior)."""
+        import pyvista as pv
+
+        from pvcmf import arrays
+        from pvcmf.filters import distance_to
+
+        points = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        if not self.closed:  # cannot orient a crop of an open surface reliably
+            return np.asarray(distance_to(pv.PolyData(points), self._full).point_data[arrays.DISTANCE])
+        import vtk
+        from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+
+        if self._implicit is None:  # VTK's cell locator, built once per truth
+            self._implicit = vtk.vtkImplicitPolyDataDistance()
+            self._implicit.SetInput(self.surface)
+        out = vtk.vtkDoubleArray()
+        self._implicit.FunctionValue(numpy_to_vtk(points, deep=True), out)
+        return vtk_to_numpy(out).astype(np.float64, copy=True)
+
+
+class _SkinMapping:
+    """:func:`pvcmf.filters.map_to_surface` as a precomputed sparse operator.
+
+    The mapping's Gaussian moving least-squares fit is linear in the grid displacement
+    (only the final clamp to the neighbours' range is not), and its weights depend only
+    on the grid and skin points, not on the material: a sweep builds the sparse matrix
+    ``W`` (skin points x grid points) once and each parameter set costs one sparse
+    product and a vectorised clamp (``numpy.minimum.reduceat``). The fit's value at
+    ``p``, ``c = e0 . M^-1 r``, is ``(M^-1 e0) . r`` because the moment matrix ``M`` is
+    symmetric, so row ``i`` of ``W`` is ``w_ij (1, (x_j - p_i) / sigma) . M_i^-1 e0``.
+    Tested equal to :func:`pvcmf.filters.map_to_surface`.
+    """
+
+    def __init__(self, grid_points, skin_points, sigma=None, radius=None):
+        import inspect
+
+        import scipy.sparse as sp
+        from scipy.spatial import cKDTree
+
+        from pvcmf.filters.surface_mapping import map_to_surface
+
+        if sigma is None:
+            sigma = inspect.signature(map_to_surface).parameters["sigma"].default
+        radius = 3.0 * sigma if radius is None else float(radius)
+        x = np.asarray(grid_points, float)
+        p = np.asarray(skin_points, float)
+        n, m = len(p), len(x)
+        pairs = cKDTree(p).sparse_distance_matrix(cKDTree(x), radius, output_type="ndarray")
+        w = np.exp(-0.5 * (pairs["v"] / sigma) ** 2) - np.exp(-0.5 * (radius / sigma) ** 2)
+        keep = w > 0
+        i, j, w = pairs["i"][keep], pairs["j"][keep], w[keep]
+        order = np.lexsort((j, i))
+        i, j, w = i[order], j[order], w[order]
+        basis = np.column_stack([np.ones(len(i)), (x[j] - p[i]) / sigma])
+        moments = np.empty((n, 4, 4))
+        for a in range(4):  # 10 unique moments by bincount, not a loop over points
+            for b in range(a, 4):
+                moments[:, a, b] = moments[:, b, a] = np.bincount(i, w * basis[:, a] * basis[:, b],
+                                                                  minlength=n)
+        support = moments[:, 0, 0].copy()
+        has = support > 0
+        coef = np.zeros((n, 4))
+        idx = np.flatnonzero(has)
+        cond_ok = np.linalg.cond(moments[idx] / support[idx][:, None, None]) < 1e8
+        fit, mean = idx[cond_ok], idx[~cond_ok]
+        if fit.size:  # affine fit where well conditioned
+            e0 = np.zeros((fit.size, 4, 1))
+            e0[:, 0] = 1.0
+            coef[fit] = np.linalg.solve(moments[fit], e0)[:, :, 0]
+        coef[mean, 0] = 1.0 / support[mean]  # weighted mean elsewhere
+        values = w * np.einsum("ij,ij->i", basis, coef[i])
+        self.W = sp.csr_matrix((values, (i, j)), shape=(n, m))
+        self.indptr = np.searchsorted(i, np.arange(n + 1))
+        self.neighbours = j
+        self.has = has
+        self.starts = self.indptr[:-1][has]
+
+    def __call__(self, u):
+        """Skin displacement ``(n_skin, 3)`` for grid displacement ``u`` ``(n_grid, 3)``."""
+        u = np.asarray(u, float)
+        disp = np.asarray(self.W @ u)
+        if self.starts.size:  # clamp to the neighbours' range, as map_to_surface does
+            v = u[self.neighbours]
+            lo = np.minimum.reduceat(v, self.starts, axis=0)
+            hi = np.maximum.reduceat(v, self.starts, axis=0)
+            disp[self.has] = np.clip(disp[self.has], lo, hi)
+        return disp
 
 
 def _face_only(skin, landmarks):
@@ -655,29 +843,6 @@ def _face_only(skin, landmarks):
     for name in labelled.point_data.keys():
         out.point_data[name] = np.asarray(labelled.point_data[name])[face]
     return out
-
-
-def _map_to_skin(post, skin, sigma):
-    """Predicted skin: ``skin`` moved by the mesh displacement (paper 001's mapping when
-    :func:`pvcmf.filters.map_to_surface` is available, else probing the tetrahedra)."""
-    from pvcmf import arrays, filters
-
-    try:
-        mapper = filters.map_to_surface
-    except (ImportError, AttributeError):
-        mapper = None
-    if mapper is not None:
-        mapped = mapper(post, skin) if sigma is None else mapper(post, skin, sigma=sigma)
-        disp = np.asarray(mapped.point_data[arrays.DISPLACEMENT], float)
-    else:
-        base = skin.copy()
-        base.clear_data()
-        disp = np.asarray(base.sample(post, snap_to_closest_point=True)[arrays.DISPLACEMENT], float)
-    pred = skin.copy()
-    pred.clear_data()
-    pred.points = np.asarray(skin.points) + disp
-    pred.point_data[arrays.DISPLACEMENT] = disp
-    return pred
 
 
 def _postop_skin(case):
@@ -725,22 +890,52 @@ def _case_identity(case):
     )
 
 
-_CODE_VERSION = None
+#: the parts of pvcmf whose code changes what the pipeline computes (relative to the
+#: package): their sources enter :class:`PipelineEvaluation`'s cache identity. Figures,
+#: command line, I/O and the sweep engine itself do not change a result, so editing them
+#: keeps every cached sweep.
+RESULT_SOURCES = ("arrays.py", "atlas.py", "tps.py", "plan.py", "pipeline.py", "reference.py",
+                  "validation.py", "filters", "mtm", "datasets")
+
+_SOURCE_HASHES = {}
 
 
 def code_version():
-    """Version of pvcmf's code for cache keys: package version + hash of its sources."""
-    global _CODE_VERSION
-    if _CODE_VERSION is None:
+    """Version of pvcmf for cache keys of every evaluation: the package version.
+
+    What a result depends on beyond that is in its evaluation's identity
+    (:meth:`Evaluation.identity`): :class:`PipelineEvaluation` hashes the sources of
+    :data:`RESULT_SOURCES` and its own code (:func:`source_hash`), a plain function
+    evaluation its function's source.
+    """
+    import pvcmf
+
+    return str(pvcmf.__version__)
+
+
+def source_hash(parts=RESULT_SOURCES):
+    """SHA-256 (16 hex digits) of the pvcmf sources named in ``parts`` (files or folders).
+
+    Examples
+    --------
+    >>> from pvcmf.sweeps import source_hash
+    >>> len(source_hash(("arrays.py",)))
+    16
+    """
+    parts = tuple(parts)
+    if parts not in _SOURCE_HASHES:
         import pvcmf
 
         root = Path(pvcmf.__file__).parent
         h = hashlib.sha256()
-        for path in sorted(root.rglob("*.py")):
-            h.update(str(path.relative_to(root)).encode())
-            h.update(path.read_bytes())
-        _CODE_VERSION = f"{pvcmf.__version__}+{h.hexdigest()[:16]}"
-    return _CODE_VERSION
+        for part in parts:
+            target = root / part
+            files = sorted(target.rglob("*.py")) if target.is_dir() else [target]
+            for path in files:
+                h.update(str(path.relative_to(root)).encode())
+                h.update(path.read_bytes())
+        _SOURCE_HASHES[parts] = h.hexdigest()[:16]
+    return _SOURCE_HASHES[parts]
 
 
 def _point_key(case_identity, params, evaluation_identity, version):
@@ -800,15 +995,17 @@ def _cache_store(cache_dir, key, result):
 
 def _run_group(evaluation, case, group_params, points):
     """One Dask task: prepare the case once, evaluate every solve-level parameter set."""
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     state = evaluation.prepare(case, **group_params)
-    t_prepare = time.perf_counter() - t0
+    t_prepare, cpu_prepare = time.perf_counter() - t0, time.process_time() - c0
     results = []
     for params in points:
-        t1 = time.perf_counter()
+        t1, c1 = time.perf_counter(), time.process_time()
         result = dict(evaluation.evaluate(state, **params))
         result["t_eval"] = time.perf_counter() - t1
+        result["cpu_eval"] = time.process_time() - c1
         result["t_prepare"] = t_prepare
+        result["cpu_prepare"] = cpu_prepare
         missing = [m for m in ("p50", "p90", "p95") if m not in result]
         if missing:
             raise ValueError(f"evaluation returned no {missing} for parameters {params}")
@@ -898,8 +1095,10 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     memory_limit : str
         Memory limit per worker of a local cluster (Dask syntax, e.g. ``"2GiB"``).
     version : str, optional
-        Code version in the cache key; default :func:`code_version` (pvcmf's version
-        and a hash of its sources), so changed code recomputes.
+        Code version in the cache key; default :func:`code_version` (pvcmf's version).
+        The evaluation's own identity adds what else its results depend on
+        (:class:`PipelineEvaluation`: the sources of :data:`RESULT_SOURCES`), so code
+        that changes results recomputes and code that does not (figures, CLI) does not.
     on_error : {'raise', 'skip'}
         A task that still fails after its retries: ``'raise'`` stops the sweep with a
         :class:`RuntimeError` naming the case; ``'skip'`` finishes the other tasks and

@@ -549,3 +549,76 @@ def test_partial_arguments_enter_the_cache_key(tmp_path):
     a = pvcmf.sweep(1, {"nu": [0.3]}, evaluate=functools.partial(synthetic_evaluate, n_skin=500), **kw)
     b = pvcmf.sweep(1, {"nu": [0.3]}, evaluate=functools.partial(synthetic_evaluate, n_skin=800), **kw)
     assert not b["cached"].any() and (a["n_skin"].iloc[0], b["n_skin"].iloc[0]) == (500, 800)
+
+
+# --------------------------------------------------------------------------- reused operators
+
+
+def test_skin_mapping_operator_equals_map_to_surface():
+    """The precomputed sparse mapping (built once per mesh) gives map_to_surface's answer
+    for any displacement: curved fields, the clamp at the mesh edge, and skin points beyond
+    the radius (zero)."""
+    import pyvista as pv
+
+    from pvcmf import arrays
+    from pvcmf.filters import map_to_surface
+
+    grid = pv.ImageData(dimensions=(9, 9, 9), spacing=(2.0, 2.0, 2.0)).triangulate()
+    skin = pv.Sphere(radius=9.0, center=(8.0, 8.0, 8.0), theta_resolution=40, phi_resolution=40)
+    skin = skin.merge(pv.Sphere(radius=1.0, center=(60.0, 0.0, 0.0)))  # far from every node
+    x = np.asarray(grid.points)
+    op = sweeps._SkinMapping(x, skin.points, sigma=1.5)
+    rng = np.random.default_rng(3)
+    for u in (np.c_[np.sin(x[:, 0] / 5), x[:, 1] ** 2 / 50, np.cos(x[:, 2] / 3)],
+              rng.normal(size=x.shape)):
+        g = grid.copy()
+        g.point_data[arrays.DISPLACEMENT] = u
+        ref = np.asarray(map_to_surface(g, skin, sigma=1.5)[arrays.DISPLACEMENT])
+        np.testing.assert_allclose(op(u), ref, rtol=0, atol=1e-9)
+    assert np.abs(op(u)[-10:]).max() == 0.0  # beyond the radius: not moved
+
+
+def test_truth_surface_distance_equals_distance_to():
+    """The cropped, once-oriented truth measures the exact distances distance_to measures
+    (both orientations of the truth's winding), for points near the face it was cropped to."""
+    import pyvista as pv
+
+    from pvcmf import arrays
+    from pvcmf.filters import distance_to
+
+    truth = pv.ParametricEllipsoid(70, 95, 110, u_res=80, v_res=80).triangulate().clean()
+    assert truth.n_open_edges == 0
+    face = np.asarray(truth.points)[truth.points[:, 1] > 60]
+    rng = np.random.default_rng(0)
+    query = face + rng.normal(0.0, 2.0, face.shape)
+    ref = np.asarray(distance_to(pv.PolyData(query), truth)[arrays.DISTANCE])
+    for surface in (truth, truth.flip_faces()):
+        t = sweeps._TruthSurface(surface, face, margin=20.0)
+        assert t.closed and t.surface.n_points < 0.6 * truth.n_points  # cropped
+        np.testing.assert_allclose(t.distance(query), ref, atol=1e-9)
+    assert (ref > 0).any() and (ref < 0).any()  # both signs were exercised
+
+
+def test_truth_surface_falls_back_for_an_open_truth():
+    import pyvista as pv
+
+    from pvcmf import arrays
+    from pvcmf.filters import distance_to
+
+    cap = pv.Sphere(radius=50.0, theta_resolution=60, phi_resolution=60).clip("y", invert=False)
+    query = np.asarray(cap.points)[::7] * 1.02
+    t = sweeps._TruthSurface(cap, query, margin=10.0)
+    assert not t.closed
+    ref = np.asarray(distance_to(pv.PolyData(query), cap)[arrays.DISTANCE])
+    np.testing.assert_allclose(t.distance(query), ref, atol=1e-12)
+
+
+def test_cache_identity_ignores_figure_code_but_not_pipeline_code(monkeypatch):
+    """Editing figure or CLI code keeps cached sweeps; the pipeline's sources are in the key."""
+    assert "figures" not in sweeps.RESULT_SOURCES and "cli.py" not in sweeps.RESULT_SOURCES
+    assert {"filters", "mtm", "datasets", "pipeline.py"} <= set(sweeps.RESULT_SOURCES)
+    before = sweeps.PipelineEvaluation().identity()
+    monkeypatch.setitem(sweeps._SOURCE_HASHES, sweeps.RESULT_SOURCES, "changed")
+    after = sweeps.PipelineEvaluation().identity()
+    assert before["code"] != after["code"] == "changed"
+    assert sweeps.code_version() == pvcmf.__version__
