@@ -511,9 +511,10 @@ def validate_from_ct(pre_case, postop_ct, predicted_skin, *, region=None, pre_sk
     max_distance : float, default 10.0
         Median |distance| (mm) above which the surfaces are said not to overlap (error).
     segment_options, skin_options, icp_options : dict, optional
-        Keyword arguments of ``segment``, ``extract_skin`` and ``register`` (ICP's
-        ``tol`` defaults to 5 um here: on skins of 2-3 mm voxels the last updates cycle
-        around the optimum by a few um).
+        Keyword arguments of ``segment``, ``extract_skin`` and ``register``. ICP's
+        ``tol`` defaults to 5 um here (on skins of 2-3 mm voxels the last updates cycle
+        around the optimum by a few um) and ``closest`` to ``'auto'`` (closest points on
+        the triangles at the end when libigl is installed: coarse skins).
     regions : bool, default True
         Per-region rows in the table.
     refine : bool, default True
@@ -566,7 +567,7 @@ def validate_from_ct(pre_case, postop_ct, predicted_skin, *, region=None, pre_sk
     landmarks = getattr(pre_case, "landmarks", None) if landmarks is None else landmarks
     if region is None:
         region = upper_face_region(landmarks)
-    icp = {"tol": 5e-3, **(icp_options or {})}
+    icp = {"tol": 5e-3, "closest": "auto", **(icp_options or {})}
     registered = filters.register(post_skin, pre_skin, region=region, **icp)
     matrix, rms, converged = registration_result(registered)
     log.info("validate_from_ct: ICP RMS %.3f mm, converged %s", rms, converged)
