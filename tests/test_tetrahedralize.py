@@ -100,8 +100,8 @@ def test_label_agreement_shell(shell, shell_mesh):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known limitation: at 10k tetrahedra the isotropic working grid (~7 mm) puts the "
-    "muscle boundaries within s/2; 96-97 % of the centroids agree, not 98 %",
+    reason="known limitation: at 10k tetrahedra the isotropic working grid (~7 mm) resolves "
+    "the 8 mm muscle tubes to about s/2; 96-97 % of the centroids agree, not 98 %",
 )
 def test_label_agreement_goal_98_percent(shell, shell_mesh):
     _, agree = _label_agreement(shell, shell_mesh)
@@ -235,27 +235,61 @@ def test_accessor_delegates(shell):
 
 
 # ----------------------------------------------------------------------------- phantom
-@pytest.mark.parametrize("patient", [1, 2, 3, 4])
-def test_every_virtual_patient(patient):
-    truth = pvcmf.datasets.phantom(patient, spacing=4.0).truth
+#: muscles smaller than this (mm^3) in the image need not survive at 30k tetrahedra
+MIN_MUSCLE_VOLUME = 200.0
+
+
+@pytest.fixture(scope="module", params=[1, 2, 3, 4])
+def patient_mesh(request):
+    """Virtual patient at 2 mm meshed like the pipeline: 30k tetrahedra, face box ROI."""
+    from pvcmf.pipeline import face_box
+
+    truth = pvcmf.datasets.phantom(request.param, spacing=2.0).truth
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # thin muscles vanish at this size (warned)
-        grid = tetrahedralize(truth, spacing=9.0, roi=(arrays.MANDIBLE, 25.0))
+        warnings.simplefilter("error")  # no muscle may be reported lost at 30k
+        grid = tetrahedralize(truth, n_tets=30_000, roi=face_box(truth, 0.5))
+    return truth, grid
+
+
+def test_every_virtual_patient_agreement_and_quality(patient_mesh):
+    truth, grid = patient_mesh
     inside, agree = _label_agreement(truth, grid)
-    # a 4 mm image meshed at ~9 mm: 93-95 % (the 1 mm numbers are in the benchmark)
-    assert agree >= 0.9
+    # measured 85-87 % inside soft tissue, 94-95 % of those agree (see the xfail below
+    # and the module docstring of pvcmf.filters.meshing for why not 98 %)
+    assert inside >= 0.83
+    assert agree >= 0.93
+    assert abs(grid.n_cells / 30_000 - 1) <= 0.2
     _, vol, _ = tet_quality(grid.points, grid.cells_dict[pv.CellType.TETRA])
     assert vol.min() > 0
-    assert grid.field_data[meshing.MIN_DIHEDRAL][0] >= 1.0
+    assert grid.field_data[meshing.MIN_DIHEDRAL][0] >= 5.0
     assert grid.field_data[meshing.P1_DIHEDRAL][0] >= 15.0
-    # one piece per muscle, like the image
+
+
+def test_every_virtual_patient_keeps_every_muscle(patient_mesh):
+    truth, grid = patient_mesh
+    voxel = float(np.prod(truth.spacing))
+    image = np.bincount(np.asarray(truth[arrays.MUSCLE]), minlength=len(arrays.MUSCLES) + 1) * voxel
+    wanted = {m for m in range(1, len(arrays.MUSCLES) + 1) if image[m] >= MIN_MUSCLE_VOLUME}
+    assert len(wanted) == len(arrays.MUSCLES)  # the virtual patients have all 12
+    assert wanted <= set(np.unique(grid.cell_data[arrays.MUSCLE]).tolist())
+    # one piece per muscle at most as many as in the image
     muscle = np.asarray(truth[arrays.MUSCLE]).reshape(truth.dimensions[::-1])
-    for m in np.unique(grid.cell_data[arrays.MUSCLE]):
-        if m == 0:
-            continue
+    for m in wanted:
         part = grid.extract_cells(grid.cell_data[arrays.MUSCLE] == m)
         n_mesh = part.connectivity().point_data["RegionId"].max() + 1
         assert n_mesh <= ndimage.label(muscle == m)[1]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limitation: no size grading; at 30k tetrahedra over the anterior half of "
+    "the head (working spacing 5-7 mm) only ~82 % of the centroids fall in a voxel of their "
+    "own tissue (thin scalp, thin muscles), not 98 %",
+)
+def test_every_virtual_patient_goal_98_percent(patient_mesh):
+    truth, grid = patient_mesh
+    inside, agree = _label_agreement(truth, grid)
+    assert inside * agree >= 0.98
 
 
 def test_deterministic_output():

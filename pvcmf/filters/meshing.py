@@ -6,14 +6,20 @@ the muscle surfaces:
 
 1. the soft tissue (``arrays.SOFT_LABELS``, optionally cropped to a region of interest) is
    resampled by nearest neighbour on an isotropic working grid whose spacing is calibrated
-   from the requested number of tetrahedra (the surface triangles are about that size);
+   from the requested number of tetrahedra (the surface triangles are about that size); a
+   named muscle also claims the working voxels whose cell it fills to
+   ``_MUSCLE_SHARE`` (box average, ``scipy.ndimage.uniform_filter``), so muscles thinner
+   than the spacing keep a layer of working voxels instead of vanishing;
    configurations that would make the surfaces non-manifold (a label touching itself or
    another only along an edge or at a corner) are repaired, muscles never losing voxels,
    and muscle fragments the coarse grid adds are given to the fat;
 2. every connected region of the working grid gets its own label and VTK's SurfaceNets
    (PyVista's :meth:`pyvista.ImageDataFilters.contour_labels`, unsmoothed) builds conforming
    multi-label surfaces: an interface between two regions is one set of triangles shared
-   by both. Coincident sheet vertices are merged, then the surface is smoothed with VTK's
+   by both. Coincident sheet vertices are merged and every vertex is moved (within its
+   SurfaceNets cell) to the mean of the full-resolution voxel faces between its regions
+   inside that cell, so the surfaces follow the image rather than the working grid; the
+   surface is then smoothed with VTK's
    ``vtkConstrainedSmoothingFilter`` (``smoothing_scale``): SurfaceNets' own smoothing pulls
    coincident sheets through each other (the self-intersections DESIGN.md warns about);
 3. the surfaces are checked (every region's boundary must be closed) and a volume per
@@ -31,13 +37,17 @@ the muscle surfaces:
 the paper's state of the art, completed by :func:`pvcmf.filters.sample_muscle_fraction`
 or :func:`pvcmf.filters.average_voxels`.
 
-Limitation: the working grid is isotropic, so muscles thinner than its spacing vanish (a
-warning names them) and thin tissue is resolved to about half a spacing; request more
-tetrahedra or a region of interest for the thin facial muscles.
+Limitation: the working grid is isotropic and there is no size grading (the surfaces are
+as fine near the skin as deep inside), so at ~30k tetrahedra over the anterior half of a
+head (working spacing ~6 mm) thin tissue is resolved to about half a spacing: about 82 %
+of the element centroids fall in a voxel of the element's own tissue (94 % of those in
+soft tissue), and the volume of the thin facial muscles (~3 mm) is off by tens of per
+cent although every muscle is present. Request more tetrahedra or a smaller region of
+interest where this matters (numbers in ``benchmarks/meshing.py`` and README).
 
 Delegates to PyVista/VTK (``contour_labels`` = ``vtkSurfaceNets3D``,
-``vtkConstrainedSmoothingFilter``), scipy.ndimage (connected components, distance transform
-for the bone ROI), scipy.sparse.csgraph (surface patches) and the gmsh Python API.
+``vtkConstrainedSmoothingFilter``), scipy.ndimage (connected components, box averages of
+the muscles, distance transform for the bone ROI), scipy.sparse.csgraph (surface patches) and the gmsh Python API.
 """
 
 from __future__ import annotations
@@ -96,6 +106,11 @@ _FALLBACKS = ((1.0, 1.0), (0.97, 1.0), (0.97, 0.5), (0.93, 0.0), (0.86, 0.0), (0
 # 2 fat, 3 + m muscle m (m = 0 for muscle tissue without a muscle id)
 _AIR, _OTHER, _FAT, _MUSCLE0 = 0, 1, 2, 3
 _N_CODES = _MUSCLE0 + len(arrays.MUSCLES) + 1
+#: share of a working voxel's cell a named muscle must fill to claim it (0: nearest only)
+_MUSCLE_SHARE = 0.35
+_FINE_TARGETS = True
+#: how far (in working spacings, per axis) a vertex may move from its cell centre
+_TARGET_REACH = 0.4
 
 
 class SurfaceError(RuntimeError):
@@ -239,9 +254,27 @@ def _initial_spacing(code, labels, volume, n_tets, conforming, min_spacing):
     return max(min_spacing, 1.0 / u)
 
 
-def _working_grid(code_zyx, labels, s):
-    """Resample the code volume by nearest neighbour on a grid of spacing ``s``."""
+def _crop_fine(code_zyx, labels):
+    """The code volume cropped to the soft-tissue box plus one voxel: (code, origin, spacing)."""
     sp = np.asarray(labels.spacing, float)
+    soft = code_zyx >= _FAT
+    box = []
+    for ax in range(3):  # array axes z, y, x
+        idx = np.flatnonzero(soft.any(axis=tuple(a for a in range(3) if a != ax)))
+        box.append(slice(max(idx[0] - 1, 0), min(idx[-1] + 2, code_zyx.shape[ax])))
+    lo = np.array([box[2].start, box[1].start, box[0].start])
+    return np.ascontiguousarray(code_zyx[tuple(box)]), np.asarray(labels.origin, float) + lo * sp, sp
+
+
+def _working_grid(fine, s):
+    """Resample the (cropped) code volume on a grid of spacing ``s``.
+
+    Nearest neighbour, except that a named muscle also claims the fat of the working-grid
+    voxels it reaches within ``s / 2`` (so a muscle thinner than ``s`` keeps a layer of
+    working voxels; its surfaces are then placed on the fine interfaces by
+    :func:`_fine_targets`).
+    """
+    code_zyx, origin0, sp = fine[:3]
     soft = code_zyx >= _FAT
     lo, hi = [], []
     for axis in range(3):  # x, y, z -> array axes 2, 1, 0
@@ -259,8 +292,45 @@ def _working_grid(code_zyx, labels, s):
         for k in range(3)
     ]
     sub = code_zyx[np.ix_(idx[2], idx[1], idx[0])]
-    origin = np.asarray(labels.origin, float) + start
+    half = np.floor(0.5 * s / sp[::-1] + 1e-9).astype(int)  # array axes z, y, x
+    if _MUSCLE_SHARE > 0 and np.any(half >= 1):
+        _claim_muscles(sub, code_zyx, idx[::-1], half)
+    origin = origin0 + start
     return sub, origin
+
+
+def _claim_muscles(sub, code_zyx, idx_zyx, half):
+    """Give a named muscle every working voxel whose cell it fills to ``_MUSCLE_SHARE``.
+
+    Nearest-neighbour resampling loses a muscle thinner than the working spacing where it
+    passes between the samples; here the share of muscle ``m`` in the box of the working
+    spacing around every working voxel (``scipy.ndimage.uniform_filter`` on the muscle's
+    bounding box) decides, so a thin muscle keeps a layer of working voxels (its
+    surfaces are then placed on the fine interfaces by :func:`_fine_targets`). Only fat
+    and muscle tissue without id are claimed.
+    """
+    from scipy import ndimage
+
+    named = np.where(code_zyx > _MUSCLE0, code_zyx, 0)
+    size = tuple(2 * half + 1)
+    for c0, box in enumerate(ndimage.find_objects(named)):
+        if box is None:
+            continue
+        c = c0 + 1
+        sl = tuple(
+            slice(max(b.start - h, 0), min(b.stop + h, n))
+            for b, h, n in zip(box, half, code_zyx.shape)
+        )
+        sel = [np.flatnonzero((ix >= q.start) & (ix < q.stop)) for ix, q in zip(idx_zyx, sl)]
+        if any(len(x) == 0 for x in sel):
+            continue
+        share = ndimage.uniform_filter((code_zyx[sl] == c).astype(np.float32), size=size, mode="constant")
+        share = share[np.ix_(*[ix[x] - q.start for ix, x, q in zip(idx_zyx, sel, sl)])]
+        block = sub[np.ix_(*sel)]
+        claim = (share >= _MUSCLE_SHARE) & ((block == _FAT) | (block == _MUSCLE0))
+        if claim.any():
+            block[claim] = c
+            sub[np.ix_(*sel)] = block
 
 
 def _repair_topology(sub, max_iter=20):
@@ -375,15 +445,18 @@ def _components(sub):
 
 
 # ----------------------------------------------------------------------------- surfaces
-def _surfaces(comp, origin, s, smoothing_scale):
+def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None):
     """Multi-label SurfaceNets surfaces: (points, triangles, side labels (n, 2)).
 
     SurfaceNets runs unsmoothed: where three regions meet in one cell without sharing a
     face (a muscle touching the skin diagonally), it makes one vertex per sheet at the
     same place, and its own smoothing then pulls the sheets through each other. Here the
-    coincident vertices are merged first and the merged surface is smoothed with VTK's
+    coincident vertices are merged first; with ``fine`` (the full-resolution code volume)
+    every vertex is moved to the mean of the full-resolution interfaces between its
+    regions inside its SurfaceNets cell (:func:`_fine_targets`), so the surfaces follow
+    the image, not the working grid; the surface is then smoothed with VTK's
     ``vtkConstrainedSmoothingFilter`` (every vertex stays within
-    ``smoothing_scale * s * sqrt(3) / 2`` of its cell centre).
+    ``smoothing_scale * s * sqrt(3) / 2`` of that position).
     """
     img = pv.ImageData(dimensions=comp.shape[::-1], spacing=(s, s, s), origin=origin)
     img.point_data["comp"] = comp.ravel()
@@ -396,6 +469,10 @@ def _surfaces(comp, origin, s, smoothing_scale):
     uniq, merged = np.unique(grid_ijk, axis=0, return_inverse=True)
     tri = merged.ravel()[surf.regular_faces]
     points = uniq * (0.5 * s) + origin
+    if fine is not None and _FINE_TARGETS:
+        cell = (uniq - 1) // 2  # SurfaceNets vertices sit at cell centres (odd half-steps)
+        points = _fine_targets(points, cell, np.asarray(comp.shape[::-1]) - 1, origin, s,
+                               tri, comp_code[sides], fine)
     if smoothing_scale > 0:
         import vtk
 
@@ -410,6 +487,70 @@ def _surfaces(comp, origin, s, smoothing_scale):
     tri, sides = tri[keep], sides[keep]
     used, inverse = np.unique(tri, return_inverse=True)
     return points[used], inverse.reshape(-1, 3), sides
+
+
+def _fine_faces(fine):
+    """Midpoints (n, 3) and code pairs ``lo * 256 + hi`` of the fine image's interfaces.
+
+    Only interfaces with soft tissue on one side (the meshed surfaces) are returned.
+    """
+    code, origin, sp = fine[:3]
+    mids, pairs = [], []
+    for ax in range(3):  # array axes z, y, x
+        n = code.shape[ax]
+        a = code.take(np.arange(n - 1), axis=ax)
+        b = code.take(np.arange(1, n), axis=ax)
+        hit = (a != b) & (np.maximum(a, b) >= _FAT)
+        iz, iy, ix = np.nonzero(hit)
+        xyz = np.stack([ix, iy, iz], axis=1).astype(float)
+        xyz[:, 2 - ax] += 0.5
+        mids.append(origin + xyz * sp)
+        lo, hi = np.minimum(a[hit], b[hit]), np.maximum(a[hit], b[hit])
+        pairs.append(lo.astype(np.int64) * 256 + hi)
+    return np.concatenate(mids), np.concatenate(pairs)
+
+
+def _fine_targets(points, cell, n_cells, origin, s, tri, side_codes, fine):
+    """Move every surface vertex to the full-resolution interfaces of its regions.
+
+    A vertex of the sheet between regions of codes ``a`` and ``b`` in working-grid cell
+    ``c`` goes to the mean of the midpoints of the full-resolution voxel faces between
+    codes ``a`` and ``b`` inside ``c`` (a junction vertex: of all its pairs); a vertex
+    with no such face in its cell stays at the cell centre. The target stays inside the
+    cell, so the SurfaceNets surface keeps its topology. Vectorised: the (cell, pair)
+    keys of the vertices are sorted once and every fine face is looked up by
+    ``searchsorted``.
+    """
+    mids, pairs = fine[3], fine[4]
+    n_cells = np.asarray(n_cells, np.int64)
+    fcell = np.floor((mids - origin) / s).astype(np.int64)
+    ok = np.all((fcell >= 0) & (fcell < n_cells), axis=1)
+    mids, pairs, fcell = mids[ok], pairs[ok], fcell[ok]
+    n_pairs = 256 * 256
+
+    def flat(c):
+        return (c[:, 2] * n_cells[1] + c[:, 1]) * n_cells[0] + c[:, 0]
+
+    fkey = flat(fcell) * n_pairs + pairs
+    lo, hi = np.minimum(side_codes[:, 0], side_codes[:, 1]), np.maximum(side_codes[:, 0], side_codes[:, 1])
+    tpair = lo * 256 + hi
+    vert = tri.ravel()
+    vkey = flat(cell[vert]) * n_pairs + np.repeat(tpair, 3)
+    # unique (vertex, key) incidences
+    inc, first = np.unique(np.stack([vert, vkey], axis=1), axis=0, return_index=True)
+    keys, key_of_inc = np.unique(inc[:, 1], return_inverse=True)
+    pos = np.clip(np.searchsorted(keys, fkey), 0, len(keys) - 1)
+    match = keys[pos] == fkey
+    cnt = np.bincount(pos[match], minlength=len(keys)).astype(float)
+    sums = np.stack([np.bincount(pos[match], weights=mids[match, k], minlength=len(keys)) for k in range(3)], axis=1)
+    vcnt = np.bincount(inc[:, 0], weights=cnt[key_of_inc], minlength=len(points))
+    vsum = np.stack([np.bincount(inc[:, 0], weights=sums[key_of_inc, k], minlength=len(points)) for k in range(3)], axis=1)
+    out = points.copy()
+    has = vcnt > 0
+    shift = vsum[has] / vcnt[has, None] - points[has]
+    out[has] += np.clip(shift, -_TARGET_REACH * s, _TARGET_REACH * s)
+    log.debug("tetrahedralize: %d of %d surface vertices placed on the fine interfaces", int(has.sum()), len(points))
+    return out
 
 
 def _check_surfaces(tri, sides, comp_code):
@@ -620,7 +761,7 @@ def tetrahedralize(
     smoothing_scale=0.25,
     spacing=None,
     optimize=True,
-    min_dihedral=2.0,
+    min_dihedral=5.0,
     threads=2,
     progress_bar=False,
 ):
@@ -660,12 +801,13 @@ def tetrahedralize(
         from ``n_tets`` (the count is then not controlled).
     optimize : bool, default True
         Run gmsh's tetrahedral optimisation (``Mesh.Optimize``).
-    min_dihedral : float or None, default 2.0
+    min_dihedral : float or None, default 5.0
         Slivers below this dihedral angle (degrees) that HXT's optimiser leaves (where a
-        region pinches): flat ones spanning four surface points are dropped (volume ~0,
-        the mesh stays conforming); otherwise gmsh's Netgen optimiser runs on the regions
-        holding them, which costs about as much again as the meshing (5 s of CPU at 30k
-        tetrahedra, 30 s at 300k). None skips the check.
+        region pinches): when all of them span four surface points they are dropped
+        (flat caps on a crease of the surface, volume ~0; the mesh stays conforming);
+        otherwise gmsh's Netgen optimiser runs on the regions holding them, which costs
+        about as much again as the meshing (5 s of CPU at 30k tetrahedra, 30 s at 300k).
+        None skips the check.
     threads : int, default 2
         Threads for gmsh's HXT mesher.
     progress_bar : bool, default False
@@ -728,7 +870,9 @@ def tetrahedralize(
         )
     if conforming:
         _check_muscles(code, voxel_volume)
-    pieces = _image_pieces(code) if conforming else {}
+    fine = _crop_fine(code, labels)
+    fine = fine + (_fine_faces(fine) if _FINE_TARGETS else (None, None))
+    pieces = _image_pieces(fine[0]) if conforming else {}
     volume = n_soft * voxel_volume
     min_spacing = float(min(labels.spacing))
     if spacing is None:
@@ -758,7 +902,7 @@ def tetrahedralize(
         t0 = time.perf_counter()
         try:
             out = _mesh_once(
-                code, labels, s_try, smooth, threads, optimize, pieces,
+                fine, s_try, smooth, threads, optimize, pieces,
                 min_dihedral if optimize else None, accept,
             )
         except SurfaceError as exc:
@@ -865,10 +1009,10 @@ def tetrahedralize(
     return grid
 
 
-def _mesh_once(code, labels, s, smoothing, threads, optimize, pieces, min_dihedral, accept):
+def _mesh_once(fine, s, smoothing, threads, optimize, pieces, min_dihedral, accept):
     """One surface + volume meshing pass at spacing ``s``; raises SurfaceError."""
     t0 = time.perf_counter()
-    sub, origin = _working_grid(code, labels, s)
+    sub, origin = _working_grid(fine, s)
     n_fix = _repair_topology(sub)
     n_drop = _drop_fragments(sub, pieces)
     if n_drop:
@@ -882,7 +1026,7 @@ def _mesh_once(code, labels, s, smoothing, threads, optimize, pieces, min_dihedr
             f"labels: the soft tissue vanishes on a {s:.3g} mm working grid; "
             "request more tetrahedra or a smaller spacing"
         )
-    points, tri, sides = _surfaces(comp, origin, s, smoothing)
+    points, tri, sides = _surfaces(comp, origin, s, smoothing, comp_code, fine)
     try:
         _check_surfaces(tri, sides, comp_code)
     except SurfaceError as exc:
