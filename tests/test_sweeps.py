@@ -524,6 +524,9 @@ def test_prepared_cases_are_cached_on_disk(tmp_path):
     a = pvcmf.sweep([1], {"nu": [0.0, 0.3]}, evaluate=ev, scheduler="synchronous")
     b = pvcmf.sweep([1], {"nu": [0.0, 0.3], "E_fat": [2.0]}, evaluate=ev, scheduler="synchronous")
     assert count(tmp_path, "prepare") == 1  # the second sweep loaded the mesh, skin and truth
+    # ... and reports what preparing it cost, not what loading it cost
+    assert b["t_prepare"].iloc[0] == a["t_prepare"].iloc[0]
+    assert b["cpu_prepare"].iloc[0] == a["cpu_prepare"].iloc[0]
     np.testing.assert_allclose(b["p90"], a["p90"], rtol=1e-9, atol=1e-12)  # E does not matter
     assert a["p95"].iloc[0] < 1e-6
     pvcmf.sweep([1], {"nu": [0.0], "n_tets": [5000]}, evaluate=ev, scheduler="synchronous")
