@@ -28,7 +28,8 @@ the muscle surfaces:
    remaining flat sliver spanning four surface points is dropped, any other sliver sends
    its region through gmsh's Netgen optimiser. When gmsh rejects the
    surfaces the next step of :data:`_FALLBACKS` (a slightly different grid, weaker
-   smoothing) is tried and a warning says so;
+   smoothing and placement, finally the plain working-grid surfaces) is tried and a
+   warning says so;
 4. the region label is written on every element (``arrays.TISSUE``, ``arrays.MUSCLE``) and
    the element quality (dihedral angles, radius ratio) and the timings are written to the
    field data (names in :data:`QUALITY_FIELDS`).
@@ -99,8 +100,12 @@ _TETS_PER_CELL = 5.7
 _TETS_PER_FACE = 5.0
 _RETRY_TOLERANCE = 0.18
 _MAX_ATTEMPTS = 3
-#: (spacing factor, smoothing factor) tried in turn when gmsh rejects the surfaces
-_FALLBACKS = ((1.0, 1.0), (0.97, 1.0), (0.97, 0.5), (0.93, 0.0), (0.86, 0.0), (0.75, 0.0))
+#: (spacing factor, smoothing factor, target-reach factor) tried in turn when gmsh rejects
+#: the surfaces: the last ones are the plain, unsmoothed SurfaceNets surfaces
+_FALLBACKS = (
+    (1.0, 1.0, 1.0), (0.97, 1.0, 1.0), (0.97, 0.5, 0.5), (0.93, 0.0, 0.0), (0.86, 0.0, 0.0),
+    (0.75, 0.0, 0.0),
+)
 
 # working-grid codes: 0 air (SurfaceNets background), 1 not meshed (bone, teeth, brain...),
 # 2 fat, 3 + m muscle m (m = 0 for muscle tissue without a muscle id)
@@ -445,7 +450,7 @@ def _components(sub):
 
 
 # ----------------------------------------------------------------------------- surfaces
-def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None):
+def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None, reach=_TARGET_REACH):
     """Multi-label SurfaceNets surfaces: (points, triangles, side labels (n, 2)).
 
     SurfaceNets runs unsmoothed: where three regions meet in one cell without sharing a
@@ -469,10 +474,10 @@ def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None):
     uniq, merged = np.unique(grid_ijk, axis=0, return_inverse=True)
     tri = merged.ravel()[surf.regular_faces]
     points = uniq * (0.5 * s) + origin
-    if fine is not None and _FINE_TARGETS:
+    if fine is not None and fine[3] is not None and reach > 0:
         cell = (uniq - 1) // 2  # SurfaceNets vertices sit at cell centres (odd half-steps)
         points = _fine_targets(points, cell, np.asarray(comp.shape[::-1]) - 1, origin, s,
-                               tri, comp_code[sides], fine)
+                               tri, comp_code[sides], fine, reach)
     if smoothing_scale > 0:
         import vtk
 
@@ -510,7 +515,7 @@ def _fine_faces(fine):
     return np.concatenate(mids), np.concatenate(pairs)
 
 
-def _fine_targets(points, cell, n_cells, origin, s, tri, side_codes, fine):
+def _fine_targets(points, cell, n_cells, origin, s, tri, side_codes, fine, reach=_TARGET_REACH):
     """Move every surface vertex to the full-resolution interfaces of its regions.
 
     A vertex of the sheet between regions of codes ``a`` and ``b`` in working-grid cell
@@ -548,7 +553,7 @@ def _fine_targets(points, cell, n_cells, origin, s, tri, side_codes, fine):
     out = points.copy()
     has = vcnt > 0
     shift = vsum[has] / vcnt[has, None] - points[has]
-    out[has] += np.clip(shift, -_TARGET_REACH * s, _TARGET_REACH * s)
+    out[has] += np.clip(shift, -reach * s, reach * s)
     log.debug("tetrahedralize: %d of %d surface vertices placed on the fine interfaces", int(has.sum()), len(points))
     return out
 
@@ -792,10 +797,11 @@ def tetrahedralize(
         * a boolean array of length ``labels.n_points``;
         * a callable ``f(points) -> bool array`` evaluated on the image points.
     smoothing_scale : float, default 0.25
-        SurfaceNets smoothing strength (``contour_labels(smoothing_scale=...)``); 0
-        switches smoothing off (staircase surfaces). Stronger smoothing can make the
-        multi-label surfaces self-intersect; when gmsh rejects them the smoothing is
-        halved, then switched off, with a warning.
+        Smoothing strength of the surfaces after they are placed on the image interfaces
+        (every vertex stays within ``smoothing_scale * s * sqrt(3) / 2`` of that place);
+        0 switches smoothing off. The placed surfaces can self-intersect; when gmsh
+        rejects them the smoothing and the placement reach are halved, then both switched
+        off (plain SurfaceNets surfaces of the working grid), with a warning.
     spacing : float, optional
         Working-grid spacing in mm (surface triangle size). Overrides the calibration
         from ``n_tets`` (the count is then not controlled).
@@ -886,9 +892,11 @@ def tetrahedralize(
     # when gmsh rejects the surfaces: weaker smoothing (self-intersections), then slightly
     # finer grids (coarse grids pinch thin tissue; another grid avoids the pinch)
     if spacing is None:
-        fallbacks = [(f, smoothing * k) for f, k in _FALLBACKS]
+        fallbacks = [(f, smoothing * k, _TARGET_REACH * r) for f, k, r in _FALLBACKS]
     else:
-        fallbacks = [(1.0, smoothing), (1.0, smoothing / 2), (1.0, 0.0)]
+        fallbacks = [
+            (1.0, smoothing, _TARGET_REACH), (1.0, smoothing / 2, _TARGET_REACH / 2), (1.0, 0.0, 0.0)
+        ]
     t_surface = t_volume = 0.0
     result, failures, step, n_calibrations, history = None, [], 0, 0, []
 
@@ -897,12 +905,12 @@ def tetrahedralize(
         return spacing is not None or last or abs(n_cells / n_tets - 1.0) <= _RETRY_TOLERANCE
 
     while step < len(fallbacks):
-        factor, smooth = fallbacks[step]
+        factor, smooth, reach = fallbacks[step]
         s_try = max(min_spacing, s * factor)
         t0 = time.perf_counter()
         try:
             out = _mesh_once(
-                fine, s_try, smooth, threads, optimize, pieces,
+                fine, s_try, smooth, reach, threads, optimize, pieces,
                 min_dihedral if optimize else None, accept,
             )
         except SurfaceError as exc:
@@ -911,7 +919,7 @@ def tetrahedralize(
             step += 1
             continue
         nodes, tets, comp_code, cell_comp, dt_s, dt_v = out
-        result = (nodes, tets, comp_code, cell_comp, smooth, s_try)
+        result = (nodes, tets, comp_code, cell_comp, smooth, s_try, reach)
         t_surface += dt_s
         t_volume += dt_v
         ratio = len(tets) / n_tets
@@ -936,11 +944,12 @@ def tetrahedralize(
         s, step = new_s, 0
     if result is None:
         raise SurfaceError("no valid surfaces for gmsh: " + "; ".join(failures))
-    nodes, tets, comp_code, cell_comp, smoothing, s = result
+    nodes, tets, comp_code, cell_comp, smoothing, s, reach = result
     if failures:
         warnings.warn(
             f"gmsh rejected {len(failures)} surface(s) ({failures[0]}); meshed at "
-            f"spacing {s:.3g} mm, smoothing_scale {smoothing:g}: {len(tets)} tetrahedra "
+            f"spacing {s:.3g} mm, smoothing_scale {smoothing:g}, vertices moved at most "
+            f"{reach:g} spacing towards the image interfaces: {len(tets)} tetrahedra "
             f"for {n_tets} requested",
             stacklevel=2,
         )
@@ -1009,7 +1018,7 @@ def tetrahedralize(
     return grid
 
 
-def _mesh_once(fine, s, smoothing, threads, optimize, pieces, min_dihedral, accept):
+def _mesh_once(fine, s, smoothing, reach, threads, optimize, pieces, min_dihedral, accept):
     """One surface + volume meshing pass at spacing ``s``; raises SurfaceError."""
     t0 = time.perf_counter()
     sub, origin = _working_grid(fine, s)
@@ -1026,7 +1035,7 @@ def _mesh_once(fine, s, smoothing, threads, optimize, pieces, min_dihedral, acce
             f"labels: the soft tissue vanishes on a {s:.3g} mm working grid; "
             "request more tetrahedra or a smaller spacing"
         )
-    points, tri, sides = _surfaces(comp, origin, s, smoothing, comp_code, fine)
+    points, tri, sides = _surfaces(comp, origin, s, smoothing, comp_code, fine, reach)
     try:
         _check_surfaces(tri, sides, comp_code)
     except SurfaceError as exc:
