@@ -163,7 +163,8 @@ def postop_ct(case, displacement_grid=None, *, noise_hu=18.0, pose=None, seed=0,
 
     1. on a moved bone segment of the plan (``M`` from
        :func:`pvcmf.filters.osteotomy.segment_transforms`): ``X = M^-1 x`` when the
-       pre-operative ``bone`` label there is that segment;
+       pre-operative ``bone`` label there is that segment; on bone (or teeth) that the plan
+       does not move: ``X = x``;
     2. inside the displaced soft-tissue grid: ``X = x - u``, with ``u`` probed on the
        displaced grid (``points + displacement``): backward warping, exact for linear
        tetrahedra;
@@ -292,8 +293,11 @@ def postop_ct(case, displacement_grid=None, *, noise_hu=18.0, pose=None, seed=0,
         log.debug("postop_ct: segment %d covers %d voxels", seg, int(on.sum()))
     # space a moved segment left behind (not re-covered): soft tissue
     moved_ids = np.fromiter(transforms, dtype=np.int64)
-    left = np.isin(_sample(labels, bone, x, 0, 0), moved_ids) & ~done
+    bone_x = _sample(labels, bone, x, 0, 0)
+    left = np.isin(bone_x, moved_ids) & ~done
     fill[left] = GAP_HU
+    # bone that does not move stays put (no soft-tissue warp or extrapolation into it)
+    done |= (bone_x > 0) & ~np.isin(bone_x, moved_ids)
 
     # 2. soft tissue: backward warp through the displaced grid
     if displacement_grid is not None and displacement_grid.n_points:
@@ -616,6 +620,10 @@ def reference_grid(case, *, n_tets=120_000, order=2, steps=4, face_fraction=0.5,
     from .pipeline import drop_floating_parts, face_box
     from .reference import solve_reference
 
+    import importlib.util
+
+    if importlib.util.find_spec("ngsolve") is None:  # fail before meshing, not after
+        raise ImportError("reference_grid needs NGSolve: pip install 'pvcmf[reference]'")
     if not isinstance(getattr(case, "truth", None), pv.ImageData):
         raise TypeError(f"case must be a virtual patient with a truth label image, got "
                         f"{type(case).__name__}")
