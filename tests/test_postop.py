@@ -240,3 +240,23 @@ def test_figure_pre_and_postop_slices(case, verify_chart):
     post, _ = postop_ct(c, None, noise_hu=0.0)
     fig = postop_ct_slices(c.ct, post, zoom=(0, 150, -130, 30))
     verify_chart(fig)
+
+
+@pytest.mark.slow
+def test_reference_grid_feeds_postop_ct():
+    """The volumetric truth (NGSolve; skipped without it): coarse, P1, one load step."""
+    pytest.importorskip("ngsolve")
+    from pvcmf.postop import reference_grid
+
+    c = pvcmf.datasets.phantom(1, spacing=4.0)
+    grid = reference_grid(c, n_tets=3000, order=1, steps=1)
+    u = np.asarray(grid[arrays.DISPLACEMENT])
+    bc = np.asarray(grid[arrays.BC])
+    joint = bc == arrays.BC_JOINT
+    assert joint.sum() > 20
+    # joint nodes follow the moved maxilla (prescribed on their constrained faces)
+    err = np.linalg.norm(u[joint] - np.asarray(grid[arrays.BC_DISPLACEMENT])[joint], axis=1)
+    assert np.median(err) < 1e-6
+    ct, _ = postop_ct(c, grid, noise_hu=0.0)
+    assert np.isfinite(ct[arrays.CT]).all()
+    assert np.abs(np.asarray(ct[arrays.CT]) - np.asarray(c.ct[arrays.CT])).max() > 500
