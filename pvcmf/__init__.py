@@ -17,7 +17,8 @@ __version__ = "0.1.0"
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
-_LAZY_MODULES = ("datasets", "mtm", "atlas", "io", "figures", "reference", "validation", "cli")
+_LAZY_MODULES = ("datasets", "mtm", "atlas", "io", "figures", "reference", "validation", "cli",
+                 "postop")
 _LAZY_ATTRS = {
     "read_ct": "io",
     "sweep": "sweeps",
