@@ -63,7 +63,11 @@ def test_uniform_soft_tissue_translation_is_exact(case):
     grid = pv.UnstructuredGrid(grid.cells, grid.celltypes, np.asarray(grid.points, float))
     shift = np.array([0.0, 2 * SPACING, 0.0])
     grid.point_data[arrays.DISPLACEMENT] = np.tile(shift, (grid.n_points, 1))
+    before = (np.asarray(grid.points).copy(), np.asarray(case.ct[arrays.CT]).copy())
     ct, _ = postop_ct(case, grid, noise_hu=0.0, extrapolate=0.0)
+    # inputs untouched (the displaced grid is a new dataset, not a shallow copy)
+    np.testing.assert_array_equal(grid.points, before[0])
+    np.testing.assert_array_equal(case.ct[arrays.CT], before[1])
     x = voxel_points(ct, np.arange(ct.n_points))
     out = np.asarray(ct[arrays.CT])
     soft = np.asarray(case.truth[arrays.BONE]) == 0  # bone the plan does not move stays put
@@ -172,7 +176,10 @@ def test_prediction_one_mm_anterior_reads_plus_one(case, pre_skin):
     assert facing.sum() > 100
     for offset in (1.0, -1.0):
         moved = pre_skin.translate((0.0, offset, 0.0), inplace=False)
+        kept = (moved.copy(deep=True), pre_skin.copy(deep=True), ct.copy(deep=True))
         surface, _ = validate_from_ct(case, ct, moved, pre_skin=pre_skin)
+        for a, b in zip((moved, pre_skin, ct), kept):  # inputs untouched
+            assert a == b
         assert abs(np.median(surface[arrays.DISTANCE][facing]) - offset) < 0.1
 
 
