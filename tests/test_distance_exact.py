@@ -128,3 +128,16 @@ def test_bad_method_and_inputs():
         s.cmf.distance_to(pv.ImageData(dimensions=(2, 2, 2)))
     with pytest.raises(ValueError, match="do not overlap"):
         s.translate((100, 0, 0)).cmf.distance_to(s, max_distance=5.0)
+
+
+@pytest.mark.parametrize("method", ["igl", "vtk"])
+def test_surface_distance_reused_matches_brute_force(method):
+    """One SurfaceDistance, several query batches: each batch exact."""
+    if method == "igl":
+        pytest.importorskip("igl")
+    from pvcmf.filters.distance import SurfaceDistance
+
+    surface, points = random_mesh(5)
+    dist = SurfaceDistance(surface, method=method)
+    for batch in np.array_split(points, 3):
+        assert np.abs(np.abs(dist(batch)) - brute_force(batch, surface)).max() < 1e-9

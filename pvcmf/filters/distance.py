@@ -91,20 +91,20 @@ def _igl():
     return igl
 
 
-def _pseudonormal_sign(query, points, tris, fid, closest):
-    """Sign of ``query - closest`` along the pseudo-normal of the closest feature.
+def _pseudonormals(points, tris):
+    """Face normals, angle-weighted vertex pseudo-normals, edge pseudo-normals (numpy).
 
-    Baerentzen & Aanaes (2005): the closest point lies inside a triangle (its normal), on
-    an edge (sum of the normals of the edge's triangles) or on a vertex (angle-weighted
-    sum of its triangles' normals); the sign of the dot product with that pseudo-normal
-    is the side of a closed, consistently wound surface (and locally of an open one).
-    All numpy: barycentric coordinates of the closest points, ``np.bincount`` sums.
+    Baerentzen & Aanaes (2005): the closest point of a query lies inside a triangle (its
+    normal), on an edge (sum of the normals of the edge's triangles) or on a vertex
+    (angle-weighted sum of its triangles' normals); the sign of the dot product with that
+    pseudo-normal is the side of a closed, consistently wound surface (and locally of an
+    open one). Returns ``(face (m, 3), vertex (n, 3), edge (e, 3), edge_id (m, 3))``; local
+    edge ``k`` of a triangle is the one opposite its vertex ``k``.
     """
     a, b, c = points[tris[:, 0]], points[tris[:, 1]], points[tris[:, 2]]
     fn = np.cross(b - a, c - a)
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
     n_pts = len(points)
-    # vertex pseudo-normals: angle-weighted face normals
     corners = (a, b, c)
     vnormal = np.zeros((n_pts, 3))
     for k in range(3):
@@ -115,8 +115,6 @@ def _pseudonormal_sign(query, points, tris, fid, closest):
         w = np.arccos(np.clip(cosang, -1.0, 1.0))
         for j in range(3):
             vnormal[:, j] += np.bincount(tris[:, k], w * fn[:, j], minlength=n_pts)
-    # edge pseudo-normals: sum of the normals of the (one or two) triangles of the edge;
-    # local edge k of a triangle is opposite its vertex k
     lo = np.minimum(tris[:, [1, 2, 0]], tris[:, [2, 0, 1]])
     hi = np.maximum(tris[:, [1, 2, 0]], tris[:, [2, 0, 1]])
     _, edge_id = np.unique((lo * n_pts + hi).ravel(), return_inverse=True)
@@ -125,8 +123,17 @@ def _pseudonormal_sign(query, points, tris, fid, closest):
     for j in range(3):
         enormal[:, j] = np.bincount(edge_id.ravel(), np.repeat(fn[:, j], 3),
                                     minlength=len(enormal))
-    # barycentric coordinates of the closest points in their triangles
-    ta, tb, tc = a[fid], b[fid], c[fid]
+    return fn, vnormal, enormal, edge_id
+
+
+def _pseudonormal_sign(query, points, tris, fid, closest, normals):
+    """+1 / -1: side of ``query`` along the pseudo-normal of its closest feature.
+
+    The feature (inside, edge or vertex) comes from the barycentric coordinates of the
+    closest point in its triangle ``fid``; ``normals`` is :func:`_pseudonormals`' output.
+    """
+    fn, vnormal, enormal, edge_id = normals
+    ta, tb, tc = points[tris[fid, 0]], points[tris[fid, 1]], points[tris[fid, 2]]
     v0, v1, v2 = tb - ta, tc - ta, closest - ta
     d00 = np.einsum("ij,ij->i", v0, v0)
     d01 = np.einsum("ij,ij->i", v0, v1)
@@ -153,6 +160,70 @@ def _pseudonormal_sign(query, points, tris, fid, closest):
     return np.where(side < 0, -1.0, 1.0)
 
 
+class SurfaceDistance:
+    """Exact signed distance to one triangle surface, built once for repeated queries.
+
+    With libigl (``method='igl'``, or ``'auto'`` when installed) the AABB tree
+    (``igl.AABB``) and the pseudo-normals are built once; each call finds the closest
+    points on the triangles and signs them by the closest feature's pseudo-normal. With
+    ``method='vtk'`` VTK's ``vtkImplicitPolyDataDistance`` (its cell locator) is built once.
+    Positive on the side the winding's normals point to; orient the surface first
+    (:func:`distance_to` does).
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        Surface with polygons (triangulated if needed).
+    method : {'auto', 'igl', 'vtk'}, default 'auto'
+        Closest-point engine (see :func:`signed_distance`).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf.filters.distance import SurfaceDistance
+    >>> dist = SurfaceDistance(pv.Cube())  # [-0.5, 0.5]^3, outward winding
+    >>> dist(np.array([[0.0, 0.0, 2.0], [0.0, 0.1, 0.0]])).round(3).tolist()
+    [1.5, -0.4]
+    """
+
+    def __init__(self, surface, *, method="auto"):
+        if method not in ("auto", "igl", "vtk"):
+            raise ValueError(f"method must be 'auto', 'igl' or 'vtk', got {method!r}")
+        _check_surface(surface, "surface")
+        surf = surface.triangulate() if not surface.is_all_triangles else surface.copy()
+        surf.clear_data()  # VTK would sign by a stale 'Normals' array
+        igl = _igl() if method != "vtk" else None
+        if method == "igl" and igl is None:
+            raise ImportError("method='igl' needs libigl: pip install 'pvcmf[fast]' (or libigl)")
+        self.method = "igl" if igl is not None else "vtk"
+        if igl is not None:
+            self._points = np.ascontiguousarray(surf.points, dtype=np.float64)
+            self._tris = np.ascontiguousarray(surf.faces.reshape(-1, 4)[:, 1:], dtype=np.int64)
+            self._tree = igl.AABB()
+            self._tree.init(self._points, self._tris)
+            self._normals = _pseudonormals(self._points, self._tris)
+        else:
+            import vtk
+
+            self._implicit = vtk.vtkImplicitPolyDataDistance()
+            self._implicit.SetInput(surf)
+            self._surface = surf  # keep the input alive with the locator
+
+    def __call__(self, query):
+        """Signed distances (mm) of ``(n, 3)`` points."""
+        q = np.ascontiguousarray(np.asarray(query, dtype=np.float64).reshape(-1, 3))
+        if self.method == "igl":
+            d2, fid, closest = self._tree.squared_distance(self._points, self._tris, q)
+            sign = _pseudonormal_sign(q, self._points, self._tris, fid, closest, self._normals)
+            return sign * np.sqrt(d2)
+        from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+        import vtk
+
+        out = vtk.vtkDoubleArray()
+        self._implicit.FunctionValue(numpy_to_vtk(q, deep=True), out)
+        return vtk_to_numpy(out).astype(np.float64, copy=True)
+
+
 def signed_distance(query, surface, *, method="auto"):
     """Exact signed distance of points to a triangle surface, by its winding.
 
@@ -166,11 +237,12 @@ def signed_distance(query, surface, *, method="auto"):
         Surface with polygons (triangulated if needed); its winding gives the sign.
     method : {'auto', 'igl', 'vtk'}, default 'auto'
         ``'igl'``: closest points on the triangles by libigl's AABB tree
-        (``igl.point_mesh_squared_distance``, optional dependency ``pvcmf[fast]``), sign
-        from the pseudo-normal of the closest feature (face, edge or vertex; numpy).
-        ``'vtk'``: VTK's ``vtkImplicitPolyDataDistance.FunctionValue`` (one call for all
-        points; sign from the closest cell's normal). ``'auto'``: igl when installed.
-        Both are exact (closest point on the triangles, not the nearest vertex).
+        (``igl.AABB``, optional dependency ``pvcmf[fast]``), sign from the pseudo-normal
+        of the closest feature (face, edge or vertex; numpy). ``'vtk'``: VTK's
+        ``vtkImplicitPolyDataDistance.FunctionValue`` (one call for all points; sign from
+        the closest cell's normal). ``'auto'``: igl when installed. Both are exact
+        (closest point on the triangles, not the nearest vertex). For many queries
+        against one surface, build a :class:`SurfaceDistance` once.
 
     Returns
     -------
@@ -190,29 +262,7 @@ def signed_distance(query, surface, *, method="auto"):
     >>> signed_distance(np.array([[0.0, 0.0, 2.0], [0.0, 0.1, 0.0]]), cube).round(3).tolist()
     [1.5, -0.4]
     """
-    if method not in ("auto", "igl", "vtk"):
-        raise ValueError(f"method must be 'auto', 'igl' or 'vtk', got {method!r}")
-    _check_surface(surface, "surface")
-    surf = surface.triangulate() if not surface.is_all_triangles else surface.copy()
-    surf.clear_data()  # VTK would sign by a stale 'Normals' array
-    q = np.ascontiguousarray(np.asarray(query, dtype=np.float64).reshape(-1, 3))
-    igl = _igl() if method != "vtk" else None
-    if method == "igl" and igl is None:
-        raise ImportError("method='igl' needs libigl: pip install 'pvcmf[fast]' (or libigl)")
-    if igl is not None:
-        points = np.ascontiguousarray(surf.points, dtype=np.float64)
-        tris = np.ascontiguousarray(surf.faces.reshape(-1, 4)[:, 1:], dtype=np.int64)
-        d2, fid, closest = igl.point_mesh_squared_distance(q, points, tris)
-        sign = _pseudonormal_sign(q, points, tris, fid, closest)
-        return sign * np.sqrt(d2)
-    import vtk
-    from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
-
-    func = vtk.vtkImplicitPolyDataDistance()
-    func.SetInput(surf)
-    out = vtk.vtkDoubleArray()
-    func.FunctionValue(numpy_to_vtk(q, deep=True), out)
-    return vtk_to_numpy(out).astype(np.float64, copy=True)
+    return SurfaceDistance(surface, method=method)(query)
 
 
 def distance_to(pred, actual, *, orient=True, max_distance=None, method="auto"):
