@@ -88,8 +88,7 @@ def _check_nested(data, name):
     return list(data), methods
 
 
-def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=(800, 1000),
-                    camera=None):
+def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camera=None):
     """Paper 000 Fig. 6: signed error maps, one row per patient, one column per method.
 
     Parameters
@@ -99,10 +98,12 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=(800, 1000)
         methods in column order (paper: proposed left, state of the art right).
     limit, acceptable : float
         See :func:`error_colormap`.
-    window_size : (int, int)
-        Pixels.
+    window_size : (int, int), optional
+        Pixels; default 380 x 440 per panel.
     camera : str or list, optional
-        PyVista camera position; default: from the front (camera on +y, z up).
+        PyVista camera position; default: from the front (camera on +y, z up), parallel
+        projection, zoomed so that the face (both methods' skins of the patient) fills
+        its panel.
 
     Returns
     -------
@@ -121,34 +122,45 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=(800, 1000)
     (1, 2)
     """
     patients, methods = _check_nested(skins, "skins")
+    if window_size is None:
+        window_size = (380 * len(methods), 440 * len(patients))
     cmap = error_colormap(limit, acceptable)
     pl = pv.Plotter(shape=(len(patients), len(methods)), off_screen=True,
                     window_size=list(window_size), border=False)
     pl.set_background("white")
+    # panel aspect (width / height)
+    aspect = (window_size[0] / len(methods)) / (window_size[1] / len(patients))
     for r, patient in enumerate(patients):
+        for method in methods:
+            arrays.require_array(skins[patient][method], arrays.DISTANCE, "point", dtype="f",
+                                 ncomp=1, producer="distance_to")
+        lo = np.min([skins[patient][m].bounds[::2] for m in methods], axis=0)
+        hi = np.max([skins[patient][m].bounds[1::2] for m in methods], axis=0)
+        centre = (lo + hi) / 2
+        half_w, half_h = max((hi[0] - lo[0]) / 2, 1e-6), max((hi[2] - lo[2]) / 2, 1e-6)
         for c, method in enumerate(methods):
-            skin = skins[patient][method]
-            arrays.require_array(skin, arrays.DISTANCE, "point", dtype="f", ncomp=1,
-                                 producer="distance_to")
             pl.subplot(r, c)
-            pl.add_mesh(skin, scalars=arrays.DISTANCE, cmap=cmap, clim=(-limit, limit),
-                        show_scalar_bar=False, smooth_shading=True, copy_mesh=True)
+            pl.add_mesh(skins[patient][method], scalars=arrays.DISTANCE, cmap=cmap,
+                        clim=(-limit, limit), show_scalar_bar=False, smooth_shading=True,
+                        copy_mesh=True)
             label = f"P{patient}  {METHOD_LABELS.get(method, method)}"
             pl.add_text(label, position="upper_left", font_size=9, color="black")
-            if camera is None:
-                cx, cy, cz = skin.center
-                size = max(skin.length, 1e-6)
-                pl.camera_position = [(cx, cy + 2.2 * size, cz), (cx, cy, cz), (0, 0, 1)]
-                pl.reset_camera()
+            if camera is None:  # front view, the face's box filling the panel
+                scale = 1.15 * max(half_h, half_w / aspect)  # half the panel's height, mm
+                focus = centre - (0.0, 0.0, 0.12 * scale)  # bottom eighth kept for the bar
+                eye = focus + (0.0, 3.0 * float(np.max(hi - lo)) + 1.0, 0.0)
+                pl.camera_position = [tuple(eye), tuple(focus), (0, 0, 1)]
+                pl.enable_parallel_projection()
+                pl.camera.parallel_scale = scale
+                pl.renderer.reset_camera_clipping_range()
             else:
                 pl.camera_position = camera
     pl.subplot(len(patients) - 1, len(methods) - 1)
     pl.add_scalar_bar(
         title="signed error (mm)", mapper=pl.mapper, n_labels=7, color="black",
-        vertical=False, position_x=0.05, position_y=0.02, width=0.9, height=0.08,
+        vertical=False, position_x=0.05, position_y=0.015, width=0.9, height=0.07,
         fmt="%.0f", title_font_size=12, label_font_size=10,
     )
-    pl.link_views()
     return pl
 
 
