@@ -1,11 +1,14 @@
 """Benchmark: labelled tetrahedral meshing against the homogeneous mesh + muscle-fraction baselines.
 
 Not run by CI. Prints whole numbers (ms, MiB, degrees x10, per-mille) measured in this
-run. Every case runs in a fresh subprocess so that its peak memory (ru_maxrss) is its own.
+run. Every case runs in a fresh subprocess so that its peak memory is its own (``VmHWM``,
+reset after loading the image so that it is the meshing's peak).
 
 1. ``tetrahedralize`` (conforming, the proposed method) on the 1 mm virtual patient at
-   10k/30k/100k/300k requested tetrahedra: wall and CPU time, peak memory, count hit,
-   min / 1st-percentile dihedral angle, label agreement at the centroids.
+   10k/30k/100k/300k requested tetrahedra, meshing the anterior half of the head like
+   the pipeline (``--face-fraction``): median wall and CPU time of ``--repeats`` runs
+   (with the load average), peak memory, count hit, min / 1st-percentile dihedral angle,
+   label agreement at the centroids, volume error of every named muscle.
 2. the baseline: the homogeneous mesh (``conforming=False``) + ``sample_muscle_fraction``
    at 10/100/1000 points per tetrahedron and ``average_voxels``: time, and the fraction
    error against the exact fraction on an analytic half-space muscle (exact = volume of
@@ -16,6 +19,7 @@ Run::
     python benchmarks/meshing.py                 # all cases, 1 mm patient 1
     python benchmarks/meshing.py --spacing 2 --counts 10000 30000
     python benchmarks/meshing.py --compare-only   # proposed vs baseline, one warm process
+    python benchmarks/meshing.py --no-baseline --counts 10000 30000 100000 300000
 """
 
 from __future__ import annotations
@@ -79,32 +83,88 @@ def _timed(func, *args, **kwargs):
     return out, time.perf_counter() - w, time.process_time() - c
 
 
-def case_mesh(patient, spacing, n_tets, conforming):
+def _peak_mib():
+    """Peak resident memory of this process in MiB.
+
+    ``VmHWM`` from /proc (reset by ``exec``); ``ru_maxrss`` elsewhere, which Linux keeps
+    across ``exec`` and would report the parent's peak.
+    """
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return round(int(line.split()[1]) / 1024)
+    except OSError:
+        pass
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+
+
+def _roi(labels, face_fraction):
+    if face_fraction is None:
+        return None
+    from pvcmf.pipeline import face_box
+
+    return face_box(labels, face_fraction)
+
+
+def _muscle_volume_error(labels, grid):
+    """Per muscle id 1..12: mesh volume / image volume - 1, in per cent (None if absent)."""
+    from pvcmf import arrays
+
+    n = len(arrays.MUSCLES) + 1
+    image = np.bincount(np.asarray(labels[arrays.MUSCLE]), minlength=n) * float(np.prod(labels.spacing))
+    vol = grid.compute_cell_sizes(length=False, area=False)["Volume"]
+    mesh = np.bincount(grid.cell_data[arrays.MUSCLE], weights=vol, minlength=n)
+    return [round(100 * (mesh[m] / image[m] - 1)) if image[m] > 0 else None for m in range(1, n)]
+
+
+def case_mesh(patient, spacing, n_tets, conforming, face_fraction=0.5, repeats=3):
+    import os
+    import warnings
+
     from pvcmf.filters import tetrahedralize
     from pvcmf.filters import meshing
 
     labels = _labels(patient, spacing)
-    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    grid, wall, cpu = _timed(tetrahedralize, labels, n_tets=n_tets, conforming=conforming)
+    roi = _roi(labels, face_fraction)
+    rss0 = _peak_mib()  # image, imports and the face box (labels.points: 24 bytes a voxel)
+    try:  # reset the peak so that peak_mib is the meshing's own (Linux >= 4.0)
+        import gc
+
+        gc.collect()
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+    walls, cpus = [], []
+    for _ in range(repeats):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            grid, wall, cpu = _timed(tetrahedralize, labels, n_tets=n_tets, conforming=conforming, roi=roi)
+        walls.append(wall)
+        cpus.append(cpu)
     inside, agree_soft, agree_all = _agreement(labels, grid)
     fd = grid.field_data
     return {
         "n_tets": n_tets,
         "conforming": conforming,
+        "face_fraction": face_fraction,
         "cells": grid.n_cells,
-        "wall_ms": round(wall * 1000),
-        "cpu_ms": round(cpu * 1000),
+        "wall_ms_median": round(float(np.median(walls)) * 1000),
+        "cpu_ms_median": round(float(np.median(cpus)) * 1000),
+        "repeats": repeats,
+        "load_avg_1min_x100": round(os.getloadavg()[0] * 100),
         "surface_ms": round(fd[meshing.TIME_SURFACE][0] * 1000),
         "volume_ms": round(fd[meshing.TIME_VOLUME][0] * 1000),
         "spacing_x100": round(fd[meshing.SURFACE_SPACING][0] * 100),
-        "peak_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
-        "image_mib": round(rss0 / 1024),
+        "peak_mib": _peak_mib(),
+        "image_mib": rss0,
         "min_dihedral_x10": round(fd[meshing.MIN_DIHEDRAL][0] * 10),
         "p1_dihedral_x10": round(fd[meshing.P1_DIHEDRAL][0] * 10),
         "min_radius_ratio_x1000": round(fd[meshing.MIN_RADIUS_RATIO][0] * 1000),
         "centroids_in_soft_permille": round(inside * 1000),
         "label_agree_in_soft_permille": round(agree_soft * 1000),
         "label_agree_all_permille": round(agree_all * 1000),
+        "muscle_volume_error_percent": _muscle_volume_error(labels, grid) if conforming else None,
+        "warnings": [str(w.message)[:120] for w in caught],
     }
 
 
@@ -202,6 +262,11 @@ def main(argv=None):
     p.add_argument("--spacing", type=float, default=1.0)
     p.add_argument("--counts", type=int, nargs="+", default=[10_000, 30_000, 100_000, 300_000])
     p.add_argument("--compare-only", action="store_true", help="only the same-process comparison")
+    p.add_argument("--face-fraction", type=float, default=0.5,
+                   help="mesh the anterior fraction of the head like the pipeline (0: whole head)")
+    p.add_argument("--repeats", type=int, default=3, help="timing repeats per case (median)")
+    p.add_argument("--no-baseline", action="store_true",
+                   help="skip the homogeneous meshes and the sampling baseline")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
@@ -216,14 +281,17 @@ def main(argv=None):
         print(json.dumps(compare_same_process(a.patient, a.spacing)), flush=True)
         return
     rows = []
+    ff = a.face_fraction if a.face_fraction > 0 else None
     for n in a.counts:
-        for conforming in (True, False):
+        for conforming in (True,) if a.no_baseline else (True, False):
             row = _run_child(
                 {"kind": "mesh", "patient": a.patient, "spacing": a.spacing, "n_tets": n,
-                 "conforming": conforming}
+                 "conforming": conforming, "face_fraction": ff, "repeats": a.repeats}
             )
             rows.append(row)
             print(json.dumps(row), flush=True)
+    if a.no_baseline:
+        return
     frac = _run_child({"kind": "fractions", "patient": a.patient, "spacing": a.spacing, "n_tets": 30_000})
     print(json.dumps(frac), flush=True)
     same = compare_same_process(a.patient, a.spacing)

@@ -116,6 +116,10 @@ _MUSCLE_SHARE = 0.35
 _FINE_TARGETS = True
 #: how far (in working spacings, per axis) a vertex may move from its cell centre
 _TARGET_REACH = 0.4
+#: also place the sheets of the named muscles on the image interfaces
+_PLACE_NAMED_MUSCLES = True
+#: gmsh optimisers tried in turn on the regions holding a sliver below ``min_dihedral``
+_SLIVER_OPTIMIZERS = ("Relocate3D", "Netgen")
 
 
 class SurfaceError(RuntimeError):
@@ -539,6 +543,10 @@ def _fine_targets(points, cell, n_cells, origin, s, tri, side_codes, fine, reach
     fkey = flat(fcell) * n_pairs + pairs
     lo, hi = np.minimum(side_codes[:, 0], side_codes[:, 1]), np.maximum(side_codes[:, 0], side_codes[:, 1])
     tpair = lo * 256 + hi
+    if not _PLACE_NAMED_MUSCLES:
+        # a named muscle thinner than the cell has both its sheets' faces in one cell:
+        # placing would collapse it, so its sheets keep the working-grid position
+        tpair = np.where(hi > _MUSCLE0, -1, tpair)
     vert = tri.ravel()
     vkey = flat(cell[vert]) * n_pairs + np.repeat(tpair, 3)
     # unique (vertex, key) incidences
@@ -663,32 +671,36 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
         except Exception as exc:  # gmsh raises a bare Exception with its last error
             raise SurfaceError(f"gmsh could not mesh the surfaces: {exc}") from exc
         nodes, tets, comp = _gmsh_tets(regions)
-        node_tags = gmsh.model.mesh.getNodes()[0].astype(np.int64)
+        if min_dihedral is None or (accept is not None and not accept(len(tets))):
+            return nodes, tets, comp
 
-        def tags_of(cells):
-            return node_tags[cells]
-
-        if min_dihedral is not None and (accept is None or accept(len(tets))):
+        def drop_flat(nodes, tets, comp):
             worst = tet_quality(nodes, tets)[0].min(axis=1)
             sliver = worst < min_dihedral
-            on_surface = np.all(tags_of(tets) <= len(points), axis=1)
+            node_tags = gmsh.model.mesh.getNodes()[0].astype(np.int64)
+            on_surface = np.all(node_tags[tets] <= len(points), axis=1)
             if sliver.any() and np.all(on_surface[sliver]):
                 # flat tetrahedra spanning four surface points (a crease where a region
                 # pinches): dropping them changes the volume by ~0 and keeps conformity
                 log.info("tetrahedralize: %d flat surface tetrahedra dropped", int(sliver.sum()))
-                tets, comp = tets[~sliver], comp[~sliver]
-                worst = worst[~sliver]
-            if worst.min() < min_dihedral:
-                # a sliver the HXT optimiser left (usually where a region pinches):
-                # Netgen's optimiser (swaps + smoothing) of the regions holding one
-                # removes it, at a few seconds for the fat
-                bad = np.unique(comp[worst < min_dihedral])
-                log.info(
-                    "tetrahedralize: min dihedral %.2f deg, Netgen optimisation of %d region(s)",
-                    worst.min(), len(bad),
-                )
-                gmsh.model.mesh.optimize("Netgen", dimTags=[(3, int(r)) for r in bad])
-                nodes, tets, comp = _gmsh_tets(regions)
+                return tets[~sliver], comp[~sliver], worst[~sliver]
+            return tets, comp, worst
+
+        tets, comp, worst = drop_flat(nodes, tets, comp)
+        # a sliver the HXT optimiser left (usually where a region pinches): gmsh's node
+        # relocation of the regions holding one, then Netgen's optimiser (swaps +
+        # smoothing, a few seconds for the fat) if one is left
+        for method in _SLIVER_OPTIMIZERS:
+            if worst.min() >= min_dihedral:
+                break
+            bad = np.unique(comp[worst < min_dihedral])
+            log.info(
+                "tetrahedralize: min dihedral %.2f deg, %s optimisation of %d region(s)",
+                worst.min(), method, len(bad),
+            )
+            gmsh.model.mesh.optimize(method, dimTags=[(3, int(r)) for r in bad])
+            nodes, tets, comp = _gmsh_tets(regions)
+            tets, comp, worst = drop_flat(nodes, tets, comp)
         return nodes, tets, comp
     except SurfaceError:
         raise
