@@ -54,6 +54,19 @@ def test_zero_everything_returns_the_pre_operative_ct(case):
     assert ct[arrays.CT].dtype == np.float32
 
 
+def test_output_spacing_resamples_trilinearly(case):
+    """A coarser output grid: values equal VTK's trilinear probe of the pre-operative CT."""
+    ct, _ = postop_ct(case, None, noise_hu=0.0, spacing=4.5)
+    assert np.allclose(ct.spacing, 4.5) and np.allclose(ct.origin, case.ct.origin)
+    lo, hi = np.asarray(case.ct.bounds).reshape(3, 2).T
+    x = voxel_points(ct, np.arange(ct.n_points))
+    inner = _inside_box(x, lo, hi, 0.5)
+    probe = pv.PolyData(x[inner]).sample(case.ct)
+    np.testing.assert_allclose(np.asarray(ct[arrays.CT])[inner], probe[arrays.CT], atol=0.05)
+    with pytest.raises(ValueError, match="spacing"):
+        postop_ct(case, None, spacing=0.0)
+
+
 def test_uniform_soft_tissue_translation_is_exact(case):
     """A tetrahedral box displaced by two voxels: inside it the CT is shifted by two voxels,
     the strip it left is air, the rest is untouched."""
