@@ -22,16 +22,10 @@ import logging
 import os
 from pathlib import Path
 
-import numpy as np
 import pyvista as pv
-from scipy.spatial.transform import Rotation
 
-import pvcmf
-from pvcmf import arrays, filters, mtm
-from pvcmf.datasets import phantom
 from pvcmf.figures.validation import fig6_error_maps, fig7_boxplots, fig8_cumulative
-from pvcmf.pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
-from pvcmf.validation import run_study
+from pvcmf.validation import run_study, study_predictor
 
 pv.OFF_SCREEN = True
 logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
@@ -42,64 +36,14 @@ SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 1.5))
 N_TETS = int(os.environ.get("PVCMF_STUDY_TETS", 30_000))
 TRUTH_TETS = int(os.environ.get("PVCMF_STUDY_TRUTH_TETS", 4 * N_TETS))  # finer truth mesh
 PATIENTS = tuple(int(p) for p in os.environ.get("PVCMF_STUDY_PATIENTS", "1,2,3,4").split(","))
-SIGMA = 2.0  # mm, smallest Gaussian width of the tetrahedra -> dense skin mapping
 
 try:
-    from pvcmf import reference
+    import pvcmf.reference  # noqa: F401
+    import ngsolve  # noqa: F401
 except ImportError as err:  # the truth model is an optional extra
     raise SystemExit(f"pvcmf.reference is needed for the post-operative truth: {err}")
 
-_cases = {}
-
-
-def case(patient):
-    if patient not in _cases:
-        _cases[patient] = phantom(patient=patient, spacing=SPACING)
-    return _cases[patient]
-
-
-def truth_in_scanner(patient):
-    """The virtual post-operative skin, as a scan in another pose, registered back."""
-    c = case(patient)
-    post = reference.postop_skin(c, n_tets=TRUTH_TETS)
-    rng = np.random.default_rng(patient)
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_euler("xyz", rng.uniform(-4, 4, 3), degrees=True).as_matrix()
-    pose[:3, 3] = rng.uniform(-5, 5, 3)
-    scan = post.transform(pose, inplace=False)
-    scan.points = scan.points + rng.normal(0, 0.1, scan.points.shape)  # scanner noise
-    pre = filters.extract_skin(c.truth)
-    tip = c.landmarks.get("pronasale", pre.points[np.argmax(pre.points[:, 1])])
-    # unchanged by jaw surgery: the face above the nose tip (forehead, orbits, nose bridge)
-    region = lambda p: (p[:, 2] > tip[2] + 15) & (p[:, 1] > tip[1] - 60)  # noqa: E731
-    return scan.cmf.register(pre, region=region)
-
-
-def predict(patient, method):
-    c = case(patient)
-    conforming = method == "proposed"
-    res = simulate(c.ct, c.plan, bones=c.truth, landmarks=c.landmarks, n_tets=N_TETS,
-                   mesh_options={"conforming": conforming}, figures=False)
-    post = res.post
-    if not conforming:  # state of the art: muscle share by random points, then re-solve
-        grid = filters.sample_muscle_fraction(res.mesh, res.labels)
-        grid = filters.fiber_directions(grid)
-        post = mtm.solve(filters.assign_materials(grid))
-    skin = filters.extract_skin(res.labels)
-    # the Gaussian must span the element size, or coarse meshes leave holes in the skin
-    edges = post.extract_all_edges().compute_cell_sizes(length=True, area=False, volume=False)
-    sigma = max(SIGMA, 0.5 * float(np.median(edges["Length"])))
-    pred = post.cmf.map_to_surface(skin, sigma=sigma)
-    pred = pvcmf.validation.label_face_regions(pred, landmarks=c.landmarks)
-    truth = truth_in_scanner(patient)
-    out = pred.cmf.distance_to(truth, max_distance=10.0)
-    # only the face the model simulates (the meshed, anterior part) is judged
-    y0 = face_box(res.labels, DEFAULT_FACE_FRACTION)[2]
-    face = (out["mapping_support"] > 0) & (out.points[:, 1] >= y0)
-    return out.extract_points(face, adjacent_cells=False).extract_surface(
-        algorithm="dataset_surface")
-
-
+predict = study_predictor(spacing=SPACING, n_tets=N_TETS, truth_tets=TRUTH_TETS)
 skins, distances, table = run_study(predict, patients=PATIENTS)
 table.to_csv(OUT / "fig6_8_validation_table.csv", index=False)
 log.info("whole-face statistics:\n%s", table[table["region"] == "face"].to_string(index=False))

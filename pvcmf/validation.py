@@ -7,9 +7,12 @@ points within 1 and 2 mm (000 Fig. 8), for the whole face and, here, per face re
 * :func:`error_statistics` -> tidy :class:`pandas.DataFrame`, one row per region;
 * :func:`label_face_regions` -> point array ``arrays.REGION`` from landmarks or geometry;
 * :func:`run_study` -> runs ``predict(patient, method)`` for every patient and method and
-  collects the distance arrays and the statistics table.
+  collects the distance arrays and the statistics table;
+* :func:`study_predictor` -> the ``predict`` of paper 000's study on the virtual patients
+  (pvcmf's pipeline against the :mod:`pvcmf.reference` truth, scanned in another pose).
 
-Delegates to numpy (percentiles) and pandas (the table).
+Delegates to numpy (percentiles) and pandas (the table); the study to pvcmf's pipeline,
+:mod:`pvcmf.reference` (NGSolve) and the ``register`` / ``distance_to`` filters.
 """
 
 from __future__ import annotations
@@ -285,3 +288,113 @@ def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the
             tables.append(error_statistics(skin, regions=regions, patient=patient,
                                            method=method))
     return skins, distances, pd.concat(tables, ignore_index=True)
+
+
+def study_predictor(*, spacing=1.5, n_tets=30_000, truth_tets=120_000, sigma=2.0,
+                    truth_cache=True, cache_dir=None):
+    """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
+
+    For virtual patient ``patient`` (``datasets.phantom(patient, spacing=spacing)``) and
+    Table II's plan, ``method`` "proposed" simulates with the muscle-embedded conforming
+    mesh, "state_of_the_art" with the homogeneous mesh and random-point sampling of the
+    muscle share (``sample_muscle_fraction``); both MTM predictions are mapped to the dense
+    pre-operative skin by paper 001's Gaussian mapping (width ``sigma``, at least half the
+    median edge). The truth is :func:`pvcmf.reference.postop_skin` with ``n_tets =
+    truth_tets``, moved to a random pose (seeded by the patient: up to 4 degrees and 5 mm)
+    with 0.1 mm scanner noise and registered back by point-to-plane ICP on the face above
+    the nose tip (forehead, orbits, nose bridge: unchanged by jaw surgery). The signed
+    distance of the prediction to it is judged on the meshed anterior face only.
+
+    Parameters
+    ----------
+    spacing : float, default 1.5
+        Voxel size of the virtual patients (mm).
+    n_tets : int, default 30000
+        Tetrahedra of the MTM meshes.
+    truth_tets : int, default 120000
+        Tetrahedra of the truth mesh (``postop_skin(n_tets=...)``; P2 elements).
+    sigma : float, default 2.0
+        Smallest Gaussian width of the tetrahedra -> skin mapping (mm).
+    truth_cache : bool, default True
+        Use the truth's on-disk cache.
+    cache_dir : path, optional
+        Truth cache folder (default ``PVCMF_CACHE_DIR`` / ``~/.cache/pvcmf``).
+
+    Returns
+    -------
+    callable
+        ``predict(patient, method) -> PolyData`` with point arrays ``arrays.DISTANCE`` and
+        ``arrays.REGION``, for :func:`run_study`.
+
+    Examples
+    --------
+    >>> from pvcmf.validation import run_study, study_predictor
+    >>> predict = study_predictor(spacing=3.0, n_tets=3000, truth_tets=6000)  # doctest: +SKIP
+    >>> skins, distances, table = run_study(predict, patients=(1,))             # doctest: +SKIP
+    """
+    from scipy.spatial.transform import Rotation
+
+    from . import filters, mtm, reference
+    from .datasets import phantom
+    from .pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
+
+    for name, value in (("spacing", spacing), ("sigma", sigma)):
+        if not value > 0:
+            raise ValueError(f"{name} must be > 0 mm, got {value!r}")
+    for name, value in (("n_tets", n_tets), ("truth_tets", truth_tets)):
+        if int(value) < 100:
+            raise ValueError(f"{name} must be an integer >= 100, got {value!r}")
+    cases = {}
+
+    def case(patient):
+        if patient not in cases:
+            cases[patient] = phantom(patient=patient, spacing=spacing)
+        return cases[patient]
+
+    def truth_in_scanner(patient):
+        c = case(patient)
+        post = reference.postop_skin(c, n_tets=truth_tets, cache=truth_cache,
+                                     cache_dir=cache_dir)
+        rng = np.random.default_rng(patient)
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_euler("xyz", rng.uniform(-4, 4, 3),
+                                           degrees=True).as_matrix()
+        pose[:3, 3] = rng.uniform(-5, 5, 3)
+        scan = post.transform(pose, inplace=False)
+        scan.points = scan.points + rng.normal(0, 0.1, scan.points.shape)  # scanner noise
+        pre = filters.extract_skin(c.truth)
+        tip = c.landmarks.get("pronasale", pre.points[np.argmax(pre.points[:, 1])])
+
+        def region(p):  # the face above the nose tip, in front of the ears
+            return (p[:, 2] > tip[2] + 15) & (p[:, 1] > tip[1] - 60)
+
+        return scan.cmf.register(pre, region=region)
+
+    def predict(patient, method):
+        if method not in ("proposed", "state_of_the_art"):
+            raise ValueError(
+                f"method must be 'proposed' or 'state_of_the_art', got {method!r}")
+        c = case(patient)
+        conforming = method == "proposed"
+        res = simulate(c.ct, c.plan, bones=c.truth, landmarks=c.landmarks, n_tets=n_tets,
+                       mesh_options={"conforming": conforming}, figures=False)
+        post = res.post
+        if not conforming:  # state of the art: muscle share by random points, re-solved
+            grid = filters.sample_muscle_fraction(res.mesh, res.labels)
+            grid = filters.fiber_directions(grid)
+            post = mtm.solve(filters.assign_materials(grid))
+        skin = filters.extract_skin(res.labels)
+        # the Gaussian must span the element size, or coarse meshes leave holes in the skin
+        edges = post.extract_all_edges().compute_cell_sizes(length=True, area=False,
+                                                            volume=False)
+        width = max(sigma, 0.5 * float(np.median(edges["Length"])))
+        pred = post.cmf.map_to_surface(skin, sigma=width)
+        pred = label_face_regions(pred, landmarks=c.landmarks)
+        out = pred.cmf.distance_to(truth_in_scanner(patient), max_distance=10.0)
+        # only the face the model simulates (the meshed, anterior part) is judged
+        y0 = face_box(res.labels, DEFAULT_FACE_FRACTION)[2]
+        face = (out["mapping_support"] > 0) & (out.points[:, 1] >= y0)
+        return out.extract_points(face, adjacent_cells=False).extract_surface(
+            algorithm="dataset_surface")
+
+    return predict
