@@ -134,6 +134,26 @@ def test_methods_agree_to_their_tolerance(mixed):
     assert np.abs(rel[arrays.DISPLACEMENT] - ref).max() <= 1e-5 * scale
 
 
+def test_amg_preconditioner_is_symmetric_positive_definite():
+    """CG needs an SPD preconditioner: forward Gauss-Seidel before the coarse correction and
+    backward after make the V-cycle symmetric (a change of smoother could silently break it)."""
+    pytest.importorskip("pyamg")
+    grid = jittered_box(shape=(13, 9, 9), size=(12.0, 8.0, 8.0), jitter=0.2, seed=4)
+    set_materials(grid, 1.0, 1.0, 0.45)
+    x = grid.points[:, 0]
+    bc = np.where(x < 1e-9, arrays.BC_FIXED, np.where(x > 12 - 1e-9, arrays.BC_JOINT, arrays.BC_FREE))
+    set_bc(grid, bc, np.where((bc == arrays.BC_JOINT)[:, None], [0.1, 0.0, 0.0], 0.0))
+    s = Solver(grid, method="cg", tol=1e-10)
+    assert s._prec_name == "amg" and len(s._ml.levels) >= 2  # a real multilevel cycle
+    rng = np.random.default_rng(0)
+    n = s.K_ff.shape[0]
+    X = rng.normal(size=(n, 3))
+    MX = np.stack([s._M.matvec(X[:, k]) for k in range(3)], axis=1)
+    G = X.T @ MX
+    assert np.abs(G - G.T).max() <= 1e-10 * np.abs(G).max()
+    assert np.all(np.linalg.eigvalsh(0.5 * (G + G.T)) > 0)
+
+
 def test_cg_warm_start_and_solver_reuse(mixed):
     s = Solver(mixed, method="cg", tol=1e-10)
     u = s.solve()
