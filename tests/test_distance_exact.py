@@ -141,3 +141,40 @@ def test_surface_distance_reused_matches_brute_force(method):
     dist = SurfaceDistance(surface, method=method)
     for batch in np.array_split(points, 3):
         assert np.abs(np.abs(dist(batch)) - brute_force(batch, surface)).max() < 1e-9
+
+
+def test_sign_when_edges_and_vertices_are_closest():
+    """A coarse convex polyhedron and far points: most closest features are edges and
+    vertices; every outside point reads positive, every inside point negative."""
+    pytest.importorskip("igl")
+    poly = pv.Sphere(radius=1.0, theta_resolution=7, phi_resolution=6).triangulate().clean()
+    rng = np.random.default_rng(7)
+    dirs = rng.normal(size=(3000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    outside = dirs * rng.uniform(1.2, 4.0, (3000, 1))
+    inside = dirs * rng.uniform(0.0, 0.6, (3000, 1))
+    d_out = signed_distance(outside, poly, method="igl")
+    d_in = signed_distance(inside, poly, method="igl")
+    assert np.all(d_out > 0) and np.all(d_in < 0)
+    ref = brute_force(np.vstack([outside, inside]), poly)
+    assert np.abs(np.abs(np.r_[d_out, d_in]) - ref).max() < 1e-9
+
+
+@pytest.mark.parametrize("method", ["igl", "vtk"])
+def test_sign_matches_an_inside_test_on_a_bumpy_closed_surface(method):
+    """Concave edges and vertices too: the sign agrees with VTK's enclosed-points test
+    (ray parity, independent of closest points) for points not on the surface."""
+    if method == "igl":
+        pytest.importorskip("igl")
+    s = pv.Sphere(radius=10.0, theta_resolution=14, phi_resolution=12).triangulate().clean()
+    rng = np.random.default_rng(11)
+    p = np.asarray(s.points, dtype=float)
+    s.points = p * rng.uniform(0.7, 1.3, (len(p), 1))  # star-shaped, many concave edges
+    pts = rng.uniform(-13, 13, (4000, 3))
+    d = signed_distance(pts, s, method=method)
+    inside = np.asarray(pv.PolyData(pts).select_interior_points(s)["selected_points"]
+                        if hasattr(pv.PolyData, "select_interior_points") else
+                        pv.PolyData(pts).select_enclosed_points(s)["SelectedPoints"], bool)
+    clear = np.abs(d) > 1e-3
+    assert clear.sum() > 3900
+    assert np.array_equal(d[clear] < 0, inside[clear])

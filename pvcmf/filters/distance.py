@@ -91,48 +91,68 @@ def _igl():
     return igl
 
 
-def _pseudonormals(points, tris):
-    """Face normals, angle-weighted vertex pseudo-normals, edge pseudo-normals (numpy).
+def _unit_face_normals(points, tris):
+    a = points[tris[:, 0]]
+    n = np.cross(points[tris[:, 1]] - a, points[tris[:, 2]] - a)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
-    Baerentzen & Aanaes (2005): the closest point of a query lies inside a triangle (its
-    normal), on an edge (sum of the normals of the edge's triangles) or on a vertex
-    (angle-weighted sum of its triangles' normals); the sign of the dot product with that
-    pseudo-normal is the side of a closed, consistently wound surface (and locally of an
-    open one). Returns ``(face (m, 3), vertex (n, 3), edge (e, 3), edge_id (m, 3))``; local
-    edge ``k`` of a triangle is the one opposite its vertex ``k``.
+
+def _lookup(sorted_keys, keys):
+    """Position of each of ``keys`` in ``sorted_keys`` and whether it is there (numpy)."""
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return pos, sorted_keys[pos] == keys
+
+
+def _edge_pseudonormals(points, tris, fid, k):
+    """Sum of the unit normals of the triangles sharing local edge ``k`` of triangles ``fid``.
+
+    Local edge ``k`` is opposite vertex ``k``. Only the needed edges are looked up: the
+    edge keys of every triangle are matched against them (``np.searchsorted``).
     """
-    a, b, c = points[tris[:, 0]], points[tris[:, 1]], points[tris[:, 2]]
-    fn = np.cross(b - a, c - a)
-    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
     n_pts = len(points)
-    corners = (a, b, c)
-    vnormal = np.zeros((n_pts, 3))
-    for k in range(3):
-        e1 = corners[(k + 1) % 3] - corners[k]
-        e2 = corners[(k + 2) % 3] - corners[k]
-        cosang = np.einsum("ij,ij->i", e1, e2) / np.maximum(
-            np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300)
-        w = np.arccos(np.clip(cosang, -1.0, 1.0))
-        for j in range(3):
-            vnormal[:, j] += np.bincount(tris[:, k], w * fn[:, j], minlength=n_pts)
+    i, j = tris[fid, (k + 1) % 3], tris[fid, (k + 2) % 3]
+    need = np.minimum(i, j) * n_pts + np.maximum(i, j)
+    uniq, inv = np.unique(need, return_inverse=True)
     lo = np.minimum(tris[:, [1, 2, 0]], tris[:, [2, 0, 1]])
     hi = np.maximum(tris[:, [1, 2, 0]], tris[:, [2, 0, 1]])
-    _, edge_id = np.unique((lo * n_pts + hi).ravel(), return_inverse=True)
-    edge_id = edge_id.reshape(-1, 3)
-    enormal = np.zeros((edge_id.max() + 1, 3))
-    for j in range(3):
-        enormal[:, j] = np.bincount(edge_id.ravel(), np.repeat(fn[:, j], 3),
-                                    minlength=len(enormal))
-    return fn, vnormal, enormal, edge_id
+    pos, hit = _lookup(uniq, (lo * n_pts + hi).ravel())
+    faces = np.flatnonzero(hit) // 3
+    fn = _unit_face_normals(points, tris[faces])
+    total = np.column_stack([np.bincount(pos[hit], fn[:, c], minlength=len(uniq))
+                             for c in range(3)])
+    return total[inv]
 
 
-def _pseudonormal_sign(query, points, tris, fid, closest, normals):
+def _vertex_pseudonormals(points, tris, vid):
+    """Angle-weighted sums of the unit normals of the triangles around vertices ``vid``."""
+    uniq, inv = np.unique(vid, return_inverse=True)
+    pos, hit = _lookup(uniq, tris.ravel())
+    rows = np.flatnonzero(hit)
+    faces, corner = rows // 3, rows % 3
+    t = tris[faces]
+    fn = _unit_face_normals(points, t)
+    p0 = points[t[np.arange(len(t)), corner]]
+    e1 = points[t[np.arange(len(t)), (corner + 1) % 3]] - p0
+    e2 = points[t[np.arange(len(t)), (corner + 2) % 3]] - p0
+    cosang = np.einsum("ij,ij->i", e1, e2) / np.maximum(
+        np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300)
+    w = np.arccos(np.clip(cosang, -1.0, 1.0))
+    total = np.column_stack([np.bincount(pos[hit], w * fn[:, c], minlength=len(uniq))
+                             for c in range(3)])
+    return total[inv]
+
+
+def _pseudonormal_sign(query, points, tris, fid, closest):
     """+1 / -1: side of ``query`` along the pseudo-normal of its closest feature.
 
-    The feature (inside, edge or vertex) comes from the barycentric coordinates of the
-    closest point in its triangle ``fid``; ``normals`` is :func:`_pseudonormals`' output.
+    Baerentzen & Aanaes (2005): the closest point lies inside a triangle (its normal), on
+    an edge (sum of the normals of the edge's triangles) or on a vertex (angle-weighted
+    sum of its triangles' normals); the sign of the dot product with that pseudo-normal
+    is the side of a closed, consistently wound surface (and locally of an open one). The
+    feature comes from the barycentric coordinates of the closest point in its triangle
+    ``fid``; edge and vertex pseudo-normals are computed only for the features that are
+    closest to some query (about 1 % of a skin's queries). All numpy.
     """
-    fn, vnormal, enormal, edge_id = normals
     ta, tb, tc = points[tris[fid, 0]], points[tris[fid, 1]], points[tris[fid, 2]]
     v0, v1, v2 = tb - ta, tc - ta, closest - ta
     d00 = np.einsum("ij,ij->i", v0, v0)
@@ -147,15 +167,15 @@ def _pseudonormal_sign(query, points, tris, fid, closest, normals):
     bary = np.column_stack([1.0 - bv - bw, bv, bw])
     small = bary <= 1e-9
     n_small = small.sum(axis=1)
-    normal = fn[fid].copy()
+    normal = np.cross(v0, v1)  # the triangle's normal (length immaterial for the sign)
     edge = n_small == 1  # on the edge opposite the vertex whose coordinate vanishes
     if edge.any():
-        k = np.argmax(small[edge], axis=1)
-        normal[edge] = enormal[edge_id[fid[edge], k]]
+        normal[edge] = _edge_pseudonormals(points, tris, fid[edge],
+                                           np.argmax(small[edge], axis=1))
     vert = n_small >= 2  # on the vertex whose coordinate does not vanish
     if vert.any():
         k = np.argmax(bary[vert], axis=1)
-        normal[vert] = vnormal[tris[fid[vert], k]]
+        normal[vert] = _vertex_pseudonormals(points, tris, tris[fid[vert], k])
     side = np.einsum("ij,ij->i", query - closest, normal)
     return np.where(side < 0, -1.0, 1.0)
 
@@ -164,8 +184,8 @@ class SurfaceDistance:
     """Exact signed distance to one triangle surface, built once for repeated queries.
 
     With libigl (``method='igl'``, or ``'auto'`` when installed) the AABB tree
-    (``igl.AABB``) and the pseudo-normals are built once; each call finds the closest
-    points on the triangles and signs them by the closest feature's pseudo-normal. With
+    (``igl.AABB``) is built once; each call finds the closest points on the triangles and
+    signs them by the closest feature's pseudo-normal. With
     ``method='vtk'`` VTK's ``vtkImplicitPolyDataDistance`` (its cell locator) is built once.
     Positive on the side the winding's normals point to; orient the surface first
     (:func:`distance_to` does).
@@ -201,7 +221,6 @@ class SurfaceDistance:
             self._tris = np.ascontiguousarray(surf.faces.reshape(-1, 4)[:, 1:], dtype=np.int64)
             self._tree = igl.AABB()
             self._tree.init(self._points, self._tris)
-            self._normals = _pseudonormals(self._points, self._tris)
         else:
             import vtk
 
@@ -214,7 +233,7 @@ class SurfaceDistance:
         q = np.ascontiguousarray(np.asarray(query, dtype=np.float64).reshape(-1, 3))
         if self.method == "igl":
             d2, fid, closest = self._tree.squared_distance(self._points, self._tris, q)
-            sign = _pseudonormal_sign(q, self._points, self._tris, fid, closest, self._normals)
+            sign = _pseudonormal_sign(q, self._points, self._tris, fid, closest)
             return sign * np.sqrt(d2)
         from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
         import vtk
