@@ -24,14 +24,16 @@ pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
 SYNTHETIC = os.environ.get("PVCMF_SYNTHETIC") == "1"
 SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 1.5))  # as Figs. 6-8: shares their truth
+PATIENTS = [int(p) for p in os.environ.get("PVCMF_STUDY_PATIENTS", "1 2 3 4").split()]
+TITLE = "synthetic evaluation" if SYNTHETIC else f"virtual patients {', '.join(map(str, PATIENTS))}"
 
 
 def main():
     grid = {"nu": np.round(np.linspace(0.0, 0.495, 20), 4)}
-    df = run_study([1, 2, 3, 4], grid, "fig2_poisson_sweep", OUT, synthetic=SYNTHETIC,
+    df = run_study(PATIENTS, grid, "fig2_poisson_sweep", OUT, synthetic=SYNTHETIC,
                    scheduler=os.environ.get("PVCMF_SCHEDULER"), spacing=SPACING, n_tets=30_000)
     print(poisson_optimum(df).round(3))
-    fig = fig2_poisson(df, title="synthetic evaluation" if SYNTHETIC else "virtual patients 1-4")
+    fig = fig2_poisson(df, title=TITLE)
     fig.savefig(OUT / "fig2_poisson_sweep.png", dpi=100)
 
 

@@ -21,14 +21,16 @@ pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
 SYNTHETIC = os.environ.get("PVCMF_SYNTHETIC") == "1"
 SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 1.5))  # as Figs. 6-8: shares their truth
+PATIENTS = [int(p) for p in os.environ.get("PVCMF_STUDY_PATIENTS", "1 2 3 4").split()]
+TITLE = "synthetic evaluation" if SYNTHETIC else f"virtual patients {', '.join(map(str, PATIENTS))}"
 
 
 def main():
     grid = {"n_tets": [5_000, 10_000, 20_000, 30_000, 60_000, 120_000], "nu": [0.46]}
-    df = run_study([1, 2, 3, 4], grid, "fig3_mesh_size", OUT, synthetic=SYNTHETIC,
+    df = run_study(PATIENTS, grid, "fig3_mesh_size", OUT, synthetic=SYNTHETIC,
                    scheduler=os.environ.get("PVCMF_SCHEDULER"), spacing=SPACING)
     print(mesh_size_table(df).round(3))
-    fig = fig3_mesh_size(df, title="synthetic evaluation" if SYNTHETIC else "virtual patients 1-4")
+    fig = fig3_mesh_size(df, title=TITLE)
     fig.savefig(OUT / "fig3_mesh_size.png", dpi=100)
 
 
