@@ -7,9 +7,9 @@ the muscle surfaces:
 1. the soft tissue (``arrays.SOFT_LABELS``, optionally cropped to a region of interest) is
    resampled by nearest neighbour on an isotropic working grid whose spacing is calibrated
    from the requested number of tetrahedra (the surface triangles are about that size); a
-   named muscle also claims the working voxels whose cell it fills to
-   ``_MUSCLE_SHARE`` (box average, ``scipy.ndimage.uniform_filter``), so muscles thinner
-   than the spacing keep a layer of working voxels instead of vanishing;
+   named muscle also claims, fullest cells first (box average,
+   ``scipy.ndimage.uniform_filter``), working voxels until they hold its volume, so
+   muscles thinner than the spacing keep a layer of working voxels instead of vanishing;
    configurations that would make the surfaces non-manifold (a label touching itself or
    another only along an edge or at a corner) are repaired, muscles never losing voxels,
    and muscle fragments the coarse grid adds are given to the fat;
@@ -111,8 +111,8 @@ _FALLBACKS = (
 # 2 fat, 3 + m muscle m (m = 0 for muscle tissue without a muscle id)
 _AIR, _OTHER, _FAT, _MUSCLE0 = 0, 1, 2, 3
 _N_CODES = _MUSCLE0 + len(arrays.MUSCLES) + 1
-#: share of a working voxel's cell a named muscle must fill to claim it (0: nearest only)
-_MUSCLE_SHARE = 0.35
+#: named muscles claim working voxels up to their volume (False: nearest neighbour only)
+_CLAIM_MUSCLES = True
 _FINE_TARGETS = True
 #: how far (in working spacings, per axis) a vertex may move from its cell centre
 _TARGET_REACH = 0.4
@@ -302,21 +302,23 @@ def _working_grid(fine, s):
     ]
     sub = code_zyx[np.ix_(idx[2], idx[1], idx[0])]
     half = np.floor(0.5 * s / sp[::-1] + 1e-9).astype(int)  # array axes z, y, x
-    if _MUSCLE_SHARE > 0 and np.any(half >= 1):
-        _claim_muscles(sub, code_zyx, idx[::-1], half)
+    if _CLAIM_MUSCLES and np.any(half >= 1):
+        _claim_muscles(sub, code_zyx, idx[::-1], half, float(np.prod(sp)) / s**3)
     origin = origin0 + start
     return sub, origin
 
 
-def _claim_muscles(sub, code_zyx, idx_zyx, half):
-    """Give a named muscle every working voxel whose cell it fills to ``_MUSCLE_SHARE``.
+def _claim_muscles(sub, code_zyx, idx_zyx, half, cell_ratio):
+    """Give every named muscle about as many working voxels as its volume.
 
     Nearest-neighbour resampling loses a muscle thinner than the working spacing where it
-    passes between the samples; here the share of muscle ``m`` in the box of the working
-    spacing around every working voxel (``scipy.ndimage.uniform_filter`` on the muscle's
-    bounding box) decides, so a thin muscle keeps a layer of working voxels (its
-    surfaces are then placed on the fine interfaces by :func:`_fine_targets`). Only fat
-    and muscle tissue without id are claimed.
+    passes between the samples (and keeps it where it hits one). Here the share of muscle
+    ``m`` in the box of the working spacing around every working voxel
+    (``scipy.ndimage.uniform_filter`` on the muscle's bounding box) ranks the fat and
+    unnamed-muscle voxels, and the fullest ones are given to ``m`` until its working
+    voxels hold its image volume (``cell_ratio`` = image voxel / working voxel volume), so
+    a thin muscle keeps a layer of working voxels; its surfaces are then placed on the
+    fine interfaces by :func:`_fine_targets`.
     """
     from scipy import ndimage
 
@@ -336,7 +338,15 @@ def _claim_muscles(sub, code_zyx, idx_zyx, half):
         share = ndimage.uniform_filter((code_zyx[sl] == c).astype(np.float32), size=size, mode="constant")
         share = share[np.ix_(*[ix[x] - q.start for ix, x, q in zip(idx_zyx, sel, sl)])]
         block = sub[np.ix_(*sel)]
-        claim = (share >= _MUSCLE_SHARE) & ((block == _FAT) | (block == _MUSCLE0))
+        free = (block == _FAT) | (block == _MUSCLE0)
+        # as many working voxels as the muscle's volume, the fullest cells first
+        want = int(round(np.count_nonzero(code_zyx[sl] == c) * cell_ratio))
+        have = int(np.count_nonzero(block == c))
+        cand = np.flatnonzero(free.ravel() & (share.ravel() > 0))
+        claim = np.zeros(block.shape, bool)
+        if want > have and len(cand):
+            top = cand[np.argsort(-share.ravel()[cand], kind="stable")[: want - have]]
+            claim.ravel()[top] = True
         if claim.any():
             block[claim] = c
             sub[np.ix_(*sel)] = block
