@@ -193,7 +193,7 @@ def _damped_newton(ngs, form, gfu, maxerr, maxit, linear):
 
 def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton=30,
                     inverse="sparsecholesky", reuse_factor=False, threads=None,
-                    progress_bar=False):
+                    predictor="tangent", progress_bar=False):
     """Large-deformation neo-Hookean solve of a planned tetrahedral grid with NGSolve.
 
     Parameters
@@ -225,6 +225,12 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
         factorise every Newton iteration). Same converged answer; on the virtual patients
         the Hessian changes too much between iterates (CG rarely converges in 25), so it
         does not pay there.
+    predictor : {'tangent', 'proportional'}, default 'tangent'
+        Start of each load step: the linearised response to the step's boundary increment,
+        or (the first version, kept for comparison) the last solution scaled with the
+        boundary moved alone (it puts the whole step on the first layer of elements:
+        measured on virtual patient 1, 3 mm, 4000 tetrahedra, see
+        ``benchmarks/reference.py``).
     threads : bool, optional
         Assemble and factorise inside ``ngsolve.TaskManager()`` (all cores). Default: only
         when the machine is idle (1-minute load below half the cores): NGSolve's worker
@@ -237,7 +243,8 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     -------
     pyvista.UnstructuredGrid
         Copy of ``grid`` with point array ``arrays.DISPLACEMENT`` (the P2 solution at the
-        vertices, mm).
+        vertices, mm) and field array ``reference_solver``: dofs, Newton iterations,
+        factorisations, seconds.
 
     Raises
     ------
@@ -264,6 +271,8 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     """
     ngm, ngs = _ngsolve()
 
+    if predictor not in ("tangent", "proportional"):
+        raise ValueError(f"predictor must be 'tangent' or 'proportional', got {predictor!r}")
     if not isinstance(grid, pv.UnstructuredGrid):
         raise TypeError(f"grid must be a pyvista.UnstructuredGrid, got {type(grid).__name__}")
     cells = grid.cells_dict
@@ -367,7 +376,15 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
             step_np[:] = 0.0
             step_np[fixed] = (t - done) * target
             its = 0
-            status = 0 if _predictor(ngs, form, gfu.vec, step, linear) else 1
+            status = 1
+            if predictor == "tangent":
+                status = 0 if _predictor(ngs, form, gfu.vec, step, linear) else 1
+            if status != 0:  # session 1's: the last solution scaled, the boundary moved
+                # alone; also the fallback where the tangent predictor inverts an element
+                # (close to a buckled state its linearisation overshoots)
+                values[:] = saved * (t / done if done > 0 else 0.0)
+                values.reshape(-1, 3)[fixed] = t * target
+                status = 0 if np.isfinite(linear.timed("energy", form.Energy, gfu.vec)) else 1
             if status == 0:
                 status, its = _damped_newton(ngs, form, gfu, maxerr, max_newton, linear)
                 newton_its += its
@@ -380,7 +397,7 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
                     )
                 step_size /= 2
                 log.info("reference: load step to %.3g failed (%s), halving the step", t,
-                         "predictor inverts an element" if its == 0 else "Newton")
+                         "both predictors invert an element" if its == 0 else "Newton")
                 continue
             done = t
             step_size = min(2 * step_size, 1.0 / steps)  # grow back after a success
@@ -395,6 +412,9 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
              linear.times["assemble"], linear.times["energy"])
     out = grid.copy()
     out.point_data[arrays.DISPLACEMENT] = np.array(disp, dtype=np.float64)
+    # solver statistics (benchmarks/reference.py): dofs, Newton its, factorisations, s
+    out.field_data["reference_solver"] = np.array(
+        [3 * fes.ndof, newton_its, linear.factorizations, time.perf_counter() - start])
     return out
 
 
@@ -560,9 +580,9 @@ def postop_skin(case, *, n_tets=120_000, order=2, steps=4, face_fraction=0.5, ca
                                              progress_bar), cache=cache)
 
 
-def _postop_skin(case, n_tets, order, steps, face_fraction, progress_bar):
-    from scipy.spatial import cKDTree
-
+def _truth_grid(case, n_tets, face_fraction, progress_bar):
+    """The truth's planned grid: true labels cut by the plan, conforming mesh with the
+    muscles, fibres, Table I materials, plan boundary conditions."""
     from . import filters
     from .pipeline import drop_floating_parts, face_box
 
@@ -579,6 +599,15 @@ def _postop_skin(case, n_tets, order, steps, face_fraction, progress_bar):
     grid = filters.assign_materials(grid)
     grid = drop_floating_parts(filters.apply_plan(grid, case.plan, labels,
                                                   fix_unmoved_bone=True))
+    return labels, grid
+
+
+def _postop_skin(case, n_tets, order, steps, face_fraction, progress_bar):
+    from scipy.spatial import cKDTree
+
+    from . import filters
+
+    labels, grid = _truth_grid(case, n_tets, face_fraction, progress_bar)
     post = solve_reference(grid, order=order, steps=steps, progress_bar=progress_bar)
     skin = filters.extract_skin(labels)
     probe = skin.sample(post, progress_bar=False)

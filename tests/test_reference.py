@@ -173,3 +173,13 @@ def test_bad_input():
     hexes = pv.ImageData(dimensions=(3, 3, 3)).cast_to_unstructured_grid()
     with pytest.raises(ValueError, match="tetrahedra"):
         solve_reference(hexes)
+    with pytest.raises(ValueError, match="predictor must be 'tangent' or 'proportional'"):
+        solve_reference(g, predictor="magic")
+
+
+def test_predictors_agree():
+    """The tangent load-step predictor (default) and session 1's proportional one reach
+    the same equilibrium (they only start Newton differently)."""
+    g, u = smooth_problem(2)
+    u_old = solve_reference(g, predictor="proportional")[arrays.DISPLACEMENT]
+    np.testing.assert_allclose(u, u_old, atol=1e-6 * np.abs(u).max())
