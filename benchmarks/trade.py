@@ -52,6 +52,15 @@ KNOBS = {
     "roi": [15.0, 25.0, 40.0, None],  # soft tissue within this distance of the moved bone (mm)
 }
 
+#: ``--quick``: fewer values per knob (what fits a shared 2-core machine in ~15 min per patient)
+QUICK = {
+    "n_tets": [5_000, 10_000, 20_000, 30_000, 60_000],
+    "n_points": [10, 100],
+    "tol": [1e-2, 1e-4, 1e-6],
+    "spacing": [3.0, 2.0, 1.5, 1.0],
+    "roi": [15.0, 40.0, None],
+}
+
 
 def knob_grid(knob, values):
     grid = {knob: values, "nu": [0.46]}
@@ -81,7 +90,9 @@ def main():
                     help="sweep cache folder (default: the gallery's, shared with Figs. 2-5)")
     ap.add_argument("--out", default=None, help="folder for trade.csv and trade.png")
     ap.add_argument("--synthetic", action="store_true", help="synthetic evaluation (plumbing only)")
+    ap.add_argument("--quick", action="store_true", help="fewer values per knob (QUICK)")
     a = ap.parse_args()
+    knobs = QUICK if a.quick else KNOBS
     cache = Path(a.cache or (tempfile.mkdtemp(prefix="pvcmf-trade-") if a.synthetic else GALLERY_CACHE))
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; patients {a.patients}")
     rows, curves = [], {}
@@ -92,7 +103,7 @@ def main():
             evaluate = PipelineEvaluation(spacing=DEFAULTS["spacing"], n_tets=DEFAULTS["n_tets"],
                                           truth=study_truth if knob == "spacing" else None,
                                           cache_dir=cache / "prepared")
-        df = measure(knob, KNOBS[knob], a.patients, evaluate, cache)
+        df = measure(knob, knobs[knob], a.patients, evaluate, cache)
         curve = df.groupby("value", sort=False)[["time", "p90"]].mean()
         curves[knob] = curve
         for _, r in df.iterrows():
