@@ -189,6 +189,22 @@ def test_bad_inputs(shell):
         tetrahedralize(shell, roi=(1, 2, 3))
     with pytest.raises(ValueError, match="roi bone id"):
         tetrahedralize(shell, roi=(7, 10.0))
+    with pytest.raises(ValueError, match="sliver_optimizer must be None or one of"):
+        tetrahedralize(shell, spacing=8.0, sliver_optimizer="tetgen")
+
+
+def test_sliver_optimizer_runs_and_keeps_labels(shell):
+    # min_dihedral 25 deg leaves slivers for the optimiser on any mesh
+    plain = tetrahedralize(shell, spacing=8.0)
+    grid = tetrahedralize(shell, spacing=8.0, min_dihedral=25.0, sliver_optimizer="Netgen")
+    assert grid.n_cells != plain.n_cells  # the optimiser ran
+    # it keeps the surfaces (the volume) and does not make the worst element worse
+    assert grid.volume == pytest.approx(plain.volume, rel=1e-9)
+    assert grid.field_data[meshing.MIN_DIHEDRAL][0] >= plain.field_data[meshing.MIN_DIHEDRAL][0]
+    _, vol, _ = tet_quality(grid.points, grid.cells_dict[pv.CellType.TETRA])
+    assert vol.min() > 0
+    assert set(np.unique(grid.cell_data[arrays.MUSCLE])) == {0, 1, 2, 3, 4}
+    assert np.array_equal(grid.cell_data[arrays.MUSCLE] > 0, grid.cell_data[arrays.TISSUE] == arrays.MUSCLE_TISSUE)
 
 
 def test_one_voxel_muscle_warns_by_name(shell):

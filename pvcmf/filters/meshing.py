@@ -23,10 +23,11 @@ the muscle surfaces:
    ``vtkConstrainedSmoothingFilter`` (``smoothing_scale``): SurfaceNets' own smoothing pulls
    coincident sheets through each other (the self-intersections DESIGN.md warns about);
 3. the surfaces are checked (every region's boundary must be closed) and a volume per
-   region is meshed by gmsh (HXT Delaunay, algorithm 10, multithreaded; gmsh keeps the
-   input surface triangles, so the interfaces stay conforming) with HXT's optimiser; a
-   remaining flat sliver spanning four surface points is dropped, any other sliver sends
-   its region through gmsh's Netgen optimiser. When gmsh rejects the
+   region is meshed by gmsh (HXT Delaunay, algorithm 10, one thread by default; gmsh
+   keeps the input surface triangles, so the interfaces stay conforming) with HXT's
+   optimiser; remaining flat slivers spanning four surface points are dropped, other
+   slivers go through a gmsh optimiser only on request (``sliver_optimizer``). When gmsh
+   rejects the
    surfaces the next step of :data:`_FALLBACKS` (a slightly different grid, weaker
    smoothing and placement, finally the plain working-grid surfaces) is tried and a
    warning says so;
@@ -118,8 +119,10 @@ _FINE_TARGETS = True
 _TARGET_REACH = 0.4
 #: also place the sheets of the named muscles on the image interfaces
 _PLACE_NAMED_MUSCLES = True
-#: gmsh optimisers tried in turn on the regions holding a sliver below ``min_dihedral``
-_SLIVER_OPTIMIZERS = ("Relocate3D", "Netgen")
+#: surface slivers below min(min_dihedral, this) degrees are dropped as flat caps
+_FLAT_DIHEDRAL = 5.0
+#: gmsh optimisers accepted by ``tetrahedralize(sliver_optimizer=...)``
+_SLIVER_OPTIMIZERS = ("Netgen", "Relocate3D")
 
 
 class SurfaceError(RuntimeError):
@@ -646,7 +649,8 @@ def _gmsh_tets(regions):
     return coords.reshape(-1, 3), np.concatenate(tets), np.concatenate(comp)
 
 
-def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=None, accept=None):
+def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=None, accept=None,
+               optimizers=()):
     """Volume mesh of every meshed region; returns (nodes, tets, comp id per tet)."""
     import gmsh
 
@@ -686,7 +690,7 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
 
         def drop_flat(nodes, tets, comp):
             worst = tet_quality(nodes, tets)[0].min(axis=1)
-            sliver = worst < min_dihedral
+            sliver = worst < min(min_dihedral, _FLAT_DIHEDRAL)
             node_tags = gmsh.model.mesh.getNodes()[0].astype(np.int64)
             on_surface = np.all(node_tags[tets] <= len(points), axis=1)
             if sliver.any() and np.all(on_surface[sliver]):
@@ -697,10 +701,10 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
             return tets, comp, worst
 
         tets, comp, worst = drop_flat(nodes, tets, comp)
-        # a sliver the HXT optimiser left (usually where a region pinches): gmsh's node
-        # relocation of the regions holding one, then Netgen's optimiser (swaps +
-        # smoothing, a few seconds for the fat) if one is left
-        for method in _SLIVER_OPTIMIZERS:
+        # a sliver the HXT optimiser left (usually where a region pinches): the chosen
+        # gmsh optimiser on the regions holding one (Netgen: swaps + smoothing, about
+        # four times the meshing time at 160k tetrahedra)
+        for method in optimizers:
             if worst.min() >= min_dihedral:
                 break
             bad = np.unique(comp[worst < min_dihedral])
@@ -789,7 +793,8 @@ def tetrahedralize(
     spacing=None,
     optimize=True,
     min_dihedral=5.0,
-    threads=2,
+    sliver_optimizer=None,
+    threads=1,
     progress_bar=False,
 ):
     """Labelled tetrahedral mesh of the facial soft tissue of a label image.
@@ -831,13 +836,20 @@ def tetrahedralize(
         Run gmsh's tetrahedral optimisation (``Mesh.Optimize``).
     min_dihedral : float or None, default 5.0
         Slivers below this dihedral angle (degrees) that HXT's optimiser leaves (where a
-        region pinches): when all of them span four surface points they are dropped
-        (flat caps on a crease of the surface, volume ~0; the mesh stays conforming);
-        otherwise gmsh's Netgen optimiser runs on the regions holding them, which costs
-        about as much again as the meshing (5 s of CPU at 30k tetrahedra, 30 s at 300k).
-        None skips the check.
-    threads : int, default 2
-        Threads for gmsh's HXT mesher.
+        region pinches): when all of them (below 5 deg at most) span four surface
+        points they are dropped (flat caps on a crease of the surface, volume ~0; the
+        mesh stays conforming);
+        other slivers stay (the field data reports the minimum) unless
+        ``sliver_optimizer`` is set. None skips the check.
+    sliver_optimizer : {None, "Netgen", "Relocate3D"}, default None
+        gmsh optimiser run on the regions that still hold a sliver below
+        ``min_dihedral``. Netgen's removes most of them but is slow: at 160k tetrahedra
+        (1 mm patient, face box) 17 s on top of 4 s of meshing, raising the minimum from
+        3.1 to 4.0 deg; Relocate3D did not change it there.
+    threads : int, default 1
+        Threads for gmsh's HXT mesher. On this shared 2-core machine (load ~9) two
+        threads took 3.6-4.2 s of CPU (9.5 s wall) for 30k tetrahedra against 0.84 s
+        (1.6 s wall) for one: HXT's threads spin while they wait.
     progress_bar : bool, default False
         Log each step at INFO level (the steps are short; there is no bar).
 
@@ -881,6 +893,11 @@ def tetrahedralize(
     _check_n_tets(n_tets)
     if not isinstance(smoothing_scale, numbers.Real) or smoothing_scale < 0:
         raise ValueError(f"smoothing_scale must be a number >= 0, got {smoothing_scale!r}")
+    if sliver_optimizer is not None and sliver_optimizer not in _SLIVER_OPTIMIZERS:
+        raise ValueError(
+            f"sliver_optimizer must be None or one of {_SLIVER_OPTIMIZERS}, got {sliver_optimizer!r}"
+        )
+    optimizers = () if sliver_optimizer is None else (sliver_optimizer,)
     if spacing is not None and (not isinstance(spacing, numbers.Real) or spacing <= 0):
         raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
     shape_zyx = tuple(labels.dimensions[::-1])
@@ -933,7 +950,7 @@ def tetrahedralize(
         try:
             out = _mesh_once(
                 fine, s_try, smooth, reach, threads, optimize, pieces,
-                min_dihedral if optimize else None, accept,
+                min_dihedral if optimize else None, accept, optimizers,
             )
         except SurfaceError as exc:
             failures.append(str(exc))
@@ -1040,7 +1057,8 @@ def tetrahedralize(
     return grid
 
 
-def _mesh_once(fine, s, smoothing, reach, threads, optimize, pieces, min_dihedral, accept):
+def _mesh_once(fine, s, smoothing, reach, threads, optimize, pieces, min_dihedral, accept,
+               optimizers=()):
     """One surface + volume meshing pass at spacing ``s``; raises SurfaceError."""
     t0 = time.perf_counter()
     sub, origin = _working_grid(fine, s)
@@ -1066,7 +1084,7 @@ def _mesh_once(fine, s, smoothing, reach, threads, optimize, pieces, min_dihedra
     t1 = time.perf_counter()
     try:
         nodes, tets, cell_comp = _gmsh_mesh(
-            points, tri, patch, patch_sides, threads, optimize, min_dihedral, accept
+            points, tri, patch, patch_sides, threads, optimize, min_dihedral, accept, optimizers
         )
     except SurfaceError as exc:
         raise SurfaceError(f"spacing {s:.3g} mm, smoothing_scale {smoothing:g}: {exc}") from exc
