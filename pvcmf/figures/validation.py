@@ -222,7 +222,9 @@ def fig7_boxplots(distances, *, whis=(5, 95), figsize=(7.0, 3.6)):
     ax.set_xticks(np.arange(len(patients)), [f"P{p}" for p in patients])
     ax.set_ylabel("|distance| to the actual skin (mm)")
     ax.set_ylim(bottom=0)
-    ax.legend(loc="upper left", fontsize=8, frameon=False)
+    # above the axes: inside, it crossed the tallest whisker
+    ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncols=len(methods), fontsize=8,
+              frameon=False)
     ax.grid(axis="y", alpha=0.3)
     return fig
 
