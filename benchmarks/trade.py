@@ -27,6 +27,7 @@ curves are made up, not measurements of pvcmf).
 """
 
 import argparse
+import functools
 import os
 import tempfile
 from pathlib import Path
@@ -91,8 +92,13 @@ def main():
     ap.add_argument("--out", default=None, help="folder for trade.csv and trade.png")
     ap.add_argument("--synthetic", action="store_true", help="synthetic evaluation (plumbing only)")
     ap.add_argument("--quick", action="store_true", help="fewer values per knob (QUICK)")
+    ap.add_argument("--spacing", type=float, default=DEFAULTS["spacing"],
+                    help="default image spacing, mm (also the truth's, for every spacing)")
+    ap.add_argument("--truth-tets", type=int, default=None,
+                    help="tetrahedra of the reference truth (default: postop_skin's 120k)")
     a = ap.parse_args()
     knobs = QUICK if a.quick else KNOBS
+    DEFAULTS["spacing"] = a.spacing
     cache = Path(a.cache or (tempfile.mkdtemp(prefix="pvcmf-trade-") if a.synthetic else GALLERY_CACHE))
     print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; patients {a.patients}")
     rows, curves = [], {}
@@ -100,9 +106,16 @@ def main():
         if a.synthetic:
             evaluate = synthetic_evaluate
         else:  # as the gallery's figures (same cache entries); the spacing knob: one truth
-            evaluate = PipelineEvaluation(spacing=DEFAULTS["spacing"], n_tets=DEFAULTS["n_tets"],
-                                          truth=study_truth if knob == "spacing" else None,
-                                          cache_dir=cache / "prepared")
+            if knob == "spacing":
+                truth = functools.partial(study_truth, spacing=a.spacing, n_tets=a.truth_tets)
+            elif a.truth_tets is not None:
+                from pvcmf import reference
+
+                truth = functools.partial(reference.postop_skin, n_tets=a.truth_tets)
+            else:
+                truth = None
+            evaluate = PipelineEvaluation(spacing=a.spacing, n_tets=DEFAULTS["n_tets"],
+                                          truth=truth, cache_dir=cache / "prepared")
         df = measure(knob, knobs[knob], a.patients, evaluate, cache)
         curve = df.groupby("value", sort=False)[["time", "p90"]].mean()
         curves[knob] = curve

@@ -24,6 +24,9 @@ pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
 SYNTHETIC = os.environ.get("PVCMF_SYNTHETIC") == "1"
 SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 1.5))  # as Figs. 6-8: shares their truth
+TRUTH_TETS = os.environ.get("PVCMF_STUDY_TRUTH_TETS")  # None: the default 120k truth
+STUDY = {"spacing": SPACING} if TRUTH_TETS is None else {"spacing": SPACING,
+                                                        "truth_tets": int(TRUTH_TETS)}
 PATIENTS = [int(p) for p in os.environ.get("PVCMF_STUDY_PATIENTS", "1 2 3 4").split()]
 TITLE = "synthetic evaluation" if SYNTHETIC else f"virtual patients {', '.join(map(str, PATIENTS))}"
 
@@ -31,7 +34,7 @@ TITLE = "synthetic evaluation" if SYNTHETIC else f"virtual patients {', '.join(m
 def main():
     grid = {"nu": np.round(np.linspace(0.0, 0.495, 20), 4)}
     df = run_study(PATIENTS, grid, "fig2_poisson_sweep", OUT, synthetic=SYNTHETIC,
-                   scheduler=os.environ.get("PVCMF_SCHEDULER"), spacing=SPACING, n_tets=30_000)
+                   scheduler=os.environ.get("PVCMF_SCHEDULER"), **STUDY, n_tets=30_000)
     print(poisson_optimum(df).round(3))
     fig = fig2_poisson(df, title=TITLE)
     fig.savefig(OUT / "fig2_poisson_sweep.png", dpi=100)

@@ -21,6 +21,9 @@ pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
 SYNTHETIC = os.environ.get("PVCMF_SYNTHETIC") == "1"
 SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 1.5))  # as Figs. 6-8: shares their truth
+TRUTH_TETS = os.environ.get("PVCMF_STUDY_TRUTH_TETS")  # None: the default 120k truth
+STUDY = {"spacing": SPACING} if TRUTH_TETS is None else {"spacing": SPACING,
+                                                        "truth_tets": int(TRUTH_TETS)}
 PATIENTS = [int(p) for p in os.environ.get("PVCMF_STUDY_PATIENTS", "1 2 3 4").split()]
 TITLE = "synthetic evaluation" if SYNTHETIC else f"virtual patients {', '.join(map(str, PATIENTS))}"
 
@@ -28,7 +31,7 @@ TITLE = "synthetic evaluation" if SYNTHETIC else f"virtual patients {', '.join(m
 def main():
     grid = {"n_tets": [5_000, 10_000, 20_000, 30_000, 60_000, 120_000], "nu": [0.46]}
     df = run_study(PATIENTS, grid, "fig3_mesh_size", OUT, synthetic=SYNTHETIC,
-                   scheduler=os.environ.get("PVCMF_SCHEDULER"), spacing=SPACING)
+                   scheduler=os.environ.get("PVCMF_SCHEDULER"), **STUDY)
     print(mesh_size_table(df).round(3))
     fig = fig3_mesh_size(df, title=TITLE)
     fig.savefig(OUT / "fig3_mesh_size.png", dpi=100)

@@ -21,6 +21,9 @@ pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
 SYNTHETIC = os.environ.get("PVCMF_SYNTHETIC") == "1"
 SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 1.5))  # as Figs. 6-8: shares their truth
+TRUTH_TETS = os.environ.get("PVCMF_STUDY_TRUTH_TETS")  # None: the default 120k truth
+STUDY = {"spacing": SPACING} if TRUTH_TETS is None else {"spacing": SPACING,
+                                                        "truth_tets": int(TRUTH_TETS)}
 PATIENTS = [int(p) for p in os.environ.get("PVCMF_STUDY_PATIENTS", "1 2 3 4").split()]
 TITLE = "synthetic evaluation" if SYNTHETIC else f"virtual patients {', '.join(map(str, PATIENTS))}"
 
@@ -29,7 +32,7 @@ def main():
     nus = [0.0, 0.2, 0.4, 0.43, 0.46, 0.485, 0.495]  # 7 x 7 x 4 = 196 solves per patient
     grid = {"E_ratio": [1, 4, 16, 64], "nu_fat": nus, "nu_muscle": nus}
     df = run_study(PATIENTS, grid, "fig4_inhomogeneous", OUT, synthetic=SYNTHETIC,
-                   scheduler=os.environ.get("PVCMF_SCHEDULER"), spacing=SPACING, n_tets=30_000)
+                   scheduler=os.environ.get("PVCMF_SCHEDULER"), **STUDY, n_tets=30_000)
     print(inhomogeneous_table(df).round(3))
     fig = fig4_inhomogeneous(df, title=TITLE)
     fig.savefig(OUT / "fig4_inhomogeneous.png", dpi=100)

@@ -22,12 +22,15 @@ pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
 SYNTHETIC = os.environ.get("PVCMF_SYNTHETIC") == "1"
 SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 1.5))  # as Figs. 6-8: shares their truth
+TRUTH_TETS = os.environ.get("PVCMF_STUDY_TRUTH_TETS")  # None: the default 120k truth
+STUDY = {"spacing": SPACING} if TRUTH_TETS is None else {"spacing": SPACING,
+                                                        "truth_tets": int(TRUTH_TETS)}
 
 
 def main():
     grid = {"nu": np.round(np.linspace(0.0, 0.495, 20), 4)}
     df = run_study([2], grid, "fig5_optimal_poisson", OUT, synthetic=SYNTHETIC, keep_arrays=True,
-                   scheduler=os.environ.get("PVCMF_SCHEDULER"), spacing=SPACING, n_tets=30_000)
+                   scheduler=os.environ.get("PVCMF_SCHEDULER"), **STUDY, n_tets=30_000)
     if SYNTHETIC:
         skin = synthetic_skin()
     else:  # the skin the maps were measured on, stored with them

@@ -571,6 +571,7 @@ class PipelineEvaluation(Evaluation):
         return self._finish(state)
 
     def _timed_prepare(self, case, group):
+        _warm_up()  # once per worker process, outside the timed preparation
         t0, c0 = time.perf_counter(), time.process_time()
         state = self._prepare(case, **group)
         state["prepare_times"] = {"t_prepare": time.perf_counter() - t0,
@@ -681,20 +682,51 @@ class PipelineEvaluation(Evaluation):
         return out
 
 
-def study_truth(case):
+_WARM = []
+
+
+def _warm_up():
+    """Import the pipeline's modules (and load the muscle atlas) once per process, so the
+    first task of a worker does not report the imports as its preparation time."""
+    if _WARM:
+        return
+    import importlib
+
+    from pvcmf import filters
+
+    for name in filters.__all__ if hasattr(filters, "__all__") else ():
+        with contextlib.suppress(Exception):
+            getattr(filters, name)
+    for module in ("pvcmf.mtm", "pvcmf.pipeline", "pvcmf.validation", "pvcmf.reference",
+                   "pyamg", "gmsh", "vtk"):
+        with contextlib.suppress(Exception):
+            importlib.import_module(module)
+    with contextlib.suppress(Exception):
+        from pvcmf import atlas
+
+        atlas.default()
+    _WARM.append(True)
+
+
+def study_truth(case, *, spacing=None, n_tets=None):
     """The post-operative truth of the study for any image spacing of a virtual patient.
 
-    :func:`pvcmf.reference.postop_skin` of ``phantom(case.patient, spacing=1.5)`` (the
-    study default, whose truths are cached), whatever ``case.spacing`` is: a sweep over the
+    :func:`pvcmf.reference.postop_skin` of ``phantom(case.patient, spacing=spacing)``
+    (default :data:`STUDY_SPACING`, whose truths are cached; ``n_tets``: the truth's mesh
+    size, default that of ``postop_skin``), whatever ``case.spacing`` is: a sweep over the
     image resolution must judge every resolution against the same truth. A module-level
-    function, so it travels to Dask workers (``PipelineEvaluation(truth=study_truth)``).
+    function, so it travels to Dask workers (``PipelineEvaluation(truth=study_truth)``, or
+    ``functools.partial(study_truth, spacing=2.0, n_tets=16000)``).
     """
     import pvcmf
     from pvcmf import reference
 
-    if float(case.spacing) == STUDY_SPACING:
-        return reference.postop_skin(case)
-    return reference.postop_skin(pvcmf.datasets.phantom(patient=case.patient, spacing=STUDY_SPACING))
+    spacing = STUDY_SPACING if spacing is None else float(spacing)
+    options = {} if n_tets is None else {"n_tets": int(n_tets)}
+    if float(case.spacing) == spacing:
+        return reference.postop_skin(case, **options)
+    return reference.postop_skin(pvcmf.datasets.phantom(patient=case.patient, spacing=spacing),
+                                 **options)
 
 
 #: image spacing (mm) of the study's virtual patients, at which the truths are cached

@@ -64,7 +64,9 @@ def run_study(cases, grid, name, out, *, synthetic=False, scheduler=None, keep_a
     progress_bar : bool
         Show the sweep's progress bar.
     **options
-        :class:`pvcmf.sweeps.PipelineEvaluation` options (``spacing``, ``n_tets``, ...).
+        :class:`pvcmf.sweeps.PipelineEvaluation` options (``spacing``, ``n_tets``, ...), and
+        ``truth_tets``: judge against ``pvcmf.reference.postop_skin(case, n_tets=truth_tets)``
+        instead of the default (120k) truth.
 
     Returns
     -------
@@ -77,6 +79,13 @@ def run_study(cases, grid, name, out, *, synthetic=False, scheduler=None, keep_a
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    truth_tets = options.pop("truth_tets", None)
+    if truth_tets is not None and "truth" not in options:  # a coarser (cached) reference truth
+        import functools
+
+        from pvcmf import reference
+
+        options["truth"] = functools.partial(reference.postop_skin, n_tets=int(truth_tets))
     evaluate = synthetic_evaluate if synthetic else PipelineEvaluation(
         keep_distance=keep_arrays, cache_dir=out / "sweep-cache" / "prepared", **options)
     df = sweep(cases, grid, evaluate=evaluate, scheduler=scheduler, cache_dir=out / "sweep-cache",
