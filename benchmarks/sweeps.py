@@ -67,11 +67,18 @@ def pipeline(spacing, stand_in, cache):
     wall = time.perf_counter() - t
     print(f"load average after: {os.getloadavg()[0]:.1f}")
     prep = df.groupby("case")["t_prepare"].first()
+    cpu_prep = df.groupby("case")["cpu_prepare"].first()
     per_case_sweep = df.groupby("case")["t_eval"].sum()
+    cpu = cpu_prep.sum() + df["cpu_eval"].sum()
     print(f"Poisson sweep 20 x 4 at ~{int(df['n_cells'].mean())} tetrahedra: wall {wall:.0f} s; "
-          f"preparation per patient {prep.mean():.0f} s (once), sweep proper per patient "
-          f"{per_case_sweep.mean():.1f} s ({1000 * df['t_eval'].mean():.0f} ms per ratio, "
+          f"preparation per patient {prep.mean():.0f} s wall / {cpu_prep.mean():.0f} s CPU (once), "
+          f"sweep proper per patient {per_case_sweep.mean():.1f} s "
+          f"({1000 * df['t_eval'].mean():.0f} ms wall / {1000 * df['cpu_eval'].mean():.0f} ms CPU "
+          f"per ratio, median {1000 * df['cpu_eval'].median():.0f} ms CPU; "
           f"solve {1000 * df['t_solve'].mean():.0f} ms)")
+    print(f"CPU in the tasks: {cpu:.0f} s (preparation {cpu_prep.sum():.0f} s, ratios "
+          f"{df['cpu_eval'].sum():.0f} s); on 2 idle cores that is >= {cpu / 2:.0f} s of wall "
+          f"time plus the cluster start")
     print(df.groupby("case")[["p50", "p90", "p95"]].min().round(3).to_string())
 
 
