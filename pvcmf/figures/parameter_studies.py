@@ -423,27 +423,33 @@ def fig4_inhomogeneous(df, *, case=None, ratio=1.0, title=None):
     tab.scale(1, 1.4)
     ax_t.set_title(f"(a) {case}: min/max over ($\\nu_{{fat}}$, $\\nu_{{muscle}}$), mm", fontsize=10)
     nf, nm = avg.columns.to_numpy(float), avg.index.to_numpy(float)
-    im = ax.pcolormesh(_edges(nf), _edges(nm), avg.to_numpy(), cmap="viridis", shading="flat")
-    j, i = np.unravel_index(np.nanargmin(avg.to_numpy()), avg.shape)
-    ax.plot(nf[i], nm[j], "x", color="w", ms=11, mew=2.5)
-    ax.annotate(f"min {avg.to_numpy()[j, i]:.3f} mm\n($\\nu_f$={nf[i]:.3g}, $\\nu_m$={nm[j]:.3g})",
-                (nf[i], nm[j]), textcoords="offset points", xytext=(-70, -28), color="w", fontsize=8)
+    values = avg.to_numpy()
+    # one cell per sampled pair, on index axes labelled with the sampled ratios: value-scaled
+    # cells would stretch the coarse grid's end cells into ratios that were never run (< 0)
+    im = ax.imshow(values, origin="lower", aspect="auto", cmap="viridis", interpolation="nearest")
+    ax.set_xticks(np.arange(nf.size), [f"{v:.3g}" for v in nf])
+    ax.set_yticks(np.arange(nm.size), [f"{v:.3g}" for v in nm])
+    j, i = np.unravel_index(np.nanargmin(values), values.shape)
+    if values.size <= 100:  # the number in each sampled cell
+        lo, hi = np.nanmin(values), np.nanmax(values)
+        for (r, c), v in np.ndenumerate(values):
+            if np.isfinite(v):
+                dark = (v - lo) < 0.6 * (hi - lo) if hi > lo else True
+                ax.text(c, r, f"{v:.2f}", ha="center", va="center", fontsize=7,
+                        color="w" if dark else "k")
+    ax.plot(i, j, "s", mfc="none", mec="r", ms=16, mew=2)
+    ax.annotate(f"min {values[j, i]:.3f} mm ($\\nu_f$={nf[i]:.3g}, $\\nu_m$={nm[j]:.3g})",
+                (0.0, 1.0), xycoords="axes fraction", xytext=(2, 4), textcoords="offset points",
+                fontsize=8, va="bottom")
     ax.set_xlabel("$\\nu_{fat}$")
     ax.set_ylabel("$\\nu_{muscle}$")
     ncase = df["case"].nunique()
-    ax.set_title(f"(b) mean 90 % percentile over {ncase} case(s), $E_m/E_f$ = {use:g}", fontsize=10)
+    ax.set_title(f"(b) mean 90 % percentile over {ncase} case(s), $E_m/E_f$ = {use:g}",
+                 fontsize=10, pad=16)
     fig.colorbar(im, ax=ax, label="90 % percentile error (mm)")
     if title:
         fig.suptitle(title)
     return fig
-
-
-def _edges(centres):
-    c = np.asarray(centres, float)
-    if c.size == 1:
-        return np.array([c[0] - 0.01, c[0] + 0.01])
-    mid = (c[1:] + c[:-1]) / 2
-    return np.r_[c[0] - (mid[0] - c[0]), mid, c[-1] + (c[-1] - mid[-1])]
 
 
 # --------------------------------------------------------------------------- Fig. 5
