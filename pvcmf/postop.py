@@ -585,7 +585,7 @@ def validate_from_ct(pre_case, postop_ct, predicted_skin, *, region=None, pre_sk
     return out, table
 
 
-def reference_grid(case, *, n_tets=120_000, order=2, steps=4, face_fraction=0.5,
+def reference_grid(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5,
                    progress_bar=False):
     """The volumetric post-operative truth of a virtual patient (solved tetrahedral grid).
 

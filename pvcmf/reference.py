@@ -533,7 +533,7 @@ def _case_hash(case, params):
     return h.hexdigest()[:32]
 
 
-def postop_skin(case, *, n_tets=120_000, order=2, steps=4, face_fraction=0.5, cache=True,
+def postop_skin(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5, cache=True,
                 cache_dir=None, progress_bar=False):
     """The virtual post-operative skin of a virtual patient (the truth of the study).
 
@@ -551,7 +551,7 @@ def postop_skin(case, *, n_tets=120_000, order=2, steps=4, face_fraction=0.5, ca
     ----------
     case : pvcmf.datasets.Case
         Virtual patient (``truth`` labels and ``plan``).
-    n_tets : int, default 120000
+    n_tets : int, default 16000
         Tetrahedra of the fine mesh (several times the MTM's).
     order, steps :
         See :func:`solve_reference`.

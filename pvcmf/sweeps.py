@@ -468,7 +468,7 @@ class PipelineEvaluation(Evaluation):
     ----------
     spacing : float
         Default image resolution (mm) when the grid does not sweep ``spacing``; default
-        1.5 mm, the study default at which :func:`pvcmf.reference.postop_skin` caches the
+        2 mm, the study default at which :func:`pvcmf.reference.postop_skin` caches the
         truths.
     n_tets : int
         Default tetrahedra count when the grid does not sweep ``n_tets``.
@@ -499,7 +499,7 @@ class PipelineEvaluation(Evaluation):
 
     version = "3"
 
-    def __init__(self, spacing=1.5, n_tets=30_000, method="direct", keep_distance=False,
+    def __init__(self, spacing=2.0, n_tets=30_000, method="direct", keep_distance=False,
                  truth=None, region="face", cache_dir=None, mesh_threads=1):
         self.cache_dir = None if cache_dir is None else str(cache_dir)
         if region not in ("face", "skin"):
@@ -730,7 +730,7 @@ def study_truth(case, *, spacing=None, n_tets=None):
 
 
 #: image spacing (mm) of the study's virtual patients, at which the truths are cached
-STUDY_SPACING = 1.5
+STUDY_SPACING = 2.0
 #: the truth is cropped to the points within this distance (mm) of the pre-operative face:
 #: far more than any predicted displacement (< 20 mm) plus any error, so every predicted
 #: point's closest truth point is kept (tested against the uncropped distance)
@@ -1475,8 +1475,8 @@ def add_sweep_parser(subparsers):
                    help="processes (default), threads, synchronous, or tcp://host:8786")
     p.add_argument("--cache-dir", default=None, help="result cache folder (rerun recomputes nothing)")
     p.add_argument("--workers", type=int, default=None, help="local worker count")
-    p.add_argument("--spacing", type=float, default=1.5,
-                   help="default image resolution, mm (1.5: the study default, truths cached)")
+    p.add_argument("--spacing", type=float, default=STUDY_SPACING,
+                   help="default image resolution, mm (2: the study default, truths cached)")
     p.add_argument("--n-tets", type=int, default=30_000, help="default tetrahedra count")
     p.add_argument("--synthetic", action="store_true",
                    help="use the cheap synthetic evaluation instead of the pipeline (demo/test)")

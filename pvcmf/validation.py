@@ -290,7 +290,7 @@ def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the
     return skins, distances, pd.concat(tables, ignore_index=True)
 
 
-def study_predictor(*, spacing=1.5, n_tets=30_000, truth_tets=120_000, sigma=2.0,
+def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                     truth_cache=True, cache_dir=None):
     """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
 
@@ -307,11 +307,11 @@ def study_predictor(*, spacing=1.5, n_tets=30_000, truth_tets=120_000, sigma=2.0
 
     Parameters
     ----------
-    spacing : float, default 1.5
+    spacing : float, default 2.0
         Voxel size of the virtual patients (mm).
     n_tets : int, default 30000
         Tetrahedra of the MTM meshes.
-    truth_tets : int, default 120000
+    truth_tets : int, default 16000
         Tetrahedra of the truth mesh (``postop_skin(n_tets=...)``; P2 elements).
     sigma : float, default 2.0
         Smallest Gaussian width of the tetrahedra -> skin mapping (mm).

@@ -66,7 +66,7 @@ def run_study(cases, grid, name, out, *, synthetic=False, scheduler=None, keep_a
     **options
         :class:`pvcmf.sweeps.PipelineEvaluation` options (``spacing``, ``n_tets``, ...), and
         ``truth_tets``: judge against ``pvcmf.reference.postop_skin(case, n_tets=truth_tets)``
-        instead of the default (120k) truth.
+        instead of the default (16k P2) truth.
 
     Returns
     -------
