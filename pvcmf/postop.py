@@ -616,25 +616,14 @@ def reference_grid(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5,
     >>> grid = pvcmf.postop.reference_grid(pvcmf.datasets.phantom(1, spacing=2.0),
     ...                                    n_tets=20_000)              # doctest: +SKIP
     """
-    from . import filters
-    from .pipeline import drop_floating_parts, face_box
-    from .reference import solve_reference
-
     import importlib.util
+
+    from .reference import _truth_grid, solve_reference
 
     if importlib.util.find_spec("ngsolve") is None:  # fail before meshing, not after
         raise ImportError("reference_grid needs NGSolve: pip install 'pvcmf[reference]'")
     if not isinstance(getattr(case, "truth", None), pv.ImageData):
         raise TypeError(f"case must be a virtual patient with a truth label image, got "
                         f"{type(case).__name__}")
-    labels = filters.cut_bones(case.truth, case.plan)
-    grid = filters.tetrahedralize(labels, n_tets=n_tets, conforming=True,
-                                  roi=face_box(labels, face_fraction), progress_bar=progress_bar)
-    if arrays.MUSCLE in grid.cell_data and np.any(grid.cell_data[arrays.MUSCLE]):
-        grid = filters.fiber_directions(grid)
-        fib = np.asarray(grid.cell_data[arrays.FIBER]).copy()
-        fib[~np.any(fib, axis=1)] = (0.0, 0.0, 1.0)  # as postop_skin: immaterial for Table I
-        grid.cell_data[arrays.FIBER] = fib
-    grid = filters.assign_materials(grid)
-    grid = drop_floating_parts(filters.apply_plan(grid, case.plan, labels, fix_unmoved_bone=True))
+    _, grid = _truth_grid(case, n_tets, face_fraction, progress_bar)  # as postop_skin
     return solve_reference(grid, order=order, steps=steps, progress_bar=progress_bar)
