@@ -21,19 +21,41 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
+import pyvista as pv
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import pvcmf  # noqa: F401  (registers the cmf accessor)
+from pvcmf import arrays
+from pvcmf.filters.registration import registration_result
 
-import pvcmf  # noqa: E402,F401  (registers the cmf accessor)
-from pvcmf import arrays  # noqa: E402
-from pvcmf.filters.registration import registration_result  # noqa: E402
-from validation import face_like, implicit_skin  # noqa: E402  (same shapes as session 1)
+
+def face_like(u_res, v_res, phase=0.0):
+    """Closed head-like surface (ellipsoid + nose + waves), mm."""
+    s = pv.ParametricEllipsoid(70, 90, 110, u_res=u_res, v_res=v_res).triangulate().clean()
+    s.clear_data()
+    p = np.asarray(s.points, dtype=float)
+    nose = 12 * np.exp(-((p[:, 0] / 15) ** 2 + ((p[:, 2] - 5) / 22) ** 2)) * (p[:, 1] > 0)
+    p[:, 1] += nose + 2 * np.sin(p[:, 0] / 15 + 0.3 + phase) * np.cos(p[:, 2] / 20)
+    p[:, 0] += 1.5 * np.sin(p[:, 2] / 17)
+    s.points = p
+    return s
+
+
+def implicit_skin(spacing, wave=0.0):
+    """Marching-cubes skin (as from a CT) of the head-like implicit surface, mm."""
+    n = np.ceil(np.array([170.0, 230.0, 250.0]) / spacing).astype(int)
+    img = pv.ImageData(dimensions=n, spacing=(spacing,) * 3,
+                       origin=(-85.0, -110.0, -125.0))
+    p = img.points
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    nose = 12 * np.exp(-((x / 15) ** 2 + ((z - 5) / 22) ** 2)) * (y > 0)
+    y0 = y - nose - 2 * np.sin(x / 15 + 0.3) * np.cos(z / 20) - wave * np.sin(z / 13) * np.cos(x / 17)
+    img["f"] = np.sqrt((x / 70) ** 2 + (y0 / 90) ** 2 + (z / 110) ** 2) - 1
+    return img.contour([0.0], scalars="f", method="flying_edges").clean()
 
 
 def timed(fn, repeat):
