@@ -625,3 +625,20 @@ def test_cache_identity_ignores_figure_code_but_not_pipeline_code(monkeypatch):
     after = sweeps.PipelineEvaluation().identity()
     assert before["code"] != after["code"] == "changed"
     assert sweeps.code_version() == pvcmf.__version__
+
+
+def test_study_settings_from_environment(monkeypatch, tmp_path):
+    for name in ("PVCMF_GALLERY_OUT", "PVCMF_SYNTHETIC", "PVCMF_SCHEDULER", "PVCMF_STUDY_PATIENTS",
+                 "PVCMF_STUDY_SPACING", "PVCMF_STUDY_TRUTH_TETS"):
+        monkeypatch.delenv(name, raising=False)
+    s = ps.study_settings(tmp_path)
+    assert s["out"] == tmp_path / "_out" and s["patients"] == [1, 2, 3, 4]
+    assert s["study"] == {"spacing": pvcmf.sweeps.STUDY_SPACING, "truth_tets": 16_000}
+    assert not s["synthetic"] and s["scheduler"] is None
+    monkeypatch.setenv("PVCMF_STUDY_PATIENTS", "2,4")
+    monkeypatch.setenv("PVCMF_STUDY_SPACING", "3")
+    monkeypatch.setenv("PVCMF_STUDY_TRUTH_TETS", "4000")
+    monkeypatch.setenv("PVCMF_SYNTHETIC", "1")
+    s = ps.study_settings(tmp_path)
+    assert s["patients"] == [2, 4] and s["study"] == {"spacing": 3.0, "truth_tets": 4000}
+    assert s["synthetic"] and s["title"] == "synthetic evaluation"

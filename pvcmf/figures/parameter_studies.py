@@ -40,6 +40,43 @@ __all__ = [
 ]
 
 
+def study_settings(gallery_dir=None):
+    """The gallery's study settings, read from the environment (one place for Figs. 2-5).
+
+    ``PVCMF_GALLERY_OUT`` (output folder, default ``gallery_dir / "_out"``),
+    ``PVCMF_SYNTHETIC=1`` (cheap synthetic evaluation), ``PVCMF_SCHEDULER``,
+    ``PVCMF_STUDY_PATIENTS`` (e.g. ``"1 2"``, default all four), ``PVCMF_STUDY_SPACING``
+    (mm, default :data:`pvcmf.sweeps.STUDY_SPACING`, shared with Figs. 6-8 so the truths are
+    shared) and ``PVCMF_STUDY_TRUTH_TETS`` (P2 truth elements, default 16000: ~75k dofs,
+    richer than the 30k P1 MTM; 120k needs over an hour of CPU per patient on 2 cores).
+
+    Returns
+    -------
+    dict
+        ``out`` (Path), ``synthetic``, ``scheduler``, ``patients`` (list of int),
+        ``study`` (``spacing`` and ``truth_tets`` for :func:`run_study`), ``title``.
+    """
+    import os
+    from pathlib import Path
+
+    from ..sweeps import STUDY_SPACING
+
+    env = os.environ.get
+    base = Path(gallery_dir) if gallery_dir is not None else Path.cwd()
+    synthetic = env("PVCMF_SYNTHETIC") == "1"
+    patients = [int(p) for p in env("PVCMF_STUDY_PATIENTS", "1 2 3 4").replace(",", " ").split()]
+    return {
+        "out": Path(env("PVCMF_GALLERY_OUT", base / "_out")),
+        "synthetic": synthetic,
+        "scheduler": env("PVCMF_SCHEDULER"),
+        "patients": patients,
+        "study": {"spacing": float(env("PVCMF_STUDY_SPACING", STUDY_SPACING)),
+                  "truth_tets": int(env("PVCMF_STUDY_TRUTH_TETS", 16_000))},
+        "title": ("synthetic evaluation" if synthetic
+                  else f"virtual patients {', '.join(map(str, patients))}"),
+    }
+
+
 def run_study(cases, grid, name, out, *, synthetic=False, scheduler=None, keep_arrays=False,
               progress_bar=True, **options):
     """Run a figure's sweep as the gallery does: cached in ``out``, table saved as CSV.
