@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import numbers
 import sys
 import time
 from dataclasses import dataclass, field
@@ -251,11 +252,27 @@ def face_box(labels, face_fraction):
     The model is the face in front of a coronal plane, as in paper 000 where the most
     posterior plane of the soft-tissue model is fixed (Fig. 4c).
     """
+    if not (isinstance(face_fraction, numbers.Real) and 0 < face_fraction <= 1):
+        raise ValueError(f"face_fraction must be a number in (0, 1], got {face_fraction!r}")
     head = np.asarray(labels[arrays.TISSUE]) != arrays.AIR
     if not head.any():
         raise ValueError("labels has no tissue: the 'tissue' array is all air")
-    pts = np.asarray(labels.points)[head]
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    direction = getattr(labels, "direction_matrix", None)
+    if direction is None or np.allclose(direction, np.eye(3)):
+        # index bounds of the head from the mask's projections (no (n, 3) point array:
+        # a 1 mm head image has ~30M voxels)
+        mask = head.reshape(labels.dimensions[::-1])  # (z, y, x)
+        lo_idx, hi_idx = [], []
+        for axis in (2, 1, 0):  # x, y, z
+            other = tuple(a for a in range(3) if a != axis)
+            hit = np.flatnonzero(mask.any(axis=other))
+            lo_idx.append(hit[0])
+            hi_idx.append(hit[-1])
+        origin, spacing = np.asarray(labels.origin), np.asarray(labels.spacing)
+        lo, hi = origin + spacing * lo_idx, origin + spacing * hi_idx
+    else:
+        pts = np.asarray(labels.points)[head]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
     pad = np.asarray(labels.spacing)
     y0 = hi[1] - face_fraction * (hi[1] - lo[1])
     return (lo[0] - pad[0], hi[0] + pad[0], y0, hi[1] + pad[1], lo[2] - pad[2], hi[2] + pad[2])

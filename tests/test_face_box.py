@@ -1,0 +1,56 @@
+"""The face box (the region of interest the pipeline meshes) from the label image."""
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from pvcmf import arrays
+from pvcmf.pipeline import face_box
+
+
+def _labels(direction=None):
+    img = pv.ImageData(dimensions=(20, 30, 25), spacing=(1.0, 2.0, 1.5), origin=(-5.0, 3.0, 7.0))
+    if direction is not None:
+        img.direction_matrix = direction
+    tissue = np.zeros(img.dimensions[::-1], dtype=np.uint8)  # (z, y, x)
+    tissue[4:20, 6:27, 3:15] = arrays.FAT
+    tissue[10, 27, 8] = arrays.BONE_TISSUE  # one voxel sticking out in +y
+    img[arrays.TISSUE] = tissue.ravel()
+    return img
+
+
+def _brute(img, fraction):
+    pts = np.asarray(img.points)[np.asarray(img[arrays.TISSUE]) != arrays.AIR]
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    pad = np.asarray(img.spacing)
+    y0 = hi[1] - fraction * (hi[1] - lo[1])
+    return (lo[0] - pad[0], hi[0] + pad[0], y0, hi[1] + pad[1], lo[2] - pad[2], hi[2] + pad[2])
+
+
+@pytest.mark.parametrize("fraction", [0.25, 0.5, 1.0])
+def test_face_box_matches_the_tissue_points(fraction):
+    img = _labels()
+    np.testing.assert_allclose(face_box(img, fraction), _brute(img, fraction))
+    # the anterior fraction starts where the y extent says
+    box = face_box(img, fraction)
+    y_lo, y_hi = 3.0 + 2.0 * 6, 3.0 + 2.0 * 27
+    assert box[2] == pytest.approx(y_hi - fraction * (y_hi - y_lo))
+
+
+def test_face_box_rotated_image_uses_the_physical_points():
+    c, s = np.cos(0.3), np.sin(0.3)
+    img = _labels(direction=np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]))
+    np.testing.assert_allclose(face_box(img, 0.5), _brute(img, 0.5))
+
+
+@pytest.mark.parametrize("fraction", [0, -0.1, 1.5, "half", None])
+def test_face_box_rejects_bad_fraction(fraction):
+    with pytest.raises(ValueError, match="face_fraction"):
+        face_box(_labels(), fraction)
+
+
+def test_face_box_rejects_all_air():
+    img = _labels()
+    img[arrays.TISSUE] = np.zeros(img.n_points, dtype=np.uint8)
+    with pytest.raises(ValueError, match="all air"):
+        face_box(img, 0.5)
