@@ -458,7 +458,7 @@ class PipelineEvaluation(Evaluation):
     boundary conditions, pre-operative skin), then keeps what does not depend on the
     material: the face skin, the post-operative truth cropped to the face and oriented
     (:class:`_TruthSurface`), and, built on first use, the skin mapping operator
-    (:class:`_SkinMapping`, per ``sigma``) and a :class:`pvcmf.mtm.Solver` (geometry,
+    (:class:`pvcmf.filters.surface_mapping.SurfaceMapping`, per ``sigma``) and a :class:`pvcmf.mtm.Solver` (geometry,
     block pattern, elimination maps, symbolic factorisation; per ``method``/``tol``).
     ``evaluate(state, nu=..., ...)`` then only sets the materials of the parameter set
     (:meth:`materials`), refactorises numerically, solves, applies the mapping operator
@@ -519,7 +519,7 @@ class PipelineEvaluation(Evaluation):
 
     def identity(self):
         truth = None if self.truth is None else FunctionEvaluation(self.truth).identity()
-        own = "".join(inspect.getsource(o) for o in (type(self), _TruthSurface, _SkinMapping,
+        own = "".join(inspect.getsource(o) for o in (type(self), _TruthSurface, _skin_mapping,
                                                      _face_only, _postop_skin, error_statistics))
         return {**super().identity(), "spacing": self.spacing, "n_tets": self.n_tets,
                 "method": self.method, "keep_distance": self.keep_distance, "truth": truth,
@@ -668,8 +668,8 @@ class PipelineEvaluation(Evaluation):
         t_solve = float(solver.info.get("time", np.nan))
         mapping = state["mappings"].get(sigma)
         if mapping is None:  # the mapping does not depend on the material: once per sigma
-            mapping = state["mappings"][sigma] = _SkinMapping(grid.points, state["skin"].points,
-                                                              sigma=sigma)
+            mapping = state["mappings"][sigma] = _skin_mapping(grid.points, state["skin"].points,
+                                                               sigma)
         pred = np.asarray(state["skin"].points, float) + mapping(u)
         d = state["truth"].distance(pred)
         out = error_statistics(d)
@@ -797,73 +797,19 @@ class _TruthSurface:
         return vtk_to_numpy(out).astype(np.float64, copy=True)
 
 
-class _SkinMapping:
-    """:func:`pvcmf.filters.map_to_surface` as a precomputed sparse operator.
+def _skin_mapping(grid_points, skin_points, sigma):
+    """:func:`pvcmf.filters.map_to_surface` as its precomputed sparse operator
+    (:class:`pvcmf.filters.surface_mapping.SurfaceMapping`, built once per mesh and sigma:
+    the weights do not depend on the material)."""
+    import inspect
 
-    The mapping's Gaussian moving least-squares fit is linear in the grid displacement
-    (only the final clamp to the neighbours' range is not), and its weights depend only
-    on the grid and skin points, not on the material: a sweep builds the sparse matrix
-    ``W`` (skin points x grid points) once and each parameter set costs one sparse
-    product and a vectorised clamp (``numpy.minimum.reduceat``). The fit's value at
-    ``p``, ``c = e0 . M^-1 r``, is ``(M^-1 e0) . r`` because the moment matrix ``M`` is
-    symmetric, so row ``i`` of ``W`` is ``w_ij (1, (x_j - p_i) / sigma) . M_i^-1 e0``.
-    Tested equal to :func:`pvcmf.filters.map_to_surface`.
-    """
+    from pvcmf.filters.surface_mapping import SurfaceMapping, map_to_surface
 
-    def __init__(self, grid_points, skin_points, sigma=None, radius=None):
-        import inspect
-
-        import scipy.sparse as sp
-        from scipy.spatial import cKDTree
-
-        from pvcmf.filters.surface_mapping import map_to_surface
-
-        if sigma is None:
-            sigma = inspect.signature(map_to_surface).parameters["sigma"].default
-        radius = 3.0 * sigma if radius is None else float(radius)
-        x = np.asarray(grid_points, float)
-        p = np.asarray(skin_points, float)
-        n, m = len(p), len(x)
-        pairs = cKDTree(p).sparse_distance_matrix(cKDTree(x), radius, output_type="ndarray")
-        w = np.exp(-0.5 * (pairs["v"] / sigma) ** 2) - np.exp(-0.5 * (radius / sigma) ** 2)
-        keep = w > 0
-        i, j, w = pairs["i"][keep], pairs["j"][keep], w[keep]
-        order = np.lexsort((j, i))
-        i, j, w = i[order], j[order], w[order]
-        basis = np.column_stack([np.ones(len(i)), (x[j] - p[i]) / sigma])
-        moments = np.empty((n, 4, 4))
-        for a in range(4):  # 10 unique moments by bincount, not a loop over points
-            for b in range(a, 4):
-                moments[:, a, b] = moments[:, b, a] = np.bincount(i, w * basis[:, a] * basis[:, b],
-                                                                  minlength=n)
-        support = moments[:, 0, 0].copy()
-        has = support > 0
-        coef = np.zeros((n, 4))
-        idx = np.flatnonzero(has)
-        cond_ok = np.linalg.cond(moments[idx] / support[idx][:, None, None]) < 1e8
-        fit, mean = idx[cond_ok], idx[~cond_ok]
-        if fit.size:  # affine fit where well conditioned
-            e0 = np.zeros((fit.size, 4, 1))
-            e0[:, 0] = 1.0
-            coef[fit] = np.linalg.solve(moments[fit], e0)[:, :, 0]
-        coef[mean, 0] = 1.0 / support[mean]  # weighted mean elsewhere
-        values = w * np.einsum("ij,ij->i", basis, coef[i])
-        self.W = sp.csr_matrix((values, (i, j)), shape=(n, m))
-        self.indptr = np.searchsorted(i, np.arange(n + 1))
-        self.neighbours = j
-        self.has = has
-        self.starts = self.indptr[:-1][has]
-
-    def __call__(self, u):
-        """Skin displacement ``(n_skin, 3)`` for grid displacement ``u`` ``(n_grid, 3)``."""
-        u = np.asarray(u, float)
-        disp = np.asarray(self.W @ u)
-        if self.starts.size:  # clamp to the neighbours' range, as map_to_surface does
-            v = u[self.neighbours]
-            lo = np.minimum.reduceat(v, self.starts, axis=0)
-            hi = np.maximum.reduceat(v, self.starts, axis=0)
-            disp[self.has] = np.clip(disp[self.has], lo, hi)
-        return disp
+    if sigma is None:
+        sigma = inspect.signature(map_to_surface).parameters["sigma"].default
+    if not sigma > 0:
+        raise ValueError(f"sigma must be > 0 mm, got {sigma}")
+    return SurfaceMapping(grid_points, skin_points, sigma, 3.0 * sigma)
 
 
 def _face_only(skin, landmarks):
