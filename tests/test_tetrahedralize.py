@@ -94,14 +94,15 @@ def _label_agreement(labels, grid):
 
 def test_label_agreement_shell(shell, shell_mesh):
     inside, agree = _label_agreement(shell, shell_mesh)
-    assert agree >= 0.95
-    assert inside >= 0.8  # coarse surfaces: ~s/2 of geometric error on a 14 mm shell
+    # measured 97.8 % and 98.7 % at 10k tetrahedra (vertices snapped on the image interfaces)
+    assert agree >= 0.96
+    assert inside >= 0.95
 
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known limitation: at 10k tetrahedra the isotropic working grid (~7 mm) resolves "
-    "the 8 mm muscle tubes to about s/2; 96-97 % of the centroids agree, not 98 %",
+    reason="known limitation: at 10k tetrahedra the isotropic working grid (~7 mm) follows "
+    "the 8 mm muscle tubes with 7 mm triangles; 97.8 % of the centroids agree, not 98 %",
 )
 def test_label_agreement_goal_98_percent(shell, shell_mesh):
     _, agree = _label_agreement(shell, shell_mesh)
@@ -193,13 +194,15 @@ def test_bad_inputs(shell):
         tetrahedralize(shell, spacing=8.0, sliver_optimizer="tetgen")
 
 
-def test_sliver_optimizer_runs_and_keeps_labels(shell):
+def test_sliver_optimizer_runs_and_keeps_labels(shell, caplog):
     # min_dihedral 25 deg leaves slivers for the optimiser on any mesh
     plain = tetrahedralize(shell, spacing=8.0)
-    grid = tetrahedralize(shell, spacing=8.0, min_dihedral=25.0, sliver_optimizer="Netgen")
-    assert grid.n_cells != plain.n_cells  # the optimiser ran
-    # it keeps the surfaces (the volume) and does not make the worst element worse
-    assert grid.volume == pytest.approx(plain.volume, rel=1e-9)
+    with caplog.at_level("INFO", logger="pvcmf.filters.meshing"):
+        grid = tetrahedralize(shell, spacing=8.0, min_dihedral=25.0, sliver_optimizer="Netgen")
+    assert "Netgen optimisation of" in caplog.text  # the optimiser ran
+    # it keeps the surfaces (the volume, up to the flat surface caps dropped below 5 deg)
+    # and does not make the worst element worse (a worse result is not kept)
+    assert grid.volume == pytest.approx(plain.volume, rel=1e-4)
     assert grid.field_data[meshing.MIN_DIHEDRAL][0] >= plain.field_data[meshing.MIN_DIHEDRAL][0]
     _, vol, _ = tet_quality(grid.points, grid.cells_dict[pv.CellType.TETRA])
     assert vol.min() > 0
@@ -270,10 +273,10 @@ def patient_mesh(request):
 def test_every_virtual_patient_agreement_and_quality(patient_mesh):
     truth, grid = patient_mesh
     inside, agree = _label_agreement(truth, grid)
-    # measured 85-87 % inside soft tissue, 94-95 % of those agree (see the xfail below
+    # measured 94-95 % inside soft tissue, 96-96.5 % of those agree (see the xfail below
     # and the module docstring of pvcmf.filters.meshing for why not 98 %)
-    assert inside >= 0.83
-    assert agree >= 0.93
+    assert inside >= 0.92
+    assert agree >= 0.95
     assert abs(grid.n_cells / 30_000 - 1) <= 0.2
     _, vol, _ = tet_quality(grid.points, grid.cells_dict[pv.CellType.TETRA])
     assert vol.min() > 0
@@ -298,9 +301,9 @@ def test_every_virtual_patient_keeps_every_muscle(patient_mesh):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known limitation: no size grading; at 30k tetrahedra over the anterior half of "
-    "the head (working spacing 5-7 mm) only ~82 % of the centroids fall in a voxel of their "
-    "own tissue (thin scalp, thin muscles), not 98 %",
+    reason="known limitation: at 30k tetrahedra over the anterior half of the head (working "
+    "spacing 5-7 mm) 90.7-91.1 % of the centroids fall in a voxel of their own tissue, not "
+    "98 %: 6 mm triangles do not follow the nose, lips and thin muscles closely enough",
 )
 def test_every_virtual_patient_goal_98_percent(patient_mesh):
     truth, grid = patient_mesh

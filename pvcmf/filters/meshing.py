@@ -16,10 +16,12 @@ the muscle surfaces:
 2. every connected region of the working grid gets its own label and VTK's SurfaceNets
    (PyVista's :meth:`pyvista.ImageDataFilters.contour_labels`, unsmoothed) builds conforming
    multi-label surfaces: an interface between two regions is one set of triangles shared
-   by both. Coincident sheet vertices are merged and every vertex is moved (within its
-   SurfaceNets cell) to the mean of the full-resolution voxel faces between its regions
-   inside that cell, so the surfaces follow the image rather than the working grid; the
-   surface is then smoothed with VTK's
+   by both. Coincident sheet vertices are merged and every vertex is snapped onto the
+   full-resolution image interface of its two regions (the mean of the nearest voxel
+   faces between them that face the same way, ``scipy.spatial.cKDTree``; moves clipped to
+   ``0.75 s``, folded triangles pulled back, vertices relaxed along the surface), so the
+   surfaces follow the image rather than the working grid; the surface is then lightly
+   smoothed with VTK's
    ``vtkConstrainedSmoothingFilter`` (``smoothing_scale``): SurfaceNets' own smoothing pulls
    coincident sheets through each other (the self-intersections DESIGN.md warns about);
 3. the surfaces are checked (every region's boundary must be closed) and a volume per
@@ -40,16 +42,23 @@ the paper's state of the art, completed by :func:`pvcmf.filters.sample_muscle_fr
 or :func:`pvcmf.filters.average_voxels`.
 
 Limitation: the working grid is isotropic and there is no size grading (the surfaces are
-as fine near the skin as deep inside), so at ~30k tetrahedra over the anterior half of a
-head (working spacing ~6 mm) thin tissue is resolved to about half a spacing: about 82 %
-of the element centroids fall in a voxel of the element's own tissue (94 % of those in
-soft tissue), and the volume of the thin facial muscles (~3 mm) is off by tens of per
-cent although every muscle is present. Request more tetrahedra or a smaller region of
-interest where this matters (numbers in ``benchmarks/meshing.py`` and README).
+as fine near the skin as deep inside; the facial soft tissue is 6-12 mm thick, so at
+~30k tetrahedra nearly every element touches a surface anyway). At 30k tetrahedra over
+the anterior half of a head (working spacing 5-7 mm) about 91 % of the element
+centroids fall in a voxel of the element's own tissue on the 2 mm virtual patients
+(92 % at 1 mm, 96 % at 160k): 6 mm triangles cannot follow the nose, lips and eyelids
+to the ~0.7 mm at which a centroid 1-1.5 mm deep lands in the right voxel; the volume of
+the thin facial muscles (~3 mm) is off by tens of per cent although every muscle is
+present. Graded remeshing with MMG (mmg3d through ``mmgpy``, ``hausd`` 0.5-1 mm) was
+measured and dropped: 30-40 s for 130k -> 70k tetrahedra and a lower agreement (the
+coarsened interior leaves a larger share of elements at the surfaces). Request more
+tetrahedra or a smaller region of interest where this matters (numbers in
+``benchmarks/meshing.py`` and README).
 
 Delegates to PyVista/VTK (``contour_labels`` = ``vtkSurfaceNets3D``,
 ``vtkConstrainedSmoothingFilter``), scipy.ndimage (connected components, box averages of
-the muscles, distance transform for the bone ROI), scipy.sparse.csgraph (surface patches) and the gmsh Python API.
+the muscles, distance transform for the bone ROI), scipy.spatial (KD-trees of the image
+interfaces), scipy.sparse (surface patches, surface relaxation) and the gmsh Python API.
 """
 
 from __future__ import annotations
@@ -104,8 +113,8 @@ _MAX_ATTEMPTS = 3
 #: (spacing factor, smoothing factor, target-reach factor) tried in turn when gmsh rejects
 #: the surfaces: the last ones are the plain, unsmoothed SurfaceNets surfaces
 _FALLBACKS = (
-    (1.0, 1.0, 1.0), (0.97, 1.0, 1.0), (0.97, 0.5, 0.5), (0.93, 0.0, 0.0), (0.86, 0.0, 0.0),
-    (0.75, 0.0, 0.0),
+    (1.0, 1.0, 1.0), (0.97, 1.0, 1.0), (0.94, 1.0, 1.0), (0.97, 0.5, 0.5), (0.93, 0.0, 0.0),
+    (0.86, 0.0, 0.0), (0.75, 0.0, 0.0),
 )
 
 # working-grid codes: 0 air (SurfaceNets background), 1 not meshed (bone, teeth, brain...),
@@ -116,7 +125,17 @@ _N_CODES = _MUSCLE0 + len(arrays.MUSCLES) + 1
 _CLAIM_MUSCLES = True
 _FINE_TARGETS = True
 #: how far (in working spacings, per axis) a vertex may move from its cell centre
-_TARGET_REACH = 0.4
+_TARGET_REACH = 0.75
+#: a vertex goes to the mean of this many nearest same-facing fine interface faces,
+#: chosen among this many candidates
+_SNAP_NEIGHBOURS = 8
+_SNAP_CANDIDATES = 24
+#: tangential relaxation of the placed surface (steps, relaxation factor)
+_TANGENTIAL_ITERATIONS = 3
+_TANGENTIAL_RELAXATION = 0.5
+#: a placed triangle whose normal turned by more than arccos(this) is a fold
+_FOLD_COS = 0.3
+_FOLD_ITERATIONS = 8
 #: also place the sheets of the named muscles on the image interfaces
 _PLACE_NAMED_MUSCLES = True
 #: surface slivers below min(min_dihedral, this) degrees are dropped as flat caps
@@ -492,9 +511,7 @@ def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None, reach
     tri = merged.ravel()[surf.regular_faces]
     points = uniq * (0.5 * s) + origin
     if fine is not None and fine[3] is not None and reach > 0:
-        cell = (uniq - 1) // 2  # SurfaceNets vertices sit at cell centres (odd half-steps)
-        points = _fine_targets(points, cell, np.asarray(comp.shape[::-1]) - 1, origin, s,
-                               tri, comp_code[sides], fine, reach)
+        points = _fine_targets(points, s, tri, comp_code[sides], fine, reach)
     if smoothing_scale > 0:
         import vtk
 
@@ -512,12 +529,14 @@ def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None, reach
 
 
 def _fine_faces(fine):
-    """Midpoints (n, 3) and code pairs ``lo * 256 + hi`` of the fine image's interfaces.
+    """Midpoints (n, 3), code pairs ``lo * 256 + hi`` and normals of the fine interfaces.
 
-    Only interfaces with soft tissue on one side (the meshed surfaces) are returned.
+    Only interfaces with soft tissue on one side (the meshed surfaces) are returned. The
+    normal of a voxel face is the unit axis vector pointing from its lower code to its
+    higher code.
     """
     code, origin, sp = fine[:3]
-    mids, pairs = [], []
+    mids, pairs, normals = [], [], []
     for ax in range(3):  # array axes z, y, x
         n = code.shape[ax]
         a = code.take(np.arange(n - 1), axis=ax)
@@ -527,56 +546,104 @@ def _fine_faces(fine):
         xyz = np.stack([ix, iy, iz], axis=1).astype(float)
         xyz[:, 2 - ax] += 0.5
         mids.append(origin + xyz * sp)
-        lo, hi = np.minimum(a[hit], b[hit]), np.maximum(a[hit], b[hit])
+        ah, bh = a[hit], b[hit]
+        lo, hi = np.minimum(ah, bh), np.maximum(ah, bh)
         pairs.append(lo.astype(np.int64) * 256 + hi)
-    return np.concatenate(mids), np.concatenate(pairs)
+        nrm = np.zeros((len(lo), 3), np.int8)
+        nrm[:, 2 - ax] = np.where(ah < bh, 1, -1)
+        normals.append(nrm)
+    return np.concatenate(mids), np.concatenate(pairs), np.concatenate(normals)
 
 
-def _fine_targets(points, cell, n_cells, origin, s, tri, side_codes, fine, reach=_TARGET_REACH):
-    """Move every surface vertex to the full-resolution interfaces of its regions.
+def _oriented_normals(points, tri, side_codes):
+    """Triangle normals (not normalised) pointing from the lower code to the higher one.
 
-    A vertex of the sheet between regions of codes ``a`` and ``b`` in working-grid cell
-    ``c`` goes to the mean of the midpoints of the full-resolution voxel faces between
-    codes ``a`` and ``b`` inside ``c`` (a junction vertex: of all its pairs); a vertex
-    with no such face in its cell stays at the cell centre. The target stays inside the
-    cell, so the SurfaceNets surface keeps its topology. Vectorised: the (cell, pair)
-    keys of the vertices are sorted once and every fine face is looked up by
-    ``searchsorted``.
+    VTK's SurfaceNets orients every triangle towards its second boundary label.
     """
-    mids, pairs = fine[3], fine[4]
-    n_cells = np.asarray(n_cells, np.int64)
-    fcell = np.floor((mids - origin) / s).astype(np.int64)
-    ok = np.all((fcell >= 0) & (fcell < n_cells), axis=1)
-    mids, pairs, fcell = mids[ok], pairs[ok], fcell[ok]
-    n_pairs = 256 * 256
+    n = np.cross(points[tri[:, 1]] - points[tri[:, 0]], points[tri[:, 2]] - points[tri[:, 0]])
+    return n * np.where(side_codes[:, 1] > side_codes[:, 0], 1.0, -1.0)[:, None]
 
-    def flat(c):
-        return (c[:, 2] * n_cells[1] + c[:, 1]) * n_cells[0] + c[:, 0]
 
-    fkey = flat(fcell) * n_pairs + pairs
-    lo, hi = np.minimum(side_codes[:, 0], side_codes[:, 1]), np.maximum(side_codes[:, 0], side_codes[:, 1])
+def _fine_targets(points, s, tri, side_codes, fine, reach=_TARGET_REACH):
+    """Move every surface vertex onto the full-resolution interfaces of its regions.
+
+    A vertex of the sheet between the regions of codes ``a`` and ``b`` goes to the mean
+    of the :data:`_SNAP_NEIGHBOURS` nearest midpoints of full-resolution voxel faces
+    between codes ``a`` and ``b`` that face the same way as the sheet (a local average
+    of the voxel staircase, i.e. a point of the smooth interface; facing the same way
+    keeps the two sheets of a thin muscle apart); a junction vertex goes to the mean of
+    its sheets' targets. Every move is clipped to ``reach * s`` per axis; the vertices
+    of a single sheet are then relaxed along the surface (tangential Laplacian,
+    :data:`_TANGENTIAL_ITERATIONS` steps; the triangles get better shapes without
+    leaving the interface) and the moves of the vertices of a triangle that turned by
+    more than ~73 degrees are halved until none does (no folds). One
+    ``scipy.spatial.cKDTree`` per code pair; no loop over vertices.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.spatial import cKDTree
+
+    mids, pairs, fnorm = fine[3], fine[4], fine[5]
+    lo = np.minimum(side_codes[:, 0], side_codes[:, 1])
+    hi = np.maximum(side_codes[:, 0], side_codes[:, 1])
     tpair = lo * 256 + hi
     if not _PLACE_NAMED_MUSCLES:
-        # a named muscle thinner than the cell has both its sheets' faces in one cell:
-        # placing would collapse it, so its sheets keep the working-grid position
         tpair = np.where(hi > _MUSCLE0, -1, tpair)
-    vert = tri.ravel()
-    vkey = flat(cell[vert]) * n_pairs + np.repeat(tpair, 3)
-    # unique (vertex, key) incidences
-    inc, first = np.unique(np.stack([vert, vkey], axis=1), axis=0, return_index=True)
-    keys, key_of_inc = np.unique(inc[:, 1], return_inverse=True)
-    pos = np.clip(np.searchsorted(keys, fkey), 0, len(keys) - 1)
-    match = keys[pos] == fkey
-    cnt = np.bincount(pos[match], minlength=len(keys)).astype(float)
-    sums = np.stack([np.bincount(pos[match], weights=mids[match, k], minlength=len(keys)) for k in range(3)], axis=1)
-    vcnt = np.bincount(inc[:, 0], weights=cnt[key_of_inc], minlength=len(points))
-    vsum = np.stack([np.bincount(inc[:, 0], weights=sums[key_of_inc, k], minlength=len(points)) for k in range(3)], axis=1)
-    out = points.copy()
+    n_pts = len(points)
+    tnorm = _oriented_normals(points, tri, side_codes)
+    # (vertex, pair) incidences and the sheet normal at each
+    inc, inv = np.unique(np.stack([tri.ravel(), np.repeat(tpair, 3)], axis=1), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    inc_n = np.stack(
+        [np.bincount(inv, weights=np.repeat(tnorm[:, k], 3), minlength=len(inc)) for k in range(3)], axis=1
+    )
+    order = np.argsort(pairs, kind="stable")
+    sorted_pairs = pairs[order]
+    vsum = np.zeros_like(points)
+    vcnt = np.zeros(n_pts)
+    for p in np.unique(inc[:, 1]):  # one KD-tree per code pair (a few dozen)
+        a, b = np.searchsorted(sorted_pairs, [p, p + 1])
+        if p < 0 or b == a:
+            continue
+        sel = np.flatnonzero(inc[:, 1] == p)
+        faces = order[a:b]
+        k = min(_SNAP_CANDIDATES, b - a)
+        _, j = cKDTree(mids[faces]).query(points[inc[sel, 0]], k=k)
+        j = faces[np.asarray(j).reshape(len(sel), k)]
+        same = np.einsum("vkc,vc->vk", fnorm[j].astype(float), inc_n[sel]) > 0
+        same &= np.cumsum(same, axis=1) <= _SNAP_NEIGHBOURS
+        cnt = same.sum(axis=1)
+        ok = cnt > 0
+        target = np.einsum("vk,vkc->vc", same[ok].astype(float), mids[j[ok]]) / cnt[ok, None]
+        np.add.at(vsum, inc[sel[ok], 0], target)
+        np.add.at(vcnt, inc[sel[ok], 0], 1.0)
+    move = np.zeros_like(points)
     has = vcnt > 0
-    shift = vsum[has] / vcnt[has, None] - points[has]
-    out[has] += np.clip(shift, -reach * s, reach * s)
-    log.debug("tetrahedralize: %d of %d surface vertices placed on the fine interfaces", int(has.sum()), len(points))
-    return out
+    move[has] = np.clip(vsum[has] / vcnt[has, None] - points[has], -reach * s, reach * s)
+    if _TANGENTIAL_ITERATIONS:
+        edges = np.unique(np.sort(tri[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+        adj = coo_matrix(
+            (np.ones(2 * len(edges)), (edges.ravel(), edges[:, ::-1].ravel())), shape=(n_pts, n_pts)
+        ).tocsr()
+        degree = np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1.0)
+        single = np.bincount(inc[:, 0], minlength=n_pts) == 1  # not on a junction line
+        for _ in range(_TANGENTIAL_ITERATIONS):
+            q = points + move
+            tn = _oriented_normals(q, tri, side_codes)
+            vn = np.stack([np.bincount(tri.ravel(), weights=np.repeat(tn[:, k], 3), minlength=n_pts) for k in range(3)], axis=1)
+            vn /= np.maximum(np.linalg.norm(vn, axis=1), 1e-30)[:, None]
+            lap = adj @ q / degree[:, None] - q
+            lap -= np.einsum("ij,ij->i", lap, vn)[:, None] * vn
+            move[single] += _TANGENTIAL_RELAXATION * lap[single]
+    n0 = tnorm / np.maximum(np.linalg.norm(tnorm, axis=1), 1e-30)[:, None]
+    for _ in range(_FOLD_ITERATIONS):
+        n1 = _oriented_normals(points + move, tri, side_codes)
+        cos = np.einsum("ij,ij->i", n0, n1) / np.maximum(np.linalg.norm(n1, axis=1), 1e-30)
+        fold = cos < _FOLD_COS
+        if not fold.any():
+            break
+        move[np.unique(tri[fold])] *= 0.5
+    log.debug("tetrahedralize: %d of %d surface vertices placed on the fine interfaces", int(has.sum()), n_pts)
+    return points + move
 
 
 def _check_surfaces(tri, sides, comp_code):
@@ -713,8 +780,12 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
                 worst.min(), method, len(bad),
             )
             gmsh.model.mesh.optimize(method, dimTags=[(3, int(r)) for r in bad])
+            before = nodes, tets, comp, worst
             nodes, tets, comp = _gmsh_tets(regions)
             tets, comp, worst = drop_flat(nodes, tets, comp)
+            if worst.min() <= before[3].min():  # the optimiser made it no better: keep
+                log.info("tetrahedralize: %s optimisation did not raise the min dihedral", method)
+                nodes, tets, comp, worst = before
         return nodes, tets, comp
     except SurfaceError:
         raise
@@ -789,7 +860,7 @@ def tetrahedralize(
     n_tets=30_000,
     conforming=True,
     roi=None,
-    smoothing_scale=0.25,
+    smoothing_scale=0.1,
     spacing=None,
     optimize=True,
     min_dihedral=5.0,
@@ -823,14 +894,16 @@ def tetrahedralize(
           ``bone_id`` of point array ``arrays.BONE`` (for example the moved mandible);
         * a boolean array of length ``labels.n_points``;
         * a callable ``f(points) -> bool array`` evaluated on the image points.
-    smoothing_scale : float, default 0.25
+    smoothing_scale : float, default 0.1
         Smoothing strength of the surfaces after they are placed on the image interfaces
         (every vertex stays within ``smoothing_scale * s * sqrt(3) / 2`` of that place);
         0 switches smoothing off. The placed surfaces can self-intersect; when gmsh
-        rejects them the smoothing and the placement reach are halved, then both switched
-        off (plain SurfaceNets surfaces of the working grid), with a warning. 0.1 raised
-        the share of agreeing centroids by 2-3 points on the virtual patients but made
-        gmsh reject the first surfaces of two of them.
+        rejects them the surfaces are rebuilt on slightly finer grids, then the smoothing
+        and the placement reach are halved, then both switched off (plain SurfaceNets
+        surfaces of the working grid), with a warning when the surfaces were weakened.
+        0.25 cost 1-2 points of centroid agreement on the virtual patients (the smoothing
+        pulls the placed vertices off the interfaces); 0 made the 1st-percentile dihedral
+        angle drop to ~15 deg.
     spacing : float, optional
         Working-grid spacing in mm (surface triangle size). Overrides the calibration
         from ``n_tets`` (the count is then not controlled).
@@ -918,7 +991,7 @@ def tetrahedralize(
     if conforming:
         _check_muscles(code, voxel_volume)
     fine = _crop_fine(code, labels)
-    fine = fine + (_fine_faces(fine) if _FINE_TARGETS else (None, None))
+    fine = fine + (_fine_faces(fine) if _FINE_TARGETS else (None, None, None))
     pieces = _image_pieces(fine[0]) if conforming else {}
     volume = n_soft * voxel_volume
     min_spacing = float(min(labels.spacing))
@@ -986,7 +1059,13 @@ def tetrahedralize(
     if result is None:
         raise SurfaceError("no valid surfaces for gmsh: " + "; ".join(failures))
     nodes, tets, comp_code, cell_comp, smoothing, s, reach = result
-    if failures:
+    if failures and smoothing == fallbacks[0][1] and reach == fallbacks[0][2]:
+        # only the working grid moved (a slightly finer spacing): same surfaces, no warning
+        log.info(
+            "tetrahedralize: gmsh rejected %d surface(s) (%s); meshed on a %.3g mm grid",
+            len(failures), failures[0], s,
+        )
+    elif failures:
         warnings.warn(
             f"gmsh rejected {len(failures)} surface(s) ({failures[0]}); meshed at "
             f"spacing {s:.3g} mm, smoothing_scale {smoothing:g}, vertices moved at most "
