@@ -125,3 +125,18 @@ def test_linear_reassembly_equals_scikit_fem_after_material_and_fibre_changes(gr
         Kref = Ksk[perm][:, perm].toarray()
         K = asm.bsr(asm.full_blocks(asm.linear_upper_blocks(scale * ef, scale * ec, nu, fib)))
         assert np.abs(K.toarray() - Kref).max() <= 1e-12 * np.abs(Kref).max(), (nu, scale, turn)
+
+
+def test_merge_pairs_matches_numpy_unique():
+    from pvcmf.mtm.assembly import _merge_pairs
+
+    rng = np.random.default_rng(0)
+    n = 50
+    rows, cols = rng.integers(0, n, 2000), rng.integers(0, n, 2000)
+    rows[rows == 7] = 8  # an empty row inside
+    rows[rows == 0] = 1  # and one at the start
+    indptr, indices, inverse = _merge_pairs(rows, cols, n)
+    keys, inv = np.unique(rows * n + cols, return_inverse=True)
+    np.testing.assert_array_equal(indices, keys % n)
+    np.testing.assert_array_equal(inverse, inv.ravel())
+    np.testing.assert_array_equal(np.diff(indptr), np.bincount(keys // n, minlength=n))

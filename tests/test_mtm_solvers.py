@@ -187,6 +187,64 @@ def test_poisson_sweep_reusing_the_factorisation(mixed):
             assert 0 < s.info["iterations"] <= s.max_reuse_iterations
 
 
+def _sliding_mixed(mixed):
+    """The mixed fixture with sliding nodes on z = 0 (rotated frames in the eliminated system)."""
+    bc = np.array(mixed[arrays.BC])
+    p = mixed.points
+    z0 = np.isclose(p[:, 2], 0) & (bc == arrays.BC_FREE)
+    bc[z0] = arrays.BC_SLIDING
+    normal = np.zeros((mixed.n_points, 3))
+    normal[z0] = (0.1, 0.2, -1.0)
+    disp = np.array(mixed[arrays.BC_DISPLACEMENT])
+    disp[z0] = 0.05 * np.array([0.1, 0.2, -1.0])
+    return set_bc(mixed.copy(), bc, disp, normal)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_material_group_updates_equal_a_fresh_solver(mixed, backend):
+    """A sweep's cached per-material matrices give the system a fresh assembly gives."""
+    grid = _sliding_mixed(mixed)
+    musc = np.asarray(grid[arrays.TISSUE]) == arrays.MUSCLE_TISSUE
+    ef0, ec0 = np.array(grid[arrays.E_FIBER]), np.array(grid[arrays.E_CROSS])
+    s = Solver(grid, backend=backend)
+    rng = np.random.default_rng(5)
+    steps = [  # (materials, whether the grouped path applies)
+        (dict(nu=0.3), True),  # Poisson sweep, two materials
+        (dict(nu=np.where(musc, 0.43, 0.485)), True),  # paper 001 inhomogeneous
+        (dict(E_fiber=3 * ef0, E_cross=3 * ec0), True),  # stiffer everywhere, same grouping
+        (dict(nu=rng.uniform(0.1, 0.45, grid.n_cells)), False),  # per-cell values: re-assembly
+        (dict(nu=0.49), True),  # back to grouped materials
+    ]
+    for step, grouped in steps:
+        s.update_materials(**step)
+        u = s.solve()
+        ef, ec, nu, _ = s.materials
+        ref = Solver(grid, backend="superlu", E_fiber=ef, E_cross=ec, nu=nu).solve()
+        assert np.abs(u - ref).max() <= 1e-10 * np.abs(ref).max(), step
+        # the grouped path only serves the backends that read one triangle
+        uses = getattr(s, "_groups", None) is not None
+        assert uses == (grouped and backend in ("cholmod", "pardiso")), step
+
+
+def test_triangle_operator_is_the_full_reduced_stiffness(mixed):
+    if "cholmod" not in BACKENDS and "pardiso" not in BACKENDS:
+        pytest.skip("needs a backend that stores one triangle (CHOLMOD or PARDISO)")
+    s = Solver(mixed, backend=BACKENDS[0])
+    K = stiffness(mixed).tocsr()[s.F][:, s.F]  # no sliding nodes: no local frames
+    y = np.random.default_rng(2).normal(size=s.F.size)
+    np.testing.assert_allclose(s.K_ff @ y, K @ y, rtol=0, atol=1e-13 * abs(K).max() * np.abs(y).sum())
+    np.testing.assert_allclose(s.K_ff.diagonal(), K.diagonal())
+
+
+@pytest.mark.parametrize("ordering", ["amd", "metis", "nesdis"])
+def test_orderings_give_the_same_answer(mixed, ordering):
+    if "cholmod" not in BACKENDS:
+        pytest.skip("the node-graph ordering applies to the CHOLMOD backend only")
+    ref = Solver(mixed, backend="superlu").solve()
+    u = Solver(mixed, ordering=ordering).solve()
+    assert np.abs(u - ref).max() <= 1e-10 * np.abs(ref).max()
+
+
 def test_rigid_motion_of_all_constraints_moves_everything_rigidly(mixed):
     p = mixed.points
     W = np.array([[0, -0.002, 0.001], [0.002, 0, -0.003], [-0.001, 0.003, 0]])
@@ -374,6 +432,8 @@ def test_solve_input_validation_and_no_mutation(mixed):
         assert key in out.field_data.keys()
     with pytest.raises(ValueError, match="method must be one of"):
         solve(mixed, method="lu")
+    with pytest.raises(ValueError, match="ordering must be one of .* got 'rcm'"):
+        solve(mixed, ordering="rcm")
     assert str(solve(mixed, method="auto").field_data[pvcmf.mtm.FIELD_METHOD][0]) == "direct"
     bad = mixed.copy()
     bad.point_data[arrays.BC][0] = 7

@@ -42,14 +42,35 @@ _CACHE_CELLS = 400_000  # keep the geometric products (800 B per cell) up to thi
 _LINEAR_CELLS = 60_000
 
 
-def _transpose_where(blocks, swap):
-    """In place: transpose the 3x3 blocks ``blocks[3 i + j]`` (9, 10, k) where ``swap``."""
-    for i in range(3):
-        for j in range(i + 1, 3):
-            x, y = blocks[3 * i + j], blocks[3 * j + i]
-            tmp = np.where(swap, y, x)
-            y[...] = np.where(swap, x, y)
-            x[...] = tmp
+def _merge_pairs(rows, cols, n):
+    """Sort ``(rows, cols)`` pairs by row, then column, and merge repeated pairs.
+
+    Returns ``(indptr, indices, inverse)``: the CSR pattern of the distinct pairs and, for each
+    input pair, the index of its distinct pair. A counting sort by row and short sorts inside
+    the rows (scipy's compiled COO -> CSR conversion and index sort): at 30k tetrahedra 3 ms
+    for the 300k cell pairs against 12 ms for ``np.unique(..., return_inverse=True)``.
+    """
+    from scipy.sparse import _sparsetools
+
+    k = rows.size
+    itype = np.int32 if max(n, k) < 2**31 - 1 else np.int64
+    indptr = np.empty(n + 1, dtype=itype)
+    indices = np.empty(k, dtype=itype)
+    ids = np.empty(k, dtype=itype)
+    _sparsetools.coo_tocsr(n, n, k, rows.astype(itype), cols.astype(itype),
+                           np.arange(k, dtype=itype), indptr, indices, ids)
+    _sparsetools.csr_sort_indices(n, indptr, indices, ids)
+    new = np.ones(k, dtype=bool)
+    new[1:] = indices[1:] != indices[:-1]
+    starts = indptr[:-1]
+    new[starts[starts < k]] = True  # a row's first pair is new even if the column repeats
+    uid = np.cumsum(new) - 1
+    inverse = np.empty(k, dtype=np.int64)
+    inverse[ids] = uid
+    out_ptr = np.zeros(n + 1, dtype=np.int64)
+    out_ptr[1:] = uid[indptr[1:] - 1] + 1 if k else 0  # distinct pairs up to each row's end
+    out_ptr[1:][indptr[1:] == 0] = 0  # rows before the first pair
+    return out_ptr, indices[new].astype(np.int64), inverse
 
 
 def tetrahedra(grid):
@@ -189,32 +210,31 @@ class Assembler:
         g = np.empty((self.n_cells, 4, 3))
         g[:, 1], g[:, 2], g[:, 3] = c23 / det[:, None], c31 / det[:, None], c12 / det[:, None]
         g[:, 0] = -(g[:, 1] + g[:, 2] + g[:, 3])
-        self.gradients = g
+        # number each cell's nodes in increasing global order (gradients alike): every local
+        # pair a <= b is then a global pair, and its block lands in the upper triangle as
+        # computed, with no transposed copies
+        flat = (np.argsort(cells, axis=1) + 4 * np.arange(self.n_cells)[:, None]).ravel()
+        self.cells = cells = cells.ravel()[flat].reshape(-1, 4)
+        self.gradients = g.reshape(-1, 3)[flat].reshape(-1, 4, 3)
         self.volumes = np.abs(det) / 6.0
 
-        # orient each of the 10 pairs so that the block lands in the upper triangle
-        ra, rb = cells[:, PAIR_A], cells[:, PAIR_B]
-        swap = ra > rb
-        self._row_local = np.where(swap, PAIR_B, PAIR_A).astype(np.int8)
-        self._col_local = np.where(swap, PAIR_A, PAIR_B).astype(np.int8)
-        lo, hi = np.minimum(ra, rb).ravel(), np.maximum(ra, rb).ravel()
-        keys, inv = np.unique(lo * n + hi, return_inverse=True)
-        self._scatter = np.ascontiguousarray(inv.astype(np.int64).reshape(self.n_cells, 10).T)
-        self._swap = np.ascontiguousarray(swap.T)  # (10, m)
-        up_r, up_c = keys // n, keys % n
-        self.n_upper = keys.size
+        # the upper-triangle blocks (node pairs lo <= hi) and where each cell pair adds to
+        lo, hi = cells[:, PAIR_A].ravel(), cells[:, PAIR_B].ravel()
+        up_ptr, up_c, inv = _merge_pairs(lo, hi, n)
+        self._scatter = np.ascontiguousarray(inv.reshape(self.n_cells, 10).T)  # (10, m)
+        up_r = np.repeat(np.arange(n), np.diff(up_ptr))
+        self.n_upper = up_c.size
         off = up_r != up_c
         self._off = np.flatnonzero(off)
+        # the full pattern: the upper blocks and the transposes of the off-diagonal ones
         rows = np.concatenate([up_r, up_c[off]])
         cols = np.concatenate([up_c, up_r[off]])
-        order = np.lexsort((cols, rows))
-        self.rows, self.indices = rows[order], cols[order].astype(np.int32)
-        self.indptr = np.zeros(n + 1, dtype=np.int32)
-        np.cumsum(np.bincount(self.rows, minlength=n), out=self.indptr[1:])
-        where = np.empty_like(order)
-        where[order] = np.arange(order.size)
-        self._upper_pos = where[: keys.size]  # position of upper block k in the full pattern
-        self._lower_pos = where[keys.size:]  # position of the transpose of upper block off[k]
+        self.indptr, indices, where = _merge_pairs(rows, cols, n)
+        self.indices = indices.astype(np.int32)
+        self.indptr = self.indptr.astype(np.int32)
+        self.rows = np.repeat(np.arange(n), np.diff(self.indptr))
+        self._upper_pos = where[: up_c.size]  # position of upper block k in the full pattern
+        self._lower_pos = where[up_c.size:]  # position of the transpose of upper block off[k]
         self.nnzb = rows.size
         self.used = np.zeros(n, dtype=bool)
         self.used[cells.ravel()] = True
@@ -233,14 +253,10 @@ class Assembler:
         vol = self.volumes[e]
         ga = np.transpose(g[:, PAIR_A], (2, 1, 0)) * vol  # (3, 10, k), V-weighted
         gb = np.transpose(g[:, PAIR_B], (2, 1, 0))
-        swap = self._swap[:, e]
         q = np.empty((9, 10, ga.shape[2]))
         for i in range(3):
             for j in range(3):
-                q[3 * i + j] = ga[i] * gb[j]
-        # a swapped pair stores the block of (b, a), the transpose of the block of (a, b):
-        # V g_b_i g_a_j = Q_ji (exactly, same products)
-        _transpose_where(q, swap)
+                np.multiply(ga[i], gb[j], out=q[3 * i + j])
         dot = q[0] + q[4] + q[8]
         out = (q, dot)
         if e == slice(0, self.n_cells) and self.n_cells <= _CACHE_CELLS:
@@ -262,26 +278,54 @@ class Assembler:
         chunk = m if m <= _CACHE_CELLS else _CHUNK
         for s in range(0, m, chunk):
             e = slice(s, min(s + chunk, m))
-            q, dot = self._geometry_products(e)
-            la, mu = lam[e], muT[e]
+            ani = np.flatnonzero(aniso[e])
+            fibre = None
+            if ani.size:
+                cells = ani + s
+                fibre = self._aniso_terms(cells, a_all[cells], alpha[cells], (muL - muT)[cells],
+                                          beta[cells])
+            idx = self._scatter[:, e].ravel()
+            for c, block in enumerate(self._isotropic_blocks(e, lam[e], muT[e])):
+                if fibre is not None:
+                    block[:, ani] += fibre[c]
+                out[c] += np.bincount(idx, weights=block.ravel(), minlength=self.n_upper)
+        return out.T.reshape(-1, 3, 3)
+
+    def _isotropic_blocks(self, e, lam, mu):
+        """Yield the 9 entries ``(10, k)`` of ``V (lam g_a g_b^T + mu g_b g_a^T + mu g_a.g_b I)``.
+
+        One entry at a time (bounded temporaries); from the cached geometric products when
+        :meth:`linear_upper_blocks` built them, else straight from the gradients.
+        """
+        cached = getattr(self, "_q_cache", None)
+        if cached is not None and e == slice(0, self.n_cells):
+            q, dot = cached
             mudot = mu * dot
-            k = np.empty_like(q)
             for i in range(3):
                 for j in range(3):
-                    c = k[3 * i + j]
-                    np.multiply(la, q[3 * i + j], out=c)
+                    c = lam * q[3 * i + j]
                     c += mu * q[3 * j + i]
                     if i == j:
                         c += mudot
-            ani = np.flatnonzero(aniso[e])
-            if ani.size:
-                cells = ani + s
-                k[:, :, ani] += self._aniso_terms(cells, a_all[cells], alpha[cells],
-                                                  (muL - muT)[cells], beta[cells])
-            idx = self._scatter[:, e].ravel()
-            for c in range(9):
-                out[c] += np.bincount(idx, weights=k[c].ravel(), minlength=self.n_upper)
-        return out.T.reshape(-1, 3, 3)
+                    yield c
+            return
+        g = self.gradients[e]
+        vol = self.volumes[e]
+        gt = np.ascontiguousarray(np.transpose(g, (1, 2, 0)))  # (4, 3, k)
+        ga, gb = gt[PAIR_A], gt[PAIR_B]  # (10, 3, k): rows of k contiguous values
+        la_ga = ga * (lam * vol)
+        mu_ga = ga * (mu * vol)
+        mudot = mu_ga[:, 0] * gb[:, 0]
+        mudot += mu_ga[:, 1] * gb[:, 1]
+        mudot += mu_ga[:, 2] * gb[:, 2]
+        tmp = np.empty_like(mudot)
+        for i in range(3):
+            for j in range(3):
+                c = np.multiply(la_ga[:, i], gb[:, j])
+                c += np.multiply(mu_ga[:, j], gb[:, i], out=tmp)
+                if i == j:
+                    c += mudot
+                yield c
 
     def linear_upper_blocks(self, E_fiber, E_cross, nu, fiber=None):
         """:meth:`upper_blocks` as one sparse matrix-vector product (for repeated assembly).
@@ -307,12 +351,22 @@ class Assembler:
             a = np.array(np.broadcast_to(np.asarray(fiber, dtype=float), (m, 3))[ani])
         else:
             a = np.zeros((0, 3))
+        x = np.concatenate([lam, muT, alpha[ani], (muL - muT)[ani], beta[ani]])
+        return (self.linear_map(ani, a) @ x).reshape(9, self.n_upper).T.reshape(-1, 3, 3)
+
+    def linear_map(self, ani, a):
+        """The sparse map ``S`` from per-cell coefficients to the upper blocks (cached).
+
+        Columns: ``lambda`` and ``mu_T`` of every cell, then ``alpha``, ``mu_L - mu_T`` and
+        ``beta`` of the anisotropic cells ``ani`` (fibres ``a``, one row per cell of ``ani``);
+        rows: the 9 entries of every upper block, entry-major (``9 x n_upper``). Rebuilt when
+        ``ani`` or ``a`` change.
+        """
         key = getattr(self, "_linear_key", None)
         if key is None or not (np.array_equal(key[0], ani) and np.array_equal(key[1], a)):
             self._linear = self._build_linear(ani, a)
-            self._linear_key = (ani, a)
-        x = np.concatenate([lam, muT, alpha[ani], (muL - muT)[ani], beta[ani]])
-        return (self._linear @ x).reshape(9, self.n_upper).T.reshape(-1, 3, 3)
+            self._linear_key = (np.array(ani), np.array(a))
+        return self._linear
 
     def _build_linear(self, ani, a):
         t = time.perf_counter()
@@ -364,7 +418,6 @@ class Assembler:
                 if i == j:
                     v += dmu * pab
                 t[3 * i + j] = v
-        _transpose_where(t, self._swap[:, cells])
         return t
 
     def full_blocks(self, upper):
