@@ -130,6 +130,7 @@ _TARGET_REACH = 0.75
 #: chosen among this many candidates
 _SNAP_NEIGHBOURS = 8
 _SNAP_CANDIDATES = 24
+_SNAP_PASSES = 1
 #: tangential relaxation of the placed surface (steps, relaxation factor)
 _TANGENTIAL_ITERATIONS = 3
 _TANGENTIAL_RELAXATION = 0.5
@@ -591,36 +592,43 @@ def _fine_targets(points, s, tri, side_codes, fine, reach=_TARGET_REACH):
     n_pts = len(points)
     tnorm = _oriented_normals(points, tri, side_codes)
     # (vertex, pair) incidences and the sheet normal at each
-    inc, inv = np.unique(np.stack([tri.ravel(), np.repeat(tpair, 3)], axis=1), axis=0, return_inverse=True)
+    n_keys = 256 * 256 + 1
+    inc_key, inv = np.unique(tri.ravel() * n_keys + np.repeat(tpair, 3) + 1, return_inverse=True)
+    inc = np.stack([inc_key // n_keys, inc_key % n_keys - 1], axis=1)
     inv = inv.ravel()
     inc_n = np.stack(
         [np.bincount(inv, weights=np.repeat(tnorm[:, k], 3), minlength=len(inc)) for k in range(3)], axis=1
     )
     order = np.argsort(pairs, kind="stable")
     sorted_pairs = pairs[order]
-    vsum = np.zeros_like(points)
-    vcnt = np.zeros(n_pts)
+    trees = {}
     for p in np.unique(inc[:, 1]):  # one KD-tree per code pair (a few dozen)
         a, b = np.searchsorted(sorted_pairs, [p, p + 1])
-        if p < 0 or b == a:
-            continue
-        sel = np.flatnonzero(inc[:, 1] == p)
-        faces = order[a:b]
-        k = min(_SNAP_CANDIDATES, b - a)
-        _, j = cKDTree(mids[faces]).query(points[inc[sel, 0]], k=k)
-        j = faces[np.asarray(j).reshape(len(sel), k)]
-        same = np.einsum("vkc,vc->vk", fnorm[j].astype(float), inc_n[sel]) > 0
-        same &= np.cumsum(same, axis=1) <= _SNAP_NEIGHBOURS
-        cnt = same.sum(axis=1)
-        ok = cnt > 0
-        target = np.einsum("vk,vkc->vc", same[ok].astype(float), mids[j[ok]]) / cnt[ok, None]
-        np.add.at(vsum, inc[sel[ok], 0], target)
-        np.add.at(vcnt, inc[sel[ok], 0], 1.0)
+        if p >= 0 and b > a:
+            tree = cKDTree(mids[order[a:b]], leafsize=32, balanced_tree=False, compact_nodes=False)
+            trees[p] = (np.flatnonzero(inc[:, 1] == p), order[a:b], tree)
     move = np.zeros_like(points)
-    has = vcnt > 0
-    move[has] = np.clip(vsum[has] / vcnt[has, None] - points[has], -reach * s, reach * s)
+    has = np.zeros(n_pts, bool)
+    for _ in range(_SNAP_PASSES):  # a second pass queries from the placed position
+        vsum = np.zeros_like(points)
+        vcnt = np.zeros(n_pts)
+        for sel, faces, tree in trees.values():
+            k = min(_SNAP_CANDIDATES, len(faces))
+            _, j = tree.query(points[inc[sel, 0]] + move[inc[sel, 0]], k=k)
+            j = faces[np.asarray(j).reshape(len(sel), k)]
+            same = np.einsum("vkc,vc->vk", fnorm[j].astype(float), inc_n[sel]) > 0
+            same &= np.cumsum(same, axis=1) <= _SNAP_NEIGHBOURS
+            cnt = same.sum(axis=1)
+            ok = cnt > 0
+            target = np.einsum("vk,vkc->vc", same[ok].astype(float), mids[j[ok]]) / cnt[ok, None]
+            np.add.at(vsum, inc[sel[ok], 0], target)
+            np.add.at(vcnt, inc[sel[ok], 0], 1.0)
+        has = vcnt > 0
+        move[has] = np.clip(vsum[has] / vcnt[has, None] - points[has], -reach * s, reach * s)
     if _TANGENTIAL_ITERATIONS:
-        edges = np.unique(np.sort(tri[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+        e = np.sort(tri[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        e = np.unique(e[:, 0] * n_pts + e[:, 1])
+        edges = np.stack([e // n_pts, e % n_pts], axis=1)
         adj = coo_matrix(
             (np.ones(2 * len(edges)), (edges.ravel(), edges[:, ::-1].ravel())), shape=(n_pts, n_pts)
         ).tocsr()
