@@ -124,7 +124,7 @@ def bench(n, args):
     print(f"\n== {grid.n_cells} tetrahedra, {grid.n_points} points (mesh built in "
           f"{time.perf_counter() - t:.1f} s); load average {os.getloadavg()[0]:.1f}", flush=True)
     rss_mesh = peak_rss_mb()
-    rep = 3 if n < 500_000 else 1
+    rep = 5 if n < 100_000 else 3 if n < 500_000 else 1
     method = "direct" if grid.n_points <= pvcmf.mtm.AUTO_DIRECT_MAX_POINTS else "cg"
     w_total, c_total, solver = timed(lambda: _setup_and_solve(grid, method=method, tol=1e-8
                                                               if method == "cg" else 1e-10), rep)
@@ -161,21 +161,32 @@ def bench(n, args):
         bc = np.array(g2[arrays.BC])
         bc[bc == arrays.BC_SLIDING] = arrays.BC_JOINT
         g2[arrays.BC] = bc
-        # the same repeats for both sides (median of 3 below 100k tetrahedra)
+        # like with like: the same mesh, materials and constraints, both direct to round-off,
+        # scikit-fem with its own assembly and its natural solver (skfem.solve = spsolve);
+        # the two sides alternate and the ratio is taken per repeat (median of 3 below 100k)
         rk = 3 if n < 100_000 else 1
-        t_skasm, c_skasm, (K, basis) = timed(lambda: skfem_assemble_solve(g2), rk)
-        dofs = basis.nodal_dofs
-        D = dofs[:, bc != arrays.BC_FREE].ravel()
-        x = np.zeros(basis.N)
-        x[dofs.T.ravel()] = np.asarray(g2[arrays.BC_DISPLACEMENT]).ravel()
-        t_sksolve, c_sksolve, xs = timed(lambda: sksolve(*condense(K, np.zeros(basis.N), x=x, D=D)),
-                                         rk)
-        t_ours, c_ours, s2 = timed(lambda: _setup_and_solve(g2), rk)
+        ratios, cpu_ratios, sk_times, our_times = [], [], [], []
+        for _ in range(rk):
+            t_skasm, c_skasm, (K, basis) = timed(lambda: skfem_assemble_solve(g2), 1)
+            dofs = basis.nodal_dofs
+            D = dofs[:, bc != arrays.BC_FREE].ravel()
+            x = np.zeros(basis.N)
+            x[dofs.T.ravel()] = np.asarray(g2[arrays.BC_DISPLACEMENT]).ravel()
+            t_sksolve, c_sksolve, xs = timed(
+                lambda: sksolve(*condense(K, np.zeros(basis.N), x=x, D=D)), 1)
+            t_ours, c_ours, s2 = timed(lambda: _setup_and_solve(g2), 1)
+            ratios.append((t_skasm + t_sksolve) / t_ours)
+            cpu_ratios.append((c_skasm + c_sksolve) / c_ours)
+            sk_times.append((t_skasm, t_sksolve))
+            our_times.append(t_ours)
         ref = xs[dofs.T.ravel()].reshape(-1, 3)
         err = np.abs(s2.solve() - ref).max() / np.abs(ref).max()
-        print(f"scikit-fem assemble {ms(t_skasm)} + solve {ms(t_sksolve)}; pvcmf {ms(t_ours)} "
-              f"-> pvcmf is {(t_skasm + t_sksolve) / t_ours:.1f}x faster (CPU time: "
-              f"{(c_skasm + c_sksolve) / c_ours:.1f}x); max rel. difference {err:.1e}", flush=True)
+        t_skasm, t_sksolve = (statistics.median(v) for v in zip(*sk_times))
+        print(f"scikit-fem assemble {ms(t_skasm)} + solve {ms(t_sksolve)}; pvcmf "
+              f"{ms(statistics.median(our_times))} -> pvcmf is {statistics.median(ratios):.1f}x "
+              f"faster (median of {rk} paired runs: {', '.join(f'{r:.1f}' for r in ratios)}; CPU "
+              f"time {statistics.median(cpu_ratios):.1f}x); max rel. difference {err:.1e}; load "
+              f"{os.getloadavg()[0]:.1f}", flush=True)
     if not args.skip_cg and method == "direct":
         w_cg, _, cs = timed(lambda: _setup_and_solve(grid, method="cg", tol=1e-8), 1)
         uc = cs.solve()
@@ -210,18 +221,37 @@ def _setup_and_solve(grid, **kw):
 
 
 def sweep(grid):
+    """20 Poisson ratios, one Solver: built with the first value, updated for the other 19."""
     nus = np.linspace(0.0, 0.495, 20)
-    for refactor in (True, False):
+    variants = (("numeric refactorisation each value, AMD order (default)", "auto", True),
+                ("numeric refactorisation each value, METIS order", "metis", True),
+                ("factor reused as CG preconditioner (refactor=False)", "auto", False))
+    for how, ordering, refactor in variants:
+        parts = {}
+
         def run():
-            solver = pvcmf.mtm.Solver(grid)
-            for nu in nus:
+            t = time.perf_counter()
+            solver = pvcmf.mtm.Solver(grid, nu=nus[0], ordering=ordering)
+            solver.solve()
+            parts.setdefault("prepare", []).append(time.perf_counter() - t)
+            for nu in nus[1:]:
+                t = time.perf_counter()
                 solver.update_materials(nu=nu, refactor=refactor)
+                parts.setdefault("update", []).append(time.perf_counter() - t)
+                parts.setdefault("assembly", []).append(solver.timings["assembly"])
+                t = time.perf_counter()
                 solver.solve()
+                parts.setdefault("solve", []).append(time.perf_counter() - t)
+            parts["grouped"] = getattr(solver, "_groups", None) is not None
 
         w, c, _ = timed(run, 3)
-        how = "numeric refactorisation each" if refactor else "factor reused as CG preconditioner"
-        print(f"20-value Poisson sweep (nu 0..0.495, one Solver, {how}) at {grid.n_cells} tets: "
-              f"{1000 * w:.0f} ms wall ({1000 * c:.0f} ms cpu)", flush=True)
+        med = {k: 1000 * statistics.median(v) for k, v in parts.items() if k != "grouped"}
+        print(f"20-value Poisson sweep (nu 0..0.495, one Solver) at {grid.n_cells} tets, {how}: "
+              f"{1000 * w:.0f} ms wall ({1000 * c:.0f} ms cpu), median of 3; per value: "
+              f"update {med['update']:.0f} ms (re-assembly {med['assembly']:.1f} ms, grouped "
+              f"materials {parts['grouped']}), solve {med['solve']:.0f} ms; first value "
+              f"(structure, analysis, factor, solve) {med['prepare']:.0f} ms; load "
+              f"{os.getloadavg()[0]:.1f}", flush=True)
 
 
 def main(argv=None):

@@ -284,48 +284,57 @@ class Assembler:
                 cells = ani + s
                 fibre = self._aniso_terms(cells, a_all[cells], alpha[cells], (muL - muT)[cells],
                                           beta[cells])
+            k = self._isotropic_blocks(e, lam[e], muT[e])
+            if fibre is not None:
+                k[:, :, ani] += fibre
             idx = self._scatter[:, e].ravel()
-            for c, block in enumerate(self._isotropic_blocks(e, lam[e], muT[e])):
-                if fibre is not None:
-                    block[:, ani] += fibre[c]
-                out[c] += np.bincount(idx, weights=block.ravel(), minlength=self.n_upper)
+            for c in range(9):
+                out[c] += np.bincount(idx, weights=k[c].ravel(), minlength=self.n_upper)
         return out.T.reshape(-1, 3, 3)
 
-    def _isotropic_blocks(self, e, lam, mu):
-        """Yield the 9 entries ``(10, k)`` of ``V (lam g_a g_b^T + mu g_b g_a^T + mu g_a.g_b I)``.
+    #: cells per pass of :meth:`_isotropic_blocks` (its temporaries stay in the cache: at 30k
+    #: tetrahedra 15 ms CPU against 27 ms in one pass)
+    _PASS = 4096
 
-        One entry at a time (bounded temporaries); from the cached geometric products when
-        :meth:`linear_upper_blocks` built them, else straight from the gradients.
+    def _isotropic_blocks(self, e, lam, mu):
+        """The 9 entries ``(9, 10, k)`` of ``V (lam g_a g_b^T + mu g_b g_a^T + mu g_a.g_b I)``.
+
+        From the cached geometric products when :meth:`linear_upper_blocks` built them, else
+        straight from the gradients, :attr:`_PASS` cells at a time.
         """
         cached = getattr(self, "_q_cache", None)
         if cached is not None and e == slice(0, self.n_cells):
             q, dot = cached
+            k = np.empty_like(q)
             mudot = mu * dot
             for i in range(3):
                 for j in range(3):
-                    c = lam * q[3 * i + j]
+                    c = np.multiply(lam, q[3 * i + j], out=k[3 * i + j])
                     c += mu * q[3 * j + i]
                     if i == j:
                         c += mudot
-                    yield c
-            return
-        g = self.gradients[e]
-        vol = self.volumes[e]
-        gt = np.ascontiguousarray(np.transpose(g, (1, 2, 0)))  # (4, 3, k)
-        ga, gb = gt[PAIR_A], gt[PAIR_B]  # (10, 3, k): rows of k contiguous values
-        la_ga = ga * (lam * vol)
-        mu_ga = ga * (mu * vol)
-        mudot = mu_ga[:, 0] * gb[:, 0]
-        mudot += mu_ga[:, 1] * gb[:, 1]
-        mudot += mu_ga[:, 2] * gb[:, 2]
-        tmp = np.empty_like(mudot)
-        for i in range(3):
-            for j in range(3):
-                c = np.multiply(la_ga[:, i], gb[:, j])
-                c += np.multiply(mu_ga[:, j], gb[:, i], out=tmp)
-                if i == j:
-                    c += mudot
-                yield c
+            return k
+        start, stop = e.indices(self.n_cells)[:2]
+        k = np.empty((9, 10, stop - start))
+        for s in range(start, stop, self._PASS):
+            f = slice(s, min(s + self._PASS, stop))
+            o = slice(f.start - start, f.stop - start)
+            gt = np.ascontiguousarray(np.transpose(self.gradients[f], (1, 2, 0)))  # (4, 3, p)
+            ga, gb = gt[PAIR_A], gt[PAIR_B]  # (10, 3, p): rows of p contiguous values
+            vol = self.volumes[f]
+            la_ga = ga * (lam[o] * vol)
+            mu_ga = ga * (mu[o] * vol)
+            mudot = mu_ga[:, 0] * gb[:, 0]
+            mudot += mu_ga[:, 1] * gb[:, 1]
+            mudot += mu_ga[:, 2] * gb[:, 2]
+            tmp = np.empty_like(mudot)
+            for i in range(3):
+                for j in range(3):
+                    c = np.multiply(la_ga[:, i], gb[:, j], out=k[3 * i + j, :, o])
+                    c += np.multiply(mu_ga[:, j], gb[:, i], out=tmp)
+                    if i == j:
+                        c += mudot
+        return k
 
     def linear_upper_blocks(self, E_fiber, E_cross, nu, fiber=None):
         """:meth:`upper_blocks` as one sparse matrix-vector product (for repeated assembly).
@@ -400,24 +409,30 @@ class Assembler:
         ``alpha (p_a a g_b^T + p_b g_a a^T) + (muL - muT) ((g_a.g_b) a a^T + p_b a g_a^T
         + p_a g_b a^T + p_a p_b I) + beta p_a p_b a a^T`` with ``p = a . g`` (times V).
         """
-        g = self.gradients[cells]
-        vol = self.volumes[cells]
-        ga = np.transpose(g[:, PAIR_A], (2, 1, 0)) * vol  # (3, 10, k)
-        gb = np.transpose(g[:, PAIR_B], (2, 1, 0))
-        a = a.T[:, None, :]  # (3, 1, k)
-        pa = (ga * a).sum(axis=0)
-        pb = (gb * a).sum(axis=0)
-        dot = (ga * gb).sum(axis=0)
+        gt = np.ascontiguousarray(np.transpose(self.gradients[cells], (1, 2, 0)))  # (4, 3, k)
+        ga = gt[PAIR_A] * self.volumes[cells]  # (10, 3, k)
+        gb = gt[PAIR_B]
+        a = np.ascontiguousarray(a.T)  # (3, k)
+        pa = ga[:, 0] * a[0] + ga[:, 1] * a[1] + ga[:, 2] * a[2]  # (10, k)
+        pb = gb[:, 0] * a[0] + gb[:, 1] * a[1] + gb[:, 2] * a[2]
+        dot = ga[:, 0] * gb[:, 0] + ga[:, 1] * gb[:, 1] + ga[:, 2] * gb[:, 2]
         pab = pa * pb
+        # term_ij = a_i P_j + a_j R_i (+ dmu p_a p_b on the diagonal) with
+        # P_j = alpha p_a g_b_j + dmu p_b g_a_j and R_i = alpha p_b g_a_i + dmu p_a g_b_i
+        # + (dmu g_a.g_b + beta p_a p_b) a_i
+        ap, bp, dq, dp = alpha * pa, alpha * pb, dmu * pa, dmu * pb
+        c = dmu * dot + beta * pab
+        P = [ap * gb[:, j] + dp * ga[:, j] for j in range(3)]
+        R = [bp * ga[:, i] + dq * gb[:, i] + c * a[i] for i in range(3)]
+        diag = dmu * pab
         t = np.empty((9, 10, len(cells)))
         for i in range(3):
             for j in range(3):
-                v = alpha * (pa * a[i] * gb[j] + pb * ga[i] * a[j])
-                v += dmu * (dot * a[i] * a[j] + pb * a[i] * ga[j] + pa * gb[i] * a[j])
-                v += beta * pab * a[i] * a[j]
+                v = t[3 * i + j]
+                np.multiply(a[i], P[j], out=v)
+                v += a[j] * R[i]
                 if i == j:
-                    v += dmu * pab
-                t[3 * i + j] = v
+                    v += diag
         return t
 
     def full_blocks(self, upper):

@@ -605,22 +605,25 @@ class Solver:
         comp = np.repeat(np.tile(np.arange(3), n)[fr], seg)
         itype = np.int32 if 9 * asm.nnzb < 2**31 else np.int64
         where = ((9 * blk + 3 * comp).astype(itype)[:, None] + np.arange(3, dtype=itype)).ravel()
-        col = pos.reshape(n, 3)[asm.indices[blk]].ravel()
+        col = pos.astype(np.int32).reshape(n, 3)[asm.indices[blk]].ravel()
         nrow = self.F.size
-        row = np.repeat(np.arange(nrow), 3 * seg)
-        isf = col >= 0
+        row_end = np.cumsum(3 * seg)
 
         def parts(mask, cols):
             ptr = np.zeros(nrow + 1, dtype=np.int32)
-            np.cumsum(np.bincount(row[mask], minlength=nrow), out=ptr[1:])
-            return ptr, cols[mask].astype(np.int32), where[mask]
+            if nrow:
+                ptr[1:] = np.cumsum(mask, dtype=np.int32)[row_end - 1]
+            return ptr, cols[mask], where[mask]
 
-        self._ff = parts(isf, col)
+        isf = col >= 0
         self._fp = parts(~isf, -1 - col)
-        if self.method == "direct" and self.backend_name in ("pardiso", "cholmod"):
+        if self._triangular:
             # the upper triangle in CSR is also the lower triangle in CSC (K is symmetric):
             # PARDISO reads the former, CHOLMOD the latter, neither needs a conversion
-            self._ffu = parts(col >= row, col)
+            row = np.repeat(np.arange(nrow, dtype=np.int32), 3 * seg)
+            self._ffu = parts(col >= row, col)  # prescribed columns (< 0) drop out too
+        else:
+            self._ff = parts(isf, col)
         log.debug("MTM system: %d unknowns of %d dofs", nrow, 3 * n)
 
     # ------------------------------------------------------------------ materials
