@@ -607,6 +607,9 @@ def _fine_targets(points, s, tri, side_codes, fine, reach=_TARGET_REACH):
         if p >= 0 and b > a:
             tree = cKDTree(mids[order[a:b]], leafsize=32, balanced_tree=False, compact_nodes=False)
             trees[p] = (np.flatnonzero(inc[:, 1] == p), order[a:b], tree)
+    # the face midpoints lie on a lattice the vertices often share: equal distances would
+    # leave the choice of the nearest faces to the KD-tree's build order
+    tie_break = np.asarray(fine[2], float) * np.sqrt([2.0, 3.0, 5.0]) * 1e-3
     move = np.zeros_like(points)
     has = np.zeros(n_pts, bool)
     for _ in range(_SNAP_PASSES):  # a second pass queries from the placed position
@@ -614,7 +617,7 @@ def _fine_targets(points, s, tri, side_codes, fine, reach=_TARGET_REACH):
         vcnt = np.zeros(n_pts)
         for sel, faces, tree in trees.values():
             k = min(_SNAP_CANDIDATES, len(faces))
-            _, j = tree.query(points[inc[sel, 0]] + move[inc[sel, 0]], k=k)
+            _, j = tree.query(points[inc[sel, 0]] + move[inc[sel, 0]] + tie_break, k=k)
             j = faces[np.asarray(j).reshape(len(sel), k)]
             same = np.einsum("vkc,vc->vk", fnorm[j].astype(float), inc_n[sel]) > 0
             same &= np.cumsum(same, axis=1) <= _SNAP_NEIGHBOURS
