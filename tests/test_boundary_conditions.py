@@ -289,3 +289,23 @@ def test_figure_5_osteotomy(head, verify_image_cache):
     figure_5([(labels, TABLE_II[1]), (labels, TABLE_II[3])], window_size=(1000, 300)).show()
     with pytest.raises(ValueError, match="at least one"):
         figure_5([])
+
+
+def test_warns_when_almost_nothing_is_fixed(head):
+    """A model whose posterior plane is a small tip (e.g. a whole head) is held almost only
+    by the moving bone: apply_plan says so and names the two ways out."""
+    import warnings
+
+    labels, grid = head
+    plan = Plan((Osteotomy("maxilla", (6.0, 5.0, -4.0), (0.0, 2.0, 5.0)),))
+    c = grid.cell_centers().points
+    y0 = grid.points[:, 1].min()
+    tip = (c[:, 1] > y0 + 3.0) | ((np.abs(c[:, 0]) < 1.0) & (np.abs(c[:, 2] - 8.0) < 1.0))
+    thin = grid.extract_cells(np.flatnonzero(tip)).cast_to_unstructured_grid()
+    with pytest.warns(UserWarning, match="only .* nodes are fixed.*face_box.*fix_unmoved_bone"):
+        out = apply_plan(thin, plan, labels)
+    assert np.sum(out[arrays.BC] == arrays.BC_FIXED) < 0.01 * thin.n_points
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        apply_plan(thin, plan, labels, fix_unmoved_bone=True)  # held by the cranium: quiet
+        apply_plan(grid, plan, labels)  # the toy's posterior plane is a real plane: quiet

@@ -115,6 +115,10 @@ def _surface_normals(bones, hard_mask, points, nearest, sigma):
     return normal / length[:, None]
 
 
+#: :func:`apply_plan` warns when fewer than this share of the nodes end up fixed
+MIN_FIXED_SHARE = 0.01
+
+
 def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_posterior=True,
                posterior_depth=2.0, fix_unmoved_bone=False, contact_distance=None,
                teeth_margin=None, normal_sigma=1.0, progress_bar=False):
@@ -142,7 +146,9 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         Nodes with ``y <= min(y) + posterior_depth`` (mm) form that plane.
     fix_unmoved_bone : bool, default False
         Also fix the soft tissue that touches bone which does not move (not in the paper;
-        useful for a whole-head model, where nothing else holds the scalp).
+        useful for a whole-head model, where nothing else holds the scalp). Without it, a
+        :class:`UserWarning` says when fewer than :data:`MIN_FIXED_SHARE` of the nodes are
+        fixed (a whole head's posterior plane is a small patch: the model follows the bone).
     contact_distance : float, optional
         A boundary node touches hard tissue when the nearest hard-tissue voxel centre is
         within this distance (mm). Default: the largest voxel spacing of ``bones``.
@@ -301,6 +307,16 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
                 )
 
     counts = {k: int(np.sum(code == v)) for k, v in arrays.BC_CODES.items()}
+    n_fixed = int(np.sum(code == arrays.BC_FIXED))
+    if fixed_posterior and not fix_unmoved_bone and n_fixed < MIN_FIXED_SHARE * len(code):
+        warnings.warn(
+            f"apply_plan: only {n_fixed} of {len(code)} nodes are fixed (the posterior plane "
+            f"y <= min(y) + {posterior_depth:g} mm): a model that "
+            "spans the whole head is then held almost only by the moving bone and follows it. "
+            "Crop it to the face (tetrahedralize(..., roi=pvcmf.pipeline.face_box(labels, 0.5)), "
+            "as paper 000 and pvcmf.pipeline do) or pass fix_unmoved_bone=True",
+            UserWarning, stacklevel=2,
+        )
     log.info("apply_plan: %s (contact %.2f mm, %d boundary nodes touch hard tissue)",
              counts, contact, len(nodes))
     out = grid.copy()
