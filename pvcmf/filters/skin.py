@@ -13,7 +13,11 @@
   part: the faces whose three points are free (``bc == BC_FREE``) when the grid carries
   boundary conditions — the faces touching bone (joint / sliding) and the fixed posterior
   cut are left out — or else, given ``labels``, the faces that face air in the label
-  image. Without either, the whole boundary is returned (and a warning logged).
+  image. Without either, the whole boundary is returned (and a warning logged). Either way
+  the grid's skin also holds the free walls of the cavities the mesh leaves open (mouth,
+  airway) and the cuts of the region of interest: good for display and for the grid
+  correspondence, but measure errors on the dense image skin (``labels.cmf.skin()``, with the
+  grid's displacement carried by :func:`pvcmf.filters.map_to_surface`).
   The skin keeps its correspondence with the grid through the point array
   ``vtkOriginalPointIds`` (grid point ids) and carries the grid's point arrays, so
   displacements carry over; with ``warp=True`` (default) the points are moved by the
