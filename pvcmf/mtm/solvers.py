@@ -771,7 +771,12 @@ class Solver:
         lam, muT, alpha, muL, beta = elastic_coefficients(ef[g["rep"]], ec[g["rep"]],
                                                           nu[g["rep"]])
         coef = np.stack([lam, muT, alpha, muL - muT, beta])[g["kind"], g["group"]]
-        vals = g["basis"] @ coef
+        # numpy, not BLAS: a threaded dgemv here leaves numpy's BLAS threads spinning on the
+        # second core while CHOLMOD factorises (measured: 40 % slower factorisations under load)
+        basis = g["basis"]
+        vals = basis[:, 0] * coef[0]
+        for k in range(1, basis.shape[1]):
+            vals += basis[:, k] * coef[k]
         ntri = self._ffu[2].size
         return {"ff": vals[:ntri], "fp": vals[ntri:]}
 
