@@ -14,12 +14,20 @@ reset after loading the image so that it is the meshing's peak).
    error against the exact fraction on an analytic half-space muscle (exact = volume of
    the clipped tetrahedra, VTK ``clip``) and on the patient against 4000 points.
 
+3. ``--against REV``: the current mesher against the one of git revision ``REV``,
+   alternating in one warm process (median CPU and wall time, agreement, ratio).
+4. ``--ceiling``: the share of points at a given depth inside a region of the smooth
+   anatomy (the virtual patient at half the spacing) whose nearest voxel has another
+   label, i.e. what the centroid test would report for exactly placed surfaces.
+
 Run::
 
     python benchmarks/meshing.py                 # all cases, 1 mm patient 1
     python benchmarks/meshing.py --spacing 2 --counts 10000 30000
     python benchmarks/meshing.py --compare-only   # proposed vs baseline, one warm process
     python benchmarks/meshing.py --no-baseline --counts 10000 30000 100000 300000
+    python benchmarks/meshing.py --against 399d241 --counts 30000 160000  # old vs new mesher
+    python benchmarks/meshing.py --spacing 2 --ceiling  # centroid-test ceiling per depth
 """
 
 from __future__ import annotations
@@ -248,6 +256,101 @@ def compare_same_process(patient, spacing, n_tets=30_000, repeats=2):
     return {k: {"wall_ms": round(v[0] * 1000), "cpu_ms": round(v[1] * 1000)} for k, v in best.items()}
 
 
+def compare_revision(patient, spacing, revision, counts, face_fraction=0.5, repeats=3):
+    """Current mesher vs the one of git ``revision``, alternating in one warm process.
+
+    The previous ``pvcmf/filters/meshing.py`` is read with ``git show`` and imported as
+    a module of ``pvcmf.filters``; both mesh the same image and ROI ``repeats`` times per
+    count. Returns medians (ms) and the ratio new / old of the CPU times.
+    """
+    import importlib.util
+    import statistics
+    import warnings
+
+    from pvcmf.filters import meshing
+
+    root = Path(__file__).resolve().parents[1]
+    source = subprocess.run(
+        ["git", "show", f"{revision}:pvcmf/filters/meshing.py"], cwd=root, capture_output=True,
+        text=True, check=True,
+    ).stdout
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "meshing_previous.py"
+        path.write_text(source)
+        spec = importlib.util.spec_from_file_location("pvcmf.filters._meshing_previous", path)
+        old = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(old)
+    labels = _labels(patient, spacing)
+    roi = _roi(labels, face_fraction)
+    warnings.simplefilter("ignore")
+    meshing.tetrahedralize(labels, n_tets=5_000, roi=roi)  # imports and caches warm
+    rows = []
+    for n in counts:
+        times = {"old": [], "new": []}
+        for _ in range(repeats):
+            for name, mod in (("old", old), ("new", meshing)):
+                grid, w, c = _timed(mod.tetrahedralize, labels, n_tets=n, roi=roi)
+                times[name].append((w, c, grid.n_cells, _agreement(labels, grid)[2]))
+        row = {"n_tets": n, "revision": revision, "load_avg_1min_x100": round(100 * os.getloadavg()[0])}
+        for name, t in times.items():
+            row[name] = {
+                "wall_ms_median": round(1000 * statistics.median(x[0] for x in t)),
+                "cpu_ms_median": round(1000 * statistics.median(x[1] for x in t)),
+                "cells": t[0][2],
+                "label_agree_all_permille": round(1000 * t[0][3]),
+            }
+        row["cpu_new_over_old_x100"] = round(100 * row["new"]["cpu_ms_median"] / row["old"]["cpu_ms_median"])
+        rows.append(row)
+    return rows
+
+
+def agreement_ceiling(patient, spacing, fine_spacing=None, n_samples=3_000_000, face_fraction=0.5, seed=0):
+    """How often a point at a given depth inside a smooth region lands in another voxel.
+
+    The virtual patient built at ``fine_spacing`` (default ``spacing / 2``) stands in for
+    the smooth anatomy: random points in the ROI get its label and their depth inside
+    that region (distance transform), and the label of the nearest ``spacing`` voxel is
+    compared with it. A mesh whose surfaces lay exactly on the anatomy would have this
+    disagreement rate for centroids at that depth: the ceiling of the centroid test.
+    Returns the rate per depth bin (mm) in per mille.
+    """
+    import pvcmf
+    from pvcmf import arrays
+    from scipy import ndimage
+
+    fine_spacing = fine_spacing or spacing / 2.0
+    coarse = _labels(patient, spacing)
+    fine = pvcmf.datasets.phantom(patient, spacing=fine_spacing).truth
+    box = np.asarray(_roi(coarse, face_fraction) or coarse.bounds, float)
+    rng = np.random.default_rng(seed)
+    lo, hi = box[0::2], box[1::2]
+    pts = lo + rng.random((n_samples, 3)) * (hi - lo)
+
+    def nearest(img, p):
+        ijk = np.rint((p - np.asarray(img.origin)) / np.asarray(img.spacing)).astype(int)
+        ijk = np.clip(ijk, 0, np.asarray(img.dimensions) - 1)
+        d = img.dimensions
+        return np.asarray(img[arrays.TISSUE])[ijk[:, 0] + d[0] * (ijk[:, 1] + d[1] * ijk[:, 2])], ijk
+
+    lab, ijk = nearest(fine, pts)
+    soft = np.isin(lab, arrays.SOFT_LABELS)
+    pts, lab, ijk = pts[soft], lab[soft], ijk[soft]
+    tissue = np.asarray(fine[arrays.TISSUE]).reshape(fine.dimensions[::-1])
+    depth = np.zeros(len(pts))
+    for value in arrays.SOFT_LABELS:
+        inside = ndimage.distance_transform_edt(tissue == value, sampling=fine_spacing)
+        s = lab == value
+        depth[s] = inside[ijk[s, 2], ijk[s, 1], ijk[s, 0]] - 0.5 * fine_spacing
+    bad = nearest(coarse, pts)[0] != lab
+    edges = [0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 5.0, np.inf]
+    out = {"spacing": spacing, "fine_spacing": fine_spacing}
+    for a, b in zip(edges[:-1], edges[1:]):
+        s = (depth >= a) & (depth < b)
+        if s.any():
+            out[f"depth_{a:g}-{b:g}_mm_permille"] = round(1000 * float(bad[s].mean()))
+    return out
+
+
 def _run_child(args):
     cmd = [sys.executable, __file__, "--child", json.dumps(args)]
     res = subprocess.run(cmd, capture_output=True, text=True)
@@ -267,6 +370,10 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=3, help="timing repeats per case (median)")
     p.add_argument("--no-baseline", action="store_true",
                    help="skip the homogeneous meshes and the sampling baseline")
+    p.add_argument("--against", default=None, metavar="REV",
+                   help="only: current mesher vs the one of git revision REV, one process")
+    p.add_argument("--ceiling", action="store_true",
+                   help="only: wrong-voxel rate of exact surfaces per centroid depth")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
@@ -280,8 +387,15 @@ def main(argv=None):
     if a.compare_only:
         print(json.dumps(compare_same_process(a.patient, a.spacing)), flush=True)
         return
-    rows = []
     ff = a.face_fraction if a.face_fraction > 0 else None
+    if a.against:
+        for row in compare_revision(a.patient, a.spacing, a.against, a.counts, ff, a.repeats):
+            print(json.dumps(row), flush=True)
+        return
+    if a.ceiling:
+        print(json.dumps(agreement_ceiling(a.patient, a.spacing, face_fraction=ff)), flush=True)
+        return
+    rows = []
     for n in a.counts:
         for conforming in (True,) if a.no_baseline else (True, False):
             row = _run_child(
