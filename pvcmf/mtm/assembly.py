@@ -363,6 +363,50 @@ class Assembler:
         x = np.concatenate([lam, muT, alpha[ani], (muL - muT)[ani], beta[ani]])
         return (self.linear_map(ani, a) @ x).reshape(9, self.n_upper).T.reshape(-1, 3, 3)
 
+    def group_upper_blocks(self, label, n_groups, ani, a):
+        """Upper blocks per (material group, coefficient), entry-major, for a sweep's basis.
+
+        ``label`` (m,) numbers each cell's material group; ``ani`` are the anisotropic cells
+        with fibres ``a``. Returns ``(U, group, kind)``: ``U[k]`` holds the blocks of the cells of group ``group[k]`` for a unit value of coefficient
+        ``kind[k]`` (0 lambda, 1 mu_T, 2 alpha, 3 mu_L - mu_T, 4 beta; 2-4 only for groups with
+        anisotropic cells) and zero for every other coefficient, so the stiffness of any
+        materials that are constant on the groups is ``sum_k coef_k U[k]``; ``U`` has shape
+        ``(K, 9, n_upper)`` (entry-major blocks). Scatters straight from the cached geometric
+        products, all groups in one ``bincount`` per entry (no :meth:`linear_map`).
+        """
+        q, dot = self._geometry_products(slice(0, self.n_cells))
+        transpose = [3 * (c % 3) + c // 3 for c in range(9)]
+        aniso_group = np.zeros(n_groups, dtype=bool)
+        aniso_group[label[ani]] = True
+        group, kind = [], []
+        for gi in range(n_groups):
+            group += [gi] * (5 if aniso_group[gi] else 2)
+            kind += [0, 1, 2, 3, 4] if aniso_group[gi] else [0, 1]
+        group, kind = np.array(group), np.array(kind)
+        nu_ = self.n_upper
+        U = np.zeros((len(group), 9, nu_))
+        # one scatter per entry for all groups at once: block index + n_upper * group
+        idx = (self._scatter + nu_ * label[None, :]).ravel()
+        col = {(g, c): k for k, (g, c) in enumerate(zip(group, kind))}
+        lam_cols = [col[g, 0] for g in range(n_groups)]
+        mu_cols = [col[g, 1] for g in range(n_groups)]
+        for c in range(9):
+            U[lam_cols, c] = np.bincount(idx, weights=q[c].ravel(),
+                                         minlength=nu_ * n_groups).reshape(n_groups, nu_)
+            w = q[transpose[c]] + dot if c in (0, 4, 8) else q[transpose[c]]
+            U[mu_cols, c] = np.bincount(idx, weights=w.ravel(),
+                                        minlength=nu_ * n_groups).reshape(n_groups, nu_)
+        for gi in np.flatnonzero(aniso_group):
+            sel = label[ani] == gi
+            cg, ag = ani[sel], a[sel]
+            gidx = self._scatter[:, cg].ravel()
+            one, zero = np.ones(cg.size), np.zeros(cg.size)
+            for c, coef in enumerate(((one, zero, zero), (zero, one, zero), (zero, zero, one))):
+                t = self._aniso_terms(cg, ag, *coef)
+                for e in range(9):
+                    U[col[gi, 2 + c], e] = np.bincount(gidx, weights=t[e].ravel(), minlength=nu_)
+        return U, group, kind
+
     def linear_map(self, ani, a):
         """The sparse map ``S`` from per-cell coefficients to the upper blocks (cached).
 
