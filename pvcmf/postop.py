@@ -25,7 +25,8 @@ distances -> statistics.
   (:func:`pvcmf.validation.error_statistics`).
 * :func:`reference_grid` is the volumetric truth: the same fine mesh and
   large-deformation model as :func:`pvcmf.reference.postop_skin`, returned as the solved
-  tetrahedral grid (``pvcmf.reference.solve_reference``, NGSolve; optional extra).
+  tetrahedral grid (:func:`pvcmf.reference.truth_grid`, NGSolve; optional extra; cached
+  on disk).
 """
 
 from __future__ import annotations
@@ -585,23 +586,25 @@ def validate_from_ct(pre_case, postop_ct, predicted_skin, *, region=None, pre_sk
     return out, table
 
 
-def reference_grid(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5,
-                   progress_bar=False):
+def reference_grid(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5, cache=True,
+                   cache_dir=None, progress_bar=False):
     """The volumetric post-operative truth of a virtual patient (solved tetrahedral grid).
 
-    Same fine mesh, materials, boundary conditions and model as
-    :func:`pvcmf.reference.postop_skin` (true labels cut by the plan, conforming mesh of
-    the anterior face, fibres, Table I, ``apply_plan`` with unmoved bone fixed), solved
-    by :func:`pvcmf.reference.solve_reference` (NGSolve, ``pip install pvcmf[reference]``),
-    but returned as the grid with point array ``arrays.DISPLACEMENT`` for
-    :func:`postop_ct`. Not cached.
+    :func:`pvcmf.reference.truth_grid`: the same fine mesh, materials, boundary conditions
+    and model as :func:`pvcmf.reference.postop_skin` (true labels cut by the plan,
+    conforming mesh of the anterior face, fibres, Table I, ``apply_plan`` with unmoved bone
+    fixed), solved by :func:`pvcmf.reference.solve_reference` (NGSolve, ``pip install
+    pvcmf[reference]``) and returned as the grid with point array ``arrays.DISPLACEMENT``
+    for :func:`postop_ct`. Cached on disk by the hash of the solver's input grid (the
+    cache ``postop_skin`` reads too): a cached truth is read without re-solving, and
+    without NGSolve.
 
     Parameters
     ----------
     case : pvcmf.datasets.Case
         Virtual patient (``truth``, ``plan``).
-    n_tets, order, steps, face_fraction :
-        See :func:`pvcmf.reference.postop_skin`.
+    n_tets, order, steps, face_fraction, cache, cache_dir :
+        See :func:`pvcmf.reference.truth_grid`.
     progress_bar : bool, default False
         Log the steps at INFO level.
 
@@ -613,17 +616,13 @@ def reference_grid(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5,
     Examples
     --------
     >>> import pvcmf                                                   # doctest: +SKIP
-    >>> grid = pvcmf.postop.reference_grid(pvcmf.datasets.phantom(1, spacing=2.0),
-    ...                                    n_tets=20_000)              # doctest: +SKIP
+    >>> grid = pvcmf.postop.reference_grid(pvcmf.datasets.phantom(1, spacing=2.0))  # doctest: +SKIP
     """
-    import importlib.util
+    from .reference import truth_grid
 
-    from .reference import _truth_grid, solve_reference
-
-    if importlib.util.find_spec("ngsolve") is None:  # fail before meshing, not after
-        raise ImportError("reference_grid needs NGSolve: pip install 'pvcmf[reference]'")
     if not isinstance(getattr(case, "truth", None), pv.ImageData):
         raise TypeError(f"case must be a virtual patient with a truth label image, got "
                         f"{type(case).__name__}")
-    _, grid = _truth_grid(case, n_tets, face_fraction, progress_bar)  # as postop_skin
-    return solve_reference(grid, order=order, steps=steps, progress_bar=progress_bar)
+    return truth_grid(case, n_tets=n_tets, order=order, steps=steps,
+                      face_fraction=face_fraction, cache=cache, cache_dir=cache_dir,
+                      progress_bar=progress_bar)

@@ -24,8 +24,10 @@ Solved by NGSolve (``pip install pvcmf[reference]``), not by pvcmf's MTM code: t
 is handed to Netgen (``netgen.meshing.Mesh.AddPoints/AddElements``), the energy to an
 NGSolve ``BilinearForm`` ``Variation`` (energy, residual and Hessian) with NGSolve's
 sparse direct solvers inside a damped Newton loop.
-:func:`postop_skin` builds the whole truth for a virtual patient (its true labels, a fine
-conforming mesh, this model, the dense skin) and caches it on disk by input hash.
+:func:`truth_grid` builds the whole truth for a virtual patient (its true labels, a fine
+conforming mesh, this model) and caches the solved grid on disk under a hash of the
+solver's input grid, options and code (:func:`grid_hash`); :func:`postop_skin` moves the
+dense skin with it (:func:`pvcmf.postop.postop_ct` warps the CT with it).
 """
 
 from __future__ import annotations
@@ -522,37 +524,104 @@ def cached(path, compute, *, cache=True, stale_after=7200.0, poll=0.5):
                 lock.unlink()
 
 
-def _case_hash(case, params):
-    h = hashlib.sha256(f"{MODEL_VERSION}|{params}|{case.plan!r}".encode())
-    truth = case.truth
-    for attr in ("dimensions", "spacing", "origin"):
-        h.update(repr(tuple(getattr(truth, attr))).encode())
-    for name in sorted(truth.point_data.keys()):
-        h.update(name.encode())
-        h.update(np.ascontiguousarray(truth.point_data[name]).tobytes())
+#: the solver's code, hashed (docstrings and comments left out) into the truth's cache key
+_SOLVER_CODE = ("_boundary_faces", "_netgen_mesh", "_Linear", "_predictor", "_damped_newton",
+                "solve_reference")
+_CODE_HASH = []
+
+
+def solver_code_hash():
+    """SHA-256 (16 hex digits) of the truth solver's code, without docstrings or comments.
+
+    The syntax trees (:func:`ast.dump`, no line numbers) of the functions and classes named
+    in ``_SOLVER_CODE``: editing how the truth is solved changes the cache key of every
+    truth; editing a docstring, a comment or the layout does not.
+
+    Examples
+    --------
+    >>> from pvcmf.reference import solver_code_hash
+    >>> len(solver_code_hash())
+    16
+    """
+    if not _CODE_HASH:
+        import ast
+        import inspect
+        import sys
+
+        module = sys.modules[__name__]
+        h = hashlib.sha256()
+        for name in _SOLVER_CODE:
+            tree = ast.parse(inspect.getsource(getattr(module, name)))
+            for node in ast.walk(tree):
+                body = getattr(node, "body", None)
+                if (isinstance(node, (ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))
+                        and body and isinstance(body[0], ast.Expr)
+                        and isinstance(getattr(body[0], "value", None), ast.Constant)
+                        and isinstance(body[0].value.value, str)):
+                    node.body = body[1:] or [ast.Pass()]
+            h.update(name.encode())
+            h.update(ast.dump(tree).encode())
+        _CODE_HASH.append(h.hexdigest()[:16])
+    return _CODE_HASH[0]
+
+
+def grid_hash(grid, params=""):
+    """Cache key (32 hex digits) of a truth solve: the solver's input grid itself.
+
+    Hashes :data:`MODEL_VERSION`, :func:`solver_code_hash`, ``params`` (the solver's
+    options) and the planned grid the solver reads: points, cells, cell types and every
+    point and cell array (name, dtype, shape, bytes; ``bc``, ``bc_displacement``,
+    ``bc_normal``, ``E_cross``, ``nu``, ``E_fiber``, ``fiber``, labels). So the key follows
+    the *result* of the mesher, the osteotomy, the materials and the plan, whatever code
+    made them: a mesher change that changes the mesh recomputes the truth, a change that
+    leaves the mesh bit-identical (refactoring, documentation) keeps it.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> from pvcmf.reference import grid_hash
+    >>> g = pv.ImageData(dimensions=(3, 3, 3)).cast_to_unstructured_grid()
+    >>> grid_hash(g) == grid_hash(g.copy()) != grid_hash(g, "order=1")
+    True
+    """
+    h = hashlib.sha256(f"{MODEL_VERSION}|{solver_code_hash()}|{params}".encode())
+    for data in (np.asarray(grid.points, dtype=np.float64), np.asarray(grid.cells),
+                 np.asarray(grid.celltypes)):
+        h.update(np.ascontiguousarray(data).tobytes())
+    for kind, store in (("point", grid.point_data), ("cell", grid.cell_data)):
+        for name in sorted(store.keys()):
+            value = np.ascontiguousarray(store[name])
+            h.update(f"{kind}|{name}|{value.dtype.str}|{value.shape}".encode())
+            h.update(value.tobytes())
     return h.hexdigest()[:32]
 
 
-def postop_skin(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5, cache=True,
-                cache_dir=None, progress_bar=False):
-    """The virtual post-operative skin of a virtual patient (the truth of the study).
+def truth_grid(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5, cache=True,
+               cache_dir=None, progress_bar=False):
+    """The solved truth of a virtual patient: its fine planned grid with the displacement.
 
     The patient's *true* labels (``case.truth``, not a segmentation) are cut by the plan,
-    meshed finely with the muscles embedded (``tetrahedralize(conforming=True)``),
-    given fibres and Table I materials, constrained by ``apply_plan``, and solved by
-    :func:`solve_reference`; the skin of the labels (``extract_skin``) follows the mesh
-    by linear interpolation inside the tetrahedra (VTK probe), the nearest mesh point
-    outside. Cached on disk (``PVCMF_CACHE_DIR`` or ``~/.cache/pvcmf``) by a hash of the
-    labels, the plan, the options and :data:`MODEL_VERSION`; concurrent callers (processes,
-    threads, dask workers) asking for the same truth compute it once: the others wait on
-    a lock file and read the cache (:func:`cached`).
+    meshed finely with the muscles embedded (``tetrahedralize(conforming=True)`` of the
+    anterior ``face_fraction`` of the head), given fibres and Table I materials,
+    constrained by ``apply_plan`` (unmoved bone fixed) and solved by
+    :func:`solve_reference`. The grid is rebuilt on every call (1-2 s at 2 mm / 16k: the
+    mesher is deterministic) and the solution is read from the on-disk cache
+    (``PVCMF_CACHE_DIR`` or ``~/.cache/pvcmf``, ``reference/truth_grid_<key>.vtu``) under
+    :func:`grid_hash` of that grid, the solver options, :data:`MODEL_VERSION` and the
+    solver's code: the key hashes what the solver computes from, not the code of the
+    mesher, osteotomy or material filters that made its input (a change there that changes
+    the grid changes the key; one that does not keeps the cached truth). Concurrent
+    callers (processes, threads, dask workers) asking for the same truth compute it once:
+    the others wait on a lock file and read the cache (:func:`cached`). Reading a cached
+    truth does not need NGSolve.
 
     Parameters
     ----------
     case : pvcmf.datasets.Case
         Virtual patient (``truth`` labels and ``plan``).
     n_tets : int, default 16000
-        Tetrahedra of the fine mesh (several times the MTM's).
+        Tetrahedra of the fine mesh (P2 elements: ~75k dofs at 16k, several times the
+        ~20k of the MTM's 30k P1 tetrahedra).
     order, steps :
         See :func:`solve_reference`.
     face_fraction : float, default 0.5
@@ -566,6 +635,50 @@ def postop_skin(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5, cac
 
     Returns
     -------
+    pyvista.UnstructuredGrid
+        Planned linear-tetrahedral grid (pre-operative frame) with the point array
+        ``arrays.DISPLACEMENT`` (the P2 solution at its vertices, mm), the arrays of
+        ``apply_plan`` / ``assign_materials`` and the field array ``reference_solver``.
+
+    Examples
+    --------
+    >>> import pvcmf                                                  # doctest: +SKIP
+    >>> grid = pvcmf.reference.truth_grid(pvcmf.datasets.phantom(1, spacing=2.0))  # doctest: +SKIP
+    """
+    return _solved_truth(case, n_tets, order, steps, face_fraction, cache, cache_dir,
+                         progress_bar)[1]
+
+
+def _solved_truth(case, n_tets, order, steps, face_fraction, cache, cache_dir, progress_bar):
+    """(cut labels, solved grid) of the truth; the solve cached by :func:`grid_hash`."""
+    labels, grid = _truth_grid(case, n_tets, face_fraction, progress_bar)
+    key = grid_hash(grid, f"order={order}|steps={steps}")
+    path = _cache_dir(cache_dir) / f"truth_grid_{key}.vtu"
+    solved = cached(path, lambda: solve_reference(grid, order=order, steps=steps,
+                                                  progress_bar=progress_bar), cache=cache)
+    return labels, solved
+
+
+def postop_skin(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5, cache=True,
+                cache_dir=None, progress_bar=False):
+    """The virtual post-operative skin of a virtual patient (the truth of the study).
+
+    The skin of the patient's cut true labels (``extract_skin``) moved by the solved
+    truth grid of :func:`truth_grid` (same options; that grid is what is cached on disk,
+    the skin is recomputed from it in about a second): linear interpolation inside the
+    tetrahedra (VTK probe), the nearest mesh point outside.
+
+    Parameters
+    ----------
+    case : pvcmf.datasets.Case
+        Virtual patient (``truth`` labels and ``plan``).
+    n_tets, order, steps, face_fraction, cache, cache_dir :
+        See :func:`truth_grid`.
+    progress_bar : bool, default False
+        Log the steps at INFO level.
+
+    Returns
+    -------
     pyvista.PolyData
         Post-operative skin (patient frame) with point array ``arrays.DISPLACEMENT``.
 
@@ -574,10 +687,11 @@ def postop_skin(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5, cac
     >>> import pvcmf                                                  # doctest: +SKIP
     >>> truth = pvcmf.reference.postop_skin(pvcmf.datasets.phantom(1, spacing=2.0))  # doctest: +SKIP
     """
-    params = f"n_tets={n_tets}|order={order}|steps={steps}|face={face_fraction}"
-    path = _cache_dir(cache_dir) / f"postop_skin_{_case_hash(case, params)}.vtp"
-    return cached(path, lambda: _postop_skin(case, n_tets, order, steps, face_fraction,
-                                             progress_bar), cache=cache)
+    from . import filters
+
+    labels, solved = _solved_truth(case, n_tets, order, steps, face_fraction, cache,
+                                   cache_dir, progress_bar)
+    return _skin_of(filters.extract_skin(labels), solved)
 
 
 def _truth_grid(case, n_tets, face_fraction, progress_bar):
@@ -602,14 +716,10 @@ def _truth_grid(case, n_tets, face_fraction, progress_bar):
     return labels, grid
 
 
-def _postop_skin(case, n_tets, order, steps, face_fraction, progress_bar):
+def _skin_of(skin, post):
+    """``skin`` moved by the solved grid ``post``: probed inside, nearest node outside."""
     from scipy.spatial import cKDTree
 
-    from . import filters
-
-    labels, grid = _truth_grid(case, n_tets, face_fraction, progress_bar)
-    post = solve_reference(grid, order=order, steps=steps, progress_bar=progress_bar)
-    skin = filters.extract_skin(labels)
     probe = skin.sample(post, progress_bar=False)
     disp = np.asarray(probe[arrays.DISPLACEMENT], dtype=np.float64)
     outside = ~np.asarray(probe["vtkValidPointMask"], dtype=bool)

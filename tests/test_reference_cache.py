@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import pyvista as pv
 
-from pvcmf.reference import cached
+from pvcmf import arrays
+from pvcmf.reference import cached, grid_hash, solver_code_hash
 
 
 def slow_sphere(counter, delay=1.0):
@@ -124,3 +125,27 @@ def test_failed_computation_leaves_no_entry_and_no_lock(tmp_path):
     cached(path, lambda: calls.append(1) or pv.Sphere(), cache=False)
     cached(path, lambda: calls.append(1) or pv.Sphere(), cache=False)
     assert calls == [1, 1] and list(tmp_path.iterdir()) == []
+
+
+def test_grid_hash_follows_the_solver_input():
+    """The truth's cache key is the solver's input grid (whatever code made it), its
+    options and the solver's code: equal grids share it, any change of an array, a point
+    or an option changes it."""
+    g = pv.ImageData(dimensions=(4, 4, 4)).cast_to_unstructured_grid().triangulate()
+    g.point_data[arrays.BC_DISPLACEMENT] = np.zeros((g.n_points, 3))
+    g.cell_data[arrays.NU] = np.full(g.n_cells, 0.46)
+    key = grid_hash(g, "order=2")
+    assert len(key) == 32 and grid_hash(g.copy(), "order=2") == key
+    moved = g.copy()
+    moved.point_data[arrays.BC_DISPLACEMENT][3, 1] = 1e-12
+    softer = g.copy()
+    softer.cell_data[arrays.NU][0] = 0.45
+    shifted = g.copy()
+    shifted.points = shifted.points + (0.0, 0.0, 1e-9)
+    extra = g.copy()
+    extra.cell_data["x"] = np.zeros(g.n_cells)
+    keys = {key, grid_hash(g, "order=1"), grid_hash(moved, "order=2"),
+            grid_hash(softer, "order=2"), grid_hash(shifted, "order=2"),
+            grid_hash(extra, "order=2")}
+    assert len(keys) == 6
+    assert len(solver_code_hash()) == 16
