@@ -32,8 +32,8 @@ Methods
 
 Iterative methods and triangular solves run with one BLAS thread (threadpoolctl, when
 installed): they are memory bound, and threaded BLAS calls on short vectors only spin.
-Factorisations keep the BLAS default unless the machine is already busy (load average at
-least the number of cores).
+Factorisations of fewer than 100k unknowns run with one thread too (measured no slower up
+to 69k); larger ones keep the BLAS default unless the machine is busy (load >= cores).
 
 :class:`Solver` keeps everything that does not depend on the material (geometry, sparsity
 pattern, elimination maps, the symbolic factorisation), so a Poisson-ratio sweep only refactors
@@ -120,11 +120,23 @@ def _single_threaded_blas():
     return contextlib.nullcontext() if ctl is None else ctl.limit(limits=1, user_api="blas")
 
 
-def _factor_threads():
-    """BLAS threads for a factorisation: the library's default, but one thread when the
-    machine is already busy (load average >= cores), where extra threads only spin: at 30k
-    tetrahedra under load 8 on 2 cores, CHOLMOD + solve took 0.36 s CPU single-threaded
-    against 0.73 s with two threads."""
+#: direct factorisations of fewer unknowns run with one BLAS thread (see _factor_threads)
+_THREADED_FACTOR_MIN = 100_000
+
+
+def _factor_threads(n_unknowns=None):
+    """BLAS threads for a factorisation: one thread below :data:`_THREADED_FACTOR_MIN`
+    unknowns or when the machine is already busy (load average >= cores), else the
+    library's default.
+
+    A second OpenBLAS thread never paid in these measurements (its waiting thread spins on
+    the other core): CHOLMOD numeric factorisation, one vs two threads,
+    interleaved runs (load 2.2-3): 30k tetrahedra (14k unknowns) median 144 vs 269 ms wall,
+    best 105 vs 113 ms; 50k (23k) 392 vs 491 ms, best 294 vs 383 ms; 150k (69k) 2.9 vs 3.8 s,
+    best 2.1 vs 2.6 s; CPU time doubled with two threads. Session 2: at 30k under load 8,
+    CHOLMOD + solve took 0.36 s CPU single-threaded against 0.73 s with two threads."""
+    if n_unknowns is not None and n_unknowns < _THREADED_FACTOR_MIN:
+        return _single_threaded_blas()
     try:
         busy = os.getloadavg()[0] >= (os.cpu_count() or 1)
     except OSError:  # no load average on this platform
@@ -696,7 +708,8 @@ class Solver:
                        and not getattr(self, "_refactor_next", False)
                        and self._reuse_pays())
         if nf and not self._stale:
-            threads = _factor_threads() if self.method == "direct" else _single_threaded_blas()
+            threads = (_factor_threads(nf) if self.method == "direct"
+                       else _single_threaded_blas())
             with threads:
                 getattr(self, f"_setup_{self.method}")()
             self._factored_moduli = self._moduli()
@@ -1002,7 +1015,7 @@ class Solver:
             if y is not None:
                 return y
             t = time.perf_counter()
-            with _factor_threads():
+            with _factor_threads(self.F.size):
                 self._setup_direct()
             self._stale = self._refactor_next = False
             self._t_factor = time.perf_counter() - t
