@@ -565,30 +565,79 @@ def _oriented_normals(points, tri, side_codes):
     return n * np.where(side_codes[:, 1] > side_codes[:, 0], 1.0, -1.0)[:, None]
 
 
-def _fine_targets(points, s, tri, side_codes, fine, reach=_TARGET_REACH):
-    """Move every surface vertex onto the full-resolution interfaces of its regions.
+def _interface_points(query, qpair, qnormal, fine, cache):
+    """Points of the image interface near ``query``: (targets (n, 3), found (n,) bool).
 
-    A vertex of the sheet between the regions of codes ``a`` and ``b`` goes to the mean
-    of the :data:`_SNAP_NEIGHBOURS` nearest midpoints of full-resolution voxel faces
-    between codes ``a`` and ``b`` that face the same way as the sheet (a local average
-    of the voxel staircase, i.e. a point of the smooth interface; facing the same way
-    keeps the two sheets of a thin muscle apart); a junction vertex goes to the mean of
-    its sheets' targets. Every move is clipped to ``reach * s`` per axis; the vertices
-    of a single sheet are then relaxed along the surface (tangential Laplacian,
-    :data:`_TANGENTIAL_ITERATIONS` steps; the triangles get better shapes without
-    leaving the interface) and the moves of the vertices of a triangle that turned by
-    more than ~73 degrees are halved until none does (no folds). One
-    ``scipy.spatial.cKDTree`` per code pair; no loop over vertices.
+    For every query point, the mean of the :data:`_SNAP_NEIGHBOURS` nearest midpoints of
+    full-resolution voxel faces between the code pair ``qpair`` (``lo * 256 + hi``, -1:
+    none) that face the way of ``qnormal`` (pointing from the lower code to the higher
+    one), among :data:`_SNAP_CANDIDATES` candidates: a local average of the voxel
+    staircase, i.e. a point of the smooth interface. ``cache`` keeps one
+    ``scipy.spatial.cKDTree`` per code pair between calls.
     """
-    from scipy.sparse import coo_matrix
     from scipy.spatial import cKDTree
 
     mids, pairs, fnorm = fine[3], fine[4], fine[5]
+    if "order" not in cache:
+        cache["order"] = np.argsort(pairs, kind="stable")
+        cache["sorted"] = pairs[cache["order"]]
+    order, sorted_pairs = cache["order"], cache["sorted"]
+    # the face midpoints lie on a lattice the vertices often share: equal distances would
+    # leave the choice of the nearest faces to the KD-tree's build order
+    tie_break = np.asarray(fine[2], float) * np.sqrt([2.0, 3.0, 5.0]) * 1e-3
+    out = np.zeros((len(query), 3))
+    found = np.zeros(len(query), bool)
+    for p in np.unique(qpair):  # one KD-tree per code pair (a few dozen)
+        if p < 0:
+            continue
+        if p not in cache:
+            a, b = np.searchsorted(sorted_pairs, [p, p + 1])
+            faces = order[a:b]
+            tree = cKDTree(mids[faces], leafsize=32, balanced_tree=False, compact_nodes=False) if b > a else None
+            cache[p] = (faces, tree)
+        faces, tree = cache[p]
+        if tree is None:
+            continue
+        sel = np.flatnonzero(qpair == p)
+        k = min(_SNAP_CANDIDATES, len(faces))
+        _, j = tree.query(query[sel] + tie_break, k=k)
+        j = faces[np.asarray(j).reshape(len(sel), k)]
+        same = np.einsum("vkc,vc->vk", fnorm[j].astype(float), qnormal[sel]) > 0
+        same &= np.cumsum(same, axis=1) <= _SNAP_NEIGHBOURS
+        cnt = same.sum(axis=1)
+        ok = cnt > 0
+        out[sel[ok]] = np.einsum("vk,vkc->vc", same[ok].astype(float), mids[j[ok]]) / cnt[ok, None]
+        found[sel[ok]] = True
+    return out, found
+
+
+def _pair_keys(side_codes):
     lo = np.minimum(side_codes[:, 0], side_codes[:, 1])
     hi = np.maximum(side_codes[:, 0], side_codes[:, 1])
     tpair = lo * 256 + hi
     if not _PLACE_NAMED_MUSCLES:
         tpair = np.where(hi > _MUSCLE0, -1, tpair)
+    return tpair
+
+
+def _fine_targets(points, s, tri, side_codes, fine, reach=_TARGET_REACH, cache=None):
+    """Move every surface vertex onto the full-resolution interfaces of its regions.
+
+    A vertex of the sheet between the regions of codes ``a`` and ``b`` goes to the
+    interface point :func:`_interface_points` finds for it (the mean of the nearest
+    voxel faces between codes ``a`` and ``b`` that face the same way as the sheet;
+    facing the same way keeps the two sheets of a thin muscle apart); a junction vertex
+    goes to the mean of its sheets' targets. Every move is clipped to ``reach * s`` per
+    axis; the vertices of a single sheet are then relaxed along the surface (tangential
+    Laplacian, :data:`_TANGENTIAL_ITERATIONS` steps; the triangles get better shapes
+    without leaving the interface) and the moves of the vertices of a triangle that
+    turned by more than ~73 degrees are halved until none does (no folds). No loop over
+    vertices.
+    """
+    from scipy.sparse import coo_matrix
+
+    cache = {} if cache is None else cache
+    tpair = _pair_keys(side_codes)
     n_pts = len(points)
     tnorm = _oriented_normals(points, tri, side_codes)
     # (vertex, pair) incidences and the sheet normal at each
@@ -599,33 +648,12 @@ def _fine_targets(points, s, tri, side_codes, fine, reach=_TARGET_REACH):
     inc_n = np.stack(
         [np.bincount(inv, weights=np.repeat(tnorm[:, k], 3), minlength=len(inc)) for k in range(3)], axis=1
     )
-    order = np.argsort(pairs, kind="stable")
-    sorted_pairs = pairs[order]
-    trees = {}
-    for p in np.unique(inc[:, 1]):  # one KD-tree per code pair (a few dozen)
-        a, b = np.searchsorted(sorted_pairs, [p, p + 1])
-        if p >= 0 and b > a:
-            tree = cKDTree(mids[order[a:b]], leafsize=32, balanced_tree=False, compact_nodes=False)
-            trees[p] = (np.flatnonzero(inc[:, 1] == p), order[a:b], tree)
-    # the face midpoints lie on a lattice the vertices often share: equal distances would
-    # leave the choice of the nearest faces to the KD-tree's build order
-    tie_break = np.asarray(fine[2], float) * np.sqrt([2.0, 3.0, 5.0]) * 1e-3
     move = np.zeros_like(points)
     has = np.zeros(n_pts, bool)
-    for _ in range(_SNAP_PASSES):  # a second pass queries from the placed position
-        vsum = np.zeros_like(points)
-        vcnt = np.zeros(n_pts)
-        for sel, faces, tree in trees.values():
-            k = min(_SNAP_CANDIDATES, len(faces))
-            _, j = tree.query(points[inc[sel, 0]] + move[inc[sel, 0]] + tie_break, k=k)
-            j = faces[np.asarray(j).reshape(len(sel), k)]
-            same = np.einsum("vkc,vc->vk", fnorm[j].astype(float), inc_n[sel]) > 0
-            same &= np.cumsum(same, axis=1) <= _SNAP_NEIGHBOURS
-            cnt = same.sum(axis=1)
-            ok = cnt > 0
-            target = np.einsum("vk,vkc->vc", same[ok].astype(float), mids[j[ok]]) / cnt[ok, None]
-            np.add.at(vsum, inc[sel[ok], 0], target)
-            np.add.at(vcnt, inc[sel[ok], 0], 1.0)
+    for _ in range(_SNAP_PASSES):  # a further pass queries from the placed position
+        target, ok = _interface_points(points[inc[:, 0]] + move[inc[:, 0]], inc[:, 1], inc_n, fine, cache)
+        vcnt = np.bincount(inc[ok, 0], minlength=n_pts).astype(float)
+        vsum = np.stack([np.bincount(inc[ok, 0], weights=target[ok, k], minlength=n_pts) for k in range(3)], axis=1)
         has = vcnt > 0
         move[has] = np.clip(vsum[has] / vcnt[has, None] - points[has], -reach * s, reach * s)
     if _TANGENTIAL_ITERATIONS:
