@@ -223,7 +223,8 @@ def test_one_voxel_muscle_warns_by_name(shell):
     assert 9 not in grid.cell_data[arrays.MUSCLE]
 
 
-def test_invalid_surfaces_fall_back_then_fail_clearly(shell, monkeypatch):
+def _fail_first_gmsh_call(monkeypatch):
+    """Make gmsh reject the first surfaces it gets; returns the list of calls."""
     calls = []
     real = meshing._gmsh_mesh
 
@@ -234,6 +235,11 @@ def test_invalid_surfaces_fall_back_then_fail_clearly(shell, monkeypatch):
         return real(*args)
 
     monkeypatch.setattr(meshing, "_gmsh_mesh", flaky)
+    return calls
+
+
+def test_invalid_surfaces_fall_back_then_fail_clearly(shell, monkeypatch):
+    calls = _fail_first_gmsh_call(monkeypatch)
     with pytest.warns(UserWarning, match="smoothing_scale 0.125"):
         grid = tetrahedralize(shell, spacing=8.0, smoothing_scale=0.25)
     assert grid.field_data[meshing.SMOOTHING_SCALE][0] == 0.125
@@ -295,16 +301,7 @@ def test_snapping_independent_of_kd_tree_build(monkeypatch):
 
 
 def test_retry_on_another_grid_does_not_warn(shell, monkeypatch, caplog):
-    calls = []
-    real = meshing._gmsh_mesh
-
-    def flaky(*args):
-        calls.append(1)
-        if len(calls) == 1:
-            raise meshing.SurfaceError("gmsh could not mesh the surfaces: self-intersection")
-        return real(*args)
-
-    monkeypatch.setattr(meshing, "_gmsh_mesh", flaky)
+    _fail_first_gmsh_call(monkeypatch)
     with warnings.catch_warnings(), caplog.at_level("INFO", logger="pvcmf.filters.meshing"):
         warnings.simplefilter("error")
         grid = tetrahedralize(shell, n_tets=5_000)
