@@ -9,10 +9,12 @@ points within 1 and 2 mm (000 Fig. 8), for the whole face and, here, per face re
 * :func:`run_study` -> runs ``predict(patient, method)`` for every patient and method and
   collects the distance arrays and the statistics table;
 * :func:`study_predictor` -> the ``predict`` of paper 000's study on the virtual patients
-  (pvcmf's pipeline against the :mod:`pvcmf.reference` truth, scanned in another pose).
+  (pvcmf's pipeline against the :mod:`pvcmf.reference` truth, through a virtual
+  post-operative CT: :mod:`pvcmf.postop`).
 
 Delegates to numpy (percentiles) and pandas (the table); the study to pvcmf's pipeline,
-:mod:`pvcmf.reference` (NGSolve) and the ``register`` / ``distance_to`` filters.
+:mod:`pvcmf.reference` (NGSolve) and :mod:`pvcmf.postop` (post-operative CT, segment,
+skin, ``register``, ``distance_to``).
 """
 
 from __future__ import annotations
@@ -290,20 +292,45 @@ def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the
     return skins, distances, pd.concat(tables, ignore_index=True)
 
 
+#: methods of :func:`study_predictor`: the two models of paper 000 and the truth itself
+STUDY_METHODS = ("proposed", "state_of_the_art", "truth")
+#: how far (mm) outside its grid the study's truth reaches (``postop_ct``'s ``extrapolate``:
+#: tissue there moves with the nearest truth node); skin beyond it is not judged
+TRUTH_REACH = 10.0
+
+
 def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
-                    truth_cache=True, cache_dir=None):
+                    truth_cache=True, cache_dir=None, truth=None, noise_hu=18.0,
+                    ct_spacing=None):
     """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
 
-    For virtual patient ``patient`` (``datasets.phantom(patient, spacing=spacing)``) and
-    Table II's plan, ``method`` "proposed" simulates with the muscle-embedded conforming
-    mesh, "state_of_the_art" with the homogeneous mesh and random-point sampling of the
-    muscle share (``sample_muscle_fraction``); both MTM predictions are mapped to the dense
-    pre-operative skin by paper 001's Gaussian mapping (width ``sigma``, at least half the
-    median edge). The truth is :func:`pvcmf.reference.postop_skin` with ``n_tets =
-    truth_tets``, moved to a random pose (seeded by the patient: up to 4 degrees and 5 mm)
-    with 0.1 mm scanner noise and registered back by point-to-plane ICP on the face above
-    the nose tip (forehead, orbits, nose bridge: unchanged by jaw surgery). The signed
-    distance of the prediction to it is judged on the meshed anterior face only.
+    The study runs the path of a real post-operative scan. For virtual patient ``patient``
+    (``datasets.phantom(patient, spacing=spacing)``) and Table II's plan:
+
+    1. the truth: the solved fine grid of :func:`pvcmf.reference.truth_grid` (NGSolve's
+       large-deformation model, ``truth_tets`` P2 tetrahedra, cached on disk), or
+       ``truth(case)``;
+    2. the virtual post-operative CT: the pre-operative CT warped by it and by the plan's
+       bone moves, with ``noise_hu`` of Gaussian noise and a random pose seeded by the
+       patient number (:func:`pvcmf.postop.postop_ct`: up to 5 degrees, 10 mm);
+    3. :func:`pvcmf.postop.validate_from_ct`: segment that CT -> skin (refined onto its
+       -500 HU edge) -> point-to-plane ICP onto the pre-operative CT's skin on the upper
+       face (forehead, orbits, nose bridge) -> exact signed distance of the prediction to
+       the registered post-operative skin -> face regions.
+
+    ``method`` "proposed" simulates with the muscle-embedded conforming mesh,
+    "state_of_the_art" with the homogeneous mesh and random-point sampling of the muscle
+    share (``sample_muscle_fraction``); both MTM predictions are mapped by paper 001's
+    Gaussian mapping (width ``sigma``, at least half the median edge) to the dense skin of
+    the pre-operative CT, extracted as the post-operative one is
+    (:func:`pvcmf.postop.skin_from_ct`: segment, skin, refined onto the -500 HU edge), and
+    judged on the meshed anterior face (``mapping_support > 0``, in front of the face
+    box) where the truth is defined (inside its grid or within :data:`TRUTH_REACH` mm of
+    a node; further out ``postop_ct`` fades the displacement away, so neither model can
+    be judged there). "truth" judges that same skin moved by the truth grid (its displacement probed
+    inside the grid, the nearest node's outside) on the anterior face through the same
+    path: what the CT path itself adds (warping, noise, voxels, segmentation, ICP), the
+    floor against which the differences between the methods are to be read.
 
     Parameters
     ----------
@@ -312,19 +339,27 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     n_tets : int, default 30000
         Tetrahedra of the MTM meshes.
     truth_tets : int, default 16000
-        Tetrahedra of the truth mesh (``postop_skin(n_tets=...)``; P2 elements).
+        Tetrahedra of the truth mesh (``truth_grid(n_tets=...)``; P2 elements).
     sigma : float, default 2.0
         Smallest Gaussian width of the tetrahedra -> skin mapping (mm).
     truth_cache : bool, default True
         Use the truth's on-disk cache.
     cache_dir : path, optional
         Truth cache folder (default ``PVCMF_CACHE_DIR`` / ``~/.cache/pvcmf``).
+    truth : callable, optional
+        ``truth(case) -> pyvista.UnstructuredGrid`` with ``arrays.DISPLACEMENT`` in the
+        pre-operative frame, instead of the reference model (e.g. a synthetic truth in
+        tests, where NGSolve is not installed).
+    noise_hu : float, default 18.0
+        Noise of the post-operative CT (HU).
+    ct_spacing : float, optional
+        Voxel size of the post-operative CT (default: the pre-operative one).
 
     Returns
     -------
     callable
         ``predict(patient, method) -> PolyData`` with point arrays ``arrays.DISTANCE`` and
-        ``arrays.REGION``, for :func:`run_study`.
+        ``arrays.REGION`` and the ICP result in its field data, for :func:`run_study`.
 
     Examples
     --------
@@ -332,11 +367,13 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     >>> predict = study_predictor(spacing=3.0, n_tets=3000, truth_tets=6000)  # doctest: +SKIP
     >>> skins, distances, table = run_study(predict, patients=(1,))             # doctest: +SKIP
     """
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial import cKDTree
 
     from . import filters, mtm, reference
     from .datasets import phantom
+    from .filters.osteotomy import cut_bones
     from .pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
+    from .postop import postop_ct, skin_from_ct, validate_from_ct
 
     for name, value in (("spacing", spacing), ("sigma", sigma)):
         if not value > 0:
@@ -344,57 +381,74 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     for name, value in (("n_tets", n_tets), ("truth_tets", truth_tets)):
         if int(value) < 100:
             raise ValueError(f"{name} must be an integer >= 100, got {value!r}")
-    cases = {}
+    if truth is not None and not callable(truth):
+        raise TypeError(f"truth must be callable(case) -> grid, got {type(truth).__name__}")
+    if not noise_hu >= 0:
+        raise ValueError(f"noise_hu must be >= 0, got {noise_hu!r}")
+    cases, scans = {}, {}
 
     def case(patient):
         if patient not in cases:
             cases[patient] = phantom(patient=patient, spacing=spacing)
         return cases[patient]
 
-    def truth_in_scanner(patient):
-        c = case(patient)
-        post = reference.postop_skin(c, n_tets=truth_tets, cache=truth_cache,
-                                     cache_dir=cache_dir)
-        rng = np.random.default_rng(patient)
-        pose = np.eye(4)
-        pose[:3, :3] = Rotation.from_euler("xyz", rng.uniform(-4, 4, 3),
-                                           degrees=True).as_matrix()
-        pose[:3, 3] = rng.uniform(-5, 5, 3)
-        scan = post.transform(pose, inplace=False)
-        scan.points = scan.points + rng.normal(0, 0.1, scan.points.shape)  # scanner noise
-        pre = filters.extract_skin(c.truth)
-        tip = c.landmarks.get("pronasale", pre.points[np.argmax(pre.points[:, 1])])
-
-        def region(p):  # the face above the nose tip, in front of the ears
-            return (p[:, 2] > tip[2] + 15) & (p[:, 1] > tip[1] - 60)
-
-        return scan.cmf.register(pre, region=region)
+    def scan(patient):
+        """The truth grid, the posed noisy post-operative CT and the pre-operative skin."""
+        if patient not in scans:
+            c = case(patient)
+            if truth is None:
+                grid = reference.truth_grid(c, n_tets=truth_tets, cache=truth_cache,
+                                            cache_dir=cache_dir)
+            else:
+                grid = truth(c)
+            ct, _ = postop_ct(c, grid, noise_hu=noise_hu, pose="random", seed=patient,
+                              spacing=ct_spacing, extrapolate=TRUTH_REACH)
+            pre_skin = skin_from_ct(c.ct, name="pre-operative CT")
+            # the truth is defined inside its grid and, by postop_ct's full extrapolation,
+            # up to TRUTH_REACH mm outside it: only that skin is judged
+            covered = np.asarray(pre_skin.sample(grid, progress_bar=False)[
+                "vtkValidPointMask"], dtype=bool)
+            near, _ = cKDTree(grid.points).query(pre_skin.points[~covered])
+            covered[~covered] = near <= TRUTH_REACH
+            scans[patient] = grid, ct, pre_skin, covered
+        return scans[patient]
 
     def predict(patient, method):
-        if method not in ("proposed", "state_of_the_art"):
-            raise ValueError(
-                f"method must be 'proposed' or 'state_of_the_art', got {method!r}")
+        if method not in STUDY_METHODS:
+            raise ValueError(f"method must be 'proposed', 'state_of_the_art' or 'truth', "
+                             f"got {method!r}")
         c = case(patient)
-        conforming = method == "proposed"
-        res = simulate(c.ct, c.plan, bones=c.truth, landmarks=c.landmarks, n_tets=n_tets,
-                       mesh_options={"conforming": conforming}, figures=False)
-        post = res.post
-        if not conforming:  # state of the art: muscle share by random points, re-solved
-            grid = filters.sample_muscle_fraction(res.mesh, res.labels)
-            grid = filters.fiber_directions(grid)
-            post = mtm.solve(filters.assign_materials(grid))
-        skin = filters.extract_skin(res.labels)
-        # the Gaussian must span the element size, or coarse meshes leave holes in the skin
-        edges = post.extract_all_edges().compute_cell_sizes(length=True, area=False,
-                                                            volume=False)
-        width = max(sigma, 0.5 * float(np.median(edges["Length"])))
-        pred = post.cmf.map_to_surface(skin, sigma=width)
-        pred = label_face_regions(pred, landmarks=c.landmarks)
-        out = pred.cmf.distance_to(truth_in_scanner(patient), max_distance=10.0)
+        grid, ct, pre_skin, covered = scan(patient)
+        if method == "truth":  # the truth's own skin through the CT path: its floor
+            labels = cut_bones(c.truth, c.plan)
+            pred = reference._skin_of(pre_skin, grid)
+            pred.point_data["mapping_support"] = np.ones(pred.n_points)
+        else:
+            conforming = method == "proposed"
+            res = simulate(c.ct, c.plan, bones=c.truth, landmarks=c.landmarks, n_tets=n_tets,
+                           mesh_options={"conforming": conforming}, figures=False)
+            post = res.post
+            if not conforming:  # state of the art: muscle share by random points, re-solved
+                g = filters.sample_muscle_fraction(res.mesh, res.labels)
+                g = filters.fiber_directions(g)
+                post = mtm.solve(filters.assign_materials(g))
+            labels = res.labels
+            skin = pre_skin  # the skin of the pre-operative CT, as the truth is measured
+            # the Gaussian must span the element size, or coarse meshes leave holes
+            edges = post.extract_all_edges().compute_cell_sizes(length=True, area=False,
+                                                                volume=False)
+            width = max(sigma, 0.5 * float(np.median(edges["Length"])))
+            pred = post.cmf.map_to_surface(skin, sigma=width)
+        out, _ = validate_from_ct(c, ct, pred, pre_skin=pre_skin, landmarks=c.landmarks,
+                                  regions=False)
         # only the face the model simulates (the meshed, anterior part) is judged
-        y0 = face_box(res.labels, DEFAULT_FACE_FRACTION)[2]
-        face = (out["mapping_support"] > 0) & (out.points[:, 1] >= y0)
-        return out.extract_points(face, adjacent_cells=False).extract_surface(
+        y0 = face_box(labels, DEFAULT_FACE_FRACTION)[2]
+        # (every prediction is a copy of pre_skin, point for point)
+        face = (out["mapping_support"] > 0) & covered & (out.points[:, 1] >= y0)
+        judged = out.extract_points(face, adjacent_cells=False).extract_surface(
             algorithm="dataset_surface")
+        for key in out.field_data.keys():  # the ICP result
+            judged.field_data[key] = out.field_data[key]
+        return judged
 
     return predict
