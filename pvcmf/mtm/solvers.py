@@ -291,7 +291,8 @@ def _node_order(indptr, indices, free, ordering="auto"):
     ``indptr, indices`` is the node adjacency (block pattern), ``free`` the (3 n,) mask of
     unknown dofs, ``ordering`` ``'amd'``, ``'metis'``, ``'nesdis'`` or ``'auto'`` (AMD below
     ``_AMD_MAX_NODES`` nodes, METIS above). Returns the nodes with an unknown in elimination
-    order, or ``None`` when CHOLMOD (which brings METIS) is not importable. Ordering the node graph (n nodes) instead of the
+    order and the ordering used, or ``None`` when CHOLMOD (which brings METIS) is not
+    importable. Ordering the node graph (n nodes) instead of the
     dof graph (3 n rows, 9x the entries) costs a fraction of the time for the same fill: at
     30k tetrahedra METIS on the nodes + natural analysis of the dofs took 31 ms against 47 ms
     for METIS on the dofs, with 2.30M vs 2.27M entries in L. Below
@@ -314,7 +315,7 @@ def _node_order(indptr, indices, free, ordering="auto"):
     sub = graph[active][:, active].tocsc()
     if ordering == "auto":
         ordering = "amd" if active.size < _AMD_MAX_NODES else "metis"
-    return active[analyze(sub, mode="simplicial", ordering_method=ordering).P()]
+    return active[analyze(sub, mode="simplicial", ordering_method=ordering).P()], ordering
 
 
 def _rigid_modes(points):
@@ -493,9 +494,10 @@ class Solver:
         Show a tqdm bar for iterative methods (when tqdm is installed).
     ordering : {'auto', 'amd', 'metis', 'nesdis'}
         Fill-reducing ordering of the node graph for the CHOLMOD backend (ignored by the
-        others). ``auto``: AMD below 30k nodes with unknowns, METIS above (cheapest for one
-        solve). For a sweep that refactors many times, ``metis`` costs ~20 ms more once at
-        30k tetrahedra and saves a third of the flops of every numeric factorisation.
+        others; the one used is :attr:`node_ordering`). ``auto``: AMD below 30k nodes with
+        unknowns, METIS above (cheapest for one solve), and METIS from the first
+        :meth:`update_materials` that refactors (a sweep: METIS costs ~20 ms more once at
+        30k tetrahedra and a third fewer flops in every numeric factorisation).
     E_fiber, E_cross, nu, fiber : optional
         Override the grid's materials (scalars or per-cell arrays).
 
@@ -571,7 +573,7 @@ class Solver:
         self._assemble_and_factor()
 
     # ------------------------------------------------------------------ structure
-    def _build_maps(self):
+    def _build_maps(self, ordering=None):
         """Where each entry of ``K_ff``, ``K_fp`` (and the factored triangle) sits in the blocks.
 
         The unknowns are numbered node by node in elimination order (CHOLMOD: the node-graph
@@ -582,11 +584,13 @@ class Solver:
         asm, cons = self.assembler, self.constraints
         n = asm.n_points
         free = cons.free.reshape(n, 3)
-        self._ordering = "default"
+        self._ordering, self.node_ordering = "default", None
         nodes = None
         if self.method == "direct" and self.backend_name == "cholmod":
-            nodes = _node_order(asm.indptr, asm.indices, cons.free, self.ordering)
-            if nodes is not None:  # the unknowns numbered in elimination order
+            found = _node_order(asm.indptr, asm.indices, cons.free,
+                                self.ordering if ordering is None else ordering)
+            if found is not None:  # the unknowns numbered in elimination order
+                nodes, self.node_ordering = found
                 self._ordering = "natural"
         if nodes is None:
             rank = np.arange(n)
@@ -683,6 +687,13 @@ class Solver:
 
         check_positive_definite(ef2, ec2, nu2)
         self.materials = (ef2, ec2, nu2, a)
+        if refactor and self.ordering == "auto" and self.node_ordering == "amd":
+            # refactoring for new materials: a sweep. METIS costs ~20 ms more once (30k
+            # tetrahedra) and a third fewer flops in every factorisation from now on
+            t = time.perf_counter()
+            self._build_maps(ordering="metis")
+            self._backend, self._groups = None, None
+            log.debug("sweep: node ordering AMD -> METIS (%.3f s)", time.perf_counter() - t)
         self._assemble_and_factor(refactor=refactor or self.method != "direct")
 
     def _assemble_and_factor(self, refactor=True):
