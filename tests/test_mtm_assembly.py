@@ -128,7 +128,7 @@ def test_linear_reassembly_equals_scikit_fem_after_material_and_fibre_changes(gr
 
 
 def test_merge_pairs_matches_numpy_unique():
-    from pvcmf.mtm.assembly import _merge_pairs
+    from pvcmf.mtm.assembly import _merge_pairs, _merge_pairs_numpy
 
     rng = np.random.default_rng(0)
     n = 50
@@ -140,3 +140,5 @@ def test_merge_pairs_matches_numpy_unique():
     np.testing.assert_array_equal(indices, keys % n)
     np.testing.assert_array_equal(inverse, inv.ravel())
     np.testing.assert_array_equal(np.diff(indptr), np.bincount(keys // n, minlength=n))
+    for a, b in zip(_merge_pairs_numpy(rows, cols, n), (indptr, indices, inverse)):
+        np.testing.assert_array_equal(a, b)  # the fallback without scipy's private kernels
