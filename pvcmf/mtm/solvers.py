@@ -786,8 +786,14 @@ class Solver:
                     and all(np.array_equal(x, x[rep][label]) for x in (ef, ec, nu))):
                 g = None
         if g is None:
-            mats, rep, label = np.unique(np.stack([ef, ec, nu], axis=1), axis=0,
-                                         return_index=True, return_inverse=True)
+            table = np.stack([ef, ec, nu], axis=1)
+            # per-cell materials (e.g. mixed by muscle fraction) show in a sample of the cells
+            # at once: skip the full np.unique (22 ms at 30k) for them
+            sample = table[:: max(1, len(table) // 256)]
+            if len(np.unique(sample, axis=0)) > self.max_material_groups:
+                self._groups = None
+                return None
+            mats, rep, label = np.unique(table, axis=0, return_index=True, return_inverse=True)
             if len(mats) > self.max_material_groups:
                 self._groups = None
                 return None
