@@ -195,19 +195,33 @@ class Assembler:
         if cells.size and (cells.min() < 0 or cells.max() >= n):
             raise ValueError(f"cells must index points 0..{n - 1}, got {cells.min()}..{cells.max()}")
         self.n_points, self.n_cells = n, cells.shape[0]
-        self.cells = cells
-        x0 = pts[cells[:, 0]]
-        e1, e2, e3 = (pts[cells[:, k]] - x0 for k in (1, 2, 3))
-        c23, c31, c12 = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
-        det = np.einsum("ij,ij->i", e1, c23)
-        scale = np.maximum.reduce([np.einsum("ij,ij->i", e, e) for e in (e1, e2, e3)]) ** 1.5
+        # number each cell's nodes in increasing global order: every local pair a <= b is
+        # then a global pair, and its block lands in the upper triangle as computed, with no
+        # transposed copies; an odd permutation flips the sign of the volume
+        sorted_cells = np.sort(cells, axis=1)
+        odd = np.zeros(self.n_cells, dtype=bool)
+        for a, b in zip(PAIR_A, PAIR_B):
+            if a < b:
+                odd ^= cells[:, a] > cells[:, b]
+        # geometry on coordinate rows (3, m): contiguous products, no np.cross
+        P = np.ascontiguousarray(pts.T)
+        x = [P[:, sorted_cells[:, k]] for k in range(4)]
+        e1, e2, e3 = x[1] - x[0], x[2] - x[0], x[3] - x[0]
+
+        def cross(u, v):
+            return np.stack([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2],
+                             u[0] * v[1] - u[1] * v[0]])
+
+        c23, c31, c12 = cross(e2, e3), cross(e3, e1), cross(e1, e2)
+        det = (e1 * c23).sum(axis=0)
+        scale = np.maximum.reduce([(e * e).sum(axis=0) for e in (e1, e2, e3)]) ** 1.5
         degenerate = np.flatnonzero(~(np.abs(det) > 1e-13 * scale))
         if degenerate.size:
             raise ValueError(
                 f"grid has {degenerate.size} degenerate (zero-volume) tetrahedra, "
                 f"e.g. cell {degenerate[0]} with nodes {cells[degenerate[0]].tolist()}"
             )
-        neg = det < 0
+        neg = (det < 0) != odd  # orientation in the grid's own node order
         n_neg = int(neg.sum())
         if 0 < n_neg < self.n_cells:
             minority = neg if n_neg <= self.n_cells - n_neg else ~neg
@@ -217,15 +231,13 @@ class Assembler:
                 "itself and the MTM answer is not meaningful there; untangle or re-mesh it",
                 InvertedTetrahedraWarning, stacklevel=2,
             )
-        g = np.empty((self.n_cells, 4, 3))
-        g[:, 1], g[:, 2], g[:, 3] = c23 / det[:, None], c31 / det[:, None], c12 / det[:, None]
-        g[:, 0] = -(g[:, 1] + g[:, 2] + g[:, 3])
-        # number each cell's nodes in increasing global order (gradients alike): every local
-        # pair a <= b is then a global pair, and its block lands in the upper triangle as
-        # computed, with no transposed copies
-        flat = (np.argsort(cells, axis=1) + 4 * np.arange(self.n_cells)[:, None]).ravel()
-        self.cells = cells = cells.ravel()[flat].reshape(-1, 4)
-        self.gradients = g.reshape(-1, 3)[flat].reshape(-1, 4, 3)
+        self.cells = cells = sorted_cells
+        gt = np.empty((4, 3, self.n_cells))  # gradients, node-major rows of contiguous cells
+        np.divide(c23, det, out=gt[1])
+        np.divide(c31, det, out=gt[2])
+        np.divide(c12, det, out=gt[3])
+        np.negative(gt[1] + gt[2] + gt[3], out=gt[0])
+        self._gt = gt
         self.volumes = np.abs(det) / 6.0
 
         # the upper-triangle blocks (node pairs lo <= hi) and where each cell pair adds to
@@ -250,6 +262,11 @@ class Assembler:
         self.used[cells.ravel()] = True
         log.debug("Assembler: %d points, %d cells, %d blocks", n, self.n_cells, self.nnzb)
 
+    @property
+    def gradients(self):
+        """Gradients of the barycentric shape functions, ``(m, 4, 3)`` (a view)."""
+        return np.moveaxis(self._gt, 2, 0)
+
     # ------------------------------------------------------------------ assembly
     def _geometry_products(self, e):
         """Material-independent ``Q_ij = V g_row_i g_col_j`` (9, 10, k) and ``V g_row.g_col``.
@@ -259,14 +276,13 @@ class Assembler:
         cached = getattr(self, "_q_cache", None)
         if cached is not None and e == slice(0, self.n_cells):
             return cached
-        g = self.gradients[e]
-        vol = self.volumes[e]
-        ga = np.transpose(g[:, PAIR_A], (2, 1, 0)) * vol  # (3, 10, k), V-weighted
-        gb = np.transpose(g[:, PAIR_B], (2, 1, 0))
+        gt = self._gt[:, :, e]
+        ga = gt[PAIR_A] * self.volumes[e]  # (10, 3, k), V-weighted
+        gb = gt[PAIR_B]
         q = np.empty((9, 10, ga.shape[2]))
         for i in range(3):
             for j in range(3):
-                np.multiply(ga[i], gb[j], out=q[3 * i + j])
+                np.multiply(ga[:, i], gb[:, j], out=q[3 * i + j])
         dot = q[0] + q[4] + q[8]
         out = (q, dot)
         if e == slice(0, self.n_cells) and self.n_cells <= _CACHE_CELLS:
@@ -329,7 +345,7 @@ class Assembler:
         for s in range(start, stop, self._PASS):
             f = slice(s, min(s + self._PASS, stop))
             o = slice(f.start - start, f.stop - start)
-            gt = np.ascontiguousarray(np.transpose(self.gradients[f], (1, 2, 0)))  # (4, 3, p)
+            gt = self._gt[:, :, f]  # (4, 3, p)
             ga, gb = gt[PAIR_A], gt[PAIR_B]  # (10, 3, p): rows of p contiguous values
             vol = self.volumes[f]
             la_ga = ga * (lam[o] * vol)
@@ -463,7 +479,7 @@ class Assembler:
         ``alpha (p_a a g_b^T + p_b g_a a^T) + (muL - muT) ((g_a.g_b) a a^T + p_b a g_a^T
         + p_a g_b a^T + p_a p_b I) + beta p_a p_b a a^T`` with ``p = a . g`` (times V).
         """
-        gt = np.ascontiguousarray(np.transpose(self.gradients[cells], (1, 2, 0)))  # (4, 3, k)
+        gt = self._gt[:, :, cells]  # (4, 3, k)
         ga = gt[PAIR_A] * self.volumes[cells]  # (10, 3, k)
         gb = gt[PAIR_B]
         a = np.ascontiguousarray(a.T)  # (3, k)
