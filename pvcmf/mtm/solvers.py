@@ -620,8 +620,9 @@ class Solver:
         blk = bpos[np.repeat(starts - first, seg) + np.arange(seg.sum())]  # (row, block) pairs
         comp = np.repeat(np.tile(np.arange(3), n)[fr], seg)
         itype = np.int32 if 9 * asm.nnzb < 2**31 else np.int64
-        where = ((9 * blk + 3 * comp).astype(itype)[:, None] + np.arange(3, dtype=itype)).ravel()
-        col = pos.astype(np.int32).reshape(n, 3)[asm.indices[blk]].ravel()
+        j = np.arange(3, dtype=itype)
+        where = ((9 * blk.astype(itype) + 3 * comp.astype(itype))[:, None] + j).ravel()
+        col = pos.astype(np.int32)[(3 * asm.indices[blk].astype(itype))[:, None] + j].ravel()
         nrow = self.F.size
         row_end = np.cumsum(3 * seg)
 
