@@ -94,7 +94,7 @@ def _label_agreement(labels, grid):
 
 def test_label_agreement_shell(shell, shell_mesh):
     inside, agree = _label_agreement(shell, shell_mesh)
-    # measured 97.8 % and 98.7 % at 10k tetrahedra (vertices snapped on the image interfaces)
+    # measured 97.0 % and 98.0 % at 10k tetrahedra (vertices snapped on the image interfaces)
     assert agree >= 0.96
     assert inside >= 0.95
 
@@ -102,7 +102,7 @@ def test_label_agreement_shell(shell, shell_mesh):
 @pytest.mark.xfail(
     strict=True,
     reason="known limitation: at 10k tetrahedra the isotropic working grid (~7 mm) follows "
-    "the 8 mm muscle tubes with 7 mm triangles; 97.8 % of the centroids agree, not 98 %",
+    "the 8 mm muscle tubes with 7 mm triangles; 97.0 % of the centroids agree, not 98 %",
 )
 def test_label_agreement_goal_98_percent(shell, shell_mesh):
     _, agree = _label_agreement(shell, shell_mesh)
@@ -336,7 +336,7 @@ def patient_mesh(request):
 def test_every_virtual_patient_agreement_and_quality(patient_mesh):
     truth, grid = patient_mesh
     inside, agree = _label_agreement(truth, grid)
-    # measured 94-95 % inside soft tissue, 96-96.5 % of those agree (see the xfail below
+    # measured 93.9-95.2 % inside soft tissue, 95.9-96.3 % of those agree (see the xfail below
     # and the module docstring of pvcmf.filters.meshing for why not 98 %)
     assert inside >= 0.92
     assert agree >= 0.95
@@ -365,13 +365,31 @@ def test_every_virtual_patient_keeps_every_muscle(patient_mesh):
 @pytest.mark.xfail(
     strict=True,
     reason="known limitation: at 30k tetrahedra over the anterior half of the head (working "
-    "spacing 5-7 mm) 90.7-91.1 % of the centroids fall in a voxel of their own tissue, not "
+    "spacing 5-7 mm) 90.1-91.7 % of the centroids fall in a voxel of their own tissue, not "
     "98 %: 6 mm triangles do not follow the nose, lips and thin muscles closely enough",
 )
 def test_every_virtual_patient_goal_98_percent(patient_mesh):
     truth, grid = patient_mesh
     inside, agree = _label_agreement(truth, grid)
     assert inside * agree >= 0.98
+
+
+def test_sliver_nodes_relocated_without_inversion():
+    # a cube split around an interior node pushed next to its bottom face: the tetrahedra
+    # on that face are slivers; only the interior node may move
+    corners = np.array(list(itertools.product((0.0, 1.0), repeat=3)))
+    cube = pv.PolyData(np.vstack([corners, [0.5, 0.5, 0.5]])).delaunay_3d()
+    tets = cube.cells_dict[pv.CellType.TETRA]
+    nodes = np.asarray(cube.points, float).copy()
+    centre = int(np.argmin(np.linalg.norm(nodes - 0.5, axis=1)))
+    nodes[centre] = [0.45, 0.52, 0.03]
+    d0, v0, _ = tet_quality(nodes, tets)
+    free = np.arange(len(nodes)) == centre
+    moved = meshing._relocate_sliver_nodes(nodes, tets, free, d0.min(axis=1), min_dihedral=5.0)
+    d1, v1, _ = tet_quality(moved, tets)
+    assert d0.min() < 5.0 <= d1.min()
+    assert np.all(np.sign(v1) == np.sign(v0))
+    np.testing.assert_array_equal(moved[~free], nodes[~free])
 
 
 def test_deterministic_output():
