@@ -40,6 +40,7 @@ from .solvers import (
     FIELD_RESIDUAL,
     FIELD_TIME,
     METHODS,
+    ORDERINGS,
     ConvergenceError,
     IllConditionedWarning,
     Solver,
@@ -49,7 +50,7 @@ from .solvers import (
 )
 
 __all__ = [
-    "AUTO_DIRECT_MAX_POINTS", "Assembler", "Constraints", "InvertedTetrahedraWarning", "ConvergenceError", "IllConditionedWarning", "METHODS",
+    "AUTO_DIRECT_MAX_POINTS", "Assembler", "Constraints", "InvertedTetrahedraWarning", "ConvergenceError", "IllConditionedWarning", "METHODS", "ORDERINGS",
     "RigidModeError", "Solver", "TABLES", "VOIGT_PAIRS", "check_positive_definite",
     "constitutive_matrix", "direct_backends", "elastic_coefficients", "gpu_available",
     "grid_materials", "material_table", "positive_definite_mask", "sliding_frames", "solve",

@@ -10,9 +10,10 @@ Methods
     Sparse Cholesky: CHOLMOD through scikit-sparse when importable, else MKL PARDISO
     through pypardiso (``pip install pvcmf[fast]``), else scipy's SuperLU with a symmetric
     ordering (sound but ~10x slower on large meshes). With CHOLMOD the unknowns are numbered
-    by a METIS order of the node graph (:func:`_node_order`) and CHOLMOD factors the lower
-    triangle in that natural order: the analysis is 6x cheaper than METIS on the dof graph
-    for the same fill. Wheel-only alternatives for CI (sksparse-minimal, cholespy, qdldl) were
+    by an AMD or METIS order of the node graph (:func:`_node_order`, ``Solver(ordering=)``)
+    and CHOLMOD factors the lower triangle in that natural order: the analysis is 6x cheaper
+    than METIS on the dof graph for the same fill. CHOLMOD and PARDISO store only that
+    triangle (``K_ff`` is then a symmetric operator on it). Wheel-only alternatives for CI (sksparse-minimal, cholespy, qdldl) were
     measured no faster than SuperLU at 30k tetrahedra, so none is used. One step of iterative
     refinement estimates the forward error; an :class:`IllConditionedWarning` says how many
     digits the answer lost when that estimate is large.
@@ -70,6 +71,7 @@ __all__ = [
     "direct_backends",
     "gpu_available",
     "METHODS",
+    "ORDERINGS",
     "AUTO_DIRECT_MAX_POINTS",
     "FIELD_METHOD",
     "FIELD_BACKEND",
