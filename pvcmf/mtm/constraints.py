@@ -193,11 +193,11 @@ class Constraints:
                                    minlength=ncomp) / np.maximum(counts, 1))
         size[size == 0] = 1.0
         rows = np.concatenate([dirs, np.cross(rel[node] / size[comp][:, None], dirs)], axis=1)
-        gram = np.zeros((ncomp, 36))
         outer = (rows[:, :, None] * rows[:, None, :]).reshape(-1, 36)
-        for k in range(36):
-            gram[:, k] = np.bincount(comp, weights=outer[:, k], minlength=ncomp)
-        gram = gram.reshape(ncomp, 6, 6)
+        # per-component sums of the 6x6 outer products: one sparse product (no BLAS)
+        member = sp.csr_matrix((np.ones(comp.size), comp, np.arange(comp.size + 1)),
+                               shape=(comp.size, ncomp)).T.tocsr()
+        gram = np.asarray(member @ outer).reshape(ncomp, 6, 6)
         active = np.flatnonzero(counts > 0)
         ev = np.linalg.eigvalsh(gram[active])
         free_modes = np.sum(ev <= 1e-9 * np.maximum(ev[:, -1:], 1e-300), axis=1)
