@@ -6,8 +6,9 @@ measured in the same run: scikit-fem's assemble+solve relative to pvcmf's (paire
 alternating, ratio per pair; median of 3 below 100k tetrahedra), the paper's relaxation
 solver, and a 20-value Poisson sweep with one :class:`pvcmf.mtm.Solver` (built with the first
 value, 19 updates: numeric refactorisation with the default ordering, with AMD kept, and the
-factor reused as CG preconditioner). Every timing line ends with the load average: on the
-shared 2-core machine compare ratios from one run, not absolute times across runs.
+factor reused as CG preconditioner). The load average is printed for each size and after
+the scikit-fem and sweep lines: on the shared 2-core machine compare ratios from one run,
+not absolute times across runs.
 
 The mesh is a synthetic head-like shell (a thick spherical cap, 12 mm soft tissue, jittered
 structured grid split into tetrahedra) with a muscle band (paper 000 Table I materials, fibres
