@@ -385,9 +385,10 @@ def test_sliver_nodes_relocated_without_inversion():
     nodes[centre] = [0.45, 0.52, 0.03]
     d0, v0, _ = tet_quality(nodes, tets)
     free = np.arange(len(nodes)) == centre
-    moved = meshing._relocate_sliver_nodes(nodes, tets, free, d0.min(axis=1), min_dihedral=5.0)
+    moved, worst = meshing._relocate_sliver_nodes(nodes, tets, free, d0.min(axis=1), min_dihedral=5.0)
     d1, v1, _ = tet_quality(moved, tets)
     assert d0.min() < 5.0 <= d1.min()
+    np.testing.assert_allclose(worst, d1.min(axis=1))
     assert np.all(np.sign(v1) == np.sign(v0))
     np.testing.assert_array_equal(moved[~free], nodes[~free])
 

@@ -812,8 +812,7 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
         tets, comp, worst = drop_flat(nodes, tets, comp)
         if worst.min() < min_dihedral:
             node_tags = gmsh.model.mesh.getNodes()[0].astype(np.int64)
-            nodes = _relocate_sliver_nodes(nodes, tets, node_tags > len(points), worst, min_dihedral)
-            worst = tet_quality(nodes, tets)[0].min(axis=1)
+            nodes, worst = _relocate_sliver_nodes(nodes, tets, node_tags > len(points), worst, min_dihedral)
         # a sliver the HXT optimiser left (usually where a region pinches): the chosen
         # gmsh optimiser on the regions holding one (Netgen: swaps + smoothing, about
         # four times the meshing time at 160k tetrahedra)
@@ -850,8 +849,10 @@ def _relocate_sliver_nodes(nodes, tets, free, worst, min_dihedral, rounds=3):
     the mean of its neighbours; a move is kept when the worst dihedral angle of the
     node's tetrahedra rises and none of them inverts. Only the few sliver nodes are
     visited (a handful after HXT's optimiser); surfaces and connectivity do not change.
+    Returns the nodes and the updated worst angle per tetrahedron.
     """
     nodes = nodes.copy()
+    worst = worst.copy()
     for _ in range(rounds):
         bad = np.flatnonzero(worst < min_dihedral)
         cand = np.unique(tets[bad])
@@ -883,10 +884,11 @@ def _relocate_sliver_nodes(nodes, tets, free, worst, min_dihedral, rounds=3):
                     best, best_q = nodes[v].copy(), d.min()
             nodes[v] = best
             improved |= best_q > before
-        worst = tet_quality(nodes, tets)[0].min(axis=1)
+        touched = np.flatnonzero(np.isin(tets, cand).any(axis=1))
+        worst[touched] = tet_quality(nodes, tets[touched])[0].min(axis=1)
         if not improved:
             break
-    return nodes
+    return nodes, worst
 
 
 # ----------------------------------------------------------------------------- quality
