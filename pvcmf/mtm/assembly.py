@@ -171,8 +171,9 @@ class Assembler:
 
     Attributes
     ----------
+    cells : (m, 4) the cells with each cell's nodes in increasing order (same tetrahedra)
     volumes : (m,) cell volumes (mm^3)
-    gradients : (m, 4, 3) gradients of the barycentric shape functions
+    gradients : (m, 4, 3) gradients of the barycentric shape functions (of ``cells``)
     indptr, indices : the full block-sparsity pattern (CSR of 3x3 blocks)
     rows : (nnzb,) block row of each stored block
 
