@@ -11,9 +11,14 @@ of its virtual patients with a model that is deliberately *not* the MTM:
   along its fibres than across: then the muscle is isotropic in this model);
 * quadratic (P2) elements on the tetrahedral mesh (and the study meshes several times
   finer than the MTM);
-* boundary conditions from the plan (``apply_plan``): fixed and joint nodes prescribed
-  (on the boundary faces whose three nodes are all fixed/joint), sliding teeth contact as
-  a penalty on the normal displacement over the sliding faces, tangential motion free;
+* boundary conditions from the plan (``apply_plan``): every fixed and joint node
+  prescribed (its vertex dofs, as the MTM prescribes them; with P2 also the edge dofs of
+  the boundary faces whose three nodes are all prescribed, by the linear interpolant of the
+  data), sliding teeth contact as a penalty on the normal displacement over the sliding
+  faces, tangential motion free; where the prescribed data *alone* would invert or crush an
+  element (all four nodes prescribed, volume ratio below ``release_below``: a fixed node
+  one element, 10-30 mm, from joint nodes the plan moves 9-12 mm), the odd node of that
+  element is released (left free) and reported (:func:`_released_nodes`);
 * load stepping: each load step starts from a linearised predictor (the tangent response
   to the step's boundary increment, from the last converged state: the first one is the
   linear-elastic solution), then Newton's method with a backtracking energy line search
@@ -48,7 +53,7 @@ from . import arrays
 log = logging.getLogger(__name__)
 
 #: bumped when the model changes, so cached truths are recomputed
-MODEL_VERSION = "1"
+MODEL_VERSION = "2"  # 2: every fixed/joint vertex prescribed, crushing data released
 
 
 def _ngsolve():
@@ -84,6 +89,37 @@ def _netgen_mesh(ngm, points, tets, faces, face_region):
             mesh.AddElements(dim=2, index=k, data=np.ascontiguousarray(sel, dtype=np.int32),
                              base=0)
     return mesh
+
+
+def _released_nodes(points, tets, prescribed, g, ratio):
+    """Prescribed nodes to release so that no element's prescribed data inverts or crushes it.
+
+    An element whose four nodes are all prescribed is deformed by the data alone; where
+    that maps it to less than ``ratio`` of its volume (signed: below 0 it is inverted), no
+    solution of a large-deformation model exists (``ln J`` is undefined; P2 can only fold
+    the element by its free edge dofs). Releases, element by element, the node whose
+    prescribed displacement differs most from the mean of the other three (the fixed node
+    among moved ones, or the moved one among fixed ones), and repeats until no such element
+    is left (each round releases at least one node). Returns a boolean point mask."""
+    def volumes(x):
+        q = x[tets]
+        return np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]),
+                         q[:, 3] - q[:, 0])
+
+    v0 = volumes(points)
+    v0 = np.where(v0 == 0, np.finfo(float).tiny, v0)
+    crushed = volumes(points + g) / v0 < ratio
+    prescribed = prescribed.copy()
+    released = np.zeros(len(points), dtype=bool)
+    while True:  # a few rounds, each vectorised over the elements
+        bad = tets[crushed & prescribed[tets].all(axis=1)]
+        if not len(bad):
+            return released
+        d = g[bad]  # (k, 4, 3)
+        dev = np.linalg.norm(d - (d.sum(axis=1, keepdims=True) - d) / 3, axis=2)
+        odd = bad[np.arange(len(bad)), np.argmax(dev, axis=1)]
+        released[odd] = True
+        prescribed[odd] = False
 
 
 class _Linear:
@@ -195,7 +231,7 @@ def _damped_newton(ngs, form, gfu, maxerr, maxit, linear):
 
 def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton=30,
                     inverse="sparsecholesky", reuse_factor=False, threads=None,
-                    predictor="tangent", progress_bar=False):
+                    predictor="tangent", release_below=0.2, progress_bar=False):
     """Large-deformation neo-Hookean solve of a planned tetrahedral grid with NGSolve.
 
     Parameters
@@ -233,6 +269,13 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
         boundary moved alone (it puts the whole step on the first layer of elements:
         measured on virtual patient 1, 3 mm, 4000 tetrahedra, see
         ``benchmarks/reference.py``).
+    release_below : float or None, default 0.2
+        Volume ratio in [0, 1): an element whose four nodes are all fixed/joint and whose
+        prescribed displacements alone take it below this share of its volume (or invert
+        it) has its odd node released (left free; :func:`_released_nodes`), because no
+        large-deformation solution exists otherwise (0: release only where the data
+        inverts an element; None: never). The released nodes are listed in the result's
+        field array ``reference_released`` and logged as a warning.
     threads : bool, optional
         Assemble and factorise inside ``ngsolve.TaskManager()`` (all cores). Default: only
         when the machine is idle (1-minute load below half the cores): NGSolve's worker
@@ -245,8 +288,12 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     -------
     pyvista.UnstructuredGrid
         Copy of ``grid`` with point array ``arrays.DISPLACEMENT`` (the P2 solution at the
-        vertices, mm) and field array ``reference_solver``: dofs, Newton iterations,
-        factorisations, seconds.
+        vertices, mm) and field arrays ``reference_solver`` (dofs, Newton iterations,
+        factorisations, seconds), ``reference_released`` (ids of the fixed/joint points
+        left free, see ``release_below``; usually empty) and ``reference_folded`` (ids of
+        the cells that the vertex displacements, i.e. the linear interpolant used to warp
+        the CT and the skin, invert; P2 elements can fold there by their edge dofs while
+        the quadratic solution stays valid at the quadrature points).
 
     Raises
     ------
@@ -273,6 +320,10 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     """
     ngm, ngs = _ngsolve()
 
+    if release_below is not None and not (
+            isinstance(release_below, (int, float)) and 0 <= release_below < 1):
+        raise ValueError(
+            f"release_below must be a volume ratio in [0, 1) or None, got {release_below!r}")
     if predictor not in ("tangent", "proportional"):
         raise ValueError(f"predictor must be 'tangent' or 'proportional', got {predictor!r}")
     if not isinstance(grid, pv.UnstructuredGrid):
@@ -296,6 +347,17 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     tets[vol < 0] = tets[vol < 0][:, [0, 2, 1, 3]]  # positive orientation for Netgen
     faces = _boundary_faces(grid)
     constrained = np.isin(bc, (arrays.BC_FIXED, arrays.BC_JOINT))
+    g = np.asarray(g, dtype=np.float64)
+    released = (np.zeros(len(points), dtype=bool) if release_below is None else
+                _released_nodes(points, tets, constrained, g, float(release_below)))
+    if released.any():
+        log.warning("reference: %d prescribed nodes released (left free): their elements "
+                    "would be inverted or crushed below %.2g of their volume by the prescribed "
+                    "data alone (bc codes %s, |bc_displacement| %s mm, around %s mm)",
+                    released.sum(), release_below, np.asarray(bc)[released].tolist(),
+                    np.round(np.linalg.norm(g[released], axis=1), 1).tolist(),
+                    np.round(points[released].mean(axis=0), 1).tolist())
+    constrained &= ~released
     sliding = bc == arrays.BC_SLIDING
     region = np.full(len(faces), 3)
     region[(sliding[faces] | constrained[faces]).all(axis=1) & sliding[faces].any(axis=1)] = 2
@@ -354,16 +416,23 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     gfu = ngs.GridFunction(fes)
     prescribed = ngs.GridFunction(fes)
     prescribed.Set(g_p1, definedon=mesh.Boundaries("dirichlet"))
-    fixed = ~np.array(fes.FreeDofs(), dtype=bool)  # dofs on the dirichlet faces
+    # dofs on the dirichlet faces, and the vertex dof of every prescribed node (NGSolve's
+    # H1 numbers the vertex dofs first, in vertex order): the nodes the MTM prescribes
+    free = np.array(fes.FreeDofs(), dtype=bool)
+    free[: mesh.nv][constrained] = False
+    freedofs = ngs.BitArray(free)
+    fixed = ~free
+    pres = prescribed.vec.FV().NumPy().reshape(-1, 3)
+    pres[: mesh.nv][constrained] = g[constrained]
     values = gfu.vec.FV().NumPy()
-    target = prescribed.vec.FV().NumPy().reshape(-1, 3)[fixed].copy()
+    target = pres[fixed].copy()
     size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
     volume = float(np.abs(vol).sum()) / 6.0
     g_max = float(np.abs(np.asarray(g, dtype=float)).max()) or 1.0
     e_max = float(max(e_cross.max(), k_fib.max()))
     maxerr = tol * np.sqrt(e_max * volume * (g_max / size) ** 2)
     # load stepping: linearised predictor, Newton corrector, halved steps where either fails
-    linear = _Linear(ngs, form, fes.FreeDofs(), inverse, reuse=reuse_factor)
+    linear = _Linear(ngs, form, freedofs, inverse, reuse=reuse_factor)
     step = gfu.vec.CreateVector()
     step_np = step.FV().NumPy().reshape(-1, 3)
     done, step_size, newton_its = 0.0, 1.0 / steps, 0
@@ -417,6 +486,19 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     # solver statistics (benchmarks/reference.py): dofs, Newton its, factorisations, s
     out.field_data["reference_solver"] = np.array(
         [3 * fes.ndof, newton_its, linear.factorizations, time.perf_counter() - start])
+    # prescribed (fixed/joint) nodes left free by ``release_below``
+    out.field_data["reference_released"] = np.flatnonzero(released).astype(np.int64)
+    # elements whose vertex displacements (the linear interpolant that postop_ct and
+    # postop_skin warp with) invert them: P2 can fold an element by its edge dofs
+    q = (points + disp)[tets]
+    moved = np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]),
+                      q[:, 3] - q[:, 0])
+    folded = np.flatnonzero(moved <= 0)
+    if len(folded):
+        log.warning("reference: %d elements are inverted by the solution's vertex values "
+                    "(linear interpolant), around %s mm", len(folded),
+                    np.round(points[tets[folded]].mean(axis=(0, 1)), 1).tolist())
+    out.field_data["reference_folded"] = folded.astype(np.int64)
     return out
 
 
@@ -525,8 +607,8 @@ def cached(path, compute, *, cache=True, stale_after=7200.0, poll=0.5):
 
 
 #: the solver's code, hashed (docstrings and comments left out) into the truth's cache key
-_SOLVER_CODE = ("_boundary_faces", "_netgen_mesh", "_Linear", "_predictor", "_damped_newton",
-                "solve_reference")
+_SOLVER_CODE = ("_boundary_faces", "_netgen_mesh", "_released_nodes", "_Linear", "_predictor",
+                "_damped_newton", "solve_reference")
 _CODE_HASH = []
 
 

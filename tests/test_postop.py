@@ -276,8 +276,8 @@ def test_reference_grid_feeds_postop_ct(tmp_path, monkeypatch):
     from pvcmf import reference
     from pvcmf.postop import reference_grid
 
-    # 3 mm: at 4 mm / 3000 P1 tetrahedra the snapped surfaces of the session-3 mesher
-    # (960a3a0) leave elements that invert before the full load (Newton fails at ~0.93)
+    # 3 mm (4 mm / 3000 P1 failed at ~0.93 of the load until MODEL_VERSION 2: the plan's
+    # data alone inverted one element there; tests/test_reference.py covers that case)
     c = pvcmf.datasets.phantom(1, spacing=3.0)
     opts = dict(n_tets=3000, order=1, steps=1, cache_dir=tmp_path)
     grid = reference_grid(c, **opts)

@@ -183,3 +183,113 @@ def test_predictors_agree():
     g, u = smooth_problem(2)
     u_old = solve_reference(g, predictor="proportional")[arrays.DISPLACEMENT]
     np.testing.assert_allclose(u, u_old, atol=1e-6 * np.abs(u).max())
+
+
+def one_tet(order_of_nodes=(0, 1, 2, 3)):
+    """One tetrahedron: nodes 0-2 joint, moved 2 mm up through node 3 (fixed at z = 1):
+    the prescribed data alone inverts it."""
+    pts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    g = pv.UnstructuredGrid({pv.CellType.TETRA: np.array([order_of_nodes])}, pts)
+    g[arrays.BC] = np.array([arrays.BC_JOINT] * 3 + [arrays.BC_FIXED], np.int8)
+    g[arrays.BC_DISPLACEMENT] = np.array([[0.0, 0, 2]] * 3 + [[0.0, 0, 0]])
+    g.cell_data[arrays.E_CROSS] = np.full(1, 0.003)
+    g.cell_data[arrays.NU] = np.full(1, 0.46)
+    return g
+
+
+def test_released_nodes_pick_the_odd_node_of_crushed_elements():
+    from pvcmf.reference import _released_nodes
+
+    g = one_tet((0, 2, 1, 3))  # orientation does not matter
+    tets = g.cells_dict[pv.CellType.TETRA]
+    pres = np.ones(4, bool)
+    data = np.asarray(g[arrays.BC_DISPLACEMENT])
+    np.testing.assert_array_equal(_released_nodes(g.points, tets, pres, data, 0.2),
+                                  [False, False, False, True])
+    # a crush to 10 % of the volume (ratio 0.1) is released at 0.2, kept at 0.05
+    squash = np.zeros((4, 3))
+    squash[3] = [0.0, 0.0, -0.9]
+    assert _released_nodes(g.points, tets, pres, squash, 0.2).sum() == 1
+    assert not _released_nodes(g.points, tets, pres, squash, 0.05).any()
+    # an element with a free node is never crushed by the data alone
+    pres[0] = False
+    assert not _released_nodes(g.points, tets, pres, data, 0.2).any()
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_data_that_inverts_an_element_releases_its_odd_node(order):
+    """Without the release no solution exists (the data inverts the element at 50 % of
+    the load); with it, the released fixed node follows: a rigid translation, zero energy."""
+    g = one_tet()
+    out = solve_reference(g, order=order)
+    np.testing.assert_array_equal(out.field_data["reference_released"], [3])
+    np.testing.assert_allclose(out[arrays.DISPLACEMENT], np.tile([0.0, 0, 2], (4, 1)),
+                               atol=1e-9)
+    with pytest.raises(RuntimeError, match="did not converge at load 0.5"):
+        solve_reference(g, order=order, release_below=None, steps=1)
+    with pytest.raises(ValueError, match="release_below must be a volume ratio in \\[0, 1\\)"):
+        solve_reference(g, release_below=1.5)
+
+
+def test_every_fixed_and_joint_node_is_prescribed():
+    """A fixed node alone on the boundary (no face of three constrained nodes) is held at
+    0 and a joint one at its data, as in the MTM (the Dirichlet faces alone left them free)."""
+    g = cube(3)
+    z = g.points[:, 2]
+    bc = np.where(z == 10, arrays.BC_JOINT, arrays.BC_FREE).astype(np.int8)
+    lone_fixed = np.flatnonzero(np.all(np.isclose(g.points, [10.0 / 3, 10.0 / 3, 0]), axis=1))
+    lone_joint = np.flatnonzero(np.all(np.isclose(g.points, [0.0, 10.0 / 3, 10.0 / 3]), axis=1))
+    bc[lone_fixed] = arrays.BC_FIXED
+    bc[lone_joint] = arrays.BC_JOINT
+    g[arrays.BC] = bc
+    data = np.zeros((g.n_points, 3))
+    data[z == 10] = [0.0, 0.0, -1.5]
+    data[lone_joint] = [0.5, 0.0, 0.0]
+    g[arrays.BC_DISPLACEMENT] = data
+    out = solve_reference(g)
+    u = np.asarray(out[arrays.DISPLACEMENT])
+    assert len(out.field_data["reference_released"]) == 0
+    np.testing.assert_array_equal(u[lone_fixed], 0.0)
+    np.testing.assert_allclose(u[lone_joint], [[0.5, 0.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(u[z == 10], data[z == 10], atol=1e-12)
+    assert np.abs(u[z == 0]).max() > 0.1  # the rest of the bottom face moves
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:muscle")  # thin muscles dropped at 3000 tetrahedra
+def test_coarse_patient_truth_converges_with_the_crushed_element_released():
+    """Virtual patient 1 at 4 mm, 3000 P1 tetrahedra: one element's four nodes are all
+    prescribed (a fixed node ~10 mm from three joint nodes the plan moves 9-11 mm) and the
+    data alone inverts it at 93.5 % of the load, where Newton failed before. Its fixed node
+    is released; the solve converges with every other fixed node at 0, every joint node at
+    its data and no inverted element."""
+    import pvcmf
+    from pvcmf import reference
+
+    c = pvcmf.datasets.phantom(1, spacing=4.0)
+    _, grid = reference._truth_grid(c, 3000, 0.5, False)
+    with pytest.raises(RuntimeError, match="did not converge at load 0.9"):
+        solve_reference(grid, order=1, steps=1, release_below=None, threads=False)
+    out = solve_reference(grid, order=1, steps=1, threads=False)
+    released = np.asarray(out.field_data["reference_released"])
+    assert 1 <= len(released) <= 3
+    bc = np.asarray(out[arrays.BC])
+    u = np.asarray(out[arrays.DISPLACEMENT])
+    data = np.asarray(out[arrays.BC_DISPLACEMENT])
+    held = np.ones(len(bc), bool)
+    held[released] = False
+    fixed, joint = held & (bc == arrays.BC_FIXED), held & (bc == arrays.BC_JOINT)
+    assert fixed.sum() > 100 and joint.sum() > 10
+    np.testing.assert_array_equal(u[fixed], 0.0)
+    np.testing.assert_allclose(u[joint], data[joint], atol=1e-9)
+    # the released node moved away from its data (it was what inverted the element)
+    assert np.linalg.norm(u[released] - data[released], axis=1).max() > 1.0
+    tets = out.cells_dict[pv.CellType.TETRA]
+
+    def volumes(x):
+        q = x[tets]
+        return np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]),
+                         q[:, 3] - q[:, 0])
+
+    assert np.all(volumes(out.points + u) / volumes(out.points) > 0)
+    assert len(out.field_data["reference_folded"]) == 0
