@@ -9,7 +9,7 @@ model 2), those that the prescribed displacements alone invert or crush (volume 
 ``x + s * bc_displacement`` below 0 / below 0.2 at load ``s``), the load where each
 inverts, its nodes' bc codes, distances and prescribed displacements, and the nodes
 ``solve_reference`` releases. Then solves it with the release off (``release_below=None``:
-model 1's prescription of every fixed/joint vertex, no release) and on (the default),
+every fixed/joint vertex prescribed, nothing released) and on (the default),
 printing the load reached or the Newton iterations, wall and CPU seconds, and the 1-minute
 load average.
 """
