@@ -865,12 +865,14 @@ def _relocate_sliver_nodes(nodes, tets, free, worst, min_dihedral, rounds=3):
         for v in cand:  # a handful of nodes, not a loop over the mesh
             ring = np.flatnonzero((tets == v).any(axis=1))
             neighbours = np.setdiff1d(np.unique(tets[ring]), [v])
-            before = tet_quality(nodes, tets[ring])[0].min()
+            ring_d, ring_vol, _ = tet_quality(nodes, tets[ring])
+            before = ring_d.min()
+            sign = np.sign(ring_vol)  # orientation at the start: a move may not flip it
             start = nodes[v].copy()
             best, best_q = start, before
             # towards the neighbours' mean, or away from the face opposite the node in
             # its worst tetrahedron (to the height of a regular tetrahedron on it)
-            worst_tet = tets[ring[np.argmin(tet_quality(nodes, tets[ring])[0].min(axis=1))]]
+            worst_tet = tets[ring[np.argmin(ring_d.min(axis=1))]]
             face = nodes[worst_tet[worst_tet != v]]
             normal = np.cross(face[1] - face[0], face[2] - face[0])
             normal /= max(np.linalg.norm(normal), 1e-30)
@@ -881,7 +883,6 @@ def _relocate_sliver_nodes(nodes, tets, free, worst, min_dihedral, rounds=3):
             for goal, t in itertools.product(goals, (1.0, 0.5, 0.25)):
                 nodes[v] = start + t * (goal - start)
                 d, vol, _ = tet_quality(nodes, tets[ring])
-                sign = np.sign(tet_quality(np.vstack([nodes[:v], start[None], nodes[v + 1:]]), tets[ring])[1])
                 if np.all(vol * sign > 0) and d.min() > best_q:
                     best, best_q = nodes[v].copy(), d.min()
             nodes[v] = best
