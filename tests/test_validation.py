@@ -488,6 +488,8 @@ def test_fig7_boxplots(study, verify_chart):
     texts = [t.get_text() for t in fig.axes[0].texts]
     med = np.median(np.abs(dists[2]["state_of_the_art"]))
     assert f"{med:.2f}" in texts
+    assert "whiskers: 5th-95th percentiles" in fig.axes[0].get_xlabel()
+    assert "1.5 IQR" in fig7_boxplots(dists, whis=1.5).axes[0].get_xlabel()
     verify_chart(fig)
 
 

@@ -181,8 +181,9 @@ def fig7_boxplots(distances, *, whis=(5, 95), figsize=(7.0, 3.6)):
     ----------
     distances : dict
         ``distances[patient][method]`` -> 1-D signed distances (mm).
-    whis : (float, float), default (5, 95)
-        Whisker percentiles (outliers are not drawn: a skin has ~1e5 points).
+    whis : (float, float) or float, default (5, 95)
+        Whisker percentiles, or (a number) matplotlib's multiple of the interquartile range;
+        written under the axis (outliers are not drawn: a skin has ~1e5 points).
     figsize : (float, float)
         Inches.
 
@@ -220,6 +221,10 @@ def fig7_boxplots(distances, *, whis=(5, 95), figsize=(7.0, 3.6)):
                     color="black")
         ax.plot([], [], "s", color=color, alpha=0.55, label=METHOD_LABELS.get(method, method))
     ax.set_xticks(np.arange(len(patients)), [f"P{p}" for p in patients])
+    # say on the figure what the whiskers are: the paper's box plots do not, and matplotlib's
+    # default (1.5 IQR) would be read otherwise
+    ax.set_xlabel(f"boxes: quartiles, line and number: median, whiskers: {_whisker_text(whis)}"
+                  " (outliers not drawn)", fontsize=8)
     ax.set_ylabel("|distance| to the actual skin (mm)")
     ax.set_ylim(bottom=0)
     # above the axes: inside, it crossed the tallest whisker
@@ -227,6 +232,14 @@ def fig7_boxplots(distances, *, whis=(5, 95), figsize=(7.0, 3.6)):
               frameon=False)
     ax.grid(axis="y", alpha=0.3)
     return fig
+
+
+def _whisker_text(whis):
+    """Words for matplotlib's ``whis``: percentiles ``(lo, hi)`` or a multiple of the IQR."""
+    if np.ndim(whis) == 0:
+        return f"{float(whis):g} IQR beyond the box"
+    lo, hi = (float(w) for w in whis)
+    return f"{lo:g}th-{hi:g}th percentiles"
 
 
 def fig8_cumulative(distances, *, marks=(1.0, 2.0), xmax=None, figsize=None):
