@@ -362,22 +362,6 @@ def drop_floating_parts(grid, min_constrained=3, collinear_tol=0.05):
     return out
 
 
-def _skin_from_labels(labels):
-    """Outer skin of a label image: flying edges on the smoothed head indicator."""
-    from scipy import ndimage
-
-    tissue = np.asarray(labels[arrays.TISSUE])
-    dims = tuple(labels.dimensions)
-    vol = (tissue != arrays.AIR).reshape(dims, order="F").astype(np.float32)
-    vol = ndimage.gaussian_filter(vol, 0.8, mode="constant")
-    img = pv.ImageData(dimensions=dims, spacing=labels.spacing, origin=labels.origin)
-    img["head"] = vol.ravel(order="F")
-    skin = img.contour([0.5], scalars="head", method="flying_edges")
-    skin = skin.connectivity("largest")
-    skin.clear_data()
-    return skin
-
-
 def _apply_plan(grid, plan, labels, options):
     return drop_floating_parts(_filter("apply_plan")(grid, plan, labels, **options))
 

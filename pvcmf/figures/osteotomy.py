@@ -93,11 +93,11 @@ def osteotomy_panel(labels, plan, skin=None, skeleton=None, window_size=(900, 45
 
 
 def _draw_patient(p, first, labels, plan, skin, skeleton, title=""):
-    from ..pipeline import _skin_from_labels
+    from ..filters.skin import extract_skin
 
     row, col = first
     if skin is None:
-        skin = _skin_from_labels(labels)
+        skin = extract_skin(labels)
     p.subplot(row, col)
     p.set_background("white", all_renderers=False)
     p.add_mesh(skin, color=SKIN_COLOR, smooth_shading=True, specular=0.2)
