@@ -188,13 +188,39 @@ def _check_n_tets(n_tets):
         raise ValueError(f"n_tets must lie in [{lo}, {hi}], got {n_tets}")
 
 
-def _roi_mask(labels, roi, shape_zyx):
-    """Boolean (z, y, x) mask of the image points kept by ``roi`` (None: all)."""
+def _roi_crop(labels, roi):
+    """(z, y, x) slices of the image points within one voxel of a box ``roi`` (else None)."""
+    if roi is None or callable(roi):
+        return None
+    arr = np.asarray(roi)
+    if arr.shape != (6,) or arr.dtype == bool or arr.dtype.kind not in "iuf":
+        return None
+    box = arr.astype(float)
+    if np.any(box[1::2] <= box[0::2]):
+        return None  # _roi_mask raises
+    crop = []
+    for k in range(3):
+        a = labels.origin[k] + labels.spacing[k] * np.arange(labels.dimensions[k])
+        idx = np.flatnonzero((a >= box[2 * k]) & (a <= box[2 * k + 1]))
+        if not len(idx):
+            return None
+        crop.append(slice(max(int(idx[0]) - 1, 0), min(int(idx[-1]) + 2, labels.dimensions[k])))
+    return tuple(crop[::-1])
+
+
+def _roi_mask(labels, roi, shape_zyx, crop=None):
+    """Boolean (z, y, x) mask of the image points kept by ``roi`` (None: all).
+
+    With ``crop`` (the slices of :func:`_roi_crop`, box rois only) the mask of the
+    cropped image.
+    """
     if roi is None:
         return None
     pts_axes = [
         labels.origin[k] + labels.spacing[k] * np.arange(labels.dimensions[k]) for k in range(3)
     ]
+    if crop is not None:
+        pts_axes = [a[crop[2 - k]] for k, a in enumerate(pts_axes)]
     if callable(roi):
         mask = np.asarray(roi(labels.points), dtype=bool)
         if mask.shape != (labels.n_points,):
@@ -261,7 +287,8 @@ def _codes(tissue, muscle, conforming):
 
 def _check_muscles(code, voxel_volume):
     """Warn about muscles that are too small to be meshed (a voxel or two)."""
-    counts = np.bincount(code.ravel(), minlength=_N_CODES)[_MUSCLE0 + 1 :]
+    named = code[code > _MUSCLE0].astype(np.intp) - (_MUSCLE0 + 1)
+    counts = np.bincount(named, minlength=_N_CODES - _MUSCLE0 - 1)
     tiny = np.flatnonzero((counts > 0) & (counts < 8))
     if tiny.size:
         names = ", ".join(f"{arrays.MUSCLES[i]} ({counts[i]} voxel(s))" for i in tiny)
@@ -274,31 +301,46 @@ def _check_muscles(code, voxel_volume):
             code[code == _MUSCLE0 + 1 + i] = _FAT
 
 
-def _initial_spacing(code, labels, volume, n_tets, conforming, min_spacing):
-    """Working spacing predicted for ``n_tets`` from the volume and the muscle surface area."""
+def _initial_spacing(fine, volume, n_tets, conforming, min_spacing):
+    """Working spacing predicted for ``n_tets`` from the volume and the muscle surface area.
+
+    The area counts the voxel faces with a muscle on one side (the cropped image of
+    :func:`_crop_fine` holds them all; with its faces, :func:`_fine_faces`, they are
+    counted there).
+    """
     area = 0.0
     if conforming:
-        sp = np.asarray(labels.spacing, float)[::-1]  # array axes z, y, x
+        code, sp = fine[0], np.asarray(fine[2], float)[::-1]  # array axes z, y, x
+        if len(fine) > 5 and fine[4] is not None:
+            muscle_face = fine[4] % 256 >= _MUSCLE0  # the higher code is a muscle
+            axis = 2 - np.argmax(np.abs(fine[5][muscle_face]), axis=1)
+            per_axis = np.bincount(axis, minlength=3)
+        else:
+            per_axis = []
+            for ax in range(3):
+                x = np.moveaxis(code, ax, 0)
+                a, b = x[1:], x[:-1]
+                per_axis.append(np.count_nonzero((a != b) & ((a >= _MUSCLE0) | (b >= _MUSCLE0))))
         for ax in range(3):
-            x = np.moveaxis(code, ax, 0)
-            a, b = x[1:], x[:-1]
-            faces = np.count_nonzero((a != b) & ((a >= _MUSCLE0) | (b >= _MUSCLE0)))
-            area += faces * np.prod(np.delete(sp, ax))
+            area += int(per_axis[ax]) * np.prod(np.delete(sp, ax))
     # a V u^3 + b A u^2 = n with u = 1 / s: the positive real root
     roots = np.roots([_TETS_PER_CELL * volume, _TETS_PER_FACE * area, 0.0, -float(n_tets)])
     u = max(r.real for r in roots if abs(r.imag) < 1e-9 * max(1.0, abs(r)) and r.real > 0)
     return max(min_spacing, 1.0 / u)
 
 
-def _crop_fine(code_zyx, labels):
-    """The code volume cropped to the soft-tissue box plus one voxel: (code, origin, spacing)."""
+def _crop_fine(code_zyx, labels, offset=(0, 0, 0)):
+    """The code volume cropped to the soft-tissue box plus one voxel: (code, origin, spacing).
+
+    ``offset``: the image index (x, y, z) of ``code_zyx[0, 0, 0]`` (a cropped image).
+    """
     sp = np.asarray(labels.spacing, float)
     soft = code_zyx >= _FAT
     box = []
     for ax in range(3):  # array axes z, y, x
         idx = np.flatnonzero(soft.any(axis=tuple(a for a in range(3) if a != ax)))
         box.append(slice(max(idx[0] - 1, 0), min(idx[-1] + 2, code_zyx.shape[ax])))
-    lo = np.array([box[2].start, box[1].start, box[0].start])
+    lo = np.array([box[2].start, box[1].start, box[0].start]) + np.asarray(offset, np.int64)
     return np.ascontiguousarray(code_zyx[tuple(box)]), np.asarray(labels.origin, float) + lo * sp, sp
 
 
@@ -392,7 +434,8 @@ def _repair_topology(sub, max_iter=20):
     """
     v = sub
     changed = 0
-    for _ in range(max_iter):
+    history = []  # the grids after the last two passes
+    for it in range(max_iter):
         n_fix = 0
         for ax1, ax2 in ((0, 1), (0, 2), (1, 2)):
             w = np.moveaxis(v, (ax1, ax2), (0, 1))  # a view: writes go to v
@@ -442,6 +485,14 @@ def _repair_topology(sub, max_iter=20):
         changed += n_fix
         if n_fix == 0:
             break
+        # a few voxels can flip back and forth for ever (a 2-cycle): the grid after
+        # ``max_iter`` passes is then known without running them
+        if len(history) == 2 and np.array_equal(history[0], v):
+            if (max_iter - 1 - it) % 2:
+                v[...] = history[1]
+            log.debug("tetrahedralize: topology repair cycles after %d passes", it + 1)
+            break
+        history = history[-1:] + [v.copy()]
     return changed
 
 
@@ -543,15 +594,19 @@ def _fine_faces(fine):
     code, origin, sp = fine[:3]
     mids, pairs, normals = [], [], []
     for ax in range(3):  # array axes z, y, x
-        n = code.shape[ax]
-        a = code.take(np.arange(n - 1), axis=ax)
-        b = code.take(np.arange(1, n), axis=ax)
-        hit = (a != b) & (np.maximum(a, b) >= _FAT)
-        iz, iy, ix = np.nonzero(hit)
+        lo_sl = tuple(slice(0, -1) if k == ax else slice(None) for k in range(3))
+        hi_sl = tuple(slice(1, None) if k == ax else slice(None) for k in range(3))
+        a, b = code[lo_sl], code[hi_sl]  # views
+        hit = (a != b) & ((a >= _FAT) | (b >= _FAT))
+        flat = np.flatnonzero(hit)
+        iz, iy, ix = np.unravel_index(flat, hit.shape)
         xyz = np.stack([ix, iy, iz], axis=1).astype(float)
         xyz[:, 2 - ax] += 0.5
         mids.append(origin + xyz * sp)
-        ah, bh = a[hit], b[hit]
+        # the same faces as flat indices of the full volume: a at (iz, iy, ix), b one on
+        idx_a = np.ravel_multi_index((iz, iy, ix), code.shape)
+        ah = code.ravel()[idx_a]
+        bh = code.ravel()[idx_a + code.strides[ax] // code.itemsize]
         lo, hi = np.minimum(ah, bh), np.maximum(ah, bh)
         pairs.append(lo.astype(np.int64) * 256 + hi)
         nrm = np.zeros((len(lo), 3), np.int8)
@@ -583,7 +638,8 @@ def _interface_points(query, qpair, qnormal, fine, cache):
 
     mids, pairs, fnorm = fine[3], fine[4], fine[5]
     if "order" not in cache:
-        cache["order"] = np.argsort(pairs, kind="stable")
+        # the keys fit in 16 bits: numpy's stable sort is then a radix sort
+        cache["order"] = np.argsort(pairs.astype(np.uint16), kind="stable")
         cache["sorted"] = pairs[cache["order"]]
     order, sorted_pairs = cache["order"], cache["sorted"]
     # the face midpoints lie on a lattice the vertices often share: equal distances would
@@ -1074,8 +1130,18 @@ def tetrahedralize(
     if spacing is not None and (not isinstance(spacing, numbers.Real) or spacing <= 0):
         raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
     shape_zyx = tuple(labels.dimensions[::-1])
-    code = _codes(np.asarray(tissue), muscle, conforming).reshape(shape_zyx)
-    mask = _roi_mask(labels, roi, shape_zyx)
+    # a box roi crops the image first (one voxel beyond the box), so that the whole-image
+    # passes below run on the box only; the result is the same as on the whole image
+    crop = _roi_crop(labels, roi)
+    tissue = np.asarray(tissue).reshape(shape_zyx)
+    muscle = None if muscle is None else np.asarray(muscle).reshape(shape_zyx)
+    offset = np.zeros(3, np.int64)  # crop start, image axes x, y, z
+    if crop is not None:
+        tissue = tissue[crop]
+        muscle = None if muscle is None else muscle[crop]
+        offset = np.array([crop[2].start, crop[1].start, crop[0].start], np.int64)
+    code = _codes(tissue, muscle, conforming)
+    mask = _roi_mask(labels, roi, shape_zyx, crop)
     if mask is not None:
         code = np.where(mask | (code < _FAT), code, _AIR).astype(np.uint8)
     voxel_volume = float(np.prod(labels.spacing))
@@ -1088,13 +1154,14 @@ def tetrahedralize(
         )
     if conforming:
         _check_muscles(code, voxel_volume)
-    fine = _crop_fine(code, labels)
+    fine = _crop_fine(code, labels, offset)
     fine = fine + (_fine_faces(fine) if _FINE_TARGETS else (None, None, None))
-    pieces = _image_pieces(fine[0]) if conforming else {}
+    code = fine[0]
+    pieces = _image_pieces(code) if conforming else {}
     volume = n_soft * voxel_volume
     min_spacing = float(min(labels.spacing))
     if spacing is None:
-        s = _initial_spacing(code, labels, volume, n_tets, conforming, min_spacing)
+        s = _initial_spacing(fine, volume, n_tets, conforming, min_spacing)
     else:
         s = float(spacing)
     if progress_bar:
