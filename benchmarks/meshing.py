@@ -19,6 +19,10 @@ reset after loading the image so that it is the meshing's peak).
 4. ``--ceiling``: the share of points at a given depth inside a region of the smooth
    anatomy (the virtual patient at half the spacing) whose nearest voxel has another
    label, i.e. what the centroid test would report for exactly placed surfaces.
+5. ``--table``: agreement against the requested count (2 mm patients 1-4 and the 1 mm
+   patient 1 up to 500k) with the failing cells split into fat/muscle confusion, bone,
+   air, teeth, and the share of them within one voxel of a structure thinner than the
+   element (:func:`disagreement_split`); prints JSON rows and a markdown table.
 
 Run::
 
@@ -28,6 +32,7 @@ Run::
     python benchmarks/meshing.py --no-baseline --counts 10000 30000 100000 300000
     python benchmarks/meshing.py --against 399d241 --counts 30000 160000  # old vs new mesher
     python benchmarks/meshing.py --spacing 2 --ceiling  # centroid-test ceiling per depth
+    python benchmarks/meshing.py --table          # agreement vs count, failing cells by class
 """
 
 from __future__ import annotations
@@ -351,6 +356,125 @@ def agreement_ceiling(patient, spacing, fine_spacing=None, n_samples=3_000_000, 
     return out
 
 
+def _thin_near(labels, box_ijk, label, h):
+    """Voxels (z, y, x, in ``box_ijk``) within one voxel of a part of ``label`` thinner than ``h``.
+
+    A voxel of the region is thin when no ball of diameter ``h`` inside the region covers
+    it (it is removed by a morphological opening with that ball; two Euclidean distance
+    transforms, ``scipy.ndimage``): the local thickness there is below ``h``.
+    """
+    from scipy import ndimage
+
+    from pvcmf import arrays
+
+    tissue = np.asarray(labels[arrays.TISSUE]).reshape(labels.dimensions[::-1])[box_ijk]
+    region = tissue == label
+    sampling = np.asarray(labels.spacing, float)[::-1]
+    r = 0.5 * h
+    inside = ndimage.distance_transform_edt(region, sampling=sampling)
+    centres = inside >= r
+    covered = ndimage.distance_transform_edt(~centres, sampling=sampling) <= r if centres.any() else np.zeros_like(region)
+    thin = region & ~covered
+    return ndimage.binary_dilation(thin, structure=np.ones((3, 3, 3), bool))
+
+
+def disagreement_split(labels, grid):
+    """Where the centroid test fails: shares of all cells, and how many thin structures explain.
+
+    Every cell whose centroid's nearest voxel holds another tissue label is put in one
+    class: a fat cell in a muscle voxel or a muscle cell in a fat voxel ("fat/muscle"),
+    or by the voxel's label ("bone", "air", "teeth", "other"). A failing cell is
+    "explained by a thin structure" when its centroid voxel lies within one voxel of a
+    part of its own label or of the voxel's label thinner than the working spacing ``h``
+    (the element size; :func:`_thin_near`), and "at the boundary" when a voxel of its own
+    label is among the 26 neighbours of its centroid voxel. Returns per-mille numbers.
+    """
+    from scipy import ndimage
+
+    from pvcmf import arrays
+    from pvcmf.filters import meshing
+
+    h = float(grid.field_data[meshing.SURFACE_SPACING][0])
+    sp = np.asarray(labels.spacing, float)
+    dims = np.asarray(labels.dimensions)
+    c = grid.cell_centers().points
+    ijk = np.clip(np.rint((c - np.asarray(labels.origin)) / sp).astype(int), 0, dims - 1)
+    margin = int(np.ceil(h / sp.min())) + 2
+    lo = np.maximum(ijk.min(axis=0) - margin, 0)
+    hi = np.minimum(ijk.max(axis=0) + margin + 1, dims)
+    box = tuple(slice(lo[k], hi[k]) for k in (2, 1, 0))
+    rel = ijk - lo
+    tissue = np.asarray(labels[arrays.TISSUE]).reshape(labels.dimensions[::-1])[box]
+    image = tissue[rel[:, 2], rel[:, 1], rel[:, 0]]
+    cell = np.asarray(grid.cell_data[arrays.TISSUE])
+    bad = image != cell
+    n = len(cell)
+    classes = {
+        "fat_muscle": bad & np.isin(image, arrays.SOFT_LABELS),
+        "bone": bad & (image == arrays.BONE_TISSUE),
+        "air": bad & (image == arrays.AIR),
+        "teeth": bad & (image == arrays.TEETH),
+    }
+    classes["other"] = bad & ~np.any(list(classes.values()), axis=0)
+    thin = np.zeros(n, bool)  # every cell, failing or not
+    near_own = np.zeros(n, bool)
+    for label in np.unique(np.concatenate([image, cell])):
+        near = _thin_near(labels, box, int(label), h)[rel[:, 2], rel[:, 1], rel[:, 0]]
+        thin |= ((cell == label) | (image == label)) & near
+        own = ndimage.binary_dilation(tissue == label, structure=np.ones((3, 3, 3), bool))
+        near_own |= bad & (cell == label) & own[rel[:, 2], rel[:, 1], rel[:, 0]]
+    out = {"spacing_x100": round(100 * h), "agree_permille": round(1000 * (1 - bad.mean()))}
+    for name, sel in classes.items():
+        out[f"{name}_permille"] = round(1000 * sel.sum() / n)
+        out[f"{name}_thin_permille_of_class"] = round(1000 * (thin & sel).sum() / max(sel.sum(), 1))
+    out["bad_thin_permille_of_bad"] = round(1000 * (thin & bad).sum() / max(bad.sum(), 1))
+    out["all_thin_permille"] = round(1000 * thin.mean())  # the same test on every cell
+    out["bad_not_thin_permille"] = round(1000 * (bad & ~thin).mean())  # of all cells
+    out["bad_next_to_own_permille_of_bad"] = round(1000 * near_own.sum() / max(bad.sum(), 1))
+    return out
+
+
+def agreement_table(cases, counts_by_spacing, face_fraction=0.5):
+    """Agreement against the requested count with :func:`disagreement_split`, one row a mesh."""
+    import warnings
+
+    from pvcmf.filters import meshing
+
+    warnings.simplefilter("ignore")
+    rows = []
+    for patient, spacing in cases:
+        labels = _labels(patient, spacing)
+        roi = _roi(labels, face_fraction)
+        for n in counts_by_spacing[spacing]:
+            grid, wall, cpu = _timed(meshing.tetrahedralize, labels, n_tets=n, roi=roi)
+            row = {"patient": patient, "spacing_mm": spacing, "n_tets": n, "cells": grid.n_cells,
+                   "wall_ms": round(1000 * wall), "load_avg_1min_x100": round(100 * os.getloadavg()[0])}
+            row.update(disagreement_split(labels, grid))
+            mv = [x for x in _muscle_volume_error(labels, grid) if x is not None]
+            row["muscle_volume_rms_percent"] = round(float(np.sqrt(np.mean(np.square(mv)))))
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    return rows
+
+
+def _markdown(rows):
+    head = ("| image | requested | cells | agree % | fat/muscle | bone | air | teeth | other "
+            "| thin-explained % of failing (of all cells) | next to own label % of failing "
+            "| failing, not thin: % of all cells | muscle vol. RMS % |")
+    lines = [head, "|" + "---|" * 13]
+    for r in rows:
+        cls = [f"{r[f'{k}_permille'] / 10:.1f} ({r[f'{k}_thin_permille_of_class'] // 10})"
+               for k in ("fat_muscle", "bone", "air", "teeth", "other")]
+        lines.append(
+            f"| P{r['patient']} {r['spacing_mm']:g} mm | {r['n_tets'] // 1000}k | {r['cells']} "
+            f"| {r['agree_permille'] / 10:.1f} | " + " | ".join(cls)
+            + f" | {r['bad_thin_permille_of_bad'] / 10:.0f} ({r['all_thin_permille'] / 10:.0f})"
+            f" | {r['bad_next_to_own_permille_of_bad'] / 10:.0f} | {r['bad_not_thin_permille'] / 10:.1f}"
+            f" | {r['muscle_volume_rms_percent']} |"
+        )
+    return "\n".join(lines)
+
+
 def _run_child(args):
     cmd = [sys.executable, __file__, "--child", json.dumps(args)]
     res = subprocess.run(cmd, capture_output=True, text=True)
@@ -374,6 +498,11 @@ def main(argv=None):
                    help="only: current mesher vs the one of git revision REV, one process")
     p.add_argument("--ceiling", action="store_true",
                    help="only: wrong-voxel rate of exact surfaces per centroid depth")
+    p.add_argument("--table", action="store_true",
+                   help="only: agreement against count with the failing cells split by class "
+                        "(2 mm patients --patients at --counts, 1 mm patient 1 at --counts + 500k)")
+    p.add_argument("--patients", type=int, nargs="+", default=[1, 2, 3, 4],
+                   help="patients of --table (2 mm)")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
@@ -391,6 +520,16 @@ def main(argv=None):
     if a.against:
         for row in compare_revision(a.patient, a.spacing, a.against, a.counts, ff, a.repeats):
             print(json.dumps(row), flush=True)
+        return
+    if a.table:
+        cases = [(q, 2.0) for q in a.patients] + [(1, 1.0)]
+        for q, spacing in cases:
+            _labels(q, spacing)
+        counts = {2.0: a.counts, 1.0: sorted(set(a.counts) | {500_000})}
+        rows = agreement_table(cases, counts, ff)
+        print("# per-mille in the JSON; the table: % of all cells per class (in brackets: % of the")
+        print("# class explained by a structure thinner than the element)")
+        print(_markdown(rows))
         return
     if a.ceiling:
         print(json.dumps(agreement_ceiling(a.patient, a.spacing, face_fraction=ff)), flush=True)

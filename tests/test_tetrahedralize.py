@@ -161,6 +161,39 @@ def test_roi_mask_and_callable_agree(shell):
     assert a.points[:, 1].min() >= -a.field_data[meshing.SURFACE_SPACING][0]
 
 
+def test_box_roi_cropped_first_gives_the_mask_roi_mesh(shell):
+    # a box roi crops the image before meshing; the same box as a point mask does not
+    box = (-70.0, 70.0, 0.0, 90.0, -30.0, 30.0)
+    p = shell.points
+    mask = np.all((p >= np.asarray(box[0::2])) & (p <= np.asarray(box[1::2])), axis=1)
+    a = tetrahedralize(shell, n_tets=3_000, roi=box)
+    b = tetrahedralize(shell, n_tets=3_000, roi=mask)
+    assert meshing._roi_crop(shell, box) is not None and meshing._roi_crop(shell, mask) is None
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.cells, b.cells)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "dup2") or __import__("sys").platform == "win32",
+                    reason="POSIX file descriptors and libc")
+def test_compiled_output_goes_to_the_log(capfd, caplog):
+    # gmsh's boundary recovery prints "PLC Error ..." with C printf before a fallback
+    # succeeds: it must reach the debug log, not the terminal
+    import ctypes
+    import os
+
+    libc = ctypes.CDLL(None)
+    with caplog.at_level("DEBUG", logger="pvcmf.filters.meshing"):
+        with meshing._c_output_to_log() as printed:
+            libc.printf(b"PLC Error:  from C\n")  # buffered by the C library
+            os.write(2, b"straight to fd 2\n")
+    out, err = capfd.readouterr()
+    assert "PLC" not in out + err and "fd 2" not in out + err
+    assert "PLC Error:  from C" in printed[0] and "fd 2" in printed[0]
+    assert "PLC Error:  from C" in caplog.text
+    os.write(1, b"after\n")
+    assert "after" in capfd.readouterr().out
+
+
 def test_input_unchanged(shell):
     before = {k: np.array(shell.point_data[k]) for k in shell.point_data.keys()}
     tetrahedralize(shell, spacing=8.0)

@@ -64,9 +64,12 @@ interfaces), scipy.sparse (surface patches, surface relaxation) and the gmsh Pyt
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import numbers
+import os
+import sys
 import time
 import warnings
 
@@ -846,10 +849,16 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
             loop = gmsh.model.geo.addSurfaceLoop(bounding)
             gmsh.model.geo.addVolume([loop], int(r))
         gmsh.model.geo.synchronize()
-        try:
-            gmsh.model.mesh.generate(3)
-        except Exception as exc:  # gmsh raises a bare Exception with its last error
-            raise SurfaceError(f"gmsh could not mesh the surfaces: {exc}") from exc
+        failure = None
+        with _c_output_to_log() as printed:
+            try:
+                gmsh.model.mesh.generate(3)
+            except Exception as exc:  # gmsh raises a bare Exception with its last error
+                failure = exc
+        if failure is not None:
+            first = printed[0].strip().splitlines()[:1] if printed and printed[0].strip() else []
+            detail = f" ({first[0]})" if first else ""
+            raise SurfaceError(f"gmsh could not mesh the surfaces: {failure}{detail}") from failure
         nodes, tets, comp = _gmsh_tets(regions)
         if min_dihedral is None or (accept is not None and not accept(len(tets))):
             return nodes, tets, comp
@@ -898,6 +907,57 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
         gmsh.model.remove()
         if own:
             gmsh.finalize()
+
+
+@contextlib.contextmanager
+def _c_output_to_log():
+    """Send what compiled code prints on stdout/stderr meanwhile to ``log.debug``.
+
+    gmsh's boundary recovery (TetGen inside HXT) prints "PLC Error: A segment and a facet
+    intersect ..." with C ``printf`` whatever ``General.Terminal`` says, also when the
+    next fallback meshes fine: that alarms users. File descriptors 1 and 2 go to a
+    temporary file for the duration (the C buffers are flushed before they are given
+    back); the text is logged at DEBUG level and yielded (a one-element list, filled on
+    exit) so that a failure can quote it. Without ``os.dup`` support nothing is captured.
+    """
+    import ctypes
+    import tempfile
+
+    printed = []
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (AttributeError, ValueError, OSError):
+            pass
+    try:
+        libc = ctypes.CDLL(None)
+    except (OSError, TypeError):
+        libc = None
+    with tempfile.TemporaryFile() as tmp:
+        saved = []
+        try:
+            for fd in (1, 2):
+                saved.append((fd, os.dup(fd)))
+                os.dup2(tmp.fileno(), fd)
+        except OSError:
+            for fd, old in saved:
+                os.dup2(old, fd)
+                os.close(old)
+            saved = []
+        try:
+            yield printed
+        finally:
+            if saved:
+                if libc is not None:
+                    libc.fflush(None)
+                for fd, old in saved:
+                    os.dup2(old, fd)
+                    os.close(old)
+                tmp.seek(0)
+                text = tmp.read().decode(errors="replace")
+                printed.append(text)
+                if text.strip():
+                    log.debug("tetrahedralize: gmsh printed: %s", text.strip())
 
 
 def _relocate_sliver_nodes(nodes, tets, free, worst, min_dihedral, rounds=3):
