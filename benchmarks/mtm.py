@@ -128,6 +128,12 @@ def bench(n, args):
     grid = shell_mesh(n)
     print(f"\n== {grid.n_cells} tetrahedra, {grid.n_points} points (mesh built in "
           f"{time.perf_counter() - t:.1f} s); load average {os.getloadavg()[0]:.1f}", flush=True)
+    if args.only_threads:
+        if args.threads:
+            threads(grid)
+        if n == args.sweep_size:
+            sweep(grid)
+        return
     rss_mesh = peak_rss_mb()
     rep = 5 if n < 100_000 else 3 if n < 500_000 else 1
     method = "direct" if grid.n_points <= pvcmf.mtm.AUTO_DIRECT_MAX_POINTS else "cg"
@@ -215,6 +221,8 @@ def bench(n, args):
         if ur is not None:
             print(f"  max |u_relax - u_direct| / max|u| = {np.abs(ur - u).max() / np.abs(u).max():.1e}")
     print(f"process peak RSS (everything above) {peak_rss_mb():.0f} MB", flush=True)
+    if args.threads:
+        threads(grid)
     if n == args.sweep_size:
         sweep(grid)
 
@@ -226,38 +234,110 @@ def _setup_and_solve(grid, **kw):
 
 
 def sweep(grid):
-    """20 Poisson ratios, one Solver: built with the first value, updated for the other 19."""
-    nus = np.linspace(0.0, 0.495, 20)
-    variants = (("numeric refactorisation each value (default ordering: METIS from the "
-                 "first update)", "auto", True),
-                ("numeric refactorisation each value, AMD order kept", "amd", True),
-                ("factor reused as CG preconditioner (refactor=False)", "auto", False))
-    for how, ordering, refactor in variants:
-        parts = {}
+    """20 Poisson ratios, one Solver: built with the first value, updated for the other 19.
 
-        def run():
+    The variants alternate (one repeat of each, three rounds) and the medians are compared:
+    the default (CHOLMOD for the first value, then the automatic switch to PARDISO with a
+    mixed-precision factor at the first refactoring update), CHOLMOD kept, PARDISO with a
+    double factor, and the factor reused as a CG preconditioner (``refactor=False``).
+    """
+    nus = np.linspace(0.0, 0.495, 20)
+    variants = [("default: numeric refactorisation each value (CHOLMOD first, then PARDISO "
+                 "mixed precision)", {}, True),
+                ("CHOLMOD kept (backend='cholmod'), numeric refactorisation each value",
+                 {"backend": "cholmod"}, True),
+                ("PARDISO double precision (backend='pardiso', precision='double')",
+                 {"backend": "pardiso", "precision": "double"}, True),
+                ("factor reused as CG preconditioner (refactor=False)", {}, False)]
+    names = pvcmf.mtm.direct_backends()
+    variants = [v for v in variants if v[1].get("backend", names[0]) in names]
+    walls = {how: [] for how, _, _ in variants}
+    cpus = {how: [] for how, _, _ in variants}
+    parts = {how: {} for how, _, _ in variants}
+    for _ in range(3):
+        for how, kw, refactor in variants:
+            part = parts[how]
+            t0, c0 = time.perf_counter(), time.process_time()
             t = time.perf_counter()
-            solver = pvcmf.mtm.Solver(grid, nu=nus[0], ordering=ordering)
+            solver = pvcmf.mtm.Solver(grid, nu=nus[0], **kw)
             solver.solve()
-            parts.setdefault("prepare", []).append(time.perf_counter() - t)
+            part.setdefault("prepare", []).append(time.perf_counter() - t)
             for nu in nus[1:]:
                 t = time.perf_counter()
                 solver.update_materials(nu=nu, refactor=refactor)
-                parts.setdefault("update", []).append(time.perf_counter() - t)
-                parts.setdefault("assembly", []).append(solver.timings["assembly"])
+                part.setdefault("update", []).append(time.perf_counter() - t)
+                part.setdefault("assembly", []).append(solver.timings["assembly"])
                 t = time.perf_counter()
                 solver.solve()
-                parts.setdefault("solve", []).append(time.perf_counter() - t)
-            parts["grouped"] = getattr(solver, "_groups", None) is not None
-
-        w, c, _ = timed(run, 3)
-        med = {k: 1000 * statistics.median(v) for k, v in parts.items() if k != "grouped"}
+                part.setdefault("solve", []).append(time.perf_counter() - t)
+                part.setdefault("iterations", []).append(solver.info["iterations"])
+            walls[how].append(time.perf_counter() - t0)
+            cpus[how].append(time.process_time() - c0)
+            part["grouped"] = getattr(solver, "_groups", None) is not None
+            part["backend"] = solver.backend_name
+            part["precision"] = solver.info.get("precision", "double")
+            part["threads"] = solver.info.get("threads", "-")
+    first = statistics.median(walls[variants[0][0]])
+    for how, _, _ in variants:
+        part = parts[how]
+        med = {k: 1000 * statistics.median(part[k]) for k in ("prepare", "update", "assembly", "solve")}
+        w = statistics.median(walls[how])
         print(f"20-value Poisson sweep (nu 0..0.495, one Solver) at {grid.n_cells} tets, {how}: "
-              f"{1000 * w:.0f} ms wall ({1000 * c:.0f} ms cpu), median of 3; per value: "
-              f"update {med['update']:.0f} ms (re-assembly {med['assembly']:.1f} ms, grouped "
-              f"materials {parts['grouped']}), solve {med['solve']:.0f} ms; first value "
-              f"(structure, analysis, factor, solve) {med['prepare']:.0f} ms; load "
-              f"{os.getloadavg()[0]:.1f}", flush=True)
+              f"{1000 * w:.0f} ms wall ({1000 * statistics.median(cpus[how]):.0f} ms cpu), "
+              f"median of 3 interleaved ({', '.join(f'{1000 * x:.0f}' for x in walls[how])}); "
+              f"{w / first:.2f}x the default; last value: backend {part['backend']}, precision "
+              f"{part['precision']}, {part['threads']} factor thread(s); per value: update "
+              f"{med['update']:.0f} ms (re-assembly {med['assembly']:.1f} ms, grouped materials "
+              f"{part['grouped']}), solve {med['solve']:.0f} ms ({statistics.median(part['iterations']):.0f} "
+              f"refinement/CG steps); first value (structure, analysis, factor, solve) "
+              f"{med['prepare']:.0f} ms; load {os.getloadavg()[0]:.1f}", flush=True)
+
+
+def threads(grid, repeat=7):
+    """Numeric factorisation of one matrix with 1 and 2 threads, interleaved, same process:
+    PARDISO double and single precision (own analysis per thread count: MKL needs the same
+    count in every phase) and CHOLMOD (OpenBLAS threads through threadpoolctl)."""
+    from threadpoolctl import threadpool_limits
+
+    from pvcmf.mtm import solvers as S
+
+    s = pvcmf.mtm.Solver(grid, nu=0.3, backend="cholmod", ordering="metis")
+    s.solve()
+    U = s.K_ff.upper
+    policy = S._pardiso_threads
+    found = {}
+    try:
+        handles = {}
+        for prec in ("double", "single"):
+            for th in (1, 2):
+                S._pardiso_threads = lambda n, th=th: th
+                handles[prec, th] = S._Pardiso(U, prec, natural=True)
+        for _ in range(repeat):
+            for (prec, th), h in handles.items():
+                S._pardiso_threads = lambda n, th=th: th
+                t, c = time.perf_counter(), time.process_time()
+                h.factor(U)
+                found.setdefault(f"PARDISO {prec} {th} thread(s)", []).append(
+                    (time.perf_counter() - t, time.process_time() - c))
+            for th in (1, 2):
+                with threadpool_limits(th, user_api="blas"):
+                    t, c = time.perf_counter(), time.process_time()
+                    s._backend.factor(s.K_ff.lower)
+                    found.setdefault(f"CHOLMOD {th} thread(s)", []).append(
+                        (time.perf_counter() - t, time.process_time() - c))
+    finally:
+        S._pardiso_threads = policy
+    print(f"numeric factorisation at {grid.n_cells} tets ({U.shape[0]} unknowns, METIS node "
+          f"order), median of {repeat} interleaved, wall (cpu):")
+    for k, v in found.items():
+        w, c = (statistics.median(x) for x in zip(*v))
+        print(f"  {k:28s} {1000 * w:7.1f} ms ({1000 * c:7.1f} ms)")
+    for name in ("PARDISO double", "PARDISO single", "CHOLMOD"):
+        one, two = found[f"{name} 1 thread(s)"], found[f"{name} 2 thread(s)"]
+        ratio = statistics.median(b[0] / a[0] for a, b in zip(one, two))
+        print(f"  {name}: 2 threads / 1 thread wall {ratio:.2f} (median of paired ratios)")
+    print(f"  policy here now: {S._pardiso_threads(U.shape[0])} thread(s); load "
+          f"{os.getloadavg()[0]:.2f} on {S._cores()} cores", flush=True)
 
 
 def main(argv=None):
@@ -269,6 +349,10 @@ def main(argv=None):
     p.add_argument("--skip-cg", action="store_true")
     p.add_argument("--relax-sweeps", type=int, default=20000)
     p.add_argument("--sweep-size", type=int, default=30_000)
+    p.add_argument("--threads", action="store_true",
+                   help="also time 1 vs 2 factorisation threads (PARDISO, CHOLMOD)")
+    p.add_argument("--only-threads", action="store_true",
+                   help="only the thread comparison (with --threads) and the sweep")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.one:  # one size in this process (its peak RSS is that size's)
@@ -278,7 +362,8 @@ def main(argv=None):
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores", flush=True)
     flags = [f"--skfem-max={args.skfem_max}", f"--relax-sweeps={args.relax_sweeps}",
              f"--sweep-size={args.sweep_size}"]
-    flags += [f"--{k.replace('_', '-')}" for k in ("skip_skfem", "skip_relaxation", "skip_cg")
+    flags += [f"--{k.replace('_', '-')}" for k in ("skip_skfem", "skip_relaxation", "skip_cg",
+                                                   "threads", "only_threads")
               if getattr(args, k)]
     for n in args.sizes:
         subprocess.run([sys.executable, __file__, "--one", "--sizes", str(n), *flags], check=False)

@@ -16,7 +16,17 @@ Methods
     triangle (``K_ff`` is then a symmetric operator on it). Wheel-only alternatives for CI (sksparse-minimal, cholespy, qdldl) were
     measured no faster than SuperLU at 30k tetrahedra, so none is used. One step of iterative
     refinement estimates the forward error; an :class:`IllConditionedWarning` says how many
-    digits the answer lost when that estimate is large.
+    digits the answer lost when that estimate is large. PARDISO is called through ctypes on
+    pypardiso's MKL (:class:`_Pardiso`): the same node order passed as its permutation, and
+    by default (``precision='auto'``/``'mixed'``) a single-precision numeric factor refined
+    in double by conjugate gradient to the double answer's accuracy (:meth:`Solver._solve_mixed`:
+    about 40 % less time per factorisation, 2-3 triangular solve pairs more), with a double
+    factor when single precision stalls or cannot estimate the lost digits (nu -> 0.5 with
+    extreme stiffness contrasts; ``info['precision']`` says so). A Poisson sweep
+    (:meth:`Solver.update_materials` refactoring for new materials) switches a solver whose
+    backend the user did not choose from CHOLMOD to mixed-precision PARDISO: at 30k
+    tetrahedra a 20-value sweep took 1.4-1.8 s against 2.2-2.9 s with CHOLMOD in the same
+    runs (see ``benchmarks/mtm.py``).
 ``cg``
     Conjugate gradient (scipy) preconditioned by one V-cycle of smoothed-aggregation
     algebraic multigrid (pyamg, rigid motions as near-null space, options measured in
@@ -33,8 +43,11 @@ Methods
 
 Iterative methods and triangular solves run with one BLAS thread (threadpoolctl, when
 installed): they are memory bound, and threaded BLAS calls on short vectors only spin.
-Factorisations of fewer than 100k unknowns run with one thread too (measured no slower up
-to 69k); larger ones keep the BLAS default unless the machine is busy (load >= cores).
+CHOLMOD factorisations of fewer than 100k unknowns run with one thread too (measured no
+slower up to 69k); larger ones keep the BLAS default unless the machine is busy (load >=
+cores). PARDISO plans its analysis, factorisations and solves for the idle cores
+(:func:`_pardiso_threads`): a second thread pays there (its parallelism is over the
+elimination tree), unless another process holds that core.
 
 :class:`Solver` keeps everything that does not depend on the material (geometry, sparsity
 pattern, elimination maps, the symbolic factorisation), so a Poisson-ratio sweep only refactors
@@ -48,6 +61,7 @@ scipy.sparse.linalg, pyamg and CuPy.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import os
 import time
@@ -72,6 +86,7 @@ __all__ = [
     "gpu_available",
     "METHODS",
     "ORDERINGS",
+    "PRECISIONS",
     "AUTO_DIRECT_MAX_POINTS",
     "FIELD_METHOD",
     "FIELD_BACKEND",
@@ -85,6 +100,8 @@ __all__ = [
 METHODS = ("direct", "cg", "relaxation", "gpu", "auto")
 #: node-graph orderings of :class:`Solver` (CHOLMOD backend)
 ORDERINGS = ("auto", "amd", "metis", "nesdis")
+#: numeric factor precisions of :class:`Solver` (``mixed``: PARDISO backend only)
+PRECISIONS = ("auto", "double", "mixed")
 #: ``method="auto"`` uses ``direct`` up to this many points, else ``cg`` (a sparse Cholesky of a
 #: 3D mesh grows faster than linearly: at 1M tetrahedra / 213k points, METIS order, L has 363M
 #: entries, 2.9 GB of values, and the process peaked at 9.8 GB; cg stayed at 3.45 GB)
@@ -99,6 +116,13 @@ FIELD_ERROR_ESTIMATE = "mtm_error_estimate"  #: estimated relative forward error
 FIELD_LOST_DIGITS = "mtm_lost_digits"  #: estimated significant digits lost (direct)
 
 _EPS = np.finfo(float).eps
+_EPS32 = float(np.finfo(np.float32).eps)
+#: the automatic CHOLMOD -> PARDISO switch of a sweep (Solver._switch_to_pardiso) needs at
+#: least this many unknowns (below it an analysis costs more than the sweep can win)
+_SWEEP_PARDISO_MIN = 2_000
+#: relative residual the mixed-precision refinement aims at (stops earlier once below tol
+#: and stagnating); about what one double factor plus one refinement step reaches
+_MIXED_TARGET = 1e-14
 
 
 _CONTROLLER = []
@@ -226,33 +250,158 @@ class _Cholmod:
         return self._factor(b)
 
 
-class _Pardiso:
-    name = "pardiso"
+_MKL = []
 
-    def __init__(self, upper):
+
+def _mkl():
+    """pypardiso's MKL runtime (a ctypes handle) with PARDISO's and the thread setter's C
+    signatures. (The lowercase ``mkl_set_num_threads*`` are the Fortran entry points, which
+    take pointers: calling them by value crashes the next PARDISO call.)"""
+    if not _MKL:
         from pypardiso import PyPardisoSolver
 
-        self._s = PyPardisoSolver(mtype=2)  # real symmetric positive definite
-        self._upper = upper
-        self._call(11, np.zeros((upper.shape[0], 1)))  # symbolic analysis (METIS ordering)
+        lib = PyPardisoSolver().libmkl
+        lib.pardiso.argtypes = [ctypes.c_void_p] * 16
+        lib.pardiso.restype = None
+        lib.MKL_Set_Num_Threads_Local.argtypes = [ctypes.c_int]
+        lib.MKL_Set_Num_Threads_Local.restype = ctypes.c_int
+        _MKL.append(lib)
+    return _MKL[0]
 
-    def _call(self, phase, b):
-        from pypardiso.pardiso_wrapper import PyPardisoError
 
-        self._s.set_phase(phase)
+def _cores():
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+#: PARDISO factorisations of fewer unknowns run on one thread (see _pardiso_threads)
+_PARDISO_THREADED_MIN = 5_000
+
+
+def _pardiso_threads(n_unknowns, cores=None, load=None):
+    """MKL threads for one PARDISO numeric factorisation: the idle cores.
+
+    ``cores - load`` (1-minute load average) rounded, between 1 and ``cores``; one thread
+    below :data:`_PARDISO_THREADED_MIN` unknowns. PARDISO parallelises over the
+    elimination tree, so unlike CHOLMOD's supernodal BLAS calls (:func:`_factor_threads`) a
+    second thread pays on an idle machine, but a thread that has to share its core with
+    another process makes the whole factorisation wait for it at every synchronisation.
+    Every phase uses the analysis's thread count (:class:`_Pardiso` re-analyses when this
+    answer changes). Wall time of 2 threads over 1, paired, interleaved, median of 7, one
+    process (``python benchmarks/mtm.py --sizes 30000 50000 150000 --threads
+    --only-threads``, METIS node order), double / single precision, CHOLMOD alongside:
+    with another engineer's job on one core (load 2.0-2.2) 30k tetrahedra (13 932 unknowns)
+    1.78 / 2.17 (CHOLMOD 1.00); moments later with that core free, 50k (23 170) 0.61 / 0.55
+    (129 / 65 ms against 211 / 121 ms; CHOLMOD 0.83) and 150k (69 406) 0.56 / 0.55
+    (1.01 / 0.49 s against 1.68 / 0.85 s; CHOLMOD 1.02). The load average counts this
+    process too, so a long sweep on an otherwise idle 2-core machine settles on one
+    thread: conservative, never the 2x slowdown.
+    """
+    if n_unknowns < _PARDISO_THREADED_MIN:
+        return 1
+    cores = _cores() if cores is None else int(cores)
+    if load is None:
         try:
-            return self._s._call_pardiso(self._upper, np.asfortranarray(b))
-        except PyPardisoError as err:
-            if err.value == -4:
-                raise _not_pd(err) from err
-            raise
+            load = os.getloadavg()[0]
+        except OSError:  # no load average on this platform
+            return cores
+    return int(min(cores, max(1, np.floor(cores - load + 0.5))))
+
+
+class _Pardiso:
+    """MKL PARDISO (real symmetric positive definite, ``mtype=2``) through ctypes.
+
+    Called directly on pypardiso's MKL runtime (pypardiso's own wrapper passes float64 only,
+    converts the indices to one-based on every call and cannot set threads): the upper
+    triangle in CSR with zero-based indices (``iparm[34]``) converted once, an optional user
+    permutation (the unknowns already numbered in a fill-reducing order: ``natural=True``
+    skips PARDISO's own METIS), ``precision='single'`` for a float32 numeric factor
+    (``iparm[27]``; answers then need refinement against the double matrix, see
+    :meth:`Solver._solve_mixed`), the factorisation threads chosen by
+    :func:`_pardiso_threads` and the solves on one thread. No refinement inside PARDISO.
+    """
+
+    name = "pardiso"
+
+    def __init__(self, upper, precision="double", natural=False):
+        self._lib = _mkl()
+        n = self.n = upper.shape[0]
+        self.precision = precision
+        self._dtype = np.float32 if precision == "single" else np.float64
+        self._pt = np.zeros(64, dtype=np.int64)
+        ip = self._iparm = np.zeros(64, dtype=np.int32)
+        ip[0] = 1  # iparm set here, zeros are defaults
+        ip[1] = 2  # METIS nested dissection (unless a permutation is given)
+        ip[4] = 1 if natural else 0  # perm holds the user's fill-reducing permutation
+        ip[27] = 1 if precision == "single" else 0
+        ip[34] = 1  # zero-based ia, ja
+        self._ia = np.ascontiguousarray(upper.indptr, dtype=np.int32)
+        self._ja = np.ascontiguousarray(upper.indices, dtype=np.int32)
+        self._perm = np.arange(n, dtype=np.int32) if natural else np.zeros(n, dtype=np.int32)
+        self._a = np.ascontiguousarray(upper.data, dtype=self._dtype)
+        self._analyse(_pardiso_threads(n))
+
+    def _analyse(self, threads):
+        """Symbolic analysis for ``threads`` threads (every later phase must use as many:
+        MKL 2026.2 crashed in the next numeric factorisation after an analysis or a solve
+        with another thread count)."""
+        if getattr(self, "threads", None) is not None:
+            self._call(-1)  # release the previous analysis and factor
+            self._pt[:] = 0
+        self.threads = int(threads)
+        self._call(11)
+
+    def _call(self, phase, b=None):
+        P = ctypes.c_void_p
+
+        def i32(v):
+            return ctypes.byref(ctypes.c_int32(v))
+
+        if b is None:
+            b = x = np.zeros(self.n, dtype=self._dtype)
+        else:
+            b = np.ascontiguousarray(b, dtype=self._dtype)
+            x = np.empty_like(b)
+        err = ctypes.c_int32(0)
+        lib = self._lib
+        previous = lib.MKL_Set_Num_Threads_Local(self.threads)  # this thread only
+        try:
+            lib.pardiso(self._pt.ctypes.data_as(P), i32(1), i32(1), i32(2), i32(phase),
+                        i32(self.n), self._a.ctypes.data_as(P), self._ia.ctypes.data_as(P),
+                        self._ja.ctypes.data_as(P), self._perm.ctypes.data_as(P), i32(1),
+                        self._iparm.ctypes.data_as(P), i32(0), b.ctypes.data_as(P),
+                        x.ctypes.data_as(P), ctypes.byref(err))
+        finally:
+            lib.MKL_Set_Num_Threads_Local(previous)
+        if err.value == -4:
+            raise _not_pd(f"PARDISO error -4, zero or negative pivot ({self.precision})")
+        if err.value != 0:
+            raise RuntimeError(f"PARDISO phase {phase} failed with error {err.value}")
+        return x
 
     def factor(self, upper):
-        self._upper = upper
-        self._call(22, np.zeros((upper.shape[0], 1)))
+        self._a = np.ascontiguousarray(upper.data, dtype=self._dtype)
+        threads = _pardiso_threads(self.n)
+        if threads != self.threads:  # the machine got busier or idler: plan again
+            log.debug("PARDISO: %d -> %d threads (new analysis)", self.threads, threads)
+            self._analyse(threads)
+        self._call(22)
 
     def solve(self, b):
-        return self._call(33, b.reshape(-1, 1)).ravel()
+        if self._dtype == np.float64:
+            return self._call(33, b)
+        scale = float(np.abs(b).max())  # float32 range: solve for b / max|b|
+        if scale == 0.0:
+            return np.zeros(self.n)
+        return self._call(33, b / scale).astype(np.float64) * scale
+
+    def __del__(self):
+        try:  # release PARDISO's memory (phase -1)
+            self._call(-1)
+        except Exception:  # noqa: BLE001 - interpreter shutdown, failed __init__
+            pass
 
 
 class _SuperLU:
@@ -482,7 +631,16 @@ class Solver:
         Relative residual ``||K_ff y - b|| / ||b||`` to reach (iterative methods) or to check
         (``direct``, which raises :class:`ConvergenceError` above it after refinement).
     backend : {'cholmod', 'pardiso', 'superlu'}, optional
-        Direct backend; default the first of :func:`direct_backends`.
+        Direct backend; default the first of :func:`direct_backends`, and then, at the
+        first :meth:`update_materials` that refactors (a sweep), PARDISO with a
+        mixed-precision factor when pypardiso is importable and the system has at least
+        2000 unknowns (:attr:`backend_name` says which is in use).
+    precision : {'auto', 'double', 'mixed'}
+        Numeric factor of the PARDISO backend: ``mixed`` (and ``auto``) factor in single
+        precision and refine in double to round-off (:meth:`_solve_mixed`), falling back to
+        a double factor when that stalls; ``double`` always factors in double. CHOLMOD and
+        SuperLU factor in double (``mixed`` needs ``backend='pardiso'``).
+        ``info['precision']`` is ``'mixed'``, ``'double'`` or ``'double (mixed stalled)'``.
     maxiter : int, optional
         Iteration cap (default 2000 for cg/gpu, 20000 sweeps for relaxation).
     preconditioner : {'amg', 'jacobi'}, optional
@@ -495,8 +653,9 @@ class Solver:
     progress_bar : bool
         Show a tqdm bar for iterative methods (when tqdm is installed).
     ordering : {'auto', 'amd', 'metis', 'nesdis'}
-        Fill-reducing ordering of the node graph for the CHOLMOD backend (ignored by the
-        others; the one used is :attr:`node_ordering`). ``auto``: AMD below 30k nodes with
+        Fill-reducing ordering of the node graph for the CHOLMOD and PARDISO backends (the
+        latter gets it as its permutation; needs scikit-sparse, else PARDISO orders with
+        its own METIS; the one used is :attr:`node_ordering`). ``auto``: AMD below 30k nodes with
         unknowns, METIS above (cheapest for one solve), and METIS from the first
         :meth:`update_materials` that refactors (a sweep: METIS costs ~20 ms more once at
         30k tetrahedra and a third fewer flops in every numeric factorisation).
@@ -526,7 +685,8 @@ class Solver:
 
     def __init__(self, grid, method="direct", *, tol=1e-10, backend=None, maxiter=None,
                  preconditioner=None, omega=1.0, warn_lost_digits=8.0, progress_bar=False,
-                 ordering="auto", E_fiber=None, E_cross=None, nu=None, fiber=None):
+                 ordering="auto", precision="auto", E_fiber=None, E_cross=None, nu=None,
+                 fiber=None):
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         if method == "auto":
@@ -539,6 +699,9 @@ class Solver:
                 "method='gpu' needs CuPy and a CUDA device, and none was found; "
                 "use method='direct' or 'cg'"
             )
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+        self._auto_backend = method == "direct" and backend is None
         if method == "direct":
             names = direct_backends()
             backend = names[0] if backend is None else backend
@@ -548,6 +711,13 @@ class Solver:
                 raise ValueError(f"backend {backend!r} is not importable here; available: {names}")
         elif backend is not None:
             raise ValueError(f"backend applies to method='direct' only, got method={method!r}")
+        if precision == "mixed" and backend != "pardiso":
+            raise ValueError(
+                f"precision='mixed' needs method='direct' with backend='pardiso' (a single-"
+                f"precision factor), got method={method!r}, backend={backend!r}"
+            )
+        self.precision = precision
+        self._mixed_stalled = False
         if ordering not in ORDERINGS:
             raise ValueError(f"ordering must be one of {ORDERINGS}, got {ordering!r}")
         self.ordering = ordering
@@ -588,7 +758,7 @@ class Solver:
         free = cons.free.reshape(n, 3)
         self._ordering, self.node_ordering = "default", None
         nodes = None
-        if self.method == "direct" and self.backend_name == "cholmod":
+        if self._triangular:  # CHOLMOD, PARDISO
             found = _node_order(asm.indptr, asm.indices, cons.free,
                                 self.ordering if ordering is None else ordering)
             if found is not None:  # the unknowns numbered in elimination order
@@ -652,6 +822,11 @@ class Solver:
 
         Each argument is a scalar or a per-cell array; omitted ones keep their value.
 
+        With ``refactor=True`` the first call switches a CHOLMOD solver whose backend the
+        user did not choose to PARDISO with a mixed-precision factor (when pypardiso is
+        importable and there are at least 2000 unknowns): every value of a sweep is then a
+        numeric refactorisation at about half the cost (one PARDISO analysis once).
+
         ``refactor=False`` (``direct`` only) keeps the previous numeric factorisation and
         makes the next :meth:`solve` a conjugate gradient preconditioned by it (a few
         triangular solves when the materials changed little, e.g. the next value of a
@@ -690,6 +865,8 @@ class Solver:
 
         check_positive_definite(ef2, ec2, nu2)
         self.materials = (ef2, ec2, nu2, a)
+        if refactor and self._switch_to_pardiso():
+            self._backend, self._groups = None, None
         if refactor and self.ordering == "auto" and self.node_ordering == "amd":
             # refactoring for new materials: a sweep. METIS costs ~20 ms more once (30k
             # tetrahedra) and a third fewer flops in every factorisation from now on
@@ -828,18 +1005,47 @@ class Solver:
         return {"label": label, "rep": rep, "ani": ani, "fiber": np.array(fiber),
                 "group": np.array(group), "kind": np.array(kind), "basis": basis}
 
+    @property
+    def _factor_precision(self):
+        """'single' or 'double': the PARDISO numeric factor of the current materials."""
+        return "double" if self.precision == "double" or self._mixed_stalled else "single"
+
+    _switched = False
+
+    def _switch_to_pardiso(self):
+        """At the first refactoring update of a CHOLMOD solver whose backend was not chosen
+        by the user: switch to PARDISO with a mixed-precision factor (a sweep; see
+        :meth:`update_materials`). Returns whether it switched."""
+        if not (self._auto_backend and self.backend_name == "cholmod" and not self._switched
+                and self.F.size >= _SWEEP_PARDISO_MIN and "pardiso" in direct_backends()):
+            return False
+        self.backend_name, self._switched = "pardiso", True
+        log.debug("sweep: direct backend CHOLMOD -> PARDISO (%s precision)",
+                  self._factor_precision)
+        return True
+
     def _setup_direct(self):
         A = self._direct_matrix()
         if self._backend is None:
             t = time.perf_counter()
             if self.backend_name == "pardiso":
-                self._backend = _Pardiso(A)
+                self._backend = _Pardiso(A, self._factor_precision,
+                                         natural=self._ordering == "natural")
             elif self.backend_name == "cholmod":
                 self._backend = _Cholmod(A, ordering=self._ordering)
             else:
                 self._backend = _SuperLU(A)
             self.timings["analysis"] = time.perf_counter() - t
-        self._backend.factor(A)
+        try:
+            self._backend.factor(A)
+        except np.linalg.LinAlgError:
+            if getattr(self._backend, "precision", "double") != "single":
+                raise
+            # positive definite in double but not in single precision (cond(K) >~ 1e7)
+            log.info("mixed precision: the single-precision factor broke down (not positive "
+                     "definite in float32): refactoring in double")
+            self._mixed_stalled, self._backend = True, None
+            self._setup_direct()
 
     def _setup_cg(self):
         use_amg = self.preconditioner == "amg"
@@ -1029,6 +1235,62 @@ class Solver:
         info.update(residual=res, iterations=count[0], reused_factor=True)
         return y
 
+    #: mixed precision: CG iterations preconditioned by the single-precision factor before
+    #: it falls back to a double factor (stalls: nu -> 0.5, large stiffness ratios)
+    max_mixed_iterations = 25
+    #: mixed precision: above this estimated error of a single-precision solve (about
+    #: ``cond(K) * eps32``, i.e. 5 digits lost) the estimate saturates (it cannot see the 8
+    #: digits that warn), so the solver refactors in double to estimate from a double solve
+    max_mixed_error = 1e-2
+
+    def _solve_mixed(self, b, nb, info):
+        """Solve with the single-precision factor, refined in double; None if stalled.
+
+        A single-precision solve, then conjugate gradient on the double ``K_ff``
+        preconditioned by the single factor, to a relative residual of
+        :data:`_MIXED_TARGET` (what a double factor plus one refinement step reaches; a
+        1e-10 residual alone left 1e-7 relative error at nu 0.4999), stopping early once
+        the residual is below ``tol`` and no longer halves. The first correction estimates
+        the forward error of one single-precision solve (about ``cond(K) * eps32``); each
+        iteration divides the residual by about that much. Returns ``(None, err32)`` when
+        ``tol`` is not reached in :attr:`max_mixed_iterations` or when ``err32`` exceeds
+        :attr:`max_mixed_error` (the caller refactors in double).
+        """
+        solve32, K = self._backend.solve, self.K_ff
+        y = solve32(b)
+        r = b - K @ y
+        z = solve32(r)
+        ny = _norm(y)
+        err32 = _norm(z) / ny if ny > 0 else 0.0
+        if err32 > self.max_mixed_error:
+            log.info("mixed precision: the single-precision factor's error %.1e estimates more "
+                     "than %.0f lost digits: refactoring in double for a reliable estimate",
+                     err32, np.log10(max(self.max_mixed_error, _EPS32) / _EPS32))
+            return None, err32
+        target = min(self.tol, _MIXED_TARGET)
+        p, rz = z, float(np.dot(r, z))
+        res = _norm(r) / nb
+        steps = 0
+        while res > target and steps < self.max_mixed_iterations and np.isfinite(res):
+            Kp = K @ p
+            alpha = rz / float(np.dot(p, Kp))
+            y = y + alpha * p
+            r = r - alpha * Kp
+            steps += 1
+            previous, res = res, _norm(r) / nb
+            if res <= self.tol and res > 0.5 * previous:
+                break  # converged to tol and stagnating near round-off
+            z = solve32(r)
+            rz, rz_old = float(np.dot(r, z)), rz
+            p = z + (rz / rz_old) * p
+        res = self._residual(y, b, nb)  # the true residual, not the recurrence
+        if not (np.isfinite(res) and res <= self.tol):
+            log.info("mixed precision stalled (relative residual %.1e after %d CG iterations, "
+                     "estimated single-precision error %.1e): refactoring in double",
+                     res, steps, err32)
+            return None, err32
+        return (y, res, steps), err32
+
     def _solve_direct(self, b, nb, y0, info):
         if self._stale:
             y = self._solve_stale(b, nb, info)
@@ -1041,6 +1303,32 @@ class Solver:
             self._t_factor = time.perf_counter() - t
             self._factored_moduli = self._moduli()
             self.timings["factor"] += self._t_factor
+        info["precision"] = self._factor_precision if self.backend_name == "pardiso" else "double"
+        if info["precision"] == "single":
+            t0 = time.perf_counter()
+            found, err32 = self._solve_mixed(b, nb, info)
+            self._t_iter = (time.perf_counter() - t0) / 4
+            if found is not None:
+                y, res, steps = found
+                # the same digits are lost with a double factor: cond(K) * eps
+                lost = float(np.log10(max(err32, _EPS32) / _EPS32))
+                info.update(residual=res, iterations=steps, precision="mixed",
+                            error_estimate=err32 * _EPS / _EPS32, lost_digits=lost,
+                            threads=self._backend.threads)
+                self._warn_lost(err32 * _EPS / _EPS32, lost)
+                return y
+            # stalled: a double factor from now on (say so in info)
+            t = time.perf_counter()
+            self._mixed_stalled = True
+            self._backend = None
+            with _factor_threads(self.F.size):
+                self._setup_direct()
+            self._t_factor = time.perf_counter() - t
+            self.timings["factor"] += self._t_factor
+        if self._mixed_stalled:
+            info["precision"] = "double (mixed stalled)"
+        if self.backend_name == "pardiso":
+            info["threads"] = self._backend.threads
         t0 = time.perf_counter()
         y = self._backend.solve(b)
         # one refinement step: its size estimates the forward error of the first solve
@@ -1061,14 +1349,17 @@ class Solver:
                 f"direct solve ({self.backend_name}) left a relative residual {res:.2e} > tol "
                 f"{self.tol:.0e} after {steps} refinement steps: the system is numerically singular"
             )
+        self._warn_lost(err, lost)
+        return y
+
+    def _warn_lost(self, err, lost):
         if lost >= self.warn_lost_digits:
             warnings.warn(
                 f"the MTM system is ill conditioned: estimated relative error of the solution "
                 f"{err:.1e}, about {lost:.0f} of 16 significant digits lost "
                 "(extreme stiffness ratios, nu near 0.5 or degenerate tetrahedra?)",
-                IllConditionedWarning, stacklevel=3,
+                IllConditionedWarning, stacklevel=4,
             )
-        return y
 
     def _solve_cg(self, b, nb, y0, info):
         maxiter = 2000 if self.maxiter is None else int(self.maxiter)
