@@ -5,10 +5,15 @@ Not run by CI. Run ``python benchmarks/mtm.py`` (``--sizes 30000 150000 1000000`
 measured in the same run: scikit-fem's assemble+solve relative to pvcmf's (paired runs,
 alternating, ratio per pair; median of 3 below 100k tetrahedra), the paper's relaxation
 solver, and a 20-value Poisson sweep with one :class:`pvcmf.mtm.Solver` (built with the first
-value, 19 updates: numeric refactorisation with the default ordering, with AMD kept, and the
-factor reused as CG preconditioner). The load average is printed for each size and after
-the scikit-fem and sweep lines: on the shared 2-core machine compare ratios from one run,
-not absolute times across runs.
+value, 19 updates, variants interleaved, median of 3: the default numeric refactorisation
+(CHOLMOD first, then the automatic switch to mixed-precision PARDISO), CHOLMOD kept, PARDISO
+in double precision, and the factor reused as CG preconditioner; each line says the backend,
+precision and factorisation threads of its last value). ``--threads`` adds paired 1- vs
+2-thread factorisation times (PARDISO double and single, CHOLMOD); ``--only-threads`` skips
+everything but those and the sweep (e.g. ``--sizes 30000 50000 150000 --threads
+--only-threads``). The load average is printed for each size and after the scikit-fem, thread
+and sweep lines: on the shared 2-core machine compare ratios from one run, not absolute times
+across runs.
 
 The mesh is a synthetic head-like shell (a thick spherical cap, 12 mm soft tissue, jittered
 structured grid split into tetrahedra) with a muscle band (paper 000 Table I materials, fibres
@@ -140,6 +145,7 @@ def bench(n, args):
     w_total, c_total, solver = timed(lambda: _setup_and_solve(grid, method=method, tol=1e-8
                                                               if method == "cg" else 1e-10), rep)
     u = solver.solve()
+    first_backend, first_analysis = solver.backend_name, solver.timings.get("analysis", np.nan)
     asm = solver.assembler
     ef, ec, nu, a = solver.materials
     w_asm, c_asm, _ = timed(lambda: asm.matrix(ef, ec, nu, a), rep)
@@ -147,7 +153,7 @@ def bench(n, args):
     w_sol, c_sol, _ = timed(solver.solve, rep)
     ms = lambda x: f"{1000 * x:7.0f} ms"  # noqa: E731
     rss_solve = peak_rss_mb()
-    print(f"unknowns {solver.F.size}, method {method} ({solver.backend_name or 'amg'}); "
+    print(f"unknowns {solver.F.size}, method {method} ({first_backend or 'amg'}); "
           f"wall (cpu, all threads), median of {rep}")
     print(f"peak RSS {rss_solve:.0f} MB after the solves ({rss_mesh:.0f} MB after building the "
           f"mesh; the solver's share {rss_solve - rss_mesh:.0f} MB)")
@@ -155,8 +161,11 @@ def bench(n, args):
           f"{solver.info['residual']:.1e}, est. error {solver.info['error_estimate']:.1e}")
     print(f"  assembly (BSR, new materials)  {ms(w_asm)} ({ms(c_asm)})")
     if method == "direct":
-        print(f"  symbolic analysis (first only) {ms(solver.timings['analysis'])}")
-    print(f"  re-assembly + numeric factor / AMG setup {ms(w_upd)} ({ms(c_upd)})")
+        print(f"  symbolic analysis (first only) {ms(first_analysis)}")
+    print(f"  re-assembly + numeric factor / AMG setup {ms(w_upd)} ({ms(c_upd)})"
+          + (f" [{solver.backend_name}, {solver.info.get('precision', 'double')} precision, "
+             f"{solver.info.get('threads', '-')} thread(s): a refactoring update switches a "
+             f"CHOLMOD solver to PARDISO]" if method == "direct" else ""))
     if method == "direct":
         print(f"  solve (+1 refinement step)     {ms(w_sol)} ({ms(c_sol)})", flush=True)
     else:
@@ -310,11 +319,11 @@ def threads(grid, repeat=7):
         handles = {}
         for prec in ("double", "single"):
             for th in (1, 2):
-                S._pardiso_threads = lambda n, th=th: th
+                S._pardiso_threads = lambda n, th=th, **kw: th
                 handles[prec, th] = S._Pardiso(U, prec, natural=True)
         for _ in range(repeat):
             for (prec, th), h in handles.items():
-                S._pardiso_threads = lambda n, th=th: th
+                S._pardiso_threads = lambda n, th=th, **kw: th
                 t, c = time.perf_counter(), time.process_time()
                 h.factor(U)
                 found.setdefault(f"PARDISO {prec} {th} thread(s)", []).append(

@@ -30,11 +30,21 @@ def test_pardiso_thread_policy(cores, load, n, expected):
     assert S._pardiso_threads(n, cores=cores, load=load) == expected
 
 
+@pytest.mark.parametrize("load,current,expected", [
+    (0.6, 2, 2), (0.7, 2, 2), (0.8, 2, 1),   # 2 threads planned: dropped when > 0.75 busy
+    (0.3, 1, 1), (0.2, 1, 2),                # 1 thread planned: raised when < 0.25 busy
+    (1.9, 2, 1), (0.0, 1, 2),
+])
+def test_pardiso_thread_policy_hysteresis(load, current, expected):
+    assert S._pardiso_threads(14_000, cores=2, load=load, current=current) == expected
+
+
 def test_pardiso_threads_without_load_average(monkeypatch):
     def no_load():
         raise OSError("no load average")
 
     monkeypatch.setattr(S.os, "getloadavg", no_load)
+    monkeypatch.setattr(S, "_own_load", lambda: 0.0)  # this process idle
     assert S._pardiso_threads(50_000, cores=4) == 4
     monkeypatch.setattr(S.os, "getloadavg", lambda: (0.1, 0.1, 0.1))
     assert S._pardiso_threads(50_000, cores=4) == 4
@@ -120,7 +130,7 @@ def test_thread_count_changes_replan_the_factorisation(box, monkeypatch):
     """MKL PARDISO crashed when a factorisation or solve used another thread count than the
     analysis: a change of the policy's answer must re-analyse, and the answers stay exact."""
     counts = itertools.cycle([2, 2, 1, 2, 1, 1])
-    monkeypatch.setattr(S, "_pardiso_threads", lambda n: next(counts))
+    monkeypatch.setattr(S, "_pardiso_threads", lambda n, **kw: next(counts))
     s = Solver(box, backend="pardiso", precision="double")  # analysis with 2 threads
     s.solve()
     seen = set()
@@ -165,3 +175,24 @@ def test_precision_validation(box):
         Solver(box, backend="superlu", precision="mixed")
     with pytest.raises(ValueError, match="method='cg'"):
         Solver(box, method="cg", precision="mixed")
+
+
+def test_own_load_is_this_process_cpu_averaged_like_the_load_average(monkeypatch):
+    clock = {"t": 1000.0, "cpu": 50.0}
+    monkeypatch.setattr(S.time, "monotonic", lambda: clock["t"])
+    monkeypatch.setattr(S.time, "process_time", lambda: clock["cpu"])
+    monkeypatch.setattr(S, "_OWN", {"t": 1000.0, "cpu": 50.0, "load": 0.0})
+    for _ in range(600):  # 10 minutes at 1.5 cores: converges to 1.5
+        clock["t"] += 1.0
+        clock["cpu"] += 1.5
+        S._own_load()
+    converged = 1.5 * (1 - np.exp(-10.0))  # 1 - e^(-600 s / 60 s) of the way from 0
+    assert abs(S._own_load() - converged) < 1e-9
+    clock["t"] += 60.0  # one idle minute: decays by e
+    assert abs(S._own_load() - converged / np.e) < 1e-9
+    # the policy subtracts it: load average 1.6, 1.5 of it ours -> both cores idle enough
+    monkeypatch.setattr(S, "_OWN", {"t": clock["t"], "cpu": clock["cpu"], "load": 1.5})
+    monkeypatch.setattr(S.os, "getloadavg", lambda: (1.6, 1.0, 1.0))
+    assert S._pardiso_threads(50_000, cores=2) == 2
+    monkeypatch.setattr(S, "_OWN", {"t": clock["t"], "cpu": clock["cpu"], "load": 0.0})
+    assert S._pardiso_threads(50_000, cores=2) == 1

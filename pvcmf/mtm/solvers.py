@@ -280,11 +280,14 @@ def _cores():
 _PARDISO_THREADED_MIN = 5_000
 
 
-def _pardiso_threads(n_unknowns, cores=None, load=None):
+def _pardiso_threads(n_unknowns, cores=None, load=None, current=None):
     """MKL threads for one PARDISO numeric factorisation: the idle cores.
 
     ``cores - load`` (1-minute load average) rounded, between 1 and ``cores``; one thread
-    below :data:`_PARDISO_THREADED_MIN` unknowns. PARDISO parallelises over the
+    below :data:`_PARDISO_THREADED_MIN` unknowns. With ``current`` (the count the analysis
+    planned for) the answer only changes when the idle cores differ from it by 0.75 or
+    more: each change costs a new analysis, so a load near a rounding boundary must not
+    make the count flip back and forth. PARDISO parallelises over the
     elimination tree, so unlike CHOLMOD's supernodal BLAS calls (:func:`_factor_threads`) a
     second thread pays on an idle machine, but a thread that has to share its core with
     another process makes the whole factorisation wait for it at every synchronisation.
@@ -295,19 +298,38 @@ def _pardiso_threads(n_unknowns, cores=None, load=None):
     with another engineer's job on one core (load 2.0-2.2) 30k tetrahedra (13 932 unknowns)
     1.78 / 2.17 (CHOLMOD 1.00); moments later with that core free, 50k (23 170) 0.61 / 0.55
     (129 / 65 ms against 211 / 121 ms; CHOLMOD 0.83) and 150k (69 406) 0.56 / 0.55
-    (1.01 / 0.49 s against 1.68 / 0.85 s; CHOLMOD 1.02). The load average counts this
-    process too, so a long sweep on an otherwise idle 2-core machine settles on one
-    thread: conservative, never the 2x slowdown.
+    (1.01 / 0.49 s against 1.68 / 0.85 s; CHOLMOD 1.02). ``load`` is the other
+    processes' load: the load average less this process's own share (:func:`_own_load`),
+    else a long sweep on an otherwise idle machine would count itself as busy.
     """
     if n_unknowns < _PARDISO_THREADED_MIN:
         return 1
     cores = _cores() if cores is None else int(cores)
     if load is None:
         try:
-            load = os.getloadavg()[0]
+            load = max(0.0, os.getloadavg()[0] - _own_load())
         except OSError:  # no load average on this platform
             return cores
-    return int(min(cores, max(1, np.floor(cores - load + 0.5))))
+    idle = cores - load
+    if current is not None and abs(idle - current) < 0.75:
+        return int(current)
+    return int(min(cores, max(1, np.floor(idle + 0.5))))
+
+
+_OWN = {"t": time.monotonic(), "cpu": time.process_time(), "load": 0.0}
+
+
+def _own_load():
+    """This process's share of the 1-minute load average: its CPU use (all threads, cores)
+    averaged like the kernel's load average (exponential decay, 60 s), updated per call
+    from the CPU time since the previous call (the first since this module's import)."""
+    now, cpu = time.monotonic(), time.process_time()
+    dt = now - _OWN["t"]
+    if dt > 0:
+        keep = float(np.exp(-dt / 60.0))
+        _OWN["load"] = _OWN["load"] * keep + (cpu - _OWN["cpu"]) / dt * (1.0 - keep)
+        _OWN.update(t=now, cpu=cpu)
+    return _OWN["load"]
 
 
 class _Pardiso:
@@ -383,7 +405,7 @@ class _Pardiso:
 
     def factor(self, upper):
         self._a = np.ascontiguousarray(upper.data, dtype=self._dtype)
-        threads = _pardiso_threads(self.n)
+        threads = _pardiso_threads(self.n, current=self.threads)
         if threads != self.threads:  # the machine got busier or idler: plan again
             log.debug("PARDISO: %d -> %d threads (new analysis)", self.threads, threads)
             self._analyse(threads)
