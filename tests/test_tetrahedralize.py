@@ -109,6 +109,13 @@ def test_label_agreement_goal_98_percent(shell, shell_mesh):
     assert agree >= 0.98
 
 
+def test_label_agreement_goal_98_percent_reached_at_20k_on_the_shell(shell):
+    # the goal of the xfail above, met with twice the tetrahedra (measured 98.2 %; 30k 98.3 %,
+    # 60k 98.8 %): on the virtual patients it is not met at any count (README, meshing)
+    _, agree = _label_agreement(shell, tetrahedralize(shell, n_tets=20_000))
+    assert agree >= 0.98
+
+
 def test_regions_connected_like_the_image(shell, shell_mesh):
     muscle = np.asarray(shell[arrays.MUSCLE]).reshape(shell.dimensions[::-1])
     for m in range(1, 5):
@@ -399,7 +406,10 @@ def test_every_virtual_patient_keeps_every_muscle(patient_mesh):
     strict=True,
     reason="known limitation: at 30k tetrahedra over the anterior half of the head (working "
     "spacing 5-7 mm) 90.7-91.2 % of the centroids fall in a voxel of their own tissue, not "
-    "98 %: 6 mm triangles do not follow the nose, lips and thin muscles closely enough",
+    "98 %: 6 mm triangles do not follow the nose, lips and thin muscles closely enough; on "
+    "these 2 mm images the agreement stops at 92.4-94.5 % even at 300k tetrahedra, 94-100 % "
+    "of the failing centroids having a voxel of their own tissue among their 26 neighbours "
+    "(smooth surfaces against the 2 mm voxel staircase; benchmarks/meshing.py --table)",
 )
 def test_every_virtual_patient_goal_98_percent(patient_mesh):
     truth, grid = patient_mesh

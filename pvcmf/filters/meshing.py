@@ -33,7 +33,8 @@ the muscle surfaces:
    rejects the
    surfaces the next step of :data:`_FALLBACKS` (a slightly different grid, weaker
    smoothing and placement, finally the plain working-grid surfaces) is tried and a
-   warning says so;
+   warning says so (what gmsh's boundary recovery prints on the terminal meanwhile,
+   "PLC Error: ...", goes to the debug log instead);
 4. the region label is written on every element (``arrays.TISSUE``, ``arrays.MUSCLE``) and
    the element quality (dihedral angles, radius ratio) and the timings are written to the
    field data (names in :data:`QUALITY_FIELDS`).
@@ -50,11 +51,24 @@ centroids fall in a voxel of the element's own tissue on the 2 mm virtual patien
 (92 % at 1 mm, 96 % at 160k): 6 mm triangles cannot follow the nose, lips and eyelids
 to the ~0.7 mm at which a centroid 1-1.5 mm deep lands in the right voxel; the volume of
 the thin facial muscles (~3 mm) is off by tens of per cent although every muscle is
-present. Graded remeshing with MMG (mmg3d through ``mmgpy``, ``hausd`` 0.5-1 mm) was
-measured and dropped: 30-40 s for 130k -> 70k tetrahedra and a lower agreement (the
-coarsened interior leaves a larger share of elements at the surfaces). Request more
-tetrahedra or a smaller region of interest where this matters (numbers in
-``benchmarks/meshing.py`` and README).
+present. On the 2 mm patients the agreement stops at 92-94.5 % even at 300k: 94-100 % of
+the failing centroids have a voxel of their own tissue among their 26 neighbours, i.e.
+the smooth surfaces against the 2 mm voxel staircase (``benchmarks/meshing.py --table``).
+Graded volume meshes were measured and dropped (session 4, 1 mm patient 1, face box):
+a gmsh ``Distance`` field of all the surfaces + ``Threshold`` (size ``s`` at the surfaces up
+to 2-3 ``s`` from ``0.5 s`` to 2-3 ``s`` away, ``MeshSizeExtendFromBoundary`` off), the
+freed count going to a finer working spacing through the calibration: 30k -> 27.2-27.8k
+tetrahedra at 5.56 mm (ungraded 25.9k at 6.2 mm), agreement 92.5-92.7 % against 92.4 %
+(+0.2 at equal count), muscle-volume RMS 31-35 % against 52 %, but the 1st-percentile
+dihedral 14.9 deg (goal 15) and 3.0-3.2 s (the distance field makes gmsh's volume step
+~1.8x slower, plus calibration retries); at 160k 96.0 % against 96.4 %, p1 13.4-13.9 deg,
+19-24 s against 3.7 s; on the four 2 mm patients at 30k +1.0 / +0.2 / +0.8 / -0.3 points
+at 8-14 % more tetrahedra, 3-6 s. ``Mesh.MeshSizeMax`` alone (no field) gave the same
+agreement with p1 11-14 deg and 4-14 s. Graded remeshing with MMG (mmg3d through ``mmgpy``,
+``hausd`` 0.5-1 mm) was also measured and dropped: 30-40 s for 130k -> 70k tetrahedra and a
+lower agreement (the coarsened interior leaves a larger share of elements at the
+surfaces). Request more tetrahedra or a smaller region of interest where this matters
+(numbers in ``benchmarks/meshing.py`` and README).
 
 Delegates to PyVista/VTK (``contour_labels`` = ``vtkSurfaceNets3D``,
 ``vtkConstrainedSmoothingFilter``), scipy.ndimage (connected components, box averages of
