@@ -933,6 +933,8 @@ def _c_output_to_log():
     temporary file for the duration (the C buffers are flushed before they are given
     back); the text is logged at DEBUG level and yielded (a one-element list, filled on
     exit) so that a failure can quote it. Without ``os.dup`` support nothing is captured.
+    The descriptors are the process's: what other threads print in that window (gmsh's
+    volume step, about a second at 30k tetrahedra) goes to the debug log as well.
     """
     import ctypes
     import tempfile
