@@ -172,6 +172,22 @@ def bench(n, args):
         print(f"  cg solve ({solver.info['iterations']} iterations to "
               f"{solver.info['residual']:.0e})   {ms(w_sol)} ({ms(c_sol)})", flush=True)
     total = w_total
+    if method == "direct" and "pardiso" in pvcmf.mtm.direct_backends() \
+            and first_backend != "pardiso":
+        # one solve from the grid: the default backend against PARDISO (mixed, double),
+        # interleaved, median of 5 paired ratios
+        pairs = {"mixed": [], "double": []}
+        for _ in range(5):
+            w_def, _, _ = timed(lambda: _setup_and_solve(grid), 1)
+            for prec in pairs:
+                w_p, _, sp_ = timed(lambda: _setup_and_solve(grid, backend="pardiso",
+                                                            precision=prec), 1)
+                pairs[prec].append((w_p, w_def, sp_.info.get("threads", "-")))
+        for prec, v in pairs.items():
+            print(f"  the same from the grid with PARDISO ({prec} precision, {v[-1][2]} "
+                  f"thread(s)): {ms(statistics.median(x[0] for x in v))}, "
+                  f"{statistics.median(x[0] / x[1] for x in v):.2f}x the {first_backend} time "
+                  f"(median of 5 paired runs); load {os.getloadavg()[0]:.1f}", flush=True)
     if not args.skip_skfem and n <= args.skfem_max:
         from skfem import condense
         from skfem import solve as sksolve
@@ -345,7 +361,9 @@ def threads(grid, repeat=7):
         one, two = found[f"{name} 1 thread(s)"], found[f"{name} 2 thread(s)"]
         ratio = statistics.median(b[0] / a[0] for a, b in zip(one, two))
         print(f"  {name}: 2 threads / 1 thread wall {ratio:.2f} (median of paired ratios)")
-    print(f"  policy here now: {S._pardiso_threads(U.shape[0])} thread(s); load "
+    others = S._others_load()
+    print(f"  policy here now: {S._pardiso_threads(U.shape[0])} thread(s) (other processes' "
+          f"busy cores {others if others is None else round(others, 2)}); load "
           f"{os.getloadavg()[0]:.2f} on {S._cores()} cores", flush=True)
 
 

@@ -39,17 +39,56 @@ def test_pardiso_thread_policy_hysteresis(load, current, expected):
     assert S._pardiso_threads(14_000, cores=2, load=load, current=current) == expected
 
 
-def test_pardiso_threads_without_load_average(monkeypatch):
+def test_pardiso_threads_without_load_information(monkeypatch):
+    monkeypatch.setattr(S, "_others_load", lambda: None)
+    assert S._pardiso_threads(50_000, cores=4) == 4
+    monkeypatch.setattr(S, "_others_load", lambda: 0.1)
+    assert S._pardiso_threads(50_000, cores=4) == 4
+    monkeypatch.setattr(S, "_others_load", lambda: 3.2)
+    assert S._pardiso_threads(50_000, cores=4) == 1
+
+
+def test_others_load_from_proc_stat_less_this_process(monkeypatch):
+    clock = {"t": 1000.0, "cpu": 50.0, "busy": 9000.0}
+    monkeypatch.setattr(S.time, "monotonic", lambda: clock["t"])
+    monkeypatch.setattr(S.time, "process_time", lambda: clock["cpu"])
+    monkeypatch.setattr(S, "_cpu_busy", lambda: clock["busy"])
+    monkeypatch.setattr(S, "_STAT", {"prev": (1000.0, 9000.0, 50.0), "load": None})
+
+    def run(seconds, ours, others, step=0.1):
+        for _ in range(int(round(seconds / step))):
+            clock["t"] += step
+            clock["cpu"] += ours * step
+            clock["busy"] += (ours + others) * step
+            out = S._others_load()
+        return out
+
+    # this process alone on both cores: nobody else
+    assert run(10.0, ours=2.0, others=0.0) == pytest.approx(0.0, abs=1e-9)
+    # another job takes one core: seen within a few time constants
+    assert run(5 * S._OTHERS_TAU, ours=1.0, others=1.0) == pytest.approx(1.0, abs=0.01)
+    monkeypatch.setattr(S, "_cpu_busy", lambda: clock["busy"])
+    assert S._pardiso_threads(50_000, cores=2) == 1
+    # it stops: both cores are ours again
+    assert run(5 * S._OTHERS_TAU, ours=0.5, others=0.0) == pytest.approx(0.0, abs=0.01)
+    assert S._pardiso_threads(50_000, cores=2) == 2
+    # calls closer than the clock ticks keep the estimate
+    clock["t"] += 0.01
+    clock["busy"] += 0.02
+    assert S._others_load() == pytest.approx(0.0, abs=0.01)
+
+
+def test_others_load_without_proc_stat_uses_the_load_average(monkeypatch):
+    monkeypatch.setattr(S, "_cpu_busy", lambda: None)
+    monkeypatch.setattr(S, "_own_load", lambda: 0.9)
+    monkeypatch.setattr(S.os, "getloadavg", lambda: (1.5, 1.0, 1.0))
+    assert S._others_load() == pytest.approx(0.6)
+
     def no_load():
         raise OSError("no load average")
 
     monkeypatch.setattr(S.os, "getloadavg", no_load)
-    monkeypatch.setattr(S, "_own_load", lambda: 0.0)  # this process idle
-    assert S._pardiso_threads(50_000, cores=4) == 4
-    monkeypatch.setattr(S.os, "getloadavg", lambda: (0.1, 0.1, 0.1))
-    assert S._pardiso_threads(50_000, cores=4) == 4
-    monkeypatch.setattr(S.os, "getloadavg", lambda: (3.2, 0.1, 0.1))
-    assert S._pardiso_threads(50_000, cores=4) == 1
+    assert S._others_load() is None
 
 
 def _grid(nu=0.46, ratio=1.0):
@@ -190,7 +229,8 @@ def test_own_load_is_this_process_cpu_averaged_like_the_load_average(monkeypatch
     assert abs(S._own_load() - converged) < 1e-9
     clock["t"] += 60.0  # one idle minute: decays by e
     assert abs(S._own_load() - converged / np.e) < 1e-9
-    # the policy subtracts it: load average 1.6, 1.5 of it ours -> both cores idle enough
+    # without /proc/stat the policy subtracts it from the load average: 1.6, 1.5 of it ours
+    monkeypatch.setattr(S, "_cpu_busy", lambda: None)
     monkeypatch.setattr(S, "_OWN", {"t": clock["t"], "cpu": clock["cpu"], "load": 1.5})
     monkeypatch.setattr(S.os, "getloadavg", lambda: (1.6, 1.0, 1.0))
     assert S._pardiso_threads(50_000, cores=2) == 2

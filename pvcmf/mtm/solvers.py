@@ -283,7 +283,8 @@ _PARDISO_THREADED_MIN = 5_000
 def _pardiso_threads(n_unknowns, cores=None, load=None, current=None):
     """MKL threads for one PARDISO numeric factorisation: the idle cores.
 
-    ``cores - load`` (1-minute load average) rounded, between 1 and ``cores``; one thread
+    ``cores - load`` (the other processes' busy cores, :func:`_others_load`) rounded, between
+    1 and ``cores``; one thread
     below :data:`_PARDISO_THREADED_MIN` unknowns. With ``current`` (the count the analysis
     planned for) the answer only changes when the idle cores differ from it by 0.75 or
     more: each change costs a new analysis, so a load near a rounding boundary must not
@@ -298,22 +299,66 @@ def _pardiso_threads(n_unknowns, cores=None, load=None, current=None):
     with another engineer's job on one core (load 2.0-2.2) 30k tetrahedra (13 932 unknowns)
     1.78 / 2.17 (CHOLMOD 1.00); moments later with that core free, 50k (23 170) 0.61 / 0.55
     (129 / 65 ms against 211 / 121 ms; CHOLMOD 0.83) and 150k (69 406) 0.56 / 0.55
-    (1.01 / 0.49 s against 1.68 / 0.85 s; CHOLMOD 1.02). ``load`` is the other
-    processes' load: the load average less this process's own share (:func:`_own_load`),
-    else a long sweep on an otherwise idle machine would count itself as busy.
+    (1.01 / 0.49 s against 1.68 / 0.85 s; CHOLMOD 1.02). A later run at load 1.2-1.9 with
+    the other core free: 0.57 / 0.56 at 30k (42 / 25 ms against 73 / 46 ms), 0.58 / 0.54 at
+    50k, 0.54 / 0.56 at 150k (CHOLMOD 0.79-0.92); the 1-minute load average still counted
+    the benchmark's own finished processes there, hence :func:`_others_load`.
     """
     if n_unknowns < _PARDISO_THREADED_MIN:
         return 1
     cores = _cores() if cores is None else int(cores)
     if load is None:
-        try:
-            load = max(0.0, os.getloadavg()[0] - _own_load())
-        except OSError:  # no load average on this platform
+        load = _others_load()
+        if load is None:  # nothing to tell: use the cores
             return cores
     idle = cores - load
     if current is not None and abs(idle - current) < 0.75:
         return int(current)
     return int(min(cores, max(1, np.floor(idle + 0.5))))
+
+
+def _cpu_busy():
+    """Seconds all CPUs spent busy (neither idle nor waiting for I/O) since boot, from
+    ``/proc/stat``; None where there is none."""
+    try:
+        with open("/proc/stat", "rb") as f:
+            t = [int(x) for x in f.readline().split()[1:9]]
+        return (sum(t) - t[3] - t[4]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, AttributeError, IndexError):
+        return None
+
+
+#: time constant (s) of the other processes' CPU use seen by _others_load
+_OTHERS_TAU = 5.0
+_STAT = {"prev": (time.monotonic(), _cpu_busy(), time.process_time()), "load": None}
+
+
+def _others_load():
+    """Cores kept busy by other processes lately, or None when unknown.
+
+    From ``/proc/stat``: the busy CPU time of the whole machine less this process's own CPU
+    time (all threads) since the previous call (the first: since this module's import),
+    averaged over about :data:`_OTHERS_TAU` seconds (exponential decay): it follows another
+    job starting or stopping within seconds, and does not count this process (nor its
+    finished predecessors, which the 1-minute load average keeps for a minute). Elsewhere
+    the 1-minute load average less this process's share (:func:`_own_load`).
+    """
+    now, own, busy = time.monotonic(), time.process_time(), _cpu_busy()
+    t0, busy0, own0 = _STAT["prev"]
+    dt = now - t0
+    if busy is None or busy0 is None or (dt < 0.05 and _STAT["load"] is None):
+        try:
+            return max(0.0, os.getloadavg()[0] - _own_load())
+        except OSError:  # no load average on this platform
+            return None
+    if dt < 0.05:  # too short for the clock ticks: keep the last estimate
+        return _STAT["load"]
+    rate = max(0.0, (busy - busy0) - (own - own0)) / dt
+    keep = float(np.exp(-dt / _OTHERS_TAU))
+    old = _STAT["load"]
+    _STAT["load"] = rate if old is None else old * keep + rate * (1.0 - keep)
+    _STAT["prev"] = (now, busy, own)
+    return _STAT["load"]
 
 
 _OWN = {"t": time.monotonic(), "cpu": time.process_time(), "load": 0.0}
