@@ -281,7 +281,7 @@ _PARDISO_THREADED_MIN = 5_000
 
 
 def _pardiso_threads(n_unknowns, cores=None, load=None, current=None):
-    """MKL threads for one PARDISO numeric factorisation: the idle cores.
+    """MKL threads for a PARDISO analysis (and its factorisations and solves): the idle cores.
 
     ``cores - load`` (the other processes' busy cores, :func:`_others_load`) rounded, between
     1 and ``cores``; one thread
@@ -386,8 +386,10 @@ class _Pardiso:
     permutation (the unknowns already numbered in a fill-reducing order: ``natural=True``
     skips PARDISO's own METIS), ``precision='single'`` for a float32 numeric factor
     (``iparm[27]``; answers then need refinement against the double matrix, see
-    :meth:`Solver._solve_mixed`), the factorisation threads chosen by
-    :func:`_pardiso_threads` and the solves on one thread. No refinement inside PARDISO.
+    :meth:`Solver._solve_mixed`), and the threads chosen by :func:`_pardiso_threads` for the
+    analysis and used by every later phase (factorisations and solves: MKL 2026.2 crashed
+    when they differed; a new answer of the policy at a factorisation re-analyses). No
+    refinement inside PARDISO.
     """
 
     name = "pardiso"
@@ -1554,8 +1556,9 @@ def solve(grid, method="direct", tol=1e-10, progress_bar=False, **kwargs):
     progress_bar : bool
         Show progress for iterative methods.
     **kwargs
-        Passed to :class:`Solver` (``backend``, ``maxiter``, ``preconditioner``, ``omega``,
-        ``warn_lost_digits``, material overrides) except ``x0`` (warm start, (n, 3)).
+        Passed to :class:`Solver` (``backend``, ``precision``, ``ordering``, ``maxiter``,
+        ``preconditioner``, ``omega``, ``warn_lost_digits``, material overrides) except
+        ``x0`` (warm start, (n, 3)).
 
     Returns
     -------
