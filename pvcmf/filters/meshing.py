@@ -108,6 +108,8 @@ SMOOTHING_SCALE = "smoothing_scale"
 TIME_SURFACE = "time_surface_s"
 TIME_VOLUME = "time_volume_s"
 TIME_TOTAL = "time_total_s"
+#: size growth deep inside (``grading``; 1.0 for the uniform meshes)
+GRADING = "grading"
 QUALITY_FIELDS = (
     MIN_DIHEDRAL,
     P1_DIHEDRAL,
@@ -119,6 +121,7 @@ QUALITY_FIELDS = (
     TIME_SURFACE,
     TIME_VOLUME,
     TIME_TOTAL,
+    GRADING,
 )
 
 #: first guess of the size calibration n = a V / s**3 + b A / s**2 (V soft-tissue volume,
@@ -130,6 +133,12 @@ QUALITY_FIELDS = (
 _TETS_PER_CELL = 5.7
 _TETS_PER_FACE = 5.0
 _RETRY_TOLERANCE = 0.18
+#: mean surface edge / working spacing (graded meshes: the size at the surfaces is the
+#: mean surface edge; the calibration works in working spacings)
+_EDGE_PER_SPACING = 0.95
+#: graded meshes: measured tetrahedra per predicted (first attempt, 2 mm patients 1-4
+#: and 1 mm patient 1 at 10k-100k, grading 2: 0.77-0.86 before this factor)
+_GRADED_COUNT_BIAS = 0.82
 _MAX_ATTEMPTS = 3
 #: (spacing factor, smoothing factor, target-reach factor) tried in turn when gmsh rejects
 #: the surfaces: the last ones are the plain, unsmoothed SurfaceNets surfaces
@@ -318,12 +327,14 @@ def _check_muscles(code, voxel_volume):
             code[code == _MUSCLE0 + 1 + i] = _FAT
 
 
-def _initial_spacing(fine, volume, n_tets, conforming, min_spacing):
+def _initial_spacing(fine, volume, n_tets, conforming, min_spacing, share=None):
     """Working spacing predicted for ``n_tets`` from the volume and the muscle surface area.
 
     The area counts the voxel faces with a muscle on one side (the cropped image of
     :func:`_crop_fine` holds them all; with its faces, :func:`_fine_faces`, they are
-    counted there).
+    counted there). ``share(s)``: graded meshes, the share of the uniform count of the
+    volume term that the grading keeps at spacing ``s`` (``n = a V share(s) / s**3 +
+    b A / s**2`` solved by bisection in log ``s``).
     """
     area = 0.0
     if conforming:
@@ -343,7 +354,19 @@ def _initial_spacing(fine, volume, n_tets, conforming, min_spacing):
     # a V u^3 + b A u^2 = n with u = 1 / s: the positive real root
     roots = np.roots([_TETS_PER_CELL * volume, _TETS_PER_FACE * area, 0.0, -float(n_tets)])
     u = max(r.real for r in roots if abs(r.imag) < 1e-9 * max(1.0, abs(r)) and r.real > 0)
-    return max(min_spacing, 1.0 / u)
+    if share is None:
+        return max(min_spacing, 1.0 / u)
+
+    def count(x):  # decreasing in x (the graded sizes grow with x at any distance)
+        return _GRADED_COUNT_BIAS * (
+            _TETS_PER_CELL * volume * share(x) / x**3 + _TETS_PER_FACE * area / x**2
+        )
+
+    lo, hi = 0.2 / u, 1.0 / u  # share <= 1: the graded spacing is below the uniform one
+    for _ in range(30):
+        mid = np.sqrt(lo * hi)
+        lo, hi = (mid, hi) if count(mid) > n_tets else (lo, mid)
+    return max(min_spacing, hi)
 
 
 def _crop_fine(code_zyx, labels, offset=(0, 0, 0)):
@@ -833,14 +856,19 @@ def _gmsh_tets(regions):
 
 
 def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=None, accept=None,
-               optimizers=()):
-    """Volume mesh of every meshed region; returns (nodes, tets, comp id per tet)."""
+               optimizers=(), grading=None):
+    """Volume mesh of every meshed region; returns (nodes, tets, comp id per tet).
+
+    ``grading``: ``(InterfaceDistance, g)`` for graded sizes (a gmsh background field,
+    :mod:`pvcmf.filters.meshing_grading`), None for sizes from the surfaces.
+    """
     import gmsh
 
     own = not gmsh.isInitialized()
     if own:
         gmsh.initialize(interruptible=False)
     gmsh.model.add("pvcmf_tetrahedralize")
+    graded_field = None
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.NumThreads", threads)
@@ -863,6 +891,13 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
             loop = gmsh.model.geo.addSurfaceLoop(bounding)
             gmsh.model.geo.addVolume([loop], int(r))
         gmsh.model.geo.synchronize()
+        if grading is not None:
+            from . import meshing_grading
+
+            edges = np.linalg.norm(points[tri[:, [1, 2, 0]]] - points[tri], axis=2)
+            graded_field = meshing_grading.add_background_field(
+                grading[0], float(edges.mean()), grading[1]
+            )
         failure = None
         with _c_output_to_log() as printed:
             try:
@@ -918,6 +953,10 @@ def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=
     except Exception as exc:  # gmsh raises a bare Exception with its last error
         raise SurfaceError(f"gmsh could not build the model: {exc}") from exc
     finally:
+        if graded_field is not None:
+            from . import meshing_grading
+
+            meshing_grading.restore(*graded_field)
         gmsh.model.remove()
         if own:
             gmsh.finalize()
@@ -1095,6 +1134,7 @@ def tetrahedralize(
     min_dihedral=5.0,
     sliver_optimizer=None,
     threads=1,
+    grading=None,
     progress_bar=False,
 ):
     """Labelled tetrahedral mesh of the facial soft tissue of a label image.
@@ -1155,6 +1195,18 @@ def tetrahedralize(
         Threads for gmsh's HXT mesher. On this shared 2-core machine (load ~9) two
         threads took 3.6-4.2 s of CPU (9.5 s wall) for 30k tetrahedra against 0.84 s
         (1.6 s wall) for one: HXT's threads spin while they wait.
+    grading : None, 0 or float in (1, 8], default None
+        Size grading of the volume mesh (:mod:`pvcmf.filters.meshing_grading`). None or
+        0: the sizes come from the surfaces (uniform meshes, the default, unchanged).
+        ``g > 1``: the element size is the mean surface edge ``s`` within ``0.5 s`` of a
+        region interface (skin, muscles, bone, roi cut) and grows linearly to ``g s`` at
+        ``g s`` away; the count calibration accounts for it, so the tetrahedra saved deep
+        in the fat go to finer surfaces. 2-3 is a good choice: on the 1 mm virtual
+        patient at 30k tetrahedra it brings the muscle volumes closer to the image
+        (RMS error over the 12 muscles 31-39 % instead of 52 %), the label agreement up by
+        0.1-0.3 points, the 1st-percentile dihedral angle from 16.2 to 15.8-15.9 deg, and
+        costs 1.3-1.7 s instead of 1.1 s (gmsh's volume step is ~1.2x slower with the
+        size field at equal count).
     progress_bar : bool, default False
         Log each step at INFO level (the steps are short; there is no bar).
 
@@ -1165,15 +1217,17 @@ def tetrahedralize(
         or MUSCLE_TISSUE) and ``arrays.MUSCLE`` (0 or the muscle id), and field data
         :data:`QUALITY_FIELDS` (min and 1st-percentile dihedral angle in degrees, min and
         1st-percentile radius ratio ``3 r_in / R_circ``, the requested count, working
-        spacing, smoothing used and timings in s).
+        spacing, smoothing used, timings in s and the ``grading`` (1.0 for uniform
+        meshes).
 
     Raises
     ------
     TypeError
-        ``labels`` is not an ImageData or ``n_tets`` is not an integer.
+        ``labels`` is not an ImageData, ``n_tets`` is not an integer or ``grading`` is
+        not a number.
     ValueError
         Missing or non-integer label arrays, no soft tissue, ``n_tets`` out of range,
-        a malformed ``roi``.
+        a malformed ``roi``, ``grading`` not None, 0 or in (1, 8].
     SurfaceError
         The surfaces stay invalid for gmsh even without smoothing.
 
@@ -1203,6 +1257,9 @@ def tetrahedralize(
             f"sliver_optimizer must be None or one of {_SLIVER_OPTIMIZERS}, got {sliver_optimizer!r}"
         )
     optimizers = () if sliver_optimizer is None else (sliver_optimizer,)
+    from .meshing_grading import GRID_STEP, InterfaceDistance, check_grading, graded_share
+
+    growth = check_grading(grading)
     if spacing is not None and (not isinstance(spacing, numbers.Real) or spacing <= 0):
         raise ValueError(f"spacing must be a positive number of mm, got {spacing!r}")
     shape_zyx = tuple(labels.dimensions[::-1])
@@ -1240,6 +1297,23 @@ def tetrahedralize(
         s = _initial_spacing(fine, volume, n_tets, conforming, min_spacing)
     else:
         s = float(spacing)
+    graded = None
+    if growth is not None:
+        # distance of the image voxels to the region interfaces, once (the surfaces are
+        # snapped onto these interfaces), on a grid of a third of the uniform spacing
+        t0 = time.perf_counter()
+        distance = InterfaceDistance(fine[0], fine[1], fine[2], GRID_STEP * s, _FAT)
+        graded = (distance, growth)
+        if spacing is None:
+            s = _initial_spacing(
+                fine, volume, n_tets, conforming, min_spacing,
+                share=lambda x: graded_share(distance.inside, _EDGE_PER_SPACING * x, growth),
+            )
+        log.info(
+            "tetrahedralize: grading %g, interface distance on a %s voxel grid in %.2f s, "
+            "start spacing %.2f mm", growth, "x".join(map(str, distance.distance.shape[::-1])),
+            time.perf_counter() - t0, s,
+        )
     if progress_bar:
         log.info("tetrahedralize: %d soft voxels, %.0f mm^3, start spacing %.2f mm", n_soft, volume, s)
 
@@ -1266,7 +1340,7 @@ def tetrahedralize(
         try:
             out = _mesh_once(
                 fine, s_try, smooth, reach, threads, optimize, pieces,
-                min_dihedral if optimize else None, accept, optimizers,
+                min_dihedral if optimize else None, accept, optimizers, graded,
             )
         except SurfaceError as exc:
             failures.append(str(exc))
@@ -1370,6 +1444,7 @@ def tetrahedralize(
     fd[SMOOTHING_SCALE] = [float(smoothing)]
     fd[TIME_SURFACE] = [t_surface]
     fd[TIME_VOLUME] = [t_volume]
+    fd[GRADING] = [1.0 if growth is None else growth]
     fd[TIME_TOTAL] = [time.perf_counter() - t_start]
     if progress_bar:
         log.info(
@@ -1380,7 +1455,7 @@ def tetrahedralize(
 
 
 def _mesh_once(fine, s, smoothing, reach, threads, optimize, pieces, min_dihedral, accept,
-               optimizers=()):
+               optimizers=(), grading=None):
     """One surface + volume meshing pass at spacing ``s``; raises SurfaceError."""
     t0 = time.perf_counter()
     sub, origin = _working_grid(fine, s)
@@ -1406,7 +1481,8 @@ def _mesh_once(fine, s, smoothing, reach, threads, optimize, pieces, min_dihedra
     t1 = time.perf_counter()
     try:
         nodes, tets, cell_comp = _gmsh_mesh(
-            points, tri, patch, patch_sides, threads, optimize, min_dihedral, accept, optimizers
+            points, tri, patch, patch_sides, threads, optimize, min_dihedral, accept, optimizers,
+            grading,
         )
     except SurfaceError as exc:
         raise SurfaceError(f"spacing {s:.3g} mm, smoothing_scale {smoothing:g}: {exc}") from exc
