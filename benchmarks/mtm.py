@@ -326,6 +326,9 @@ def threads(grid, repeat=7):
 
     from pvcmf.mtm import solvers as S
 
+    if not {"cholmod", "pardiso"} <= set(pvcmf.mtm.direct_backends()):
+        print("thread comparison skipped: needs scikit-sparse (CHOLMOD) and pypardiso")
+        return
     s = pvcmf.mtm.Solver(grid, nu=0.3, backend="cholmod", ordering="metis")
     s.solve()
     U = s.K_ff.upper
