@@ -78,6 +78,22 @@ def test_others_load_from_proc_stat_less_this_process(monkeypatch):
     assert S._others_load() == pytest.approx(0.0, abs=0.01)
 
 
+def test_cpu_busy_sums_the_cpus_of_this_process(tmp_path, monkeypatch):
+    stat = tmp_path / "stat"
+    # user nice system idle iowait irq softirq steal (clock ticks)
+    stat.write_text("cpu  600 0 60 900 30 0 6 0 0 0\n"
+                    "cpu0 100 0 10 300 10 0 1 0 0 0\n"
+                    "cpu1 200 0 20 300 10 0 2 0 0 0\n"
+                    "cpu2 300 0 30 300 10 0 3 0 0 0\n"
+                    "intr 12345\n")
+    monkeypatch.setattr(S, "_PROC_STAT", str(stat))
+    monkeypatch.setattr(S.os, "sched_getaffinity", lambda pid: {0, 2})
+    hz = S.os.sysconf("SC_CLK_TCK")
+    assert S._cpu_busy() == pytest.approx((111 + 333) / hz)  # idle and iowait left out
+    monkeypatch.setattr(S, "_PROC_STAT", str(tmp_path / "missing"))
+    assert S._cpu_busy() is None
+
+
 def test_others_load_without_proc_stat_uses_the_load_average(monkeypatch):
     monkeypatch.setattr(S, "_cpu_busy", lambda: None)
     monkeypatch.setattr(S, "_own_load", lambda: 0.9)

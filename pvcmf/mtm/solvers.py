@@ -319,13 +319,25 @@ def _pardiso_threads(n_unknowns, cores=None, load=None, current=None):
     return int(min(cores, max(1, np.floor(idle + 0.5))))
 
 
+_PROC_STAT = "/proc/stat"
+
+
 def _cpu_busy():
-    """Seconds all CPUs spent busy (neither idle nor waiting for I/O) since boot, from
-    ``/proc/stat``; None where there is none."""
+    """Seconds the CPUs this process may run on spent busy (neither idle nor waiting for
+    I/O) since boot, from the per-CPU lines of ``/proc/stat``; None where there is none."""
     try:
-        with open("/proc/stat", "rb") as f:
-            t = [int(x) for x in f.readline().split()[1:9]]
-        return (sum(t) - t[3] - t[4]) / os.sysconf("SC_CLK_TCK")
+        mine = os.sched_getaffinity(0)
+        busy = 0
+        with open(_PROC_STAT, "rb") as f:
+            for line in f:
+                if not line.startswith(b"cpu"):
+                    break
+                name, *t = line.split()
+                if name == b"cpu" or int(name[3:]) not in mine:
+                    continue
+                t = [int(x) for x in t[:8]]
+                busy += sum(t) - t[3] - t[4]
+        return busy / os.sysconf("SC_CLK_TCK")
     except (OSError, ValueError, AttributeError, IndexError):
         return None
 
