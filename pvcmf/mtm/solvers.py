@@ -350,7 +350,7 @@ _STAT = {"prev": (time.monotonic(), _cpu_busy(), time.process_time()), "load": N
 def _others_load():
     """Cores kept busy by other processes lately, or None when unknown.
 
-    From ``/proc/stat``: the busy CPU time of the whole machine less this process's own CPU
+    From ``/proc/stat``: the busy time of the CPUs it may run on less this process's own CPU
     time (all threads) since the previous call (the first: since this module's import),
     averaged over about :data:`_OTHERS_TAU` seconds (exponential decay): it follows another
     job starting or stopping within seconds, and does not count this process (nor its
