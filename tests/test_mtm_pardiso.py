@@ -30,13 +30,14 @@ def test_pardiso_thread_policy(cores, load, n, expected):
     assert S._pardiso_threads(n, cores=cores, load=load) == expected
 
 
-@pytest.mark.parametrize("load,current,expected", [
-    (0.6, 2, 2), (0.7, 2, 2), (0.8, 2, 1),   # 2 threads planned: dropped when > 0.75 busy
-    (0.3, 1, 1), (0.2, 1, 2),                # 1 thread planned: raised when < 0.25 busy
-    (1.9, 2, 1), (0.0, 1, 2),
+@pytest.mark.parametrize("cores,load,current,expected", [
+    (2, 0.3, 2, 2), (2, 0.4, 2, 2), (2, 0.5, 2, 1),  # 2 planned: dropped when > 0.4 busy
+    (2, 0.2, 1, 1), (2, 0.15, 1, 2),                 # 1 planned: raised when <= 0.15 busy
+    (2, 1.9, 2, 1), (2, 0.0, 1, 2), (2, 0.6, 2, 1),
+    (8, 2.5, 6, 5), (8, 2.3, 6, 6), (8, 0.1, 6, 8), (8, 1.2, 6, 6),  # more cores
 ])
-def test_pardiso_thread_policy_hysteresis(load, current, expected):
-    assert S._pardiso_threads(14_000, cores=2, load=load, current=current) == expected
+def test_pardiso_thread_policy_hysteresis(cores, load, current, expected):
+    assert S._pardiso_threads(14_000, cores=cores, load=load, current=current) == expected
 
 
 def test_pardiso_threads_without_load_information(monkeypatch):
