@@ -25,8 +25,9 @@ Methods
     extreme stiffness contrasts; ``info['precision']`` says so). A Poisson sweep
     (:meth:`Solver.update_materials` refactoring for new materials) switches a solver whose
     backend the user did not choose from CHOLMOD to mixed-precision PARDISO: at 30k
-    tetrahedra a 20-value sweep took 1.4-1.8 s against 2.2-2.9 s with CHOLMOD in the same
-    runs (see ``benchmarks/mtm.py``).
+    tetrahedra a 20-value sweep took 1.5-1.8 s on one thread (another job on the other core)
+    against 2.2-2.9 s with CHOLMOD in the same runs, 1.19 s on two threads against 2.51 s
+    with the other core free (see ``benchmarks/mtm.py``).
 ``cg``
     Conjugate gradient (scipy) preconditioned by one V-cycle of smoothed-aggregation
     algebraic multigrid (pyamg, rigid motions as near-null space, options measured in
