@@ -11,7 +11,8 @@ in double precision, and the factor reused as CG preconditioner; each line says 
 precision and factorisation threads of its last value). ``--threads`` adds paired 1- vs
 2-thread factorisation times (PARDISO double and single, CHOLMOD); ``--only-threads`` skips
 everything but those and the sweep (e.g. ``--sizes 30000 50000 150000 --threads
---only-threads``). The load average is printed for each size and after the scikit-fem, thread
+--only-threads``); ``--reaction`` (with one size) shows the PARDISO thread policy
+reacting to a CPU-burning process started during a sweep loop. The load average is printed for each size and after the scikit-fem, thread
 and sweep lines: on the shared 2-core machine compare ratios from one run, not absolute times
 across runs.
 
@@ -133,6 +134,9 @@ def bench(n, args):
     grid = shell_mesh(n)
     print(f"\n== {grid.n_cells} tetrahedra, {grid.n_points} points (mesh built in "
           f"{time.perf_counter() - t:.1f} s); load average {os.getloadavg()[0]:.1f}", flush=True)
+    if args.reaction:
+        reaction(grid)
+        return
     if args.only_threads:
         if args.threads:
             threads(grid)
@@ -318,6 +322,39 @@ def sweep(grid):
               f"{med['prepare']:.0f} ms; load {os.getloadavg()[0]:.1f}", flush=True)
 
 
+def reaction(grid, start=6.0, burn=14.0, stop=30.0):
+    """The PARDISO thread policy reacting to another job: a sweep looping over its 20 values
+    for ``stop`` seconds, a CPU-burning process started after ``start`` seconds for ``burn``;
+    prints, per value, the time, the planned threads and the other processes' busy cores."""
+    from pvcmf.mtm import solvers as S
+
+    if "pardiso" not in pvcmf.mtm.direct_backends():
+        print("reaction skipped: needs pypardiso")
+        return
+    s = pvcmf.mtm.Solver(grid, nu=0.0, backend="pardiso")
+    s.solve()
+    t0, burner, last = time.perf_counter(), None, None
+    for nu in np.tile(np.linspace(0.0, 0.495, 20), 1000):
+        now = time.perf_counter() - t0
+        if now > stop:
+            break
+        if burner is None and now > start:
+            burner = subprocess.Popen([sys.executable, "-c", "import time\nt = time.time()\n"
+                                       f"while time.time() - t < {burn}: pass"])
+            print(f"  {now:5.1f} s: CPU burner started for {burn:.0f} s")
+        t = time.perf_counter()
+        s.update_materials(nu=nu)
+        s.solve()
+        row = (s._backend.threads, S._STAT["load"])
+        if row[0] != last or int(10 * now) % 20 == 0:
+            print(f"  {now:5.1f} s: {1000 * (time.perf_counter() - t):4.0f} ms per value, "
+                  f"{row[0]} thread(s), other processes' busy cores "
+                  f"{-1 if row[1] is None else row[1]:.2f}", flush=True)
+        last = row[0]
+    if burner is not None:
+        burner.wait()
+
+
 def threads(grid, repeat=7):
     """Numeric factorisation of one matrix with 1 and 2 threads, interleaved, same process:
     PARDISO double and single precision (own analysis per thread count: MKL needs the same
@@ -381,6 +418,8 @@ def main(argv=None):
     p.add_argument("--sweep-size", type=int, default=30_000)
     p.add_argument("--threads", action="store_true",
                    help="also time 1 vs 2 factorisation threads (PARDISO, CHOLMOD)")
+    p.add_argument("--reaction", action="store_true",
+                   help="only the thread policy's reaction to a CPU burner (a 30 s sweep loop)")
     p.add_argument("--only-threads", action="store_true",
                    help="only the thread comparison (with --threads) and the sweep")
     p.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
@@ -393,7 +432,7 @@ def main(argv=None):
     flags = [f"--skfem-max={args.skfem_max}", f"--relax-sweeps={args.relax_sweeps}",
              f"--sweep-size={args.sweep_size}"]
     flags += [f"--{k.replace('_', '-')}" for k in ("skip_skfem", "skip_relaxation", "skip_cg",
-                                                   "threads", "only_threads")
+                                                   "threads", "only_threads", "reaction")
               if getattr(args, k)]
     for n in args.sizes:
         subprocess.run([sys.executable, __file__, "--one", "--sizes", str(n), *flags], check=False)
