@@ -23,6 +23,10 @@ reset after loading the image so that it is the meshing's peak).
    patient 1 up to 500k) with the failing cells split into fat/muscle confusion, bone,
    air, teeth, and the share of them within one voxel of a structure thinner than the
    element (:func:`disagreement_split`); prints JSON rows and a markdown table.
+6. ``--grading G``: the graded meshes (``tetrahedralize(grading=G)``) against the uniform
+   ones at ``--counts``: the same rows as 1. for both (fresh subprocess each, with the
+   RMS of the muscle-volume errors), then both alternating in one warm process (median
+   wall and CPU time, ratio graded / uniform).
 
 Run::
 
@@ -33,6 +37,7 @@ Run::
     python benchmarks/meshing.py --against 399d241 --counts 30000 160000  # old vs new mesher
     python benchmarks/meshing.py --spacing 2 --ceiling  # centroid-test ceiling per depth
     python benchmarks/meshing.py --table          # agreement vs count, failing cells by class
+    python benchmarks/meshing.py --grading 2 --counts 30000 160000  # graded vs uniform
 """
 
 from __future__ import annotations
@@ -90,6 +95,19 @@ def _agreement(labels, grid):
     return float(soft.mean()), float(agree[soft].mean()), float(agree.mean())
 
 
+def _agreement_by_volume(labels, grid):
+    """Share of the mesh volume in cells whose centroid voxel has the cell's tissue."""
+    from pvcmf import arrays
+
+    c = grid.cell_centers().points
+    ijk = np.rint((c - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(int)
+    ijk = np.clip(ijk, 0, np.asarray(labels.dimensions) - 1)
+    d = labels.dimensions
+    lab = np.asarray(labels[arrays.TISSUE])[ijk[:, 0] + d[0] * (ijk[:, 1] + d[1] * ijk[:, 2])]
+    vol = grid.compute_cell_sizes(length=False, area=False)["Volume"]
+    return float(vol[lab == grid.cell_data[arrays.TISSUE]].sum() / vol.sum())
+
+
 def _timed(func, *args, **kwargs):
     w, c = time.perf_counter(), time.process_time()
     out = func(*args, **kwargs)
@@ -130,7 +148,12 @@ def _muscle_volume_error(labels, grid):
     return [round(100 * (mesh[m] / image[m] - 1)) if image[m] > 0 else None for m in range(1, n)]
 
 
-def case_mesh(patient, spacing, n_tets, conforming, face_fraction=0.5, repeats=3):
+def _rms(errors):
+    errors = [e for e in errors if e is not None]
+    return round(float(np.sqrt(np.mean(np.square(errors))))) if errors else None
+
+
+def case_mesh(patient, spacing, n_tets, conforming, face_fraction=0.5, repeats=3, grading=None):
     import os
     import warnings
 
@@ -151,14 +174,18 @@ def case_mesh(patient, spacing, n_tets, conforming, face_fraction=0.5, repeats=3
     for _ in range(repeats):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            grid, wall, cpu = _timed(tetrahedralize, labels, n_tets=n_tets, conforming=conforming, roi=roi)
+            grid, wall, cpu = _timed(
+                tetrahedralize, labels, n_tets=n_tets, conforming=conforming, roi=roi, grading=grading
+            )
         walls.append(wall)
         cpus.append(cpu)
     inside, agree_soft, agree_all = _agreement(labels, grid)
     fd = grid.field_data
+    errors = _muscle_volume_error(labels, grid) if conforming else None
     return {
         "n_tets": n_tets,
         "conforming": conforming,
+        "grading": grading,
         "face_fraction": face_fraction,
         "cells": grid.n_cells,
         "wall_ms_median": round(float(np.median(walls)) * 1000),
@@ -176,7 +203,8 @@ def case_mesh(patient, spacing, n_tets, conforming, face_fraction=0.5, repeats=3
         "centroids_in_soft_permille": round(inside * 1000),
         "label_agree_in_soft_permille": round(agree_soft * 1000),
         "label_agree_all_permille": round(agree_all * 1000),
-        "muscle_volume_error_percent": _muscle_volume_error(labels, grid) if conforming else None,
+        "muscle_volume_error_percent": errors,
+        "muscle_volume_rms_percent": _rms(errors) if conforming else None,
         "warnings": [str(w.message)[:120] for w in caught],
     }
 
@@ -292,10 +320,12 @@ def compare_revision(patient, spacing, revision, counts, face_fraction=0.5, repe
     rows = []
     for n in counts:
         times = {"old": [], "new": []}
+        grids = {}
         for _ in range(repeats):
             for name, mod in (("old", old), ("new", meshing)):
                 grid, w, c = _timed(mod.tetrahedralize, labels, n_tets=n, roi=roi)
                 times[name].append((w, c, grid.n_cells, _agreement(labels, grid)[2]))
+                grids[name] = grid
         row = {"n_tets": n, "revision": revision, "load_avg_1min_x100": round(100 * os.getloadavg()[0])}
         for name, t in times.items():
             row[name] = {
@@ -305,6 +335,77 @@ def compare_revision(patient, spacing, revision, counts, face_fraction=0.5, repe
                 "label_agree_all_permille": round(1000 * t[0][3]),
             }
         row["cpu_new_over_old_x100"] = round(100 * row["new"]["cpu_ms_median"] / row["old"]["cpu_ms_median"])
+        a, b = grids["old"], grids["new"]  # same cells and labels, points to round-off
+        row["same_mesh"] = bool(
+            a.n_points == b.n_points and np.array_equal(a.cells, b.cells)
+            and np.abs(np.asarray(a.points) - np.asarray(b.points)).max() < 1e-9
+            and np.array_equal(a.cell_data["muscle"], b.cell_data["muscle"])
+        )
+        rows.append(row)
+    return rows
+
+
+def compare_grading(patient, spacing, grading, counts, face_fraction=0.5, repeats=3):
+    """Uniform and graded meshes alternating in one warm process: medians and ratios.
+
+    Also the uniform mesh at the graded mesh's count ("uniform_equal_count", requested
+    ``n * graded cells / uniform cells`` after the first pair): the uniform calibration
+    lands 11-16 % below the request on the patients, the graded one on it.
+    """
+    import statistics
+    import warnings
+
+    from pvcmf.filters import meshing
+
+    labels = _labels(patient, spacing)
+    roi = _roi(labels, face_fraction)
+    warnings.simplefilter("ignore")
+    meshing.tetrahedralize(labels, n_tets=5_000, roi=roi)  # imports and caches warm
+    rows = []
+    for n in counts:
+        times = {"uniform": [], "graded": [], "uniform_equal_count": []}
+        grids = {}
+        n_equal = None
+        for _ in range(repeats):
+            for name, g in (("uniform", None), ("graded", grading), ("uniform_equal_count", None)):
+                if name == "uniform_equal_count":
+                    if n_equal is None:
+                        n_equal = round(n * grids["graded"].n_cells / grids["uniform"].n_cells)
+                    request = n_equal
+                else:
+                    request = n
+                grid, w, c = _timed(meshing.tetrahedralize, labels, n_tets=request, roi=roi, grading=g)
+                times[name].append((w, c))
+                grids[name] = grid
+        row = {"n_tets": n, "grading": grading, "repeats": repeats,
+               "load_avg_1min_x100": round(100 * os.getloadavg()[0])}
+        for name, t in times.items():
+            grid = grids[name]
+            fd = grid.field_data
+            row[name] = {
+                "wall_ms_median": round(1000 * statistics.median(x[0] for x in t)),
+                "cpu_ms_median": round(1000 * statistics.median(x[1] for x in t)),
+                "cells": grid.n_cells,
+                "spacing_x100": round(fd[meshing.SURFACE_SPACING][0] * 100),
+                "min_dihedral_x10": round(fd[meshing.MIN_DIHEDRAL][0] * 10),
+                "p1_dihedral_x10": round(fd[meshing.P1_DIHEDRAL][0] * 10),
+                "label_agree_all_permille": round(1000 * _agreement(labels, grid)[2]),
+                # the same test weighted by cell volume: grading moves cells from the deep
+                # inside (which agree) to the surfaces (which fail more), so the per-cell
+                # share is biased against graded meshes
+                "label_agree_volume_permille": round(1000 * _agreement_by_volume(labels, grid)),
+                "muscle_volume_rms_percent": _rms(_muscle_volume_error(labels, grid)),
+            }
+        row["wall_graded_over_uniform_x100"] = round(
+            100 * row["graded"]["wall_ms_median"] / row["uniform"]["wall_ms_median"]
+        )
+        row["cpu_graded_over_uniform_x100"] = round(
+            100 * row["graded"]["cpu_ms_median"] / row["uniform"]["cpu_ms_median"]
+        )
+        row["uniform_equal_count"]["n_tets_requested"] = n_equal
+        row["cpu_graded_over_uniform_equal_count_x100"] = round(
+            100 * row["graded"]["cpu_ms_median"] / row["uniform_equal_count"]["cpu_ms_median"]
+        )
         rows.append(row)
     return rows
 
@@ -514,6 +615,8 @@ def main(argv=None):
                         "(2 mm patients --patients at --counts, 1 mm patient 1 at --counts + 500k)")
     p.add_argument("--patients", type=int, nargs="+", default=[1, 2, 3, 4],
                    help="patients of --table (2 mm)")
+    p.add_argument("--grading", type=float, default=None, metavar="G",
+                   help="only: graded (grading=G) against uniform meshes at --counts")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
@@ -530,6 +633,18 @@ def main(argv=None):
     ff = a.face_fraction if a.face_fraction > 0 else None
     if a.against:
         for row in compare_revision(a.patient, a.spacing, a.against, a.counts, ff, a.repeats):
+            print(json.dumps(row), flush=True)
+        return
+    if a.grading:
+        for n in a.counts:
+            for g in (None, a.grading):
+                row = _run_child(
+                    {"kind": "mesh", "patient": a.patient, "spacing": a.spacing, "n_tets": n,
+                     "conforming": True, "face_fraction": ff, "repeats": a.repeats, "grading": g}
+                )
+                print(json.dumps(row), flush=True)
+        print("# same warm process, alternating uniform / graded:")
+        for row in compare_grading(a.patient, a.spacing, a.grading, a.counts, ff, a.repeats):
             print(json.dumps(row), flush=True)
         return
     if a.table:

@@ -43,8 +43,8 @@ the muscle surfaces:
 the paper's state of the art, completed by :func:`pvcmf.filters.sample_muscle_fraction`
 or :func:`pvcmf.filters.average_voxels`.
 
-Limitation: the working grid is isotropic and there is no size grading (the surfaces are
-as fine near the skin as deep inside; the facial soft tissue is 6-12 mm thick, so at
+Limitation: the working grid is isotropic, so the surfaces are as fine at the skin as at
+the bone, and by default so is the volume (the facial soft tissue is 6-12 mm thick, so at
 ~30k tetrahedra nearly every element touches a surface anyway). At 30k tetrahedra over
 the anterior half of a head (working spacing 5-7 mm) about 91 % of the element
 centroids fall in a voxel of the element's own tissue on the 2 mm virtual patients
@@ -54,26 +54,36 @@ the thin facial muscles (~3 mm) is off by tens of per cent although every muscle
 present. On the 2 mm patients the agreement stops at 92-94.5 % even at 300k: 94-100 % of
 the failing centroids have a voxel of their own tissue among their 26 neighbours, i.e.
 the smooth surfaces against the 2 mm voxel staircase (``benchmarks/meshing.py --table``).
-Graded volume meshes were measured and dropped (session 4, 1 mm patient 1, face box):
-a gmsh ``Distance`` field of all the surfaces + ``Threshold`` (size ``s`` at the surfaces up
-to 2-3 ``s`` from ``0.5 s`` to 2-3 ``s`` away, ``MeshSizeExtendFromBoundary`` off), the
-freed count going to a finer working spacing through the calibration: 30k -> 27.2-27.8k
-tetrahedra at 5.56 mm (ungraded 25.9k at 6.2 mm), agreement 92.5-92.7 % against 92.4 %
-(+0.2 at equal count), muscle-volume RMS 31-35 % against 52 %, but the 1st-percentile
-dihedral 14.9 deg (goal 15) and 3.0-3.2 s (the distance field makes gmsh's volume step
-~1.8x slower, plus calibration retries); at 160k 96.0 % against 96.4 %, p1 13.4-13.9 deg,
-19-24 s against 3.7 s; on the four 2 mm patients at 30k +1.0 / +0.2 / +0.8 / -0.3 points
-at 8-14 % more tetrahedra, 3-6 s. ``Mesh.MeshSizeMax`` alone (no field) gave the same
-agreement with p1 11-14 deg and 4-14 s. Graded remeshing with MMG (mmg3d through ``mmgpy``,
-``hausd`` 0.5-1 mm) was also measured and dropped: 30-40 s for 130k -> 70k tetrahedra and a
-lower agreement (the coarsened interior leaves a larger share of elements at the
-surfaces). Request more tetrahedra or a smaller region of interest where this matters
-(numbers in ``benchmarks/meshing.py`` and README).
+
+Size grading is an option, ``grading=g`` (:mod:`pvcmf.filters.meshing_grading`): the
+element size is the surface size ``s`` within ``0.5 s`` of every region interface and
+grows to ``g s`` at ``g s`` away (a gmsh ``Structured`` background field from an image
+distance transform), and the count calibration gives the tetrahedra saved deep inside to
+finer surfaces. It is not the default because on these thin tissues it buys little for
+its cost (``benchmarks/meshing.py --grading 2``, session 4, load 1.2-1.3): at 30k on the
+1 mm patient 1 the graded mesh (30.0k tetrahedra, spacing 5.60 mm) against a uniform one
+of the same count (29.1k, 5.87 mm): label agreement weighted by volume 95.0 against
+95.1 %, muscle-volume RMS error 34 against 34 %, 1st-percentile dihedral 15.8 against
+16.3 deg, 1.64 s against 1.21 s (1.36x); at 160k 98.5 against 98.0 %, 21 against 23 %,
+16.1 against 17.6 deg, 6.8 s against 4.2 s (1.62x). On the 2 mm patients 1-4 at 30k the
+volume-weighted agreement moves by +1.0 / 0.0 / +0.7 / -0.3 points and the muscle RMS by
++2 / -7 / -11 / +2 points against uniform meshes of about the same count. The per-cell
+share of agreeing centroids is biased against graded meshes (they move cells from the
+deep inside, which agree, to the surfaces). The uniform calibration lands 11-16 % below
+the request on the patients and the graded one within a few per cent of it, so at the
+same *request* the graded mesh has ~16 % more tetrahedra (and looks better: muscle RMS
+34 against 52 % at 30k on the 1 mm patient). The quality goal holds (1st-percentile
+dihedral 15.3-16.1 deg measured, min 5.0-6.5 deg). Graded remeshing with MMG (mmg3d
+through ``mmgpy``, ``hausd`` 0.5-1 mm) was measured and dropped: 30-40 s for 130k -> 70k
+tetrahedra and a lower agreement. Request more tetrahedra or a smaller region of interest
+where accuracy matters (numbers in ``benchmarks/meshing.py`` and README).
 
 Delegates to PyVista/VTK (``contour_labels`` = ``vtkSurfaceNets3D``,
 ``vtkConstrainedSmoothingFilter``), scipy.ndimage (connected components, box averages of
 the muscles, distance transform for the bone ROI), scipy.spatial (KD-trees of the image
-interfaces), scipy.sparse (surface patches, surface relaxation) and the gmsh Python API.
+interfaces), scipy.sparse (surface patches, surface relaxation) and the gmsh Python API; the
+grading to :mod:`pvcmf.filters.meshing_grading` (scipy.ndimage distance transform, gmsh
+background field).
 """
 
 from __future__ import annotations
@@ -1200,13 +1210,14 @@ def tetrahedralize(
         0: the sizes come from the surfaces (uniform meshes, the default, unchanged).
         ``g > 1``: the element size is the mean surface edge ``s`` within ``0.5 s`` of a
         region interface (skin, muscles, bone, roi cut) and grows linearly to ``g s`` at
-        ``g s`` away; the count calibration accounts for it, so the tetrahedra saved deep
-        in the fat go to finer surfaces. 2-3 is a good choice: on the 1 mm virtual
-        patient at 30k tetrahedra it brings the muscle volumes closer to the image
-        (RMS error over the 12 muscles 31-39 % instead of 52 %), the label agreement up by
-        0.1-0.3 points, the 1st-percentile dihedral angle from 16.2 to 15.8-15.9 deg, and
-        costs 1.3-1.7 s instead of 1.1 s (gmsh's volume step is ~1.2x slower with the
-        size field at equal count).
+        ``g s`` away; the count calibration accounts for it (the requested count is hit
+        within a few per cent), so the tetrahedra saved deep in the fat go to finer
+        surfaces. On the thin facial tissue the gain is small against a uniform mesh of
+        the same count (1 mm virtual patient, grading 2: volume-weighted label agreement
+        95.0 vs 95.1 % at 30k, 98.5 vs 98.0 % at 160k; muscle-volume RMS error 34 vs 34 %
+        and 21 vs 23 %) for 1.4-1.6x the time and a 1st-percentile dihedral angle of
+        15.3-16.1 instead of 16-17.6 deg; thicker tissue or a whole head gains more. See
+        the module docstring.
     progress_bar : bool, default False
         Log each step at INFO level (the steps are short; there is no bar).
 
