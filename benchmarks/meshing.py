@@ -82,14 +82,21 @@ def _labels(patient, spacing):
     return truth
 
 
-def _agreement(labels, grid):
+def _centroid_labels(labels, grid):
+    """Tissue label of the image voxel nearest to every cell centroid."""
     from pvcmf import arrays
 
     c = grid.cell_centers().points
     ijk = np.rint((c - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(int)
     ijk = np.clip(ijk, 0, np.asarray(labels.dimensions) - 1)
     d = labels.dimensions
-    lab = np.asarray(labels[arrays.TISSUE])[ijk[:, 0] + d[0] * (ijk[:, 1] + d[1] * ijk[:, 2])]
+    return np.asarray(labels[arrays.TISSUE])[ijk[:, 0] + d[0] * (ijk[:, 1] + d[1] * ijk[:, 2])]
+
+
+def _agreement(labels, grid):
+    from pvcmf import arrays
+
+    lab = _centroid_labels(labels, grid)
     soft = np.isin(lab, arrays.SOFT_LABELS)
     agree = lab == grid.cell_data[arrays.TISSUE]
     return float(soft.mean()), float(agree[soft].mean()), float(agree.mean())
@@ -99,11 +106,7 @@ def _agreement_by_volume(labels, grid):
     """Share of the mesh volume in cells whose centroid voxel has the cell's tissue."""
     from pvcmf import arrays
 
-    c = grid.cell_centers().points
-    ijk = np.rint((c - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(int)
-    ijk = np.clip(ijk, 0, np.asarray(labels.dimensions) - 1)
-    d = labels.dimensions
-    lab = np.asarray(labels[arrays.TISSUE])[ijk[:, 0] + d[0] * (ijk[:, 1] + d[1] * ijk[:, 2])]
+    lab = _centroid_labels(labels, grid)
     vol = grid.compute_cell_sizes(length=False, area=False)["Volume"]
     return float(vol[lab == grid.cell_data[arrays.TISSUE]].sum() / vol.sum())
 
