@@ -72,11 +72,13 @@ share of agreeing centroids is biased against graded meshes (they move cells fro
 deep inside, which agree, to the surfaces). The uniform calibration lands 11-16 % below
 the request on the patients and the graded one within a few per cent of it, so at the
 same *request* the graded mesh has ~16 % more tetrahedra (and looks better: muscle RMS
-34 against 52 % at 30k on the 1 mm patient). The quality goal holds (1st-percentile
-dihedral 15.3-16.1 deg measured, min 5.0-6.5 deg). Graded remeshing with MMG (mmg3d
-through ``mmgpy``, ``hausd`` 0.5-1 mm) was measured and dropped: 30-40 s for 130k -> 70k
-tetrahedra and a lower agreement. Request more tetrahedra or a smaller region of interest
-where accuracy matters (numbers in ``benchmarks/meshing.py`` and README).
+34 against 52 % at 30k on the 1 mm patient). The quality goal holds without extra
+optimisation (1st-percentile dihedral 15.0-16.1 deg, min 5.0-6.5 deg, measured at grading
+2-8 on the 2 mm patients 1-4 and at 2 on the 1 mm patient 1; counts 0.95-1.02x the
+request). Graded remeshing with MMG (mmg3d through ``mmgpy``, ``hausd`` 0.5-1 mm) was
+measured and dropped: 30-40 s for 130k -> 70k tetrahedra and a lower agreement. Request
+more tetrahedra or a smaller region of interest where accuracy matters (numbers in
+``benchmarks/meshing.py`` and README).
 
 Delegates to PyVista/VTK (``contour_labels`` = ``vtkSurfaceNets3D``,
 ``vtkConstrainedSmoothingFilter``), scipy.ndimage (connected components, box averages of
@@ -1216,7 +1218,7 @@ def tetrahedralize(
         the same count (1 mm virtual patient, grading 2: volume-weighted label agreement
         95.0 vs 95.1 % at 30k, 98.5 vs 98.0 % at 160k; muscle-volume RMS error 34 vs 34 %
         and 21 vs 23 %) for 1.4-1.6x the time and a 1st-percentile dihedral angle of
-        15.3-16.1 instead of 16-17.6 deg; thicker tissue or a whole head gains more. See
+        15.0-16.1 instead of 16-17.6 deg; thicker tissue may gain more (not measured). See
         the module docstring.
     progress_bar : bool, default False
         Log each step at INFO level (the steps are short; there is no bar).
