@@ -38,6 +38,7 @@ Run::
     python benchmarks/meshing.py --spacing 2 --ceiling  # centroid-test ceiling per depth
     python benchmarks/meshing.py --table          # agreement vs count, failing cells by class
     python benchmarks/meshing.py --grading 2 --counts 30000 160000  # graded vs uniform
+    python benchmarks/meshing.py --grading 3 --shell 30 --counts 30000 100000  # thick tissue
 """
 
 from __future__ import annotations
@@ -348,20 +349,25 @@ def compare_revision(patient, spacing, revision, counts, face_fraction=0.5, repe
     return rows
 
 
-def compare_grading(patient, spacing, grading, counts, face_fraction=0.5, repeats=3):
+def compare_grading(patient, spacing, grading, counts, face_fraction=0.5, repeats=3, shell_soft=None):
     """Uniform and graded meshes alternating in one warm process: medians and ratios.
 
     Also the uniform mesh at the graded mesh's count ("uniform_equal_count", requested
     ``n * graded cells / uniform cells`` after the first pair): the uniform calibration
     lands 11-16 % below the request on the patients, the graded one on it.
+    ``shell_soft``: the analytic head shell (``shell_labels``) with that soft-tissue
+    thickness in mm instead of the patient (whole shell, no roi).
     """
     import statistics
     import warnings
 
     from pvcmf.filters import meshing
 
-    labels = _labels(patient, spacing)
-    roi = _roi(labels, face_fraction)
+    if shell_soft:
+        labels, roi = meshing.shell_labels(spacing=spacing, soft=shell_soft), None
+    else:
+        labels = _labels(patient, spacing)
+        roi = _roi(labels, face_fraction)
     warnings.simplefilter("ignore")
     meshing.tetrahedralize(labels, n_tets=5_000, roi=roi)  # imports and caches warm
     rows = []
@@ -380,7 +386,7 @@ def compare_grading(patient, spacing, grading, counts, face_fraction=0.5, repeat
                 grid, w, c = _timed(meshing.tetrahedralize, labels, n_tets=request, roi=roi, grading=g)
                 times[name].append((w, c))
                 grids[name] = grid
-        row = {"n_tets": n, "grading": grading, "repeats": repeats,
+        row = {"n_tets": n, "grading": grading, "repeats": repeats, "shell_soft_mm": shell_soft,
                "load_avg_1min_x100": round(100 * os.getloadavg()[0])}
         for name, t in times.items():
             grid = grids[name]
@@ -620,6 +626,9 @@ def main(argv=None):
                    help="patients of --table (2 mm)")
     p.add_argument("--grading", type=float, default=None, metavar="G",
                    help="only: graded (grading=G) against uniform meshes at --counts")
+    p.add_argument("--shell", type=float, default=None, metavar="MM",
+                   help="with --grading: only the same-process comparison, on the analytic "
+                        "shell with MM of soft tissue (e.g. 30: thicker than a face)")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
@@ -627,6 +636,11 @@ def main(argv=None):
         kind = spec.pop("kind")
         result = case_mesh(**spec) if kind == "mesh" else case_fractions(**spec)
         print(json.dumps(result))
+        return
+    if a.grading and a.shell:
+        print(f"# analytic shell, {a.shell:g} mm of soft tissue, at {a.spacing:g} mm")
+        for row in compare_grading(None, a.spacing, a.grading, a.counts, None, a.repeats, a.shell):
+            print(json.dumps(row), flush=True)
         return
     _labels(a.patient, a.spacing)  # build the phantom once, cached on disk
     print(f"# patient {a.patient} at {a.spacing:g} mm; wall and CPU in ms")
