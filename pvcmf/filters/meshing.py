@@ -57,31 +57,30 @@ the smooth surfaces against the 2 mm voxel staircase (``benchmarks/meshing.py --
 
 Size grading is an option, ``grading=g`` (:mod:`pvcmf.filters.meshing_grading`): the
 element size is the surface size ``s`` within ``0.5 s`` of every region interface and
-grows to ``g s`` at ``g s`` away (a gmsh ``Structured`` background field from an image
+grows to ``g s`` at ``2 g s`` away (a gmsh ``Structured`` background field from an image
 distance transform), and the count calibration gives the tetrahedra saved deep inside to
-finer surfaces. It is not the default because on these thin tissues it buys little for
-its cost (``benchmarks/meshing.py --grading 2``, session 4, load 1.2-1.3): at 30k on the
-1 mm patient 1 the graded mesh (30.0k tetrahedra, spacing 5.60 mm) against a uniform one
-of the same count (29.1k, 5.87 mm): label agreement weighted by volume 95.0 against
-95.1 %, muscle-volume RMS error 34 against 34 %, 1st-percentile dihedral 15.8 against
-16.3 deg, 1.64 s against 1.21 s (1.36x); at 160k 98.5 against 98.0 %, 21 against 23 %,
-16.1 against 17.6 deg, 6.8 s against 4.2 s (1.62x). On the 2 mm patients 1-4 at 30k the
-volume-weighted agreement moves by +1.0 / 0.0 / +0.7 / -0.3 points and the muscle RMS by
-+2 / -7 / -11 / +2 points against uniform meshes of about the same count. The per-cell
-share of agreeing centroids is biased against graded meshes (they move cells from the
-deep inside, which agree, to the surfaces). The uniform calibration lands 11-16 % below
-the request on the patients and the graded one within a few per cent of it, so at the
-same *request* the graded mesh has ~16 % more tetrahedra (and looks better: muscle RMS
-34 against 52 % at 30k on the 1 mm patient). On thicker tissue it pays: on the analytic
-shell with 30 mm of soft tissue (``--grading 3 --shell 30``) at equal count the muscle-volume
-RMS error drops from 42 to 29 % (30k) and from 23 to 15 % (100k), for 2.3-2.8x the
-time. The quality goal holds without extra
-optimisation (1st-percentile dihedral 15.0-16.1 deg, min 5.0-6.5 deg, measured at grading
-2-8 on the 2 mm patients 1-4 and at 2 on the 1 mm patient 1; counts 0.95-1.02x the
-request). Graded remeshing with MMG (mmg3d through ``mmgpy``, ``hausd`` 0.5-1 mm) was
-measured and dropped: 30-40 s for 130k -> 70k tetrahedra and a lower agreement. Request
-more tetrahedra or a smaller region of interest where accuracy matters (numbers in
-``benchmarks/meshing.py`` and README).
+finer surfaces. It is not the default because on the thin facial tissue (6-12 mm) it buys
+little (``benchmarks/meshing.py --grading 2``, session 4, load 1.0-1.1): on the 1 mm
+patient 1 against a uniform mesh of the same count, 30k: spacing 5.68 against 5.85 mm,
+label agreement weighted by volume 95.2 against 94.7 %, muscle-volume RMS error 38
+against 36 %, 1st-percentile dihedral 16.0 against 16.6 deg, 1.15 s against 1.05 s CPU
+(1.09x); 160k: 98.1 against 97.9 %, 22 against 23 %, 16.8 against 17.6 deg, 1.36x the
+time. On the 2 mm patients 1-4 at 30k the volume-weighted agreement moves by +0.3 / +0.8 /
++0.1 / +0.7 points and the muscle RMS by +15 / -6 / -11 / +1 points against uniform meshes
+of about the same count (the muscle RMS is noisy: one thin muscle more or less). The
+per-cell share of agreeing centroids is biased against graded meshes (they move cells from
+the deep inside, which agree, to the surfaces). The uniform calibration lands 11-16 %
+below the request on the patients and the graded one on it (0.97-1.02x; 1.15x where gmsh
+rejected the first grid), so at the same *request* the graded mesh has ~16 % more
+tetrahedra and looks better (muscle RMS 38 against 52 % at 30k on the 1 mm patient).
+Thicker tissue gains more: on the analytic shell with 30 mm of soft tissue (``--grading 3
+--shell 30``) at equal count the muscle-volume RMS error drops from 42 to 28 % (30k) and
+from 25 to 16 % (100k), for 2.0x and 1.4x the CPU time. The quality goal holds without
+extra optimisation (1st-percentile dihedral 15.4-16.8 deg, min 5.0-7.6 deg, at grading
+2-8 on the 2 mm patients and 2 on the 1 mm patient 1). Graded remeshing with MMG (mmg3d
+through ``mmgpy``, ``hausd`` 0.5-1 mm) was measured and dropped: 30-40 s for 130k -> 70k
+tetrahedra and a lower agreement. Request more tetrahedra or a smaller region of interest
+where accuracy matters (numbers in ``benchmarks/meshing.py`` and README).
 
 Delegates to PyVista/VTK (``contour_labels`` = ``vtkSurfaceNets3D``,
 ``vtkConstrainedSmoothingFilter``), scipy.ndimage (connected components, box averages of
@@ -152,7 +151,8 @@ _RETRY_TOLERANCE = 0.18
 #: mean surface edge; the calibration works in working spacings)
 _EDGE_PER_SPACING = 0.95
 #: graded meshes: measured tetrahedra per predicted (first attempt, 2 mm patients 1-4
-#: and 1 mm patient 1 at 10k-100k, grading 2: 0.77-0.86 before this factor)
+#: and 1 mm patient 1 at 10k-100k, grading 2: 0.77-0.86 before this factor, 0.97-1.02
+#: with it)
 _GRADED_COUNT_BIAS = 0.82
 _MAX_ATTEMPTS = 3
 #: (spacing factor, smoothing factor, target-reach factor) tried in turn when gmsh rejects
@@ -1215,15 +1215,15 @@ def tetrahedralize(
         0: the sizes come from the surfaces (uniform meshes, the default, unchanged).
         ``g > 1``: the element size is the mean surface edge ``s`` within ``0.5 s`` of a
         region interface (skin, muscles, bone, roi cut) and grows linearly to ``g s`` at
-        ``g s`` away; the count calibration accounts for it (the requested count is hit
+        ``2 g s`` away; the count calibration accounts for it (the requested count is hit
         within a few per cent), so the tetrahedra saved deep in the fat go to finer
         surfaces. On the thin facial tissue the gain is small against a uniform mesh of
         the same count (1 mm virtual patient, grading 2: volume-weighted label agreement
-        95.0 vs 95.1 % at 30k, 98.5 vs 98.0 % at 160k; muscle-volume RMS error 34 vs 34 %
-        and 21 vs 23 %) for 1.4-1.6x the time and a 1st-percentile dihedral angle of
-        15.0-16.1 instead of 16-17.6 deg. Thicker tissue gains more (analytic shell with
-        30 mm of soft tissue, grading 3, equal count: muscle-volume RMS error 29 vs 42 %
-        at 30k, 15 vs 23 % at 100k, for 2.3-2.8x the time). See the module docstring.
+        95.2 vs 94.7 % at 30k, 98.1 vs 97.9 % at 160k; muscle-volume RMS error 38 vs 36 %
+        and 22 vs 23 %) for 1.1-1.4x the time and a 1st-percentile dihedral angle of
+        15.4-16.8 instead of 16-17.6 deg. Thicker tissue gains more (analytic shell with
+        30 mm of soft tissue, grading 3, equal count: muscle-volume RMS error 28 vs 42 %
+        at 30k, 16 vs 25 % at 100k, for 1.4-2x the time). See the module docstring.
     progress_bar : bool, default False
         Log each step at INFO level (the steps are short; there is no bar).
 
