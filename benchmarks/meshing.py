@@ -25,8 +25,10 @@ reset after loading the image so that it is the meshing's peak).
    element (:func:`disagreement_split`); prints JSON rows and a markdown table.
 6. ``--grading G``: the graded meshes (``tetrahedralize(grading=G)``) against the uniform
    ones at ``--counts``: the same rows as 1. for both (fresh subprocess each, with the
-   RMS of the muscle-volume errors), then both alternating in one warm process (median
-   wall and CPU time, ratio graded / uniform).
+   RMS of the muscle-volume errors), then uniform, graded and uniform at the graded
+   mesh's count alternating in one warm process (median wall and CPU time, ratios, label
+   agreement per cell and weighted by volume); with ``--shell MM`` only the latter, on
+   the analytic head shell with MM of soft tissue.
 
 Run::
 
