@@ -77,7 +77,9 @@ Thicker tissue gains more: on the analytic shell with 30 mm of soft tissue (``--
 --shell 30``) at equal count the muscle-volume RMS error drops from 42 to 28 % (30k) and
 from 25 to 16 % (100k), for 2.0x and 1.4x the CPU time. The quality goal holds without
 extra optimisation (1st-percentile dihedral 15.4-16.8 deg, min 5.0-7.6 deg, at grading
-2-8 on the 2 mm patients and 2 on the 1 mm patient 1). Graded remeshing with MMG (mmg3d
+2-8 on the 2 mm patients and 2 on the 1 mm patient 1, from 10k to 500k tetrahedra; at 5k,
+where the elements are as thick as the face and nothing is graded, 13.8-14.1 deg against
+14.6-15.4 uniform). Graded remeshing with MMG (mmg3d
 through ``mmgpy``, ``hausd`` 0.5-1 mm) was measured and dropped: 30-40 s for 130k -> 70k
 tetrahedra and a lower agreement. Request more tetrahedra or a smaller region of interest
 where accuracy matters (numbers in ``benchmarks/meshing.py`` and README).
@@ -1223,7 +1225,10 @@ def tetrahedralize(
         and 22 vs 23 %) for 1.1-1.4x the time and a 1st-percentile dihedral angle of
         15.4-16.8 instead of 16-17.6 deg. Thicker tissue gains more (analytic shell with
         30 mm of soft tissue, grading 3, equal count: muscle-volume RMS error 28 vs 42 %
-        at 30k, 16 vs 25 % at 100k, for 1.4-2x the time). See the module docstring.
+        at 30k, 16 vs 25 % at 100k, for 1.4-2x the time). Below ~10k tetrahedra on a
+        face there is nothing to grade (elements ~11 mm) and the 1st-percentile dihedral
+        is 13.8-14.1 deg at 5k (uniform 14.6-15.4; HXT's optimiser threshold 0.35-0.4
+        did not lift it). See the module docstring.
     progress_bar : bool, default False
         Log each step at INFO level (the steps are short; there is no bar).
 
