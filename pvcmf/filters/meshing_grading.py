@@ -193,16 +193,21 @@ def add_background_field(distance, s, grading):
 
     fd, path = tempfile.mkstemp(prefix="pvcmf_grading_", suffix=".bin")
     os.close(fd)
-    distance.write_structured(path, s, grading)
-    field = gmsh.model.mesh.field.add("Structured")
-    gmsh.model.mesh.field.setString(field, "FileName", path)
-    gmsh.model.mesh.field.setNumber(field, "TextFormat", 0)
-    gmsh.model.mesh.field.setAsBackgroundMesh(field)
-    # the sizes come from the field alone (not interpolated from the surface nodes)
     names = ("Mesh.MeshSizeExtendFromBoundary", "Mesh.MeshSizeFromPoints")
-    saved = {name: gmsh.option.getNumber(name) for name in names}
-    for name in names:
-        gmsh.option.setNumber(name, 0)
+    saved = {}
+    try:
+        distance.write_structured(path, s, grading)
+        field = gmsh.model.mesh.field.add("Structured")
+        gmsh.model.mesh.field.setString(field, "FileName", path)
+        gmsh.model.mesh.field.setNumber(field, "TextFormat", 0)
+        gmsh.model.mesh.field.setAsBackgroundMesh(field)
+        # the sizes come from the field alone (not interpolated from the surface nodes)
+        for name in names:
+            saved[name] = gmsh.option.getNumber(name)
+            gmsh.option.setNumber(name, 0)
+    except BaseException:
+        restore(path, saved)  # nothing half-set is left behind
+        raise
     log.debug("grading: background field from %s (s %.3g mm, g %.3g)", path, s, grading)
     return path, saved
 
