@@ -25,9 +25,9 @@ structure and solver once and loops over the solve-level values, so a Poisson sw
 refactors numerically only.
 
 Scheduling is delegated to Dask (``dask.distributed``): by default a local cluster of
-single-threaded worker *processes* on this machine (gmsh and MKL's PARDISO are not
-thread-safe, and the pipeline is numpy/VTK work that holds the GIL in places, so
-processes are the safe default; ``scheduler="threads"`` runs an in-process cluster of
+single-threaded worker *processes* on this machine (gmsh has one global model, so threads
+mesh one at a time behind a lock in :mod:`pvcmf.filters.meshing`, and the pipeline is
+numpy/VTK work that holds the GIL in places, so processes are the default; ``scheduler="threads"`` runs an in-process cluster of
 threads, ``"synchronous"`` runs in this process without Dask, for debugging);
 ``scheduler="tcp://host:8786"`` or a :class:`distributed.Client` runs the same sweep on a
 cluster. Tasks carry ``retries``; a task whose worker dies is rescheduled by Dask on

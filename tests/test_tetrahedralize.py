@@ -577,3 +577,29 @@ def test_grading_none_and_zero_are_the_uniform_mesh_and_leave_gmsh_as_found():
 def test_bad_grading_raises(shell, grading, error):
     with pytest.raises(error, match=r"grading must be None, 0 or a number in \(1, 8\].*got"):
         tetrahedralize(shell, n_tets=5_000, grading=grading)
+
+
+def test_threads_mesh_one_at_a_time():
+    # gmsh has one global model: without the module's lock two threads meshing at once gave
+    # a wrong mesh and SurfaceErrors; with it each gets the mesh it would get alone
+    import threading
+
+    labels = shell_labels(spacing=3.0)
+    alone = tetrahedralize(labels, spacing=8.0)
+    out = [None, None, None]
+
+    def run(i):
+        try:
+            out[i] = tetrahedralize(labels, spacing=8.0)
+        except Exception as exc:  # noqa: BLE001 - reported by the assertion below
+            out[i] = exc
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(len(out))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for grid in out:
+        assert isinstance(grid, pv.UnstructuredGrid), grid
+        np.testing.assert_array_equal(grid.cells, alone.cells)
+        np.testing.assert_array_equal(grid.cell_data[arrays.MUSCLE], alone.cell_data[arrays.MUSCLE])

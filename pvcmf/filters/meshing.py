@@ -100,6 +100,7 @@ import logging
 import numbers
 import os
 import sys
+import threading
 import time
 import warnings
 
@@ -872,7 +873,20 @@ def _gmsh_tets(regions):
     return coords.reshape(-1, 3), np.concatenate(tets), np.concatenate(comp)
 
 
-def _gmsh_mesh(points, tri, patch, patch_sides, threads, optimize, min_dihedral=None, accept=None,
+#: gmsh keeps one global state (model, options) and :func:`_c_output_to_log` swaps the
+#: process's stdout/stderr descriptors: one volume meshing at a time per process. Without it,
+#: four threads meshing the same shell (a Dask ``threads`` scheduler) gave a wrong mesh, two
+#: SurfaceErrors and an "Unknown node" fallback warning (session 4)
+_GMSH_LOCK = threading.Lock()
+
+
+def _gmsh_mesh(*args, **kwargs):
+    """:func:`_gmsh_mesh_locked` under :data:`_GMSH_LOCK` (threads wait their turn)."""
+    with _GMSH_LOCK:
+        return _gmsh_mesh_locked(*args, **kwargs)
+
+
+def _gmsh_mesh_locked(points, tri, patch, patch_sides, threads, optimize, min_dihedral=None, accept=None,
                optimizers=(), grading=None):
     """Volume mesh of every meshed region; returns (nodes, tets, comp id per tet).
 
