@@ -143,6 +143,19 @@ def _roi(labels, face_fraction):
     return face_box(labels, face_fraction)
 
 
+def _warm(labels, face_fraction):
+    """(labels, face-box roi or None) after one small meshing: imports and caches warm,
+    warnings silenced for the timed runs that follow."""
+    import warnings
+
+    from pvcmf.filters import meshing
+
+    roi = None if face_fraction is None else _roi(labels, face_fraction)
+    warnings.simplefilter("ignore")
+    meshing.tetrahedralize(labels, n_tets=5_000, roi=roi)
+    return labels, roi
+
+
 def _muscle_volume_error(labels, grid):
     """Per muscle id 1..12: mesh volume / image volume - 1, in per cent (None if absent)."""
     from pvcmf import arrays
@@ -304,7 +317,6 @@ def compare_revision(patient, spacing, revision, counts, face_fraction=0.5, repe
     """
     import importlib.util
     import statistics
-    import warnings
 
     from pvcmf.filters import meshing
 
@@ -319,10 +331,7 @@ def compare_revision(patient, spacing, revision, counts, face_fraction=0.5, repe
         spec = importlib.util.spec_from_file_location("pvcmf.filters._meshing_previous", path)
         old = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(old)
-    labels = _labels(patient, spacing)
-    roi = _roi(labels, face_fraction)
-    warnings.simplefilter("ignore")
-    meshing.tetrahedralize(labels, n_tets=5_000, roi=roi)  # imports and caches warm
+    labels, roi = _warm(_labels(patient, spacing), face_fraction)
     rows = []
     for n in counts:
         times = {"old": [], "new": []}
@@ -361,17 +370,13 @@ def compare_grading(patient, spacing, grading, counts, face_fraction=0.5, repeat
     thickness in mm instead of the patient (whole shell, no roi).
     """
     import statistics
-    import warnings
 
     from pvcmf.filters import meshing
 
     if shell_soft:
-        labels, roi = meshing.shell_labels(spacing=spacing, soft=shell_soft), None
+        labels, roi = _warm(meshing.shell_labels(spacing=spacing, soft=shell_soft), None)
     else:
-        labels = _labels(patient, spacing)
-        roi = _roi(labels, face_fraction)
-    warnings.simplefilter("ignore")
-    meshing.tetrahedralize(labels, n_tets=5_000, roi=roi)  # imports and caches warm
+        labels, roi = _warm(_labels(patient, spacing), face_fraction)
     rows = []
     for n in counts:
         times = {"uniform": [], "graded": [], "uniform_equal_count": []}
