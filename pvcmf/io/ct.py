@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from . import arrays
+from .. import arrays
 
 log = logging.getLogger(__name__)
 
