@@ -1,36 +1,74 @@
 """The ``cmf`` dataset accessor: ``dataset.cmf.<step>(...)`` chains the pipeline.
 
-Every method only delegates to the pure filter of the same name in :mod:`pvcmf.filters`
-(or :func:`pvcmf.mtm.solve`), passing the dataset as first argument, so that::
+Every method is the pure filter of the same name in :mod:`pvcmf.filters` (or
+:func:`pvcmf.mtm.solve` / :func:`pvcmf.mtm.stiffness`) with this dataset as its first
+argument, so that::
 
     mesh = case.ct.cmf.segment().cmf.embed_muscles(landmarks=case.landmarks)
 
-reads as the paper's pipeline. Registered on :class:`pyvista.DataSet`, so it exists on
+reads as the paper's pipeline. Each method carries its filter's docstring and signature
+(less the dataset): ``help(grid.cmf.solve)`` and ``inspect.signature(grid.cmf.solve)``
+show the filter's parameters. A method is built on first use, so ``import pvcmf`` does not
+import the filters' modules. Registered on :class:`pyvista.DataSet`, so it exists on
 ImageData, UnstructuredGrid and PolyData alike. Delegates to
-``pyvista.register_dataset_accessor``.
+``pyvista.register_dataset_accessor`` and :func:`functools.wraps`.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib
+
 import pyvista as pv
 
-from . import filters
+__all__ = ["CMFAccessor", "METHODS"]
+
+#: accessor method -> (module, function) it delegates to
+METHODS = {
+    "segment": ("pvcmf.filters", "segment"),
+    "classify_tissue": ("pvcmf.filters", "classify_tissue"),
+    "embed_muscles": ("pvcmf.filters", "embed_muscles"),
+    "fiber_directions": ("pvcmf.filters", "fiber_directions"),
+    "tetrahedralize": ("pvcmf.filters", "tetrahedralize"),
+    "sample_muscle_fraction": ("pvcmf.filters", "sample_muscle_fraction"),
+    "average_voxels": ("pvcmf.filters", "average_voxels"),
+    "assign_materials": ("pvcmf.filters", "assign_materials"),
+    "cut_bones": ("pvcmf.filters", "cut_bones"),
+    "move_bones": ("pvcmf.filters", "move_bones"),
+    "apply_plan": ("pvcmf.filters", "apply_plan"),
+    "skin": ("pvcmf.filters", "extract_skin"),
+    "register": ("pvcmf.filters", "register"),
+    "distance_to": ("pvcmf.filters", "distance_to"),
+    "map_to_surface": ("pvcmf.filters", "map_to_surface"),
+    "solve": ("pvcmf.mtm", "solve"),
+    "stiffness": ("pvcmf.mtm", "stiffness"),
+}
 
 
-def _delegate(name, module=None):
+def _method(name, func):
+    """``func`` as a method passing the accessor's dataset first (docstring and signature
+    of ``func``: ``inspect.signature`` of the bound method drops the dataset)."""
+
+    @functools.wraps(func)
     def method(self, *args, **kwargs):
-        func = getattr(module() if module else filters, name)
         return func(self._dataset, *args, **kwargs)
 
     method.__name__ = name
-    method.__doc__ = f"Delegate to :func:`pvcmf.filters.{name}` with this dataset first."
+    method.__qualname__ = f"CMFAccessor.{name}"
     return method
 
 
-def _mtm():
-    from . import mtm
+class _Delegate:
+    """Class attribute that builds its method from the filter on first access."""
 
-    return mtm
+    def __init__(self, name, module, function):
+        self.name, self.module, self.function = name, module, function
+
+    def __get__(self, instance, owner):
+        func = getattr(importlib.import_module(self.module), self.function)
+        method = _method(self.name, func)
+        setattr(owner, self.name, method)  # replace the descriptor: built once
+        return method if instance is None else method.__get__(instance, owner)
 
 
 @pv.register_dataset_accessor("cmf", pv.DataSet)
@@ -40,20 +78,7 @@ class CMFAccessor:
     def __init__(self, dataset):
         self._dataset = dataset
 
-    segment = _delegate("segment")
-    classify_tissue = _delegate("classify_tissue")
-    embed_muscles = _delegate("embed_muscles")
-    fiber_directions = _delegate("fiber_directions")
-    tetrahedralize = _delegate("tetrahedralize")
-    sample_muscle_fraction = _delegate("sample_muscle_fraction")
-    average_voxels = _delegate("average_voxels")
-    assign_materials = _delegate("assign_materials")
-    cut_bones = _delegate("cut_bones")
-    move_bones = _delegate("move_bones")
-    apply_plan = _delegate("apply_plan")
-    skin = _delegate("extract_skin")
-    register = _delegate("register")
-    distance_to = _delegate("distance_to")
-    map_to_surface = _delegate("map_to_surface")
-    solve = _delegate("solve", _mtm)
-    stiffness = _delegate("stiffness", _mtm)
+
+for _name, (_module, _function) in METHODS.items():
+    setattr(CMFAccessor, _name, _Delegate(_name, _module, _function))
+del _name, _module, _function

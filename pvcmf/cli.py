@@ -22,6 +22,16 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+import pyvista as pv
+
+from . import __version__, arrays, datasets
+from .datasets import headsq
+from .io import read_ct
+from .pipeline import STEPS, flip_axes, simulate
+from .plan import read_plan
+from .sweeps import add_sweep_parser, run_sweep
+
 log = logging.getLogger(__name__)
 
 #: defaults of ``pvcmf demo``: coarse enough to finish in well under 2 minutes on 2 cores
@@ -66,8 +76,6 @@ def _common(parser):
 
 def build_parser():
     """The argument parser of the ``pvcmf`` command."""
-    from . import __version__
-
     parser = argparse.ArgumentParser(
         prog="pvcmf",
         description="Predict the face after cranio-maxillofacial surgery (PyVista + MTM).")
@@ -94,8 +102,6 @@ def build_parser():
     sim.add_argument("--flip", default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
-    from .sweeps import add_sweep_parser
-
     add_sweep_parser(sub)  # `pvcmf sweep`: parameter studies on Dask (pvcmf/sweeps.py)
     return parser
 
@@ -107,8 +113,6 @@ def _setup_logging(verbose):
 
 
 def _demo(args):
-    from . import datasets
-
     start = time.perf_counter()
     case = datasets.phantom(patient=args.patient, spacing=args.spacing)
     seconds = time.perf_counter() - start
@@ -116,8 +120,6 @@ def _demo(args):
           f"{case.plan.name or 'plan'}: "
           + "; ".join(f"{o.segment} T{o.translation} R{o.rotation}"
                       for o in case.plan.osteotomies))
-    from .pipeline import simulate
-
     result = simulate(case.ct, case.plan, args.out, bones=case.truth,
                       landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
                       predict=not args.no_predict, muscles=not args.no_muscles,
@@ -127,26 +129,17 @@ def _demo(args):
 
 
 def _simulate(args):
-    from .io import read_ct
-
     args.offset_given, args.scale_given = args.offset is not None, args.scale is not None
     args.offset = 0.0 if args.offset is None else args.offset
     args.scale = 1.0 if args.scale is None else args.scale
-    from .pipeline import simulate
-    from .plan import read_plan
-
     plan = read_plan(args.plan)  # fail on a bad plan before reading the CT
     start = time.perf_counter()
     if str(args.ct) == "headsq" and not args.ct.exists():
-        from .datasets import headsq
-
         ct = headsq(offset=args.offset if args.offset_given else None,
                     scale=args.scale if args.scale_given else None)
     else:
         ct = read_ct(args.ct, offset=args.offset, scale=args.scale)
     if args.flip:
-        from .pipeline import flip_axes
-
         ct = flip_axes(ct, args.flip)
     seconds = time.perf_counter() - start
     result = simulate(ct, plan, args.out, n_tets=args.n_tets, predict=not args.no_predict,
@@ -157,8 +150,6 @@ def _simulate(args):
 
 
 def _report(result):
-    from .pipeline import STEPS
-
     width = max(len(s) for s in (*STEPS, "phantom"))
     print("\nseconds per step")
     for step, seconds in result.timings.items():
@@ -168,10 +159,6 @@ def _report(result):
         if "given" not in why and "no output" not in why:
             print(f"  skipped {step}: {why}")
     if result.post is not None:
-        import numpy as np
-
-        from . import arrays
-
         u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)
         print(f"\nprediction: {result.post.n_cells} tetrahedra, max displacement {u.max():.2f} mm")
     else:
@@ -187,8 +174,6 @@ def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
-    import pyvista as pv
-
     pv.OFF_SCREEN = True
     try:
         result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep}[args.command](args)
@@ -212,8 +197,6 @@ def main(argv=None):
 
 
 def _sweep(args):
-    from .sweeps import run_sweep
-
     return run_sweep(args)
 
 

@@ -6,7 +6,8 @@ skin), times every step, and, given an output folder, writes the predicted skin 
 the deformed mesh (VTU) and offscreen PNGs, each atomically (temporary file in the same
 folder + ``os.replace``: an interrupted run leaves no half-written file).
 
-Steps are looked up lazily by their registry names; steps the caller turns off (muscles,
+Each step is a named function (read, segment, muscles, mesh, materials, plan, solve, map to
+skin, write) that calls the filter of :mod:`pvcmf.filters` of that name; steps the caller turns off (muscles,
 prediction) or that decline on purpose (a failed muscle fit leaves homogeneous tissue) are
 recorded in :attr:`Result.skipped`; any other failure raises. Rendering delegates to PyVista
 (off screen), writing to VTK's XML writers.
@@ -17,17 +18,25 @@ from __future__ import annotations
 import json
 import logging
 import numbers
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pyvista as pv
+from PIL import Image
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
-from . import arrays
+from . import arrays, filters, mtm
 from ._atomic import atomic_path, write_text
+from .figures.osteotomy import osteotomy_panel
+from .filters.osteotomy import cut_bones, move_bones
+from .io import read_ct
 from .plan import Plan, read_plan
+from .progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -110,79 +119,16 @@ class Result:
         return "\n".join(lines)
 
 
-# --------------------------------------------------------------------------- step look-up
-def _filter(name):
-    """The registered filter ``name`` of :mod:`pvcmf.filters`."""
-    from . import filters
-
-    return getattr(filters, name)
-
-
-def _solver():
-    from . import mtm
-
-    return mtm.solve
-
-
-class _Progress:
-    """tqdm over the steps when available and wanted, else nothing (logging only)."""
-
-    def __init__(self, enabled, total):
-        self.bar = None
-        if enabled:
-            try:
-                from tqdm.auto import tqdm
-
-                self.bar = tqdm(total=total, unit="step", file=sys.stderr,
-                                bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}]")
-            except ImportError:
-                self.bar = _SimpleBar(total)
-
-    def step(self, name):
-        if self.bar is not None:
-            self.bar.set_description(name)
-
-    def update(self):
-        if self.bar is not None:
-            self.bar.update(1)
-
-    def close(self):
-        if self.bar is not None:
-            self.bar.close()
-
-
-class _SimpleBar:
-    """Fallback text progress bar on stderr."""
-
-    def __init__(self, total):
-        self.total, self.n, self.desc = total, 0, ""
-
-    def set_description(self, desc):
-        self.desc = desc
-        self._draw()
-
-    def update(self, k):
-        self.n += k
-        self._draw()
-
-    def _draw(self):
-        done = int(30 * self.n / max(self.total, 1))
-        sys.stderr.write(f"\r{self.desc:<20} [{'#' * done}{'.' * (30 - done)}] "
-                         f"{self.n}/{self.total}")
-        sys.stderr.flush()
-
-    def close(self):
-        sys.stderr.write("\n")
-
-
+# --------------------------------------------------------------------------- step runner
 class _Runner:
+    """Runs the named steps of :func:`simulate`: times them, records skips, shows progress."""
+
     def __init__(self, result, progress):
         self.result, self.progress = result, progress
 
     def run(self, step, func, *args, **kwargs):
         """Run ``func`` as ``step``; a step that declines (:class:`StepUnavailable`, e.g. a
         failed muscle fit falling back to homogeneous tissue) is recorded as skipped."""
-        self.progress.step(step)
         start = time.perf_counter()
         try:
             value = func(*args, **kwargs)
@@ -193,21 +139,18 @@ class _Runner:
         else:
             self.result.timings[step] = time.perf_counter() - start
             log.info("step %r took %.2f s", step, self.result.timings[step])
-        self.progress.update()
+        self.progress.step(step)
         return value
 
     def skip(self, step, why):
         self.result.skipped[step] = why
         log.info("step %r skipped: %s", step, why)
-        self.progress.update()
+        self.progress.step(f"{step} (skipped)")
 
 
 # --------------------------------------------------------------------------- steps
 def _transfer_bone_segments(labels, bones):
     """Give every segmented bone voxel the segment id of the nearest ``bones`` voxel."""
-    from scipy import ndimage
-    from scipy.spatial import cKDTree
-
     ref = np.asarray(arrays.require_array(bones, arrays.BONE, "point", dtype="iu"))
     ours = np.asarray(labels[arrays.BONE]) if arrays.BONE in labels.point_data else None
     tissue = np.asarray(labels[arrays.TISSUE])
@@ -232,13 +175,12 @@ def _transfer_bone_segments(labels, bones):
 
 
 def _segment(ct, options):
-    seg = _filter("segment")
-    return seg(ct, **options)
+    return filters.segment(ct, **options)
 
 
 def _muscles(labels, landmarks):
     """Embed the muscles; a failing fit falls back to homogeneous tissue with a warning."""
-    embed = _filter("embed_muscles")
+    embed = filters.embed_muscles
     try:
         return embed(labels, landmarks=landmarks) if landmarks is not None else embed(labels)
     except (ValueError, RuntimeError) as err:
@@ -279,21 +221,20 @@ def face_box(labels, face_fraction):
 
 
 def _mesh(labels, n_tets, options, progress_bar, face_fraction):
-    tet = _filter("tetrahedralize")
     options = dict(options)
     if face_fraction is not None and "roi" not in options:
         options["roi"] = face_box(labels, face_fraction)
-    return tet(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
+    return filters.tetrahedralize(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
 
 
 def _fibres(grid):
     if arrays.MUSCLE not in grid.cell_data or not np.any(grid.cell_data[arrays.MUSCLE]):
         return grid
-    return _filter("fiber_directions")(grid)
+    return filters.fiber_directions(grid)
 
 
 def _materials(grid, options):
-    return _filter("assign_materials")(grid, **options)
+    return filters.assign_materials(grid, **options)
 
 
 def drop_floating_parts(grid, min_constrained=3, collinear_tol=0.05):
@@ -320,9 +261,6 @@ def drop_floating_parts(grid, min_constrained=3, collinear_tol=0.05):
         The mesh itself when every part is held, else a new mesh without the others.
     """
     bc = np.asarray(arrays.require_array(grid, arrays.BC, "point", producer="apply_plan"))
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     # parts = connected components of the cells' node graph (scipy; the MTM checks the
     # same graph). VTK's connectivity filter reorders points, so it is not used here.
     conn_ids = np.asarray(grid.cell_connectivity, dtype=np.int64)
@@ -363,7 +301,7 @@ def drop_floating_parts(grid, min_constrained=3, collinear_tol=0.05):
 
 
 def _apply_plan(grid, plan, labels, options):
-    return drop_floating_parts(_filter("apply_plan")(grid, plan, labels, **options))
+    return drop_floating_parts(filters.apply_plan(grid, plan, labels, **options))
 
 
 def _skin(labels, post):
@@ -375,9 +313,7 @@ def _skin(labels, post):
     the smoothed mesh surface differ by up to a voxel) take the nearest mesh point's
     displacement, so skin behind the meshed face takes that of the fixed plane: zero.
     """
-    from scipy.spatial import cKDTree
-
-    pre = _filter("extract_skin")(labels).copy()
+    pre = filters.extract_skin(labels).copy()
     pre.clear_data()
     if post is None:
         return pre, None
@@ -491,7 +427,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     figures : bool, default True
         Render the PNGs when ``out`` is given.
     progress_bar : bool, default False
-        Show a progress bar over the steps on stderr.
+        Show a progress bar over the steps (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -510,6 +446,29 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     >>> res = pvcmf.pipeline.simulate(case.ct, case.plan, bones=case.truth)  # doctest: +SKIP
     >>> print(res.summary())                                # doctest: +SKIP
     """
+    plan, opts = _check_inputs(plan, n_tets, face_fraction, bones, segment_options=segment_options,
+                               mesh_options=mesh_options, material_options=material_options,
+                               bc_options=bc_options, solve_options=solve_options)
+    result = Result(plan=plan)
+    with Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
+        run = _Runner(result, bar)
+        ct = _read_step(run, ct)
+        labels = _label_steps(run, ct, labels, bones, plan, opts)
+        if muscles and predict:
+            with_muscles = run.run("muscles", _muscles, labels, landmarks)
+            labels = labels if with_muscles is None else with_muscles
+        else:
+            run.skip("muscles", "muscles=False" if predict else "predict=False")
+        result.labels = labels
+        _model_steps(run, labels, plan, opts, n_tets=n_tets, face_fraction=face_fraction,
+                     predict=predict, solve=solve, progress_bar=progress_bar)
+        _output_steps(run, out, solve=solve, figures=figures)
+    log.info("simulate finished:\n%s", result.summary())
+    return result
+
+
+def _check_inputs(plan, n_tets, face_fraction, bones, **options):
+    """The plan (read from a file if need be) and every step's options, checked."""
     if isinstance(plan, (str, Path)):
         plan = read_plan(plan)
     if not isinstance(plan, Plan):
@@ -517,102 +476,97 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     if isinstance(n_tets, bool) or not isinstance(n_tets, (int, np.integer)) or n_tets <= 0:
         raise ValueError(f"n_tets must be a positive integer, got {n_tets!r}")
     opts = {}
-    for name, value in (("segment_options", segment_options), ("mesh_options", mesh_options),
-                        ("material_options", material_options), ("bc_options", bc_options),
-                        ("solve_options", solve_options)):
+    for name, value in options.items():
         if value is not None and not isinstance(value, dict):
             raise TypeError(f"{name} must be a dict or None, got {type(value).__name__}")
         opts[name] = dict(value or {})
-    if bc_options is None:
+    if options["bc_options"] is None:
         opts["bc_options"] = dict(DEFAULT_BC_OPTIONS)
     if face_fraction is not None and not (0 < float(face_fraction) <= 1):
         raise ValueError(f"face_fraction must be in (0, 1] or None, got {face_fraction!r}")
     if bones is not None and not isinstance(bones, pv.ImageData):
         raise TypeError(f"bones must be a pyvista.ImageData or None, got {type(bones).__name__}")
+    return plan, opts
 
-    result = Result(plan=plan)
-    progress = _Progress(progress_bar, len(STEPS))
-    run = _Runner(result, progress)
-    try:
-        if isinstance(ct, (str, Path)):
-            from .io import read_ct
 
-            ct = run.run("read", read_ct, ct)
-        else:
-            run.skip("read", "CT given in memory")
-        if labels is None:
-            if not isinstance(ct, pv.ImageData):
-                raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
-            arrays.require_array(ct, arrays.CT, "point", dtype="f", producer="pvcmf.read_ct")
-            labels = run.run("segment", _segment, ct, opts["segment_options"])
-        else:
-            run.skip("segment", "labels given")
-        if bones is not None:
-            labels = run.run("bone segments", _transfer_bone_segments, labels, bones)
-        else:
-            run.skip("bone segments", "segments from the plan's cut planes / the labels")
-        from .filters.osteotomy import cut_bones
+def _read_step(run, ct):
+    """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`)."""
+    if isinstance(ct, (str, Path)):
+        return run.run("read", read_ct, ct)
+    run.skip("read", "CT given in memory")
+    return ct
 
-        labels = cut_bones(labels, plan)
-        if muscles and predict:
-            with_muscles = run.run("muscles", _muscles, labels, landmarks)
-            if with_muscles is not None:
-                labels = with_muscles
-        else:
-            run.skip("muscles", "muscles=False" if predict else "predict=False")
-        result.labels = labels
 
-        if predict:
-            grid = run.run("mesh", _mesh, labels, n_tets, opts["mesh_options"], progress_bar,
-                           face_fraction)
-        else:
-            grid = None
-            run.skip("mesh", "predict=False")
-        if grid is not None:
-            grid = run.run("fibres", _fibres, grid) or grid
-            with_materials = run.run("materials", _materials, grid, opts["material_options"])
-            if with_materials is None:
-                grid = None  # no materials: the MTM cannot run
-        else:
-            for step in ("fibres", "materials"):
-                run.skip(step, "no mesh")
-        if grid is not None:
-            grid = run.run("boundary conditions", _apply_plan, with_materials, plan, labels,
-                           opts["bc_options"])
-            result.mesh = grid
-            if solve:
-                result.post = run.run("solve", lambda g: _solver()(g, **opts["solve_options"]),
-                                      grid)
-            else:
-                run.skip("solve", "solve=False")
-        else:
-            for step in ("boundary conditions", "solve"):
-                run.skip(step, "no mesh with materials")
+def _label_steps(run, ct, labels, bones, plan, opts):
+    """Steps "segment" and "bone segments", then the plan's cuts: the label image."""
+    if labels is None:
+        if not isinstance(ct, pv.ImageData):
+            raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
+        arrays.require_array(ct, arrays.CT, "point", dtype="f", producer="pvcmf.read_ct")
+        labels = run.run("segment", _segment, ct, opts["segment_options"])
+    else:
+        run.skip("segment", "labels given")
+    if bones is not None:
+        labels = run.run("bone segments", _transfer_bone_segments, labels, bones)
+    else:
+        run.skip("bone segments", "segments from the plan's cut planes / the labels")
+    return cut_bones(labels, plan)
 
-        skins = run.run("skin", _skin, labels, result.post)
-        if skins is not None:
-            result.skin_pre, result.skin_post = skins
-        if not solve:
-            for step in ("skeleton", "figures", "write"):
-                run.skip(step, "solve=False")
-            return result
-        from .filters.osteotomy import move_bones
 
-        result.skeleton = run.run("skeleton", move_bones, labels, plan)
-        if out is not None:
-            start = time.perf_counter()
-            progress.step("figures")
-            pngs = _render(result, Path(out)) if figures else {}
-            result.timings["figures"] = time.perf_counter() - start
-            progress.update()
-            run.run("write", write_outputs, result, out, pngs)
-        else:
-            run.skip("figures", "no output folder")
-            run.skip("write", "no output folder")
-    finally:
-        progress.close()
-    log.info("simulate finished:\n%s", result.summary())
-    return result
+def _model_steps(run, labels, plan, opts, *, n_tets, face_fraction, predict, solve,
+                 progress_bar):
+    """Steps "mesh", "fibres", "materials", "boundary conditions" and "solve"."""
+    result = run.result
+    grid = None
+    if predict:
+        grid = run.run("mesh", _mesh, labels, n_tets, opts["mesh_options"], progress_bar,
+                       face_fraction)
+    else:
+        run.skip("mesh", "predict=False")
+    if grid is None:
+        for step in ("fibres", "materials", "boundary conditions", "solve"):
+            run.skip(step, "no mesh" if step in ("fibres", "materials")
+                     else "no mesh with materials")
+        return
+    grid = run.run("fibres", _fibres, grid) or grid
+    grid = run.run("materials", _materials, grid, opts["material_options"])
+    if grid is None:  # no materials: the MTM cannot run
+        for step in ("boundary conditions", "solve"):
+            run.skip(step, "no mesh with materials")
+        return
+    result.mesh = run.run("boundary conditions", _apply_plan, grid, plan, labels,
+                          opts["bc_options"])
+    if solve:
+        result.post = run.run("solve", _solve, result.mesh, opts["solve_options"])
+    else:
+        run.skip("solve", "solve=False")
+
+
+def _solve(grid, options):
+    """Step "solve": the MTM (:func:`pvcmf.mtm.solve`)."""
+    return mtm.solve(grid, **options)
+
+
+def _output_steps(run, out, *, solve, figures):
+    """Steps "skin" (map to skin), "skeleton", "figures" and "write"."""
+    result = run.result
+    skins = run.run("skin", _skin, result.labels, result.post)
+    if skins is not None:
+        result.skin_pre, result.skin_post = skins
+    if not solve:
+        for step in ("skeleton", "figures", "write"):
+            run.skip(step, "solve=False")
+        return
+    result.skeleton = run.run("skeleton", move_bones, result.labels, result.plan)
+    if out is None:
+        run.skip("figures", "no output folder")
+        run.skip("write", "no output folder")
+        return
+    start = time.perf_counter()
+    pngs = _render(result, Path(out)) if figures else {}
+    result.timings["figures"] = time.perf_counter() - start
+    run.progress.step("figures")
+    run.run("write", write_outputs, result, out, pngs)
 
 
 # --------------------------------------------------------------------------- outputs
@@ -663,8 +617,6 @@ def _render(result, out):
         images["displacement.png"] = p.screenshot(return_img=True)
         p.close()
     if result.skeleton is not None and result.labels is not None:
-        from .figures.osteotomy import osteotomy_panel
-
         p = osteotomy_panel(result.labels, result.plan, skin=result.skin_pre,
                             skeleton=result.skeleton)
         images["osteotomy.png"] = p.screenshot(return_img=True)
@@ -680,8 +632,6 @@ def write_outputs(result, out, images=None):
     the ``bc`` arrays), ``skin_pre.vtp``, the PNGs in ``images`` and ``summary.json``
     (seconds per step, skipped steps, the plan). Returns ``result.files``.
     """
-    from PIL import Image
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files = result.files

@@ -55,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from . import arrays
+from ._atomic import write_text
 
 #: largest rotation (degrees, about any one axis) a plan may ask for
 MAX_ROTATION_DEG = 30.0
@@ -333,8 +334,6 @@ class Plan:
         pathlib.Path
             The written file.
         """
-        from ._atomic import write_text
-
         path = Path(path)
         fmt = _format(path, format)
         text = (json.dumps(self.to_dict(), indent=2) + "\n") if fmt == "json" else _toml_dumps(
@@ -372,9 +371,7 @@ class Plan:
                     )
                 continue
             if points is None:
-                from .filters.osteotomy import voxel_points
-
-                points = voxel_points(bones, np.flatnonzero(labels > 0))
+                points = arrays.voxel_points(bones, np.flatnonzero(labels > 0))
             inside = np.ones(len(points), dtype=bool)
             for p, n in o.cut:
                 inside &= (points - np.asarray(p)) @ np.asarray(n) >= 0

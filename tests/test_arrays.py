@@ -36,6 +36,33 @@ def test_accessor_registered(cls):
         assert callable(getattr(ds.cmf, name))
 
 
+def test_accessor_methods_carry_their_filters_signature_and_docstring():
+    """``inspect.signature(ds.cmf.<m>)`` is the filter's, less the dataset, for every method."""
+    import importlib
+    import inspect
+
+    from pvcmf.accessor import METHODS
+
+    ds = pv.Sphere()
+    for name, (module, function) in METHODS.items():
+        func = getattr(importlib.import_module(module), function)
+        params = list(inspect.signature(func).parameters.values())[1:]
+        assert inspect.signature(getattr(ds.cmf, name)) == inspect.Signature(params), name
+        assert getattr(ds.cmf, name).__doc__ == func.__doc__, name
+        assert getattr(pvcmf.CMFAccessor, name).__name__ == name
+
+
+def test_accessor_passes_the_dataset_first():
+    img = pv.ImageData(dimensions=(4, 4, 4))
+    img[arrays.TISSUE] = np.full(64, arrays.FAT, dtype=np.uint8)
+    img[arrays.BONE] = np.zeros(64, dtype=np.uint8)
+    from pvcmf.plan import Osteotomy, Plan
+
+    plan = Plan((Osteotomy("mandible", (0.0, 0.0, 1.0), cut=[((0, 0, 0), (0, 0, 1))]),))
+    with pytest.raises(ValueError, match="no bone"):
+        img.cmf.cut_bones(plan)
+
+
 def test_filters_registry_names_exist():
     assert set(pvcmf.filters.__all__) <= set(dir(pvcmf.filters))
     with pytest.raises(AttributeError):

@@ -214,9 +214,10 @@ def test_flip_axes_is_a_rotation_for_two_axes():
         flip_axes(img, "w")
 
 
-def test_progress_bar_without_tqdm(tmp_path, monkeypatch, capsys):
-    """The text fallback bar reaches the last step on stderr; off by default."""
+def test_progress_bar_without_tqdm(monkeypatch, caplog):
+    """Without tqdm, progress_bar=True logs every step at INFO up to the last; off, nothing."""
     import builtins
+    import logging
 
     from test_boundary_conditions import synthetic_head
 
@@ -229,9 +230,11 @@ def test_progress_bar_without_tqdm(tmp_path, monkeypatch, capsys):
 
     labels, _ = synthetic_head()
     plan = Plan((Osteotomy("mandible", (0, 0, 3.0)),))
+    caplog.set_level(logging.INFO, logger="pvcmf")
     simulate(None, plan, labels=labels, predict=False)
-    assert capsys.readouterr().err == ""
+    assert not [r for r in caplog.records if r.getMessage().startswith("simulate [")]
+    caplog.clear()
     monkeypatch.setattr(builtins, "__import__", no_tqdm)
     simulate(None, plan, labels=labels, predict=False, progress_bar=True)
-    err = capsys.readouterr().err
-    assert "13/13" in err and "#" * 30 in err
+    steps = [r.getMessage() for r in caplog.records if r.getMessage().startswith("simulate [")]
+    assert len(steps) == 13 and steps[-1].startswith("simulate [13/13]")

@@ -1,12 +1,13 @@
 """Virtual patients: the embedded default data set of pvcmf.
 
 ``phantom(patient, spacing)`` builds a deterministic virtual patient from the analytic
-template head of :mod:`pvcmf.datasets.template`: truth labels (tissue, facial muscles, bone
+atlas head (:mod:`pvcmf.atlas`) through a patient warp
+(:mod:`pvcmf.datasets.template`): truth labels (tissue, facial muscles, bone
 segments), a CT with realistic Hounsfield units, partial-volume edges and noise, landmarks
 and the patient's surgical plan (paper 000, Table II).
 
-Delegates to :mod:`pvcmf.datasets.template` (anatomy and patient warps), numpy (label
-rasterisation and CT synthesis, vectorised on grid sub-boxes) and
+Delegates to :mod:`pvcmf.atlas.raster` (label rasterisation), :mod:`pvcmf.datasets.template`
+(patient warps), numpy (CT synthesis, vectorised on grid sub-boxes) and
 :func:`scipy.ndimage.gaussian_filter` (partial-volume blur).
 """
 
@@ -22,6 +23,11 @@ import pyvista as pv
 from scipy import ndimage
 
 from .. import arrays
+from ..atlas.landmarks import landmark_segments, landmarks
+from ..atlas.raster import SPACING_RANGE, head_grid, rasterize  # noqa: F401 (re-export)
+from ..atlas.raster import check_spacing as _check_spacing
+from ..plan import TABLE_II
+from ..progress import Progress
 from . import template
 
 log = logging.getLogger(__name__)
@@ -47,8 +53,6 @@ CORTEX_MM = 1.8
 #: air gap (mm) between the head and the patient table, and the table's thickness
 TABLE_GAP = 10.0
 TABLE_THICKNESS = 12.0
-#: allowed voxel sizes (mm)
-SPACING_RANGE = (0.5, 4.0)
 
 
 @dataclass
@@ -92,29 +96,10 @@ class Case:
                     self.plan, self.parameters, self.build_seconds)
 
 
-def _check_spacing(spacing):
-    if isinstance(spacing, bool) or not isinstance(spacing, (int, float, np.integer,
-                                                              np.floating)):
-        raise TypeError(f"spacing must be a number of mm, got {type(spacing).__name__}")
-    spacing = float(spacing)
-    lo, hi = SPACING_RANGE
-    if not np.isfinite(spacing) or not lo <= spacing <= hi:
-        raise ValueError(f"spacing must be between {lo} and {hi} mm, got {spacing}")
-    return spacing
-
-
 def _grid_for(warp, spacing, table=True):
     """Image grid holding the patient's head, a margin and (optionally) the table."""
-    pts = template.head_points(warp)
-    margin = 3 * spacing + 3.0
-    lo = pts.min(0) - margin
-    hi = pts.max(0) + margin
-    if table:
-        lo[1] -= TABLE_GAP + TABLE_THICKNESS + spacing
-    lo = np.floor(lo / spacing) * spacing
-    hi = np.ceil(hi / spacing) * spacing
-    dims = np.round((hi - lo) / spacing).astype(int) + 1
-    return template._Grid(lo, spacing, dims)
+    pad = TABLE_GAP + TABLE_THICKNESS + spacing if table else 0.0
+    return head_grid(warp, spacing, pad_back=pad)
 
 
 def _table_mask(grid, tissue):
@@ -160,8 +145,8 @@ def _image(grid, data):
 
 
 def _patient_landmarks(warp):
-    lm = template.landmarks()
-    seg = template.landmark_segments()
+    lm = landmarks()
+    seg = landmark_segments()
     out = {}
     for name, p in lm.items():
         if seg[name] is None:
@@ -173,14 +158,12 @@ def _patient_landmarks(warp):
 
 @functools.lru_cache(maxsize=8)
 def _build(patient, spacing):
-    from ..plan import TABLE_II
-
     t0 = time.perf_counter()
     params = template.patient_parameters(patient)
     warp = template.PatientWarp(params)
     grid = _grid_for(warp, spacing)
     log.info("phantom %d: grid %s at %.2f mm", patient, grid.dims, spacing)
-    labels = template.rasterize(grid, warp)
+    labels = rasterize(grid, warp)
     hu = _synthesize_ct(labels, grid, params.seed)
     ct = _image(grid, {arrays.CT: hu})
     truth = _image(grid, {k: labels[k] for k in (arrays.TISSUE, arrays.MUSCLE, arrays.BONE)})
@@ -207,7 +190,7 @@ def phantom(patient=1, spacing=1.0, progress_bar=False):
     spacing : float
         Isotropic voxel size in mm, 0.5 .. 4.
     progress_bar : bool
-        Accepted for the filter convention; progress is logged.
+        Show the build as a progress bar (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -229,7 +212,10 @@ def phantom(patient=1, spacing=1.0, progress_bar=False):
     """
     template._check_patient(patient)
     spacing = _check_spacing(spacing)
-    return _build(int(patient), spacing).copy()
+    with Progress(total=1, desc=f"phantom {int(patient)}", enabled=progress_bar) as bar:
+        case = _build(int(patient), spacing).copy()
+        bar.step(f"{spacing:g} mm")
+    return case
 
 
 class _CallableModule(type(functools)):

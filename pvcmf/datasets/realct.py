@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import arrays
+from ..io import read_ct
 from ._paths import data_path
 
 log = logging.getLogger(__name__)
@@ -74,8 +76,6 @@ def headsq(*, offset=None, scale=None):
     >>> ct.dimensions  # doctest: +SKIP
     (64, 64, 93)
     """
-    from ..io import read_ct
-
     offset = HEADSQ_OFFSET if offset is None else offset
     scale = HEADSQ_SCALE if scale is None else scale
     local = data_path("headsq", "quarter.nhdr", required=False)
@@ -87,8 +87,6 @@ def headsq(*, offset=None, scale=None):
     # The scan runs from the skull top down (index z inferior) with the face toward index
     # y = 0: reverse y and z (a 180-degree turn about x, no mirroring) for the pvcmf patient
     # frame, y anterior and z superior.
-    from .. import arrays
-
     vol = image.point_data[arrays.CT].reshape(image.dimensions, order="F")
     image.point_data[arrays.CT] = np.ascontiguousarray(vol[:, ::-1, ::-1]).ravel(order="F")
     return image
