@@ -205,3 +205,15 @@ def voxel_points(image, ids):
     nx, ny, _ = image.dimensions
     ijk = np.stack([ids % nx, (ids // nx) % ny, ids // (nx * ny)], axis=1)
     return np.asarray(image.origin, dtype=float) + ijk * np.asarray(image.spacing, dtype=float)
+
+
+# --------------------------------------------------------------------------- atlas, virtual patients, pipeline (core)
+BONE_DEPTH = "bone_depth"  #: rasterised head, float32, mm inside bone (cortical/cancellous HU)
+EYE = "eye"  #: rasterised head, bool, inside an eye
+SDF = "sdf"  #: point, float32, mm, a signed distance being contoured
+MASK = "mask"  #: point, float32 0/1, a binary mask being contoured
+NORMALS = "Normals"  #: point, float (n, 3), VTK's surface normals (``compute_normals``)
+MUSCLE_ID = "muscle_id"  #: field, int, the muscle id (``MUSCLE_IDS``) of a muscle surface
+VALID_POINT_MASK = "vtkValidPointMask"  #: point, VTK probe's flag: inside the probed mesh
+ORIGINAL_IDS = ("vtkOriginalPointIds", "vtkOriginalCellIds")  #: VTK's extraction ids
+DISPLACEMENT_MAGNITUDE = "|displacement| (mm)"  #: point, float, mm, |displacement| in figures

@@ -1,6 +1,6 @@
-"""Virtual patients (pvcmf.datasets.phantom) and the template head (datasets.template).
+"""Virtual patients (pvcmf.datasets.phantom) and the template head (atlas head + warps).
 
-Expected values come from the issue (anatomy: soft-tissue thickness forehead ~5 mm,
+Expected values come from published anatomy and CT physics (anatomy: soft-tissue thickness forehead ~5 mm,
 cheeks 15-25 mm, lips ~12 mm, chin ~11 mm; CT: air -1000, fat ~-100, muscle ~40, bone
 > 1000, teeth ~2500 HU) and from paper 000's Table II (class II / III jaw relations), not
 from numbers the code printed.

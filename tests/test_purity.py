@@ -1,4 +1,4 @@
-"""Every public filter leaves its input untouched (issue 2: filters are pure).
+"""Every public filter leaves its input untouched (filters are pure).
 
 One small pipeline on a coarse virtual patient runs every filter of
 ``pvcmf.filters`` (and ``pvcmf.mtm.solve``); each call gets a dataset whose deep copy is

@@ -141,12 +141,12 @@ def _muscle_surfaces_cached(spacing):
         dims = np.ceil((hi + 2.0 - lo) / spacing).astype(int) + 1
         img = pv.ImageData(dimensions=dims, spacing=(spacing,) * 3, origin=lo)
         pts = img.points
-        img["sdf"] = model(_tuple(pts))
-        surf = img.contour([0.0], scalars="sdf", method="flying_edges")
+        img[arrays.SDF] = model(_tuple(pts))
+        surf = img.contour([0.0], scalars=arrays.SDF, method="flying_edges")
         surf = surf.compute_normals(auto_orient_normals=True, consistent_normals=True,
                                     split_vertices=False, cell_normals=False)
         surf.point_data.clear()
-        surf.field_data["muscle_id"] = np.array([arrays.MUSCLE_IDS[name]])
+        surf.field_data[arrays.MUSCLE_ID] = np.array([arrays.MUSCLE_IDS[name]])
         out[name] = surf
     return out
 

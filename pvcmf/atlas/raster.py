@@ -190,7 +190,7 @@ class _Rasterizer:
 
 
 def rasterize(grid, warp, factor=None, progress_bar=False):
-    """Truth labels and helper fields of the template through ``warp`` on ``grid``.
+    """Truth labels and auxiliary fields of the template through ``warp`` on ``grid``.
 
     ``factor`` is the coarsest sampling step (voxels, a power of 2) of the coarse-to-fine
     evaluation; default: about 4 mm; 1 evaluates every voxel.
@@ -278,7 +278,7 @@ def rasterize(grid, warp, factor=None, progress_bar=False):
         muscle[sl][m] = arrays.MUSCLE_IDS[name]
         tissue[sl][m] = arrays.MUSCLE_TISSUE
     return {arrays.TISSUE: tissue, arrays.MUSCLE: muscle, arrays.BONE: bone,
-            "bone_depth": depth, "eye": eye}
+            arrays.BONE_DEPTH: depth, arrays.EYE: eye}
 
 
 @functools.lru_cache(maxsize=1)

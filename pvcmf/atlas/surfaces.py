@@ -69,8 +69,8 @@ def label_surfaces(labels, *, spacing=FIT_SPACING):
     bone = np.isin(vol, arrays.HARD_LABELS)
     out = []
     for mask in (head, bone):
-        img.point_data["mask"] = mask.ravel(order="F").astype(np.float32)
-        out.append(img.contour([0.5], scalars="mask", method="flying_edges").clean())
+        img.point_data[arrays.MASK] = mask.ravel(order="F").astype(np.float32)
+        out.append(img.contour([0.5], scalars=arrays.MASK, method="flying_edges").clean())
     return out[0], out[1]
 
 
@@ -188,7 +188,7 @@ class _PatientSurfaces:
             smooth = surf.smooth_taubin(n_iter=20, pass_band=0.1)
             nrm = smooth.compute_normals(cell_normals=False, split_vertices=False)
             self.points.append(np.asarray(surf.points))
-            self.normals.append(np.asarray(nrm.point_data["Normals"]))
+            self.normals.append(np.asarray(nrm.point_data[arrays.NORMALS]))
             self.trees.append(cKDTree(self.points[-1]))
             self.sparse.append(_downsample(self.points[-1], 1.5 * spacing))
 

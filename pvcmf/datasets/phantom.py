@@ -122,11 +122,11 @@ def _synthesize_ct(labels, grid, seed):
     tissue = labels[arrays.TISSUE]
     hu = np.full(tissue.shape, HU["air"], np.float32)
     hu[tissue == arrays.FAT] = HU["fat"]
-    hu[labels["eye"]] = HU["eye"]
+    hu[labels[arrays.EYE]] = HU["eye"]
     hu[tissue == arrays.MUSCLE_TISSUE] = HU["muscle"]
     hu[tissue == arrays.INTRACRANIAL] = HU["brain"]
     bone = tissue == arrays.BONE_TISSUE
-    depth = labels["bone_depth"][bone]
+    depth = labels[arrays.BONE_DEPTH][bone]
     hu[bone] = HU["cancellous"] + (HU["cortical"] - HU["cancellous"]) * np.exp(
         -np.maximum(depth - CORTEX_MM, 0.0) / 1.0)
     hu[tissue == arrays.TEETH] = HU["teeth"]
