@@ -884,8 +884,8 @@ def _case_identity(case):
 #: package): their sources enter :class:`PipelineEvaluation`'s cache identity. Figures,
 #: command line, I/O and the sweep engine itself do not change a result, so editing them
 #: keeps every cached sweep.
-RESULT_SOURCES = ("arrays.py", "atlas.py", "tps.py", "plan.py", "pipeline.py", "reference.py",
-                  "validation.py", "filters", "mtm", "datasets")
+RESULT_SOURCES = ("arrays.py", "atlas.py", "tps.py", "plan.py", "pipeline.py", "truth",
+                  "study/statistics.py", "filters", "mtm", "datasets")
 
 _SOURCE_HASHES = {}
 
