@@ -50,3 +50,37 @@ def write_text(path, text):
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")
     return Path(path)
+
+
+@contextlib.contextmanager
+def atomic_dir(path):
+    """Yield a temporary folder next to ``path``; move it onto ``path`` on success.
+
+    Whatever the caller writes into the folder appears at ``path`` all at once (a folder
+    already there is replaced). On any exception the temporary folder is removed and
+    ``path`` is left untouched.
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> from pathlib import Path
+    >>> from pvcmf._atomic import atomic_dir
+    >>> out = Path(tempfile.mkdtemp()) / "entry"
+    >>> with atomic_dir(out) as tmp:
+    ...     _ = (Path(tmp) / "a.txt").write_text("a")
+    >>> sorted(os.listdir(out))
+    ['a.txt']
+    """
+    import shutil
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
+    try:
+        yield tmp
+        if path.exists():
+            shutil.rmtree(path, ignore_errors=True)
+        os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise

@@ -217,3 +217,19 @@ MUSCLE_ID = "muscle_id"  #: field, int, the muscle id (``MUSCLE_IDS``) of a musc
 VALID_POINT_MASK = "vtkValidPointMask"  #: point, VTK probe's flag: inside the probed mesh
 ORIGINAL_IDS = ("vtkOriginalPointIds", "vtkOriginalCellIds")  #: VTK's extraction ids
 DISPLACEMENT_MAGNITUDE = "|displacement| (mm)"  #: point, float, mm, |displacement| in figures
+
+
+# --------------------------------------------------------------------------- truth and study
+REFERENCE_SOLVER = "reference_solver"  #: field, float64 (4,): dofs, Newton its, factorisations, s
+REFERENCE_RELEASED = "reference_released"  #: field, int64: prescribed point ids left free
+REFERENCE_FOLDED = "reference_folded"  #: field, int64: cells the vertex displacements invert
+MAPPING_SUPPORT = "mapping_support"  #: point (skin), float64, weight sum of map_to_surface
+ORIGINAL_POINT_IDS = "vtkOriginalPointIds"  #: point, VTK extraction: source point ids
+#: columns of the error-statistics table (pvcmf.study.statistics), in order
+STAT_COLUMNS = ("n", "median", "mean_abs", "rms", "p50", "p90", "p95", "within_1mm",
+                "within_2mm")
+#: metric columns of a sweep row (|distance| statistics, mm and %)
+SWEEP_METRICS = ("p50", "p90", "p95", "median", "mean_abs", "rms", "within_1mm", "within_2mm",
+                 "n_skin")
+#: timing columns of a sweep row (s)
+SWEEP_TIMES = ("t_prepare", "t_eval", "cpu_prepare", "cpu_eval")

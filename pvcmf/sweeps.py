@@ -884,8 +884,8 @@ def _case_identity(case):
 #: package): their sources enter :class:`PipelineEvaluation`'s cache identity. Figures,
 #: command line, I/O and the sweep engine itself do not change a result, so editing them
 #: keeps every cached sweep.
-RESULT_SOURCES = ("arrays.py", "atlas.py", "tps.py", "plan.py", "pipeline.py", "reference.py",
-                  "validation.py", "filters", "mtm", "datasets")
+RESULT_SOURCES = ("arrays.py", "atlas", "tps.py", "plan.py", "pipeline.py", "truth",
+                  "study/statistics.py", "filters", "mtm", "datasets")
 
 _SOURCE_HASHES = {}
 
@@ -1434,6 +1434,12 @@ def add_sweep_parser(subparsers):
 
 def run_sweep(args):
     """Run ``pvcmf sweep`` from parsed arguments; return the written path."""
+    if args.scheduler != "synchronous":
+        try:
+            import distributed  # noqa: F401
+        except ImportError as err:
+            raise SystemExit('pvcmf sweep needs Dask: pip install "pvcmf[sweep]" (or run '
+                             f"with --scheduler synchronous); {err}") from None
     grid = parse_grid(args.grid)
     evaluate = synthetic_evaluate if args.synthetic else PipelineEvaluation(
         spacing=args.spacing, n_tets=args.n_tets,

@@ -274,6 +274,7 @@ def test_reference_grid_feeds_postop_ct(tmp_path, monkeypatch):
     ``postop_skin`` alike."""
     pytest.importorskip("ngsolve")
     from pvcmf import reference
+    from pvcmf.truth import grid as truth_grid_module
     from pvcmf.postop import reference_grid
 
     # 3 mm (4 mm / 3000 P1 failed at ~0.93 of the load until MODEL_VERSION 2: the plan's
@@ -298,7 +299,7 @@ def test_reference_grid_feeds_postop_ct(tmp_path, monkeypatch):
     def no_solve(*args, **kwargs):
         raise AssertionError("the cached truth was solved again")
 
-    monkeypatch.setattr(reference, "solve_reference", no_solve)
+    monkeypatch.setattr(truth_grid_module, "solve_reference", no_solve)
     again = reference_grid(c, **opts)
     np.testing.assert_array_equal(again[arrays.DISPLACEMENT], u)
     np.testing.assert_array_equal(again.points, grid.points)

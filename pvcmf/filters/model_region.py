@@ -1,0 +1,121 @@
+"""The part of the head the soft-tissue model covers, and the parts a plan holds.
+
+* :func:`face_box` - the box of the head's anterior share that is meshed (the model is
+  the face in front of a coronal plane, paper 000 Fig. 4c);
+* :func:`drop_floating_parts` - remove mesh parts the boundary conditions do not hold
+  (connected components by :func:`scipy.sparse.csgraph.connected_components`).
+
+Shared by the pipeline (:mod:`pvcmf.pipeline`) and the virtual post-operative truth
+(:mod:`pvcmf.truth`), which must build its model without the pipeline it judges.
+"""
+
+from __future__ import annotations
+
+import logging
+import numbers
+
+import numpy as np
+
+from .. import arrays
+
+log = logging.getLogger("pvcmf.pipeline")
+
+__all__ = ["drop_floating_parts", "face_box"]
+
+
+def face_box(labels, face_fraction):
+    """Box (xmin, xmax, ymin, ymax, zmin, zmax) of the head's anterior ``face_fraction``.
+
+    The model is the face in front of a coronal plane, as in paper 000 where the most
+    posterior plane of the soft-tissue model is fixed (Fig. 4c).
+    """
+    if not (isinstance(face_fraction, numbers.Real) and 0 < face_fraction <= 1):
+        raise ValueError(f"face_fraction must be a number in (0, 1], got {face_fraction!r}")
+    head = np.asarray(labels[arrays.TISSUE]) != arrays.AIR
+    if not head.any():
+        raise ValueError("labels has no tissue: the 'tissue' array is all air")
+    direction = getattr(labels, "direction_matrix", None)
+    if direction is None or np.allclose(direction, np.eye(3)):
+        # index bounds of the head from the mask's projections (no (n, 3) point array:
+        # a 1 mm head image has ~30M voxels)
+        mask = head.reshape(labels.dimensions[::-1])  # (z, y, x)
+        lo_idx, hi_idx = [], []
+        for axis in (2, 1, 0):  # x, y, z
+            other = tuple(a for a in range(3) if a != axis)
+            hit = np.flatnonzero(mask.any(axis=other))
+            lo_idx.append(hit[0])
+            hi_idx.append(hit[-1])
+        origin, spacing = np.asarray(labels.origin), np.asarray(labels.spacing)
+        lo, hi = origin + spacing * lo_idx, origin + spacing * hi_idx
+    else:
+        pts = np.asarray(labels.points)[head]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+    pad = np.asarray(labels.spacing)
+    y0 = hi[1] - face_fraction * (hi[1] - lo[1])
+    return (lo[0] - pad[0], hi[0] + pad[0], y0, hi[1] + pad[1], lo[2] - pad[2], hi[2] + pad[2])
+
+def drop_floating_parts(grid, min_constrained=3, collinear_tol=0.05):
+    """Remove connected parts of a mesh that the boundary conditions do not hold.
+
+    A part with fewer than ``min_constrained`` fixed/joint/sliding nodes, or with all of
+    them (nearly) on one line, would keep rigid motions the solver cannot remove (small
+    islands a mesher leaves behind, e.g. tissue in a nostril, or slivers cut off on the
+    fixed posterior plane); the MTM's answer does not depend on them elsewhere, so they go.
+
+    Parameters
+    ----------
+    grid : pyvista.UnstructuredGrid
+        Mesh with the point array ``bc``.
+    min_constrained : int, default 3
+    collinear_tol : float, default 0.05
+        A part whose constrained nodes lie within this fraction of their extent of one
+        line (second singular value of their centred coordinates below ``collinear_tol``
+        times the first) is not held: it could rotate about that line.
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+        The mesh itself when every part is held, else a new mesh without the others.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    bc = np.asarray(arrays.require_array(grid, arrays.BC, "point", producer="apply_plan"))
+
+    # parts = connected components of the cells' node graph (scipy; the MTM checks the
+    # same graph). VTK's connectivity filter reorders points, so it is not used here.
+    conn_ids = np.asarray(grid.cell_connectivity, dtype=np.int64)
+    offsets = np.asarray(grid.cell_offsets, dtype=np.int64)
+    sizes_ = np.diff(offsets)
+    first = np.repeat(conn_ids[offsets[:-1]], sizes_)
+    n = grid.n_points
+    graph = coo_matrix((np.ones(first.size, dtype=np.int8), (first, conn_ids)), shape=(n, n))
+    _, region = connected_components(graph, directed=False)
+    used = np.zeros(n, dtype=bool)
+    used[conn_ids] = True
+    cell_region = region[conn_ids[offsets[:-1]]]
+    n_regions = int(region.max()) + 1
+    constrained = used & (bc != arrays.BC_FREE)
+    counts = np.bincount(region[constrained], minlength=n_regions)
+    held = counts >= min_constrained
+    held &= np.bincount(cell_region, minlength=n_regions) > 0  # unused points are no part
+    # constrained nodes (nearly) on one line leave the rotation about it free (slivers cut
+    # off on the fixed posterior plane): such a part is not held either
+    pts = np.asarray(grid.points, float)
+    for part in np.flatnonzero(held):  # a loop over the few parts, not over points
+        c = pts[(region == part) & constrained]
+        sv = np.linalg.svd(c - c.mean(axis=0), compute_uv=False)
+        held[part] = sv[1] > collinear_tol * sv[0]
+    keep_cells = held[cell_region]
+    if keep_cells.all():
+        return grid
+    dropped = np.unique(cell_region[~keep_cells])
+    n_dropped = int(np.isin(region[used], dropped).sum())
+    log.warning("dropping %d mesh part(s) held by fewer than %d non-collinear constrained "
+                "nodes (%d points in all)", len(dropped), min_constrained, n_dropped)
+    out = grid.extract_cells(np.flatnonzero(keep_cells))
+    for name in (arrays.ORIGINAL_POINT_IDS, "vtkOriginalCellIds"):
+        for data in (out.point_data, out.cell_data):
+            if name in data:
+                data.remove(name)
+    return out

@@ -1,0 +1,253 @@
+"""The validation study: predictions of every patient and method, judged and tabulated.
+
+* :func:`run_study` -> runs ``predict(patient, method)`` for every patient and method and
+  collects the distance arrays and the statistics table
+  (:func:`pvcmf.study.statistics.error_statistics`);
+* :func:`study_predictor` -> the ``predict`` of paper 000's study on the virtual patients:
+  pvcmf's pipeline against the :mod:`pvcmf.truth` truth, through a virtual
+  post-operative CT (:func:`pvcmf.truth.postop_ct`) judged as a real scan
+  (:mod:`pvcmf.study.from_ct`).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .. import arrays, filters, mtm
+from ..datasets import phantom
+from ..filters.osteotomy import cut_bones
+from ..pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
+from ..truth.grid import _skin_of, truth_grid
+from ..truth.postop import postop_ct
+from .from_ct import skin_from_ct, validate_from_ct
+from .statistics import _distances, error_statistics
+
+log = logging.getLogger("pvcmf.validation")
+
+__all__ = ["STUDY_METHODS", "TRUTH_REACH", "run_study", "study_predictor"]
+
+
+def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the_art"), *,
+              regions=True):
+    """Run the validation study: one prediction per patient and method, then statistics.
+
+    Parameters
+    ----------
+    predict : callable
+        ``predict(patient, method) -> skin`` returning the predicted skin with point array
+        ``arrays.DISTANCE`` (signed error against that patient's actual skin).
+    patients : sequence, default (1, 2, 3, 4)
+        Patient ids (paper 000 Table II).
+    methods : sequence of str, default ('proposed', 'state_of_the_art')
+        Methods (paper 000: muscle-embedded mesh vs homogeneous mesh + sampling).
+    regions : bool, default True
+        Per-region rows in the table (see :func:`error_statistics`).
+
+    Returns
+    -------
+    skins : dict
+        ``skins[patient][method]`` -> the predicted skin (for Fig. 6).
+    distances : dict
+        ``distances[patient][method]`` -> 1-D signed distances (Figs. 7, 8).
+    table : pandas.DataFrame
+        :func:`error_statistics` rows with ``patient`` and ``method`` columns.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> from pvcmf.study.validation import run_study
+    >>> def predict(patient, method):
+    ...     s = pv.Sphere()
+    ...     s[arrays.DISTANCE] = np.full(s.n_points, 0.1 * patient)
+    ...     return s
+    >>> _, d, table = run_study(predict, patients=(1, 2), methods=("a",), regions=False)
+    >>> table["median"].round(2).tolist()
+    [0.1, 0.2]
+    """
+    import pandas as pd
+
+    if not callable(predict):
+        raise TypeError(f"predict must be callable(patient, method), got {type(predict).__name__}")
+    skins, distances, tables = {}, {}, []
+    for patient in patients:  # a handful of patients x methods: each runs a whole pipeline
+        skins[patient], distances[patient] = {}, {}
+        for method in methods:
+            log.info("validation study: patient %s, method %s", patient, method)
+            skin = predict(patient, method)
+            d = _distances(skin)
+            skins[patient][method] = skin
+            distances[patient][method] = d
+            tables.append(error_statistics(skin, regions=regions, patient=patient,
+                                           method=method))
+    return skins, distances, pd.concat(tables, ignore_index=True)
+
+
+#: methods of :func:`study_predictor`: the two models of paper 000 and the truth itself
+STUDY_METHODS = ("proposed", "state_of_the_art", "truth")
+#: how far (mm) outside its grid the study's truth reaches (``postop_ct``'s ``extrapolate``:
+#: tissue there moves with the nearest truth node); skin beyond it is not judged
+TRUTH_REACH = 10.0
+
+
+def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
+                    truth_cache=True, cache_dir=None, truth=None, noise_hu=18.0,
+                    ct_spacing=None):
+    """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
+
+    The study runs the path of a real post-operative scan. For virtual patient ``patient``
+    (``datasets.phantom(patient, spacing=spacing)``) and Table II's plan:
+
+    1. the truth: the solved fine grid of :func:`pvcmf.truth.truth_grid` (NGSolve's
+       large-deformation model, ``truth_tets`` P2 tetrahedra, cached on disk), or
+       ``truth(case)``;
+    2. the virtual post-operative CT: the pre-operative CT warped by it and by the plan's
+       bone moves, with ``noise_hu`` of Gaussian noise and a random pose seeded by the
+       patient number (:func:`pvcmf.truth.postop_ct`: up to 5 degrees, 10 mm);
+    3. :func:`pvcmf.study.from_ct.validate_from_ct`: segment that CT -> skin (refined onto its
+       -500 HU edge) -> point-to-plane ICP onto the pre-operative CT's skin on the upper
+       face (forehead, orbits, nose bridge) -> exact signed distance of the prediction to
+       the registered post-operative skin -> face regions.
+
+    ``method`` "proposed" simulates with the muscle-embedded conforming mesh,
+    "state_of_the_art" with the homogeneous mesh and random-point sampling of the muscle
+    share (``sample_muscle_fraction``); both MTM predictions are mapped by paper 001's
+    Gaussian mapping (width ``sigma``, at least half the median edge) to the dense skin of
+    the pre-operative CT, extracted as the post-operative one is
+    (:func:`pvcmf.study.from_ct.skin_from_ct`: segment, skin, refined onto the -500 HU edge), and
+    judged on the meshed anterior face (``mapping_support > 0``, in front of the face
+    box) where the truth is defined (inside its grid or within :data:`TRUTH_REACH` mm of
+    a node; further out ``postop_ct`` fades the displacement away, so neither model can
+    be judged there). "truth" judges that same skin moved by the truth grid (its displacement probed
+    inside the grid, the nearest node's outside) on the anterior face through the same
+    path: what the CT path itself adds (warping, noise, voxels, segmentation, ICP), the
+    floor against which the differences between the methods are to be read.
+
+    Parameters
+    ----------
+    spacing : float, default 2.0
+        Voxel size of the virtual patients (mm).
+    n_tets : int, default 30000
+        Tetrahedra of the MTM meshes.
+    truth_tets : int, default 16000
+        Tetrahedra of the truth mesh (``truth_grid(n_tets=...)``; P2 elements).
+    sigma : float, default 2.0
+        Smallest Gaussian width of the tetrahedra -> skin mapping (mm).
+    truth_cache : bool, default True
+        Use the truth's on-disk cache.
+    cache_dir : path, optional
+        Truth cache folder (default ``PVCMF_CACHE_DIR`` / ``~/.cache/pvcmf``).
+    truth : callable, optional
+        ``truth(case) -> pyvista.UnstructuredGrid`` with ``arrays.DISPLACEMENT`` in the
+        pre-operative frame, instead of the reference model (e.g. a synthetic truth in
+        tests, where NGSolve is not installed).
+    noise_hu : float, default 18.0
+        Noise of the post-operative CT (HU).
+    ct_spacing : float, optional
+        Voxel size of the post-operative CT (default: the pre-operative one).
+
+    Returns
+    -------
+    callable
+        ``predict(patient, method) -> PolyData`` with point arrays ``arrays.DISTANCE`` and
+        ``arrays.REGION`` and the ICP result in its field data, for :func:`run_study`.
+
+    Examples
+    --------
+    >>> from pvcmf.study.validation import run_study, study_predictor
+    >>> predict = study_predictor(spacing=3.0, n_tets=3000, truth_tets=6000)  # doctest: +SKIP
+    >>> skins, distances, table = run_study(predict, patients=(1,))             # doctest: +SKIP
+    """
+    for name, value in (("spacing", spacing), ("sigma", sigma)):
+        if not value > 0:
+            raise ValueError(f"{name} must be > 0 mm, got {value!r}")
+    for name, value in (("n_tets", n_tets), ("truth_tets", truth_tets)):
+        if int(value) < 100:
+            raise ValueError(f"{name} must be an integer >= 100, got {value!r}")
+    if truth is not None and not callable(truth):
+        raise TypeError(f"truth must be callable(case) -> grid, got {type(truth).__name__}")
+    if not noise_hu >= 0:
+        raise ValueError(f"noise_hu must be >= 0, got {noise_hu!r}")
+    if truth is None:
+        truth = functools.partial(_reference_truth, truth_tets=truth_tets, cache=truth_cache,
+                                  cache_dir=cache_dir)
+    cases, scans = {}, {}
+
+    def case(patient):
+        if patient not in cases:
+            cases[patient] = phantom(patient=patient, spacing=spacing)
+        return cases[patient]
+
+    def predict(patient, method):
+        if method not in STUDY_METHODS:
+            raise ValueError(f"method must be 'proposed', 'state_of_the_art' or 'truth', "
+                             f"got {method!r}")
+        c = case(patient)
+        if patient not in scans:
+            scans[patient] = _scan(c, patient, truth, noise_hu, ct_spacing)
+        grid, ct, pre_skin, covered = scans[patient]
+        labels, pred = _prediction(c, method, grid, pre_skin, n_tets, sigma)
+        return _judge(c, ct, pred, pre_skin, labels, covered)
+
+    return predict
+
+
+def _reference_truth(case, *, truth_tets, cache, cache_dir):
+    return truth_grid(case, n_tets=truth_tets, cache=cache, cache_dir=cache_dir)
+
+
+def _scan(case, patient, truth, noise_hu, ct_spacing):
+    """The truth grid, the posed noisy post-operative CT, the pre-operative skin and the
+    mask of the skin points the truth covers."""
+    grid = truth(case)
+    ct, _ = postop_ct(case, grid, noise_hu=noise_hu, pose="random", seed=patient,
+                      spacing=ct_spacing, extrapolate=TRUTH_REACH)
+    pre_skin = skin_from_ct(case.ct, name="pre-operative CT")
+    # the truth is defined inside its grid and, by postop_ct's full extrapolation,
+    # up to TRUTH_REACH mm outside it: only that skin is judged
+    covered = np.asarray(pre_skin.sample(grid, progress_bar=False)[
+        arrays.VALID_POINT_MASK], dtype=bool)
+    near, _ = cKDTree(grid.points).query(pre_skin.points[~covered])
+    covered[~covered] = near <= TRUTH_REACH
+    return grid, ct, pre_skin, covered
+
+
+def _prediction(case, method, grid, pre_skin, n_tets, sigma):
+    """(cut labels, predicted skin on the points of ``pre_skin``) of one method."""
+    if method == "truth":  # the truth's own skin through the CT path: its floor
+        pred = _skin_of(pre_skin, grid)
+        pred.point_data[arrays.MAPPING_SUPPORT] = np.ones(pred.n_points)
+        return cut_bones(case.truth, case.plan), pred
+    conforming = method == "proposed"
+    res = simulate(case.ct, case.plan, bones=case.truth, landmarks=case.landmarks,
+                   n_tets=n_tets, mesh_options={"conforming": conforming}, figures=False)
+    post = res.post
+    if not conforming:  # state of the art: muscle share by random points, re-solved
+        g = filters.sample_muscle_fraction(res.mesh, res.labels)
+        g = filters.fiber_directions(g)
+        post = mtm.solve(filters.assign_materials(g))
+    # the Gaussian must span the element size, or coarse meshes leave holes
+    edges = post.extract_all_edges().compute_cell_sizes(length=True, area=False,
+                                                        volume=False)
+    width = max(sigma, 0.5 * float(np.median(edges["Length"])))
+    # the skin of the pre-operative CT, as the truth is measured
+    return res.labels, post.cmf.map_to_surface(pre_skin, sigma=width)
+
+
+def _judge(case, ct, pred, pre_skin, labels, covered):
+    """Distances of ``pred`` to the CT's skin, on the judged anterior face only."""
+    out, _ = validate_from_ct(case, ct, pred, pre_skin=pre_skin, landmarks=case.landmarks,
+                              regions=False)
+    # only the face the model simulates (the meshed, anterior part) is judged
+    y0 = face_box(labels, DEFAULT_FACE_FRACTION)[2]
+    # (every prediction is a copy of pre_skin, point for point)
+    face = (out[arrays.MAPPING_SUPPORT] > 0) & covered & (out.points[:, 1] >= y0)
+    judged = out.extract_points(face, adjacent_cells=False).extract_surface(
+        algorithm="dataset_surface")
+    for key in out.field_data.keys():  # the ICP result
+        judged.field_data[key] = out.field_data[key]
+    return judged
