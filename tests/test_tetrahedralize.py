@@ -308,8 +308,7 @@ def _two_balls(spacing=1.0, big=20.0, small=8.0, centre=(0.7, -0.3, 0.2)):
 def test_surfaces_snapped_onto_analytic_spheres():
     # 6 mm working grid on a 1 mm image: unplaced SurfaceNets vertices sit on the working
     # cell centres (up to 5 mm off); snapped onto the image interfaces they lie on the
-    # spheres to about the voxel staircase (measured mean 0.58 / 0.51 mm; the previous
-    # placement, the mean of the voxel faces inside the cell within 0.4 cells: 1.21 / 1.65)
+    # spheres to about the voxel staircase
     img, centre = _two_balls()
     grid = tetrahedralize(img, spacing=6.0)
     outer = grid.extract_surface(algorithm="dataset_surface")
@@ -377,7 +376,7 @@ def test_every_virtual_patient_agreement_and_quality(patient_mesh):
     truth, grid = patient_mesh
     inside, agree = _label_agreement(truth, grid)
     # measured 94.0-94.9 % inside soft tissue, 96.0-96.4 % of those agree (see the xfail below
-    # and the module docstring of pvcmf.filters.meshing for why not 98 %)
+    # and the Notes of pvcmf.filters.tetrahedralize for why not 98 %)
     assert inside >= 0.92
     assert agree >= 0.95
     assert abs(grid.n_cells / 30_000 - 1) <= 0.2
@@ -552,7 +551,7 @@ def test_grading_none_and_zero_are_the_uniform_mesh_and_leave_gmsh_as_found():
 
     labels = shell_labels(spacing=3.0)
     own = not gmsh.isInitialized()
-    if own:  # one gmsh session for all calls: the global options persist between them
+    if own:  # one gmsh initialisation for all calls: the global options persist between them
         gmsh.initialize(interruptible=False)
     try:
         before = tetrahedralize(labels, spacing=8.0)
