@@ -7,7 +7,7 @@ reset after loading the image so that it is the meshing's peak).
 1. ``tetrahedralize`` (conforming, the proposed method) on the 1 mm virtual patient at
    10k/30k/100k/300k requested tetrahedra, meshing the anterior half of the head like
    the pipeline (``--face-fraction``): median wall and CPU time of ``--repeats`` runs
-   (with the load average), peak memory, count hit, min / 1st-percentile dihedral angle,
+   peak memory, count hit, min / 1st-percentile dihedral angle,
    label agreement at the centroids, volume error of every named muscle.
 2. the baseline: the homogeneous mesh (``conforming=False``) + ``sample_muscle_fraction``
    at 10/100/1000 points per tetrahedron and ``average_voxels``: time, and the fraction
@@ -15,7 +15,8 @@ reset after loading the image so that it is the meshing's peak).
    the clipped tetrahedra, VTK ``clip``) and on the patient against 4000 points.
 
 3. ``--against REV``: the current mesher against the one of git revision ``REV``,
-   alternating in one warm process (median CPU and wall time, agreement, ratio).
+   alternating in one warm process (median CPU and wall time, agreement, ratio); ``REV``
+   must be a revision where the mesher is the single module ``pvcmf/filters/meshing.py``.
 4. ``--ceiling``: the share of points at a given depth inside a region of the smooth
    anatomy (the virtual patient at half the spacing) whose nearest voxel has another
    label, i.e. what the centroid test would report for exactly placed surfaces.
@@ -36,7 +37,7 @@ Run::
     python benchmarks/meshing.py --spacing 2 --counts 10000 30000
     python benchmarks/meshing.py --compare-only   # proposed vs baseline, one warm process
     python benchmarks/meshing.py --no-baseline --counts 10000 30000 100000 300000
-    python benchmarks/meshing.py --against 399d241 --counts 30000 160000  # old vs new mesher
+    python benchmarks/meshing.py --against REV --counts 30000 160000  # old vs new mesher
     python benchmarks/meshing.py --spacing 2 --ceiling  # centroid-test ceiling per depth
     python benchmarks/meshing.py --table          # agreement vs count, failing cells by class
     python benchmarks/meshing.py --grading 2 --counts 30000 160000  # graded vs uniform
@@ -47,16 +48,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-import os
-import tempfile
+import pvcmf
+from pvcmf import arrays
+from pvcmf.filters import average_voxels, meshing, sample_muscle_fraction, tetrahedralize
+from pvcmf.filters.meshing import shell_labels
+from pvcmf.pipeline import face_box
 
 CACHE = Path(os.environ.get("PVCMF_CACHE_DIR", tempfile.gettempdir())) / "pvcmf_benchmark_meshing"
 
@@ -64,7 +70,6 @@ CACHE = Path(os.environ.get("PVCMF_CACHE_DIR", tempfile.gettempdir())) / "pvcmf_
 def _labels(patient, spacing):
     import pyvista as pv
 
-    import pvcmf
 
     import hashlib
     import importlib
@@ -87,8 +92,6 @@ def _labels(patient, spacing):
 
 def _centroid_labels(labels, grid):
     """Tissue label of the image voxel nearest to every cell centroid."""
-    from pvcmf import arrays
-
     c = grid.cell_centers().points
     ijk = np.rint((c - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(int)
     ijk = np.clip(ijk, 0, np.asarray(labels.dimensions) - 1)
@@ -97,8 +100,6 @@ def _centroid_labels(labels, grid):
 
 
 def _agreement(labels, grid):
-    from pvcmf import arrays
-
     lab = _centroid_labels(labels, grid)
     soft = np.isin(lab, arrays.SOFT_LABELS)
     agree = lab == grid.cell_data[arrays.TISSUE]
@@ -107,8 +108,6 @@ def _agreement(labels, grid):
 
 def _agreement_by_volume(labels, grid):
     """Share of the mesh volume in cells whose centroid voxel has the cell's tissue."""
-    from pvcmf import arrays
-
     lab = _centroid_labels(labels, grid)
     vol = grid.compute_cell_sizes(length=False, area=False)["Volume"]
     return float(vol[lab == grid.cell_data[arrays.TISSUE]].sum() / vol.sum())
@@ -138,7 +137,6 @@ def _peak_mib():
 def _roi(labels, face_fraction):
     if face_fraction is None:
         return None
-    from pvcmf.pipeline import face_box
 
     return face_box(labels, face_fraction)
 
@@ -148,7 +146,6 @@ def _warm(labels, face_fraction):
     warnings silenced for the timed runs that follow."""
     import warnings
 
-    from pvcmf.filters import meshing
 
     roi = None if face_fraction is None else _roi(labels, face_fraction)
     warnings.simplefilter("ignore")
@@ -158,8 +155,6 @@ def _warm(labels, face_fraction):
 
 def _muscle_volume_error(labels, grid):
     """Per muscle id 1..12: mesh volume / image volume - 1, in per cent (None if absent)."""
-    from pvcmf import arrays
-
     n = len(arrays.MUSCLES) + 1
     image = np.bincount(np.asarray(labels[arrays.MUSCLE]), minlength=n) * float(np.prod(labels.spacing))
     vol = grid.compute_cell_sizes(length=False, area=False)["Volume"]
@@ -176,8 +171,6 @@ def case_mesh(patient, spacing, n_tets, conforming, face_fraction=0.5, repeats=3
     import os
     import warnings
 
-    from pvcmf.filters import tetrahedralize
-    from pvcmf.filters import meshing
 
     labels = _labels(patient, spacing)
     roi = _roi(labels, face_fraction)
@@ -210,7 +203,6 @@ def case_mesh(patient, spacing, n_tets, conforming, face_fraction=0.5, repeats=3
         "wall_ms_median": round(float(np.median(walls)) * 1000),
         "cpu_ms_median": round(float(np.median(cpus)) * 1000),
         "repeats": repeats,
-        "load_avg_1min_x100": round(os.getloadavg()[0] * 100),
         "surface_ms": round(fd[meshing.TIME_SURFACE][0] * 1000),
         "volume_ms": round(fd[meshing.TIME_VOLUME][0] * 1000),
         "spacing_x100": round(fd[meshing.SURFACE_SPACING][0] * 100),
@@ -232,9 +224,6 @@ def _halfspace(n_tets):
     """Homogeneous shell mesh and a half-space muscle x >= 0 with its exact fractions."""
     import pyvista as pv
 
-    from pvcmf import arrays
-    from pvcmf.filters import tetrahedralize
-    from pvcmf.filters.meshing import shell_labels
 
     labels = shell_labels(spacing=1.0)
     grid = tetrahedralize(labels, n_tets=n_tets, conforming=False)
@@ -252,9 +241,6 @@ def _halfspace(n_tets):
 
 
 def case_fractions(patient, spacing, n_tets):
-    from pvcmf import arrays
-    from pvcmf.filters import average_voxels, sample_muscle_fraction, tetrahedralize
-
     out = {"n_tets": n_tets}
     grid, labels, exact, _ = _halfspace(n_tets)
     cut = (exact > 0) & (exact < 1)
@@ -290,7 +276,6 @@ def compare_same_process(patient, spacing, n_tets=30_000, repeats=2):
     """Proposed vs baseline in one warm process, alternating, best of ``repeats``."""
     import warnings
 
-    from pvcmf.filters import sample_muscle_fraction, tetrahedralize
 
     labels = _labels(patient, spacing)
     warnings.simplefilter("ignore")
@@ -318,7 +303,6 @@ def compare_revision(patient, spacing, revision, counts, face_fraction=0.5, repe
     import importlib.util
     import statistics
 
-    from pvcmf.filters import meshing
 
     root = Path(__file__).resolve().parents[1]
     source = subprocess.run(
@@ -341,7 +325,7 @@ def compare_revision(patient, spacing, revision, counts, face_fraction=0.5, repe
                 grid, w, c = _timed(mod.tetrahedralize, labels, n_tets=n, roi=roi)
                 times[name].append((w, c, grid.n_cells, _agreement(labels, grid)[2]))
                 grids[name] = grid
-        row = {"n_tets": n, "revision": revision, "load_avg_1min_x100": round(100 * os.getloadavg()[0])}
+        row = {"n_tets": n, "revision": revision}
         for name, t in times.items():
             row[name] = {
                 "wall_ms_median": round(1000 * statistics.median(x[0] for x in t)),
@@ -371,7 +355,6 @@ def compare_grading(patient, spacing, grading, counts, face_fraction=0.5, repeat
     """
     import statistics
 
-    from pvcmf.filters import meshing
 
     if shell_soft:
         labels, roi = _warm(meshing.shell_labels(spacing=spacing, soft=shell_soft), None)
@@ -393,8 +376,7 @@ def compare_grading(patient, spacing, grading, counts, face_fraction=0.5, repeat
                 grid, w, c = _timed(meshing.tetrahedralize, labels, n_tets=request, roi=roi, grading=g)
                 times[name].append((w, c))
                 grids[name] = grid
-        row = {"n_tets": n, "grading": grading, "repeats": repeats, "shell_soft_mm": shell_soft,
-               "load_avg_1min_x100": round(100 * os.getloadavg()[0])}
+        row = {"n_tets": n, "grading": grading, "repeats": repeats, "shell_soft_mm": shell_soft}
         for name, t in times.items():
             grid = grids[name]
             fd = grid.field_data
@@ -436,8 +418,6 @@ def agreement_ceiling(patient, spacing, fine_spacing=None, n_samples=3_000_000, 
     disagreement rate for centroids at that depth: the ceiling of the centroid test.
     Returns the rate per depth bin (mm) in per mille.
     """
-    import pvcmf
-    from pvcmf import arrays
     from scipy import ndimage
 
     fine_spacing = fine_spacing or spacing / 2.0
@@ -482,7 +462,6 @@ def _thin_near(labels, box_ijk, label, h):
     """
     from scipy import ndimage
 
-    from pvcmf import arrays
 
     tissue = np.asarray(labels[arrays.TISSUE]).reshape(labels.dimensions[::-1])[box_ijk]
     region = tissue == label
@@ -514,8 +493,6 @@ def disagreement_split(labels, grid):
     """
     from scipy import ndimage
 
-    from pvcmf import arrays
-    from pvcmf.filters import meshing
 
     h = float(grid.field_data[meshing.SURFACE_SPACING][0])
     sp = np.asarray(labels.spacing, float)
@@ -565,7 +542,6 @@ def agreement_table(cases, counts_by_spacing, face_fraction=0.5):
     """Agreement against the requested count with :func:`disagreement_split`, one row a mesh."""
     import warnings
 
-    from pvcmf.filters import meshing
 
     warnings.simplefilter("ignore")
     rows = []
@@ -575,7 +551,7 @@ def agreement_table(cases, counts_by_spacing, face_fraction=0.5):
         for n in counts_by_spacing[spacing]:
             grid, wall, cpu = _timed(meshing.tetrahedralize, labels, n_tets=n, roi=roi)
             row = {"patient": patient, "spacing_mm": spacing, "n_tets": n, "cells": grid.n_cells,
-                   "wall_ms": round(1000 * wall), "load_avg_1min_x100": round(100 * os.getloadavg()[0])}
+                   "wall_ms": round(1000 * wall)}
             row.update(disagreement_split(labels, grid))
             mv = [x for x in _muscle_volume_error(labels, grid) if x is not None]
             row["muscle_volume_rms_percent"] = round(float(np.sqrt(np.mean(np.square(mv)))))

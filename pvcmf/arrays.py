@@ -233,3 +233,37 @@ SWEEP_METRICS = ("p50", "p90", "p95", "median", "mean_abs", "rms", "within_1mm",
                  "n_skin")
 #: timing columns of a sweep row (s)
 SWEEP_TIMES = ("t_prepare", "t_eval", "cpu_prepare", "cpu_eval")
+
+# --------------------------------------------------------------------------- meshing
+# field data of the tetrahedral meshes (pvcmf.filters.meshing.tetrahedralize)
+MESH_MIN_DIHEDRAL = "min_dihedral_deg"  #: field, float, smallest dihedral angle (deg)
+MESH_P1_DIHEDRAL = "p1_dihedral_deg"  #: field, float, 1st percentile of the per-cell minimum
+MESH_MIN_RADIUS_RATIO = "min_radius_ratio"  #: field, float, smallest 3 r_in / R_circ
+MESH_P1_RADIUS_RATIO = "p1_radius_ratio"  #: field, float, its 1st percentile
+MESH_N_TETS_REQUESTED = "n_tets_requested"  #: field, int, the requested count
+MESH_SURFACE_SPACING = "surface_spacing_mm"  #: field, float, working-grid spacing (mm)
+MESH_SMOOTHING_SCALE = "smoothing_scale"  #: field, float, surface smoothing used
+MESH_TIME_SURFACE = "time_surface_s"  #: field, float, s spent on the surfaces
+MESH_TIME_VOLUME = "time_volume_s"  #: field, float, s spent on the volume mesh
+MESH_TIME_TOTAL = "time_total_s"  #: field, float, s in all
+MESH_GRADING = "grading"  #: field, float, size growth deep inside (1.0: uniform)
+#: point array of the region ids on the working grid handed to SurfaceNets
+MESH_COMPONENT = "comp"
+
+# --------------------------------------------------------------------------- muscle embedding
+# field data of the label images written by pvcmf.filters.embed_muscles
+LANDMARK_NAMES = "landmark_names"  #: field, str, names of the warped landmarks used
+LANDMARK_POINTS = "landmark_points"  #: field, float64 (n, 3), mm, their positions
+
+# --------------------------------------------------------------------------- registration
+# field data of the surfaces registered by pvcmf.filters.register
+ICP_MATRIX = "icp_matrix"  #: field, float64 (4, 4), source -> target
+ICP_RMS = "icp_rms"  #: field, float64, mm, point-to-plane RMS at the end
+ICP_ITERATIONS = "icp_iterations"  #: field, int, iterations run
+ICP_CONVERGED = "icp_converged"  #: field, int, 1 when converged
+ICP_OVERLAP = "icp_overlap"  #: field, float64, share of the samples near the target
+
+# --------------------------------------------------------------------------- filter arrays
+# scratch arrays of intermediate datasets inside the filters (never in their output)
+SCRATCH_CELL_ID = "cell_id"  #: cell, int64, index of the cell in the input grid
+SCRATCH_HEAD = "head"  #: point, float, smoothed head indicator contoured for the skin

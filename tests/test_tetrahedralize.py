@@ -175,7 +175,7 @@ def test_box_roi_cropped_first_gives_the_mask_roi_mesh(shell):
     mask = np.all((p >= np.asarray(box[0::2])) & (p <= np.asarray(box[1::2])), axis=1)
     a = tetrahedralize(shell, n_tets=3_000, roi=box)
     b = tetrahedralize(shell, n_tets=3_000, roi=mask)
-    assert meshing._roi_crop(shell, box) is not None and meshing._roi_crop(shell, mask) is None
+    assert meshing.inputs._roi_crop(shell, box) is not None and meshing.inputs._roi_crop(shell, mask) is None
     np.testing.assert_array_equal(a.points, b.points)
     np.testing.assert_array_equal(a.cells, b.cells)
 
@@ -190,7 +190,7 @@ def test_compiled_output_goes_to_the_log(capfd, caplog):
 
     libc = ctypes.CDLL(None)
     with caplog.at_level("DEBUG", logger="pvcmf.filters.meshing"):
-        with meshing._c_output_to_log() as printed:
+        with meshing.volume._c_output_to_log() as printed:
             libc.printf(b"PLC Error:  from C\n")  # buffered by the C library
             os.write(2, b"straight to fd 2\n")
     out, err = capfd.readouterr()
@@ -266,7 +266,7 @@ def test_one_voxel_muscle_warns_by_name(shell):
 def _fail_first_gmsh_call(monkeypatch):
     """Make gmsh reject the first surfaces it gets; returns the list of calls."""
     calls = []
-    real = meshing._gmsh_mesh
+    real = meshing.volume._gmsh_mesh
 
     def flaky(*args):
         calls.append(1)
@@ -274,7 +274,7 @@ def _fail_first_gmsh_call(monkeypatch):
             raise meshing.SurfaceError("gmsh could not mesh the surfaces: self-intersection")
         return real(*args)
 
-    monkeypatch.setattr(meshing, "_gmsh_mesh", flaky)
+    monkeypatch.setattr(meshing.volume, "_gmsh_mesh", flaky)
     return calls
 
 
@@ -288,7 +288,7 @@ def test_invalid_surfaces_fall_back_then_fail_clearly(shell, monkeypatch):
     def broken(*args):
         raise meshing.SurfaceError("gmsh could not mesh the surfaces: self-intersection")
 
-    monkeypatch.setattr(meshing, "_gmsh_mesh", broken)
+    monkeypatch.setattr(meshing.volume, "_gmsh_mesh", broken)
     with pytest.raises(meshing.SurfaceError, match="no valid surfaces"):
         tetrahedralize(shell, spacing=8.0)
 
@@ -308,8 +308,7 @@ def _two_balls(spacing=1.0, big=20.0, small=8.0, centre=(0.7, -0.3, 0.2)):
 def test_surfaces_snapped_onto_analytic_spheres():
     # 6 mm working grid on a 1 mm image: unplaced SurfaceNets vertices sit on the working
     # cell centres (up to 5 mm off); snapped onto the image interfaces they lie on the
-    # spheres to about the voxel staircase (measured mean 0.58 / 0.51 mm; the previous
-    # placement, the mean of the voxel faces inside the cell within 0.4 cells: 1.21 / 1.65)
+    # spheres to about the voxel staircase
     img, centre = _two_balls()
     grid = tetrahedralize(img, spacing=6.0)
     outer = grid.extract_surface(algorithm="dataset_surface")
@@ -377,7 +376,7 @@ def test_every_virtual_patient_agreement_and_quality(patient_mesh):
     truth, grid = patient_mesh
     inside, agree = _label_agreement(truth, grid)
     # measured 94.0-94.9 % inside soft tissue, 96.0-96.4 % of those agree (see the xfail below
-    # and the module docstring of pvcmf.filters.meshing for why not 98 %)
+    # and the Notes of pvcmf.filters.tetrahedralize for why not 98 %)
     assert inside >= 0.92
     assert agree >= 0.95
     assert abs(grid.n_cells / 30_000 - 1) <= 0.2
@@ -428,7 +427,7 @@ def test_sliver_nodes_relocated_without_inversion():
     nodes[centre] = [0.45, 0.52, 0.03]
     d0, v0, _ = tet_quality(nodes, tets)
     free = np.arange(len(nodes)) == centre
-    moved, worst = meshing._relocate_sliver_nodes(nodes, tets, free, d0.min(axis=1), min_dihedral=5.0)
+    moved, worst = meshing.quality._relocate_sliver_nodes(nodes, tets, free, d0.min(axis=1), min_dihedral=5.0)
     d1, v1, _ = tet_quality(moved, tets)
     assert d0.min() < 5.0 <= d1.min()
     np.testing.assert_allclose(worst, d1.min(axis=1))
@@ -552,7 +551,7 @@ def test_grading_none_and_zero_are_the_uniform_mesh_and_leave_gmsh_as_found():
 
     labels = shell_labels(spacing=3.0)
     own = not gmsh.isInitialized()
-    if own:  # one gmsh session for all calls: the global options persist between them
+    if own:  # one gmsh initialisation for all calls: the global options persist between them
         gmsh.initialize(interruptible=False)
     try:
         before = tetrahedralize(labels, spacing=8.0)

@@ -40,9 +40,12 @@ import warnings
 
 import numpy as np
 import pyvista as pv
+from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from .. import arrays
 from ..plan import Plan
+from ..progress import Progress
 from .osteotomy import cut_bones, segment_transforms, voxel_points
 
 log = logging.getLogger(__name__)
@@ -90,8 +93,6 @@ def _surface_normals(bones, hard_mask, points, nearest, sigma):
     hard voxel centre ``nearest`` to the point. Teeth and the alveolar bone around them
     form one surface, so the normal of a thin tooth is not tilted by its own back face.
     """
-    from scipy import ndimage
-
     dims = np.asarray(bones.dimensions)
     spacing = np.asarray(bones.spacing, dtype=float)
     origin = np.asarray(bones.origin, dtype=float)
@@ -161,7 +162,7 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         Gaussian sigma (voxels) smoothing the hard-tissue indicator whose gradient gives
         the sliding normals.
     progress_bar : bool, default False
-        Unused (the step is sub-second); accepted for a uniform pipeline signature.
+        Show the steps (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -196,13 +197,80 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     >>> grid[arrays.BC_DISPLACEMENT][grid[arrays.BC] == arrays.BC_JOINT][0].tolist()
     [0.0, 1.0, 0.0]
     """
-    from scipy import ndimage
-    from scipy.spatial import cKDTree
-
     if not isinstance(grid, pv.UnstructuredGrid):
         raise TypeError(f"grid must be a pyvista.UnstructuredGrid, got {type(grid).__name__}")
     if not isinstance(plan, Plan):
         raise TypeError(f"plan must be a pvcmf.Plan, got {type(plan).__name__}")
+    tissue, posterior_depth, contact, teeth_margin = _check_bones(
+        grid, bones, posterior_depth, contact_distance, normal_sigma, teeth_margin)
+    with Progress(total=3, desc="apply_plan", enabled=progress_bar, logger=log) as bar:
+        labels = cut_bones(bones, plan)
+        transforms = segment_transforms(labels, plan)
+        bar.step("bones cut and moved")
+        bone = np.asarray(labels[arrays.BONE])
+        points = np.asarray(grid.points, dtype=np.float64)
+        n = len(points)
+        code = np.full(n, arrays.BC_FREE, dtype=np.int8)
+        disp = np.zeros((n, 3))
+        normal = np.zeros((n, 3))
+        hard, vox, nodes, near, seg, is_teeth = _hard_contacts(
+            grid, labels, bones, bone, tissue, contact, teeth_margin)
+        bar.step(f"{len(nodes)} boundary nodes touch hard tissue")
+        moved = np.isin(seg, list(transforms))
+
+        def rigid(idx, segs):
+            out = np.zeros((len(idx), 3))
+            for s, m in transforms.items():
+                sel = segs == s
+                p = points[idx[sel]]
+                out[sel] = p @ m[:3, :3].T + m[:3, 3] - p
+            return out
+
+        if fix_unmoved_bone:
+            code[nodes[~moved & ~(is_teeth & sliding)]] = arrays.BC_FIXED
+        if fixed_posterior:
+            y = points[:, 1]
+            back = y <= y.min() + posterior_depth
+            code[back & (code == arrays.BC_FREE)] = arrays.BC_FIXED
+        if joint:
+            sel = moved & ~(is_teeth & sliding)
+            code[nodes[sel]] = arrays.BC_JOINT
+            disp[nodes[sel]] = rigid(nodes[sel], seg[sel])
+        if sliding and is_teeth.any():
+            sel = is_teeth
+            idx = nodes[sel]
+            code[idx] = arrays.BC_SLIDING
+            disp[idx] = rigid(idx, seg[sel])
+            normal[idx] = _surface_normals(labels, hard, points[idx], vox[near[sel]],
+                                           normal_sigma)
+
+        if joint or sliding:
+            for s in transforms:
+                if not np.any(seg == s):
+                    raise ValueError(
+                        f"the plan moves {arrays.BONE_NAMES[s]!r} but no mesh node lies within "
+                        f"contact_distance={contact:g} mm of it: is the mesh in the same frame "
+                        f"as bones, or should contact_distance be larger?"
+                    )
+        if fixed_posterior and not fix_unmoved_bone:
+            _warn_few_fixed(code, posterior_depth)
+        counts = {k: int(np.sum(code == v)) for k, v in arrays.BC_CODES.items()}
+        log.info("apply_plan: %s (contact %.2f mm, %d boundary nodes touch hard tissue)",
+                 counts, contact, len(nodes))
+        out = grid.copy()
+        out.point_data[arrays.BC] = code
+        out.point_data[arrays.BC_DISPLACEMENT] = disp
+        out.point_data[arrays.BC_NORMAL] = normal
+        bar.step("boundary conditions written")
+    return out
+
+
+def _check_bones(grid, bones, posterior_depth, contact_distance, normal_sigma, teeth_margin):
+    """Check :func:`apply_plan`'s image and distances.
+
+    Returns the tissue labels and the posterior depth, contact distance and teeth margin
+    (the defaults resolved).
+    """
     if bones is None:
         raise ValueError(
             "bones must be the label image with 'bone' and 'tissue' point arrays that the "
@@ -226,16 +294,16 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         teeth_margin = float(spacing.max())
     elif not np.isfinite(teeth_margin) or teeth_margin < 0:
         raise ValueError(f"teeth_margin must be a finite number >= 0 (mm), got {teeth_margin!r}")
+    return tissue, posterior_depth, contact, teeth_margin
 
-    labels = cut_bones(bones, plan)
-    transforms = segment_transforms(labels, plan)
-    bone = np.asarray(labels[arrays.BONE])
-    points = np.asarray(grid.points, dtype=np.float64)
-    n = len(points)
-    code = np.full(n, arrays.BC_FREE, dtype=np.int8)
-    disp = np.zeros((n, 3))
-    normal = np.zeros((n, 3))
 
+def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
+    """The boundary nodes of ``grid`` within ``contact`` mm of the hard tissue.
+
+    Returns the hard-tissue mask (bone or teeth voxels), the centres of its surface
+    voxels, the touching nodes, the index of their nearest surface voxel, its bone
+    segment and whether it lies within ``teeth_margin`` of the teeth.
+    """
     # hard tissue: bone or teeth voxels; only their surface layer can be nearest to tissue
     hard = (bone > 0) | np.isin(tissue, arrays.HARD_LABELS)
     dims = tuple(bones.dimensions)
@@ -245,17 +313,16 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     if len(surf_ids) == 0:
         raise ValueError("bones has no bone or teeth voxels ('bone' > 0 or hard 'tissue')")
     vox = voxel_points(labels, surf_ids)
-
+    points = np.asarray(grid.points, dtype=np.float64)
     nodes = boundary_points(grid)
-    dist, near = cKDTree(vox).query(points[nodes],
-                                        distance_upper_bound=contact * (1 + 1e-9))
+    dist, near = cKDTree(vox).query(points[nodes], distance_upper_bound=contact * (1 + 1e-9))
     touching = np.isfinite(dist)
     nodes, near = nodes[touching], near[touching]
     near_ids = surf_ids[near]
-    seg = bone[near_ids]
     teeth = tissue == arrays.TEETH
     if teeth_margin > 0 and teeth.any():
         # distance to the teeth on a crop around them (the margin is a few voxels)
+        spacing = np.asarray(bones.spacing, dtype=float)
         vol_teeth = teeth.reshape(dims, order="F")
         idx = np.argwhere(vol_teeth)
         pad = np.ceil(teeth_margin / spacing).astype(int) + 1
@@ -266,61 +333,18 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         near_teeth[box] = ndimage.distance_transform_edt(
             ~vol_teeth[box], sampling=spacing) <= teeth_margin * (1 + 1e-9)
         teeth = hard & near_teeth.ravel(order="F")
-    is_teeth = teeth[near_ids]
-    moved = np.isin(seg, list(transforms))
+    return hard, vox, nodes, near, bone[near_ids], teeth[near_ids]
 
-    def rigid(idx, segs):
-        out = np.zeros((len(idx), 3))
-        for s, m in transforms.items():
-            sel = segs == s
-            p = points[idx[sel]]
-            out[sel] = p @ m[:3, :3].T + m[:3, 3] - p
-        return out
 
-    if fix_unmoved_bone:
-        code[nodes[~moved & ~(is_teeth & sliding)]] = arrays.BC_FIXED
-    if fixed_posterior:
-        y = points[:, 1]
-        back = y <= y.min() + posterior_depth
-        code[back & (code == arrays.BC_FREE)] = arrays.BC_FIXED
-    if joint:
-        sel = moved & ~(is_teeth & sliding)
-        code[nodes[sel]] = arrays.BC_JOINT
-        disp[nodes[sel]] = rigid(nodes[sel], seg[sel])
-    elif not sliding:
-        pass
-    if sliding and is_teeth.any():
-        sel = is_teeth
-        idx = nodes[sel]
-        code[idx] = arrays.BC_SLIDING
-        disp[idx] = rigid(idx, seg[sel])
-        normal[idx] = _surface_normals(labels, hard, points[idx], vox[near[sel]],
-                                       normal_sigma)
-
-    if joint or sliding:
-        for s in transforms:
-            if not np.any(seg == s):
-                raise ValueError(
-                    f"the plan moves {arrays.BONE_NAMES[s]!r} but no mesh node lies within "
-                    f"contact_distance={contact:g} mm of it: is the mesh in the same frame as "
-                    f"bones, or should contact_distance be larger?"
-                )
-
-    counts = {k: int(np.sum(code == v)) for k, v in arrays.BC_CODES.items()}
+def _warn_few_fixed(code, posterior_depth):
+    """Warn when fewer than :data:`MIN_FIXED_SHARE` of the nodes are fixed."""
     n_fixed = int(np.sum(code == arrays.BC_FIXED))
-    if fixed_posterior and not fix_unmoved_bone and n_fixed < MIN_FIXED_SHARE * len(code):
+    if n_fixed < MIN_FIXED_SHARE * len(code):
         warnings.warn(
             f"apply_plan: only {n_fixed} of {len(code)} nodes are fixed (the posterior plane "
             f"y <= min(y) + {posterior_depth:g} mm): a model that "
             "spans the whole head is then held almost only by the moving bone and follows it. "
             "Crop it to the face (tetrahedralize(..., roi=pvcmf.pipeline.face_box(labels, 0.5)), "
             "as paper 000 and pvcmf.pipeline do) or pass fix_unmoved_bone=True",
-            UserWarning, stacklevel=2,
+            UserWarning, stacklevel=3,
         )
-    log.info("apply_plan: %s (contact %.2f mm, %d boundary nodes touch hard tissue)",
-             counts, contact, len(nodes))
-    out = grid.copy()
-    out.point_data[arrays.BC] = code
-    out.point_data[arrays.BC_DISPLACEMENT] = disp
-    out.point_data[arrays.BC_NORMAL] = normal
-    return out

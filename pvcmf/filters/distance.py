@@ -13,9 +13,7 @@ point on the cells through a cell locator, the whole point array at once via
 ``FunctionValue``). The sign follows the truth's winding, which is first made outward
 here (closed surface: positive volume; open face scan: consistent winding facing away
 from its centroid, ``vtkPolyDataNormals``). ``benchmarks/registration_distance.py``
-measures both against each other and the nearest vertex (scipy ``cKDTree``); a
-vectorised numpy closest-point-on-triangle with a KD-tree certificate of exactness was
-tried in session 1 and was 3.5x slower than VTK at 200k x 200k.
+measures both against each other and the nearest vertex (scipy ``cKDTree``).
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from ..progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -266,7 +267,7 @@ def fiber_directions(dataset, *, levels=None, progress_bar=False):
         Boxes per muscle, see :func:`muscle_boxes`; default 1 for the masseter, 2 for the
         other muscles (paper 000, Fig. 3).
     progress_bar : bool
-        Unused (the filter takes well under a second); accepted for a uniform API.
+        Show the steps, one per muscle (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -288,10 +289,12 @@ def fiber_directions(dataset, *, levels=None, progress_bar=False):
     leaves = _leaves(dataset, levels)
     assoc, ids = _muscle_ids(dataset)
     fiber = np.zeros((len(ids), 3))
-    for name, parts in leaves.items():
-        for index, (_, axes, _) in parts:
-            fiber[index] = axes[0]
-        log.debug("%s: %d box(es)", name, len(parts))
+    with Progress(total=len(leaves), desc="fiber_directions", enabled=progress_bar,
+                  logger=log) as bar:
+        for name, parts in leaves.items():
+            for index, (_, axes, _) in parts:
+                fiber[index] = axes[0]
+            bar.step(f"{name}: {len(parts)} box(es)")
     out = dataset.copy()
     if assoc == "point":
         out.point_data[arrays.FIBER] = fiber

@@ -27,6 +27,7 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from ..progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +101,7 @@ def sample_muscle_fraction(grid, labels, *, n_points=100, seed=0, progress_bar=F
     seed : int, default 0
         Seed of ``numpy.random.default_rng``.
     progress_bar : bool, default False
-        Log the progress per chunk of points at INFO level.
+        Show the progress per chunk of points (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -132,6 +133,8 @@ def sample_muscle_fraction(grid, labels, *, n_points=100, seed=0, progress_bar=F
     per_chunk = max(1, _CHUNK // n)
     cell = np.arange(n)[:, None]
     done = 0
+    bar = Progress(total=n_points, desc="sample_muscle_fraction", enabled=progress_bar,
+                   unit="point", logger=log)
     while done < n_points:
         k = min(per_chunk, n_points - done)
         lam = rng.standard_exponential(size=(n, k, 4), dtype=np.float32)
@@ -141,8 +144,8 @@ def sample_muscle_fraction(grid, labels, *, n_points=100, seed=0, progress_bar=F
         hits += is_muscle.sum(axis=1)
         id_counts += np.bincount((cell * _N_IDS + ids).ravel(), minlength=n * _N_IDS)
         done += k
-        if progress_bar:
-            log.info("sample_muscle_fraction: %d / %d points per tetrahedron", done, n_points)
+        bar.step(f"{done} / {n_points} points per tetrahedron", n=k)
+    bar.close()
     out = _write(grid, hits / n_points, id_counts.reshape(n, _N_IDS))
     log.info(
         "sample_muscle_fraction: %d tets x %d points in %.2f s", n, n_points, time.perf_counter() - t0
@@ -179,7 +182,7 @@ def voxel_cells(grid, labels):
     import vtk
 
     source = pv.UnstructuredGrid({pv.CellType.TETRA: grid.cells_dict[pv.CellType.TETRA]}, grid.points)
-    source.cell_data["cell_id"] = np.arange(grid.n_cells, dtype=np.int64)
+    source.cell_data[arrays.SCRATCH_CELL_ID] = np.arange(grid.n_cells, dtype=np.int64)
     result = np.full(labels.n_points, -1, dtype=np.int64)
     # probe only the block of voxels inside the mesh's bounding box
     dims = np.asarray(labels.dimensions)
@@ -195,7 +198,7 @@ def voxel_cells(grid, labels):
     f.SetSourceData(source)
     f.Update()
     out = pv.wrap(f.GetOutput())
-    cid = np.asarray(out.point_data["cell_id"]).astype(np.int64)
+    cid = np.asarray(out.point_data[arrays.SCRATCH_CELL_ID]).astype(np.int64)
     valid = np.asarray(out.point_data[f.GetValidPointMaskArrayName()]).astype(bool)
     i, j, k = np.meshgrid(*(np.arange(lo[a], hi[a] + 1) for a in range(3)), indexing="ij")
     flat = (i + dims[0] * (j + dims[1] * k)).ravel(order="F")  # probe points, x fastest
@@ -217,7 +220,7 @@ def average_voxels(grid, labels, *, progress_bar=False):
     labels : pyvista.ImageData
         Label image with integer point arrays ``arrays.TISSUE`` and ``arrays.MUSCLE``.
     progress_bar : bool, default False
-        Log the step at INFO level.
+        Show the step (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -255,9 +258,10 @@ def average_voxels(grid, labels, *, progress_bar=False):
         hits[empty] = m
         id_counts[empty, mid] += 1
     out = _write(grid, hits / count, id_counts)
-    if progress_bar or log.isEnabledFor(logging.INFO):
-        log.info(
-            "average_voxels: %d tets (%d without a voxel centre) in %.2f s",
-            n, empty.size, time.perf_counter() - t0,
-        )
+    with Progress(total=1, desc="average_voxels", enabled=progress_bar, logger=log) as bar:
+        bar.step(f"{n} tets ({empty.size} without a voxel centre)")
+    log.info(
+        "average_voxels: %d tets (%d without a voxel centre) in %.2f s",
+        n, empty.size, time.perf_counter() - t0,
+    )
     return out

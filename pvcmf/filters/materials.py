@@ -15,6 +15,7 @@ import pyvista as pv
 
 from .. import arrays
 from ..mtm.materials import check_positive_definite, material_table
+from ..progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ def assign_materials(grid, table="paper000", *, e_ratio=None, fat=None, muscle=N
         Fibre for anisotropic muscle cells when the grid has no ``fiber`` array (otherwise a
         ``ValueError`` asks for ``fiber_directions``).
     progress_bar : bool
-        Accepted for uniformity (this is a few vectorised passes).
+        Show the steps (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -88,6 +89,27 @@ def assign_materials(grid, table="paper000", *, e_ratio=None, fat=None, muscle=N
     pf = {k: props["fat"][k] for k in ("E_fiber", "E_cross", "nu")}
     pm = {k: props["muscle"][k] for k in ("E_fiber", "E_cross", "nu")}
     muscle_aniso = pm["E_fiber"] != pm["E_cross"]
+    with Progress(total=2, desc="assign_materials", enabled=progress_bar, logger=log) as bar:
+        weight, needs_fiber, label = _muscle_weight(grid, use_fraction, muscle_aniso)
+        out_vals = {k: (1 - weight) * pf[k] + weight * pm[k] for k in pf}
+        bar.step(f"properties mixed by {label}")
+        fib = _fibers(grid, needs_fiber, out_vals, default_fiber)
+        iso = out_vals["E_fiber"] == out_vals["E_cross"]
+        fib[iso] = 0.0
+        check_positive_definite(out_vals["E_fiber"], out_vals["E_cross"], out_vals["nu"])
+        out = grid.copy(deep=False)
+        out.cell_data[arrays.E_FIBER] = out_vals["E_fiber"]
+        out.cell_data[arrays.E_CROSS] = out_vals["E_cross"]
+        out.cell_data[arrays.NU] = out_vals["nu"]
+        out.cell_data[arrays.FIBER] = fib
+        bar.step("fibres written")
+    log.info("assign_materials(%s) by %s: %d cells, %.0f%% muscle", table if isinstance(table, str)
+             else "custom", label, m, 100 * float(np.mean(weight)) if m else 0.0)
+    return out
+
+
+def _muscle_weight(grid, use_fraction, muscle_aniso):
+    """Muscle weight per cell, the cells needing a fibre, and the array the weight came from."""
     have_fraction = arrays.MUSCLE_FRACTION in grid.cell_data.keys()
     if use_fraction is None:
         use_fraction = have_fraction
@@ -115,7 +137,15 @@ def assign_materials(grid, table="paper000", *, e_ratio=None, fat=None, muscle=N
         weight = (tissue == arrays.MUSCLE_TISSUE).astype(float)
         needs_fiber = (weight > 0) & muscle_aniso
         label = "tissue"
-    out_vals = {k: (1 - weight) * pf[k] + weight * pm[k] for k in pf}
+    return weight, needs_fiber, label
+
+
+def _fibers(grid, needs_fiber, out_vals, default_fiber):
+    """Unit fibre per cell (zero where none); muscle cells without one made isotropic.
+
+    ``out_vals`` (the mixed moduli) is updated in place for those cells.
+    """
+    m = grid.n_cells
     fib = np.zeros((m, 3))
     if np.any(needs_fiber):
         if arrays.FIBER in grid.cell_data.keys():
@@ -143,14 +173,4 @@ def assign_materials(grid, table="paper000", *, e_ratio=None, fat=None, muscle=N
                      "isotropic (E = mean of E_fiber and E_cross)", int(zero.sum()))
             needs_fiber = needs_fiber & ~zero
         fib[needs_fiber] = src[needs_fiber] / norm[needs_fiber, None]
-    iso = out_vals["E_fiber"] == out_vals["E_cross"]
-    fib[iso] = 0.0
-    check_positive_definite(out_vals["E_fiber"], out_vals["E_cross"], out_vals["nu"])
-    out = grid.copy(deep=False)
-    out.cell_data[arrays.E_FIBER] = out_vals["E_fiber"]
-    out.cell_data[arrays.E_CROSS] = out_vals["E_cross"]
-    out.cell_data[arrays.NU] = out_vals["nu"]
-    out.cell_data[arrays.FIBER] = fib
-    log.info("assign_materials(%s) by %s: %d cells, %.0f%% muscle", table if isinstance(table, str)
-             else "custom", label, m, 100 * float(np.mean(weight)) if m else 0.0)
-    return out
+    return fib

@@ -22,6 +22,8 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from .. import atlas as atlas_mod
+from ..progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +92,7 @@ def rasterize_surface(image, surface):
     ref = pv.ImageData(dimensions=sub_dims, origin=lo.astype(float), spacing=(1.0, 1.0, 1.0))
     local = pv.PolyData(ijk, surf.faces)
     sub = local.voxelize_binary_mask(reference_volume=ref)
+    # "mask": the name PyVista's voxelize_binary_mask gives its output
     block = np.asarray(sub.point_data["mask"]).reshape(sub_dims, order="F").astype(bool)
     full = mask.reshape(dims, order="F")
     full[lo[0] : hi[0] + 1, lo[1] : hi[1] + 1, lo[2] : hi[2] + 1] = block
@@ -142,7 +145,7 @@ def embed_muscles(
         Least share (0-1) of a muscle's voxels that must lie in soft tissue (and of its
         surface inside the image) before a :class:`MuscleOutsideWarning` names it.
     progress_bar : bool
-        Log each muscle at INFO level (the step takes ~1 s at 1 mm).
+        Show the steps, one per muscle (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -174,8 +177,6 @@ def embed_muscles(
     >>> sorted(set(out["muscle"])) == list(range(13))  # doctest: +SKIP
     True
     """
-    from .. import atlas as atlas_mod
-
     if not isinstance(labels, pv.ImageData):
         raise TypeError(f"labels must be a pyvista.ImageData, got {type(labels).__name__}")
     tissue = arrays.require_array(
@@ -187,44 +188,84 @@ def embed_muscles(
         atlas = atlas_mod.default()
     if not isinstance(atlas, atlas_mod.Atlas):
         raise TypeError(f"atlas must be a pvcmf.atlas.Atlas, got {type(atlas).__name__}")
-
-    t0 = time.perf_counter()
     if landmarks is not None and not isinstance(landmarks, dict):
         raise TypeError(
             f"landmarks must be a dict name -> (x, y, z) or None, got {type(landmarks).__name__}"
         )
+    t0 = time.perf_counter()
+    with Progress(total=len(arrays.MUSCLES) + 1, desc="embed_muscles", enabled=progress_bar,
+                  logger=log) as bar:
+        warped = _warp_atlas(labels, atlas, landmarks, refine, progress_bar)
+        bar.step("atlas warped to the patient")
+        new_tissue, muscle = _start_labels(labels, tissue, replace)
+        assigned, problems = _paint_muscles(labels, warped, new_tissue, muscle,
+                                            min_soft_fraction, bar)
+    if problems:
+        msg = (
+            "muscle(s) falling mostly outside the soft tissue (check landmarks or "
+            "segmentation): " + "; ".join(problems)
+        )
+        if strict:
+            raise ValueError(msg)
+        warnings.warn(msg, MuscleOutsideWarning, stacklevel=2)
+        log.warning(msg)
+
+    out = labels.copy()
+    out.point_data[arrays.TISSUE] = new_tissue
+    out.point_data[arrays.MUSCLE] = muscle
+    names = list(warped.landmarks)
+    out.field_data[arrays.LANDMARK_NAMES] = np.array(names)
+    out.field_data[arrays.LANDMARK_POINTS] = np.array([warped.landmarks[n] for n in names])
+    log.info(
+        "embed_muscles: %d muscle voxels in %.2f s", int(assigned.sum()), time.perf_counter() - t0
+    )
+    return out
+
+
+def _warp_atlas(labels, atlas, landmarks, refine, progress_bar):
+    """The atlas warped to the patient: by the landmark spline, refined on the surfaces."""
     can_refine = atlas.skin is not None and atlas.skull is not None
     if landmarks is not None and not (refine and can_refine):
-        warped = atlas.warp(landmarks)  # validates names, NaN, coincident points
-    else:
-        if landmarks is not None:  # fail fast on bad landmarks, before any contouring
-            atlas.transform_to(landmarks)
-        transform, landmarks, info = atlas.register(labels, landmarks, progress_bar=progress_bar)
-        warped = atlas.apply(transform, surfaces=False)
-        log.info(
-            "embed_muscles: registration in %.2f s (surface rms %.2f mm)",
-            info.seconds,
-            info.rms_refined,
-        )
+        return atlas.warp(landmarks)  # validates names, NaN, coincident points
+    if landmarks is not None:  # fail fast on bad landmarks, before any contouring
+        atlas.transform_to(landmarks)
+    transform, landmarks, info = atlas.register(labels, landmarks, progress_bar=progress_bar)
+    warped = atlas.apply(transform, surfaces=False)
+    log.info(
+        "embed_muscles: registration in %.2f s (surface rms %.2f mm)",
+        info.seconds,
+        info.rms_refined,
+    )
+    return warped
 
+
+def _start_labels(labels, tissue, replace):
+    """Copies of the tissue and muscle labels to paint into (old muscles cleared on ``replace``)."""
     old = labels.point_data.get(arrays.MUSCLE)
     new_tissue = np.array(tissue, dtype=np.uint8, copy=True)
-    if old is not None:
-        old = np.asarray(old)
-        if old.shape != tissue.shape:
-            raise ValueError(
-                f"point array {arrays.MUSCLE!r} must have shape {tissue.shape}, got {old.shape}"
-            )
-        muscle = np.array(old, dtype=np.uint8, copy=True)
-        if replace:
-            had = muscle != arrays.MUSCLE_NONE
-            new_tissue[had & (new_tissue == arrays.MUSCLE_TISSUE)] = arrays.FAT
-            muscle[:] = arrays.MUSCLE_NONE
-    else:
-        muscle = np.zeros(tissue.shape, dtype=np.uint8)
+    if old is None:
+        return new_tissue, np.zeros(tissue.shape, dtype=np.uint8)
+    old = np.asarray(old)
+    if old.shape != tissue.shape:
+        raise ValueError(
+            f"point array {arrays.MUSCLE!r} must have shape {tissue.shape}, got {old.shape}"
+        )
+    muscle = np.array(old, dtype=np.uint8, copy=True)
+    if replace:
+        had = muscle != arrays.MUSCLE_NONE
+        new_tissue[had & (new_tissue == arrays.MUSCLE_TISSUE)] = arrays.FAT
+        muscle[:] = arrays.MUSCLE_NONE
+    return new_tissue, muscle
 
+
+def _paint_muscles(labels, warped, new_tissue, muscle, min_soft_fraction, bar):
+    """Rasterise every warped muscle into ``new_tissue`` and ``muscle`` (in place).
+
+    Returns the voxels painted and the problems (muscles mostly outside the soft tissue
+    or the image).
+    """
     soft = _soft_mask(new_tissue)
-    assigned = np.zeros(tissue.shape, dtype=bool)
+    assigned = np.zeros(new_tissue.shape, dtype=bool)
     dims = np.asarray(labels.dimensions)
     problems = []
     for name in arrays.MUSCLES:
@@ -243,33 +284,11 @@ def embed_muscles(
                 f"{name}: {100 * share_soft:.0f}% of its {n_in} voxels in soft tissue, "
                 f"{100 * share_image:.0f}% of its surface inside the image"
             )
-        put = in_soft
         overlap = int((in_soft & assigned).sum())
         if overlap:
             log.debug("%s overlaps earlier muscles in %d voxels", name, overlap)
-        muscle[put] = arrays.MUSCLE_IDS[name]
-        new_tissue[put] = arrays.MUSCLE_TISSUE
-        assigned |= put
-        (log.info if progress_bar else log.debug)(
-            "%s: %d voxels (%d in soft tissue)", name, n_in, n_soft
-        )
-    if problems:
-        msg = (
-            "muscle(s) falling mostly outside the soft tissue (check landmarks or "
-            "segmentation): " + "; ".join(problems)
-        )
-        if strict:
-            raise ValueError(msg)
-        warnings.warn(msg, MuscleOutsideWarning, stacklevel=2)
-        log.warning(msg)
-
-    out = labels.copy()
-    out.point_data[arrays.TISSUE] = new_tissue
-    out.point_data[arrays.MUSCLE] = muscle
-    names = list(warped.landmarks)
-    out.field_data["landmark_names"] = np.array(names)
-    out.field_data["landmark_points"] = np.array([warped.landmarks[n] for n in names])
-    log.info(
-        "embed_muscles: %d muscle voxels in %.2f s", int(assigned.sum()), time.perf_counter() - t0
-    )
-    return out
+        muscle[in_soft] = arrays.MUSCLE_IDS[name]
+        new_tissue[in_soft] = arrays.MUSCLE_TISSUE
+        assigned |= in_soft
+        bar.step(f"{name}: {n_in} voxels ({n_soft} in soft tissue)")
+    return assigned, problems

@@ -18,20 +18,24 @@ point-to-plane RMS of the kept pairs), ``ICP_ITERATIONS``, ``ICP_OVERLAP`` and `
 
 from __future__ import annotations
 
+import functools
 import logging
 
 import numpy as np
 import pyvista as pv
 from scipy.spatial import cKDTree
 
+from .. import arrays
+from ..progress import Progress
+
 log = logging.getLogger(__name__)
 
 #: field-data names written by :func:`register`
-ICP_MATRIX = "icp_matrix"
-ICP_RMS = "icp_rms"
-ICP_ITERATIONS = "icp_iterations"
-ICP_CONVERGED = "icp_converged"
-ICP_OVERLAP = "icp_overlap"
+ICP_MATRIX = arrays.ICP_MATRIX
+ICP_RMS = arrays.ICP_RMS
+ICP_ITERATIONS = arrays.ICP_ITERATIONS
+ICP_CONVERGED = arrays.ICP_CONVERGED
+ICP_OVERLAP = arrays.ICP_OVERLAP
 
 
 class RegistrationError(RuntimeError):
@@ -241,7 +245,8 @@ def register(
     seed : int, default 0
         Seed of the subsampling (the result is deterministic).
     progress_bar : bool, default False
-        Accepted for the common filter signature; ICP logs its iterations at DEBUG level.
+        Show the steps (:class:`pvcmf.progress.Progress`); the iterations are logged
+        at DEBUG level.
 
     Returns
     -------
@@ -292,94 +297,20 @@ def register(
     centre = src.mean(axis=0)
     scale = float(np.linalg.norm(src - centre, axis=1).max()) or 1.0
 
-    def pairs(points, found=None):
-        """Trimmed, region-limited pairs: (moved source rows, target ids)."""
-        dist, idx = tree.query(points, workers=-1) if found is None else found
-        ok = usable[idx]
-        if ok.sum() < min_pairs:
-            raise ValueError(
-                f"source and target do not overlap: {int(ok.sum())} pairs in the region, "
-                f"fewer than min_pairs={min_pairs} (check the initial pose and region)"
-            )
-        gate = max_distance if max_distance is not None else max(5 * np.median(dist[ok]), 1.0)
-        ok &= dist <= gate
-        rows = np.flatnonzero(ok)
-        if trim < 1 and rows.size:
-            keep = max(int(trim * rows.size), min(min_pairs, rows.size))
-            rows = rows[np.argpartition(dist[rows], keep - 1)[:keep]]
-        if rows.size < min_pairs:
-            raise ValueError(
-                f"source and target do not overlap: {rows.size} pairs within {gate:.3g} mm, "
-                f"fewer than min_pairs={min_pairs}"
-            )
-        return rows, idx[rows]
-
-    def solve_step(p, q, n, it):
-        """Linearised point-to-plane update: minimise sum(((p x n).w + n.t + (p - q).n)^2)."""
-        pc = p - centre  # rotate about the centre for a well-conditioned system
-        a = np.hstack([np.cross(pc, n) / scale, n])  # unknowns (scale * w, t): same units
-        b = -np.einsum("ij,ij->i", p - q, n)
-        ata = a.T @ a
-        if np.linalg.cond(ata) > 1e10:
-            raise RegistrationError(
-                f"point-to-plane ICP is degenerate at iteration {it}: the matched part is too "
-                "flat or symmetric to fix all six degrees of freedom (a region too small, or "
-                "surfaces that do not overlap)"
-            )
-        x = np.linalg.solve(ata, a.T @ b)
-        x[:3] /= scale
-        rot = _rotation(x[:3])
-        step = np.eye(4)
-        step[:3, :3] = rot
-        step[:3, 3] = centre + x[3:] - rot @ centre
-        return step, np.linalg.norm(x[:3]) * scale + np.linalg.norm(x[3:])
-
+    pairs = functools.partial(_pairs, tree, usable, min_pairs=min_pairs,
+                              max_distance=max_distance, trim=trim)
+    solve = functools.partial(_solve_step, centre=centre, scale=scale)
     surface = _surface_pairs(target, closest)
     # vertex pairs only bring the pose near the optimum when surface pairs follow
     vertex_tol = tol if surface is None else max(tol, 0.02)
-    # coarse to fine: a small subset until the pose is within ~0.1 mm, then all samples
-    coarse = src[:: max(1, len(src) // 2000)]
-    converged = False
-    it, last_move = 0, np.inf
-    for it in range(1, max_iterations + 1):
-        pts = coarse if coarse is not None else src
-        moved = pts @ matrix[:3, :3].T + matrix[:3, 3]
-        rows, ids = pairs(moved)
-        step, move = solve_step(moved[rows], tgt_pts[ids], normals[ids], it)
-        matrix = step @ matrix
-        log.debug("ICP iteration %d: %d pairs, update %.3g mm", it, rows.size, move)
-        if coarse is not None:
-            if move < 0.02 or it >= max_iterations // 2:
-                coarse = None
-            continue
-        if move < vertex_tol or (move < 10 * tol and abs(move - last_move) < 1e-3 * move):
-            converged = True
-            break
-        last_move = move
-    if surface is not None and converged:
-        # closest points on the triangles: a few more iterations from the converged pose
-        closest_on, face_normal, tris = surface
-        tri_ok = usable[tris].all(axis=1)
-        converged = False
-        for sub in range(1, 21):
-            it += 1
-            moved = src @ matrix[:3, :3].T + matrix[:3, 3]
-            dist, fid, cpt = closest_on(moved)
-            ok = tri_ok[fid]
-            if ok.sum() < min_pairs:
-                break
-            gate = max_distance if max_distance is not None else max(5 * np.median(dist[ok]), 1.0)
-            rows = np.flatnonzero(ok & (dist <= gate))
-            if trim < 1 and rows.size > min_pairs:
-                keep = max(int(trim * rows.size), min_pairs)
-                rows = rows[np.argpartition(dist[rows], keep - 1)[:keep]]
-            step, move = solve_step(moved[rows], cpt[rows], face_normal[fid[rows]], it)
-            matrix = step @ matrix
-            log.debug("ICP surface iteration %d: %d pairs, update %.3g mm", sub, rows.size, move)
-            if move < tol:
-                converged = True
-                break
-        converged = converged or move < 10 * tol  # settled within a few um
+    with Progress(desc="register", enabled=progress_bar, logger=log) as bar:
+        matrix, it, converged, move = _icp_vertices(
+            src, tgt_pts, normals, matrix, pairs, solve, max_iterations, vertex_tol, tol)
+        bar.step(f"{it} vertex iterations")
+        if surface is not None and converged:
+            matrix, it, converged, move = _icp_surface(
+                src, matrix, surface, usable, solve, it, move, min_pairs, max_distance, trim, tol)
+            bar.step(f"{it} iterations with surface pairs")
     # final RMS and overlap with the samples
     moved_all = src @ matrix[:3, :3].T + matrix[:3, 3]
     dist, idx = tree.query(moved_all, workers=-1)
@@ -414,6 +345,112 @@ def register(
     out.field_data[ICP_OVERLAP] = np.array([overlap])
     out.field_data[ICP_CONVERGED] = np.array([int(converged)])
     return out
+
+
+def _pairs(tree, usable, points, found=None, *, min_pairs, max_distance, trim):
+    """Trimmed, region-limited pairs: (moved source rows, target ids)."""
+    dist, idx = tree.query(points, workers=-1) if found is None else found
+    ok = usable[idx]
+    if ok.sum() < min_pairs:
+        raise ValueError(
+            f"source and target do not overlap: {int(ok.sum())} pairs in the region, "
+            f"fewer than min_pairs={min_pairs} (check the initial pose and region)"
+        )
+    gate = max_distance if max_distance is not None else max(5 * np.median(dist[ok]), 1.0)
+    ok &= dist <= gate
+    rows = np.flatnonzero(ok)
+    if trim < 1 and rows.size:
+        keep = max(int(trim * rows.size), min(min_pairs, rows.size))
+        rows = rows[np.argpartition(dist[rows], keep - 1)[:keep]]
+    if rows.size < min_pairs:
+        raise ValueError(
+            f"source and target do not overlap: {rows.size} pairs within {gate:.3g} mm, "
+            f"fewer than min_pairs={min_pairs}"
+        )
+    return rows, idx[rows]
+
+
+def _solve_step(p, q, n, it, *, centre, scale):
+    """Linearised point-to-plane update: minimise sum(((p x n).w + n.t + (p - q).n)^2).
+
+    Returns the 4x4 update and its size (mm).
+    """
+    pc = p - centre  # rotate about the centre for a well-conditioned system
+    a = np.hstack([np.cross(pc, n) / scale, n])  # unknowns (scale * w, t): same units
+    b = -np.einsum("ij,ij->i", p - q, n)
+    ata = a.T @ a
+    if np.linalg.cond(ata) > 1e10:
+        raise RegistrationError(
+            f"point-to-plane ICP is degenerate at iteration {it}: the matched part is too "
+            "flat or symmetric to fix all six degrees of freedom (a region too small, or "
+            "surfaces that do not overlap)"
+        )
+    x = np.linalg.solve(ata, a.T @ b)
+    x[:3] /= scale
+    rot = _rotation(x[:3])
+    step = np.eye(4)
+    step[:3, :3] = rot
+    step[:3, 3] = centre + x[3:] - rot @ centre
+    return step, np.linalg.norm(x[:3]) * scale + np.linalg.norm(x[3:])
+
+
+def _icp_vertices(src, tgt_pts, normals, matrix, pairs, solve, max_iterations, vertex_tol, tol):
+    """ICP on the target vertices: (matrix, iterations, converged, last update in mm).
+
+    Coarse to fine: a small subset of the samples until the pose is within ~0.1 mm, then
+    all samples.
+    """
+    coarse = src[:: max(1, len(src) // 2000)]
+    converged = False
+    it, last_move = 0, np.inf
+    for it in range(1, max_iterations + 1):
+        pts = coarse if coarse is not None else src
+        moved = pts @ matrix[:3, :3].T + matrix[:3, 3]
+        rows, ids = pairs(moved)
+        step, move = solve(moved[rows], tgt_pts[ids], normals[ids], it)
+        matrix = step @ matrix
+        log.debug("ICP iteration %d: %d pairs, update %.3g mm", it, rows.size, move)
+        if coarse is not None:
+            if move < 0.02 or it >= max_iterations // 2:
+                coarse = None
+            continue
+        if move < vertex_tol or (move < 10 * tol and abs(move - last_move) < 1e-3 * move):
+            converged = True
+            break
+        last_move = move
+    return matrix, it, converged, move
+
+
+def _icp_surface(src, matrix, surface, usable, solve, it, move, min_pairs, max_distance, trim,
+                 tol):
+    """A few ICP iterations on the closest points of the target triangles.
+
+    Starts from the pose the vertex pairs converged to; returns (matrix, iterations,
+    converged, last update in mm).
+    """
+    closest_on, face_normal, tris = surface
+    tri_ok = usable[tris].all(axis=1)
+    converged = False
+    for sub in range(1, 21):
+        it += 1
+        moved = src @ matrix[:3, :3].T + matrix[:3, 3]
+        dist, fid, cpt = closest_on(moved)
+        ok = tri_ok[fid]
+        if ok.sum() < min_pairs:
+            break
+        gate = max_distance if max_distance is not None else max(5 * np.median(dist[ok]), 1.0)
+        rows = np.flatnonzero(ok & (dist <= gate))
+        if trim < 1 and rows.size > min_pairs:
+            keep = max(int(trim * rows.size), min_pairs)
+            rows = rows[np.argpartition(dist[rows], keep - 1)[:keep]]
+        step, move = solve(moved[rows], cpt[rows], face_normal[fid[rows]], it)
+        matrix = step @ matrix
+        log.debug("ICP surface iteration %d: %d pairs, update %.3g mm", sub, rows.size, move)
+        if move < tol:
+            converged = True
+            break
+    converged = converged or move < 10 * tol  # settled within a few um
+    return matrix, it, converged, move
 
 
 def registration_result(registered):

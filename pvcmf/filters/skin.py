@@ -32,6 +32,7 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from ..progress import Progress
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +79,8 @@ def _image_skin(image, threshold, smooth, fill_holes):
     if hasattr(image, "direction_matrix") and not np.allclose(image.direction_matrix, np.eye(3)):
         raise ValueError("extract_skin supports axis-aligned images only (identity direction)")
     grid = pv.ImageData(dimensions=field.shape, spacing=spacing, origin=origin)
-    grid.point_data["head"] = field.transpose(2, 1, 0).ravel()
-    surf = grid.contour([0.5], scalars="head", method="flying_edges", progress_bar=False)
+    grid.point_data[arrays.SCRATCH_HEAD] = field.transpose(2, 1, 0).ravel()
+    surf = grid.contour([0.5], scalars=arrays.SCRATCH_HEAD, method="flying_edges", progress_bar=False)
     if surf.n_points == 0:
         raise ValueError("the head mask produced an empty contour (too small an object?)")
     surf = surf.connectivity("largest").extract_surface(algorithm="dataset_surface")
@@ -184,7 +185,7 @@ def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labe
     part : {'skin', 'boundary'}, default 'skin'
         Grid only: the skin faces (see the module docs) or the whole boundary.
     progress_bar : bool, default False
-        Show VTK's progress (image contour).
+        Show the step (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -212,11 +213,15 @@ def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labe
     """
     if part not in ("skin", "boundary"):
         raise ValueError(f"part must be 'skin' or 'boundary', got {part!r}")
-    if isinstance(dataset, pv.ImageData):
-        return _image_skin(dataset, threshold, smooth, fill_holes)
-    if isinstance(dataset, pv.UnstructuredGrid):
-        return _grid_skin(dataset, labels, warp, part)
-    raise TypeError(
-        f"dataset must be a pyvista.ImageData (labels / CT) or an UnstructuredGrid "
-        f"(tetrahedra), got {type(dataset).__name__}"
-    )
+    if not isinstance(dataset, (pv.ImageData, pv.UnstructuredGrid)):
+        raise TypeError(
+            f"dataset must be a pyvista.ImageData (labels / CT) or an UnstructuredGrid "
+            f"(tetrahedra), got {type(dataset).__name__}"
+        )
+    with Progress(total=1, desc="extract_skin", enabled=progress_bar, logger=log) as bar:
+        if isinstance(dataset, pv.ImageData):
+            skin = _image_skin(dataset, threshold, smooth, fill_holes)
+        else:
+            skin = _grid_skin(dataset, labels, warp, part)
+        bar.step(f"{skin.n_points} skin points")
+    return skin

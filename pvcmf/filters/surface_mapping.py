@@ -37,12 +37,13 @@ import pyvista as pv
 from scipy.spatial import cKDTree
 
 from .. import arrays
+from ..progress import Progress
 
 log = logging.getLogger(__name__)
 
 #: point array written by :func:`map_to_surface`: sum of the Gaussian weights (0 = no grid
 #: node within the radius, displacement set to zero)
-SUPPORT = "mapping_support"
+SUPPORT = arrays.MAPPING_SUPPORT
 
 
 def map_to_surface(grid, skin, *, sigma=2.0, radius=None, warp=True, progress_bar=False):
@@ -62,7 +63,7 @@ def map_to_surface(grid, skin, *, sigma=2.0, radius=None, warp=True, progress_ba
     warp : bool, default True
         Move the skin points by the mapped displacement (the predicted dense skin).
     progress_bar : bool, default False
-        Accepted for the common filter signature (the mapping is one vectorised pass).
+        Show the steps (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
@@ -102,8 +103,11 @@ def map_to_surface(grid, skin, *, sigma=2.0, radius=None, warp=True, progress_ba
     radius = 3.0 * sigma if radius is None else float(radius)
     if not radius > 0:
         raise ValueError(f"radius must be > 0 mm, got {radius}")
-    mapping = SurfaceMapping(grid.points, skin.points, sigma, radius)
-    disp, support = mapping(u), mapping.support
+    with Progress(total=2, desc="map_to_surface", enabled=progress_bar, logger=log) as bar:
+        mapping = SurfaceMapping(grid.points, skin.points, sigma, radius)
+        bar.step(f"weights of {skin.n_points} skin points")
+        disp, support = mapping(u), mapping.support
+        bar.step("displacement mapped")
     out = skin.copy()
     out.point_data[arrays.DISPLACEMENT] = disp
     out.point_data[SUPPORT] = support

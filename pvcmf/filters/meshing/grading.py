@@ -24,24 +24,19 @@ import os
 import tempfile
 
 import numpy as np
+from scipy import ndimage
 
 log = logging.getLogger(__name__)
 
 #: the size is the surface size up to this many surface sizes from an interface (a
-#: ramp starting at the surface makes the elements on the surface taller than their
-#: triangles; with the ramp from 0 the 1 mm patient 1 at 30k lost 0.7-1.0 point of
-#: per-cell agreement against a uniform mesh of its count and the 1st-percentile
-#: dihedral fell to 15.0-15.3 deg) ...
+#: ramp starting at the surface would make the elements on the surface taller than
+#: their triangles) ...
 DIST_MIN = 0.5
-#: ... and grows linearly to ``g s`` at ``RAMP * g s`` away. 2 rather than 1: on the
-#: analytic shell with 30 mm of soft tissue (grading 3, 100k) the steeper ramp left
-#: HXT's optimiser 2.8 s of work instead of 0.6 s (uniform) and the 1st-percentile
-#: dihedral at 16.2 deg; this one meshed in 2.8 s CPU instead of 4.9 s with 17.6 deg at
-#: the same muscle-volume error (16 against 15 %); on the face (6-12 mm thick) the two
-#: were within the noise of each other
+#: ... and grows linearly to ``g s`` at ``RAMP * g s`` away (a gentler ramp than
+#: ``g s`` at ``g s`` leaves HXT's optimiser less to do)
 RAMP = 2.0
-#: the distance grid's step, in working spacings (half: the distance is accurate to
-#: about a quarter of an element; a third took 1.6 s at 100k on the 1 mm patient)
+#: the distance grid's step, in working spacings (the distance is then accurate to
+#: about a quarter of an element)
 GRID_STEP = 0.5
 #: largest accepted growth factor
 MAX_GRADING = 8.0
@@ -52,7 +47,7 @@ def check_grading(grading):
 
     Examples
     --------
-    >>> from pvcmf.filters.meshing_grading import check_grading
+    >>> from pvcmf.filters.meshing.grading import check_grading
     >>> check_grading(None), check_grading(0), check_grading(2)
     (None, None, 2.0)
     """
@@ -82,7 +77,7 @@ def size_ratio(distance, s, grading):
     Examples
     --------
     >>> import numpy as np
-    >>> from pvcmf.filters.meshing_grading import size_ratio
+    >>> from pvcmf.filters.meshing.grading import size_ratio
     >>> size_ratio(np.array([0.0, 0.5, 2.25, 4.0, 9.0]), 1.0, 2.0).tolist()
     [1.0, 1.0, 1.5, 2.0, 2.0]
     """
@@ -119,7 +114,7 @@ class InterfaceDistance:
     Examples
     --------
     >>> import numpy as np
-    >>> from pvcmf.filters.meshing_grading import InterfaceDistance
+    >>> from pvcmf.filters.meshing.grading import InterfaceDistance
     >>> code = np.zeros((9, 9, 9), np.uint8)
     >>> code[1:-1, 1:-1, 1:-1] = 2
     >>> d = InterfaceDistance(code, (0, 0, 0), (1, 1, 1), 1.0, 2)
@@ -128,8 +123,6 @@ class InterfaceDistance:
     """
 
     def __init__(self, code, origin, spacing, step, first_meshed):
-        from scipy import ndimage
-
         spacing = np.asarray(spacing, float)
         k = max(1, int(round(step / float(spacing.min()))))
         c = np.ascontiguousarray(code[::k, ::k, ::k])
@@ -174,7 +167,7 @@ def graded_share(distance, s, grading):
     Examples
     --------
     >>> import numpy as np
-    >>> from pvcmf.filters.meshing_grading import graded_share
+    >>> from pvcmf.filters.meshing.grading import graded_share
     >>> graded_share(np.array([0.0, 100.0]), 1.0, 2.0)
     0.5625
     """
