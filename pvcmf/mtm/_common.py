@@ -5,11 +5,15 @@ Delegates to numpy and scipy.sparse.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import warnings
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+
+log = logging.getLogger(__name__)
 
 EPS = np.finfo(float).eps
 EPS32 = float(np.finfo(np.float32).eps)
@@ -80,3 +84,15 @@ class SymmetricFromTriangle(spla.LinearOperator):
 
     def toarray(self):
         return (self.upper + self.lower).toarray() - np.diag(self._diag)
+
+
+def blas_threads(threads):
+    """Context limiting the BLAS thread pools to ``threads`` (threadpoolctl); None: no limit."""
+    if threads is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        log.debug("threads=%s: threadpoolctl is not installed, BLAS keeps its threads", threads)
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=int(threads), user_api="blas")

@@ -30,7 +30,6 @@ refactorisation and a new bone move only a solve. Delegates to :mod:`pvcmf.mtm.b
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import time
 
@@ -43,6 +42,7 @@ from ._common import (
     ConvergenceError,
     IllConditionedWarning,
     SymmetricFromTriangle,
+    blas_threads as _blas_threads,
     norm,
 )
 from .assembly import _LINEAR_CELLS, Assembler, _merge_pairs, grid_materials, tetrahedra
@@ -81,18 +81,6 @@ FIELD_ERROR_ESTIMATE = "mtm_error_estimate"  #: estimated relative forward error
 FIELD_LOST_DIGITS = "mtm_lost_digits"  #: estimated significant digits lost (direct)
 
 _METHOD_CLASSES = {"direct": Direct, "cg": CG, "relaxation": Relaxation, "gpu": GPU}
-
-
-def _blas_threads(threads):
-    """Context limiting the BLAS thread pools to ``threads`` (threadpoolctl); None: no limit."""
-    if threads is None:
-        return contextlib.nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        log.debug("threads=%s: threadpoolctl is not installed, BLAS keeps its threads", threads)
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=int(threads), user_api="blas")
 
 
 def _check_options(grid, method, tol, backend, precision, ordering, preconditioner, threads):
