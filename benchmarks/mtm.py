@@ -96,7 +96,7 @@ def shell_mesh(n_tets, seed=0):
     return pvcmf.filters.assign_materials(grid, table="paper000")
 
 
-def worker(size, repeat, kw):
+def measure(size, repeat, kw):
     """Timings of one solver configuration in this process (printed as one JSON line)."""
     import pvcmf
 
@@ -123,9 +123,9 @@ def worker(size, repeat, kw):
             "threads": str(info.get("threads", ""))}
 
 
-def run_worker(tree, size, repeat, kw):
+def run_child(tree, size, repeat, kw):
     env = dict(os.environ, PYTHONPATH=tree)
-    cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--sizes", str(size),
+    cmd = [sys.executable, os.path.abspath(__file__), "--child", "--sizes", str(size),
            "--repeat", str(repeat), "--kw", json.dumps(kw)]
     out = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True, cwd=tree)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -148,7 +148,7 @@ def compare(runs, rounds, size, repeat):
     got = {label: [] for label, _, _ in runs}
     for _ in range(rounds):
         for label, tree, kw in runs:
-            got[label].append(run_worker(tree, size, repeat, kw))
+            got[label].append(run_child(tree, size, repeat, kw))
     base = runs[0][0]
     rows = []
     for label, _, kw in runs:
@@ -190,11 +190,11 @@ def main(argv=None):
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--write", metavar="PAGE", help="write the tables to this Markdown page")
-    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--kw", default="{}", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
-    if args.worker:
-        print(json.dumps(worker(args.sizes[0], args.repeat, json.loads(args.kw))))
+    if args.child:
+        print(json.dumps(measure(args.sizes[0], args.repeat, json.loads(args.kw))))
         return 0
     names = args.variants if args.variants is not None else (
         ["default"] if args.against else list(VARIANTS))
