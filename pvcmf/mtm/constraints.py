@@ -45,9 +45,9 @@ def sliding_frames(normals):
     """
     n = np.asarray(normals, dtype=float)
     n = n / np.linalg.norm(n, axis=1)[:, None]
-    helper = np.zeros_like(n)
-    helper[np.arange(len(n)), np.argmin(np.abs(n), axis=1)] = 1.0
-    t1 = np.cross(n, helper)
+    axis = np.zeros_like(n)
+    axis[np.arange(len(n)), np.argmin(np.abs(n), axis=1)] = 1.0
+    t1 = np.cross(n, axis)
     t1 /= np.linalg.norm(t1, axis=1)[:, None]
     t2 = np.cross(n, t1)
     return np.stack([t1, t2, n], axis=2)
