@@ -1,8 +1,21 @@
 """Reading and writing: CT images in the patient frame, plans, landmarks and model exports.
 
-``read_ct`` (in :mod:`pvcmf.io.ct`) is the entry point for images.
+``read_ct`` (in :mod:`pvcmf.io.ct`) is the entry point for images; :func:`export`
+(:mod:`pvcmf.io.exporters`) writes a model for CalculiX/Abaqus, FEBio or any meshio format;
+:mod:`pvcmf.io.transforms` and :mod:`pvcmf.io.landmarks` read plans and landmarks from
+planning tools (ITK/3D Slicer files).
 """
 
 from .ct import read_ct
+from .exporters import (
+    calculix_available,
+    export,
+    read_calculix_dat,
+    run_calculix,
+    write_feb,
+    write_inp,
+    write_mesh,
+)
 
-__all__ = ["read_ct"]
+__all__ = ["read_ct", "export", "write_mesh", "write_inp", "write_feb", "run_calculix",
+           "read_calculix_dat", "calculix_available"]
