@@ -120,6 +120,8 @@ def write_mesh(dataset, path, *, file_format=None, binary=True):
     fmt = file_format or meshio._helpers._filetypes_from_path(path)[0]
     if fmt in ("vtu", "vtk"):
         kwargs["binary"] = binary
+    elif fmt == "xdmf":  # one file (no HDF5 sidecar named after the temporary file)
+        kwargs["data_format"] = "XML"
     with atomic_path(path) as tmp:
         meshio.write(tmp, mesh, file_format=fmt, **kwargs)
     return path
@@ -164,7 +166,7 @@ def export(grid, path, *, file_format=None):
     if file_format is None:
         try:
             meshio._helpers._filetypes_from_path(path)
-        except (ValueError, KeyError):
+        except (ValueError, KeyError, meshio.ReadError):
             known = sorted(set(WRITERS) | set(meshio.extension_to_filetypes))
             raise ValueError(f"export: unknown extension {path.suffix!r} of {str(path)!r}; "
                              f"known: {', '.join(known)}") from None
