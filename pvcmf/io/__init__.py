@@ -16,6 +16,9 @@ from .exporters import (
     write_inp,
     write_mesh,
 )
+from .landmarks import read_landmarks, write_landmarks
+from .transforms import read_itk_transform, read_plan_file, read_transform, write_itk_transform
 
 __all__ = ["read_ct", "export", "write_mesh", "write_inp", "write_feb", "run_calculix",
-           "read_calculix_dat", "calculix_available"]
+           "read_calculix_dat", "calculix_available", "read_landmarks", "write_landmarks",
+           "read_transform", "read_itk_transform", "write_itk_transform", "read_plan_file"]
