@@ -31,6 +31,8 @@ def test_mixed_box_matches_mtm(tmp_path):
     u_mtm = np.asarray(pvcmf.mtm.solve(grid)[arrays.DISPLACEMENT])
     u_ccx, _ = run_calculix(grid, tmp_path)
     assert _rel(u_ccx, u_mtm) < 1e-6
+    again, _ = run_calculix(tmp_path / "model.inp", tmp_path / "rerun")  # a deck on disk
+    assert np.array_equal(again, u_ccx)
     # prescribed values hold in ccx's answer: joint, fixed, and the sliding normal part
     bc = grid[arrays.BC]
     joint = bc == arrays.BC_JOINT

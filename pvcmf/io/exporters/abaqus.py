@@ -30,6 +30,7 @@ back (:func:`read_calculix_dat`). Numbers are written with 15 significant digits
 from __future__ import annotations
 
 import logging
+import os
 import re
 import shutil
 import subprocess
@@ -270,8 +271,8 @@ def run_calculix(grid_or_inp, workdir=None, *, executable="ccx", timeout=600):
                 shutil.copy(inp, workdir / inp.name)
         start = time.perf_counter()
         proc = subprocess.run([exe, "-i", inp.stem], cwd=workdir, capture_output=True,
-                              text=True, timeout=timeout, env={"OMP_NUM_THREADS": "1",
-                                                               "PATH": "/usr/bin:/bin"})
+                              text=True, timeout=timeout,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
         seconds = time.perf_counter() - start
         dat = workdir / f"{inp.stem}.dat"
         if proc.returncode != 0 or "*ERROR" in proc.stdout or not dat.exists():
