@@ -42,6 +42,7 @@ METHODS = {
     "map_to_surface": ("pvcmf.filters", "map_to_surface"),
     "solve": ("pvcmf.mtm", "solve"),
     "stiffness": ("pvcmf.mtm", "stiffness"),
+    "export": ("pvcmf.io", "export"),
 }
 
 

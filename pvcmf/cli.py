@@ -27,9 +27,8 @@ import pyvista as pv
 
 from . import __version__, arrays, datasets
 from .datasets import headsq
-from .io import read_ct
+from .io import export, read_ct, read_landmarks, read_plan_file
 from .pipeline import STEPS, flip_axes, simulate
-from .plan import read_plan
 from .sweeps import add_sweep_parser, run_sweep
 
 log = logging.getLogger(__name__)
@@ -94,7 +93,16 @@ def build_parser():
     sim.add_argument("--ct", required=True, type=Path,
                      help="CT file or DICOM folder (read by pvcmf.read_ct), or 'headsq' for "
                           "VTK's real head CT (pvcmf.datasets.headsq, in the patient frame)")
-    sim.add_argument("--plan", required=True, type=Path, help="plan file (.toml or .json)")
+    sim.add_argument("--plan", required=True, type=Path,
+                     help="plan file (.toml or .json); an osteotomy may give a 4x4 'matrix' or "
+                          "a 'transform' file (ITK/Slicer .tfm/.h5) instead of translation/"
+                          "rotation (pvcmf.io.read_plan_file)")
+    sim.add_argument("--landmarks", type=Path, default=None,
+                     help="Slicer markups (.mrk.json or .fcsv) with the muscle atlas's "
+                          "landmarks (pvcmf.io.read_landmarks); automatic without")
+    sim.add_argument("--export", type=Path, default=None,
+                     help="also write the solved model for another tool: .inp (CalculiX/"
+                          "Abaqus), .feb (FEBio) or a meshio format (.vtu, .msh, ...)")
     sim.add_argument("--offset", type=float, default=None,
                      help="HU = scale * value + offset (for scanner units; default 0, "
                           "headsq: its loader's default)")
@@ -132,7 +140,8 @@ def _simulate(args):
     args.offset_given, args.scale_given = args.offset is not None, args.scale is not None
     args.offset = 0.0 if args.offset is None else args.offset
     args.scale = 1.0 if args.scale is None else args.scale
-    plan = read_plan(args.plan)  # fail on a bad plan before reading the CT
+    plan = read_plan_file(args.plan)  # fail on a bad plan before reading the CT
+    landmarks = read_landmarks(args.landmarks) if args.landmarks else None
     start = time.perf_counter()
     if str(args.ct) == "headsq" and not args.ct.exists():
         ct = headsq(offset=args.offset if args.offset_given else None,
@@ -142,10 +151,12 @@ def _simulate(args):
     if args.flip:
         ct = flip_axes(ct, args.flip)
     seconds = time.perf_counter() - start
-    result = simulate(ct, plan, args.out, n_tets=args.n_tets, predict=not args.no_predict,
-                      muscles=not args.no_muscles, figures=not args.no_figures,
-                      progress_bar=not args.no_progress)
+    result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
+                      predict=not args.no_predict, muscles=not args.no_muscles,
+                      figures=not args.no_figures, progress_bar=not args.no_progress)
     result.timings = {"read": seconds, **result.timings}
+    if args.export is not None and result.post is not None:  # --export: the solved model
+        result.files["export"] = export(result.post, args.export)
     return result
 
 
