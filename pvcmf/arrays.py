@@ -184,3 +184,10 @@ def require_array(dataset, name, association="point", dtype=None, ncomp=None, pr
                 f"got shape {arr.shape}{hint}"
             )
     return arr
+
+# --------------------------------------------------------------------------- segmentation
+#: tissue label of metal (fillings, crowns, plates, > ~2500 HU): hard tissue of its segment
+METAL = 6
+TISSUE_LABELS["metal"] = METAL
+#: metal is hard tissue: it moves rigidly with its bone segment
+HARD_LABELS = HARD_LABELS + (METAL,)
