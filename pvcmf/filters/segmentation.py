@@ -5,8 +5,8 @@ voxels), the costly decisions on a copy downsampled to about ``coarse`` mm:
 
 1. **thresholds** from the image's own histogram (:func:`calibrate`): the air and the
    soft-tissue peaks give the scan's HU scale, and the skin, bone, teeth and metal levels are
-   placed on it (half-way from air to soft tissue; then 0.48, 1.9 and 2.4 times the
-   air-to-soft-tissue step above soft tissue: about -480, 520, 2000 and 2500 HU on a
+   placed on it (half-way from air to soft tissue; then 0.48, 1.9 and 2.85 times the
+   air-to-soft-tissue step above soft tissue: about -480, 520, 2000 and 3000 HU on a
    calibrated scan, whatever offset or scale the scanner's values have).
 2. **head**: ``ct >= skin`` opened with a ball of ``object_opening`` mm (on the coarse copy),
    its largest component, grown back by the same radius within the threshold mask: the
@@ -59,10 +59,10 @@ _FACES_2D[:, :, 1] = ndimage.generate_binary_structure(2, 1)  # in-slice 4-conne
 SKIN_THRESHOLD = -500.0
 BONE_THRESHOLD = 500.0
 TEETH_THRESHOLD = 2000.0
-METAL_THRESHOLD = 2500.0
+METAL_THRESHOLD = 3000.0
 #: thresholds as multiples of the air -> soft tissue step, above the soft-tissue peak
 #: (skin: below it). On a calibrated scan (step ~1040 HU) they give the levels above.
-SCALE = {"skin": -0.5, "bone": 0.48, "teeth": 1.88, "metal": 2.37}
+SCALE = {"skin": -0.5, "bone": 0.48, "teeth": 1.88, "metal": 2.85}
 #: smallest radius (voxels) of the skull-closing ball: 1.5 takes the in-slice diagonal
 #: neighbours, which bridge a one-voxel gap in a one-voxel-thin skull ring
 MIN_BALL_VOXELS = 1.5
