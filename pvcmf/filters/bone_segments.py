@@ -40,6 +40,8 @@ POSTERIOR_MARGIN = 25.0
 #: height (mm) of the Le Fort I cut above the nasal floor: through the lateral nasal walls
 #: and the maxillary sinuses, the palate and every root below it
 LEFORT_ABOVE_FLOOR = 6.0
+#: dense bone (petrous temporal bone) this close (mm) to the intracranial volume is no tooth
+SKULL_BASE_MM = 15.0
 #: most erosion steps tried to free the mandible from the skull
 MAX_EROSION = 4
 
@@ -101,7 +103,8 @@ def find_jaws(labels, *, progress_bar=False):
         raise ValueError("find_jaws: the image has no hard tissue (tissue BONE/TEETH/METAL)")
     box = tuple(slice(int(i.min()), int(i.max()) + 1) for i in np.nonzero(hard_all))
     hard = hard_all[box]
-    teeth = np.isin(tissue[box], (arrays.TEETH, getattr(arrays, "METAL", arrays.TEETH)))
+    teeth = np.isin(tissue[box], (arrays.TEETH, arrays.METAL))
+    teeth &= _far_from(tissue[box] == arrays.INTRACRANIAL, spacing, SKULL_BASE_MM)
     if teeth.sum() < 10:
         raise ValueError("find_jaws: fewer than 10 tooth voxels: cannot find the jaws from the "
                          "anatomy; give the plan's osteotomies cut planes")
@@ -122,6 +125,17 @@ def find_jaws(labels, *, progress_bar=False):
     log.info("find_jaws: segments (mL) %s", ", ".join(
         f"{k} {v:.1f}" for k, v in segment_volumes(out).items()))
     return out
+
+
+def _far_from(mask, spacing, distance):
+    """Voxels farther than ``distance`` mm from ``mask`` (distance on a 2x coarser grid)."""
+    if not mask.any():
+        return np.ones(mask.shape, dtype=bool)
+    coarse = mask[::2, ::2, ::2]
+    far = ndimage.distance_transform_edt(~coarse, sampling=2 * spacing) > distance
+    for ax in range(3):
+        far = np.repeat(far, 2, axis=ax)
+    return far[tuple(slice(0, n) for n in mask.shape)]
 
 
 def _occlusal_level(teeth, spacing):

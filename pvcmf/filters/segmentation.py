@@ -97,22 +97,26 @@ def calibrate(ct):
     values = values.ravel()
     if values.size > 2_000_000:
         values = values[:: values.size // 1_000_000]
-    lo, hi = np.percentile(values, [0.01, 99.99])
+    reference = {"air": -1000.0, "soft": 40.0, "skin": SKIN_THRESHOLD,
+                 "bone": BONE_THRESHOLD, "teeth": TEETH_THRESHOLD, "metal": METAL_THRESHOLD}
+    lo, hi = np.percentile(values, [0.01, 99.99]) if values.size else (0.0, 0.0)
     if not hi > lo:
-        raise ValueError(f"ct values are constant ({lo}); cannot find air and soft tissue")
+        log.warning("calibrate: the ct values are constant; using the HU reference levels")
+        return reference
     hist, edges = np.histogram(values, bins=512, range=(lo, hi))
     centers = 0.5 * (edges[1:] + edges[:-1])
     split = _otsu(hist, centers)
     smooth = ndimage.uniform_filter1d(hist.astype(float), 5)
     low, high = centers < split, centers >= split
-    air = float(centers[low][np.argmax(smooth[low])])
     # soft tissue: the highest peak above the split, among the lower half of the values
     # above it (bone and metal are far fewer and higher)
     upper = high & (centers <= split + 0.5 * (hi - split))
-    soft = float(centers[upper][np.argmax(smooth[upper])]) if upper.any() else float(split)
+    if not low.any() or not upper.any():
+        log.warning("calibrate: no air and soft-tissue peaks; using the HU reference levels")
+        return reference
+    air = float(centers[low][np.argmax(smooth[low])])
+    soft = float(centers[upper][np.argmax(smooth[upper])])
     step = soft - air
-    if step <= 0:
-        raise ValueError(f"ct histogram has no soft-tissue peak above the air peak ({air})")
     out = {"air": air, "soft": soft}
     out.update({k: soft + f * step for k, f in SCALE.items()})
     return out
