@@ -42,6 +42,8 @@ MUSCLE_TISSUE = 2
 BONE_TISSUE = 3
 TEETH = 4
 INTRACRANIAL = 5  #: what lies inside the skull (brain, CSF): not part of the face model
+#: metal (fillings, crowns, plates): hard tissue that moves rigidly with its bone segment
+METAL = 6
 
 TISSUE_LABELS = {
     "air": AIR,
@@ -50,11 +52,12 @@ TISSUE_LABELS = {
     "bone": BONE_TISSUE,
     "teeth": TEETH,
     "intracranial": INTRACRANIAL,
+    "metal": METAL,
 }
 #: labels that make up the facial soft-tissue model (meshed)
 SOFT_LABELS = (FAT, MUSCLE_TISSUE)
 #: labels that are hard tissue (move rigidly with their segment)
-HARD_LABELS = (BONE_TISSUE, TEETH)
+HARD_LABELS = (BONE_TISSUE, TEETH, METAL)
 
 # --------------------------------------------------------------------------- bone segments
 BONE_NONE = 0
@@ -267,3 +270,4 @@ ICP_OVERLAP = "icp_overlap"  #: field, float64, share of the samples near the ta
 # scratch arrays of intermediate datasets inside the filters (never in their output)
 SCRATCH_CELL_ID = "cell_id"  #: cell, int64, index of the cell in the input grid
 SCRATCH_HEAD = "head"  #: point, float, smoothed head indicator contoured for the skin
+

@@ -42,6 +42,7 @@ _REGISTRY = {
     "assign_materials": "materials",
     "cut_bones": "osteotomy",
     "move_bones": "osteotomy",
+    "find_jaws": "bone_segments",
     "apply_plan": "boundary_conditions",
     "extract_skin": "skin",
     "register": "registration",
