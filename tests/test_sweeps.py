@@ -355,6 +355,50 @@ def test_pvcmf_sweep_command(tmp_path, capsys):
     assert "'nu'" in err and "0.5" in err and not (tmp_path / "bad.csv").exists()
 
 
+def test_pvcmf_sweep_without_dask_names_the_extra(tmp_path, monkeypatch):
+    """Without ``distributed`` the command says which extra to install and writes nothing;
+    ``--scheduler synchronous`` still runs."""
+    from pvcmf.cli import main
+
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
+    out = tmp_path / "t.csv"
+    argv = ["sweep", "--grid", "nu=0.3", "--out", str(out), "--synthetic", "--no-progress"]
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert 'pip install "pvcmf[sweep]"' in str(info.value) and "synchronous" in str(info.value)
+    assert not out.exists()
+    assert main([*argv, "--scheduler", "synchronous"]) == 0 and out.exists()
+
+
+@pytest.mark.parametrize("tqdm_installed", [True, False])
+def test_progress_bar_counts_every_point(tmp_path, monkeypatch, caplog, capsys, tqdm_installed):
+    """progress_bar=True shows a tqdm bar over all points (cached ones included), or logs
+    each step at INFO when tqdm is missing; progress_bar=False shows nothing."""
+    import logging
+
+    if tqdm_installed:
+        pytest.importorskip("tqdm")
+    else:
+        monkeypatch.setitem(sys.modules, "tqdm", None)
+        monkeypatch.setitem(sys.modules, "tqdm.auto", None)
+    kw = dict(evaluate=synthetic_evaluate, scheduler="synchronous", cache_dir=tmp_path)
+    pvcmf.sweep([1, 2], {"nu": [0.3]}, **kw)
+    capsys.readouterr()
+    with caplog.at_level(logging.INFO, logger="pvcmf"):
+        pvcmf.sweep([1, 2, 3], {"nu": [0.3], "n_tets": [8000, 9000]}, progress_bar=True, **kw)
+    err = capsys.readouterr().err
+    steps = [r.getMessage() for r in caplog.records if r.getMessage().startswith("sweep [")]
+    if tqdm_installed:
+        assert "6/6" in err and not steps
+    else:
+        assert steps[-1].startswith("sweep [6/6]") and "6/6" not in err
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="pvcmf"):
+        pvcmf.sweep([1, 2, 3], {"nu": [0.3]}, progress_bar=False, **kw)
+    assert "/3" not in capsys.readouterr().err
+    assert not [r for r in caplog.records if r.getMessage().startswith("sweep [")]
+
+
 # --------------------------------------------------------------------------- figures
 
 
