@@ -10,7 +10,7 @@ Used by the virtual post-operative truths (:mod:`pvcmf.truth`) and the parameter
 * :func:`make_key` - SHA-256 of JSON-serialised key parts;
 * :func:`file_lock` - an exclusive lock file (``os.open`` with ``O_CREAT | O_EXCL``,
   atomic on local and NFSv3+ file systems) shared by processes, threads and Dask
-  workers, broken when its holder died (same host) or when it is older than
+  processes, broken when its holder died (same host) or when it is older than
   ``stale_after`` seconds;
 * :func:`cached` - read an entry, or compute it once across processes and write it
   atomically (:mod:`pvcmf._atomic`: a file or a whole folder);
@@ -222,7 +222,7 @@ def cached(path, compute, *, cache=True, read=None, write=None, folder=False,
     writes the result atomically (:func:`pvcmf._atomic.atomic_path`, or
     :func:`pvcmf._atomic.atomic_dir` for a ``folder`` entry) and releases the lock. Any
     other caller asking for the same ``path`` meanwhile (another process, thread or Dask
-    worker) waits for the lock to go and then reads the result instead of recomputing. A
+    process) waits for the lock to go and then reads the result instead of recomputing. A
     lock left by a crashed caller is broken when its process no longer exists (same host)
     or when it is older than ``stale_after`` seconds; if the holder failed without
     writing, the next waiter computes. An entry that cannot be read is recomputed.

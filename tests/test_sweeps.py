@@ -2,7 +2,7 @@
 
 The engine is tested with the cheap deterministic ``synthetic_evaluate`` (pure numpy), so
 these tests do not depend on the pipeline. Cluster tests run a real Dask scheduler with two
-worker processes over loopback; a watchdog (faulthandler) ends the run instead of hanging CI.
+Dask processes over loopback; a watchdog (faulthandler) ends the run instead of hanging CI.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pvcmf import sweeps  # noqa: E402
 from pvcmf.figures import parameter_studies as ps  # noqa: E402
 from pvcmf.sweeps import synthetic_evaluate, synthetic_skin  # noqa: E402
 
-# functions and classes of this module travel to worker processes by value
+# functions and classes of this module travel to the Dask processes by value
 import cloudpickle  # noqa: E402
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
@@ -62,7 +62,7 @@ def count(folder, kind):
 
 
 class KillOnce:
-    """Kill the worker process the first time case ``victim`` is evaluated (marker file)."""
+    """Kill the Dask process the first time case ``victim`` is evaluated (marker file)."""
 
     def __init__(self, folder, victim=2):
         self.folder, self.victim = str(folder), victim
@@ -89,7 +89,7 @@ def watchdog():
 
 @pytest.fixture(scope="module")
 def client():
-    """A real Dask scheduler with two single-threaded worker processes over loopback."""
+    """A real Dask scheduler with two single-threaded Dask processes over loopback."""
     faulthandler.dump_traceback_later(240, exit=True)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None, memory_limit="1GiB",
@@ -246,11 +246,11 @@ def test_cluster_gives_the_local_table(client, local_table, tmp_path, watchdog):
     pd.testing.assert_frame_equal(df2[METRIC_COLS], local_table[METRIC_COLS])
 
 
-def test_killed_worker_is_retried_and_nothing_lost(client, local_table, tmp_path, watchdog):
+def test_killed_process_is_retried_and_nothing_lost(client, local_table, tmp_path, watchdog):
     cache = tmp_path / "cache"
     df = pvcmf.sweep([1, 2, 3], GRID, evaluate=KillOnce(tmp_path), scheduler=client, cache_dir=cache,
                      retries=2)
-    assert (tmp_path / "killed").exists()  # a worker really died mid-sweep
+    assert (tmp_path / "killed").exists()  # a Dask process really died mid-sweep
     pd.testing.assert_frame_equal(df[METRIC_COLS], local_table[METRIC_COLS])
     n = count(tmp_path, "evaluate")
     assert n >= len(df)

@@ -36,7 +36,8 @@ def add_sweep_parser(subparsers):
     p.add_argument("--scheduler", default=None,
                    help="processes (default), threads, synchronous, or tcp://host:8786")
     p.add_argument("--cache-dir", default=None, help="result cache folder (rerun recomputes nothing)")
-    p.add_argument("--workers", type=int, default=None, help="local Dask processes (threads with --scheduler threads)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="local Dask processes (threads with --scheduler threads)")
     p.add_argument("--spacing", type=float, default=STUDY_SPACING,
                    help="default image resolution, mm (2: the study default, truths cached)")
     p.add_argument("--n-tets", type=int, default=30_000, help="default tetrahedra count")

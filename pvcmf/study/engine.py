@@ -202,13 +202,17 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
         ``name``). A single case may be given alone.
     grid : mapping
         Parameter name -> list of values; the sweep runs the full product. Names and
-        allowed values: :data:`PARAMETERS`. Checked by :func:`validate_grid` before
+        allowed values: :data:`~pvcmf.study.parameters.PARAMETERS`. Checked by
+        :func:`~pvcmf.study.parameters.validate_grid` before
         anything runs.
     evaluate : callable or Evaluation, optional
-        What to compute for a case and parameter set (see the module docstring);
-        default :class:`PipelineEvaluation`.
+        What to compute for a case and parameter set: an
+        :class:`~pvcmf.study.evaluation.Evaluation` (``prepare`` once per task,
+        ``evaluate`` per point), or any ``f(case, **params) -> dict``
+        (:class:`~pvcmf.study.evaluation.FunctionEvaluation`); default
+        :class:`~pvcmf.study.pipeline_evaluation.PipelineEvaluation`.
     scheduler : None, str or distributed.Client
-        ``None``/``"processes"``: a local Dask cluster of single-threaded worker
+        ``None``/``"processes"``: a local Dask cluster of single-threaded
         processes; ``"threads"``: an in-process cluster of threads; ``"synchronous"``:
         no Dask, in this process; ``"tcp://host:8786"``: that Dask scheduler; a
         ``Client``: that client (left open).
@@ -218,18 +222,20 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     progress_bar : bool
         Show a tqdm progress bar (points done / total).
     retries : int
-        Dask retries of a task that raised; a task whose worker died is rescheduled.
+        Dask retries of a task that raised; a task whose process died is rescheduled.
     keep_arrays : bool
         Keep array results (e.g. the per-point ``distance`` map) as object columns.
     n_workers : int, optional
-        Worker processes (threads for ``"threads"``) of a local cluster; default one per
+        Dask processes (threads for ``"threads"``) of a local cluster; default one per
         CPU, at most one per task.
     memory_limit : str
-        Memory limit per worker of a local cluster (Dask syntax, e.g. ``"2GiB"``).
+        Memory limit per Dask process of a local cluster (Dask syntax, e.g. ``"2GiB"``).
     version : str, optional
-        Code version in the cache key; default :func:`code_version` (pvcmf's version).
+        Code version in the cache key; default
+        :func:`~pvcmf.study.evaluation.code_version` (pvcmf's version).
         The evaluation's own identity adds what else its results depend on
-        (:class:`PipelineEvaluation`: the sources of :data:`RESULT_SOURCES`), so code
+        (:class:`~pvcmf.study.pipeline_evaluation.PipelineEvaluation`: the sources of
+        :data:`~pvcmf.study.evaluation.RESULT_SOURCES`), so code
         that changes results recomputes and code that does not (figures, CLI) does not.
     on_error : {'raise', 'skip'}
         A task that still fails after its retries: ``'raise'`` stops the sweep with a
@@ -241,9 +247,10 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     -------
     pandas.DataFrame
         One row per case and parameter set, in case order then grid order: ``case``,
-        the grid's parameters, :data:`METRICS`, ``n_cells`` when the evaluation gives it,
-        :data:`TIMES` (s) and ``cached`` (loaded from the cache). ``df.attrs`` holds the
-        grid, the number of tasks, points computed and loaded, and the wall time.
+        the grid's parameters, :data:`~pvcmf.study.parameters.METRICS`, ``n_cells`` when
+        the evaluation gives it, :data:`~pvcmf.study.parameters.TIMES` (s) and ``cached``
+        (loaded from the cache). ``df.attrs`` holds the grid, the number of tasks, points
+        computed and loaded, and the wall time.
 
     Raises
     ------

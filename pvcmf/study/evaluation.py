@@ -78,7 +78,8 @@ class Evaluation:
     """What a sweep computes for one case: ``prepare`` once per task, ``evaluate`` per point.
 
     Subclass and implement both. ``prepare(case, **group_params)`` receives the case (as
-    given to :func:`sweep`) and the mesh-level parameters of the task and returns any
+    given to :func:`pvcmf.study.engine.sweep`) and the mesh-level parameters of the task
+    and returns any
     state (mesh, factorised solver, ...); ``evaluate(state, **params)`` receives it with
     the solve-level parameters and returns a dict with at least the :data:`METRICS` (use
     :func:`error_statistics`); values may also be numpy arrays (e.g. the per-point
@@ -269,7 +270,8 @@ def case_identity(case):
 
 
 #: the parts of pvcmf whose code changes what the pipeline computes (relative to the
-#: package): their sources enter :class:`PipelineEvaluation`'s cache identity. Figures,
+#: package): their sources enter the cache identity of
+#: :class:`pvcmf.study.pipeline_evaluation.PipelineEvaluation`. Figures,
 #: command line, I/O and the sweep engine itself do not change a result, so editing them
 #: keeps every cached sweep.
 RESULT_SOURCES = ("arrays.py", "atlas.py", "tps.py", "plan.py", "pipeline.py", "truth",
@@ -283,7 +285,8 @@ def code_version():
     """Version of pvcmf for cache keys of every evaluation: the package version.
 
     What a result depends on beyond that is in its evaluation's identity
-    (:meth:`Evaluation.identity`): :class:`PipelineEvaluation` hashes the sources of
+    (:meth:`Evaluation.identity`):
+    :class:`pvcmf.study.pipeline_evaluation.PipelineEvaluation` hashes the sources of
     :data:`RESULT_SOURCES` and its own code (:func:`source_hash`), a plain function
     evaluation its function's source.
     """

@@ -57,7 +57,7 @@ PREPARED_FILES = {"grid": "grid.vtu", "skin": "skin.vtp", "postop": "postop.vtp"
 
 
 class PipelineEvaluation(Evaluation):
-    """The pvcmf pipeline as a sweep evaluation (the default of :func:`sweep`).
+    """The pvcmf pipeline as a sweep evaluation (the default of :func:`pvcmf.study.engine.sweep`).
 
     ``prepare(case, spacing=, n_tets=, roi=, conforming=)`` builds the virtual patient
     (``case`` is a patient number for :func:`pvcmf.datasets.phantom`, a mapping of its
