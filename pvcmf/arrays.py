@@ -236,6 +236,13 @@ SWEEP_METRICS = ("p50", "p90", "p95", "median", "mean_abs", "rms", "within_1mm",
                  "n_skin")
 #: timing columns of a sweep row (s)
 SWEEP_TIMES = ("t_prepare", "t_eval", "cpu_prepare", "cpu_eval")
+SWEEP_CASE = "case"  #: sweep table column: the case label (``P1`` for virtual patient 1)
+SWEEP_CACHED = "cached"  #: sweep table column, bool: the row was read from the cache
+SWEEP_ERROR = "error"  #: sweep table column: why a skipped task failed (``on_error='skip'``)
+SWEEP_N_CELLS = "n_cells"  #: sweep result: tetrahedra of the mesh
+SWEEP_DISTANCE = "distance"  #: sweep result array: signed error per skin point, mm
+SWEEP_SKIN_POINTS = "skin_points"  #: sweep result array (n, 3): the skin's points, mm
+SWEEP_SKIN_FACES = "skin_faces"  #: sweep result array: the skin's VTK face connectivity
 
 # --------------------------------------------------------------------------- meshing
 # field data of the tetrahedral meshes (pvcmf.filters.meshing.tetrahedralize)

@@ -21,9 +21,18 @@ neighbourhoods) and PyVista (3-D renders).
 
 from __future__ import annotations
 
+import functools
 import logging
+import os
+from pathlib import Path
 
 import numpy as np
+
+from ..study.engine import sweep
+from ..study.evaluation import synthetic_evaluate
+from ..study.pipeline_evaluation import STUDY_SPACING, PipelineEvaluation
+from ..study.tables import save_table
+from ..truth.grid import postop_skin
 
 log = logging.getLogger(__name__)
 
@@ -56,11 +65,6 @@ def study_settings(gallery_dir=None):
         ``out`` (Path), ``synthetic``, ``scheduler``, ``patients`` (list of int),
         ``study`` (``spacing`` and ``truth_tets`` for :func:`run_study`), ``title``.
     """
-    import os
-    from pathlib import Path
-
-    from ..sweeps import STUDY_SPACING
-
     env = os.environ.get
     base = Path(gallery_dir) if gallery_dir is not None else Path.cwd()
     synthetic = env("PVCMF_SYNTHETIC") == "1"
@@ -110,19 +114,11 @@ def run_study(cases, grid, name, out, *, synthetic=False, scheduler=None, keep_a
     pandas.DataFrame
         The sweep table.
     """
-    from pathlib import Path
-
-    from pvcmf.sweeps import PipelineEvaluation, save_table, sweep, synthetic_evaluate
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     truth_tets = options.pop("truth_tets", None)
     if truth_tets is not None and "truth" not in options:  # a coarser (cached) reference truth
-        import functools
-
-        from pvcmf import reference
-
-        options["truth"] = functools.partial(reference.postop_skin, n_tets=int(truth_tets))
+        options["truth"] = functools.partial(postop_skin, n_tets=int(truth_tets))
     evaluate = synthetic_evaluate if synthetic else PipelineEvaluation(
         keep_distance=keep_arrays, cache_dir=out / "sweep-cache" / "prepared", **options)
     df = sweep(cases, grid, evaluate=evaluate, scheduler=scheduler, cache_dir=out / "sweep-cache",
