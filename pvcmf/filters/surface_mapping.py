@@ -7,7 +7,8 @@ and skin:
     A skin point inside the tetrahedral mesh takes the finite-element (barycentric)
     interpolation of its tetrahedron. A point outside takes
     ``u(p) = u_h(q) + G(q) (p - q)``: ``q`` is the closest point of the mesh's boundary
-    surface, ``u_h(q)`` the linear interpolation on its boundary triangle and ``G(q)`` a
+    surface (blended over the boundary triangles that are nearly as close, so that ``q``
+    does not jump at a concave boundary), ``u_h(q)`` the linear interpolation on its boundary triangle and ``G(q)`` a
     smooth convex combination of the nodal displacement gradients (volume-weighted means
     of the gradients of the tetrahedra around a node) at the ``k`` boundary nodes nearest
     to ``q``, with weights ``(1 - (d_j / d_(k+1))^2)^2`` that vanish as a node leaves the
@@ -144,68 +145,112 @@ def _closest_on_triangles(p, a, b, c):
 
 class _Located:
     """Where skin points lie relative to a tetrahedral mesh (shared by the transfer and the
-    crumple metric): containing tetrahedron and barycentric coordinates inside; closest
-    boundary point, its triangle and the ``k`` nearest boundary nodes with their smooth
-    weights outside."""
+    crumple metric).
 
-    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=16):
+    Inside: the containing tetrahedron and barycentric coordinates. Outside: "feet" on the
+    boundary, one per nearby boundary triangle whose distance is within a window of the
+    smallest (width ``d_1 h / (d_1 + h)``, ``h`` the median boundary edge), each with its
+    closest point, the ``k`` boundary nodes nearest to it and their smooth weights; the
+    feet are blended with weights ``(1 - s^2)^2`` (``s`` the excess distance over the
+    window), so the foot point never jumps where the closest triangle changes (concave
+    boundary), and the blend shrinks to the closest point as the point nears the boundary.
+    """
+
+    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=12):
         self.points, self.tets = _tetra(grid)
         p = np.asarray(points, dtype=float)
         self.p = p
-        probe_src = pv.UnstructuredGrid({pv.CellType.TETRA: self.tets}, self.points)
-        probe_src.cell_data[arrays.SCRATCH_CELL_ID] = np.arange(len(self.tets), dtype=np.int64)
-        probe = pv.PolyData(p).sample(probe_src, pass_point_data=False, progress_bar=False)
-        found = np.asarray(probe[arrays.VALID_POINT_MASK]).astype(bool)
-        cell = np.asarray(probe[arrays.SCRATCH_CELL_ID]).astype(np.int64)
-        bary = np.zeros((len(p), 4))
-        if found.any():
-            t = self.tets[cell[found]]
-            x0 = self.points[t[:, 0]]
-            edges = self.points[t[:, 1:]] - x0[:, None, :]
-            lam = np.linalg.solve(np.swapaxes(edges, 1, 2), (p[found] - x0)[:, :, None])[:, :, 0]
-            bary[found] = np.column_stack([1 - lam.sum(axis=1), lam])
-            found[found] = bary[found].min(axis=1) >= -_INSIDE_TOL
-        self.inside, self.cell, self.bary = found, np.where(found, cell, -1), bary
-        out = np.flatnonzero(~found)
-        self.outside = out
-        tri = _boundary_faces(probe_src)
+        src = pv.UnstructuredGrid({pv.CellType.TETRA: self.tets}, self.points)
+        self._find_cells(src)
+        self.outside = out = np.flatnonzero(~self.inside)
+        tri = _boundary_faces(src)
         self.boundary = np.unique(tri)
+        n_pairs = 0
         if out.size:
-            tree = cKDTree(self.points[tri].mean(axis=1))
-            kt = min(n_triangles, len(tri))
-            cand = tree.query(p[out], k=kt)[1].reshape(len(out), kt)
-            best_q = np.empty((len(out), 3))
-            best_b = np.empty((len(out), 3))
-            best_t = np.empty(len(out), dtype=np.int64)
-            best_d = np.full(len(out), np.inf)
-            for j in range(kt):  # a few candidate triangles per point, each vectorised
-                tj = tri[cand[:, j]]
-                q, b = _closest_on_triangles(p[out], *(self.points[tj[:, i]] for i in range(3)))
-                d = np.einsum("ij,ij->i", q - p[out], q - p[out])
-                better = d < best_d
-                best_d[better], best_q[better], best_b[better] = d[better], q[better], b[better]
-                best_t[better] = cand[better, j]
-            self.q, self.face_bary, self.face = best_q, best_b, tri[best_t]
-            kk = min(k, len(self.boundary) - 1) if len(self.boundary) > 1 else 1
-            dist, idx = cKDTree(self.points[self.boundary]).query(self.q, k=kk + 1)
-            dist, idx = dist.reshape(len(out), -1), idx.reshape(len(out), -1)
+            rows, q, bary, face = self._feet(tri, out, n_triangles)
+            n_pairs = len(rows)
+            kk = max(1, min(k, len(self.boundary) - 1))
+            dist, idx = cKDTree(self.points[self.boundary]).query(q, k=kk + 1)
+            dist, idx = dist.reshape(n_pairs, -1), idx.reshape(n_pairs, -1)
             h = dist[:, -1:]
             s = np.where(h > 0, dist[:, :-1] / np.where(h > 0, h, 1.0), 0.0)
             w = (1.0 - s**2) ** 2
             w /= w.sum(axis=1, keepdims=True)
             self.near, self.near_w = idx[:, :-1], w  # indices into self.boundary
-        else:
+            self.pair_row, self.q, self.face_bary, self.face = rows, q, bary, face
+        if not n_pairs:
+            self.pair_row, self.pair_w = np.zeros(0, dtype=np.int64), np.zeros(0)
             self.q = np.zeros((0, 3))
             self.face_bary, self.face = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
             self.near, self.near_w = np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
+
+    def _find_cells(self, src):
+        """Containing tetrahedra: VTK's probe, then the tetrahedra with the nearest
+        centroids for the points it misses (on shared faces, within round-off)."""
+        p, pts, tets = self.p, self.points, self.tets
+        src.cell_data[arrays.SCRATCH_CELL_ID] = np.arange(len(tets), dtype=np.int64)
+        probe = pv.PolyData(p).sample(src, pass_point_data=False, progress_bar=False)
+        cell = np.where(np.asarray(probe[arrays.VALID_POINT_MASK]).astype(bool),
+                        np.asarray(probe[arrays.SCRATCH_CELL_ID]).astype(np.int64), -1)
+        bary = np.full((len(p), 4), -np.inf)
+
+        def barycentric(idx, cells):
+            t = tets[cells]
+            x0 = pts[t[:, 0]]
+            edges = pts[t[:, 1:]] - x0[:, None, :]
+            ok = np.abs(np.linalg.det(edges)) > 1e-300
+            lam = np.full((len(idx), 3), -np.inf)
+            if ok.any():
+                lam[ok] = np.linalg.solve(np.swapaxes(edges[ok], 1, 2),
+                                          (p[idx[ok]] - x0[ok])[:, :, None])[:, :, 0]
+            return np.column_stack([1 - lam.sum(axis=1), lam])
+
+        hit = np.flatnonzero(cell >= 0)
+        bary[hit] = barycentric(hit, cell[hit])
+        miss = np.flatnonzero(bary.min(axis=1) < -_INSIDE_TOL)
+        if miss.size:
+            kc = min(8, len(tets))
+            cand = cKDTree(pts[tets].mean(axis=1)).query(p[miss], k=kc)[1].reshape(len(miss), kc)
+            for j in range(kc):
+                b = barycentric(miss, cand[:, j])
+                better = b.min(axis=1) > bary[miss].min(axis=1)
+                bary[miss[better]], cell[miss[better]] = b[better], cand[better, j]
+        self.inside = bary.min(axis=1) >= -_INSIDE_TOL
+        self.cell = np.where(self.inside, cell, -1)
+        self.bary = np.where(self.inside[:, None], bary, 0.0)
+
+    def _feet(self, tri, out, n_triangles):
+        """Blended feet of the outside points on the boundary triangles ``tri``."""
+        p, pts = self.p[out], self.points
+        kt = min(n_triangles, len(tri))
+        cand = cKDTree(pts[tri].mean(axis=1)).query(p, k=kt)[1].reshape(len(out), kt)
+        qs, bs, ds = [], [], []
+        for j in range(kt):  # a few candidate triangles per point, each vectorised
+            tj = tri[cand[:, j]]
+            q, b = _closest_on_triangles(p, pts[tj[:, 0]], pts[tj[:, 1]], pts[tj[:, 2]])
+            qs.append(q), bs.append(b), ds.append(np.linalg.norm(q - p, axis=1))
+        d = np.stack(ds, axis=1)
+        d1 = d.min(axis=1, keepdims=True)
+        e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
+        h = float(np.median(np.linalg.norm(e, axis=2)))
+        window = d1 * h / (d1 + h)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.where(window > 0, (d - d1) / window, np.where(d > d1, np.inf, 0.0))
+        w = np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
+        w /= w.sum(axis=1, keepdims=True)
+        r, j = np.nonzero(w > 0)
+        self.pair_w = w[r, j]
+        q = np.stack(qs, axis=1)[r, j]
+        bary = np.stack(bs, axis=1)[r, j]
+        return out[r], q, bary, tri[cand[r, j]]
 
 
 def transfer_operator(grid, points, *, k=DEFAULT_K, progress_bar=False):
     """Sparse operator ``T`` (points x grid points) with ``u_points = T @ u_nodes``.
 
     Inside the mesh: barycentric interpolation in the containing tetrahedron. Outside:
-    ``u_h(q) + G(q) (p - q)`` with ``q`` the closest boundary point (see the module
-    docs): exact for affine fields, continuous across the boundary, gradient bounded by
+    ``u_h(q) + G(q) (p - q)`` with ``q`` the closest boundary point, blended over the
+    nearly closest boundary triangles (see the module docs): exact for affine fields, continuous across the boundary, gradient bounded by
     the tetrahedra involved.
 
     Parameters
@@ -259,20 +304,21 @@ def _assemble(loc):
     ins = np.flatnonzero(loc.inside)
     T = sp.csr_matrix((loc.bary[ins].ravel(), (np.repeat(ins, 4), loc.tets[loc.cell[ins]].ravel())),
                       shape=(n, m))
-    out = loc.outside
-    if out.size:
-        face = sp.csr_matrix((loc.face_bary.ravel(), (np.repeat(out, 3), loc.face.ravel())),
-                             shape=(n, m))
+    npair = len(loc.pair_row)
+    if npair:  # one row per foot: u_h(q) + G(q) (p - q); then blended per point
+        face = sp.csr_matrix((loc.face_bary.ravel(), (np.repeat(np.arange(npair), 3),
+                                                      loc.face.ravel())), shape=(npair, m))
         used, inverse = np.unique(loc.near, return_inverse=True)
         kk = loc.near.shape[1]
-        W = sp.csr_matrix((loc.near_w.ravel(), (np.repeat(out, kk), inverse.ravel())),
-                          shape=(n, len(used)))
+        W = sp.csr_matrix((loc.near_w.ravel(), (np.repeat(np.arange(npair), kk),
+                                                inverse.ravel())), shape=(npair, len(used)))
         D = _gradient_operators(loc.points, loc.tets, loc.boundary[used])
-        offset = np.zeros((n, 3))
-        offset[out] = loc.p[out] - loc.q
-        T = T + face
+        offset = loc.p[loc.pair_row] - loc.q
+        feet = face
         for c in range(3):
-            T = T + sp.diags(offset[:, c]) @ (W @ D[c])
+            feet = feet + sp.diags(offset[:, c]) @ (W @ D[c])
+        blend = sp.csr_matrix((loc.pair_w, (loc.pair_row, np.arange(npair))), shape=(n, npair))
+        T = T + blend @ feet
     T = T.tocsr()
     T.sum_duplicates()
     T.eliminate_zeros()
@@ -417,8 +463,9 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
     For every edge ``(a, b)`` of ``skin_pre`` the stretch ``|u_a - u_b| / |x_a - x_b|`` is
     compared with the largest displacement-gradient norm (spectral) of the tetrahedra
     around it: the tetrahedra sharing a node with the tetrahedron that holds an endpoint,
-    or, for an endpoint outside the mesh, those sharing a node with its closest boundary
-    triangle or with the ``k`` boundary nodes nearest to that closest point. A smooth
+    or, for an endpoint outside the mesh, those sharing a node with its nearest boundary
+    triangles (the feet of :func:`transfer_operator`) or with the ``k`` boundary nodes
+    nearest to those feet. A smooth
     transfer stays within that bound; a step (a nearest-node copy, a clamp) exceeds it.
 
     Parameters
@@ -471,9 +518,9 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
     bound = np.zeros(len(loc.p))
     ins = np.flatnonzero(loc.inside)
     bound[ins] = node_max[loc.tets[loc.cell[ins]]].max(axis=1)
-    if loc.outside.size:
+    if len(loc.pair_row):
         around = np.concatenate([loc.face, loc.boundary[loc.near]], axis=1)
-        bound[loc.outside] = node_max[around].max(axis=1)
+        np.maximum.at(bound, loc.pair_row, node_max[around].max(axis=1))
     e = _edges(skin_pre)
     x = np.asarray(skin_pre.points, dtype=float)
     length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
