@@ -34,11 +34,14 @@ def test_affine_exact_inside_and_outside(ball):
     B, c = rng.normal(size=(3, 3)) * 0.2, rng.normal(size=3)
     far = pv.PolyData(np.array([[30.0, 0, 0], [0, -25.0, 5.0], [0.0, 0.0, 60.0]]))
     for pts in (skin.points, np.asarray(grid.points)[:50] * 0.5, far.points):
-        T = transfer_operator(grid, pts)
+        T = transfer_operator(grid, pts, band=np.inf)
         u = (T @ (grid.points @ B.T + c))
         assert np.abs(u - (pts @ B.T + c)).max() < 1e-9
-    T = transfer_operator(grid, skin)
+    T = transfer_operator(grid, skin)  # default band: the skin lies within it
+    assert np.abs(T @ (grid.points @ B.T + c) - (skin.points @ B.T + c)).max() < 1e-9
     assert np.allclose(np.asarray(T.sum(axis=1)).ravel(), 1.0)
+    bounded = transfer_operator(grid, far.points) @ (grid.points @ B.T + c)
+    assert np.abs(bounded).max() < np.abs(grid.points @ B.T + c).max() + 8 * np.abs(B).sum()
 
 
 def test_inside_points_are_barycentric(ball):

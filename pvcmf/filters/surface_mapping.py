@@ -13,7 +13,9 @@ and skin:
     of the gradients of the tetrahedra around a node) at the ``k`` boundary nodes nearest
     to ``q``, with weights ``(1 - (d_j / d_(k+1))^2)^2`` that vanish as a node leaves the
     ``k`` nearest (continuous in ``q``). Properties: an affine field is reproduced exactly
-    everywhere (every gradient is its gradient); the extension is continuous across the
+    within ``band`` of the mesh (every gradient is its gradient; farther out the offset
+    ``p - q`` saturates smoothly, so unsimulated skin far behind a face model is not
+    extrapolated without bound); the extension is continuous across the
     mesh boundary (``p -> q``); ``|G|`` is at most the largest gradient of the tetrahedra
     involved (a convex combination of them). No nearest-node copy, so no steps.
     :func:`crumple_metric` checks, per skin edge, that the mapped field stretches it no
@@ -63,6 +65,9 @@ SUPPORT = arrays.MAPPING_SUPPORT
 METHODS = ("interpolate", "gaussian")
 #: default number of boundary nodes whose gradients extend the field outside the mesh
 DEFAULT_K = 8
+#: default distance (mm) from the mesh within which the extension is exactly affine; beyond
+#: it the offset along which the boundary gradient extrapolates saturates (at twice this)
+DEFAULT_BAND = 4.0
 #: barycentric coordinates down to this (negative) value still count as inside a tetrahedron
 _INSIDE_TOL = 1e-6
 
@@ -156,7 +161,7 @@ class _Located:
     boundary), and the blend shrinks to the closest point as the point nears the boundary.
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=12):
+    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=6):
         self.points, self.tets = _tetra(grid)
         p = np.asarray(points, dtype=float)
         self.p = p
@@ -245,7 +250,7 @@ class _Located:
         return out[r], q, bary, tri[cand[r, j]]
 
 
-def transfer_operator(grid, points, *, k=DEFAULT_K, progress_bar=False):
+def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
     """Sparse operator ``T`` (points x grid points) with ``u_points = T @ u_nodes``.
 
     Inside the mesh: barycentric interpolation in the containing tetrahedron. Outside:
@@ -261,6 +266,12 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, progress_bar=False):
         ``(n, 3)`` points (e.g. a dense skin's points) in the grid's frame.
     k : int, default 8
         Boundary nodes whose gradients extend the field outside the mesh.
+    band : float, default 4.0
+        Distance (mm) from the mesh within which the extension is exactly affine (the
+        skin the mesh models lies within a voxel or two). Farther points (skin that is
+        not simulated, e.g. behind a face model) extrapolate the boundary gradient over
+        an offset that saturates smoothly at ``2 band``, so their displacement stays
+        bounded; ``numpy.inf`` extrapolates linearly everywhere.
     progress_bar : bool, default False
         Show the steps (:class:`pvcmf.progress.Progress`).
 
@@ -292,14 +303,24 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, progress_bar=False):
     with Progress(total=2, desc="transfer_operator", enabled=progress_bar, logger=log) as bar:
         loc = _Located(grid, pts, int(k))
         bar.step(f"{int(loc.inside.sum())} of {len(pts)} points inside the mesh")
-        T = _assemble(loc)
+        T = _assemble(loc, float(band))
         bar.step("operator assembled")
     log.info("transfer_operator: %d points, %d inside tetrahedra, %d extended from the "
              "boundary", len(pts), int(loc.inside.sum()), loc.outside.size)
     return T
 
 
-def _assemble(loc):
+def _saturate(d, band):
+    """Factor ``l(d) / d``: ``l = d`` up to ``band``, then ``band (1 + tanh((d - band) /
+    band))`` (smooth, slope <= 1, at most ``2 band``)."""
+    if not np.isfinite(band):
+        return np.ones_like(d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ell = np.where(d <= band, d, band * (1.0 + np.tanh((d - band) / band)))
+        return np.where(d > 0, ell / d, 1.0)
+
+
+def _assemble(loc, band=DEFAULT_BAND):
     n, m = len(loc.p), len(loc.points)
     ins = np.flatnonzero(loc.inside)
     T = sp.csr_matrix((loc.bary[ins].ravel(), (np.repeat(ins, 4), loc.tets[loc.cell[ins]].ravel())),
@@ -314,6 +335,7 @@ def _assemble(loc):
                                                 inverse.ravel())), shape=(npair, len(used)))
         D = _gradient_operators(loc.points, loc.tets, loc.boundary[used])
         offset = loc.p[loc.pair_row] - loc.q
+        offset *= _saturate(np.linalg.norm(offset, axis=1), band)[:, None]
         feet = face
         for c in range(3):
             feet = feet + sp.diags(offset[:, c]) @ (W @ D[c])
@@ -337,9 +359,9 @@ class Transfer:
         Points inside a tetrahedron.
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K):
+    def __init__(self, grid, points, k=DEFAULT_K, band=DEFAULT_BAND):
         loc = _Located(grid, points, k)
-        self.W = _assemble(loc)
+        self.W = _assemble(loc, band)
         self.inside = loc.inside
 
     def __call__(self, u):
