@@ -40,6 +40,8 @@ METHODS = {
     "register": ("pvcmf.filters", "register"),
     "distance_to": ("pvcmf.filters", "distance_to"),
     "map_to_surface": ("pvcmf.filters", "map_to_surface"),
+    "transfer_operator": ("pvcmf.filters", "transfer_operator"),
+    "plan_response": ("pvcmf.mtm.response", "plan_response"),
     "solve": ("pvcmf.mtm", "solve"),
     "stiffness": ("pvcmf.mtm", "stiffness"),
     "export": ("pvcmf.io", "export"),

@@ -278,3 +278,12 @@ ICP_OVERLAP = "icp_overlap"  #: field, float64, share of the samples near the ta
 SCRATCH_CELL_ID = "cell_id"  #: cell, int64, index of the cell in the input grid
 SCRATCH_HEAD = "head"  #: point, float, smoothed head indicator contoured for the skin
 
+
+# --------------------------------------------------------------------------- skin transfer and plan response
+TRANSFER_INSIDE = "transfer_inside"  #: point (skin), uint8, 1 where inside a tetrahedron
+#: summary / field data: skin edges stretched beyond the steepest tetrahedron around them
+#: (+10 %) by the mesh -> skin transfer (:func:`pvcmf.filters.surface_mapping.crumple_metric`)
+CRUMPLE_VIOLATIONS = "crumple_violations"
+#: summary / field data: largest ratio of an edge's stretch to that bound (<= 1.1 passes)
+CRUMPLE_MAX_RATIO = "crumple_max_ratio"
+CRUMPLE_EDGES = "crumple_edges"  #: summary / field data: number of skin edges checked

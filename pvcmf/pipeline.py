@@ -16,6 +16,7 @@ purpose (a failed muscle fit leaves homogeneous tissue) are recorded in
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -27,6 +28,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from . import arrays, filters, mtm
+from ._atomic import write_text
+from .filters.surface_mapping import crumple_metric, transfer_operator
 from .filters.osteotomy import cut_bones, move_bones
 from .io import read_ct
 from .outputs import render, write_outputs
@@ -208,28 +211,41 @@ def _apply_plan(grid, plan, labels, options):
 def _skin(labels, post):
     """Pre-operative skin and, with a solved mesh, the predicted skin.
 
-    The skin comes from :func:`pvcmf.filters.extract_skin` of the label image. The mesh displacement is carried onto it by
-    the finite-element interpolation inside the tetrahedra (VTK's probe filter,
-    :meth:`pyvista.DataSet.sample`); skin points just outside the mesh (the label skin and
-    the smoothed mesh surface differ by up to a voxel) take the nearest mesh point's
-    displacement, so skin behind the meshed face takes that of the fixed plane: zero.
+    The skin comes from :func:`pvcmf.filters.extract_skin` of the label image. The mesh
+    displacement is carried onto it by :func:`pvcmf.filters.surface_mapping.transfer_operator`
+    (finite-element interpolation inside the tetrahedra, an exact-for-affine extension of
+    the boundary gradients outside); the crumple metric of the transfer
+    (:func:`~pvcmf.filters.surface_mapping.crumple_metric`) is kept in the predicted skin's
+    field data.
     """
     pre = filters.extract_skin(labels).copy()
     pre.clear_data()
     if post is None:
         return pre, None
-    probe = pre.sample(post)
-    disp = np.asarray(probe[arrays.DISPLACEMENT], dtype=np.float64).copy()
-    outside = np.asarray(probe[arrays.VALID_POINT_MASK]) == 0
-    if outside.any():
-        near = cKDTree(np.asarray(post.points)).query(np.asarray(pre.points)[outside])[1]
-        disp[outside] = np.asarray(post[arrays.DISPLACEMENT])[near]
-    log.info("skin: %d points, %d interpolated in tetrahedra, %d from the nearest mesh point",
-             pre.n_points, int((~outside).sum()), int(outside.sum()))
+    u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
+    disp = np.asarray(transfer_operator(post, pre) @ u_nodes)
+    metric = crumple_metric(pre, disp, post, u_nodes)
+    log.info("skin: %d points, %d edges stretched beyond the mesh's gradients (max ratio %.3g)",
+             pre.n_points, metric[arrays.CRUMPLE_VIOLATIONS], metric[arrays.CRUMPLE_MAX_RATIO])
     pre.point_data[arrays.DISPLACEMENT] = disp
     moved = pre.copy()
     moved.points = np.asarray(pre.points) + disp
+    for name in (arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS, arrays.CRUMPLE_MAX_RATIO):
+        moved.field_data[name] = np.array([metric[name]])
     return pre, moved
+
+
+def _write_outputs(result, out, images=None):
+    """:func:`write_outputs`, plus the transfer's crumple metric in ``summary.json``."""
+    files = write_outputs(result, out, images)
+    skin = result.skin_post
+    if skin is not None and arrays.CRUMPLE_VIOLATIONS in skin.field_data:
+        path = Path(files["summary"])
+        summary = json.loads(path.read_text(encoding="utf-8"))
+        for name in (arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS, arrays.CRUMPLE_MAX_RATIO):
+            summary[name] = skin.field_data[name][0].item()
+        write_text(path, json.dumps(summary, indent=2) + "\n")
+    return files
 
 
 def flip_axes(image, axes):
@@ -467,4 +483,4 @@ def _output_steps(run, out, *, solve, figures):
     pngs = render(result) if figures else {}
     result.timings["figures"] = time.perf_counter() - start
     run.progress.step("figures")
-    run.run("write", write_outputs, result, out, pngs)
+    run.run("write", _write_outputs, result, out, pngs)

@@ -48,6 +48,8 @@ _REGISTRY = {
     "register": "registration",
     "distance_to": "distance",
     "map_to_surface": "surface_mapping",
+    "transfer_operator": "surface_mapping",
+    "crumple_metric": "surface_mapping",
 }
 
 __all__ = sorted(_REGISTRY)
