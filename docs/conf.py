@@ -83,12 +83,44 @@ _FAST = [
 _which = os.environ.get("PVCMF_DOCS_GALLERY", "fast")
 _pattern = {"all": r"plot_", "none": r"^$"}.get(_which, "(" + "|".join(_FAST) + r")\.py$")
 
+_seen = {}
+
+
+def _saved_figures(block, block_vars, gallery_conf):
+    """Scrape the PNGs a gallery script saved itself (matplotlib ``Figure.savefig``).
+
+    The figure modules build :class:`matplotlib.figure.Figure` objects without pyplot, which
+    matplotlib's scraper cannot see; their scripts save them into ``PVCMF_GALLERY_OUT``. A PNG
+    that is new or rewritten since the previous code block is shown. Blocks that leave
+    PyVista plotters open are left to PyVista's scraper (it renders the plotters itself).
+    """
+    import shutil
+
+    from sphinx_gallery.scrapers import figure_rst
+
+    out = Path(os.environ["PVCMF_GALLERY_OUT"])
+    fresh = []
+    for path in sorted(out.glob("*.png")):
+        stamp = path.stat().st_mtime_ns
+        if _seen.get(path) != stamp:
+            _seen[path] = stamp
+            fresh.append(path)
+    if any(not p._closed for p in pyvista.plotting.plotter._ALL_PLOTTERS.values()):
+        return ""
+    names = []
+    for path in fresh:
+        name = next(block_vars["image_path_iterator"])
+        shutil.copyfile(path, name)
+        names.append(name)
+    return figure_rst(names, gallery_conf["src_dir"])
+
+
 sphinx_gallery_conf = {
     "examples_dirs": str(ROOT / "gallery"),
     "gallery_dirs": "gallery",
     "filename_pattern": _pattern,
     "plot_gallery": "False" if _which == "none" else "True",
-    "image_scrapers": ("matplotlib", pyvista.Scraper()),
+    "image_scrapers": ("matplotlib", _saved_figures, pyvista.Scraper()),
     "download_all_examples": False,
     "remove_config_comments": True,
     "within_subsection_order": "FileNameSortKey",

@@ -21,4 +21,3 @@ OUT.mkdir(parents=True, exist_ok=True)
 
 plotter = sampling_figure(n_points=150, seed=0)
 plotter.screenshot(OUT / "fig1_sampling.png")
-plotter.close()

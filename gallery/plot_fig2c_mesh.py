@@ -29,4 +29,3 @@ with warnings.catch_warnings():
 masseter = mesh.extract_cells(mesh.cell_data[arrays.MUSCLE] == arrays.MUSCLE_IDS["masseter_left"])
 plotter = mesh_figure(mesh, normal=(0.0, 0.0, 1.0), origin=masseter.center)
 plotter.screenshot(OUT / "fig2c_mesh.png")
-plotter.close()
