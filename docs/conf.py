@@ -49,6 +49,9 @@ root_doc = "index"
 exclude_patterns = ["_build", "gallery/*.ipynb", "gallery/*.py", "gallery/*.zip",
                     "gallery/*.json", "gallery/*.md5", "gallery/*.codeobj.json"]
 templates_path = ["_templates"]
+# the gallery configuration holds functions (scrapers): Sphinx cannot pickle it, which only
+# means a full re-read when it changes
+suppress_warnings = ["config.cache"]
 html_static_path = ["_static"]
 html_theme = "alabaster"
 html_theme_options = {"description": "Face prediction after jaw surgery", "fixed_sidebar": True}

@@ -19,7 +19,7 @@ from pvcmf import arrays
 from pvcmf.figures.mesh import mesh_figure
 
 pv.OFF_SCREEN = True
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 labels = pvcmf.datasets.phantom(1, spacing=2.0).truth
