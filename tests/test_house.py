@@ -101,6 +101,7 @@ def wording_hits(text):
     return hits
 
 
+# house-patterns: begin (examples of what the patterns must catch)
 @pytest.mark.parametrize("text, rule", [
     ("as the lead measured", "the lead"), ("in session 2", "session"),
     ("helper B wrote", "helper letter"), ("five engineers", "engineer"),
@@ -109,6 +110,7 @@ def wording_hits(text):
     ("at load average 9-12", "machine load"),
     ("commit 4683baa1c2d3e4f5a6b7c8d9e0f1a2b3c4d5e6f7", "commit hash"),
 ])
+# house-patterns: end
 def test_wording_patterns_catch(text, rule):
     assert rule in {r for _, r, _ in wording_hits(text)}
 
