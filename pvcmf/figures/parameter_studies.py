@@ -13,8 +13,7 @@ can be drawn from the real virtual-patient study or from a synthetic table in te
 * :func:`optimal_poisson`, :func:`fig5_optimal_poisson`: per skin point, the Poisson ratio
   minimising the local 90 % error and that error's spread across ratios (PyVista).
 
-Delegates to matplotlib (charts, tables), pandas (grouping), scipy's cKDTree (skin
-neighbourhoods) and PyVista (3-D renders).
+Delegates to matplotlib, pandas (grouping), scipy's cKDTree and PyVista (3-D renders).
 """
 
 from __future__ import annotations
@@ -150,7 +149,6 @@ def _figure(figsize):
 
 # --------------------------------------------------------------------------- Fig. 2
 
-
 def poisson_optimum(df, metric="p90"):
     """Per-case and average optimum of ``metric`` over the Poisson ratio ``nu``.
 
@@ -255,7 +253,6 @@ def _case_colors(n):
 
 
 # --------------------------------------------------------------------------- Fig. 3
-
 
 def _size_column(df):
     return "n_cells" if "n_cells" in df.columns else "n_tets"
@@ -375,7 +372,6 @@ def fig3_mesh_size(df, *, target=30_000, metric="p90", title=None):
 
 # --------------------------------------------------------------------------- Fig. 4
 
-
 def inhomogeneous_table(df, *, case=None):
     """Paper 001 Fig. 4 (a): min/max 50 % and 90 % percentiles over (nu_fat, nu_muscle).
 
@@ -488,7 +484,6 @@ def fig4_inhomogeneous(df, *, case=None, ratio=1.0, title=None):
 
 
 # --------------------------------------------------------------------------- Fig. 5
-
 
 def optimal_poisson(df, skin, *, case=None, neighbours=16, percentile=90.0):
     """Per skin point: the Poisson ratio minimising the local error percentile, and its spread.
