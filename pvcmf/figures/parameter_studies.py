@@ -4,19 +4,16 @@ Every function takes the tidy table of :func:`pvcmf.sweep` (columns ``case``, th
 parameters, ``p50``/``p90``/``p95`` in mm, ``n_cells``, ``t_eval``/``t_solve`` in s), so it
 can be drawn from the real virtual-patient study or from a synthetic table in tests.
 
-* :func:`fig2_poisson` — 90 % percentile error against the Poisson ratio per case with
-  each minimum marked, and the case-averaged 50/90/95 % curves (matplotlib);
-* :func:`fig3_mesh_size` and :func:`mesh_size_table` — 90 % percentile and simulation time
-  against the mesh size, and the table (N_tetra near 30k, T_sim, D_90 to the finest mesh);
-* :func:`fig4_inhomogeneous` and :func:`inhomogeneous_table` — min/max 50/90 % over
-  (nu_fat, nu_muscle) per E_muscle/E_fat, and the case-averaged 90 % percentile over the
-  (nu_fat, nu_muscle) grid at E ratio 1;
-* :func:`optimal_poisson` and :func:`fig5_optimal_poisson` — per skin point, the Poisson
-  ratio that minimises the local 90 % error percentile and the spread (standard deviation)
-  of that percentile across ratios, on the face (PyVista, off screen).
+* :func:`fig2_poisson`: 90 % error against the Poisson ratio per case, minima marked, and
+  the case-averaged 50/90/95 % curves;
+* :func:`fig3_mesh_size`, :func:`mesh_size_table`: 90 % error and time against the mesh size,
+  and the table (N_tetra near 30k, T_sim, D_90 to the finest mesh);
+* :func:`fig4_inhomogeneous`, :func:`inhomogeneous_table`: min/max 50/90 % over (nu_fat,
+  nu_muscle) per E_muscle/E_fat, and the averaged 90 % error over that grid at E ratio 1;
+* :func:`optimal_poisson`, :func:`fig5_optimal_poisson`: per skin point, the Poisson ratio
+  minimising the local 90 % error and that error's spread across ratios (PyVista).
 
-Delegates to matplotlib (charts, tables), pandas (grouping), scipy's cKDTree (skin
-neighbourhoods) and PyVista (3-D renders).
+Delegates to matplotlib, pandas (grouping), scipy's cKDTree and PyVista (3-D renders).
 """
 
 from __future__ import annotations
@@ -148,7 +145,6 @@ def _figure(figsize):
 
 # --------------------------------------------------------------------------- Fig. 2
 
-
 def poisson_optimum(df, metric="p90"):
     """Per-case and average optimum of ``metric`` over the Poisson ratio ``nu``.
 
@@ -253,7 +249,6 @@ def _case_colors(n):
 
 
 # --------------------------------------------------------------------------- Fig. 3
-
 
 def _size_column(df):
     return "n_cells" if "n_cells" in df.columns else "n_tets"
@@ -373,7 +368,6 @@ def fig3_mesh_size(df, *, target=30_000, metric="p90", title=None):
 
 # --------------------------------------------------------------------------- Fig. 4
 
-
 def inhomogeneous_table(df, *, case=None):
     """Paper 001 Fig. 4 (a): min/max 50 % and 90 % percentiles over (nu_fat, nu_muscle).
 
@@ -486,7 +480,6 @@ def fig4_inhomogeneous(df, *, case=None, ratio=1.0, title=None):
 
 
 # --------------------------------------------------------------------------- Fig. 5
-
 
 def optimal_poisson(df, skin, *, case=None, neighbours=16, percentile=90.0):
     """Per skin point: the Poisson ratio minimising the local error percentile, and its spread.
