@@ -36,7 +36,7 @@ WORDING = {
     "integrator": re.compile(r"\bintegrators?\b", re.I),
     "issue number": re.compile(r"(?<![\w&/])#[0-9]{1,4}\b(?![0-9a-fA-F])|\bissues? #?[0-9]+\b", re.I),
     "commit hash": re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])(?:[0-9a-f]{40}|[0-9a-f]{7,12})\b"),
-    "machine load": re.compile(r"\bload(?: average)?(?: of)? ?[~≈]?[0-9][0-9.]*(?:-[0-9.]+)?\b(?! ?%)", re.I),
+    "machine load": re.compile(r"(?<!converge at )(?<!load step )\bload(?: average)?(?: of)? ?[~≈]?[0-9][0-9.]*(?:-[0-9.]+)?\b(?! ?%)", re.I),
 }
 ALLOWED = [
     re.compile(r"""scope\s*=\s*["']session["']"""),  # pytest fixtures
