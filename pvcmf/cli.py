@@ -8,6 +8,15 @@
     The same on a CT file/folder (DICOM, NIfTI, NRRD, MHA/MHD, VTI) and a plan file;
     ``--ct headsq`` takes VTK's real head CT (:func:`pvcmf.datasets.headsq`), for which
     ``examples/headsq_plan.toml`` is written.
+``pvcmf validate --pred predicted_skin.vtp --post SKIN_OR_CT --out DIR``
+    Judges a prediction against a post-operative skin (VTP/STL/PLY/OBJ) or CT:
+    point-to-plane ICP on the upper face, signed distances, paper 000 Figs. 6-8, the
+    region table (:mod:`pvcmf.study.validate`).
+
+``demo``, ``simulate`` and ``validate`` also write ``report.html``, one offline page with
+the 3D view, figures, plan, region table, versions and timings (:mod:`pvcmf.report`;
+``--no-report`` to skip); ``--skin-format stl|obj|ply`` adds the predicted skin for
+planning software (:func:`pvcmf.io.write_surface`).
 
 Every file is written atomically (temporary file + ``os.replace``), so an interrupted
 run leaves no half-written file. Delegates to :mod:`argparse` and
@@ -27,8 +36,10 @@ import pyvista as pv
 
 from . import __version__, arrays, datasets
 from .datasets import headsq
-from .io import export, read_ct, read_landmarks, read_plan_file
+from . import report
+from .io import export, read_ct, read_landmarks, read_plan_file, write_surface
 from .pipeline import STEPS, flip_axes, simulate
+from .study.validate import validate, write_validation
 from .sweeps import add_sweep_parser, run_sweep
 
 log = logging.getLogger(__name__)
@@ -71,6 +82,38 @@ def _common(parser):
                         help="only segment, cut the bones and draw the plan (no mesh/solve)")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more (-v info, -vv debug)")
+    parser.add_argument("--no-report", action="store_true",
+                        help="do not write report.html (pvcmf.report)")
+    parser.add_argument("--skin-format", action="append", choices=("stl", "obj", "ply"),
+                        default=[], help="also write the predicted skin as "
+                        "predicted_skin.stl/.obj/.ply for planning software (repeatable)")
+
+
+def _add_validate_parser(sub):
+    val = sub.add_parser("validate", help="judge a predicted skin against a post-operative "
+                                          "skin or CT (ICP, signed distances, Figs. 6-8)")
+    val.add_argument("--pred", required=True, type=Path,
+                     help="predicted skin (predicted_skin.vtp of pvcmf simulate, or STL/PLY/OBJ)")
+    val.add_argument("--post", required=True, type=Path,
+                     help="post-operative skin (.vtp/.stl/.ply/.obj/.vtk) or CT (DICOM folder, "
+                          ".nii(.gz), .nrrd, .mha/.mhd, .vti), in any pose")
+    val.add_argument("--out", required=True, type=Path, help="output folder")
+    val.add_argument("--pre", type=Path, default=None,
+                     help="pre-operative skin, the ICP target (default: skin_pre.vtp next to "
+                          "--pred if there, else the prediction itself)")
+    val.add_argument("--region", default="upper",
+                     help="ICP region surgery leaves unchanged: 'upper' (forehead, orbits, nose "
+                          "bridge; default) or xmin,xmax,ymin,ymax,zmin,zmax in mm")
+    val.add_argument("--landmarks", type=Path, default=None,
+                     help="Slicer markups (.mrk.json/.fcsv): nasion for the region, nose/lips/"
+                          "chin for the face regions")
+    val.add_argument("--max-distance", type=_positive_float, default=10.0,
+                     help="median distance (mm) above which the skins are said not to overlap")
+    val.add_argument("--no-figures", action="store_true", help="do not draw Figs. 6-8")
+    val.add_argument("--no-report", action="store_true", help="do not write report.html")
+    val.add_argument("--no-progress", action="store_true", help="no progress bar")
+    val.add_argument("-v", "--verbose", action="count", default=0,
+                     help="log more (-v info, -vv debug)")
 
 
 def build_parser():
@@ -110,6 +153,7 @@ def build_parser():
     sim.add_argument("--flip", default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
+    _add_validate_parser(sub)
     add_sweep_parser(sub)  # `pvcmf sweep`: parameter studies on Dask (pvcmf/sweeps.py)
     return parser
 
@@ -128,11 +172,25 @@ def _demo(args):
           f"{case.plan.name or 'plan'}: "
           + "; ".join(f"{o.segment} T{o.translation} R{o.rotation}"
                       for o in case.plan.osteotomies))
-    result = simulate(case.ct, case.plan, args.out, bones=case.truth,
-                      landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
-                      predict=not args.no_predict, muscles=not args.no_muscles,
-                      figures=not args.no_figures, progress_bar=not args.no_progress)
+    with report.disabled():  # written below, with every step's time
+        result = simulate(case.ct, case.plan, args.out, bones=case.truth,
+                          landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
+                          predict=not args.no_predict, muscles=not args.no_muscles,
+                          figures=not args.no_figures, progress_bar=not args.no_progress)
     result.timings = {"phantom": seconds, **result.timings}
+    return _finish(result, args)
+
+
+def _finish(result, args):
+    """Skin exports (``--skin-format``) and ``report.html`` (unless ``--no-report``)."""
+    for fmt in args.skin_format:
+        if result.skin_post is not None:
+            result.files[f"skin_{fmt}"] = write_surface(result.skin_post,
+                                                        args.out / f"predicted_skin.{fmt}")
+    if not args.no_report and args.out.is_dir():
+        start = time.perf_counter()
+        result.files["report"] = report.write_report(args.out, result=result)
+        result.timings["report"] = time.perf_counter() - start
     return result
 
 
@@ -151,13 +209,41 @@ def _simulate(args):
     if args.flip:
         ct = flip_axes(ct, args.flip)
     seconds = time.perf_counter() - start
-    result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
-                      predict=not args.no_predict, muscles=not args.no_muscles,
-                      figures=not args.no_figures, progress_bar=not args.no_progress)
+    with report.disabled():  # written below, with every step's time
+        result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
+                          predict=not args.no_predict, muscles=not args.no_muscles,
+                          figures=not args.no_figures, progress_bar=not args.no_progress)
     result.timings = {"read": seconds, **result.timings}
     if args.export is not None and result.post is not None:  # --export: the solved model
         result.files["export"] = export(result.post, args.export)
-    return result
+    return _finish(result, args)
+
+
+def _validate(args):
+    pre = args.pre
+    if pre is None and (args.pred.parent / "skin_pre.vtp").exists():
+        pre = args.pred.parent / "skin_pre.vtp"
+    landmarks = read_landmarks(args.landmarks) if args.landmarks else None
+    v = validate(args.pred, args.post, pre=pre, region=args.region, landmarks=landmarks,
+                 max_distance=args.max_distance, progress_bar=not args.no_progress)
+    inputs = {"pred": args.pred, "post": args.post, "pre": pre or "(the prediction)",
+              "region": args.region, "landmarks": args.landmarks or "(none)"}
+    write_validation(v, args.out, inputs=inputs, figures=not args.no_figures,
+                     case=args.pred.stem)
+    if not args.no_report:
+        v.files["report"] = report.write_report(args.out, title=f"Validation: {args.pred}")
+    return v
+
+
+def _report_validation(v):
+    table = v.table[["region", "n", "median", "p50", "p90", "p95", "within_1mm", "within_2mm"]]
+    print(table.to_string(index=False, float_format=lambda x: f"{x:.2f}"))
+    reg = v.registration
+    print(f"\nICP on the unchanged region: RMS {reg['rms_mm']:.3f} mm, "
+          f"{'converged' if reg['converged'] else 'NOT converged'}")
+    print("\nwrote:")
+    for path in v.files.values():
+        print(f"  {path}")
 
 
 def _report(result):
@@ -187,7 +273,8 @@ def main(argv=None):
     _setup_logging(args.verbose)
     pv.OFF_SCREEN = True
     try:
-        result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep}[args.command](args)
+        result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep,
+                  "validate": _validate}[args.command](args)
     except KeyboardInterrupt:
         print("interrupted: no partial files were left behind", file=sys.stderr)
         return 130
@@ -203,7 +290,7 @@ def main(argv=None):
               f"(run with -vv for the traceback; no partial files were left behind)",
               file=sys.stderr)
         return 1
-    (_report_sweep if args.command == "sweep" else _report)(result)
+    {"sweep": _report_sweep, "validate": _report_validation}.get(args.command, _report)(result)
     return 0
 
 

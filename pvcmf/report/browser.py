@@ -1,15 +1,20 @@
 """Open a report in a headless Chromium: its DOM after scripts ran, console errors, a PNG.
 
-:func:`check_page` runs the browser twice from the command line (``--dump-dom`` and
-``--screenshot``, each with ``--virtual-time-budget`` so that the page's scripts finish,
+:func:`check_page` runs the browser once from the command line (``--dump-dom`` and
+``--screenshot`` together, ``--virtual-time-budget`` so that the page's scripts finish,
 ``--enable-logging=stderr`` to collect console messages) with WebGL on the SwiftShader
 software rasteriser (``--use-angle=swiftshader --enable-unsafe-swiftshader``), so that it
-works on machines without a GPU or a display. Delegates to :mod:`subprocess`; the
+works on machines without a GPU or a display. Chromium logs every console message at one
+level, so errors are read from the page itself: the report records ``console.error``
+calls, uncaught exceptions and rejected promises in ``<pre id="pvcmf-errors">`` (see
+:data:`pvcmf.report.html.ERROR_HOOK_JS`); uncaught errors of any page also show in the
+log as ``Uncaught ...``. Delegates to :mod:`subprocess`; the
 browser is Debian's ``chromium`` (or ``PVCMF_CHROMIUM``).
 """
 
 from __future__ import annotations
 
+import html
 import os
 import re
 import shutil
@@ -26,9 +31,9 @@ _FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu-sandbox", "--hide-scr
           "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--mute-audio",
           "--no-first-run", "--no-default-browser-check", "--disable-extensions",
           "--allow-file-access-from-files", "--enable-logging=stderr", "--v=0")
-#: console lines of Chromium's log: ``CONSOLE(line)] "message", source: url``, or the
-#: newer ``:CONSOLE:...`` form; the level is in the ``INFO/WARNING/ERROR`` tag before it
+#: console lines of Chromium's log: ``[pid:tid:time:INFO:CONSOLE:line] "message", source: url``
 _CONSOLE = re.compile(r"^\[[^\]]*:(?P<level>[A-Z]+):CONSOLE[^\]]*\]\s*(?P<text>.*)$")
+_ERRORS = re.compile(r'<pre id="pvcmf-errors"[^>]*>(.*?)</pre>', re.S)
 
 
 def find_chromium():
@@ -61,14 +66,13 @@ def _run(cmd, timeout):
     return proc
 
 
-def _console(stderr):
-    lines, errors = [], []
-    for line in stderr.splitlines():
-        m = _CONSOLE.match(line.strip())
-        if m:
-            lines.append(m.group("text"))
-            if m.group("level") in ("ERROR", "FATAL"):
-                errors.append(m.group("text"))
+def _console(stderr, dom):
+    lines = [m.group("text") for m in map(_CONSOLE.match, map(str.strip, stderr.splitlines()))
+             if m]
+    errors = [t for t in lines if t.lstrip('"').startswith("Uncaught")]
+    m = _ERRORS.search(dom)
+    if m:
+        errors += [html.unescape(e) for e in m.group(1).splitlines() if e.strip()]
     return lines, errors
 
 
@@ -105,16 +109,11 @@ def check_page(path, screenshot=None, *, size=(1280, 1800), budget_ms=30_000, ti
     base = [exe, *_FLAGS, f"--window-size={size[0]},{size[1]}",
             f"--virtual-time-budget={int(budget_ms)}"]
     start = time.perf_counter()
-    proc = _run([*base, "--dump-dom", url], timeout)
-    console, errors = _console(proc.stderr)
-    shot = None
-    if screenshot is not None:
-        shot = Path(screenshot).resolve()
-        run = _run([*base, f"--screenshot={shot}", url], timeout)
-        more, more_errors = _console(run.stderr)
-        console += more
-        errors += more_errors
-        if not shot.exists():
-            raise RuntimeError(f"chromium wrote no screenshot: {run.stderr[-2000:]}")
+    shot = None if screenshot is None else Path(screenshot).resolve()
+    extra = [] if shot is None else [f"--screenshot={shot}"]
+    proc = _run([*base, *extra, "--dump-dom", url], timeout)
+    console, errors = _console(proc.stderr, proc.stdout)
+    if shot is not None and not shot.exists():
+        raise RuntimeError(f"chromium wrote no screenshot: {proc.stderr[-2000:]}")
     return PageCheck(dom=proc.stdout, console=console, errors=errors, screenshot=shot,
                      seconds=time.perf_counter() - start)

@@ -149,7 +149,8 @@ def write_report(folder, *, result=None, path=None, title=None,
     images = {p.name: p.read_bytes() for p in sorted(folder.glob("*.png"))}
     extra = {}
     if summary.get("registration"):
-        extra["Registration (ICP)"] = summary["registration"]
+        extra["Registration (ICP)"] = {k: v for k, v in summary["registration"].items()
+                                       if k != "matrix"}
     if summary.get("inputs"):
         extra["Inputs"] = summary["inputs"]
     if title is None:

@@ -1,8 +1,8 @@
 """The per-case HTML report: one self-contained, offline page per prediction or validation.
 
-:func:`write_report` reads a case folder written by ``pvcmf simulate`` / ``pvcmf demo``
+:func:`pvcmf.report.write_report` (:mod:`pvcmf.report.case`) reads a case folder written by ``pvcmf simulate`` / ``pvcmf demo``
 (:func:`pvcmf.outputs.write_outputs`) or ``pvcmf validate`` (:mod:`pvcmf.study.validate`)
-and writes ``report.html`` into it: an interactive 3D view of the pre-operative,
+and writes ``report.html`` into it with :func:`report_html`: an interactive 3D view of the pre-operative,
 predicted and (validation) post-operative skins with the displacement or error map and
 its colour bar (:mod:`pvcmf.report.scene`, vtk.js inlined), the PNG figures of the run
 (base64), the plan, the per-region table (lips, chin, nose, cheeks:
@@ -82,7 +82,8 @@ def region_rows(skin, values, *, landmarks=None):
     Returns
     -------
     list of dict
-        ``region`` and the columns of :func:`pvcmf.study.statistics.summary`.
+        ``region`` (``'all skin'``, then the regions) and the columns of
+        :func:`pvcmf.study.statistics.summary`.
 
     Examples
     --------
@@ -91,14 +92,14 @@ def region_rows(skin, values, *, landmarks=None):
     >>> head = pv.ParametricEllipsoid(70, 95, 110)
     >>> rows = region_rows(head, np.full(head.n_points, 1.5))
     >>> rows[0]["region"], rows[0]["p90"], rows[0]["within_1mm"]
-    ('face', 1.5, 0.0)
+    ('all skin', 1.5, 0.0)
     """
     values = np.asarray(values, dtype=float)
     if arrays.REGION in skin.point_data:
         reg = np.asarray(skin.point_data[arrays.REGION])
     else:
         reg = np.asarray(label_face_regions(skin, landmarks=landmarks)[arrays.REGION])
-    rows = [{"region": "face", **summary(values)}]
+    rows = [{"region": "all skin", **summary(values)}]
     for name, rid in arrays.FACE_REGIONS.items():
         if rid:
             rows.append({"region": name, **summary(values[reg == rid])})
@@ -140,6 +141,28 @@ def _colourbar(key, label, stops, lo, hi):
             f'linear-gradient(to right, {grad})"></div><div class="cb-ticks">{ticks}</div></div>')
 
 
+#: first script of the page: records console errors, uncaught exceptions and rejected
+#: promises in ``<pre id="pvcmf-errors">`` (hidden), one per line, for headless checks
+ERROR_HOOK_JS = r"""
+(function () {
+  const errs = [];
+  function note(text) {
+    errs.push(String(text).split('\n')[0]);
+    let pre = document.getElementById('pvcmf-errors');
+    if (!pre && document.body) {
+      pre = document.createElement('pre'); pre.id = 'pvcmf-errors'; pre.hidden = true;
+      document.body.appendChild(pre);
+    }
+    if (pre) pre.textContent = errs.join('\n');
+  }
+  const original = console.error;
+  console.error = function () { note(Array.from(arguments).join(' ')); original.apply(console, arguments); };
+  window.addEventListener('error', function (e) { note('Uncaught ' + e.message); });
+  window.addEventListener('unhandledrejection', function (e) { note('Unhandled rejection ' + e.reason); });
+  window.addEventListener('DOMContentLoaded', function () { if (errs.length) note(errs.pop()); });
+})();
+"""
+
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:0 auto;max-width:1200px;padding:1em;color:#222}
 h1{font-size:1.5em}h2{font-size:1.15em;border-bottom:1px solid #ddd;margin-top:1.5em}
@@ -150,7 +173,8 @@ table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding
 text-align:right}td:first-child,th:first-child{text-align:left}
 .cb-grad{height:16px;width:240px;border:1px solid #999}
 .cb-ticks{display:flex;justify-content:space-between;width:244px;font-size:.8em}
-.figures img{max-width:100%;border:1px solid #eee;margin:.3em 0}.note{color:#555;font-size:.9em}
+.figures{display:flex;flex-wrap:wrap;gap:.5em}.figures figure{margin:0}
+.figures img{max-width:560px;max-height:460px;border:1px solid #eee}.note{color:#555;font-size:.9em}
 """
 
 
@@ -165,7 +189,8 @@ def report_html(*, title, scene=None, colourbars=(), skins_ui=(), colourings_ui=
     ``extra`` (heading, key -> value) rows shown after the plan.
     """
     parts = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
-             f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
+             f"<title>{html.escape(title)}</title><script>{ERROR_HOOK_JS}</script>"
+             f"<style>{_CSS}</style></head><body>",
              f"<h1>{html.escape(title)}</h1><p class='note'>pvcmf {__version__}, written "
              f"{datetime.datetime.now().isoformat(timespec='seconds')}. This page works "
              f"offline: data and viewer are inside it.</p>"]
