@@ -228,8 +228,10 @@ def _validate(args):
                  max_distance=args.max_distance, progress_bar=not args.no_progress)
     inputs = {"pred": args.pred, "post": args.post, "pre": pre or "(the prediction)",
               "region": args.region, "landmarks": args.landmarks or "(none)"}
-    write_validation(v, args.out, inputs=inputs, figures=not args.no_figures,
-                     case=args.pred.stem)
+    args.out.mkdir(parents=True, exist_ok=True)
+    figures = {} if args.no_figures else report.validation_figures(v.skin, args.out,
+                                                                   case=args.pred.stem)
+    write_validation(v, args.out, inputs=inputs, extra_files=figures)
     if not args.no_report:
         v.files["report"] = report.write_report(args.out, title=f"Validation: {args.pred}")
     return v

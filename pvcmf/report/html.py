@@ -22,17 +22,16 @@ import html
 import logging
 import platform
 from importlib import metadata
-from pathlib import Path
 
 import numpy as np
 
-from .. import __version__, arrays
+from .. import arrays
 from ..study.statistics import label_face_regions, summary
 from .scene import VIEWER_JS, VTKJS_VERSION, vtkjs_source
 
 log = logging.getLogger("pvcmf.report")
 
-__all__ = ["REPORT_NAME", "disabled", "region_rows", "report_html", "write_report"]
+__all__ = ["REPORT_NAME", "disabled", "region_rows", "report_html"]
 
 #: file name of the report in a case folder
 REPORT_NAME = "report.html"
@@ -113,8 +112,15 @@ def _table(headers, rows, table_id):
     return f'<table id="{table_id}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
 
 
+def _pvcmf_version():
+    try:
+        return metadata.version("pvcmf")
+    except metadata.PackageNotFoundError:  # a source tree that was not installed
+        return "unknown"
+
+
 def _versions():
-    out = {"pvcmf": __version__, "python": platform.python_version()}
+    out = {"pvcmf": _pvcmf_version(), "python": platform.python_version()}
     for dist in ("numpy", "scipy", "pyvista", "vtk", "meshio", "pandas"):
         with contextlib.suppress(metadata.PackageNotFoundError):
             out[dist] = metadata.version(dist)
@@ -164,17 +170,17 @@ ERROR_HOOK_JS = r"""
 """
 
 _CSS = """
-body{font-family:system-ui,sans-serif;margin:0 auto;max-width:1200px;padding:1em;color:#222}
+body{font-family:system-ui,sans-serif;margin:0 auto;max-width:1200px;padding:1em;color:rgb(34,34,34)}
 h1{font-size:1.5em}h2{font-size:1.15em;border-bottom:1px solid #ddd;margin-top:1.5em}
 #viewer-box{display:flex;gap:1em;flex-wrap:wrap}
 #viewer{position:relative;width:760px;height:560px;border:1px solid #ccc}
 #controls{min-width:260px}#controls label{display:block;margin:.2em 0}
 table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #ccc;padding:.2em .6em;
 text-align:right}td:first-child,th:first-child{text-align:left}
-.cb-grad{height:16px;width:240px;border:1px solid #999}
+.cb-grad{height:16px;width:240px;border:1px solid gray}
 .cb-ticks{display:flex;justify-content:space-between;width:244px;font-size:.8em}
 .figures{display:flex;flex-wrap:wrap;gap:.5em}.figures figure{margin:0}
-.figures img{max-width:560px;max-height:460px;border:1px solid #eee}.note{color:#555;font-size:.9em}
+.figures img{max-width:560px;max-height:460px;border:1px solid #eee}.note{color:dimgray;font-size:.9em}
 """
 
 
@@ -191,7 +197,7 @@ def report_html(*, title, scene=None, colourbars=(), skins_ui=(), colourings_ui=
     parts = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
              f"<title>{html.escape(title)}</title><script>{ERROR_HOOK_JS}</script>"
              f"<style>{_CSS}</style></head><body>",
-             f"<h1>{html.escape(title)}</h1><p class='note'>pvcmf {__version__}, written "
+             f"<h1>{html.escape(title)}</h1><p class='note'>pvcmf {_pvcmf_version()}, written "
              f"{datetime.datetime.now().isoformat(timespec='seconds')}. This page works "
              f"offline: data and viewer are inside it.</p>"]
     if scene is not None:

@@ -14,8 +14,8 @@ VTK scene into a web page were weighed:
   young JavaScript interface;
 * vtk.js itself (Kitware, BSD-3-Clause, released on npm every few weeks; the same library
   trame-vtk's viewer is built from): its UMD build (``vtk.js`` of the npm package
-  ``vtk.js``, 2.5 MB minified) is vendored in ``pvcmf/report/vendor/`` with its licence
-  and inlined into each page.
+  ``vtk.js``, 2.5 MB minified, 0.6 MB gzipped) is vendored gzipped in
+  ``pvcmf/report/vendor/`` with its licence and inlined into each page.
 
 vtk.js is used: it is the maintained renderer underneath the other two options, and the
 page's script drives it directly (one actor per skin, visibility toggles, colour map and
@@ -54,7 +54,7 @@ _VENDOR = Path(__file__).with_name("vendor")
 
 def vtkjs_source():
     """The vendored vtk.js UMD build (text) to inline into a page."""
-    return (_VENDOR / "vtk.js").read_text(encoding="utf-8")
+    return gzip.decompress((_VENDOR / "vtk.js.gz").read_bytes()).decode("utf-8")
 
 
 def _b64gz(array):

@@ -11,8 +11,8 @@ The path of paper 000 (sec. V) for one case, from files:
 3. exact signed distances of the prediction to it (:func:`pvcmf.filters.distance_to`,
    + anterior), face regions (:func:`pvcmf.study.statistics.label_face_regions`) and
    their statistics (:func:`pvcmf.study.statistics.error_statistics`);
-4. paper 000 Figs. 6-8 for this case (:mod:`pvcmf.figures.validation`), ``regions.csv``
-   and ``summary.json`` (:func:`write_validation`; the command adds ``report.html``).
+4. ``regions.csv`` and ``summary.json`` (:func:`write_validation`); the command adds
+   paper 000 Figs. 6-8 for this case and ``report.html`` (:mod:`pvcmf.report`).
 
 The options of step 2 are those of :func:`pvcmf.study.from_ct.validate_from_ct`, so a
 prediction judged here against the study's post-operative CT, with the study's
@@ -30,9 +30,8 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from .. import arrays, filters
+from .. import filters
 from .._atomic import atomic_path, write_text
-from ..figures.validation import fig6_error_maps, fig7_boxplots, fig8_cumulative
 from ..filters.registration import ICP_ITERATIONS, registration_result
 from ..io import read_ct, read_surface
 from ..io.surfaces import SURFACE_FORMATS
@@ -43,10 +42,6 @@ from .statistics import error_statistics, label_face_regions
 log = logging.getLogger("pvcmf.validate")
 
 __all__ = ["Validation", "load_post", "validate", "write_validation"]
-
-#: the method name of a single prediction in Figs. 6-8
-METHOD = "prediction"
-
 
 @dataclass
 class Validation:
@@ -179,24 +174,14 @@ def validate(pred, post, *, pre=None, region=None, landmarks=None, max_distance=
                       timings=timings, pre=None if pre is None else target)
 
 
-def _png(figure_or_plotter, path):
-    with atomic_path(path) as tmp:
-        if isinstance(figure_or_plotter, pv.Plotter):
-            figure_or_plotter.screenshot(tmp)
-            figure_or_plotter.close()
-        else:
-            figure_or_plotter.savefig(tmp, dpi=120, bbox_inches="tight")
-    return Path(path)
-
-
-def write_validation(validation, out, *, inputs=None, figures=True, case="case"):
+def write_validation(validation, out, *, inputs=None, extra_files=None):
     """Write a :class:`Validation` into ``out``; returns name -> path.
 
     Files: ``validated_skin.vtp`` (prediction with ``distance`` and ``region``),
     ``postop_skin.vtp`` (registered), ``skin_pre.vtp`` (when a pre-operative skin was
-    given), ``regions.csv``, ``fig6_error_map.png``, ``fig7_boxplot.png``,
-    ``fig8_cumulative.png`` (``figures``), ``summary.json`` (inputs, registration, region
-    rows, seconds); ``pvcmf validate`` then adds ``report.html``
+    given), ``regions.csv`` and ``summary.json`` (inputs, registration, region rows,
+    seconds, and the names of ``extra_files``). ``pvcmf validate`` adds Figs. 6-8
+    (:func:`pvcmf.report.validation_figures`) and ``report.html``
     (:func:`pvcmf.report.write_report`). Each file is written atomically.
     """
     out = Path(out)
@@ -210,11 +195,7 @@ def write_validation(validation, out, *, inputs=None, figures=True, case="case")
                 data.save(tmp)
             files[name] = out / f"{name}.vtp"
     files["regions"] = write_text(out / "regions.csv", v.table.to_csv(index=False))
-    if figures:
-        d = np.asarray(v.skin[arrays.DISTANCE])
-        files["fig6"] = _png(fig6_error_maps({case: {METHOD: v.skin}}), out / "fig6_error_map.png")
-        files["fig7"] = _png(fig7_boxplots({case: {METHOD: d}}), out / "fig7_boxplot.png")
-        files["fig8"] = _png(fig8_cumulative({case: {METHOD: d}}), out / "fig8_cumulative.png")
+    files.update(extra_files or {})
     v.timings["write"] = time.perf_counter() - t
     rows = json.loads(v.table.to_json(orient="records"))
     summary = {"inputs": {k: str(val) for k, val in (inputs or {}).items()},
