@@ -224,7 +224,8 @@ def report_html(*, title, scene=None, colourbars=(), skins_ui=(), colourings_ui=
                               _plan_rows(plan), "plan"))
     for heading, values in (extra or {}).items():
         parts.append(f"<h2>{html.escape(heading)}</h2>"
-                     + _table(["", ""], [[k, v] for k, v in values.items()],
+                     + _table(["", ""], [[k, f"{v:.4g}" if isinstance(v, float) else v]
+                                         for k, v in values.items()],
                               heading.split()[0].lower()))
     if images:
         figs = "".join(f"<figure><img alt='{html.escape(name)}' src='data:image/png;base64,"
