@@ -151,6 +151,8 @@ class Scene:
         direction /= np.linalg.norm(direction)
         self.plotter.camera_position = [tuple(centre + 2.2 * size * direction), tuple(centre),
                                         (0.0, 0.0, 1.0)]
+        self.plotter.reset_camera()
+        self.plotter.camera.zoom(1.1)
 
     def update(self, plan):
         """Show ``plan``: move the segments and the face; return the signed displacement."""
