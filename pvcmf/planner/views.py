@@ -27,7 +27,7 @@ __all__ = ["Scene", "data_url", "profile_png", "profile_segments", "signed_displ
 SIGNED = "signed displacement (mm)"
 #: colour range of the signed displacement map, mm
 DISPLACEMENT_CLIM = (-8.0, 8.0)
-_SEGMENT_COLOURS = {"maxilla": "#4caf50", "mandible": "#2196f3", "cranium": "#d8d0c0"}
+_SEGMENT_COLOURS = {"maxilla": "mediumseagreen", "mandible": "dodgerblue", "cranium": "wheat"}
 
 
 def signed_displacement(skin, displacement):
