@@ -8,6 +8,10 @@
     The same on a CT file/folder (DICOM, NIfTI, NRRD, MHA/MHD, VTI) and a plan file;
     ``--ct headsq`` takes VTK's real head CT (:func:`pvcmf.datasets.headsq`), for which
     ``examples/headsq_plan.toml`` is written.
+``pvcmf plan --ct SCAN [--plan start.toml] [--port N]``
+    Interactive planner in the web browser (:mod:`pvcmf.planner`, needs the ``planner``
+    extra): sliders move the jaws, the predicted face updates live, *Save plan* writes a
+    plan file for ``pvcmf simulate``.
 
 Every file is written atomically (temporary file + ``os.replace``), so an interrupted
 run leaves no half-written file. Delegates to :mod:`argparse` and
@@ -29,6 +33,7 @@ from . import __version__, arrays, datasets
 from .datasets import headsq
 from .io import export, read_ct, read_landmarks, read_plan_file
 from .pipeline import STEPS, flip_axes, simulate
+from .planner import add_plan_parser, run_plan
 from .sweeps import add_sweep_parser, run_sweep
 
 log = logging.getLogger(__name__)
@@ -111,6 +116,7 @@ def build_parser():
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
     add_sweep_parser(sub)  # `pvcmf sweep`: parameter studies on Dask (pvcmf/sweeps.py)
+    add_plan_parser(sub)  # `pvcmf plan`: interactive planner (pvcmf/planner)
     return parser
 
 
@@ -187,6 +193,8 @@ def main(argv=None):
     _setup_logging(args.verbose)
     pv.OFF_SCREEN = True
     try:
+        if args.command == "plan":  # serves until stopped; nothing to report
+            return run_plan(args)
         result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep}[args.command](args)
     except KeyboardInterrupt:
         print("interrupted: no partial files were left behind", file=sys.stderr)
