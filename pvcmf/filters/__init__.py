@@ -19,6 +19,7 @@ extract_skin              ``skin``                    skin surface of a label im
 register                  ``registration``            000 sec. V: ICP (point-to-plane)
 distance_to               ``distance``                000 Fig. 6: signed distance maps
 map_to_surface            ``surface_mapping``         001: tet -> dense skin, Gaussian
+standardize               ``orientation``             CT in HU, face +y, vertex +z
 ========================  ==========================  =====================================
 
 Modules are imported lazily, so ``import pvcmf`` stays fast and a heavy dependency
@@ -47,6 +48,9 @@ _REGISTRY = {
     "register": "registration",
     "distance_to": "distance",
     "map_to_surface": "surface_mapping",
+    "standardize": "orientation",
+    "check_units": "orientation",
+    "orient_head": "orientation",
 }
 
 __all__ = sorted(_REGISTRY)
