@@ -75,6 +75,9 @@ class Result:
         Step name -> why it did not run.
     files : dict
         Output name -> written path.
+    ct_report : dict
+        Units and orientation found in the CT (:func:`pvcmf.filters.standardize`); empty
+        when the CT was not checked.
     """
 
     plan: Plan
@@ -87,6 +90,7 @@ class Result:
     timings: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
     files: dict = field(default_factory=dict)
+    ct_report: dict = field(default_factory=dict)
 
     @property
     def complete(self):
@@ -444,7 +448,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              n_tets=DEFAULT_N_TETS, segment_options=None, mesh_options=None,
              material_options=None, bc_options=None, solve_options=None, muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
-             progress_bar=False):
+             progress_bar=False, units=None, orient=None):
     """Predict the post-operative face from a CT and a surgical plan.
 
     Parameters
@@ -492,6 +496,11 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         Render the PNGs when ``out`` is given.
     progress_bar : bool, default False
         Show a progress bar over the steps on stderr.
+    units, orient : str, optional
+        Units and axes check of :func:`pvcmf.filters.standardize` (``'auto'``, ``'hu'`` or
+        an offset; ``'auto'``, ``'none'`` or a code such as ``'LPI'``). Default: ``'auto'``
+        for a CT read from a path, no check for a CT given in memory. What was found goes
+        to :attr:`Result.ct_report` and ``summary.json`` (``"ct"``).
 
     Returns
     -------
@@ -538,8 +547,14 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
             from .io import read_ct
 
             ct = run.run("read", read_ct, ct)
+            units, orient = units or "auto", orient or "auto"
         else:
             run.skip("read", "CT given in memory")
+        if units is not None or orient is not None:  # units / axes checked on the image
+            from .filters.orientation import standardize
+
+            ct, result.ct_report = standardize(ct, units=units or "auto",
+                                               orient=orient or "auto")
         if labels is None:
             if not isinstance(ct, pv.ImageData):
                 raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
@@ -699,6 +714,7 @@ def write_outputs(result, out, images=None):
         files[Path(name).stem] = out / name
     summary = {"plan": result.plan.to_dict(), "seconds": result.timings,
                "skipped": result.skipped, "complete": result.complete,
+               **({"ct": result.ct_report} if result.ct_report else {}),
                "files": {k: Path(v).name for k, v in files.items()}}
     if result.post is not None:
         u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)

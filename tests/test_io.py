@@ -3,6 +3,7 @@ paths and corrupt files raise clear errors; headsq loads from the shared data fo
 
 from __future__ import annotations
 
+import functools
 import gzip
 
 import numpy as np
@@ -12,6 +13,9 @@ import vtk
 
 import pvcmf
 from pvcmf import arrays
+
+#: the file's own geometry (read_ct's default is the patient frame)
+read_file = functools.partial(pvcmf.read_ct, frame="file")
 
 DIMS = (12, 9, 7)  # x, y, z: all different so a transposed read cannot pass
 SPACING = (0.5, 0.8, 2.0)
@@ -46,14 +50,14 @@ def test_vti_roundtrip_with_direction(tmp_path):
     img.direction_matrix = ROTATION
     img["density"] = flat(known_values())
     img.save(tmp_path / "a.vti")
-    check(pvcmf.read_ct(tmp_path / "a.vti"), known_values(), direction=ROTATION)
+    check(read_file(tmp_path / "a.vti"), known_values(), direction=ROTATION)
 
 
 def test_offset_and_scale_are_applied(tmp_path):
     img = pv.ImageData(dimensions=DIMS, spacing=SPACING, origin=ORIGIN)
     img["v"] = flat(known_values())
     img.save(tmp_path / "a.vti")
-    out = pvcmf.read_ct(tmp_path / "a.vti", offset=-1024.0, scale=0.5)
+    out = read_file(tmp_path / "a.vti", offset=-1024.0, scale=0.5)
     check(out, 0.5 * known_values().astype(float) - 1024.0)
 
 
@@ -73,7 +77,7 @@ def test_nifti_roundtrip_qform_and_rescale(tmp_path):
         writer.SetRescaleIntercept(-1000.0)
         writer.SetFileName(str(tmp_path / name))
         writer.Write()
-        out = pvcmf.read_ct(tmp_path / name)
+        out = read_file(tmp_path / name)
         check(out, 2.0 * known_values().astype(float) - 1000.0, direction=ROTATION)
 
 
@@ -85,7 +89,7 @@ def test_metaimage_mha_written_by_vtk(tmp_path):
     writer.SetFileName(str(tmp_path / "a.mha"))
     writer.SetCompression(False)
     writer.Write()
-    check(pvcmf.read_ct(tmp_path / "a.mha"), known_values())
+    check(read_file(tmp_path / "a.mha"), known_values())
 
 
 def test_metaimage_mhd_by_hand_with_transform(tmp_path):
@@ -93,13 +97,14 @@ def test_metaimage_mhd_by_hand_with_transform(tmp_path):
     (tmp_path / "a.mhd").write_text(
         "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
         "CompressedData = False\n"
-        f"TransformMatrix = {' '.join(str(v) for v in ROTATION.ravel())}\n"
+        # MetaIO (as ITK writes it) lists the direction column by column
+        f"TransformMatrix = {' '.join(str(v) for v in ROTATION.T.ravel())}\n"
         f"Offset = {' '.join(map(str, ORIGIN))}\n"
         f"ElementSpacing = {' '.join(map(str, SPACING))}\n"
         f"DimSize = {' '.join(map(str, DIMS))}\n"
         "ElementType = MET_SHORT\nElementDataFile = a.raw\n"
     )
-    check(pvcmf.read_ct(tmp_path / "a.mhd"), known_values(), direction=ROTATION)
+    check(read_file(tmp_path / "a.mhd"), known_values(), direction=ROTATION)
 
 
 def _nrrd_header(extra):
@@ -120,7 +125,7 @@ def test_nrrd_detached_header_with_space_directions(tmp_path):
             "data file: a.raw\n"
         )
     )
-    check(pvcmf.read_ct(tmp_path / "a.nhdr"), known_values(), direction=ROTATION)
+    check(read_file(tmp_path / "a.nhdr"), known_values(), direction=ROTATION)
 
 
 def test_nrrd_attached_gzip_big_endian(tmp_path):
@@ -128,7 +133,7 @@ def test_nrrd_attached_gzip_big_endian(tmp_path):
     header = _nrrd_header(f"spacings: {' '.join(map(str, SPACING))}\nencoding: gzip\n")
     header = header.replace("endian: little", "endian: big")
     (tmp_path / "a.nrrd").write_bytes(header.encode() + b"\n" + payload)
-    check(pvcmf.read_ct(tmp_path / "a.nrrd"), known_values(), origin=(0.0, 0.0, 0.0))
+    check(read_file(tmp_path / "a.nrrd"), known_values(), origin=(0.0, 0.0, 0.0))
 
 
 def test_nrrd_one_file_per_slice(tmp_path):
@@ -141,7 +146,7 @@ def test_nrrd_one_file_per_slice(tmp_path):
             f"data file: s.%d 1 {DIMS[2]} 1\n"
         )
     )
-    check(pvcmf.read_ct(tmp_path / "s.nhdr"), vol, origin=(0.0, 0.0, 0.0))
+    check(read_file(tmp_path / "s.nhdr"), vol, origin=(0.0, 0.0, 0.0))
 
 
 # --------------------------------------------------------------------------- DICOM
@@ -188,7 +193,7 @@ def test_dicom_series_sorted_rescaled_oriented(tmp_path):
     raw = known_values()
     write_dicom_series(tmp_path, raw, SPACING, ORIGIN, slope=2.0, intercept=-1024.0,
                        row_dir=ROTATION[:, 0], col_dir=ROTATION[:, 1])
-    out = pvcmf.read_ct(tmp_path)
+    out = read_file(tmp_path)
     check(out, 2.0 * raw.astype(float) - 1024.0, direction=ROTATION)
     # an independent check of the geometry: a voxel's world position is its slice position
     k = 3
@@ -226,8 +231,8 @@ def test_patient_frame(tmp_path, fmt):
             f"space directions: {dirs}\nspace origin: ({','.join(map(str, ORIGIN))})\n"
             "data file: a.raw\n"))
         path, flip = tmp_path / "a.nhdr", np.diag([-1.0, 1.0, 1.0])
-    as_file = pvcmf.read_ct(path)
-    patient = pvcmf.read_ct(path, frame="patient")
+    as_file = read_file(path)
+    patient = read_file(path, frame="patient")
     np.testing.assert_allclose(patient.direction_matrix, np.eye(3))
     v_file, p_file = _positions_by_value(as_file)
     v_pat, p_pat = _positions_by_value(patient)
@@ -236,28 +241,39 @@ def test_patient_frame(tmp_path, fmt):
     assert np.all(np.asarray(patient.spacing) > 0)
 
 
-def test_patient_frame_refuses_oblique_and_unknown(tmp_path):
+def test_patient_frame_resamples_oblique_and_takes_unknown_as_patient(tmp_path, caplog):
     c, s_ = np.cos(0.3), np.sin(0.3)
-    img = pv.ImageData(dimensions=DIMS, spacing=SPACING)
-    img.direction_matrix = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-    img["v"] = flat(known_values())
+    rot = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    img = pv.ImageData(dimensions=(20, 20, 6), spacing=(1.0, 1.0, 2.0), origin=(5.0, -3.0, 7.0))
+    img.direction_matrix = rot
+    vol = np.zeros((20, 20, 6), np.float32)
+    vol[12:15, 4:7, 2:5] = 1000.0  # a bright block around voxel (13, 5, 3)
+    img["v"] = vol.ravel(order="F")
     img.save(tmp_path / "a.vti")
-    with pytest.raises(ValueError, match="oblique"):
-        pvcmf.read_ct(tmp_path / "a.vti", frame="patient")
+    with caplog.at_level("WARNING"):
+        out = pvcmf.read_ct(tmp_path / "a.vti")
+    assert "oblique" in caplog.text
+    np.testing.assert_allclose(out.direction_matrix, np.eye(3))
+    expected = np.asarray(img.origin) + rot @ (np.array([13, 5, 3]) * img.spacing)
+    ct = out[arrays.CT]
+    found = (out.points * ct[:, None]).sum(axis=0) / ct.sum()  # centre of the block
+    np.testing.assert_allclose(found, expected, atol=0.3)
     with pytest.raises(ValueError, match="frame must be"):
-        pvcmf.read_ct(tmp_path / "a.vti", frame="RAS")
+        read_file(tmp_path / "a.vti", frame="RAS")
     flat(known_values()).astype("<i2").tofile(tmp_path / "b.raw")
     (tmp_path / "b.nhdr").write_text(_nrrd_header(
         "encoding: raw\nspace: 3D-left-handed\nspacings: 1 1 1\ndata file: b.raw\n"))
-    with pytest.raises(ValueError, match="3d-left-handed.*frame='file'"):
-        pvcmf.read_ct(tmp_path / "b.nhdr", frame="patient")
+    with caplog.at_level("WARNING"):
+        unknown = pvcmf.read_ct(tmp_path / "b.nhdr")
+    assert "no anatomical frame" in caplog.text
+    np.testing.assert_array_equal(unknown[arrays.CT], read_file(tmp_path / "b.nhdr")[arrays.CT])
 
 
 def test_dicom_folder_without_images(tmp_path):
     pytest.importorskip("pydicom")
     (tmp_path / "notes.txt").write_text("hello")
     with pytest.raises(ValueError, match="no readable DICOM image"):
-        pvcmf.read_ct(tmp_path)
+        read_file(tmp_path)
 
 
 def test_dicom_uneven_slices(tmp_path):
@@ -268,21 +284,21 @@ def test_dicom_uneven_slices(tmp_path):
     ds = pydicom.dcmread(victim)
     ds.ImagePositionPatient = [ORIGIN[0], ORIGIN[1], ORIGIN[2] + 0.3]
     ds.save_as(victim)
-    with pytest.raises(ValueError, match="non-uniform or duplicate slice"):
-        pvcmf.read_ct(tmp_path)
+    with pytest.raises(ValueError, match="misses slices|uneven"):
+        read_file(tmp_path)
 
 
 # --------------------------------------------------------------------------- errors
 def test_missing_path(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist.*DICOM series folder"):
-        pvcmf.read_ct(tmp_path / "nothing.nii")
+        read_file(tmp_path / "nothing.nii")
 
 
 def test_unsupported_format_names_path_and_formats(tmp_path):
     path = tmp_path / "scan.png"
     path.write_bytes(b"\x89PNG")
     with pytest.raises(ValueError, match=r"scan\.png.*\.nii\.gz.*\.nhdr.*\.mha.*\.vti"):
-        pvcmf.read_ct(path)
+        read_file(path)
 
 
 @pytest.mark.parametrize("name", ["a.nii", "a.nii.gz", "a.mha", "a.vti", "a.nrrd"])
@@ -290,7 +306,7 @@ def test_corrupt_file(tmp_path, name):
     path = tmp_path / name
     path.write_bytes(b"this is not an image" * 50)
     with pytest.raises(ValueError, match=rf"{name.replace('.', '[.]')}"):
-        pvcmf.read_ct(path)
+        read_file(path)
 
 
 def test_truncated_nifti_and_nrrd(tmp_path):
@@ -300,26 +316,26 @@ def test_truncated_nifti_and_nrrd(tmp_path):
     data = (tmp_path / "a.nii").read_bytes()
     (tmp_path / "a.nii").write_bytes(data[: len(data) // 2])
     with pytest.raises(ValueError, match="corrupt or unreadable"):
-        pvcmf.read_ct(tmp_path / "a.nii")
+        read_file(tmp_path / "a.nii")
     flat(known_values())[:100].astype("<i2").tofile(tmp_path / "short.raw")
     (tmp_path / "a.nhdr").write_text(
         _nrrd_header("encoding: raw\nspacings: 1 1 1\ndata file: short.raw\n")
     )
     with pytest.raises(ValueError, match="truncated"):
-        pvcmf.read_ct(tmp_path / "a.nhdr")
+        read_file(tmp_path / "a.nhdr")
 
 
 @pytest.mark.parametrize("kwargs", [{"scale": 0.0}, {"offset": float("nan")}, {"scale": "x"}])
 def test_bad_offset_scale(tmp_path, kwargs):
     with pytest.raises((ValueError, TypeError), match="offset|scale"):
-        pvcmf.read_ct(tmp_path, **kwargs)
+        read_file(tmp_path, **kwargs)
 
 
 # --------------------------------------------------------------------------- headsq
 def test_headsq_from_data_dir(data_dir):
     if not (data_dir / "headsq" / "quarter.nhdr").is_file():
         pytest.skip("headsq not in the data folder")
-    raw = pvcmf.read_ct(data_dir / "headsq" / "quarter.nhdr")
+    raw = read_file(data_dir / "headsq" / "quarter.nhdr")
     ct = pvcmf.datasets.headsq(offset=-1000.0, scale=1.0)
     assert ct.dimensions == (64, 64, 93)
     np.testing.assert_allclose(ct.spacing, (3.2, 3.2, 1.5))
@@ -327,16 +343,18 @@ def test_headsq_from_data_dir(data_dir):
     first = np.fromfile(data_dir / "headsq" / "quarter.1", dtype="<i2").reshape(64, 64)
     vol = raw[arrays.CT].reshape(raw.dimensions, order="F")
     np.testing.assert_array_equal(vol[:, :, 0], first.T)
-    # headsq is turned to the patient frame (y anterior, z superior): y and z reversed
+    # headsq is turned to the patient frame (y anterior, z superior) from its anatomy:
+    # y and z reversed (the file stores the face toward -y and the vertex toward -z)
     hs = ct[arrays.CT].reshape(ct.dimensions, order="F")
     np.testing.assert_array_equal(hs, vol[:, ::-1, ::-1] - 1000.0)
-    # the default map: skin iso-value on segment's default skin threshold, bone iso at 150
-    from pvcmf.datasets.realct import HEADSQ_BONE_ISO, HEADSQ_SKIN_ISO
-    from pvcmf.filters.segmentation import SKIN_THRESHOLD
-
+    # without a hand-given offset the scanner units are found: a CT convention (1000 or
+    # 1024) whose soft-tissue peak lands in the soft-tissue range of HU
     d = pvcmf.datasets.headsq()
-    assert HEADSQ_SKIN_ISO - 1000.0 == SKIN_THRESHOLD and HEADSQ_BONE_ISO - 1000.0 == 150.0
-    np.testing.assert_array_equal(d[arrays.CT], ct[arrays.CT])
+    diff = np.unique(np.round(d[arrays.CT] - ct[arrays.CT], 3))
+    assert diff.size == 1 and diff[0] in (0.0, -24.0)
+    from pvcmf.filters.orientation import check_units
+
+    assert -60 < check_units(d, "hu")[1]["soft_peak"] < 100
 
 
 def test_headsq_download_path_without_network(data_dir, tmp_path, monkeypatch):
@@ -363,9 +381,9 @@ def test_headsq_download_path_without_network(data_dir, tmp_path, monkeypatch):
     monkeypatch.delenv("PVCMF_DATA_DIR")
     monkeypatch.setenv("PVCMF_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(pooch, "retrieve", fake_retrieve)
-    ct = pvcmf.datasets.headsq()
+    ct = pvcmf.datasets.headsq(offset=-1000.0)
     assert len(calls) == 94 and calls[0].endswith("Data/headsq/quarter.nhdr")
-    ref = pvcmf.read_ct(src / "quarter.nhdr", offset=-1000.0)
+    ref = read_file(src / "quarter.nhdr", offset=-1000.0)
     vol = ref[arrays.CT].reshape(ref.dimensions, order="F")[:, ::-1, ::-1]
     np.testing.assert_array_equal(ct[arrays.CT], vol.ravel(order="F"))
     # a corrupted download is refused

@@ -494,4 +494,15 @@ def standardize(image, *, units="auto", orient="auto"):
                                        units_report["soft_peak"] + offset)
     if code != "LAS":  # ``out`` is already a new image: no second copy when nothing turns
         out = reorient(out, code)
-    return out, {"units": units_report, "orientation": orient_report}
+    return out, _plain({"units": units_report, "orientation": orient_report})
+
+
+def _plain(obj):
+    """The report with numpy scalars turned into Python ones (JSON-serialisable)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
