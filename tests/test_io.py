@@ -151,7 +151,8 @@ def test_nrrd_one_file_per_slice(tmp_path):
 
 # --------------------------------------------------------------------------- DICOM
 def write_dicom_series(folder, raw, spacing, origin, *, slope=1.0, intercept=-1024.0,
-                       row_dir=(1, 0, 0), col_dir=(0, 1, 0), extra_file=True):
+                       row_dir=(1, 0, 0), col_dir=(0, 1, 0), extra_file=True, drift=(0.0, 0.0),
+                       description="CT"):
     """Write ``raw`` (nx, ny, nz) as one CT slice file per k, in shuffled file order."""
     pydicom = pytest.importorskip("pydicom")
     from pydicom.dataset import Dataset, FileMetaDataset
@@ -174,7 +175,10 @@ def write_dicom_series(folder, raw, spacing, origin, *, slope=1.0, intercept=-10
         ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study, series, frame
         ds.PatientName, ds.PatientID = "Virtual^Patient", "0"
         ds.InstanceNumber = int(names[k]) + 1
-        ds.ImagePositionPatient = [float(v) for v in np.asarray(origin) + k * spacing[2] * normal]
+        ds.SeriesDescription, ds.SeriesNumber = description, 1 + len(description)
+        # drift: in-plane shift (mm along rows, columns) per slice, as a tilted gantry makes
+        ds.ImagePositionPatient = [float(v) for v in np.asarray(origin) + k * spacing[2] * normal
+                                   + k * (drift[0] * row_dir + drift[1] * col_dir)]
         ds.ImageOrientationPatient = [float(v) for v in (*row_dir, *col_dir)]
         ds.PixelSpacing = [float(spacing[1]), float(spacing[0])]  # row spacing, column spacing
         ds.SliceThickness = float(spacing[2])
@@ -390,3 +394,158 @@ def test_headsq_download_path_without_network(data_dir, tmp_path, monkeypatch):
     (tmp_path / "cache" / "headsq" / "quarter.7").write_bytes(b"\0" * 8192)
     with pytest.raises(ValueError, match="SHA-256"):
         pvcmf.datasets.headsq()
+
+
+# --------------------------------------------------------------------------- independent writers
+def _patient_position(lps):
+    """LPS (ITK, DICOM) -> pvcmf patient frame (x left, y anterior, z superior)."""
+    return np.asarray(lps, dtype=float) * np.array([1.0, -1.0, 1.0])
+
+
+def _sitk_image(direction):
+    sitk = pytest.importorskip("SimpleITK")
+    vol = known_values()  # (nx, ny, nz); SimpleITK arrays are (z, y, x)
+    img = sitk.GetImageFromArray(np.ascontiguousarray(vol.transpose(2, 1, 0)))
+    img.SetSpacing(SPACING)
+    img.SetOrigin(ORIGIN)
+    img.SetDirection(np.asarray(direction, dtype=float).ravel())
+    return sitk, img
+
+
+CORONAL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # y index -> -z
+
+
+@pytest.mark.parametrize("suffix", [".mha", ".mhd", ".nii.gz", ".nrrd"])
+def test_coronal_written_by_simpleitk_lands_where_itk_says(tmp_path, suffix):
+    """Every voxel of a coronal file sits where SimpleITK puts it (LPS -> patient frame)."""
+    sitk, img = _sitk_image(CORONAL)
+    sitk.WriteImage(img, str(tmp_path / f"a{suffix}"))
+    out = pvcmf.read_ct(tmp_path / f"a{suffix}")
+    np.testing.assert_allclose(out.direction_matrix, np.eye(3))
+    values, positions = _positions_by_value(out)
+    vol = known_values()
+    for idx in [(0, 0, 0), (11, 8, 6), (3, 5, 2), (7, 1, 4)]:
+        expected = _patient_position(img.TransformIndexToPhysicalPoint(idx))
+        found = positions[np.searchsorted(values, vol[idx])]
+        np.testing.assert_allclose(found, expected, atol=1e-4, err_msg=str(idx))
+
+
+@pytest.mark.parametrize("suffix", [".mha", ".nii.gz", ".nrrd"])
+def test_oblique_written_by_simpleitk_resampled_in_place(tmp_path, suffix):
+    """An oblique file is resampled; a bright block keeps its physical centre."""
+    sitk = pytest.importorskip("SimpleITK")
+    a, b = np.radians(20.0), np.radians(-10.0)
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    direction = rz @ rx
+    vol = np.zeros((10, 16, 24), np.int16)  # (z, y, x)
+    vol[4:7, 9:12, 5:8] = 1000  # block centred on index (x, y, z) = (6, 10, 5)
+    img = sitk.GetImageFromArray(vol)
+    img.SetSpacing((1.0, 1.25, 1.5))
+    img.SetOrigin((-30.0, 12.0, 100.0))
+    img.SetDirection(direction.ravel())
+    sitk.WriteImage(img, str(tmp_path / f"a{suffix}"))
+    out = pvcmf.read_ct(tmp_path / f"a{suffix}")
+    ct = np.asarray(out[arrays.CT], dtype=float)
+    centre = (np.asarray(out.points) * ct[:, None]).sum(axis=0) / ct.sum()
+    expected = _patient_position(img.TransformContinuousIndexToPhysicalPoint((6.0, 10.0, 5.0)))
+    np.testing.assert_allclose(centre, expected, atol=0.35)
+
+
+def test_nifti_written_by_nibabel_sform_and_qform(tmp_path):
+    nib = pytest.importorskip("nibabel")
+    vol = known_values()
+    affine = np.eye(4)
+    affine[:3, :3] = np.array([[0.0, 0.0, -2.0], [-0.5, 0.0, 0.0], [0.0, 0.8, 0.0]])
+    affine[:3, 3] = (40.0, 5.0, -60.0)
+    for code in ("sform", "qform"):
+        img = nib.Nifti1Image(vol, affine)
+        if code == "qform":
+            img.set_sform(None, code=0)
+            img.set_qform(affine, code=1)
+        nib.save(img, tmp_path / f"{code}.nii")
+        out = pvcmf.read_ct(tmp_path / f"{code}.nii")
+        values, positions = _positions_by_value(out)
+        for idx in [(0, 0, 0), (11, 8, 6), (2, 7, 3)]:
+            ras = affine[:3, :3] @ np.array(idx, float) + affine[:3, 3]
+            expected = ras * np.array([-1.0, 1.0, 1.0])  # RAS -> x left
+            found = positions[np.searchsorted(values, vol[idx])]
+            np.testing.assert_allclose(found, expected, atol=1e-4, err_msg=f"{code} {idx}")
+
+
+# --------------------------------------------------------------------------- bad geometry
+@pytest.mark.parametrize("bad", ["0 1 1", "1 -1 1"])
+def test_zero_or_negative_spacing_refused(tmp_path, bad):
+    flat(known_values()).astype("<i2").tofile(tmp_path / "a.raw")
+    (tmp_path / "a.mhd").write_text(
+        "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
+        f"ElementSpacing = {bad}\nDimSize = {' '.join(map(str, DIMS))}\n"
+        "ElementType = MET_SHORT\nElementDataFile = a.raw\n")
+    with pytest.raises(ValueError, match="spacing"):
+        pvcmf.read_ct(tmp_path / "a.mhd")
+    (tmp_path / "a.nhdr").write_text(_nrrd_header(
+        f"encoding: raw\nspacings: {bad}\ndata file: a.raw\n"))
+    with pytest.raises(ValueError, match="spacing"):
+        pvcmf.read_ct(tmp_path / "a.nhdr")
+
+
+def test_two_dimensional_image_refused(tmp_path):
+    nib = pytest.importorskip("nibabel")
+    nib.save(nib.Nifti1Image(np.zeros((8, 9), np.int16), np.eye(4)), tmp_path / "a.nii")
+    with pytest.raises(ValueError, match="2-D"):
+        pvcmf.read_ct(tmp_path / "a.nii")
+    raw = known_values()[:, :, :1]
+    (tmp_path / "one").mkdir()
+    write_dicom_series(tmp_path / "one", raw, SPACING, ORIGIN, extra_file=False)
+    with pytest.raises(ValueError, match="2-D"):
+        pvcmf.read_ct(tmp_path / "one")
+
+
+# --------------------------------------------------------------------------- DICOM folders
+def test_dicom_picks_largest_ct_series_and_lets_the_user_choose(tmp_path, caplog):
+    raw = known_values()
+    for name, vol in (("bone kernel", raw), ("scout", raw[:, :, :4] + 5)):
+        (tmp_path / name).mkdir()
+        write_dicom_series(tmp_path / name, vol, SPACING, ORIGIN, description=name)
+        for path in (tmp_path / name).iterdir():
+            path.rename(tmp_path / f"{name[0]}{path.name}")
+    with caplog.at_level("WARNING"):
+        out = pvcmf.read_ct(tmp_path)
+    assert out.dimensions == DIMS and "2 DICOM series" in caplog.text and "scout" in caplog.text
+    scout = pvcmf.read_ct(tmp_path, series="scout")
+    assert scout.dimensions == (12, 9, 4)
+    assert float(np.min(scout[arrays.CT])) == float(np.min(out[arrays.CT])) + 5
+    with pytest.raises(ValueError, match="matches 0 of the series"):
+        pvcmf.read_ct(tmp_path, series="nothing")
+
+
+def test_dicom_missing_slice_is_named(tmp_path):
+    pydicom = write_dicom_series(tmp_path, known_values(), SPACING, ORIGIN)
+    for path in tmp_path.glob("*.dcm"):
+        if float(pydicom.dcmread(path).ImagePositionPatient[2]) == ORIGIN[2] + 3 * SPACING[2]:
+            path.unlink()
+    with pytest.raises(ValueError, match="misses slices.*34.00..38.00"):
+        pvcmf.read_ct(tmp_path)
+
+
+def test_dicom_gantry_tilt_resampled(tmp_path, caplog):
+    """Slices drifting along the columns (a tilted gantry) are moved back: a structure
+    straight along z in the patient stays straight."""
+    nx, ny, nz = 16, 20, 8
+    spacing, drift = (1.0, 1.0, 2.0), 0.5  # mm per slice along the column direction
+    raw = np.full((nx, ny, nz), -1000, np.int16)
+    for k in range(nz):  # a rod at physical y = 8 mm: at row 8 - k * drift in slice k
+        y = 8.0 - k * drift
+        j0 = int(np.floor(y))
+        raw[6:9, j0, k] += int(round(1000 * (1 - (y - j0))))
+        raw[6:9, j0 + 1, k] += int(round(1000 * (y - j0)))
+    write_dicom_series(tmp_path, raw, spacing, (0.0, 0.0, 0.0), intercept=0.0,
+                       drift=(0.0, drift))
+    with caplog.at_level("WARNING"):
+        out = read_file(tmp_path)
+    assert "tilted" in caplog.text
+    vol = out[arrays.CT].reshape(out.dimensions, order="F")
+    rows = np.arange(ny)
+    weights = vol[7] + 1000.0  # (ny, nz)
+    centre = (weights * rows[:, None]).sum(axis=0) / weights.sum(axis=0)
+    np.testing.assert_allclose(centre, 8.0, atol=0.05)
