@@ -258,9 +258,14 @@ def _pool(vol, spacing, body_level, bone_level):
     shape = [n // k * k for n, k in zip(vol.shape, f)]
     v = vol[: shape[0], : shape[1], : shape[2]]
     body = v[:: f[0], :: f[1], :: f[2]] > body_level
-    blocks = (v > bone_level).reshape(shape[0] // f[0], f[0], shape[1] // f[1], f[1],
-                                      shape[2] // f[2], f[2])
-    bone = blocks.any(axis=(1, 3, 5))
+    bone = v > bone_level
+    for axis, k in enumerate(f):  # block "any", one axis at a time (strided ORs)
+        index = [slice(None)] * 3
+        parts = []
+        for offset in range(k):
+            index[axis] = slice(offset, None, k)
+            parts.append(bone[tuple(index)])
+        bone = np.logical_or.reduce(parts) if k > 1 else bone
     return body, bone, np.asarray(spacing) * f
 
 
@@ -308,6 +313,10 @@ def _mirror_overlap(mask, axis):
 def _cues(vol, spacing, air, soft):
     """Anatomical measurements on the pooled copy (see the module notes)."""
     body, bone, ds = _pool(vol, spacing, 0.5 * (air + soft), soft + 0.35 * (soft - air))
+    if body.any():  # crop to the body plus a margin; faces the body touches stay faces
+        nz = np.nonzero(body)
+        box = tuple(slice(max(int(i.min()) - 3, 0), int(i.max()) + 4) for i in nz)
+        body, bone = body[box], bone[box]
     body = _largest(ndi.binary_opening(body, iterations=2))
     head = body | _enclosed(body)
     bone &= head

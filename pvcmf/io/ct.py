@@ -497,7 +497,8 @@ def _read_dicom_series(folder, wanted=None):
             )
         slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
         inter = float(ds.get("RescaleIntercept", 0.0) or 0.0)
-        volume[k] = pixels * slope + inter
+        np.multiply(pixels, np.float32(slope), out=volume[k], casting="unsafe")
+        volume[k] += np.float32(inter)
     if np.abs(shift).max() > 0.01 * min(dx, dy):
         volume = _untilt(volume, shift, dx, dy, folder)
     image = pv.ImageData(dimensions=(cols, rows, len(slices)), spacing=(dx, dy, dz))
