@@ -12,7 +12,9 @@ Units (:func:`check_units`)
     the image is refused (an MR volume, a uniform phantom). In HU ``A`` is near -1000 and
     ``S`` near +40; scanner units differ by a constant offset (CT conventions store
     ``HU + 1000`` or ``HU + 1024``). The offset is the convention (0, -1000, -1024, -32768)
-    closest to both peaks, or, when none fits, the one that puts ``S`` at +40 HU.
+    closest to both peaks, the soft-tissue peak counting twice (air is often clamped at the
+    storage minimum whatever the convention), or, when none fits, the offset that puts ``S``
+    at +40 HU.
 Orientation (:func:`orient_head`)
     Decided on a copy pooled to about 3 mm voxels (block mean for the body, block maximum for
     thin bone). Three anatomical facts, none fitted to a scan:
@@ -180,7 +182,7 @@ def check_units(image, units="auto"):
         offset, how = float(units), f"offset {float(units):g} given"
     else:
         from_soft, from_air = SOFT_HU - s, AIR_HU - a
-        cost = [abs(from_soft - o) + abs(from_air - o) for o in HU_OFFSETS]
+        cost = [2 * abs(from_soft - o) + abs(from_air - o) for o in HU_OFFSETS]
         best = HU_OFFSETS[int(np.argmin(cost))]
         if abs(from_soft - best) <= 100 and abs(from_air - best) <= 150:
             offset = best
