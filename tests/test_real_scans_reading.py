@@ -102,3 +102,26 @@ def test_vhp_written_as_coronal_nifti_in_scanner_units(vhp, tmp_path):
     out, report = standardize(read)
     assert report["orientation"]["code"] == "LAS" and report["units"]["offset"] == -1024.0
     np.testing.assert_array_equal(_volume(out), vol)
+
+
+def test_cli_simulate_finds_units_and_axes(data_dir, tmp_path, capsys):
+    """`pvcmf simulate` on the raw headsq file, no --offset and no --flip: units and axes
+    are found and written to summary.json; a bad --orient is a usage error."""
+    import json
+    from pathlib import Path
+
+    from pvcmf.cli import main
+
+    nhdr = data_dir / "headsq" / "quarter.nhdr"
+    if not nhdr.is_file():
+        pytest.skip(f"{nhdr} not in the data folder")
+    plan = Path(__file__).resolve().parents[1] / "examples" / "headsq_plan.toml"
+    code = main(["simulate", "--ct", str(nhdr), "--plan", str(plan), "--out", str(tmp_path),
+                 "--no-progress", "--no-predict", "--no-figures"])
+    assert code == 0, capsys.readouterr()
+    ct = json.loads((tmp_path / "summary.json").read_text())["ct"]
+    assert ct["units"]["units"] == "scanner" and ct["orientation"]["code"] == "LPI"
+    assert "left/right taken from the file" in ct["orientation"]["left_right"]
+    code = main(["simulate", "--ct", str(nhdr), "--plan", str(plan), "--out",
+                 str(tmp_path / "bad"), "--no-progress", "--no-predict", "--orient", "XYZ"])
+    assert code == 2 and "3-letter code" in capsys.readouterr().err
