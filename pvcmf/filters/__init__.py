@@ -48,9 +48,7 @@ _REGISTRY = {
     "register": "registration",
     "distance_to": "distance",
     "map_to_surface": "surface_mapping",
-    "standardize": "orientation",
-    "check_units": "orientation",
-    "orient_head": "orientation",
+    "standardize": "orientation",  # check_units, orient_head: pvcmf.filters.orientation
 }
 
 __all__ = sorted(_REGISTRY)
