@@ -112,6 +112,12 @@ def build_parser():
                      help="HU = scale * value + offset (for scanner units; default 0, "
                           "headsq: its loader's default)")
     sim.add_argument("--scale", type=float, default=None, help="see --offset (default 1)")
+    sim.add_argument("--units", default="auto",
+                     help="'auto' (detect scanner units from the histogram; default), 'hu', or "
+                          "the offset to add to reach HU; --offset/--scale imply 'hu'")
+    sim.add_argument("--orient", default="auto",
+                     help="'auto' (face +y and vertex +z checked from the anatomy; default), "
+                          "'none' (trust the file), or where the image axes point, e.g. 'LPI'")
     sim.add_argument("--flip", default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
@@ -157,9 +163,18 @@ def _simulate(args):
     if args.flip:
         ct = flip_axes(ct, args.flip)
     seconds = time.perf_counter() - start
+    units = args.units
+    if units == "auto" and (args.offset_given or args.scale_given or str(args.ct) == "headsq"):
+        units = "hu"  # already mapped to HU by the given offset/scale or by headsq()
+    elif units not in ("auto", "hu"):
+        try:
+            units = float(units)
+        except ValueError:
+            raise ValueError(f"--units must be 'auto', 'hu' or a number, got {units!r}") from None
     result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
                       predict=not args.no_predict, muscles=not args.no_muscles,
-                      figures=not args.no_figures, progress_bar=not args.no_progress)
+                      figures=not args.no_figures, progress_bar=not args.no_progress,
+                      units=units, orient=args.orient)
     result.timings = {"read": seconds, **result.timings}
     if args.export is not None and result.post is not None:  # --export: the solved model
         result.files["export"] = export(result.post, args.export)
