@@ -198,7 +198,8 @@ def _mandible(hard, upper, lower, z_occ, spacing):
     foot = ndimage.binary_dilation((upper | lower).any(axis=2),
                                    iterations=max(1, int(round(3.0 / spacing[0]))))
     cut = hard.copy()
-    cut[:, :, z_occ][foot] = False
+    if upper.any():
+        cut[:, :, z_occ][foot] = False
     top = np.zeros_like(hard)
     top[:, :, -max(1, int(round(5.0 / spacing[2]))):] = True
     anchor = (upper | top) & cut  # what must not be mandible
