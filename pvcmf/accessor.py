@@ -25,7 +25,9 @@ __all__ = ["CMFAccessor", "METHODS"]
 
 #: accessor method -> (module, function) it delegates to
 METHODS = {
+    "standardize": ("pvcmf.filters", "standardize"),
     "segment": ("pvcmf.filters", "segment"),
+    "find_jaws": ("pvcmf.filters", "find_jaws"),
     "classify_tissue": ("pvcmf.filters", "classify_tissue"),
     "embed_muscles": ("pvcmf.filters", "embed_muscles"),
     "fiber_directions": ("pvcmf.filters", "fiber_directions"),

@@ -8,6 +8,10 @@
     The same on a CT file/folder (DICOM, NIfTI, NRRD, MHA/MHD, VTI) and a plan file;
     ``--ct headsq`` takes VTK's real head CT (:func:`pvcmf.datasets.headsq`), for which
     ``examples/headsq_plan.toml`` is written.
+``pvcmf plan --ct SCAN [--plan start.toml] [--port N]``
+    Interactive planner in the web browser (:mod:`pvcmf.planner`, needs the ``planner``
+    extra): sliders move the jaws, the predicted face updates live, *Save plan* writes a
+    plan file for ``pvcmf simulate``.
 ``pvcmf validate --pred predicted_skin.vtp --post SKIN_OR_CT --out DIR``
     Judges a prediction against a post-operative skin (VTP/STL/PLY/OBJ) or CT:
     point-to-plane ICP on the upper face, signed distances, paper 000 Figs. 6-8, the
@@ -39,6 +43,7 @@ from .datasets import headsq
 from . import report
 from .io import export, read_ct, read_landmarks, read_plan_file, write_surface
 from .pipeline import STEPS, flip_axes, simulate
+from .planner import add_plan_parser, run_plan
 from .study.validate import validate, write_validation
 from .sweeps import add_sweep_parser, run_sweep
 
@@ -150,11 +155,18 @@ def build_parser():
                      help="HU = scale * value + offset (for scanner units; default 0, "
                           "headsq: its loader's default)")
     sim.add_argument("--scale", type=float, default=None, help="see --offset (default 1)")
+    sim.add_argument("--units", default="auto",
+                     help="'auto' (detect scanner units from the histogram; default), 'hu', or "
+                          "the offset to add to reach HU; --offset/--scale imply 'hu'")
+    sim.add_argument("--orient", default="auto",
+                     help="'auto' (face +y and vertex +z checked from the anatomy; default), "
+                          "'none' (trust the file), or where the image axes point, e.g. 'LPI'")
     sim.add_argument("--flip", default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
     _add_validate_parser(sub)
     add_sweep_parser(sub)  # `pvcmf sweep`: parameter studies on Dask (pvcmf/sweeps.py)
+    add_plan_parser(sub)  # `pvcmf plan`: interactive planner (pvcmf/planner)
     return parser
 
 
@@ -209,10 +221,19 @@ def _simulate(args):
     if args.flip:
         ct = flip_axes(ct, args.flip)
     seconds = time.perf_counter() - start
+    units = args.units
+    if units == "auto" and (args.offset_given or args.scale_given or str(args.ct) == "headsq"):
+        units = "hu"  # already mapped to HU by the given offset/scale or by headsq()
+    elif units not in ("auto", "hu"):
+        try:
+            units = float(units)
+        except ValueError:
+            raise ValueError(f"--units must be 'auto', 'hu' or a number, got {units!r}") from None
     with report.disabled():  # written below, with every step's time
         result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
                           predict=not args.no_predict, muscles=not args.no_muscles,
-                          figures=not args.no_figures, progress_bar=not args.no_progress)
+                          figures=not args.no_figures, progress_bar=not args.no_progress,
+                          units=units, orient=args.orient)
     result.timings = {"read": seconds, **result.timings}
     if args.export is not None and result.post is not None:  # --export: the solved model
         result.files["export"] = export(result.post, args.export)
@@ -275,6 +296,8 @@ def main(argv=None):
     _setup_logging(args.verbose)
     pv.OFF_SCREEN = True
     try:
+        if args.command == "plan":  # serves until stopped; nothing to report
+            return run_plan(args)
         result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep,
                   "validate": _validate}[args.command](args)
     except KeyboardInterrupt:

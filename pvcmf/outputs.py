@@ -102,6 +102,8 @@ def write_outputs(result, out, images=None):
     summary = {"plan": result.plan.to_dict(), "seconds": result.timings,
                "skipped": result.skipped, "complete": result.complete,
                "files": {k: Path(v).name for k, v in files.items()}}
+    if result.ct_report:
+        summary["ct"] = result.ct_report
     if result.post is not None:
         u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)
         summary.update(n_tets=int(result.post.n_cells), n_points=int(result.post.n_points),

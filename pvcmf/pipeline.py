@@ -32,6 +32,7 @@ from ._atomic import write_text
 from .filters.surface_mapping import crumple_metric, transfer_operator
 from .filters.osteotomy import cut_bones, move_bones
 from .io import read_ct
+from .io.orientation import standardize
 from .outputs import render, write_outputs
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
 from .plan import Plan, read_plan
@@ -79,6 +80,9 @@ class Result:
         Post-operative bone segment surfaces (:func:`pvcmf.filters.move_bones`).
     timings : dict
         Step name -> seconds.
+    ct_report : dict
+        Units and orientation found in the CT (:func:`pvcmf.filters.standardize`); empty
+        when the CT was not checked.
     skipped : dict
         Step name -> why it did not run.
     files : dict
@@ -93,6 +97,7 @@ class Result:
     skin_post: pv.PolyData | None = None
     skeleton: pv.MultiBlock | None = None
     timings: dict = field(default_factory=dict)
+    ct_report: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
     files: dict = field(default_factory=dict)
 
@@ -297,7 +302,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              n_tets=DEFAULT_N_TETS, segment_options=None, mesh_options=None,
              material_options=None, bc_options=None, solve_options=None, muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
-             progress_bar=False):
+             progress_bar=False, units=None, orient=None):
     """Predict the post-operative face from a CT and a surgical plan.
 
     Parameters
@@ -345,6 +350,11 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         Render the PNGs when ``out`` is given.
     progress_bar : bool, default False
         Show a progress bar over the steps (:class:`pvcmf.progress.Progress`).
+    units, orient : str, optional
+        Units and axes check of :func:`pvcmf.filters.standardize` (``'auto'``, ``'hu'`` or
+        an offset; ``'auto'``, ``'none'`` or a code such as ``'LPI'``). Default: ``'auto'``
+        for a CT read from a path, no check for a CT given in memory. What was found goes
+        to :attr:`Result.ct_report` and ``summary.json`` (``"ct"``).
 
     Returns
     -------
@@ -369,7 +379,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     result = Result(plan=plan)
     with Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
         run = _Runner(result, bar)
-        ct = _read_step(run, ct)
+        ct = _read_step(run, ct, units, orient)
         labels = _label_steps(run, ct, labels, bones, plan, opts)
         if muscles and predict:
             with_muscles = run.run("muscles", _muscles, labels, landmarks)
@@ -406,11 +416,18 @@ def _check_inputs(plan, n_tets, face_fraction, bones, **options):
     return plan, opts
 
 
-def _read_step(run, ct):
-    """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`)."""
+def _read_step(run, ct, units, orient):
+    """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`), then its units
+    and axes checked on the image (:func:`pvcmf.filters.standardize`): always for a CT read
+    from a path, for a CT in memory when ``units`` or ``orient`` is given."""
     if isinstance(ct, (str, Path)):
-        return run.run("read", read_ct, ct)
-    run.skip("read", "CT given in memory")
+        ct = run.run("read", read_ct, ct)
+        units, orient = units or "auto", orient or "auto"
+    else:
+        run.skip("read", "CT given in memory")
+    if units is not None or orient is not None:
+        ct, run.result.ct_report = standardize(ct, units=units or "auto",
+                                               orient=orient or "auto")
     return ct
 
 
