@@ -137,3 +137,17 @@ def test_browser_check_sees_errors(tmp_path):
     page.write_text("<html><body><script>undefinedFunction();</script></body></html>")
     check = check_page(page, budget_ms=1000)
     assert any("undefinedFunction" in e for e in check.errors), check.console
+
+
+def test_write_outputs_writes_the_report(tmp_path):
+    """``simulate(..., out)`` writes the page through ``write_outputs``; not when disabled."""
+    from test_cli import _small_result
+
+    from pvcmf.outputs import write_outputs
+
+    files = write_outputs(_small_result(), tmp_path / "a")
+    text = files["report"].read_text(encoding="utf-8")
+    assert files["report"].name == "report.html" and "<table id=\"plan\">" in text
+    with disabled():
+        files = write_outputs(_small_result(), tmp_path / "b")
+    assert "report" not in files and not (tmp_path / "b" / "report.html").exists()
