@@ -11,9 +11,8 @@ import logging
 
 from . import arrays, filters
 from .accessor import CMFAccessor
+from ._version import __version__
 from .plan import Osteotomy, Plan
-
-__version__ = "0.1.0"
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 

@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from . import __version__, arrays, datasets
+from . import arrays, datasets
+from ._version import __version__
 from .datasets import headsq
 from . import report
 from .io import export, read_ct, read_landmarks, read_plan_file, write_surface
@@ -184,11 +185,10 @@ def _demo(args):
           f"{case.plan.name or 'plan'}: "
           + "; ".join(f"{o.segment} T{o.translation} R{o.rotation}"
                       for o in case.plan.osteotomies))
-    with report.disabled():  # written below, with every step's time
-        result = simulate(case.ct, case.plan, args.out, bones=case.truth,
-                          landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
-                          predict=not args.no_predict, muscles=not args.no_muscles,
-                          figures=not args.no_figures, progress_bar=not args.no_progress)
+    result = simulate(case.ct, case.plan, args.out, bones=case.truth,
+                      landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
+                      predict=not args.no_predict, muscles=not args.no_muscles,
+                      figures=not args.no_figures, progress_bar=not args.no_progress)
     result.timings = {"phantom": seconds, **result.timings}
     return _finish(result, args)
 
@@ -229,11 +229,10 @@ def _simulate(args):
             units = float(units)
         except ValueError:
             raise ValueError(f"--units must be 'auto', 'hu' or a number, got {units!r}") from None
-    with report.disabled():  # written below, with every step's time
-        result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
-                          predict=not args.no_predict, muscles=not args.no_muscles,
-                          figures=not args.no_figures, progress_bar=not args.no_progress,
-                          units=units, orient=args.orient)
+    result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
+                      predict=not args.no_predict, muscles=not args.no_muscles,
+                      figures=not args.no_figures, progress_bar=not args.no_progress,
+                      units=units, orient=args.orient)
     result.timings = {"read": seconds, **result.timings}
     if args.export is not None and result.post is not None:  # --export: the solved model
         result.files["export"] = export(result.post, args.export)

@@ -81,8 +81,8 @@ def write_outputs(result, out, images=None):
     Files: ``predicted_skin.vtp`` (predicted skin with ``displacement``),
     ``deformed_mesh.vtu`` (the mesh at its predicted position, with ``displacement`` and
     the ``bc`` arrays), ``skin_pre.vtp``, the PNGs in ``images`` and ``summary.json``
-    (seconds per step, skipped steps, the plan), then ``report.html``
-    (:func:`pvcmf.report.write_report`). Returns ``result.files``.
+    (seconds per step, skipped steps, the plan). Returns ``result.files``. The command line
+    adds ``report.html`` (:func:`pvcmf.report.write_report`, a layer above the pipeline).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -109,10 +109,6 @@ def write_outputs(result, out, images=None):
         summary.update(n_tets=int(result.post.n_cells), n_points=int(result.post.n_points),
                        max_displacement_mm=float(u.max()))
     files["summary"] = write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
-    from .report import write_report  # the report sits above the pipeline: imported on use
-    page = write_report(out, result=result)  # report.html; None in pvcmf.report.disabled()
-    if page is not None:
-        files["report"] = page
     return files
 
 

@@ -202,6 +202,10 @@ def test_bad_inputs(head):
         apply_plan(moved_away, plan, labels)
     only_cranium = labels.copy()
     only_cranium[arrays.BONE] = np.where(labels[arrays.BONE] > 0, arrays.CRANIUM, 0).astype(np.uint8)
+    # no teeth either: the mandible cannot be found from the anatomy
+    tissue = np.asarray(labels[arrays.TISSUE])
+    only_cranium[arrays.TISSUE] = np.where(tissue == arrays.TEETH, arrays.BONE_TISSUE,
+                                           tissue).astype(np.uint8)
     with pytest.raises(ValueError, match="moves segment 'mandible'"):
         apply_plan(grid, plan, only_cranium)
 

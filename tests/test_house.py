@@ -46,16 +46,20 @@ ALLOWED = [
 
 # Layers, lowest first: a module may import from its own layer and the ones below it only.
 LAYERS = [
-    ("model", ("pvcmf.arrays", "pvcmf.progress", "pvcmf._atomic", "pvcmf.plan", "pvcmf.tps",
-               "pvcmf.mtm.materials")),
+    ("model", ("pvcmf.arrays", "pvcmf.progress", "pvcmf._atomic", "pvcmf.cache",
+               "pvcmf._version", "pvcmf.plan", "pvcmf.tps", "pvcmf.mtm.materials")),
     ("io/datasets/atlas", ("pvcmf.io", "pvcmf.datasets", "pvcmf.atlas")),
     ("filters", ("pvcmf.filters",)),
     ("mtm", ("pvcmf.mtm",)),
+    # figures of one case and the run's output files: what the pipeline writes
+    ("case figures/outputs", ("pvcmf.figures", "pvcmf.outputs")),
     ("pipeline", ("pvcmf.pipeline",)),
     ("truth/study", ("pvcmf.truth", "pvcmf.study", "pvcmf.reference", "pvcmf.postop",
                      "pvcmf.validation", "pvcmf.sweeps")),
-    ("figures/report", ("pvcmf.figures", "pvcmf.report")),
-    ("cli/accessor", ("pvcmf.cli", "pvcmf.accessor", "pvcmf")),
+    # figures of a study (sweeps, validation) and the report that shows them
+    ("study figures/report", ("pvcmf.figures.parameter_studies", "pvcmf.figures.validation",
+                              "pvcmf.report")),
+    ("planner/cli/accessor", ("pvcmf.planner", "pvcmf.cli", "pvcmf.accessor", "pvcmf")),
 ]
 # the truth judges the pipeline's predictions, so it never imports the pipeline
 TRUTH = ("pvcmf.truth", "pvcmf.reference", "pvcmf.postop")

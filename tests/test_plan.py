@@ -163,7 +163,7 @@ def test_cut_bones_by_planes(skull):
 
 
 def test_cut_bones_errors(skull):
-    with pytest.raises(ValueError, match="moves segment 'mandible'.*has only"):
+    with pytest.raises(ValueError, match="moves segment 'mandible'.*only \\['cranium'\\]"):
         cut_bones(skull, TABLE_II[3])  # no mandible label and no planes
     outside = Plan((Osteotomy("maxilla", cut=(((0, 0, 100), (0, 0, 1)),)),))
     with pytest.raises(ValueError, match="contain no bone"):

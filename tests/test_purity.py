@@ -81,6 +81,10 @@ def chain():
     post = _pure("solve", pvcmf.mtm.solve, grid)
     skin = _pure("extract_skin", f.extract_skin, case.truth)
     out["mapped"] = _pure("map_to_surface", f.map_to_surface, post, skin)
+    _pure("transfer_operator", f.transfer_operator, post, np.asarray(skin.points[:200]))
+    _pure("crumple_metric", f.crumple_metric, skin, out["mapped"][arrays.DISPLACEMENT], post,
+          post[arrays.DISPLACEMENT])
+    _pure("find_jaws", f.find_jaws, case.truth)
     moved = skin.translate((0.5, -0.3, 0.2), inplace=False)
     out["registered"] = _pure("register", f.register, moved, skin)
     out["distance"] = _pure("distance_to", f.distance_to, moved, skin)

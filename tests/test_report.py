@@ -139,15 +139,18 @@ def test_browser_check_sees_errors(tmp_path):
     assert any("undefinedFunction" in e for e in check.errors), check.console
 
 
-def test_write_outputs_writes_the_report(tmp_path):
-    """``simulate(..., out)`` writes the page through ``write_outputs``; not when disabled."""
+def test_write_report_of_a_written_result(tmp_path):
+    """The command line writes the page after ``write_outputs``; not when disabled."""
     from test_cli import _small_result
 
     from pvcmf.outputs import write_outputs
+    from pvcmf.report import write_report
 
-    files = write_outputs(_small_result(), tmp_path / "a")
-    text = files["report"].read_text(encoding="utf-8")
-    assert files["report"].name == "report.html" and "<table id=\"plan\">" in text
+    result = _small_result()
+    files = write_outputs(result, tmp_path / "a")
+    assert "report" not in files
+    page = write_report(tmp_path / "a", result=result)
+    text = page.read_text(encoding="utf-8")
+    assert page.name == "report.html" and "<table id=\"plan\">" in text
     with disabled():
-        files = write_outputs(_small_result(), tmp_path / "b")
-    assert "report" not in files and not (tmp_path / "b" / "report.html").exists()
+        assert write_report(tmp_path / "a", result=result) is None

@@ -117,7 +117,14 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
     if missing and arrays.TISSUE in labels.point_data:
         log.info("cut_bones: %s not labelled and no cut planes: found from the anatomy",
                  ", ".join(missing))
-        found = np.asarray(find_jaws(labels, progress_bar=progress_bar)[arrays.BONE])
+        try:
+            found = np.asarray(find_jaws(labels, progress_bar=progress_bar)[arrays.BONE])
+        except ValueError as err:
+            have = sorted(arrays.BONE_NAMES[int(b)] for b in np.unique(bone) if b > 0)
+            raise ValueError(
+                f"the plan moves segment {missing[0]!r} without cut planes, the labels have "
+                f"only {have} and the segment could not be found from the anatomy ({err}): "
+                "label it, or give the osteotomy cut planes") from None
         wanted = [o.segment_id for o in plan.osteotomies if o.segment in missing]
         bone = np.where(np.isin(found, wanted), found, bone)
     out = labels.copy()

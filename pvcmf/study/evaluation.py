@@ -26,7 +26,8 @@ import numpy as np
 import pyvista as pv
 from scipy.spatial import Delaunay
 
-from .. import __version__, arrays
+from .. import arrays
+from .._version import __version__
 from ..cache import code_hash, make_key
 from .statistics import summary
 
