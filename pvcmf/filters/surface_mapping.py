@@ -152,24 +152,33 @@ class _Located:
     """Where skin points lie relative to a tetrahedral mesh (shared by the transfer and the
     crumple metric).
 
-    Inside: the containing tetrahedron and barycentric coordinates. Outside: "feet" on the
-    boundary, one per nearby boundary triangle whose distance is within a window of the
-    smallest (width ``d_1 h / (d_1 + h)``, ``h`` the median boundary edge), each with its
-    closest point, the ``k`` boundary nodes nearest to it and their smooth weights; the
-    feet are blended with weights ``(1 - s^2)^2`` (``s`` the excess distance over the
-    window), so the foot point never jumps where the closest triangle changes (concave
-    boundary), and the blend shrinks to the closest point as the point nears the boundary.
+    Inside: the containing tetrahedron and barycentric coordinates. Outside, within
+    ``reach`` of the mesh: "feet" on the boundary, one per nearby boundary triangle whose
+    distance is within a window of the smallest (width ``d_1 h / (d_1 + h)``, ``h`` the
+    median boundary edge), each with its closest point, the ``k`` boundary nodes nearest to
+    it and their smooth weights; the feet are blended with weights ``(1 - s^2)^2`` (``s``
+    the excess distance over the window), so the foot point never jumps where the closest
+    triangle changes (concave boundary), and the blend shrinks to the closest point as the
+    point nears the boundary. ``dist`` is the distance to the mesh (0 inside, ``inf``
+    beyond ``reach``: such points get no feet).
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=6):
+    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=6, reach=np.inf):
         self.points, self.tets = _tetra(grid)
         p = np.asarray(points, dtype=float)
         self.p = p
         src = pv.UnstructuredGrid({pv.CellType.TETRA: self.tets}, self.points)
         self._find_cells(src)
-        self.outside = out = np.flatnonzero(~self.inside)
         tri = _boundary_faces(src)
         self.boundary = np.unique(tri)
+        self.dist = np.where(self.inside, 0.0, np.inf)
+        out = np.flatnonzero(~self.inside)
+        if out.size and np.isfinite(reach):  # cheap reject: far from every boundary node
+            e = self.points[tri[:, [0, 1, 2]]] - self.points[tri[:, [1, 2, 0]]]
+            h_max = float(np.linalg.norm(e, axis=2).max())
+            dn = cKDTree(self.points[self.boundary]).query(p[out])[0]
+            out = out[dn - h_max <= reach]
+        self.outside = out
         n_pairs = 0
         if out.size:
             rows, q, bary, face = self._feet(tri, out, n_triangles)
@@ -190,14 +199,23 @@ class _Located:
             self.near, self.near_w = np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
 
     def _find_cells(self, src):
-        """Containing tetrahedra: VTK's probe, then the tetrahedra with the nearest
-        centroids for the points it misses (on shared faces, within round-off)."""
+        """Containing tetrahedra. Points farther from every tetrahedron's centroid than the
+        largest centroid-vertex distance lie in none; the others go to VTK's probe, then
+        to the tetrahedra with the nearest centroids for the points it misses (on shared
+        faces, within round-off)."""
         p, pts, tets = self.p, self.points, self.tets
-        src.cell_data[arrays.SCRATCH_CELL_ID] = np.arange(len(tets), dtype=np.int64)
-        probe = pv.PolyData(p).sample(src, pass_point_data=False, progress_bar=False)
-        cell = np.where(np.asarray(probe[arrays.VALID_POINT_MASK]).astype(bool),
-                        np.asarray(probe[arrays.SCRATCH_CELL_ID]).astype(np.int64), -1)
-        bary = np.full((len(p), 4), -np.inf)
+        n = len(p)
+        centre = pts[tets].mean(axis=1)
+        r_max = float(np.linalg.norm(pts[tets] - centre[:, None, :], axis=2).max())
+        tree = cKDTree(centre)
+        near = np.flatnonzero(tree.query(p, distance_upper_bound=r_max * (1 + 1e-9))[0] < np.inf)
+        cell = np.full(n, -1, dtype=np.int64)
+        bary = np.full((n, 4), -np.inf)
+        if near.size:
+            src.cell_data[arrays.SCRATCH_CELL_ID] = np.arange(len(tets), dtype=np.int64)
+            probe = pv.PolyData(p[near]).sample(src, pass_point_data=False, progress_bar=False)
+            cell[near] = np.where(np.asarray(probe[arrays.VALID_POINT_MASK]).astype(bool),
+                                  np.asarray(probe[arrays.SCRATCH_CELL_ID]).astype(np.int64), -1)
 
         def barycentric(idx, cells):
             t = tets[cells]
@@ -212,10 +230,10 @@ class _Located:
 
         hit = np.flatnonzero(cell >= 0)
         bary[hit] = barycentric(hit, cell[hit])
-        miss = np.flatnonzero(bary.min(axis=1) < -_INSIDE_TOL)
+        miss = near[bary[near].min(axis=1) < -_INSIDE_TOL]
         if miss.size:
             kc = min(8, len(tets))
-            cand = cKDTree(pts[tets].mean(axis=1)).query(p[miss], k=kc)[1].reshape(len(miss), kc)
+            cand = tree.query(p[miss], k=kc)[1].reshape(len(miss), kc)
             for j in range(kc):
                 b = barycentric(miss, cand[:, j])
                 better = b.min(axis=1) > bary[miss].min(axis=1)
@@ -236,6 +254,7 @@ class _Located:
             qs.append(q), bs.append(b), ds.append(np.linalg.norm(q - p, axis=1))
         d = np.stack(ds, axis=1)
         d1 = d.min(axis=1, keepdims=True)
+        self.dist[out] = d1[:, 0]
         e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
         h = float(np.median(np.linalg.norm(e, axis=2)))
         window = d1 * h / (d1 + h)
@@ -267,18 +286,19 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_
     k : int, default 8
         Boundary nodes whose gradients extend the field outside the mesh.
     band : float, default 4.0
-        Distance (mm) from the mesh within which the extension is exactly affine (the
-        skin the mesh models lies within a voxel or two). Farther points (skin that is
-        not simulated, e.g. behind a face model) extrapolate the boundary gradient over
-        an offset that saturates smoothly at ``2 band``, so their displacement stays
-        bounded; ``numpy.inf`` extrapolates linearly everywhere.
+        Distance (mm) from the mesh within which the extension is exactly affine: the
+        *modelled* skin (the skin the mesh models lies within a voxel or two of it).
+        Farther points (skin that is not simulated, e.g. behind a face model's posterior
+        cut) take the extension times a smooth step that falls to zero at ``2 band``, the
+        value on the fixed posterior plane; beyond ``2 band`` their rows are empty.
+        ``numpy.inf`` extrapolates linearly everywhere.
     progress_bar : bool, default False
         Show the steps (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
     scipy.sparse.csr_matrix, shape (n, grid.n_points)
-        Rows sum to one (a constant field is kept).
+        Rows of modelled points sum to one (a constant field is kept there).
 
     Raises
     ------
@@ -298,26 +318,16 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_
     pts = np.asarray(points.points if isinstance(points, pv.DataSet) else points, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
         raise ValueError(f"points must have shape (n, 3) with n > 0, got {pts.shape}")
-    if isinstance(k, bool) or int(k) != k or k < 1:
-        raise ValueError(f"k must be a positive integer, got {k!r}")
-    with Progress(total=2, desc="transfer_operator", enabled=progress_bar, logger=log) as bar:
-        loc = _Located(grid, pts, int(k))
-        bar.step(f"{int(loc.inside.sum())} of {len(pts)} points inside the mesh")
-        T = _assemble(loc, float(band))
-        bar.step("operator assembled")
-    log.info("transfer_operator: %d points, %d inside tetrahedra, %d extended from the "
-             "boundary", len(pts), int(loc.inside.sum()), loc.outside.size)
-    return T
+    return Transfer(grid, pts, k=k, band=band, progress_bar=progress_bar).W
 
 
-def _saturate(d, band):
-    """Factor ``l(d) / d``: ``l = d`` up to ``band``, then ``band (1 + tanh((d - band) /
-    band))`` (smooth, slope <= 1, at most ``2 band``)."""
+def _decay(d, band):
+    """Weight of the extension at distance ``d`` from the mesh: 1 up to ``band``, a smooth
+    step (C1) down to 0 at ``2 band``, 0 beyond (the value on the fixed posterior plane)."""
     if not np.isfinite(band):
         return np.ones_like(d)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ell = np.where(d <= band, d, band * (1.0 + np.tanh((d - band) / band)))
-        return np.where(d > 0, ell / d, 1.0)
+    t = np.clip((d - band) / band, 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
 
 
 def _assemble(loc, band=DEFAULT_BAND):
@@ -326,21 +336,23 @@ def _assemble(loc, band=DEFAULT_BAND):
     T = sp.csr_matrix((loc.bary[ins].ravel(), (np.repeat(ins, 4), loc.tets[loc.cell[ins]].ravel())),
                       shape=(n, m))
     npair = len(loc.pair_row)
-    if npair:  # one row per foot: u_h(q) + G(q) (p - q); then blended per point
-        face = sp.csr_matrix((loc.face_bary.ravel(), (np.repeat(np.arange(npair), 3),
-                                                      loc.face.ravel())), shape=(npair, m))
+    if npair:  # per foot u_h(q) + G(q) (p - q), blended per point, times the decay
+        scale = loc.pair_w * _decay(loc.dist[loc.pair_row], band)
+        face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(),
+                              (np.repeat(loc.pair_row, 3), loc.face.ravel())), shape=(n, m))
         used, inverse = np.unique(loc.near, return_inverse=True)
+        inverse = inverse.reshape(loc.near.shape)
         kk = loc.near.shape[1]
-        W = sp.csr_matrix((loc.near_w.ravel(), (np.repeat(np.arange(npair), kk),
-                                                inverse.ravel())), shape=(npair, len(used)))
-        D = _gradient_operators(loc.points, loc.tets, loc.boundary[used])
         offset = loc.p[loc.pair_row] - loc.q
-        offset *= _saturate(np.linalg.norm(offset, axis=1), band)[:, None]
-        feet = face
-        for c in range(3):
-            feet = feet + sp.diags(offset[:, c]) @ (W @ D[c])
-        blend = sp.csr_matrix((loc.pair_w, (loc.pair_row, np.arange(npair))), shape=(n, npair))
-        T = T + blend @ feet
+        rows = np.repeat(loc.pair_row, kk)
+        vals, cols = [], []
+        for c in range(3):  # [B diag(o_x) W, B diag(o_y) W, B diag(o_z) W] in one matrix
+            vals.append(((scale * offset[:, c])[:, None] * loc.near_w).ravel())
+            cols.append(inverse.ravel() + c * len(used))
+        BW = sp.csr_matrix((np.concatenate(vals), (np.tile(rows, 3), np.concatenate(cols))),
+                           shape=(n, 3 * len(used)))
+        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary[used])).tocsr()
+        T = T + face + BW @ D
     T = T.tocsr()
     T.sum_duplicates()
     T.eliminate_zeros()
@@ -357,19 +369,41 @@ class Transfer:
         The operator ``T``.
     inside : ndarray of bool
         Points inside a tetrahedron.
+    distance : ndarray
+        Distance (mm) of each point to the mesh (0 inside, ``inf`` beyond ``2 band``).
+    modelled : ndarray of bool
+        Points within ``band`` of the mesh (:data:`pvcmf.arrays.SKIN_MODELLED`).
+    band : float
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K, band=DEFAULT_BAND):
-        loc = _Located(grid, points, k)
-        self.W = _assemble(loc, band)
+    def __init__(self, grid, points, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
+        pts = np.asarray(points.points if isinstance(points, pv.DataSet) else points, dtype=float)
+        if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
+            raise ValueError(f"points must have shape (n, 3) with n > 0, got {pts.shape}")
+        if isinstance(k, bool) or int(k) != k or k < 1:
+            raise ValueError(f"k must be a positive integer, got {k!r}")
+        if not float(band) > 0:
+            raise ValueError(f"band must be > 0 mm (or numpy.inf), got {band!r}")
+        self.band = float(band)
+        with Progress(total=2, desc="transfer_operator", enabled=progress_bar, logger=log) as bar:
+            self._loc = loc = _Located(grid, pts, int(k), reach=2.0 * self.band)
+            bar.step(f"{int(loc.inside.sum())} of {len(pts)} points inside the mesh")
+            self.W = _assemble(loc, self.band)
+            bar.step("operator assembled")
         self.inside = loc.inside
+        self.distance = loc.dist
+        self.modelled = loc.dist <= self.band
+        log.info("transfer_operator: %d points, %d inside tetrahedra, %d extended from the "
+                 "boundary, %d not modelled (farther than %.3g mm)", len(pts),
+                 int(loc.inside.sum()), int((~loc.inside & self.modelled).sum()),
+                 int((~self.modelled).sum()), self.band)
 
     def __call__(self, u):
         return np.asarray(self.W @ np.asarray(u, dtype=float))
 
 
 def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, k=DEFAULT_K,
-                   warp=True, progress_bar=False):
+                   band=DEFAULT_BAND, warp=True, progress_bar=False):
     """Map the grid's point ``displacement`` onto a dense skin surface.
 
     Parameters
@@ -390,6 +424,9 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
         ``'gaussian'`` only: neighbourhood radius (mm); default ``3 * sigma``.
     k : int, default 8
         ``'interpolate'`` only: boundary nodes of the extension outside the mesh.
+    band : float, default 4.0
+        ``'interpolate'`` only: the modelled skin's distance from the mesh (see
+        :func:`transfer_operator`).
     warp : bool, default True
         Move the skin points by the mapped displacement (the predicted dense skin).
     progress_bar : bool, default False
@@ -399,7 +436,8 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
     -------
     pyvista.DataSet
         Copy of ``skin`` with point array ``arrays.DISPLACEMENT`` (float64 (n, 3), mm),
-        and ``arrays.TRANSFER_INSIDE`` (``'interpolate'``: 1 inside a tetrahedron) or
+        and ``arrays.TRANSFER_INSIDE`` (``'interpolate'``: 1 inside a tetrahedron) and
+        ``arrays.SKIN_MODELLED`` (``'interpolate'``: 1 within ``band`` of the mesh) or
         ``SUPPORT`` (``'gaussian'``); points moved when ``warp``.
 
     Raises
@@ -435,10 +473,11 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
     out = skin.copy()
     if method == "interpolate":
         with Progress(total=1, desc="map_to_surface", enabled=progress_bar, logger=log) as bar:
-            mapping = Transfer(grid, skin.points, k=k)
+            mapping = Transfer(grid, skin.points, k=k, band=band)
             disp = mapping(u)
             bar.step(f"{skin.n_points} skin points")
         out.point_data[arrays.TRANSFER_INSIDE] = mapping.inside.astype(np.uint8)
+        out.point_data[arrays.SKIN_MODELLED] = mapping.modelled.astype(np.uint8)
     else:
         disp = _gaussian(grid, skin, u, sigma, radius, progress_bar, out)
     out.point_data[arrays.DISPLACEMENT] = disp
@@ -479,10 +518,13 @@ def _edges(surface):
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
-def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
+def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT_BAND,
+                   slack=0.1, transfer=None):
     """Check that a skin displacement stretches no skin edge beyond the mesh's gradients.
 
-    For every edge ``(a, b)`` of ``skin_pre`` the stretch ``|u_a - u_b| / |x_a - x_b|`` is
+    Only the modelled skin is checked: edges whose two points lie inside the mesh or within
+    ``band`` of it (skin farther away, e.g. behind a face model's posterior cut, is not
+    predicted by the model). For every such edge ``(a, b)`` of ``skin_pre`` the stretch ``|u_a - u_b| / |x_a - x_b|`` is
     compared with the largest displacement-gradient norm (spectral) of the tetrahedra
     around it: the tetrahedra sharing a node with the tetrahedron that holds an endpoint,
     or, for an endpoint outside the mesh, those sharing a node with its nearest boundary
@@ -502,14 +544,20 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
         The mesh displacement (mm).
     k : int, default 8
         Boundary nodes around an outside point (as :func:`transfer_operator`).
+    band : float, default 4.0
+        Modelled skin: within this distance (mm) of the mesh (as :func:`transfer_operator`).
     slack : float, default 0.1
         An edge violates the bound when its stretch exceeds ``(1 + slack)`` times it.
+    transfer : Transfer, optional
+        The :class:`Transfer` of ``grid`` onto ``skin_pre``'s points, reused instead of
+        locating the points again (its ``k`` and ``band`` apply).
 
     Returns
     -------
     dict
-        ``ratio`` (per edge: stretch / bound, 0 where both vanish), ``edges`` ((e, 2)),
-        and the summary values under ``arrays.CRUMPLE_EDGES``, ``arrays.CRUMPLE_VIOLATIONS``
+        ``ratio`` (per modelled edge: stretch / bound, 0 where both vanish), ``edges``
+        ((e, 2), the modelled edges), ``modelled`` (per point, bool), and the summary
+        values under ``arrays.CRUMPLE_EDGES``, ``arrays.CRUMPLE_VIOLATIONS``
         and ``arrays.CRUMPLE_MAX_RATIO``.
 
     Examples
@@ -530,7 +578,12 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
         raise ValueError(f"u_skin must have shape ({skin_pre.n_points}, 3), got {u_skin.shape}")
     if u_nodes.shape != (grid.n_points, 3):
         raise ValueError(f"u_nodes must have shape ({grid.n_points}, 3), got {u_nodes.shape}")
-    loc = _Located(grid, skin_pre.points, k)
+    if transfer is None:
+        transfer = Transfer(grid, skin_pre.points, k=k, band=band)
+    elif len(transfer.inside) != skin_pre.n_points:
+        raise ValueError(f"transfer maps {len(transfer.inside)} points, skin_pre has "
+                         f"{skin_pre.n_points}")
+    loc = transfer._loc
     inv, _ = _gradients(loc.points, loc.tets)
     du = u_nodes[loc.tets[:, 1:]] - u_nodes[loc.tets[:, :1]]  # (m, 3 edges, 3 comps)
     grad = np.einsum("tca,tai->tic", inv, du)  # d u_i / d x_c
@@ -544,13 +597,16 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
         around = np.concatenate([loc.face, loc.boundary[loc.near]], axis=1)
         np.maximum.at(bound, loc.pair_row, node_max[around].max(axis=1))
     e = _edges(skin_pre)
+    e = e[transfer.modelled[e].all(axis=1)]
     x = np.asarray(skin_pre.points, dtype=float)
     length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
     stretch = np.linalg.norm(u_skin[e[:, 0]] - u_skin[e[:, 1]], axis=1) / np.maximum(length, 1e-300)
     limit = np.maximum(bound[e[:, 0]], bound[e[:, 1]])
     tiny = 1e-9 * max(float(gnorm.max(initial=0.0)), 1e-12)
     ratio = np.where(limit > tiny, stretch / np.maximum(limit, tiny), np.where(stretch > tiny, np.inf, 0.0))
-    return {"ratio": ratio, "edges": e, arrays.CRUMPLE_EDGES: int(len(e)),
+    return {"ratio": ratio, "edges": e, "modelled": transfer.modelled.copy(),
+            arrays.SKIN_MODELLED_POINTS: int(transfer.modelled.sum()),
+            arrays.CRUMPLE_EDGES: int(len(e)),
             arrays.CRUMPLE_VIOLATIONS: int(np.sum(ratio > 1.0 + slack)),
             arrays.CRUMPLE_MAX_RATIO: float(ratio.max(initial=0.0))}
 
