@@ -70,6 +70,8 @@ DEFAULT_K = 8
 DEFAULT_BAND = 4.0
 #: barycentric coordinates down to this (negative) value still count as inside a tetrahedron
 _INSIDE_TOL = 1e-6
+#: width of the foot blend (in units of d h / (d + h), d the distance, h the median boundary edge)
+_WINDOW = 3.0
 
 
 def _tetra(grid):
@@ -154,7 +156,7 @@ class _Located:
 
     Inside: the containing tetrahedron and barycentric coordinates. Outside, within
     ``reach`` of the mesh: "feet" on the boundary, one per nearby boundary triangle whose
-    distance is within a window of the smallest (width ``d_1 h / (d_1 + h)``, ``h`` the
+    distance is within a window of the smallest (width ``3 d_1 h / (d_1 + h)``, ``h`` the
     median boundary edge), each with its closest point, the ``k`` boundary nodes nearest to
     it and their smooth weights; the feet are blended with weights ``(1 - s^2)^2`` (``s``
     the excess distance over the window), so the foot point never jumps where the closest
@@ -163,7 +165,7 @@ class _Located:
     beyond ``reach``: such points get no feet).
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=6, reach=np.inf):
+    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=12, reach=np.inf):
         self.points, self.tets = _tetra(grid)
         p = np.asarray(points, dtype=float)
         self.p = p
@@ -257,7 +259,7 @@ class _Located:
         self.dist[out] = d1[:, 0]
         e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
         h = float(np.median(np.linalg.norm(e, axis=2)))
-        window = d1 * h / (d1 + h)
+        window = _WINDOW * d1 * h / (d1 + h)
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.where(window > 0, (d - d1) / window, np.where(d > d1, np.inf, 0.0))
         w = np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
