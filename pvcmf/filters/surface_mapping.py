@@ -6,16 +6,19 @@ and skin:
 ``method="interpolate"`` (default, :func:`transfer_operator`, :class:`Transfer`)
     A skin point inside the tetrahedral mesh takes the finite-element (barycentric)
     interpolation of its tetrahedron. A point outside takes
-    ``u(p) = u_h(q) + G(q) (p - q)``: ``q`` is the closest point of the mesh's boundary
-    surface (blended over the boundary triangles that are nearly as close, so that ``q``
-    does not jump at a concave boundary), ``u_h(q)`` the linear interpolation on its boundary triangle and ``G(q)`` a
+    ``u(p) = sum_f w_f u_h(q_f) + G(q) (p - q)``: ``q_f`` are the closest points of the
+    boundary triangles that are nearly as close as the closest (weights ``w_f``, so that
+    the blend ``q = sum_f w_f q_f`` does not jump at a concave boundary), ``u_h`` the
+    linear interpolation on a boundary triangle and ``G(q)`` a
     smooth convex combination of the nodal displacement gradients (volume-weighted means
     of the gradients of the tetrahedra around a node) at the ``k`` boundary nodes nearest
     to ``q``, with weights ``(1 - (d_j / d_(k+1))^2)^2`` that vanish as a node leaves the
     ``k`` nearest (continuous in ``q``). Properties: an affine field is reproduced exactly
-    within ``band`` of the mesh (every gradient is its gradient; farther out the offset
-    ``p - q`` saturates smoothly, so unsimulated skin far behind a face model is not
-    extrapolated without bound); the extension is continuous across the
+    within ``band`` of the mesh, the *modelled* skin (every gradient is its gradient);
+    farther out (skin the mesh does not model, e.g. behind a face model's posterior cut)
+    the extension is multiplied by a smooth step that reaches zero, the value on the fixed
+    posterior plane, at ``2 band`` (point array ``arrays.SKIN_MODELLED`` tells the two
+    apart); the extension is continuous across the
     mesh boundary (``p -> q``); ``|G|`` is at most the largest gradient of the tetrahedra
     involved (a convex combination of them). No nearest-node copy, so no steps.
     :func:`crumple_metric` checks, per skin edge, that the mapped field stretches it no
@@ -65,13 +68,13 @@ SUPPORT = arrays.MAPPING_SUPPORT
 METHODS = ("interpolate", "gaussian")
 #: default number of boundary nodes whose gradients extend the field outside the mesh
 DEFAULT_K = 8
-#: default distance (mm) from the mesh within which the extension is exactly affine; beyond
-#: it the offset along which the boundary gradient extrapolates saturates (at twice this)
+#: default distance (mm) from the mesh within which the extension is exactly affine (the
+#: modelled skin); beyond it the extension falls smoothly to zero at twice this
 DEFAULT_BAND = 4.0
 #: barycentric coordinates down to this (negative) value still count as inside a tetrahedron
 _INSIDE_TOL = 1e-6
 #: width of the foot blend (in units of d h / (d + h), d the distance, h the median boundary edge)
-_WINDOW = 3.0
+_WINDOW = 10.0
 
 
 def _tetra(grid):
@@ -156,16 +159,16 @@ class _Located:
 
     Inside: the containing tetrahedron and barycentric coordinates. Outside, within
     ``reach`` of the mesh: "feet" on the boundary, one per nearby boundary triangle whose
-    distance is within a window of the smallest (width ``3 d_1 h / (d_1 + h)``, ``h`` the
-    median boundary edge), each with its closest point, the ``k`` boundary nodes nearest to
-    it and their smooth weights; the feet are blended with weights ``(1 - s^2)^2`` (``s``
-    the excess distance over the window), so the foot point never jumps where the closest
-    triangle changes (concave boundary), and the blend shrinks to the closest point as the
-    point nears the boundary. ``dist`` is the distance to the mesh (0 inside, ``inf``
+    distance is within a window of the smallest (width ``10 d_1 h / (d_1 + h)``, ``h`` the
+    median boundary edge), each with its closest point; the feet are blended with weights
+    ``(1 - s^2)^2`` (``s`` the excess distance over the window), so the blended foot
+    ``q`` never jumps where the closest triangle changes (concave boundary), and the blend
+    shrinks to the closest point as the point nears the boundary. The ``k`` boundary nodes
+    nearest to ``q`` and their smooth weights give the gradient ``G(q)``. ``dist`` is the distance to the mesh (0 inside, ``inf``
     beyond ``reach``: such points get no feet).
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=12, reach=np.inf):
+    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=24, reach=np.inf):
         self.points, self.tets = _tetra(grid)
         p = np.asarray(points, dtype=float)
         self.p = p
@@ -185,18 +188,25 @@ class _Located:
         if out.size:
             rows, q, bary, face = self._feet(tri, out, n_triangles)
             n_pairs = len(rows)
+            slot = np.full(len(p), -1)
+            slot[out] = np.arange(out.size)
+            qbar = np.zeros((out.size, 3))  # blended foot: sum of the feet's weights is 1
+            for c in range(3):
+                qbar[:, c] = np.bincount(slot[rows], self.pair_w * q[:, c], minlength=out.size)
             kk = max(1, min(k, len(self.boundary) - 1))
-            dist, idx = cKDTree(self.points[self.boundary]).query(q, k=kk + 1)
-            dist, idx = dist.reshape(n_pairs, -1), idx.reshape(n_pairs, -1)
+            dist, idx = cKDTree(self.points[self.boundary]).query(qbar, k=kk + 1)
+            dist, idx = dist.reshape(out.size, -1), idx.reshape(out.size, -1)
             h = dist[:, -1:]
             s = np.where(h > 0, dist[:, :-1] / np.where(h > 0, h, 1.0), 0.0)
             w = (1.0 - s**2) ** 2
             w /= w.sum(axis=1, keepdims=True)
-            self.near, self.near_w = idx[:, :-1], w  # indices into self.boundary
+            self.near, self.near_w = idx[:, :-1], w  # per outside point, into self.boundary
             self.pair_row, self.q, self.face_bary, self.face = rows, q, bary, face
+            self.qbar = qbar
         if not n_pairs:
+            self.outside = np.zeros(0, dtype=np.int64)
             self.pair_row, self.pair_w = np.zeros(0, dtype=np.int64), np.zeros(0)
-            self.q = np.zeros((0, 3))
+            self.q, self.qbar = np.zeros((0, 3)), np.zeros((0, 3))
             self.face_bary, self.face = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
             self.near, self.near_w = np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
 
@@ -338,20 +348,22 @@ def _assemble(loc, band=DEFAULT_BAND):
     T = sp.csr_matrix((loc.bary[ins].ravel(), (np.repeat(ins, 4), loc.tets[loc.cell[ins]].ravel())),
                       shape=(n, m))
     npair = len(loc.pair_row)
-    if npair:  # per foot u_h(q) + G(q) (p - q), blended per point, times the decay
-        scale = loc.pair_w * _decay(loc.dist[loc.pair_row], band)
+    if npair:  # blended feet's u_h(q_f) + G(q) (p - q), q their blend, times the decay
+        decay = _decay(loc.dist, band)
+        scale = loc.pair_w * decay[loc.pair_row]
         face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(),
                               (np.repeat(loc.pair_row, 3), loc.face.ravel())), shape=(n, m))
         used, inverse = np.unique(loc.near, return_inverse=True)
         inverse = inverse.reshape(loc.near.shape)
         kk = loc.near.shape[1]
-        offset = loc.p[loc.pair_row] - loc.q
-        rows = np.repeat(loc.pair_row, kk)
+        out = loc.outside
+        offset = (loc.p[out] - loc.qbar) * decay[out][:, None]
         vals, cols = [], []
-        for c in range(3):  # [B diag(o_x) W, B diag(o_y) W, B diag(o_z) W] in one matrix
-            vals.append(((scale * offset[:, c])[:, None] * loc.near_w).ravel())
+        for c in range(3):  # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix
+            vals.append((offset[:, c][:, None] * loc.near_w).ravel())
             cols.append(inverse.ravel() + c * len(used))
-        BW = sp.csr_matrix((np.concatenate(vals), (np.tile(rows, 3), np.concatenate(cols))),
+        BW = sp.csr_matrix((np.concatenate(vals), (np.tile(np.repeat(out, kk), 3),
+                                                   np.concatenate(cols))),
                            shape=(n, 3 * len(used)))
         D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary[used])).tocsr()
         T = T + face + BW @ D
@@ -596,8 +608,8 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
     ins = np.flatnonzero(loc.inside)
     bound[ins] = node_max[loc.tets[loc.cell[ins]]].max(axis=1)
     if len(loc.pair_row):
-        around = np.concatenate([loc.face, loc.boundary[loc.near]], axis=1)
-        np.maximum.at(bound, loc.pair_row, node_max[around].max(axis=1))
+        np.maximum.at(bound, loc.pair_row, node_max[loc.face].max(axis=1))
+        np.maximum.at(bound, loc.outside, node_max[loc.boundary[loc.near]].max(axis=1))
     e = _edges(skin_pre)
     e = e[transfer.modelled[e].all(axis=1)]
     x = np.asarray(skin_pre.points, dtype=float)
