@@ -71,3 +71,24 @@ def test_other_boundary_types_fall_back(block):
         pred = resp.predict_displacement(plan)
     full = solve(apply_plan(grid, plan, img, fix_unmoved_bone=True))
     assert np.abs(pred - transfer_operator(grid, skin) @ full[arrays.DISPLACEMENT]).max() < 1e-9
+
+
+def test_float32_storage_keeps_a_micrometre(block):
+    """``dtype='auto'`` stores the skin operator in float32 only where the product stays
+    within 1e-6 mm of float64; the statistics equal the magnitudes computed point by point
+    over the modelled skin."""
+    grid, img, skin = block
+    opts = {"fix_unmoved_bone": True}
+    auto = plan_response(grid, img, skin=skin, bc_options=opts)
+    exact = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts)
+    assert auto.float32_error is not None
+    assert (auto.skin_response.dtype == np.float32) == (auto.float32_error <= 1e-6)
+    rng = np.random.default_rng(5)
+    plans = [_random_plan(rng) for _ in range(6)]
+    worst = max(np.abs(auto.predict_displacement(p) - exact.predict_displacement(p)).max()
+                for p in plans)
+    assert worst <= 1e-6
+    stats = exact.statistics(plans)
+    for row, plan in zip(stats, plans):
+        mag = np.linalg.norm(exact.predict_displacement(plan)[exact.modelled], axis=1)
+        assert np.allclose(row, [mag.max(), mag.mean(), np.sqrt((mag ** 2).mean())], rtol=1e-12)
