@@ -37,7 +37,7 @@ from .solver import Solver
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PlanResponse", "plan_response", "PlanResponseWarning"]
+__all__ = ["PlanResponse", "plan_response", "plan_grid", "PlanResponseWarning"]
 
 
 #: largest float32 rounding (mm) of the skin operator's product that keeps float32 storage
@@ -315,3 +315,86 @@ class PlanResponse:
                 mag = np.linalg.norm(self.predict_displacement(plans[i])[keep], axis=1)
                 out[i] = mag.max(), mag.mean(), np.sqrt((mag ** 2).mean())
         return out
+
+    def displacements(self, plans, points=None, chunk=256):
+        """Skin displacement of many plans at once: ``(n_plans, n_points, 3)`` (mm).
+
+        One batched matrix product per ``chunk`` plans (plans needing a full solve are
+        solved one by one, with a :class:`PlanResponseWarning`).
+
+        Parameters
+        ----------
+        plans : sequence of pvcmf.Plan
+        points : array_like of int, optional
+            Skin point ids (default: every skin point).
+        chunk : int, default 256
+            Plans per matrix product.
+        """
+        R = self.skin_response
+        if R is None:
+            raise ValueError("plan_response was built without skin=: no skin to predict")
+        ids = np.arange(R.shape[1]) if points is None else np.asarray(points, dtype=np.int64)
+        if ids.ndim != 1 or (ids.size and (ids.min() < 0 or ids.max() >= R.shape[1])):
+            raise ValueError(f"points must be skin point ids in [0, {R.shape[1]}), got {points!r}")
+        Rs = np.ascontiguousarray(R[:, ids]).reshape(-1, R.shape[2])
+        params = [self.parameters(p) for p in plans]
+        out = np.zeros((len(plans), ids.size, 3))
+        fast = [i for i, a in enumerate(params) if a is not None]
+        for start in range(0, len(fast), chunk):
+            idx = fast[start:start + chunk]
+            A = np.stack([params[i] for i in idx], axis=1).astype(R.dtype)
+            with blas_threads(self.threads):
+                U = (Rs @ A).reshape(3, ids.size, len(idx))
+            out[idx] = np.transpose(U, (2, 1, 0))
+        for i, a in enumerate(params):
+            if a is None:
+                out[i] = self.predict_displacement(plans[i])[ids]
+        return out
+
+
+def plan_grid(segment, *, translations=None, rotations=None, base=None):
+    """Plans that vary one segment's motion over given values (a plan sweep).
+
+    Parameters
+    ----------
+    segment : str
+        The moved segment (e.g. ``"maxilla"``).
+    translations, rotations : array_like, shape (m, 3), optional
+        Per plan: translation (mm) and rotation (degrees) in the plan's (horizontal,
+        vertical, anterior-posterior) convention; a missing one is zero (or ``base``'s).
+    base : pvcmf.Plan, optional
+        The other segments' motions, kept in every plan; its ``segment`` entry (if any)
+        gives the cut planes and pivot.
+
+    Returns
+    -------
+    list of pvcmf.Plan
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from pvcmf.mtm.response import plan_grid
+    >>> plans = plan_grid("maxilla", translations=[[0, 0, a] for a in np.arange(0, 9, 2.0)])
+    >>> len(plans), plans[-1].osteotomies[0].translation
+    (5, (0.0, 0.0, 8.0))
+    """
+    if translations is None and rotations is None:
+        raise ValueError("plan_grid needs translations= or rotations=")
+    t = None if translations is None else np.asarray(translations, dtype=float)
+    r = None if rotations is None else np.asarray(rotations, dtype=float)
+    for name, v in (("translations", t), ("rotations", r)):
+        if v is not None and (v.ndim != 2 or v.shape[1] != 3):
+            raise ValueError(f"{name} must have shape (m, 3), got {v.shape}")
+    m = len(t) if t is not None else len(r)
+    if t is not None and r is not None and len(r) != m:
+        raise ValueError(f"translations and rotations must have the same length, got {m} and {len(r)}")
+    others = tuple(o for o in base.osteotomies if o.segment != segment) if base is not None else ()
+    mine = [o for o in base.osteotomies if o.segment == segment] if base is not None else []
+    ref = mine[0] if mine else Osteotomy(segment)
+    plans = []
+    for i in range(m):
+        tr = tuple(t[i].tolist()) if t is not None else tuple(ref.translation)
+        ro = tuple(r[i].tolist()) if r is not None else tuple(ref.rotation)
+        o = Osteotomy(segment, translation=tr, rotation=ro, pivot=ref.pivot, cut=ref.cut)
+        plans.append(Plan(others + (o,), name=base.name if base is not None else ""))
+    return plans
