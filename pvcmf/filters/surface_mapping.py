@@ -254,21 +254,36 @@ class _Located:
         self.cell = np.where(self.inside, cell, -1)
         self.bary = np.where(self.inside[:, None], bary, 0.0)
 
-    def _feet(self, tri, out, n_triangles):
-        """Blended feet of the outside points on the boundary triangles ``tri``."""
+    def _feet(self, tri, out, n_triangles, exact=6):
+        """Blended feet of the outside points on the boundary triangles ``tri``.
+
+        The ``exact`` nearest candidates (by centroid) are measured for every point; a
+        farther candidate only where its centroid distance less its radius could fall
+        inside the blend window (elsewhere its weight is zero)."""
         p, pts = self.p[out], self.points
         kt = min(n_triangles, len(tri))
-        cand = cKDTree(pts[tri].mean(axis=1)).query(p, k=kt)[1].reshape(len(out), kt)
-        qs, bs, ds = [], [], []
-        for j in range(kt):  # a few candidate triangles per point, each vectorised
-            tj = tri[cand[:, j]]
-            q, b = _closest_on_triangles(p, pts[tj[:, 0]], pts[tj[:, 1]], pts[tj[:, 2]])
-            qs.append(q), bs.append(b), ds.append(np.linalg.norm(q - p, axis=1))
-        d = np.stack(ds, axis=1)
-        d1 = d.min(axis=1, keepdims=True)
-        self.dist[out] = d1[:, 0]
+        centre = pts[tri].mean(axis=1)
+        radius = np.linalg.norm(pts[tri] - centre[:, None, :], axis=2).max(axis=1)
+        cdist, cand = cKDTree(centre).query(p, k=kt)
+        cdist, cand = cdist.reshape(len(out), kt), cand.reshape(len(out), kt)
         e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
         h = float(np.median(np.linalg.norm(e, axis=2)))
+        n = len(out)
+        d = np.full((n, kt), np.inf)
+        q_all, b_all = np.zeros((n, kt, 3)), np.zeros((n, kt, 3))
+        d1 = np.full(n, np.inf)
+        for j in range(kt):  # a few candidate triangles per point, each vectorised
+            rows = np.arange(n) if j < exact else np.flatnonzero(
+                cdist[:, j] - radius[cand[:, j]] < d1 + _WINDOW * d1 * h / (d1 + h))
+            if not rows.size:
+                continue
+            tj = tri[cand[rows, j]]
+            q, b = _closest_on_triangles(p[rows], pts[tj[:, 0]], pts[tj[:, 1]], pts[tj[:, 2]])
+            d[rows, j] = np.linalg.norm(q - p[rows], axis=1)
+            q_all[rows, j], b_all[rows, j] = q, b
+            d1[rows] = np.minimum(d1[rows], d[rows, j])
+        d1 = d1[:, None]
+        self.dist[out] = d1[:, 0]
         window = _WINDOW * d1 * h / (d1 + h)
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.where(window > 0, (d - d1) / window, np.where(d > d1, np.inf, 0.0))
@@ -276,9 +291,7 @@ class _Located:
         w /= w.sum(axis=1, keepdims=True)
         r, j = np.nonzero(w > 0)
         self.pair_w = w[r, j]
-        q = np.stack(qs, axis=1)[r, j]
-        bary = np.stack(bs, axis=1)[r, j]
-        return out[r], q, bary, tri[cand[r, j]]
+        return out[r], q_all[r, j], b_all[r, j], tri[cand[r, j]]
 
 
 def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
