@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from . import arrays, filters, mtm
 from ._atomic import write_text
-from .filters.surface_mapping import crumple_metric, transfer_operator
+from .filters.surface_mapping import Transfer, crumple_metric
 from .filters.osteotomy import cut_bones, move_bones
 from .io import read_ct
 from .io.orientation import standardize
@@ -219,25 +219,34 @@ def _skin(labels, post):
     The skin comes from :func:`pvcmf.filters.extract_skin` of the label image. The mesh
     displacement is carried onto it by :func:`pvcmf.filters.surface_mapping.transfer_operator`
     (finite-element interpolation inside the tetrahedra, an exact-for-affine extension of
-    the boundary gradients outside); the crumple metric of the transfer
-    (:func:`~pvcmf.filters.surface_mapping.crumple_metric`) is kept in the predicted skin's
-    field data.
+    the boundary gradients outside). Skin farther than the transfer's band from the mesh
+    (behind the face model's posterior cut) is not modelled: point array
+    ``arrays.SKIN_MODELLED`` marks the predicted points, and the crumple metric of the
+    transfer (:func:`~pvcmf.filters.surface_mapping.crumple_metric`, over the modelled skin)
+    is kept in the predicted skin's field data.
     """
     pre = filters.extract_skin(labels).copy()
     pre.clear_data()
     if post is None:
         return pre, None
     u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
-    disp = np.asarray(transfer_operator(post, pre) @ u_nodes)
-    metric = crumple_metric(pre, disp, post, u_nodes)
-    log.info("skin: %d points, %d edges stretched beyond the mesh's gradients (max ratio %.3g)",
-             pre.n_points, metric[arrays.CRUMPLE_VIOLATIONS], metric[arrays.CRUMPLE_MAX_RATIO])
+    transfer = Transfer(post, pre)
+    disp = transfer(u_nodes)
+    metric = crumple_metric(pre, disp, post, u_nodes, transfer=transfer)
+    log.info("skin: %d points (%d modelled), %d edges stretched beyond the mesh's gradients "
+             "(max ratio %.3g)", pre.n_points, metric[arrays.SKIN_MODELLED_POINTS],
+             metric[arrays.CRUMPLE_VIOLATIONS], metric[arrays.CRUMPLE_MAX_RATIO])
     pre.point_data[arrays.DISPLACEMENT] = disp
+    pre.point_data[arrays.SKIN_MODELLED] = transfer.modelled.astype(np.uint8)
     moved = pre.copy()
     moved.points = np.asarray(pre.points) + disp
-    for name in (arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS, arrays.CRUMPLE_MAX_RATIO):
+    for name in _SKIN_SUMMARY:
         moved.field_data[name] = np.array([metric[name]])
     return pre, moved
+
+
+_SKIN_SUMMARY = (arrays.SKIN_MODELLED_POINTS, arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS,
+                 arrays.CRUMPLE_MAX_RATIO)
 
 
 def _write_outputs(result, out, images=None):
@@ -247,8 +256,9 @@ def _write_outputs(result, out, images=None):
     if skin is not None and arrays.CRUMPLE_VIOLATIONS in skin.field_data:
         path = Path(files["summary"])
         summary = json.loads(path.read_text(encoding="utf-8"))
-        for name in (arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS, arrays.CRUMPLE_MAX_RATIO):
-            summary[name] = skin.field_data[name][0].item()
+        for name in _SKIN_SUMMARY:
+            if name in skin.field_data:
+                summary[name] = skin.field_data[name][0].item()
         write_text(path, json.dumps(summary, indent=2) + "\n")
     return files
 

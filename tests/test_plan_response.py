@@ -71,3 +71,53 @@ def test_other_boundary_types_fall_back(block):
         pred = resp.predict_displacement(plan)
     full = solve(apply_plan(grid, plan, img, fix_unmoved_bone=True))
     assert np.abs(pred - transfer_operator(grid, skin) @ full[arrays.DISPLACEMENT]).max() < 1e-9
+
+
+def test_float32_storage_keeps_a_micrometre(block):
+    """``dtype='auto'`` stores the skin operator in float32 only where the product stays
+    within 1e-6 mm of float64; the statistics equal the magnitudes computed point by point
+    over the modelled skin."""
+    grid, img, skin = block
+    opts = {"fix_unmoved_bone": True}
+    auto = plan_response(grid, img, skin=skin, bc_options=opts)
+    exact = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts)
+    assert auto.float32_error is not None
+    assert (auto.skin_response.dtype == np.float32) == (auto.float32_error <= 1e-6)
+    rng = np.random.default_rng(5)
+    plans = [_random_plan(rng) for _ in range(6)]
+    worst = max(np.abs(auto.predict_displacement(p) - exact.predict_displacement(p)).max()
+                for p in plans)
+    assert worst <= 1e-6
+    stats = exact.statistics(plans)
+    for row, plan in zip(stats, plans):
+        mag = np.linalg.norm(exact.predict_displacement(plan)[exact.modelled], axis=1)
+        assert np.allclose(row, [mag.max(), mag.mean(), np.sqrt((mag ** 2).mean())], rtol=1e-12)
+
+
+def test_plan_sweep_finds_the_advancement(block):
+    """A sweep of mandible advancements on one operator: the advancements that bring a lip
+    point within 2 mm of a target are those the full solve finds."""
+    from pvcmf.mtm.response import plan_grid
+
+    grid, img, skin = block
+    opts = {"fix_unmoved_bone": True}
+    resp = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts,
+                         plan=Plan((Osteotomy("mandible"),)))
+    x = np.asarray(skin.points)
+    lip = int(np.argmax(x[:, 1] - 5 * np.abs(x[:, 0]) - 5 * np.abs(x[:, 2] + 2)))
+    target = x[lip] + [0.0, 4.0, 0.0]
+    advance = np.arange(0.0, 8.01, 0.5)
+    plans = plan_grid("mandible", translations=[[0.0, 0.0, a] for a in advance])
+    u = resp.displacements(plans, points=[lip])[:, 0]
+    for p, v in zip(plans[::4], u[::4]):
+        assert np.abs(v - resp.predict_displacement(p)[lip]).max() < 1e-12
+    miss = np.linalg.norm(x[lip] + u - target, axis=1)
+    ok = miss <= 2.0
+    assert ok.any() and not ok.all()
+    T = transfer_operator(grid, skin)
+    for i in (int(np.argmax(ok)), int(np.argmax(ok)) - 1):  # first inside, last outside
+        full = solve(apply_plan(grid, plans[i], img, **opts))
+        v = (T @ full[arrays.DISPLACEMENT])[lip]
+        assert (np.linalg.norm(x[lip] + v - target) <= 2.0) == ok[i]
+    with pytest.raises(ValueError, match="translations"):
+        plan_grid("mandible", translations=[1.0, 2.0])

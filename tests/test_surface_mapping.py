@@ -105,3 +105,27 @@ def test_map_to_surface_methods(ball):
         transfer_operator(grid, np.zeros((3, 2)))
     with pytest.raises(TypeError, match="UnstructuredGrid"):
         transfer_operator(skin, skin.points)
+
+
+def test_modelled_skin_affine_and_unmodelled_decays(ball):
+    """Points within ``band`` of the mesh are modelled and take an affine field exactly;
+    points beyond ``2 band`` (skin the mesh does not model) take the fixed plane's zero."""
+    grid, _ = ball
+    rng = np.random.default_rng(3)
+    B, c = rng.normal(size=(3, 3)) * 0.2, rng.normal(size=3)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    pts = d * rng.uniform(5.0, 22.0, size=(400, 1))  # inside, in the band, far out
+    tr = Transfer(grid, pts, band=3.0)
+    u = tr(grid.points @ B.T + c)
+    want = pts @ B.T + c
+    r = np.linalg.norm(pts, axis=1)
+    assert tr.modelled.any() and (~tr.modelled).any()
+    assert np.all(tr.modelled[r < 12.5]) and not np.any(tr.modelled[r > 14.5])
+    assert np.abs(u - want)[tr.modelled].max() < 1e-9
+    assert np.all(u[r > 17.0] == 0.0)
+    assert np.allclose(tr.distance[tr.inside], 0.0)
+    g = grid.copy()
+    g[arrays.DISPLACEMENT] = grid.points @ B.T + c
+    out = map_to_surface(g, pv.PolyData(pts), band=3.0)
+    assert np.array_equal(out[arrays.SKIN_MODELLED].astype(bool), tr.modelled)

@@ -5,7 +5,10 @@
   :func:`scipy.ndimage.binary_fill_holes`), lightly smoothed
   (:func:`scipy.ndimage.gaussian_filter`) and contoured at one half by VTK's flying edges
   (:meth:`pyvista.ImageDataFilters.contour`); the largest connected piece is kept
-  (``vtkPolyDataConnectivityFilter``) with outward point normals (``vtkPolyDataNormals``).
+  (``vtkPolyDataConnectivityFilter``), the voxel terraces the contour still has are
+  removed by windowed-sinc smoothing (``vtkWindowedSincPolyDataFilter`` via
+  :meth:`pyvista.PolyDataFilters.smooth_taubin`: a low-pass filter that does not shrink
+  the surface), and outward point normals are added (``vtkPolyDataNormals``).
   The image is padded with air first, so the surface is closed where the head leaves the
   field of view.
 * Tetrahedral grid: its boundary triangles (``vtkDataSetSurfaceFilter`` via
@@ -38,6 +41,10 @@ log = logging.getLogger(__name__)
 
 #: point array of a grid skin: index of each skin point in the tetrahedral grid
 ORIGINAL_POINT_IDS = "vtkOriginalPointIds"
+#: default windowed-sinc iterations on an image skin (0: the contour as it is)
+SINC_ITERATIONS = 40
+#: pass band of the windowed-sinc filter (VTK's units; smaller smooths more)
+SINC_PASS_BAND = 0.05
 
 
 def _outward_normals(surface):
@@ -48,7 +55,7 @@ def _outward_normals(surface):
     )
 
 
-def _image_skin(image, threshold, smooth, fill_holes):
+def _image_skin(image, threshold, smooth, fill_holes, sinc):
     from scipy import ndimage
 
     if arrays.TISSUE in image.point_data:
@@ -86,6 +93,9 @@ def _image_skin(image, threshold, smooth, fill_holes):
     surf = surf.connectivity("largest").extract_surface(algorithm="dataset_surface")
     surf = surf.triangulate().clean()
     surf.clear_data()
+    if sinc:
+        surf = surf.smooth_taubin(n_iter=int(sinc), pass_band=SINC_PASS_BAND,
+                                  normalize_coordinates=True, progress_bar=False)
     return _outward_normals(surf)
 
 
@@ -161,7 +171,7 @@ def _faces_air(points, tri, labels, step=1.5):
 
 
 def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labels=None,
-                 warp=True, part="skin", progress_bar=False):
+                 warp=True, part="skin", sinc=SINC_ITERATIONS, progress_bar=False):
     """The outer skin surface of a label image / CT, or of a tetrahedral grid.
 
     Parameters
@@ -184,6 +194,9 @@ def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labe
         skin). The rest skin is ``extract_skin(grid, warp=False)``.
     part : {'skin', 'boundary'}, default 'skin'
         Grid only: the skin faces (see the module docs) or the whole boundary.
+    sinc : int, default 40
+        Image only: windowed-sinc smoothing iterations of the contour (removes the voxel
+        terraces without shrinking the surface); 0 keeps the contour.
     progress_bar : bool, default False
         Show the step (:class:`pvcmf.progress.Progress`).
 
@@ -220,7 +233,9 @@ def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labe
         )
     with Progress(total=1, desc="extract_skin", enabled=progress_bar, logger=log) as bar:
         if isinstance(dataset, pv.ImageData):
-            skin = _image_skin(dataset, threshold, smooth, fill_holes)
+            if isinstance(sinc, bool) or int(sinc) != sinc or sinc < 0:
+                raise ValueError(f"sinc must be a non-negative integer, got {sinc!r}")
+            skin = _image_skin(dataset, threshold, smooth, fill_holes, sinc)
         else:
             skin = _grid_skin(dataset, labels, warp, part)
         bar.step(f"{skin.n_points} skin points")

@@ -6,16 +6,19 @@ and skin:
 ``method="interpolate"`` (default, :func:`transfer_operator`, :class:`Transfer`)
     A skin point inside the tetrahedral mesh takes the finite-element (barycentric)
     interpolation of its tetrahedron. A point outside takes
-    ``u(p) = u_h(q) + G(q) (p - q)``: ``q`` is the closest point of the mesh's boundary
-    surface (blended over the boundary triangles that are nearly as close, so that ``q``
-    does not jump at a concave boundary), ``u_h(q)`` the linear interpolation on its boundary triangle and ``G(q)`` a
+    ``u(p) = sum_f w_f u_h(q_f) + G(q) (p - q)``: ``q_f`` are the closest points of the
+    boundary triangles that are nearly as close as the closest (weights ``w_f``, so that
+    the blend ``q = sum_f w_f q_f`` does not jump at a concave boundary), ``u_h`` the
+    linear interpolation on a boundary triangle and ``G(q)`` a
     smooth convex combination of the nodal displacement gradients (volume-weighted means
     of the gradients of the tetrahedra around a node) at the ``k`` boundary nodes nearest
     to ``q``, with weights ``(1 - (d_j / d_(k+1))^2)^2`` that vanish as a node leaves the
     ``k`` nearest (continuous in ``q``). Properties: an affine field is reproduced exactly
-    within ``band`` of the mesh (every gradient is its gradient; farther out the offset
-    ``p - q`` saturates smoothly, so unsimulated skin far behind a face model is not
-    extrapolated without bound); the extension is continuous across the
+    within ``band`` of the mesh, the *modelled* skin (every gradient is its gradient);
+    farther out (skin the mesh does not model, e.g. behind a face model's posterior cut)
+    the extension is multiplied by a smooth step that reaches zero, the value on the fixed
+    posterior plane, at ``2 band`` (point array ``arrays.SKIN_MODELLED`` tells the two
+    apart); the extension is continuous across the
     mesh boundary (``p -> q``); ``|G|`` is at most the largest gradient of the tetrahedra
     involved (a convex combination of them). No nearest-node copy, so no steps.
     :func:`crumple_metric` checks, per skin edge, that the mapped field stretches it no
@@ -52,6 +55,7 @@ from scipy.spatial import cKDTree
 
 from .. import arrays
 from ..progress import Progress
+from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
 from .skin import _boundary_faces
 
 log = logging.getLogger(__name__)
@@ -65,11 +69,13 @@ SUPPORT = arrays.MAPPING_SUPPORT
 METHODS = ("interpolate", "gaussian")
 #: default number of boundary nodes whose gradients extend the field outside the mesh
 DEFAULT_K = 8
-#: default distance (mm) from the mesh within which the extension is exactly affine; beyond
-#: it the offset along which the boundary gradient extrapolates saturates (at twice this)
+#: default distance (mm) from the mesh within which the extension is exactly affine (the
+#: modelled skin); beyond it the extension falls smoothly to zero at twice this
 DEFAULT_BAND = 4.0
 #: barycentric coordinates down to this (negative) value still count as inside a tetrahedron
 _INSIDE_TOL = 1e-6
+#: width of the foot blend (in units of d h / (d + h), d the distance, h the median boundary edge)
+_WINDOW = 10.0
 
 
 def _tetra(grid):
@@ -152,52 +158,77 @@ class _Located:
     """Where skin points lie relative to a tetrahedral mesh (shared by the transfer and the
     crumple metric).
 
-    Inside: the containing tetrahedron and barycentric coordinates. Outside: "feet" on the
-    boundary, one per nearby boundary triangle whose distance is within a window of the
-    smallest (width ``d_1 h / (d_1 + h)``, ``h`` the median boundary edge), each with its
-    closest point, the ``k`` boundary nodes nearest to it and their smooth weights; the
-    feet are blended with weights ``(1 - s^2)^2`` (``s`` the excess distance over the
-    window), so the foot point never jumps where the closest triangle changes (concave
-    boundary), and the blend shrinks to the closest point as the point nears the boundary.
+    Inside: the containing tetrahedron and barycentric coordinates. Outside, within
+    ``reach`` of the mesh: "feet" on the boundary, one per nearby boundary triangle whose
+    distance is within a window of the smallest (width ``10 d_1 h / (d_1 + h)``, ``h`` the
+    median boundary edge), each with its closest point; the feet are blended with weights
+    ``(1 - s^2)^2`` (``s`` the excess distance over the window), so the blended foot
+    ``q`` never jumps where the closest triangle changes (concave boundary), and the blend
+    shrinks to the closest point as the point nears the boundary. The ``k`` boundary nodes
+    nearest to ``q`` and their smooth weights give the gradient ``G(q)``. ``dist`` is the distance to the mesh (0 inside, ``inf``
+    beyond ``reach``: such points get no feet).
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=6):
+    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=24, reach=np.inf):
         self.points, self.tets = _tetra(grid)
         p = np.asarray(points, dtype=float)
         self.p = p
         src = pv.UnstructuredGrid({pv.CellType.TETRA: self.tets}, self.points)
         self._find_cells(src)
-        self.outside = out = np.flatnonzero(~self.inside)
         tri = _boundary_faces(src)
         self.boundary = np.unique(tri)
+        self.dist = np.where(self.inside, 0.0, np.inf)
+        out = np.flatnonzero(~self.inside)
+        if out.size and np.isfinite(reach):  # cheap reject: far from every boundary node
+            e = self.points[tri[:, [0, 1, 2]]] - self.points[tri[:, [1, 2, 0]]]
+            h_max = float(np.linalg.norm(e, axis=2).max())
+            dn = cKDTree(self.points[self.boundary]).query(p[out])[0]
+            out = out[dn - h_max <= reach]
+        self.outside = out
         n_pairs = 0
         if out.size:
             rows, q, bary, face = self._feet(tri, out, n_triangles)
             n_pairs = len(rows)
+            slot = np.full(len(p), -1)
+            slot[out] = np.arange(out.size)
+            qbar = np.zeros((out.size, 3))  # blended foot: sum of the feet's weights is 1
+            for c in range(3):
+                qbar[:, c] = np.bincount(slot[rows], self.pair_w * q[:, c], minlength=out.size)
             kk = max(1, min(k, len(self.boundary) - 1))
-            dist, idx = cKDTree(self.points[self.boundary]).query(q, k=kk + 1)
-            dist, idx = dist.reshape(n_pairs, -1), idx.reshape(n_pairs, -1)
+            dist, idx = cKDTree(self.points[self.boundary]).query(qbar, k=kk + 1)
+            dist, idx = dist.reshape(out.size, -1), idx.reshape(out.size, -1)
             h = dist[:, -1:]
             s = np.where(h > 0, dist[:, :-1] / np.where(h > 0, h, 1.0), 0.0)
             w = (1.0 - s**2) ** 2
             w /= w.sum(axis=1, keepdims=True)
-            self.near, self.near_w = idx[:, :-1], w  # indices into self.boundary
+            self.near, self.near_w = idx[:, :-1], w  # per outside point, into self.boundary
             self.pair_row, self.q, self.face_bary, self.face = rows, q, bary, face
+            self.qbar = qbar
         if not n_pairs:
+            self.outside = np.zeros(0, dtype=np.int64)
             self.pair_row, self.pair_w = np.zeros(0, dtype=np.int64), np.zeros(0)
-            self.q = np.zeros((0, 3))
+            self.q, self.qbar = np.zeros((0, 3)), np.zeros((0, 3))
             self.face_bary, self.face = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
             self.near, self.near_w = np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
 
     def _find_cells(self, src):
-        """Containing tetrahedra: VTK's probe, then the tetrahedra with the nearest
-        centroids for the points it misses (on shared faces, within round-off)."""
+        """Containing tetrahedra. Points farther from every tetrahedron's centroid than the
+        largest centroid-vertex distance lie in none; the others go to VTK's probe, then
+        to the tetrahedra with the nearest centroids for the points it misses (on shared
+        faces, within round-off)."""
         p, pts, tets = self.p, self.points, self.tets
-        src.cell_data[arrays.SCRATCH_CELL_ID] = np.arange(len(tets), dtype=np.int64)
-        probe = pv.PolyData(p).sample(src, pass_point_data=False, progress_bar=False)
-        cell = np.where(np.asarray(probe[arrays.VALID_POINT_MASK]).astype(bool),
-                        np.asarray(probe[arrays.SCRATCH_CELL_ID]).astype(np.int64), -1)
-        bary = np.full((len(p), 4), -np.inf)
+        n = len(p)
+        centre = pts[tets].mean(axis=1)
+        r_max = float(np.linalg.norm(pts[tets] - centre[:, None, :], axis=2).max())
+        tree = cKDTree(centre)
+        near = np.flatnonzero(tree.query(p, distance_upper_bound=r_max * (1 + 1e-9))[0] < np.inf)
+        cell = np.full(n, -1, dtype=np.int64)
+        bary = np.full((n, 4), -np.inf)
+        if near.size:
+            src.cell_data[arrays.SCRATCH_CELL_ID] = np.arange(len(tets), dtype=np.int64)
+            probe = pv.PolyData(p[near]).sample(src, pass_point_data=False, progress_bar=False)
+            cell[near] = np.where(np.asarray(probe[arrays.VALID_POINT_MASK]).astype(bool),
+                                  np.asarray(probe[arrays.SCRATCH_CELL_ID]).astype(np.int64), -1)
 
         def barycentric(idx, cells):
             t = tets[cells]
@@ -212,10 +243,10 @@ class _Located:
 
         hit = np.flatnonzero(cell >= 0)
         bary[hit] = barycentric(hit, cell[hit])
-        miss = np.flatnonzero(bary.min(axis=1) < -_INSIDE_TOL)
+        miss = near[bary[near].min(axis=1) < -_INSIDE_TOL]
         if miss.size:
             kc = min(8, len(tets))
-            cand = cKDTree(pts[tets].mean(axis=1)).query(p[miss], k=kc)[1].reshape(len(miss), kc)
+            cand = tree.query(p[miss], k=kc)[1].reshape(len(miss), kc)
             for j in range(kc):
                 b = barycentric(miss, cand[:, j])
                 better = b.min(axis=1) > bary[miss].min(axis=1)
@@ -224,30 +255,44 @@ class _Located:
         self.cell = np.where(self.inside, cell, -1)
         self.bary = np.where(self.inside[:, None], bary, 0.0)
 
-    def _feet(self, tri, out, n_triangles):
-        """Blended feet of the outside points on the boundary triangles ``tri``."""
+    def _feet(self, tri, out, n_triangles, exact=6):
+        """Blended feet of the outside points on the boundary triangles ``tri``.
+
+        The ``exact`` nearest candidates (by centroid) are measured for every point; a
+        farther candidate only where its centroid distance less its radius could fall
+        inside the blend window (elsewhere its weight is zero)."""
         p, pts = self.p[out], self.points
         kt = min(n_triangles, len(tri))
-        cand = cKDTree(pts[tri].mean(axis=1)).query(p, k=kt)[1].reshape(len(out), kt)
-        qs, bs, ds = [], [], []
-        for j in range(kt):  # a few candidate triangles per point, each vectorised
-            tj = tri[cand[:, j]]
-            q, b = _closest_on_triangles(p, pts[tj[:, 0]], pts[tj[:, 1]], pts[tj[:, 2]])
-            qs.append(q), bs.append(b), ds.append(np.linalg.norm(q - p, axis=1))
-        d = np.stack(ds, axis=1)
-        d1 = d.min(axis=1, keepdims=True)
+        centre = pts[tri].mean(axis=1)
+        radius = np.linalg.norm(pts[tri] - centre[:, None, :], axis=2).max(axis=1)
+        cdist, cand = cKDTree(centre).query(p, k=kt)
+        cdist, cand = cdist.reshape(len(out), kt), cand.reshape(len(out), kt)
         e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
         h = float(np.median(np.linalg.norm(e, axis=2)))
-        window = d1 * h / (d1 + h)
+        n = len(out)
+        d = np.full((n, kt), np.inf)
+        q_all, b_all = np.zeros((n, kt, 3)), np.zeros((n, kt, 3))
+        d1 = np.full(n, np.inf)
+        for j in range(kt):  # a few candidate triangles per point, each vectorised
+            rows = np.arange(n) if j < exact else np.flatnonzero(
+                cdist[:, j] - radius[cand[:, j]] < d1 + _WINDOW * d1 * h / (d1 + h))
+            if not rows.size:
+                continue
+            tj = tri[cand[rows, j]]
+            q, b = _closest_on_triangles(p[rows], pts[tj[:, 0]], pts[tj[:, 1]], pts[tj[:, 2]])
+            d[rows, j] = np.linalg.norm(q - p[rows], axis=1)
+            q_all[rows, j], b_all[rows, j] = q, b
+            d1[rows] = np.minimum(d1[rows], d[rows, j])
+        d1 = d1[:, None]
+        self.dist[out] = d1[:, 0]
+        window = _WINDOW * d1 * h / (d1 + h)
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.where(window > 0, (d - d1) / window, np.where(d > d1, np.inf, 0.0))
         w = np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
         w /= w.sum(axis=1, keepdims=True)
         r, j = np.nonzero(w > 0)
         self.pair_w = w[r, j]
-        q = np.stack(qs, axis=1)[r, j]
-        bary = np.stack(bs, axis=1)[r, j]
-        return out[r], q, bary, tri[cand[r, j]]
+        return out[r], q_all[r, j], b_all[r, j], tri[cand[r, j]]
 
 
 def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
@@ -267,18 +312,19 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_
     k : int, default 8
         Boundary nodes whose gradients extend the field outside the mesh.
     band : float, default 4.0
-        Distance (mm) from the mesh within which the extension is exactly affine (the
-        skin the mesh models lies within a voxel or two). Farther points (skin that is
-        not simulated, e.g. behind a face model) extrapolate the boundary gradient over
-        an offset that saturates smoothly at ``2 band``, so their displacement stays
-        bounded; ``numpy.inf`` extrapolates linearly everywhere.
+        Distance (mm) from the mesh within which the extension is exactly affine: the
+        *modelled* skin (the skin the mesh models lies within a voxel or two of it).
+        Farther points (skin that is not simulated, e.g. behind a face model's posterior
+        cut) take the extension times a smooth step that falls to zero at ``2 band``, the
+        value on the fixed posterior plane; beyond ``2 band`` their rows are empty.
+        ``numpy.inf`` extrapolates linearly everywhere.
     progress_bar : bool, default False
         Show the steps (:class:`pvcmf.progress.Progress`).
 
     Returns
     -------
     scipy.sparse.csr_matrix, shape (n, grid.n_points)
-        Rows sum to one (a constant field is kept).
+        Rows of modelled points sum to one (a constant field is kept there).
 
     Raises
     ------
@@ -298,26 +344,16 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_
     pts = np.asarray(points.points if isinstance(points, pv.DataSet) else points, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
         raise ValueError(f"points must have shape (n, 3) with n > 0, got {pts.shape}")
-    if isinstance(k, bool) or int(k) != k or k < 1:
-        raise ValueError(f"k must be a positive integer, got {k!r}")
-    with Progress(total=2, desc="transfer_operator", enabled=progress_bar, logger=log) as bar:
-        loc = _Located(grid, pts, int(k))
-        bar.step(f"{int(loc.inside.sum())} of {len(pts)} points inside the mesh")
-        T = _assemble(loc, float(band))
-        bar.step("operator assembled")
-    log.info("transfer_operator: %d points, %d inside tetrahedra, %d extended from the "
-             "boundary", len(pts), int(loc.inside.sum()), loc.outside.size)
-    return T
+    return Transfer(grid, pts, k=k, band=band, progress_bar=progress_bar).W
 
 
-def _saturate(d, band):
-    """Factor ``l(d) / d``: ``l = d`` up to ``band``, then ``band (1 + tanh((d - band) /
-    band))`` (smooth, slope <= 1, at most ``2 band``)."""
+def _decay(d, band):
+    """Weight of the extension at distance ``d`` from the mesh: 1 up to ``band``, a smooth
+    step (C1) down to 0 at ``2 band``, 0 beyond (the value on the fixed posterior plane)."""
     if not np.isfinite(band):
         return np.ones_like(d)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ell = np.where(d <= band, d, band * (1.0 + np.tanh((d - band) / band)))
-        return np.where(d > 0, ell / d, 1.0)
+    t = np.clip((d - band) / band, 0.0, 1.0)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
 
 
 def _assemble(loc, band=DEFAULT_BAND):
@@ -326,21 +362,25 @@ def _assemble(loc, band=DEFAULT_BAND):
     T = sp.csr_matrix((loc.bary[ins].ravel(), (np.repeat(ins, 4), loc.tets[loc.cell[ins]].ravel())),
                       shape=(n, m))
     npair = len(loc.pair_row)
-    if npair:  # one row per foot: u_h(q) + G(q) (p - q); then blended per point
-        face = sp.csr_matrix((loc.face_bary.ravel(), (np.repeat(np.arange(npair), 3),
-                                                      loc.face.ravel())), shape=(npair, m))
+    if npair:  # blended feet's u_h(q_f) + G(q) (p - q), q their blend, times the decay
+        decay = _decay(loc.dist, band)
+        scale = loc.pair_w * decay[loc.pair_row]
+        face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(),
+                              (np.repeat(loc.pair_row, 3), loc.face.ravel())), shape=(n, m))
         used, inverse = np.unique(loc.near, return_inverse=True)
+        inverse = inverse.reshape(loc.near.shape)
         kk = loc.near.shape[1]
-        W = sp.csr_matrix((loc.near_w.ravel(), (np.repeat(np.arange(npair), kk),
-                                                inverse.ravel())), shape=(npair, len(used)))
-        D = _gradient_operators(loc.points, loc.tets, loc.boundary[used])
-        offset = loc.p[loc.pair_row] - loc.q
-        offset *= _saturate(np.linalg.norm(offset, axis=1), band)[:, None]
-        feet = face
-        for c in range(3):
-            feet = feet + sp.diags(offset[:, c]) @ (W @ D[c])
-        blend = sp.csr_matrix((loc.pair_w, (loc.pair_row, np.arange(npair))), shape=(n, npair))
-        T = T + blend @ feet
+        out = loc.outside
+        offset = (loc.p[out] - loc.qbar) * decay[out][:, None]
+        vals, cols = [], []
+        for c in range(3):  # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix
+            vals.append((offset[:, c][:, None] * loc.near_w).ravel())
+            cols.append(inverse.ravel() + c * len(used))
+        BW = sp.csr_matrix((np.concatenate(vals), (np.tile(np.repeat(out, kk), 3),
+                                                   np.concatenate(cols))),
+                           shape=(n, 3 * len(used)))
+        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary[used])).tocsr()
+        T = T + face + BW @ D
     T = T.tocsr()
     T.sum_duplicates()
     T.eliminate_zeros()
@@ -357,19 +397,41 @@ class Transfer:
         The operator ``T``.
     inside : ndarray of bool
         Points inside a tetrahedron.
+    distance : ndarray
+        Distance (mm) of each point to the mesh (0 inside, ``inf`` beyond ``2 band``).
+    modelled : ndarray of bool
+        Points within ``band`` of the mesh (:data:`pvcmf.arrays.SKIN_MODELLED`).
+    band : float
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K, band=DEFAULT_BAND):
-        loc = _Located(grid, points, k)
-        self.W = _assemble(loc, band)
+    def __init__(self, grid, points, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
+        pts = np.asarray(points.points if isinstance(points, pv.DataSet) else points, dtype=float)
+        if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
+            raise ValueError(f"points must have shape (n, 3) with n > 0, got {pts.shape}")
+        if isinstance(k, bool) or int(k) != k or k < 1:
+            raise ValueError(f"k must be a positive integer, got {k!r}")
+        if not float(band) > 0:
+            raise ValueError(f"band must be > 0 mm (or numpy.inf), got {band!r}")
+        self.band = float(band)
+        with Progress(total=2, desc="transfer_operator", enabled=progress_bar, logger=log) as bar:
+            self._loc = loc = _Located(grid, pts, int(k), reach=2.0 * self.band)
+            bar.step(f"{int(loc.inside.sum())} of {len(pts)} points inside the mesh")
+            self.W = _assemble(loc, self.band)
+            bar.step("operator assembled")
         self.inside = loc.inside
+        self.distance = loc.dist
+        self.modelled = loc.dist <= self.band
+        log.info("transfer_operator: %d points, %d inside tetrahedra, %d extended from the "
+                 "boundary, %d not modelled (farther than %.3g mm)", len(pts),
+                 int(loc.inside.sum()), int((~loc.inside & self.modelled).sum()),
+                 int((~self.modelled).sum()), self.band)
 
     def __call__(self, u):
         return np.asarray(self.W @ np.asarray(u, dtype=float))
 
 
 def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, k=DEFAULT_K,
-                   warp=True, progress_bar=False):
+                   band=DEFAULT_BAND, warp=True, progress_bar=False):
     """Map the grid's point ``displacement`` onto a dense skin surface.
 
     Parameters
@@ -390,6 +452,9 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
         ``'gaussian'`` only: neighbourhood radius (mm); default ``3 * sigma``.
     k : int, default 8
         ``'interpolate'`` only: boundary nodes of the extension outside the mesh.
+    band : float, default 4.0
+        ``'interpolate'`` only: the modelled skin's distance from the mesh (see
+        :func:`transfer_operator`).
     warp : bool, default True
         Move the skin points by the mapped displacement (the predicted dense skin).
     progress_bar : bool, default False
@@ -399,7 +464,8 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
     -------
     pyvista.DataSet
         Copy of ``skin`` with point array ``arrays.DISPLACEMENT`` (float64 (n, 3), mm),
-        and ``arrays.TRANSFER_INSIDE`` (``'interpolate'``: 1 inside a tetrahedron) or
+        and ``arrays.TRANSFER_INSIDE`` (``'interpolate'``: 1 inside a tetrahedron) and
+        ``arrays.SKIN_MODELLED`` (``'interpolate'``: 1 within ``band`` of the mesh) or
         ``SUPPORT`` (``'gaussian'``); points moved when ``warp``.
 
     Raises
@@ -435,10 +501,11 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
     out = skin.copy()
     if method == "interpolate":
         with Progress(total=1, desc="map_to_surface", enabled=progress_bar, logger=log) as bar:
-            mapping = Transfer(grid, skin.points, k=k)
+            mapping = Transfer(grid, skin.points, k=k, band=band)
             disp = mapping(u)
             bar.step(f"{skin.n_points} skin points")
         out.point_data[arrays.TRANSFER_INSIDE] = mapping.inside.astype(np.uint8)
+        out.point_data[arrays.SKIN_MODELLED] = mapping.modelled.astype(np.uint8)
     else:
         disp = _gaussian(grid, skin, u, sigma, radius, progress_bar, out)
     out.point_data[arrays.DISPLACEMENT] = disp
@@ -479,10 +546,13 @@ def _edges(surface):
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
-def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
+def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT_BAND,
+                   slack=0.1, transfer=None):
     """Check that a skin displacement stretches no skin edge beyond the mesh's gradients.
 
-    For every edge ``(a, b)`` of ``skin_pre`` the stretch ``|u_a - u_b| / |x_a - x_b|`` is
+    Only the modelled skin is checked: edges whose two points lie inside the mesh or within
+    ``band`` of it (skin farther away, e.g. behind a face model's posterior cut, is not
+    predicted by the model). For every such edge ``(a, b)`` of ``skin_pre`` the stretch ``|u_a - u_b| / |x_a - x_b|`` is
     compared with the largest displacement-gradient norm (spectral) of the tetrahedra
     around it: the tetrahedra sharing a node with the tetrahedron that holds an endpoint,
     or, for an endpoint outside the mesh, those sharing a node with its nearest boundary
@@ -502,14 +572,20 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
         The mesh displacement (mm).
     k : int, default 8
         Boundary nodes around an outside point (as :func:`transfer_operator`).
+    band : float, default 4.0
+        Modelled skin: within this distance (mm) of the mesh (as :func:`transfer_operator`).
     slack : float, default 0.1
         An edge violates the bound when its stretch exceeds ``(1 + slack)`` times it.
+    transfer : Transfer, optional
+        The :class:`Transfer` of ``grid`` onto ``skin_pre``'s points, reused instead of
+        locating the points again (its ``k`` and ``band`` apply).
 
     Returns
     -------
     dict
-        ``ratio`` (per edge: stretch / bound, 0 where both vanish), ``edges`` ((e, 2)),
-        and the summary values under ``arrays.CRUMPLE_EDGES``, ``arrays.CRUMPLE_VIOLATIONS``
+        ``ratio`` (per modelled edge: stretch / bound, 0 where both vanish), ``edges``
+        ((e, 2), the modelled edges), ``modelled`` (per point, bool), and the summary
+        values under ``arrays.CRUMPLE_EDGES``, ``arrays.CRUMPLE_VIOLATIONS``
         and ``arrays.CRUMPLE_MAX_RATIO``.
 
     Examples
@@ -530,7 +606,12 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
         raise ValueError(f"u_skin must have shape ({skin_pre.n_points}, 3), got {u_skin.shape}")
     if u_nodes.shape != (grid.n_points, 3):
         raise ValueError(f"u_nodes must have shape ({grid.n_points}, 3), got {u_nodes.shape}")
-    loc = _Located(grid, skin_pre.points, k)
+    if transfer is None:
+        transfer = Transfer(grid, skin_pre.points, k=k, band=band)
+    elif len(transfer.inside) != skin_pre.n_points:
+        raise ValueError(f"transfer maps {len(transfer.inside)} points, skin_pre has "
+                         f"{skin_pre.n_points}")
+    loc = transfer._loc
     inv, _ = _gradients(loc.points, loc.tets)
     du = u_nodes[loc.tets[:, 1:]] - u_nodes[loc.tets[:, :1]]  # (m, 3 edges, 3 comps)
     grad = np.einsum("tca,tai->tic", inv, du)  # d u_i / d x_c
@@ -541,91 +622,18 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, slack=0.1):
     ins = np.flatnonzero(loc.inside)
     bound[ins] = node_max[loc.tets[loc.cell[ins]]].max(axis=1)
     if len(loc.pair_row):
-        around = np.concatenate([loc.face, loc.boundary[loc.near]], axis=1)
-        np.maximum.at(bound, loc.pair_row, node_max[around].max(axis=1))
+        np.maximum.at(bound, loc.pair_row, node_max[loc.face].max(axis=1))
+        np.maximum.at(bound, loc.outside, node_max[loc.boundary[loc.near]].max(axis=1))
     e = _edges(skin_pre)
+    e = e[transfer.modelled[e].all(axis=1)]
     x = np.asarray(skin_pre.points, dtype=float)
     length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
     stretch = np.linalg.norm(u_skin[e[:, 0]] - u_skin[e[:, 1]], axis=1) / np.maximum(length, 1e-300)
     limit = np.maximum(bound[e[:, 0]], bound[e[:, 1]])
     tiny = 1e-9 * max(float(gnorm.max(initial=0.0)), 1e-12)
     ratio = np.where(limit > tiny, stretch / np.maximum(limit, tiny), np.where(stretch > tiny, np.inf, 0.0))
-    return {"ratio": ratio, "edges": e, arrays.CRUMPLE_EDGES: int(len(e)),
+    return {"ratio": ratio, "edges": e, "modelled": transfer.modelled.copy(),
+            arrays.SKIN_MODELLED_POINTS: int(transfer.modelled.sum()),
+            arrays.CRUMPLE_EDGES: int(len(e)),
             arrays.CRUMPLE_VIOLATIONS: int(np.sum(ratio > 1.0 + slack)),
             arrays.CRUMPLE_MAX_RATIO: float(ratio.max(initial=0.0))}
-
-
-class SurfaceMapping:
-    """The Gaussian moving least-squares mapping as a precomputed sparse operator.
-
-    The affine fit is linear in the grid displacement (only the final clamp to the
-    neighbours' range is not) and its weights depend only on the grid and skin points, so
-    the mapping is a sparse matrix ``W`` (skin points x grid points) built once; each field
-    then costs one sparse product and a vectorised clamp (``numpy.minimum.reduceat``). The
-    fit's value at ``p``, ``c = e0 . M^-1 r``, is ``(M^-1 e0) . r`` because the moment
-    matrix ``M`` is symmetric, so row ``i`` of ``W`` is
-    ``w_ij (1, (x_j - p_i) / sigma) . M_i^-1 e0``; rows whose moment matrix is singular
-    (condition > 1e8 after scaling) hold the Gaussian-weighted mean. Used by
-    :func:`map_to_surface` and by parameter sweeps that map many fields on one mesh
-    (:class:`pvcmf.sweeps.PipelineEvaluation`).
-
-    Parameters
-    ----------
-    grid_points, skin_points : array_like, shape (m, 3) and (n, 3)
-        Grid nodes and skin points (mm).
-    sigma, radius : float
-        Gaussian width and neighbourhood radius (mm), both > 0.
-
-    Attributes
-    ----------
-    W : scipy.sparse.csr_matrix, shape (n, m)
-    support : ndarray, shape (n,)
-        Sum of the Gaussian weights of each skin point (0: no grid node within ``radius``).
-    """
-
-    def __init__(self, grid_points, skin_points, sigma, radius):
-        x = np.asarray(grid_points, float)
-        p = np.asarray(skin_points, float)
-        n, m = len(p), len(x)
-        pairs = cKDTree(p).sparse_distance_matrix(cKDTree(x), radius, output_type="ndarray")
-        w = np.exp(-0.5 * (pairs["v"] / sigma) ** 2) - np.exp(-0.5 * (radius / sigma) ** 2)
-        keep = w > 0
-        i, j, w = pairs["i"][keep], pairs["j"][keep], w[keep]
-        order = np.lexsort((j, i))
-        i, j, w = i[order], j[order], w[order]
-        basis = np.column_stack([np.ones(len(i)), (x[j] - p[i]) / sigma])  # well conditioned
-        moments = np.empty((n, 4, 4))
-        for a in range(4):  # 10 unique moments by bincount, not a loop over points
-            for b in range(a, 4):
-                moments[:, a, b] = moments[:, b, a] = np.bincount(i, w * basis[:, a] * basis[:, b],
-                                                                  minlength=n)
-        self.support = moments[:, 0, 0].copy()
-        has = self.support > 0
-        coef = np.zeros((n, 4))
-        idx = np.flatnonzero(has)
-        cond_ok = np.linalg.cond(moments[idx] / self.support[idx][:, None, None]) < 1e8
-        fit, mean = idx[cond_ok], idx[~cond_ok]
-        if fit.size:  # affine fit where well conditioned
-            e0 = np.zeros((fit.size, 4, 1))
-            e0[:, 0] = 1.0
-            coef[fit] = np.linalg.solve(moments[fit], e0)[:, :, 0]
-        coef[mean, 0] = 1.0 / self.support[mean]  # weighted mean elsewhere
-        values = w * np.einsum("ij,ij->i", basis, coef[i])
-        self.W = sp.csr_matrix((values, (i, j)), shape=(n, m))
-        self._neighbours = j
-        self._has = has
-        self._starts = np.searchsorted(i, np.arange(n))[has]
-
-    def __call__(self, u):
-        """Skin displacement ``(n, 3)`` for the grid displacement ``u`` ``(m, 3)``."""
-        u = np.asarray(u, float)
-        disp = np.asarray(self.W @ u)
-        if self._starts.size:
-            # no new extrema: where the skin point lies outside its neighbours' cloud (the
-            # edge of the mesh) the affine fit extrapolates; clamp each component to the
-            # neighbours' range
-            v = u[self._neighbours]
-            lo = np.minimum.reduceat(v, self._starts, axis=0)
-            hi = np.maximum.reduceat(v, self._starts, axis=0)
-            disp[self._has] = np.clip(disp[self._has], lo, hi)
-        return disp

@@ -29,14 +29,19 @@ import pyvista as pv
 from .. import arrays
 from ..filters.boundary_conditions import apply_plan
 from ..filters.osteotomy import cut_bones
-from ..filters.surface_mapping import transfer_operator
+from ..filters.surface_mapping import Transfer, transfer_operator
 from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
 from ..progress import Progress
+from ._common import blas_threads
 from .solver import Solver
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PlanResponse", "plan_response", "PlanResponseWarning"]
+__all__ = ["PlanResponse", "plan_response", "plan_grid", "PlanResponseWarning"]
+
+
+#: largest float32 rounding (mm) of the skin operator's product that keeps float32 storage
+FLOAT32_TOLERANCE = 1e-6
 
 
 class PlanResponseWarning(UserWarning):
@@ -75,8 +80,9 @@ def plan_response(mesh, labels, *, skin=None, plan=None, dtype="auto", bc_option
         Segments and cut planes of the plans to come (its motions are ignored). Default:
         every movable segment the ``bone`` label holds, without cut planes.
     dtype : {'auto', 'float32', 'float64'}
-        Storage of the skin operator; ``'auto'`` keeps float32 when its rounding stays
-        below 1e-6 mm for rotations up to 30 degrees and 20 mm translations.
+        Storage of the skin operator; ``'auto'`` keeps float32 when its product stays
+        within 1e-6 mm of the float64 one (measured on random plans with rotations up to
+        30 degrees and 20 mm translations).
     bc_options : dict, optional
         Keyword arguments of :func:`pvcmf.filters.apply_plan` (e.g. ``fix_unmoved_bone``).
     solver_options : dict, optional
@@ -109,6 +115,12 @@ class PlanResponse:
     skin_response : ndarray or None, shape (3, n_skin, 12 * n_segments)
     surface_ids : ndarray
         The mesh's boundary nodes (:meth:`predict_nodes`).
+    modelled : ndarray of bool or None
+        Skin points the mesh models (within the transfer's band, :data:`arrays.SKIN_MODELLED`).
+    float32_error : float or None
+        ``dtype='auto'``: largest measured difference (mm) of the float32 skin product from
+        the float64 one over random plans; float32 is kept when it is at most
+        :data:`FLOAT32_TOLERANCE`.
     timings : dict
         Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer``.
     """
@@ -122,6 +134,8 @@ class PlanResponse:
         self.mesh, self.labels, self.skin, self.template = mesh, labels, skin, plan
         self.bc_options, self.solver_options = bc_options, solver_options
         self.timings = {}
+        self.threads = solver_options.get("threads", 1)  # BLAS threads of the products
+        self.float32_error = None
         with Progress(total=4, desc="plan_response", enabled=progress_bar, logger=log) as bar:
             t = time.perf_counter()
             cut = cut_bones(labels, plan)
@@ -144,10 +158,13 @@ class PlanResponse:
             t = time.perf_counter()
             self.surface_ids = boundary_points(mesh)
             self.skin_response = None
+            self.modelled = None
             if skin is not None:
-                T = transfer_operator(mesh, skin)
+                transfer = Transfer(mesh, skin)
+                T = transfer.W
+                self.modelled = transfer.modelled
                 R = np.stack([np.asarray(T @ self.nodal[c]) for c in range(3)])
-                self.skin_response = R.astype(self._dtype(R, dtype))
+                self.skin_response = np.ascontiguousarray(R.astype(self._dtype(R, dtype)))
             self._surface = np.ascontiguousarray(self.nodal[:, self.surface_ids])
             self.timings["transfer"] = time.perf_counter() - t
             bar.step("transfer folded in")
@@ -180,13 +197,20 @@ class PlanResponse:
                     out[:, :, 12 * s + 4 * i + j] = solver.solve(d).T
         return out
 
-    def _dtype(self, R, dtype):
+    def _dtype(self, R, dtype, probes=16):
         if dtype != "auto":
             return np.dtype(dtype)
-        # |a| <= 0.5 for the rotation part (30 deg), 20 mm for the centroid shift
+        # measured: random parameters up to 0.5 in the rotation part (30 deg) and 20 mm in
+        # the centroid shift, the float32 product against the float64 one
+        rng = np.random.default_rng(0)
         scale = np.tile(np.r_[0.5, 0.5, 0.5, 20.0], 3 * len(self.segments))
-        err = np.finfo(np.float32).eps * (np.abs(R) @ scale).max() * 2
-        return np.dtype(np.float32 if err <= 1e-6 else np.float64)
+        A = rng.uniform(-1, 1, (R.shape[2], probes)) * scale[:, None]
+        R2 = R.reshape(-1, R.shape[2])
+        exact = R2 @ A
+        single = (R2.astype(np.float32) @ A.astype(np.float32)).astype(float)
+        err = float(np.abs(single - exact).max())
+        self.float32_error = err
+        return np.dtype(np.float32 if err <= FLOAT32_TOLERANCE else np.float64)
 
     # ------------------------------------------------------------------ parameters
     def parameters(self, plan):
@@ -232,9 +256,9 @@ class PlanResponse:
             u = self._full(plan, self.skin)
             T = transfer_operator(self.mesh, self.skin)
             return np.asarray(T @ u)
-        R = self.skin_response
-        a = a.astype(R.dtype)
-        return np.stack([R[0] @ a, R[1] @ a, R[2] @ a], axis=1).astype(float)
+        R = self.skin_response  # numpy's own loop: no BLAS thread start-up for one plan
+        u = np.einsum("ik,k->i", R.reshape(-1, R.shape[2]), a.astype(R.dtype))
+        return u.reshape(3, -1).T.astype(float)
 
     def predict(self, plan):
         """The predicted skin: a copy of ``skin`` moved by the plan, with point array
@@ -251,7 +275,7 @@ class PlanResponse:
         if a is None:
             return self._full(plan, None)[self.surface_ids]
         S = self._surface
-        return np.stack([S[0] @ a, S[1] @ a, S[2] @ a], axis=1)
+        return (S.reshape(-1, S.shape[2]) @ a).reshape(3, -1).T
 
     def predict_mesh(self, plan):
         """Displacement ``(n_points, 3)`` of every mesh node."""
@@ -260,24 +284,114 @@ class PlanResponse:
             return self._full(plan, None)
         return np.stack([self.nodal[c] @ a for c in range(3)], axis=1)
 
-    def statistics(self, plans, chunk=64):
+    def statistics(self, plans, chunk=256, modelled=True):
         """Per plan: max, mean and RMS of the skin's ``|displacement|`` (n_plans, 3), in
-        chunks of matrix products (plans needing a full solve are solved one by one)."""
+        chunks of matrix products (plans needing a full solve are solved one by one).
+
+        ``modelled=True`` takes the statistics over the modelled skin only (points within
+        the transfer's band of the mesh, :data:`pvcmf.arrays.SKIN_MODELLED`)."""
         R = self.skin_response
         if R is None:
             raise ValueError("plan_response was built without skin=: no skin statistics")
+        keep = self.modelled if modelled else np.ones(R.shape[1], dtype=bool)
+        Rm = np.ascontiguousarray(R[:, keep]).reshape(-1, R.shape[2])
         params = [self.parameters(p) for p in plans]
         out = np.zeros((len(plans), 3))
         fast = [i for i, a in enumerate(params) if a is not None]
         for start in range(0, len(fast), chunk):
             idx = fast[start:start + chunk]
             A = np.stack([params[i] for i in idx], axis=1).astype(R.dtype)
-            sq = sum((R[c] @ A) ** 2 for c in range(3))
+            with blas_threads(self.threads):
+                U = (Rm @ A).reshape(3, -1, len(idx))
+            sq = np.einsum("cnp,cnp->np", U, U)
             mag = np.sqrt(sq)
             out[idx] = np.column_stack([mag.max(axis=0), mag.mean(axis=0),
                                         np.sqrt(sq.mean(axis=0))])
         for i, a in enumerate(params):
             if a is None:
-                mag = np.linalg.norm(self.predict_displacement(plans[i]), axis=1)
+                mag = np.linalg.norm(self.predict_displacement(plans[i])[keep], axis=1)
                 out[i] = mag.max(), mag.mean(), np.sqrt((mag ** 2).mean())
         return out
+
+    def displacements(self, plans, points=None, chunk=256):
+        """Skin displacement of many plans at once: ``(n_plans, n_points, 3)`` (mm).
+
+        One batched matrix product per ``chunk`` plans (plans needing a full solve are
+        solved one by one, with a :class:`PlanResponseWarning`).
+
+        Parameters
+        ----------
+        plans : sequence of pvcmf.Plan
+        points : array_like of int, optional
+            Skin point ids (default: every skin point).
+        chunk : int, default 256
+            Plans per matrix product.
+        """
+        R = self.skin_response
+        if R is None:
+            raise ValueError("plan_response was built without skin=: no skin to predict")
+        ids = np.arange(R.shape[1]) if points is None else np.asarray(points, dtype=np.int64)
+        if ids.ndim != 1 or (ids.size and (ids.min() < 0 or ids.max() >= R.shape[1])):
+            raise ValueError(f"points must be skin point ids in [0, {R.shape[1]}), got {points!r}")
+        Rs = np.ascontiguousarray(R[:, ids]).reshape(-1, R.shape[2])
+        params = [self.parameters(p) for p in plans]
+        out = np.zeros((len(plans), ids.size, 3))
+        fast = [i for i, a in enumerate(params) if a is not None]
+        for start in range(0, len(fast), chunk):
+            idx = fast[start:start + chunk]
+            A = np.stack([params[i] for i in idx], axis=1).astype(R.dtype)
+            with blas_threads(self.threads):
+                U = (Rs @ A).reshape(3, ids.size, len(idx))
+            out[idx] = np.transpose(U, (2, 1, 0))
+        for i, a in enumerate(params):
+            if a is None:
+                out[i] = self.predict_displacement(plans[i])[ids]
+        return out
+
+
+def plan_grid(segment, *, translations=None, rotations=None, base=None):
+    """Plans that vary one segment's motion over given values (a plan sweep).
+
+    Parameters
+    ----------
+    segment : str
+        The moved segment (e.g. ``"maxilla"``).
+    translations, rotations : array_like, shape (m, 3), optional
+        Per plan: translation (mm) and rotation (degrees) in the plan's (horizontal,
+        vertical, anterior-posterior) convention; a missing one is zero (or ``base``'s).
+    base : pvcmf.Plan, optional
+        The other segments' motions, kept in every plan; its ``segment`` entry (if any)
+        gives the cut planes and pivot.
+
+    Returns
+    -------
+    list of pvcmf.Plan
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from pvcmf.mtm.response import plan_grid
+    >>> plans = plan_grid("maxilla", translations=[[0, 0, a] for a in np.arange(0, 9, 2.0)])
+    >>> len(plans), plans[-1].osteotomies[0].translation
+    (5, (0.0, 0.0, 8.0))
+    """
+    if translations is None and rotations is None:
+        raise ValueError("plan_grid needs translations= or rotations=")
+    t = None if translations is None else np.asarray(translations, dtype=float)
+    r = None if rotations is None else np.asarray(rotations, dtype=float)
+    for name, v in (("translations", t), ("rotations", r)):
+        if v is not None and (v.ndim != 2 or v.shape[1] != 3):
+            raise ValueError(f"{name} must have shape (m, 3), got {v.shape}")
+    m = len(t) if t is not None else len(r)
+    if t is not None and r is not None and len(r) != m:
+        raise ValueError(f"translations and rotations must have the same length, got {m} and {len(r)}")
+    others = tuple(o for o in base.osteotomies if o.segment != segment) if base is not None else ()
+    mine = [o for o in base.osteotomies if o.segment == segment] if base is not None else []
+    ref = mine[0] if mine else Osteotomy(segment)
+    plans = []
+    for i in range(m):
+        tr = tuple(t[i].tolist()) if t is not None else tuple(ref.translation)
+        ro = tuple(r[i].tolist()) if r is not None else tuple(ref.rotation)
+        o = Osteotomy(segment, translation=tr, rotation=ro, pivot=ref.pivot, cut=ref.cut)
+        plans.append(Plan(others + (o,), name=base.name if base is not None else ""))
+    return plans

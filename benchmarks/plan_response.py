@@ -1,0 +1,167 @@
+"""Speed of the plan response operator against the full solve, in one run.
+
+Not run by CI. ``python benchmarks/plan_response.py --write docs/benchmarks/plan_response.md``
+builds the demo's mesh (virtual patient 1 at 2 mm, muscles embedded, as ``pvcmf demo``),
+a dense skin of about ``--skin-points`` points (the image skin, subdivided and decimated),
+and measures, for a two-segment template (maxilla and mandible):
+
+* ``full``: one plan by ``apply_plan`` + :func:`pvcmf.mtm.solve` + the skin transfer (a kept
+  transfer operator; its build is timed on its own);
+* ``build``: :func:`pvcmf.mtm.response.plan_response` (boundary conditions, one
+  factorisation, twelve solves per segment, the transfer folded in), and its ratio to the
+  factorisation plus solves it contains;
+* ``predict``: one plan's dense-skin displacement and the mesh's surface nodes (medians over
+  ``--plans`` random plans);
+* ``statistics``: max / mean / RMS of the skin displacement of ``--batch`` random plans;
+* errors: the operator against the full solve, and the float32 skin operator against the
+  same product in float64.
+
+Every time is a median; ratios are taken within the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+
+from pvcmf import arrays, datasets
+from pvcmf.filters import apply_plan
+from pvcmf.filters.surface_mapping import Transfer
+from pvcmf.mtm import solve
+from pvcmf.mtm.response import plan_response
+from pvcmf.pipeline import simulate
+from pvcmf.plan import Osteotomy, Plan
+
+SEGMENTS = ("maxilla", "mandible")
+
+
+def random_plans(n, seed=0):
+    """``n`` random two-segment plans: translations within 6 mm, rotations within 6 deg."""
+    rng = np.random.default_rng(seed)
+    return [Plan(tuple(Osteotomy(s, translation=tuple(rng.uniform(-6, 6, 3)),
+                                 rotation=tuple(rng.uniform(-6, 6, 3))) for s in SEGMENTS))
+            for _ in range(n)]
+
+
+def dense_skin(skin, n_points):
+    """The skin with about ``n_points`` points (linear subdivision, then decimation)."""
+    dense = skin
+    while dense.n_points < n_points:
+        dense = dense.subdivide(1, subfilter="linear")
+    if dense.n_points > 1.05 * n_points:
+        dense = dense.decimate(1.0 - n_points / dense.n_points)
+    return dense.clean()
+
+
+def median_time(fn, repeat):
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def machine():
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+            f"Python {platform.python_version()}, numpy {np.__version__}, {platform.system()}")
+
+
+def run(args):
+    case = datasets.phantom(patient=1, spacing=2.0)
+    res = simulate(case.ct, case.plan, bones=case.truth, landmarks=getattr(case, "landmarks", None),
+                   solve=False, figures=False)
+    mesh, labels = res.mesh, res.labels
+    skin = dense_skin(res.skin_pre, args.skin_points)
+    template = Plan(tuple(Osteotomy(s) for s in SEGMENTS))
+    plans = random_plans(max(args.plans, 3))
+    rows = {"tetrahedra": mesh.n_cells, "mesh points": mesh.n_points, "skin points": skin.n_points}
+
+    t = time.perf_counter()
+    transfer = Transfer(mesh, skin)
+    rows["transfer build (s)"] = time.perf_counter() - t
+    rows["modelled skin points"] = int(transfer.modelled.sum())
+
+    def full(plan):
+        grid = apply_plan(mesh, plan, labels)
+        u = np.asarray(solve(grid)[arrays.DISPLACEMENT], dtype=float)
+        return transfer(u)
+
+    rows["full solve per plan (s)"] = median_time(lambda: full(plans[0]), args.repeat)
+    t = time.perf_counter()
+    op = plan_response(mesh, labels, skin=skin, plan=template)
+    build = time.perf_counter() - t
+    rows["build (s)"] = build
+    for key, value in op.timings.items():
+        rows[f"build: {key} (s)"] = value
+    rows["build / (factorisation + solves)"] = build / (op.timings["factor"] + op.timings["solves"])
+    rows["skin operator dtype ('auto')"] = str(op.skin_response.dtype)
+    rows["float32 product error, random plans to 30 deg / 20 mm (mm)"] = op.float32_error
+    op32 = copy.copy(op)
+    op32.skin_response = op.skin_response.astype(np.float32)
+    rows["predict, dense skin, per plan (ms)"] = 1e3 * statistics.median(
+        [median_time(lambda p=p: op.predict_displacement(p), 1) for p in plans[:args.plans]])
+    rows["predict, dense skin, float32, per plan (ms)"] = 1e3 * statistics.median(
+        [median_time(lambda p=p: op32.predict_displacement(p), 1) for p in plans[:args.plans]])
+    rows["predict, surface nodes, per plan (ms)"] = 1e3 * statistics.median(
+        [median_time(lambda p=p: op.predict_nodes(p), 1) for p in plans[:args.plans]])
+    rows["full / predict (dense skin)"] = (rows["full solve per plan (s)"]
+                                           / (1e-3 * rows["predict, dense skin, per plan (ms)"]))
+    err, err32 = 0.0, 0.0
+    for plan in plans[:3]:
+        fast = op.predict_displacement(plan)
+        err = max(err, float(np.abs(fast - full(plan)).max()))
+        err32 = max(err32, float(np.abs(fast - transfer(op.predict_mesh(plan))).max()))
+    rows["max |operator - full solve| (mm)"] = err
+    rows["max |operator - float64 product| (mm)"] = err32
+    rows["max |float32 - float64 operator|, these plans (mm)"] = max(
+        float(np.abs(op32.predict_displacement(p) - op.predict_displacement(p)).max())
+        for p in plans[:3])
+    batch = random_plans(args.batch, seed=1)
+    for name, o in (("", op), (", float32", op32)):
+        t = time.perf_counter()
+        o.statistics(batch)
+        rows[f"statistics of {args.batch} plans{name} (s)"] = time.perf_counter() - t
+    return rows
+
+
+def table(rows):
+    lines = ["| quantity | value |", "|---|---|"]
+    for key, value in rows.items():
+        text = f"{value:.4g}" if isinstance(value, float) else str(value)
+        lines.append(f"| {key} | {text} |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--skin-points", type=int, default=100_000)
+    p.add_argument("--plans", type=int, default=50, help="plans timed one by one")
+    p.add_argument("--batch", type=int, default=1000, help="plans of the statistics batch")
+    p.add_argument("--repeat", type=int, default=3, help="repeats of the full solve")
+    p.add_argument("--write", metavar="MD", help="write the table as a MyST page")
+    args = p.parse_args(argv)
+    rows = run(args)
+    text = table(rows)
+    print(text)
+    if args.write:
+        command = "python benchmarks/plan_response.py " + " ".join(argv or sys.argv[1:])
+        page = ("# Plan response operator\n\n"
+                "The predicted skin of a plan as one matrix product "
+                "(:func:`pvcmf.mtm.response.plan_response`) against apply_plan + solve + "
+                "transfer, on the demo's mesh (virtual patient 1, 2 mm, muscles), in one run. "
+                "Times are medians.\n\n"
+                f"Command: `{command}`\n\nMachine: {machine()}\n\n{text}\n")
+        with open(args.write, "w", encoding="utf-8") as fh:
+            fh.write(page)
+
+
+if __name__ == "__main__":
+    main()

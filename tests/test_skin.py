@@ -1,0 +1,64 @@
+"""Image skin: sub-voxel accurate against an analytic surface, no voxel terraces."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from pvcmf import arrays
+from pvcmf.filters.skin import extract_skin
+
+RADII = np.array([40.0, 50.0, 45.0])
+
+
+@pytest.fixture(scope="module")
+def head():
+    """A voxelised ellipsoid 'head' (semi-axes 40, 50, 45 mm) at 2 mm spacing."""
+    img = pv.ImageData(dimensions=(56, 60, 56), spacing=(2.0, 2.0, 2.0), origin=(-55, -59, -55))
+    img[arrays.TISSUE] = (((img.points / RADII) ** 2).sum(axis=1) < 1).astype(np.uint8)
+    return img
+
+
+def _distance(points):
+    """Distance to the ellipsoid, by Newton on the foot parameter (exact to round-off)."""
+    x = np.asarray(points, float)
+    t = np.zeros(len(x))
+    a2 = RADII ** 2
+    for _ in range(60):  # f(t) = sum (a x / (a^2 + t))^2 - 1 = 0
+        q = a2 + t[:, None]
+        f = (a2 * x ** 2 / q ** 2).sum(axis=1) - 1
+        df = (-2 * a2 * x ** 2 / q ** 3).sum(axis=1)
+        t = t - f / df
+    foot = a2 * x / (a2 + t[:, None])
+    return np.linalg.norm(x - foot, axis=1)
+
+
+def _terrace(surface):
+    """95th percentile of the angle (degrees) between the normals of neighbouring faces."""
+    s = surface.compute_normals(cell_normals=True, point_normals=False)
+    n, f = s.cell_data["Normals"], s.faces.reshape(-1, 4)[:, 1:]
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    fid = np.tile(np.arange(len(f)), 3)
+    order = np.lexsort((e[:, 1], e[:, 0]))
+    e, fid = e[order], fid[order]
+    pair = (e[1:] == e[:-1]).all(axis=1)
+    cos = np.einsum("ij,ij->i", n[fid[1:][pair]], n[fid[:-1][pair]])
+    return float(np.percentile(np.degrees(np.arccos(np.clip(cos, -1, 1))), 95))
+
+
+def test_sinc_removes_terraces_and_keeps_the_surface(head):
+    raw = extract_skin(head, sinc=0)
+    smooth = extract_skin(head)
+    err_raw, err = _distance(raw.points), _distance(smooth.points)
+    assert err.mean() < 0.25 * 2.0  # sub-voxel: a quarter of the 2 mm spacing
+    assert err.mean() < err_raw.mean()
+    assert _terrace(smooth) < 0.7 * _terrace(raw)
+    assert _terrace(smooth) < 6.0
+    # no shrinkage: the enclosed volume stays that of the ellipsoid within 2 %
+    assert abs(smooth.volume / (4 / 3 * np.pi * RADII.prod()) - 1) < 0.02
+
+
+def test_sinc_validated(head):
+    with pytest.raises(ValueError, match="sinc"):
+        extract_skin(head, sinc=-1)
