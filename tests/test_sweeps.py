@@ -641,7 +641,7 @@ def test_skin_mapping_operator_matches_independent_fit():
         np.testing.assert_allclose(op(u), ref, rtol=0, atol=1e-6)  # O(1) fields; edge fits amplify round-off
         g = grid.copy()
         g.point_data[arrays.DISPLACEMENT] = u
-        np.testing.assert_allclose(map_to_surface(g, skin, sigma=1.5)[arrays.DISPLACEMENT], ref,
+        np.testing.assert_allclose(map_to_surface(g, skin, method="gaussian", sigma=1.5)[arrays.DISPLACEMENT], ref,
                                    rtol=0, atol=1e-6)
     assert np.abs(op(u)[-6:]).max() == 0.0  # beyond the radius: not moved
     with pytest.raises(ValueError, match="sigma"):

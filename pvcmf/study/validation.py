@@ -235,7 +235,7 @@ def _prediction(case, method, grid, pre_skin, n_tets, sigma):
                                                         volume=False)
     width = max(sigma, 0.5 * float(np.median(edges["Length"])))
     # the skin of the pre-operative CT, as the truth is measured
-    return res.labels, post.cmf.map_to_surface(pre_skin, sigma=width)
+    return res.labels, post.cmf.map_to_surface(pre_skin, method="gaussian", sigma=width)
 
 
 def _judge(case, ct, pred, pre_skin, labels, covered):
