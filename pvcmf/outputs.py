@@ -55,15 +55,6 @@ def _shot(plotter):
     return img
 
 
-def _chart(fig, dpi=100):
-    """A matplotlib figure as an RGB array."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    canvas = FigureCanvasAgg(fig)
-    canvas.draw()
-    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
-
-
 def render(result):
     """Render the output PNGs into memory; returns name -> image array.
 
@@ -84,7 +75,7 @@ def render(result):
         images["face_post.png"] = _shot(_row(post, views, "predicted"))
         for view in views:
             images[f"face_{view}.png"] = _shot(face_views.face_comparison(pre, post, (view,)))
-        images["profile_overlay.png"] = _chart(face_views.profile_overlay(pre, post))
+        images["profile_overlay.png"] = face_views.chart_image(face_views.profile_overlay(pre, post))
         skin = pre.copy()
         skin.point_data[arrays.DISPLACEMENT] = np.asarray(post[arrays.DISPLACEMENT])
         shown = ("frontal", "profile")

@@ -31,7 +31,8 @@ from vtkmodules.vtkRenderingCore import vtkSelectVisiblePoints
 from .. import arrays
 
 __all__ = ["VIEWS", "to_display", "set_view", "add_patient_mesh", "visible_points",
-           "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "face_comparison", "anterior_profile", "profile_overlay",
+           "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
+           "prediction_summary",
            "displacement_views"]
 
 SKIN_COLOR = "peachpuff"
@@ -284,7 +285,7 @@ def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
         lines.append(line)
         ax.plot(line[:, 0], line[:, 1], label=label, **style)
     y, z = np.concatenate(lines).T
-    ax.set_xlim(y.max() - 0.55 * np.ptp(y), y.max() + 0.1 * np.ptp(y))
+    ax.set_xlim(y.max() - 0.5 * np.ptp(z), y.max() + 0.08 * np.ptp(z))
     ax.set_ylim(z.min() - 0.04 * np.ptp(z), z.max() + 0.04 * np.ptp(z))
     ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel("anterior (y, mm)")
@@ -376,3 +377,41 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     bar.SetTitle("")  # the title goes above the bar, clear of the labels
     p.add_text(title, position="upper_edge", font_size=11, color="black")
     return p
+
+
+def chart_image(fig, dpi=100):
+    """A matplotlib figure as an (h, w, 3) uint8 RGB array (Agg canvas)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)
+    fig.set_dpi(dpi)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
+def prediction_summary(pre, post, panel=(380, 440)):
+    """One image for a first look: frontal and profile, pre-operative and predicted, and
+    the midsagittal profile overlay, side by side.
+
+    Parameters
+    ----------
+    pre, post : pyvista.PolyData
+        Skins in the patient frame.
+    panel : (int, int)
+        Width and height (pixels) of one 3-D panel.
+
+    Returns
+    -------
+    numpy.ndarray
+        (h, w, 3) uint8 RGB image: a 2 x 2 block (rows frontal, profile; columns
+        pre-operative, predicted) then the overlay (:func:`profile_overlay`).
+    """
+    w, h = panel
+    p = face_comparison(pre, post, views=("frontal", "profile"), window_size=(2 * w, 2 * h))
+    faces = p.screenshot(return_img=True)[..., :3]
+    p.close()
+    height = faces.shape[0]
+    chart = chart_image(profile_overlay(pre, post, figsize=(0.5 * height / 100, height / 100)))
+    chart = chart[:height]
+    pad = np.full((height - chart.shape[0], chart.shape[1], 3), 255, np.uint8)
+    return np.concatenate([faces, np.concatenate([chart, pad])], axis=1)

@@ -29,10 +29,11 @@ def mesh_figure(grid, *, normal=(1.0, 0.0, 0.0), origin=None, window_size=(900, 
     normal : 3 floats
         Normal of the cutting plane; the tetrahedra on its negative side are drawn.
     origin : 3 floats, optional
-        A point of the plane (default: the mesh centre).
+        A point of the plane (default: the centre of the muscle cells).
     window_size : (int, int)
     camera : optional
-        PyVista camera position; by default the view looks at the cut face.
+        PyVista camera position; by default the view looks at the cut face from slightly
+        anterior, framing the cut muscles (or the whole cut when it holds none).
 
     Returns
     -------
@@ -49,7 +50,10 @@ def mesh_figure(grid, *, normal=(1.0, 0.0, 0.0), origin=None, window_size=(900, 
     """
     arrays.require_array(grid, arrays.MUSCLE, "cell", dtype="u", producer="tetrahedralize")
     normal = np.asarray(normal, float)
-    origin = np.asarray(grid.center if origin is None else origin, float)
+    if origin is None:
+        muscles = grid.extract_cells(np.asarray(grid.cell_data[arrays.MUSCLE]) > 0)
+        origin = (muscles if muscles.n_cells else grid).center
+    origin = np.asarray(origin, float)
     cut = grid.clip(normal=normal, origin=origin, crinkle=True, invert=True)
     rest = grid.clip(normal=normal, origin=origin, crinkle=True, invert=False)
     muscle = np.asarray(cut.cell_data[arrays.MUSCLE]).astype(int)
@@ -72,11 +76,7 @@ def mesh_figure(grid, *, normal=(1.0, 0.0, 0.0), origin=None, window_size=(900, 
     if rest.n_cells:
         pl.add_mesh(rest.extract_surface(algorithm="dataset_surface"), color=FAT_COLOR, opacity=0.1)
     if camera is None:
-        # look at the cut face, slightly from the front (-y is posterior)
-        n = normal / np.linalg.norm(normal)
-        view = n + np.array([0.0, 0.35, 0.0]) if abs(n[1]) < 0.9 else n + np.array([0.0, 0.0, 0.35])
-        up = (0.0, 1.0, 0.0) if abs(n[2]) > 0.9 else (0.0, 0.0, 1.0)
-        pl.camera_position = [tuple(origin + 1.4 * grid.length * view), tuple(origin), up]
+        _look_at_cut(pl, cut, normal, origin)
     else:
         pl.camera_position = camera
     n_muscles = len(set(np.unique(grid.cell_data[arrays.MUSCLE]).tolist()) - {0})
@@ -87,3 +87,28 @@ def mesh_figure(grid, *, normal=(1.0, 0.0, 0.0), origin=None, window_size=(900, 
         color="black",
     )
     return pl
+
+
+def _look_at_cut(pl, cut, normal, origin):
+    """Camera on the cut face, tilted anteriorly, framing the muscles lying on it."""
+    n = normal / np.linalg.norm(normal)
+    tilt = np.array([0.0, 0.35, 0.0]) if abs(n[1]) < 0.9 else np.array([0.0, 0.0, 0.35])
+    view = n + tilt
+    up = (0.0, 1.0, 0.0) if abs(n[2]) > 0.9 else (0.0, 0.0, 1.0)
+    # muscle cells crossing the plane: the muscle patches of the cut face
+    d = (np.asarray(cut.points) - origin) @ n
+    conn = cut.cell_connectivity
+    offsets = cut.cell_offsets
+    lo = np.minimum.reduceat(d[conn], offsets[:-1])
+    hi = np.maximum.reduceat(d[conn], offsets[:-1])
+    on_face = (lo <= 0) & (hi >= 0) & (np.asarray(cut.cell_data["label"]) > 0)
+    target = cut.extract_cells(np.nonzero(on_face)[0]) if on_face.any() else cut
+    b = np.asarray(target.bounds).reshape(3, 2)
+    center = b.mean(axis=1)
+    center = center - np.dot(center - origin, n) * n  # on the cutting plane
+    size = float(np.linalg.norm(b[:, 1] - b[:, 0]))
+    pl.camera_position = [tuple(center + 3.0 * size * view / np.linalg.norm(view)),
+                          tuple(center), up]
+    pl.enable_parallel_projection()
+    pl.camera.parallel_scale = 0.45 * max(size, 1e-6)
+    pl.reset_camera_clipping_range()
