@@ -1,8 +1,9 @@
 """Paper 000 Fig. 2c: the labelled volumetric mesh, cut open to show the muscle volumes.
 
-The tetrahedra on one side of a cutting plane are kept whole (PyVista ``clip`` with
-``crinkle=True``) and drawn with their edges, fat in yellow and each muscle in a shade of
-red; the removed half is drawn as its translucent outer surface.
+The tetrahedra crossing a cutting plane (the cut section, one element thick) are drawn
+whole with their edges, fat in yellow and each muscle in a shade of red, seen from the
+removed side; the mesh below the plane is drawn as its translucent outer surface. The
+default camera frames the muscle elements of the section.
 
 Delegates to PyVista (clipping, rendering).
 """
@@ -54,8 +55,10 @@ def mesh_figure(grid, *, normal=(1.0, 0.0, 0.0), origin=None, window_size=(900, 
         muscles = grid.extract_cells(np.asarray(grid.cell_data[arrays.MUSCLE]) > 0)
         origin = (muscles if muscles.n_cells else grid).center
     origin = np.asarray(origin, float)
-    cut = grid.clip(normal=normal, origin=origin, crinkle=True, invert=True)
-    rest = grid.clip(normal=normal, origin=origin, crinkle=True, invert=False)
+    n = normal / np.linalg.norm(normal)
+    crossing = _crossing_cells(grid, origin, n)
+    cut = grid.extract_cells(np.nonzero(crossing)[0])
+    below = grid.clip(normal=normal, origin=origin, crinkle=True, invert=True)
     muscle = np.asarray(cut.cell_data[arrays.MUSCLE]).astype(int)
     cut.cell_data["label"] = muscle
     colors = [FAT_COLOR] + [MUSCLE_COLORS[i % len(MUSCLE_COLORS)] for i in range(len(arrays.MUSCLES))]
@@ -73,8 +76,9 @@ def mesh_figure(grid, *, normal=(1.0, 0.0, 0.0), origin=None, window_size=(900, 
         line_width=0.5,
         show_scalar_bar=False,
     )
-    if rest.n_cells:
-        pl.add_mesh(rest.extract_surface(algorithm="dataset_surface"), color=FAT_COLOR, opacity=0.1)
+    if below.n_cells:
+        pl.add_mesh(below.extract_surface(algorithm="dataset_surface"), color=FAT_COLOR,
+                    opacity=0.12)
     if camera is None:
         _look_at_cut(pl, cut, normal, origin)
     else:
@@ -95,14 +99,8 @@ def _look_at_cut(pl, cut, normal, origin):
     tilt = np.array([0.0, 0.35, 0.0]) if abs(n[1]) < 0.9 else np.array([0.0, 0.0, 0.35])
     view = n + tilt
     up = (0.0, 1.0, 0.0) if abs(n[2]) > 0.9 else (0.0, 0.0, 1.0)
-    # muscle cells crossing the plane: the muscle patches of the cut face
-    d = (np.asarray(cut.points) - origin) @ n
-    conn = cut.cell_connectivity
-    offsets = cut.cell_offsets
-    lo = np.minimum.reduceat(d[conn], offsets[:-1])
-    hi = np.maximum.reduceat(d[conn], offsets[:-1])
-    on_face = (lo <= 0) & (hi >= 0) & (np.asarray(cut.cell_data["label"]) > 0)
-    target = cut.extract_cells(np.nonzero(on_face)[0]) if on_face.any() else cut
+    muscle = np.asarray(cut.cell_data["label"]) > 0
+    target = cut.extract_cells(np.nonzero(muscle)[0]) if muscle.any() else cut
     b = np.asarray(target.bounds).reshape(3, 2)
     center = b.mean(axis=1)
     center = center - np.dot(center - origin, n) * n  # on the cutting plane
@@ -112,3 +110,13 @@ def _look_at_cut(pl, cut, normal, origin):
     pl.enable_parallel_projection()
     pl.camera.parallel_scale = 0.45 * max(size, 1e-6)
     pl.reset_camera_clipping_range()
+
+
+def _crossing_cells(grid, origin, n):
+    """Cells with points on both sides of the plane (or on it): the cut section."""
+    d = (np.asarray(grid.points) - origin) @ n
+    conn = np.asarray(grid.cell_connectivity)
+    starts = np.asarray(grid.cell_offsets)[:-1]
+    lo = np.minimum.reduceat(d[conn], starts)
+    hi = np.maximum.reduceat(d[conn], starts)
+    return (lo <= 0) & (hi >= 0)
