@@ -18,14 +18,15 @@ from PIL import Image
 import pvcmf
 from pvcmf.cli import DEMO_N_TETS, DEMO_SPACING
 from pvcmf.figures.face_views import prediction_summary
+from pvcmf.pipeline import simulate
 
 pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 case = pvcmf.datasets.phantom(patient=1, spacing=DEMO_SPACING)
-result = pvcmf.simulate(case.ct, case.plan, bones=case.truth, n_tets=DEMO_N_TETS,
-                        figures=False)
+result = simulate(case.ct, case.plan, bones=case.truth, n_tets=DEMO_N_TETS,
+                  figures=False)
 image = prediction_summary(result.skin_pre, result.skin_post)
 Image.fromarray(image).save(OUT / "prediction.png")
 
