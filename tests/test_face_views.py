@@ -141,3 +141,18 @@ def test_views_are_checked():
         fv.visible_points(head, "top")
     with pytest.raises(ValueError, match="visible"):
         fv.symmetric_limit(np.zeros(3), np.ones(2, bool))
+
+
+def test_carry_to_skin_bridges_gaps_between_regions():
+    skin = pv.Plane(i_size=100.0, j_size=100.0, i_resolution=50, j_resolution=50)
+    x = np.asarray(skin.points)[:, 0]
+    # two boxes with a 6 mm gap between them, and nothing beyond x = 30
+    patch = skin.extract_points((np.abs(x) > 3.0) & (x < 30.0), adjacent_cells=False)
+    patch.point_data["v"] = np.asarray(patch.points)[:, 0].copy()
+    out = fv.carry_to_skin(patch, skin, ["v"], gap=5.0)
+    v = np.asarray(out["v"])
+    gap = np.abs(x) < 3.0
+    assert np.isfinite(v[gap]).all() and np.abs(v[gap]).max() < 6.0
+    assert np.isnan(v[x > 36.0]).all()
+    kept = (np.abs(x) > 3.0) & (x < 30.0)
+    assert np.allclose(v[kept], x[kept], atol=1e-6)

@@ -32,7 +32,7 @@ from .. import arrays
 
 __all__ = ["VIEWS", "to_display", "set_view", "add_patient_mesh", "visible_points",
            "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
-           "prediction_summary",
+           "prediction_summary", "carry_to_skin",
            "displacement_views"]
 
 SKIN_COLOR = "peachpuff"
@@ -415,3 +415,38 @@ def prediction_summary(pre, post, panel=(380, 440)):
     chart = chart[:height]
     pad = np.full((height - chart.shape[0], chart.shape[1], 3), 255, np.uint8)
     return np.concatenate([faces, np.concatenate([chart, pad])], axis=1)
+
+
+def carry_to_skin(patch, skin, names, *, gap=8.0, k=8):
+    """Carry point arrays of a face ``patch`` onto a whole ``skin``, bridging small gaps.
+
+    Each skin point within ``gap`` mm of the patch gets the inverse-distance weighted mean
+    of its ``k`` nearest patch points; points further away get NaN (drawn in the NaN
+    colour). Used to show per-point results measured on the face regions (boxes with gaps
+    between them) on a continuous face.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> skin = pv.Plane(i_resolution=20, j_resolution=20)
+    >>> patch = skin.extract_points(skin.points[:, 0] < 0.0, adjacent_cells=False)
+    >>> patch.point_data["v"] = np.ones(patch.n_points)
+    >>> out = carry_to_skin(patch, skin, ["v"], gap=0.12)
+    >>> bool(np.isnan(out["v"]).any()), float(np.nanmax(out["v"]))
+    (True, 1.0)
+    """
+    from scipy.spatial import cKDTree
+
+    k = int(min(k, patch.n_points))
+    dist, idx = cKDTree(np.asarray(patch.points)).query(np.asarray(skin.points), k=k)
+    dist, idx = dist.reshape(len(dist), -1), idx.reshape(len(idx), -1)
+    w = 1.0 / np.maximum(dist, 1e-6) ** 2
+    near = dist[:, 0] <= gap
+    out = skin.copy(deep=True)
+    out.clear_data()
+    for name in names:
+        v = np.asarray(patch.point_data[name], dtype=np.float64)
+        carried = np.full(skin.n_points, np.nan)
+        carried[near] = (w[near] * v[idx[near]]).sum(axis=1) / w[near].sum(axis=1)
+        out.point_data[name] = carried
+    return out
