@@ -37,7 +37,7 @@ def main():
         # drawn on it as one continuous face (grey beyond the face regions)
         labels = pvcmf.datasets.phantom(2, spacing=STUDY["spacing"]).truth
         context = pvcmf.filters.extract_skin(labels)
-    pl = fig5_optimal_poisson(df, skin, context=context)
+    pl = fig5_optimal_poisson(df, skin, context=context, window_size=(1000, 500))
     pl.screenshot(OUT / "fig5_optimal_poisson.png")
     pl.close()
 
