@@ -276,8 +276,9 @@ def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
     if x is None:
         b = pre.bounds
         x = 0.5 * (b[0] + b[1])
-    fig = Figure(figsize=figsize, layout="constrained")
+    fig = Figure(figsize=figsize)  # fixed layout: every draw gives the same image
     ax = fig.add_subplot()
+    fig.subplots_adjust(left=0.2, right=0.96, bottom=0.12, top=0.93)
     lines = []
     for skin, label, style in ((pre, PRE_LABEL, dict(color="0.35", lw=2.2, ls="--")),
                                (post, POST_LABEL, dict(color="tab:red", lw=1.6))):
