@@ -19,5 +19,5 @@ pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
-plotter = sampling_figure(n_points=150, seed=0)
+plotter = sampling_figure(n_points=150, seed=0, window_size=(800, 640))
 plotter.screenshot(OUT / "fig1_sampling.png")

@@ -24,4 +24,4 @@ OUT.mkdir(parents=True, exist_ok=True)
 
 case = pvcmf.datasets.phantom(1, spacing=1.0)
 labels = case.truth.cmf.embed_muscles(landmarks=case.landmarks)
-figure_2a(labels).screenshot(OUT / "fig2a_muscles.png")
+figure_2a(labels, window_size=(800, 800)).screenshot(OUT / "fig2a_muscles.png")

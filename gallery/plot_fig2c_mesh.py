@@ -4,8 +4,11 @@
 One step from the tissue + muscle label image of virtual patient 1 to a tetrahedral mesh
 in which every tetrahedron lies in fat (yellow) or in one muscle (red), with element faces
 on the muscle surfaces (``pvcmf.filters.tetrahedralize``: SurfaceNets multi-label
-surfaces, then gmsh per region). The mesh is cut horizontally through the masseters; the
-tetrahedra below the cut are drawn whole, the rest as a translucent skin.
+surfaces, then gmsh per region). The mesh is cut horizontally 28 mm below the origin,
+through the masseters, the zygomatici and the levatores labii; the tetrahedra crossing the
+cut are drawn whole and seen from above (anterior at the top, the patient's left on the
+right), the mesh below as a translucent skin. The muscle volumes are the red patches of
+the section, as in the paper.
 """
 
 import os
@@ -15,7 +18,6 @@ from pathlib import Path
 import pyvista as pv
 
 import pvcmf
-from pvcmf import arrays
 from pvcmf.figures.mesh import mesh_figure
 
 pv.OFF_SCREEN = True
@@ -26,6 +28,6 @@ labels = pvcmf.datasets.phantom(1, spacing=2.0).truth
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")  # muscles thinner than the mesh would be named here
     mesh = labels.cmf.tetrahedralize(n_tets=60_000)
-masseter = mesh.extract_cells(mesh.cell_data[arrays.MUSCLE] == arrays.MUSCLE_IDS["masseter_left"])
-plotter = mesh_figure(mesh, normal=(0.0, 0.0, 1.0), origin=masseter.center)
+plotter = mesh_figure(mesh, normal=(0.0, 0.0, 1.0), origin=(0.0, 0.0, -28.0),
+                      window_size=(900, 700))
 plotter.screenshot(OUT / "fig2c_mesh.png")

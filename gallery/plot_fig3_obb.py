@@ -23,4 +23,4 @@ OUT.mkdir(parents=True, exist_ok=True)
 
 case = pvcmf.datasets.phantom(1, spacing=1.0)
 labels = case.truth.cmf.embed_muscles(landmarks=case.landmarks)
-figure_3(labels).screenshot(OUT / "fig3_obb.png")
+figure_3(labels, window_size=(800, 800)).screenshot(OUT / "fig3_obb.png")

@@ -28,5 +28,5 @@ case = pvcmf.datasets.phantom(1, spacing=2.0)
 result = simulate(case.ct, case.plan, bones=case.truth, landmarks=case.landmarks,
                   n_tets=25_000, bc_options={"fix_unmoved_bone": False})
 print(result.summary())
-plotter = figure_4(result.mesh, result.labels)
+plotter = figure_4(result.mesh, result.labels, window_size=(1500, 520))
 plotter.screenshot(OUT / "fig4_boundary_conditions.png")

@@ -1,9 +1,10 @@
 """Paper 000 Fig. 5: osteotomy planning of the four patients
 ==========================================================
 
-Each virtual patient's pre-operative face (left) next to its skeleton seen from the
-right (right): every bone segment in white where it is before surgery, the moved segment
-in green where Table II's plan puts it (patients 1-2: Le Fort I maxilla; 3-4: bilateral
+Each virtual patient's pre-operative face (left; frontal, the patient's right on the
+viewer's left) next to its skeleton seen from the patient's right side (face to the
+right): every bone segment in white where it is before surgery, the moved segment in
+green where Table II's plan puts it, with a legend and the plan written out (patients 1-2: Le Fort I maxilla; 3-4: bilateral
 sagittal split mandible). The segments come from the patient's bone labels
 (``pvcmf.filters.cut_bones``) and are moved rigidly about their centroids
 (``pvcmf.filters.move_bones``).
@@ -22,5 +23,5 @@ OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().paren
 OUT.mkdir(parents=True, exist_ok=True)
 
 cases = [pvcmf.datasets.phantom(patient, spacing=2.0) for patient in (1, 2, 3, 4)]
-plotter = figure_5(cases)
+plotter = figure_5(cases, window_size=(1600, 800))
 plotter.screenshot(OUT / "fig5_osteotomy.png")

@@ -30,5 +30,6 @@ def test_fig1_sampling(verify_image_cache):
 
 def test_fig2c_mesh(verify_image_cache):
     grid = tetrahedralize(shell_labels(spacing=2.0), spacing=6.0)
-    pl = mesh_figure(grid)
+    tube = grid.extract_cells(np.asarray(grid.cell_data["muscle"]) == 1)
+    pl = mesh_figure(grid, normal=(0.0, 0.0, 1.0), origin=tube.center, window_size=(600, 460))
     pl.show()

@@ -1,9 +1,10 @@
 """Paper 001 Fig. 1: per-slice Gaussian mixture + EM fat/muscle classification.
 
-Three matplotlib panels for one axial slice of a segmented CT: (a) the histogram of the
-slice's soft-tissue HU with the initial and the EM-fitted Gaussians and the threshold where
-the fat and muscle posteriors cross, (b) the slice after thresholding, (c) after the 5x5
-median filter. The numbers come from :func:`pvcmf.filters.classify_tissue` (its
+Four matplotlib panels for one axial slice of a segmented CT, as the paper draws them:
+(a) the histogram of the slice's soft-tissue HU (black) with the initial Gaussians (grey
+dots; five by default, as in the paper) and their sum (dark grey dashes), (b) the
+Gaussians after EM with the threshold where the fat and muscle posteriors cross, (c) the
+slice after thresholding (fat orange, muscle white), (d) after the 5x5 median filter. The numbers come from :func:`pvcmf.filters.classify_tissue` (its
 ``SliceMixtures``); drawing delegates to matplotlib.
 """
 
@@ -41,7 +42,7 @@ def pick_slice(mixtures):
     return int(np.argmax(score))
 
 
-def fig1_gmm(image, *, slice_index=None, n_components=2, figsize=(13.0, 4.4), **options):
+def fig1_gmm(image, *, slice_index=None, n_components=5, figsize=(16.0, 4.4), **options):
     """Draw paper 001 Fig. 1 for one axial slice of a segmented CT.
 
     Parameters
@@ -50,8 +51,9 @@ def fig1_gmm(image, *, slice_index=None, n_components=2, figsize=(13.0, 4.4), **
         Output of :func:`pvcmf.filters.segment` (arrays ``ct`` and ``tissue``).
     slice_index : int, optional
         Index (axis 2) of the slice to show; default :func:`pick_slice`.
-    n_components : int
-        Gaussians per slice, passed to :func:`pvcmf.filters.classify_tissue`.
+    n_components : int, default 5
+        Gaussians per slice (the paper initialises five), passed to
+        :func:`pvcmf.filters.classify_tissue`.
     figsize : (float, float)
         Figure size in inches.
     **options
@@ -82,26 +84,43 @@ def fig1_gmm(image, *, slice_index=None, n_components=2, figsize=(13.0, 4.4), **
     log.debug("fig1_gmm: slice %d", k)
 
     fig = Figure(figsize=figsize)  # fixed layout: new numbers do not move the axes
-    ax_h, ax_t, ax_m = fig.subplots(1, 3, width_ratios=[1.35, 1, 1])
-    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.12, top=0.92, wspace=0.3)
+    ax_i, ax_h, ax_t, ax_m = fig.subplots(1, 4, width_ratios=[1.25, 1.25, 1, 1])
+    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.12, top=0.92, wspace=0.3)
 
+    _initial_panel(ax_i, mix, k)
     _histogram_panel(ax_h, mix, k)
+    top = max(ax_i.get_ylim()[1], 1.5 * ax_h.get_ylim()[1])  # same scale, room for legends
+    ax_i.set_ylim(0, top)
+    ax_h.set_ylim(0, top)
     _slice_panels((ax_t, ax_m), image, raw, final, k, median_size)
     return fig
 
 
+def _initial_panel(ax, mix, k):
+    """Panel (a): slice ``k``'s soft-tissue histogram and the initial Gaussians."""
+    ax.plot(mix.centers, mix.hist[k], color="black", lw=1.0, zorder=2,
+            label="histogram (soft tissue)")
+    fine = np.linspace(mix.edges[0], mix.edges[-1], 600)
+    init = mix.densities(k, fine, initial=True)
+    for j in range(init.shape[1]):
+        ax.plot(fine, init[:, j], color="0.55", ls=":", lw=1.6,
+                label=f"{init.shape[1]} initial Gaussians" if j == 0 else None)
+    ax.plot(fine, init.sum(axis=1) + mix.floor(k, initial=True), color="0.3", ls="--",
+            lw=1.3, label="initial approximation")
+    ax.set_xlim(mix.edges[0], mix.edges[-1])
+    ax.set_ylim(0, 1.6 * max(mix.hist[k].max(), init.sum(axis=1).max()))
+    ax.set_xlabel("CT value (HU)")
+    ax.set_ylabel(f"voxels per {mix.edges[1] - mix.edges[0]:g} HU bin")
+    ax.set_title(f"(a) slice {k}: initialisation", fontsize=10)
+    ax.legend(fontsize=7, loc="upper left", frameon=False)
+
+
 def _histogram_panel(ax_h, mix, k):
-    """Panel (a): slice ``k``'s soft-tissue histogram, initial and EM-fitted Gaussians."""
+    """Panel (b): slice ``k``'s soft-tissue histogram and the EM-fitted Gaussians."""
     x = mix.centers
     ax_h.plot(x, mix.hist[k], color="black", lw=1.0, zorder=2, label="histogram (soft tissue)")
     fine = np.linspace(mix.edges[0], mix.edges[-1], 600)
-    init = mix.densities(k, fine, initial=True)
     fitted = mix.densities(k, fine)
-    for j in range(init.shape[1]):
-        ax_h.plot(fine, init[:, j], color="0.55", ls=":", lw=1.3,
-                  label="initial Gaussians" if j == 0 else None)
-    ax_h.plot(fine, init.sum(axis=1) + mix.floor(k, initial=True), color="0.35", ls="--",
-              lw=1.2, label="initial mixture")
     for j in range(fitted.shape[1]):
         is_fat = bool(mix.fat_group[k, j])
         ax_h.plot(fine, fitted[:, j], color="#e67e22" if is_fat else "#c0392b", lw=2.0, zorder=3,
@@ -116,17 +135,15 @@ def _histogram_panel(ax_h, mix, k):
     ax_h.axvline(mix.threshold[k], color="black", lw=1.0, ls="-.",
                  label=f"threshold {mix.threshold[k]:.0f} HU")
     ax_h.set_xlim(mix.edges[0], mix.edges[-1])
-    ax_h.set_ylim(0, 1.6 * max(mix.hist[k].max(), fitted.sum(axis=1).max()))  # room for legend
     ax_h.set_xlabel("CT value (HU)")
-    ax_h.set_ylabel(f"voxels per {mix.edges[1] - mix.edges[0]:g} HU bin")
     ax_h.set_title(
-        f"(a) slice {k}: fat {mix.fat_mean[k]:.0f} HU, muscle {mix.muscle_mean[k]:.0f} HU"
+        f"(b) after EM: fat {mix.fat_mean[k]:.0f} HU, muscle {mix.muscle_mean[k]:.0f} HU"
         + (" (pooled threshold)" if mix.fallback[k] else ""), fontsize=10)
     ax_h.legend(fontsize=7, loc="upper left", frameon=False)
 
 
 def _slice_panels(axes, image, raw, final, k, median_size):
-    """Panels (b), (c): slice ``k`` after the threshold and after the median filter."""
+    """Panels (c), (d): slice ``k`` after the threshold and after the median filter."""
     ax_t, ax_m = axes
     dims = image.dimensions
     ids = sorted(COLORS)
@@ -140,8 +157,8 @@ def _slice_panels(axes, image, raw, final, k, median_size):
     xlim = (image.origin[0] + (ii.min() - pad) * sx, image.origin[0] + (ii.max() + pad) * sx)
     ylim = (image.origin[1] + (jj.min() - pad) * sy, image.origin[1] + (jj.max() + pad) * sy)
     for ax, img, title in (
-        (ax_t, raw, "(b) threshold per slice"),
-        (ax_m, final, f"(c) after {median_size}x{median_size} median"),
+        (ax_t, raw, "(c) threshold per slice"),
+        (ax_m, final, f"(d) after {median_size}x{median_size} median"),
     ):
         lab = img.point_data[arrays.TISSUE].reshape(dims, order="F")[:, :, k]
         ax.imshow(lab.T, origin="lower", cmap=cmap, vmin=-0.5, vmax=max(ids) + 0.5,

@@ -164,7 +164,7 @@ _SLICE_COLORS = {
 }
 
 
-def figure_2b(labels, z=None, figsize=(6.4, 5.2)):
+def figure_2b(labels, z=None, figsize=(6.4, 5.2), style="paper"):
     """Paper 000 Fig. 2b: an axial slice of the tissue + muscle label image.
 
     Parameters
@@ -175,11 +175,18 @@ def figure_2b(labels, z=None, figsize=(6.4, 5.2)):
         Height (mm) of the slice; default: the slice holding the most muscle voxels.
     figsize : tuple of float
         Inches.
+    style : {"paper", "labels"}
+        ``"paper"``: as the paper draws the meshing input, the extra-cranial soft tissue
+        with one value (yellow) and the muscle segments with another (red), everything
+        else (bone, teeth, intracranial volume, air) outside the image domain (black).
+        ``"labels"``: every tissue label and each muscle kind in its own colour.
 
     Returns
     -------
     matplotlib.figure.Figure
     """
+    if style not in ("paper", "labels"):
+        raise ValueError(f"style must be 'paper' or 'labels', got {style!r}")
     tissue, muscle = _labels(labels)
     dims = labels.dimensions
     t3 = tissue.reshape(dims, order="F")
@@ -189,14 +196,10 @@ def figure_2b(labels, z=None, figsize=(6.4, 5.2)):
         k = int(np.argmax((m3 > 0).sum(axis=(0, 1))))
     else:
         k = int(np.clip(round((z - z0) / dz), 0, dims[2] - 1))
-    # class index: 0..5 tissue labels, 6.. muscle kinds
-    kinds = list(MUSCLE_COLORS)
-    cls = t3[:, :, k].astype(int).copy()
-    cls[cls > arrays.INTRACRANIAL] = arrays.AIR
-    mk = m3[:, :, k].astype(int)
-    has = mk > 0
-    cls[has] = 6 + np.array([kinds.index(_kind(n)) for n in arrays.MUSCLES])[mk[has] - 1]
-    colors = [_SLICE_COLORS[i] for i in range(6)] + [MUSCLE_COLORS[k_] for k_ in kinds]
+    if style == "paper":
+        cls, colors, handles = _paper_classes(t3[:, :, k], m3[:, :, k])
+    else:
+        cls, colors, handles = _label_classes(t3[:, :, k], m3[:, :, k])
     fig = Figure(figsize=figsize)
     ax = fig.add_subplot(1, 1, 1)
     x0, dx = labels.origin[0], labels.spacing[0]
@@ -204,19 +207,45 @@ def figure_2b(labels, z=None, figsize=(6.4, 5.2)):
     extent = (x0 - dx / 2, x0 + (dims[0] - 0.5) * dx, y0 - dy / 2, y0 + (dims[1] - 0.5) * dy)
     ax.imshow(cls.T, origin="lower", cmap=ListedColormap(colors), vmin=-0.5,
               vmax=len(colors) - 0.5, interpolation="nearest", extent=extent)
+    ii, jj = np.nonzero(t3[:, :, k] != arrays.AIR)
+    if ii.size:  # frame the head
+        ax.set_xlim(x0 + (ii.min() - 3) * dx, x0 + (ii.max() + 3) * dx)
+        ax.set_ylim(y0 + (jj.min() - 3) * dy, y0 + (jj.max() + 3) * dy)
     ax.set_xlabel("x (mm, patient's left +)")
     ax.set_ylabel("y (mm, anterior +)")
-    ax.set_title(f"tissue + muscle labels, axial slice z = {z0 + k * dz:.0f} mm")
-    present_t = [i for i in range(6) if (cls == i).any()]
-    present_m = [i for i in range(len(kinds)) if (cls == 6 + i).any()]
-    names = {v: k_ for k_, v in arrays.TISSUE_LABELS.items()}
-    handles = [Patch(color=_SLICE_COLORS[i], label=names[i]) for i in present_t if i != 0]
-    handles += [Patch(color=MUSCLE_COLORS[kinds[i]], label=SHORT[kinds[i]])
-                for i in present_m]
+    ax.set_title(f"tissue + muscle image, axial slice z = {z0 + k * dz:.0f} mm", fontsize=10)
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7,
               frameon=False)
     fig.subplots_adjust(left=0.1, right=0.66, bottom=0.1, top=0.93)
     return fig
+
+
+def _paper_classes(t, m):
+    """0 outside the image domain, 1 extra-cranial soft tissue, 2 muscle segments."""
+    cls = np.zeros(t.shape, dtype=int)
+    cls[np.isin(t, arrays.SOFT_LABELS)] = 1
+    cls[m > 0] = 2
+    colors = ["#000000", SKIN_COLOR, "#c0392b"]
+    handles = [Patch(color=SKIN_COLOR, label="facial tissue (one value)"),
+               Patch(color="#c0392b", label="muscle segments (another value)")]
+    return cls, colors, handles
+
+
+def _label_classes(t, m):
+    """Tissue labels 0..5, then one class per muscle kind."""
+    kinds = list(MUSCLE_COLORS)
+    cls = t.astype(int).copy()
+    cls[cls > arrays.INTRACRANIAL] = arrays.AIR
+    mk = m.astype(int)
+    has = mk > 0
+    cls[has] = 6 + np.array([kinds.index(_kind(n)) for n in arrays.MUSCLES])[mk[has] - 1]
+    colors = [_SLICE_COLORS[i] for i in range(6)] + [MUSCLE_COLORS[k_] for k_ in kinds]
+    names = {v: k_ for k_, v in arrays.TISSUE_LABELS.items()}
+    handles = [Patch(color=_SLICE_COLORS[i], label=names[i]) for i in range(1, 6)
+               if (cls == i).any()]
+    handles += [Patch(color=MUSCLE_COLORS[kinds[i]], label=SHORT[kinds[i]])
+                for i in range(len(kinds)) if (cls == 6 + i).any()]
+    return cls, colors, handles
 
 
 def figure_3(labels, levels=None, window_size=(800, 800)):

@@ -1,12 +1,17 @@
 """Paper 000 Fig. 5: osteotomy planning, pre-operative bone in white, planned in green.
 
-For each patient the pre-operative face is shown next to its skeleton seen from the
-side: every bone segment in white where it is before surgery, the moved segments in
-green where the plan puts them (:func:`pvcmf.filters.move_bones`). Delegates to PyVista
-(off-screen :class:`pyvista.Plotter`).
+For each patient the pre-operative face (frontal, photographic convention: the patient's
+right on the viewer's left) is shown next to its skeleton seen from the patient's right
+side (face to the viewer's right): every bone segment in white where it is before
+surgery, the moved segments in green where the plan puts them
+(:func:`pvcmf.filters.move_bones`), with a legend and the plan's numbers written out
+(:func:`plan_lines`). Views and the display frame come from :mod:`pvcmf.figures.face_views`.
+Delegates to PyVista (off-screen :class:`pyvista.Plotter`).
 """
 
 from __future__ import annotations
+
+import textwrap
 
 import numpy as np
 import pyvista as pv
@@ -14,27 +19,45 @@ import pyvista as pv
 from .. import arrays
 from ..filters.osteotomy import move_bones
 from ..filters.skin import extract_skin
+from .face_views import add_patient_mesh, set_view, to_display
 
-__all__ = ["osteotomy_panel", "draw_osteotomy", "figure_5"]
+__all__ = ["osteotomy_panel", "draw_osteotomy", "figure_5", "plan_lines"]
 
 PRE_COLOR = "white"
 POST_COLOR = "limegreen"
 SKIN_COLOR = "peachpuff"
 
 
-def _camera(plotter, bounds, side, zoom=1.7):
-    b = np.asarray(bounds).reshape(3, 2)
-    center = b.mean(axis=1)
-    size = float(np.linalg.norm(b[:, 1] - b[:, 0]))
-    direction = {"front": (0.0, 1.0, 0.0), "right": (-1.0, 0.35, 0.0)}[side]
-    direction = np.asarray(direction) / np.linalg.norm(direction)
-    plotter.camera_position = [tuple(center + 2.6 * size * direction), tuple(center),
-                               (0.0, 0.0, 1.0)]
-    plotter.camera.zoom(zoom)
+def plan_lines(plan):
+    """The plan's numbers as text, one line per osteotomy, signs spelled out.
+
+    Examples
+    --------
+    >>> from pvcmf.plan import Osteotomy, Plan
+    >>> plan_lines(Plan([Osteotomy("maxilla", translation=(0.0, 2.0, -4.0))]))
+    ['maxilla: 4.0 mm back, 2.0 mm up']
+    """
+    names = (("left", "right"), ("up", "down"), ("forward", "back"))
+    rot_names = ("pitch", "yaw", "roll")
+    out = []
+    for o in plan.osteotomies:
+        moves = [f"{abs(v):.1f} mm {names[i][0] if v > 0 else names[i][1]}"
+                 for i, v in ((2, o.translation[2]), (1, o.translation[1]),
+                              (0, o.translation[0])) if abs(v) >= 0.05]
+        turns = [f"{rot_names[i]} {v:+.1f} deg" for i, v in enumerate(o.rotation)
+                 if abs(v) >= 0.05]
+        out.append(f"{o.segment}: " + (", ".join(moves + turns) or "not moved"))
+    return out
+
+
+def _wrapped(lines, width=44):
+    return "\n".join(textwrap.fill(line, width, subsequent_indent="    ") for line in lines)
 
 
 def draw_osteotomy(plotter, labels, plan, skeleton=None):
     """Draw pre-operative segments (white) and moved segments (green) into ``plotter``.
+
+    Meshes are drawn in the display frame of :mod:`pvcmf.figures.face_views` (x mirrored).
 
     Parameters
     ----------
@@ -54,15 +77,15 @@ def draw_osteotomy(plotter, labels, plan, skeleton=None):
         pre = post.copy()
         pre.points = np.asarray(post.points) - np.asarray(post[arrays.DISPLACEMENT])
         moved = bool(post.field_data["moved"][0])
-        plotter.add_mesh(pre, color=PRE_COLOR, smooth_shading=True,
-                         opacity=0.55 if moved else 1.0, specular=0.3)
+        add_patient_mesh(plotter, pre, color=PRE_COLOR, opacity=0.55 if moved else 1.0,
+                         specular=0.3)
         if moved:
-            plotter.add_mesh(post, color=POST_COLOR, smooth_shading=True, specular=0.3)
+            add_patient_mesh(plotter, post, color=POST_COLOR, specular=0.3)
         bounds.append(np.asarray(pre.bounds))
     return skeleton
 
 
-def osteotomy_panel(labels, plan, skin=None, skeleton=None, window_size=(900, 450)):
+def osteotomy_panel(labels, plan, skin=None, skeleton=None, window_size=(1000, 520)):
     """One patient of Fig. 5: the face (left) next to the planned osteotomy (right).
 
     Parameters
@@ -96,20 +119,22 @@ def _draw_patient(p, first, labels, plan, skin, skeleton, title=""):
     row, col = first
     if skin is None:
         skin = extract_skin(labels)
+    bounds = to_display(skin).bounds
     p.subplot(row, col)
     p.set_background("white", all_renderers=False)
-    p.add_mesh(skin, color=SKIN_COLOR, smooth_shading=True, specular=0.2)
-    _camera(p, skin.bounds, "front")
+    add_patient_mesh(p, skin, color=SKIN_COLOR, specular=0.2)
+    set_view(p, bounds, "frontal")
     if title:
-        p.add_text(title, font_size=10, color="black")
+        p.add_text(title, font_size=12, color="black")
     p.subplot(row, col + 1)
     p.set_background("dimgray", all_renderers=False)
     skeleton = draw_osteotomy(p, labels, plan, skeleton)
-    _camera(p, skin.bounds, "right")
-    text = "\n".join(f"{o.segment}: T{tuple(round(v, 2) for v in o.translation)} mm"
-                      f" R{tuple(round(v, 2) for v in o.rotation)} deg"
-                      for o in plan.osteotomies)
-    p.add_text(text, font_size=7, color="white", position="lower_left")
+    set_view(p, bounds, "profile")
+    p.add_legend([["pre-operative bone", PRE_COLOR], ["planned position", POST_COLOR]],
+                 bcolor="dimgray", border=False, loc="upper left", size=(0.5, 0.12),
+                 face="rectangle")
+    p.add_text(_wrapped(plan_lines(plan)), font_size=10, color="white",
+               position="lower_left")
 
 
 def figure_5(cases, window_size=(1600, 800)):

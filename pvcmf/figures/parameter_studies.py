@@ -30,6 +30,7 @@ from ..study.evaluation import synthetic_evaluate
 from ..study.pipeline_evaluation import STUDY_SPACING, PipelineEvaluation
 from ..study.tables import save_table
 from ..truth.grid import postop_skin
+from .face_views import carry_to_skin
 
 log = logging.getLogger(__name__)
 
@@ -535,7 +536,7 @@ def optimal_poisson(df, skin, *, case=None, neighbours=16, percentile=90.0):
 
 
 def fig5_optimal_poisson(df, skin, *, case=None, neighbours=16, spread_max=0.3,
-                         window_size=(1000, 500)):
+                         window_size=(1000, 500), context=None):
     """Paper 001 Fig. 5: per-point optimal Poisson ratio and error spread on the face.
 
     Parameters
@@ -546,6 +547,9 @@ def fig5_optimal_poisson(df, skin, *, case=None, neighbours=16, spread_max=0.3,
         Upper end of the spread colour scale, mm (the paper: 0.3).
     window_size : tuple of int
         Render size in pixels.
+    context : pyvista.PolyData, optional
+        The whole pre-operative skin: the maps are drawn on it, bridging the gaps between
+        the face regions (:func:`pvcmf.figures.face_views.carry_to_skin`), grey elsewhere.
 
     Returns
     -------
@@ -565,7 +569,9 @@ def fig5_optimal_poisson(df, skin, *, case=None, neighbours=16, spread_max=0.3,
     """
     import pyvista as pv
 
-    face = optimal_poisson(df, skin, case=case, neighbours=neighbours)
+    face = patch = optimal_poisson(df, skin, case=case, neighbours=neighbours)
+    if context is not None:
+        face = carry_to_skin(patch, context, ["nu_opt", "p90_spread"])
     nus = np.sort(df["nu"].unique())
     pl = pv.Plotter(off_screen=True, shape=(1, 2), window_size=list(window_size), border=False)
     for col, (name, clim, cmap, label, unit) in enumerate([
@@ -575,13 +581,14 @@ def fig5_optimal_poisson(df, skin, *, case=None, neighbours=16, spread_max=0.3,
         pl.subplot(0, col)
         pl.add_text(label, position="upper_edge", font_size=9, color="black")
         pl.add_mesh(face, scalars=name, clim=clim, cmap=cmap, copy_mesh=True, smooth_shading=True,
+                    nan_color="lightgray",
                     scalar_bar_args={"title": unit, "vertical": False, "position_x": 0.15,
                                      "position_y": 0.04, "width": 0.7, "height": 0.08,
                                      "title_font_size": 14, "label_font_size": 12, "fmt": "%.2f",
                                      "color": "black"})
         pl.camera_position = "xz"
         pl.camera.azimuth = 180.0 if _faces_minus_y(face) else 0.0
-        pl.reset_camera()
+        pl.reset_camera(bounds=patch.bounds)
         pl.camera.zoom(1.05)
     pl.set_background("white")
     return pl

@@ -1,0 +1,453 @@
+"""The predicted face as a surgeon reads it: standard views, profile overlay, signed maps.
+
+* :func:`face_comparison`: pre-operative and predicted skin side by side (columns) in the
+  clinical photographic views (rows): ``"frontal"``, ``"three_quarter"`` (the patient's
+  right, 45 degrees) and ``"profile"`` (the patient's right side, face to the viewer's right).
+* :func:`profile_overlay`: the midsagittal cut of both skins as a 2-D line plot
+  (matplotlib), the silhouettes a surgeon compares first.
+* :func:`displacement_views`: a signed component of the skin displacement (anterior-posterior
+  ``"ap"`` or along the outward normal ``"normal"``) on a diverging map whose symmetric range
+  is the 99th percentile of ``|value|`` over the points VISIBLE in the drawn views
+  (:func:`visible_points`), so points hidden inside the mouth or behind the head do not set it.
+
+Frames: the patient frame has x toward the patient's left, y anterior, z superior. Seen from
+the front with z up, a camera shows +x on the viewer's LEFT, i.e. the patient's left on the
+viewer's left: a mirror image. Clinical photographs show the patient's right on the viewer's
+left, so every mesh is drawn reflected (x -> -x, :func:`to_display`), which turns the patient
+frame into a right-handed (right, anterior, superior) display frame in which the cameras
+below are ordinary rotations.
+
+Delegates to PyVista (off-screen :class:`pyvista.Plotter`, ``slice``), VTK's
+``vtkSelectVisiblePoints`` (z-buffer visibility) and matplotlib (the 2-D overlay).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyvista as pv
+from matplotlib.figure import Figure
+from vtkmodules.vtkRenderingCore import vtkSelectVisiblePoints
+
+from .. import arrays
+
+__all__ = ["VIEWS", "to_display", "set_view", "add_patient_mesh", "visible_points",
+           "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
+           "prediction_summary", "carry_to_skin",
+           "displacement_views"]
+
+SKIN_COLOR = "peachpuff"
+PRE_LABEL = "pre-operative"
+POST_LABEL = "predicted"
+#: camera direction (from the focal point toward the camera) in the DISPLAY frame
+#: (x = patient's right, y anterior, z superior), view up is +z for all views
+VIEWS = {
+    "frontal": (0.0, 1.0, 0.0),
+    "three_quarter": (np.sqrt(0.5), np.sqrt(0.5), 0.0),
+    "profile": (1.0, 0.0, 0.0),
+}
+VIEW_TITLES = {"frontal": "frontal", "three_quarter": "three-quarter (right)",
+               "profile": "profile (right)"}
+COMPONENT_TITLES = {"ap": "anterior(+) / posterior(-) displacement (mm)",
+                    "normal": "outward(+) / inward(-) displacement (mm)",
+                    "magnitude": "displacement magnitude (mm)"}
+_ID = "_face_views_point_id"
+
+
+def to_display(mesh):
+    """Copy of ``mesh`` reflected to the display frame (x -> -x), without normals.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> to_display(pv.PolyData([[1.0, 2.0, 3.0]])).points.tolist()
+    [[-1.0, 2.0, 3.0]]
+    """
+    out = mesh.copy(deep=True)
+    out.points = np.asarray(mesh.points, dtype=np.float64) * np.array([-1.0, 1.0, 1.0])
+    if arrays.NORMALS in out.point_data:
+        del out.point_data[arrays.NORMALS]
+    return out
+
+
+def _check_view(view):
+    if view not in VIEWS:
+        raise ValueError(f"view must be one of {sorted(VIEWS)}, got {view!r}")
+
+
+def set_view(plotter, bounds, view, zoom=1.0):
+    """Point the active camera at ``bounds`` (display frame) from the clinical ``view``.
+
+    Parallel projection, so the same face has the same size in every view.
+    """
+    _check_view(view)
+    b = np.asarray(bounds, dtype=float).reshape(3, 2)
+    center = b.mean(axis=1)
+    size = float(np.linalg.norm(b[:, 1] - b[:, 0]))
+    direction = np.asarray(VIEWS[view])
+    plotter.camera_position = [tuple(center + 3.0 * size * direction), tuple(center),
+                               (0.0, 0.0, 1.0)]
+    plotter.enable_parallel_projection()
+    # fit the box's screen extent: height along z, width along the screen's right vector
+    corners = np.array(np.meshgrid(*b, indexing="ij")).reshape(3, -1).T
+    right = np.cross(-direction, (0.0, 0.0, 1.0))
+    width = float(np.ptp(corners @ right))
+    aspect = float(plotter.renderer.GetTiledAspectRatio()) or 1.0
+    plotter.camera.parallel_scale = 0.54 * max(float(b[2, 1] - b[2, 0]), width / aspect) / zoom
+    plotter.reset_camera_clipping_range()
+
+
+def add_patient_mesh(plotter, mesh, **kwargs):
+    """``plotter.add_mesh`` of ``mesh`` (patient frame) reflected to the display frame."""
+    kwargs.setdefault("smooth_shading", True)
+    return plotter.add_mesh(to_display(mesh), **kwargs)
+
+
+def visible_points(surface, view, window_size=(400, 400), tolerance=1.0):
+    """Boolean mask of the points of ``surface`` (patient frame) seen from ``view``.
+
+    The surface is rendered off screen with :func:`set_view`; VTK's
+    ``vtkSelectVisiblePoints`` keeps the points whose depth matches the z-buffer within
+    ``tolerance`` mm, so points behind other parts of the surface (inside the mouth,
+    behind the head) are hidden.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> sphere = pv.Sphere(radius=50.0, theta_resolution=30, phi_resolution=30)
+    >>> seen = visible_points(sphere, "frontal")
+    >>> bool(seen[sphere.points[:, 1].argmax()]), bool(seen[sphere.points[:, 1].argmin()])
+    (True, False)
+    """
+    _check_view(view)
+    shown = to_display(surface.extract_surface(algorithm=None) if not isinstance(surface, pv.PolyData)
+                       else surface)
+    shown.point_data[_ID] = np.arange(shown.n_points)
+    p = pv.Plotter(off_screen=True, window_size=list(window_size))
+    try:
+        p.add_mesh(shown, color="white", lighting=False)
+        set_view(p, shown.bounds, view)
+        p.ren_win.Render()  # VTK's render: fills the z-buffer, no pyvista show hooks
+        sel = vtkSelectVisiblePoints()
+        sel.SetInputData(shown)
+        sel.SetRenderer(p.renderer)
+        sel.SetToleranceWorld(float(tolerance))
+        sel.SelectionWindowOff()
+        sel.Update()
+        ids = np.asarray(pv.wrap(sel.GetOutput()).point_data[_ID], dtype=np.int64)
+    finally:
+        p._before_close_callback = None  # an internal render, not a figure to record
+        p.close()
+    mask = np.zeros(shown.n_points, dtype=bool)
+    mask[ids] = True
+    return mask
+
+
+def signed_displacement(skin, component="ap"):
+    """Signed displacement (mm) of a skin with the point array ``displacement``.
+
+    ``"ap"``: the anterior (+y) component; ``"normal"``: along the outward surface normal;
+    ``"magnitude"``: the length (not signed).
+    """
+    u = np.asarray(arrays.require_array(skin, arrays.DISPLACEMENT, ncomp=3), dtype=np.float64)
+    if component == "ap":
+        return u[:, 1].copy()
+    if component == "magnitude":
+        return np.linalg.norm(u, axis=1)
+    if component == "normal":
+        normals = skin.extract_surface(algorithm=None).compute_normals(
+            cell_normals=False, point_normals=True, auto_orient_normals=True,
+            consistent_normals=True, split_vertices=False)[arrays.NORMALS]
+        return np.einsum("ij,ij->i", u, np.asarray(normals, dtype=np.float64))
+    raise ValueError(f"component must be one of {sorted(COMPONENT_TITLES)}, got {component!r}")
+
+
+def symmetric_limit(values, visible, percentile=99.0, floor=0.1):
+    """Half-width of a symmetric colour range: ``percentile`` of ``|values[visible]|``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> v = np.r_[np.linspace(-2.0, 2.0, 101), 50.0]
+    >>> symmetric_limit(v, np.r_[np.ones(101, bool), False])
+    2.0
+    """
+    values = np.asarray(values, dtype=np.float64)
+    visible = np.asarray(visible, dtype=bool)
+    if visible.shape != values.shape:
+        raise ValueError(f"visible must have the shape of values {values.shape}, "
+                         f"got {visible.shape}")
+    seen = np.abs(values[visible & np.isfinite(values)])
+    if seen.size == 0:
+        return float(floor)
+    return max(float(np.percentile(seen, percentile)), float(floor))
+
+
+def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
+                    window_size=None, color=SKIN_COLOR):
+    """Pre-operative and predicted skins side by side in clinical views.
+
+    Parameters
+    ----------
+    pre, post : pyvista.PolyData
+        Skins in the patient frame (``post`` at its predicted position).
+    views : sequence of str
+        Rows, from :data:`VIEWS`.
+    window_size : (int, int), optional
+        Default 440 x 500 pixels per panel.
+
+    Returns
+    -------
+    pyvista.Plotter
+        Off screen, ``len(views)`` rows x 2 columns (pre-operative, predicted).
+    """
+    views = tuple(views)
+    for v in views:
+        _check_view(v)
+    window_size = window_size or (880, 500 * len(views))
+    p = pv.Plotter(off_screen=True, shape=(len(views), 2), window_size=list(window_size),
+                   border=False)
+    bounds = np.asarray(to_display(pre).bounds).reshape(3, 2)
+    post_b = np.asarray(to_display(post).bounds).reshape(3, 2)
+    bounds = np.c_[np.minimum(bounds[:, 0], post_b[:, 0]), np.maximum(bounds[:, 1], post_b[:, 1])]
+    for row, view in enumerate(views):
+        for col, (skin, label) in enumerate(((pre, PRE_LABEL), (post, POST_LABEL))):
+            p.subplot(row, col)
+            p.set_background("white", all_renderers=False)
+            add_patient_mesh(p, skin, color=color, specular=0.2)
+            set_view(p, bounds.ravel(), view)
+            p.add_text(f"{label}, {VIEW_TITLES[view]}", font_size=10, color="black")
+    return p
+
+
+def anterior_profile(skin, x, step=0.5):
+    """The anterior silhouette of the cut of ``skin`` by the plane x = ``x``.
+
+    For each ``step`` mm band of z, the most anterior (largest y) point of the cut: the
+    face's outline in the midsagittal plane, without the airway and mouth cavity the cut
+    also crosses.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n, 2) array of (y, z) in mm, z increasing.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> line = anterior_profile(pv.Sphere(radius=10.0, theta_resolution=60), 0.0)
+    >>> round(float(line[:, 0].max()), 1)
+    10.0
+    """
+    cut = skin.slice(normal=(1.0, 0.0, 0.0), origin=(float(x), 0.0, 0.0))
+    if cut.n_lines == 0:
+        raise ValueError(f"the plane x = {x} does not cut the skin (x bounds "
+                         f"{skin.bounds[0]:.1f}..{skin.bounds[1]:.1f} mm)")
+    seg = np.asarray(cut.points)[np.asarray(cut.lines).reshape(-1, 3)[:, 1:]]  # (n, 2, 3)
+    # points every step / 2 along each segment, so every z band holds the face's points
+    n_sub = np.maximum(np.ceil(np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1) / (0.5 * step)),
+                       1).astype(np.int64)
+    which = np.repeat(np.arange(len(seg)), n_sub + 1)
+    t = (np.arange(which.size) - np.repeat(np.cumsum(n_sub + 1) - (n_sub + 1), n_sub + 1))
+    t = (t / np.repeat(n_sub, n_sub + 1))[:, None]
+    pts = seg[which, 0] * (1.0 - t) + seg[which, 1] * t
+    band = np.floor((pts[:, 2] - pts[:, 2].min()) / step).astype(np.int64)
+    order = np.lexsort((-pts[:, 1], band))
+    first = np.r_[True, band[order][1:] != band[order][:-1]]
+    best = pts[order[first]]
+    return best[:, 1:].copy()
+
+
+def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
+    """Pre-operative and predicted midsagittal profiles overlaid (matplotlib).
+
+    Parameters
+    ----------
+    pre, post : pyvista.PolyData
+        Skins in the patient frame.
+    x : float, optional
+        Midsagittal plane x (mm); default the centre of ``pre`` along x.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The anterior silhouettes (:func:`anterior_profile`), anterior (+y) to the right,
+        superior (+z) up, equal axes in mm.
+    """
+    if x is None:
+        b = pre.bounds
+        x = 0.5 * (b[0] + b[1])
+    fig = Figure(figsize=figsize)  # fixed layout: every draw gives the same image
+    ax = fig.add_subplot()
+    fig.subplots_adjust(left=0.2, right=0.96, bottom=0.12, top=0.93)
+    lines = []
+    for skin, label, style in ((pre, PRE_LABEL, dict(color="0.35", lw=2.2, ls="--")),
+                               (post, POST_LABEL, dict(color="tab:red", lw=1.6))):
+        line = anterior_profile(skin, x)
+        lines.append(line)
+        ax.plot(line[:, 0], line[:, 1], label=label, **style)
+    y, z = np.concatenate(lines).T
+    ax.set_xlim(y.max() - 0.5 * np.ptp(z), y.max() + 0.08 * np.ptp(z))
+    ax.set_ylim(z.min() - 0.04 * np.ptp(z), z.max() + 0.04 * np.ptp(z))
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlabel("anterior (y, mm)")
+    ax.set_ylabel("superior (z, mm)")
+    ax.set_title(f"midsagittal profile (x = {x:.1f} mm)")
+    ax.legend(loc="lower left")
+    ax.grid(alpha=0.3)
+    return fig
+
+
+def visible_in_views(surface, views=("frontal", "profile")):
+    """Points of ``surface`` visible in any of ``views`` (:func:`visible_points`)."""
+    seen = np.zeros(surface.n_points, dtype=bool)
+    for v in views:
+        seen |= visible_points(surface, v)
+    return seen
+
+
+def displacement_limit(skin, component="ap", views=("frontal", "profile"), percentile=99.0,
+                       visible=None):
+    """Colour limit (mm) of a displacement component over the VISIBLE points.
+
+    ``percentile`` of ``|value|`` over the points of ``skin`` visible in any of ``views``
+    (:func:`visible_in_views`, :func:`symmetric_limit`), or over ``visible`` when given.
+    """
+    values = signed_displacement(skin, component)
+    if visible is None:
+        visible = visible_in_views(skin, views)
+    return symmetric_limit(values, visible, percentile)
+
+
+def displacement_views(skin, component="ap", views=("frontal", "profile"), percentile=99.0,
+                       cmap=None, window_size=None, limit=None, visible=None):
+    """A signed displacement component on the skin, with a range from its visible points.
+
+    Parameters
+    ----------
+    skin : pyvista.PolyData
+        Pre-operative skin with the point array ``displacement`` (mm).
+    component : {"ap", "normal", "magnitude"}
+        See :func:`signed_displacement`.
+    views : sequence of str
+        Panels, left to right.
+    percentile : float
+        The range is ``[-m, m]`` with ``m`` this percentile of ``|value|`` over the points
+        visible in any of ``views`` (:func:`displacement_limit`).
+    limit : float, optional
+        Use ``[-limit, limit]`` (``[0, limit]`` for the magnitude) instead.
+    visible : numpy.ndarray of bool, optional
+        Precomputed visibility (:func:`visible_in_views`).
+
+    Returns
+    -------
+    pyvista.Plotter
+        Off screen, one row of views above a strip holding the colour bar.
+    """
+    views = tuple(views)
+    for v in views:
+        _check_view(v)
+    values = signed_displacement(skin, component)
+    if limit is None:
+        m = displacement_limit(skin, component, views, percentile, visible=visible)
+    else:
+        m = float(limit)
+    clim = (0.0, m) if component == "magnitude" else (-m, m)
+    cmap = cmap or ("viridis" if component == "magnitude" else "RdBu_r")
+    shown = skin.copy(deep=True)
+    shown.clear_data()
+    title = COMPONENT_TITLES[component]
+    shown.point_data[title] = values
+    n = len(views)
+    window_size = window_size or (440 * n, 600)
+    p = pv.Plotter(off_screen=True, shape=(2, n), row_weights=[0.84, 0.16],
+                   groups=[(1, np.s_[:])], window_size=list(window_size), border=False)
+    actor = None
+    for col, view in enumerate(views):
+        p.subplot(0, col)
+        p.set_background("white", all_renderers=False)
+        actor = add_patient_mesh(p, shown, scalars=title, cmap=cmap, clim=clim,
+                                 show_scalar_bar=False, specular=0.1)
+        set_view(p, to_display(skin).bounds, view)
+        p.add_text(VIEW_TITLES[view], font_size=10, color="black")
+    p.subplot(1, 0)
+    p.set_background("white", all_renderers=False)
+    bar = p.add_scalar_bar(title=title, mapper=actor.mapper, color="black", vertical=False,
+                     position_x=0.15, position_y=0.02, width=0.7, height=0.62,
+                     title_font_size=16, label_font_size=14, n_labels=5, fmt="%.1f")
+    bar.SetTextPositionToPrecedeScalarBar()  # tick labels below the bar
+    bar.SetTitle("")  # the title goes above the bar, clear of the labels
+    p.add_text(title, position="upper_edge", font_size=11, color="black")
+    return p
+
+
+def chart_image(fig, dpi=100):
+    """A matplotlib figure as an (h, w, 3) uint8 RGB array (Agg canvas)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas = FigureCanvasAgg(fig)
+    fig.set_dpi(dpi)
+    canvas.draw()
+    return np.asarray(canvas.buffer_rgba())[..., :3].copy()
+
+
+def prediction_summary(pre, post, panel=(380, 440)):
+    """One image for a first look: frontal and profile, pre-operative and predicted, and
+    the midsagittal profile overlay, side by side.
+
+    Parameters
+    ----------
+    pre, post : pyvista.PolyData
+        Skins in the patient frame.
+    panel : (int, int)
+        Width and height (pixels) of one 3-D panel.
+
+    Returns
+    -------
+    numpy.ndarray
+        (h, w, 3) uint8 RGB image: a 2 x 2 block (rows frontal, profile; columns
+        pre-operative, predicted) then the overlay (:func:`profile_overlay`).
+    """
+    w, h = panel
+    p = face_comparison(pre, post, views=("frontal", "profile"), window_size=(2 * w, 2 * h))
+    faces = p.screenshot(return_img=True)[..., :3]
+    p.close()
+    height = faces.shape[0]
+    chart = chart_image(profile_overlay(pre, post, figsize=(0.5 * height / 100, height / 100)))
+    chart = chart[:height]
+    pad = np.full((height - chart.shape[0], chart.shape[1], 3), 255, np.uint8)
+    return np.concatenate([faces, np.concatenate([chart, pad])], axis=1)
+
+
+def carry_to_skin(patch, skin, names, *, gap=8.0, k=8):
+    """Carry point arrays of a face ``patch`` onto a whole ``skin``, bridging small gaps.
+
+    Each skin point within ``gap`` mm of the patch gets the inverse-distance weighted mean
+    of its ``k`` nearest patch points; points further away get NaN (drawn in the NaN
+    colour). Used to show per-point results measured on the face regions (boxes with gaps
+    between them) on a continuous face.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> skin = pv.Plane(i_resolution=20, j_resolution=20)
+    >>> patch = skin.extract_points(skin.points[:, 0] < 0.0, adjacent_cells=False)
+    >>> patch.point_data["v"] = np.ones(patch.n_points)
+    >>> out = carry_to_skin(patch, skin, ["v"], gap=0.12)
+    >>> bool(np.isnan(out["v"]).any()), float(np.nanmax(out["v"]))
+    (True, 1.0)
+    """
+    from scipy.spatial import cKDTree
+
+    k = int(min(k, patch.n_points))
+    dist, idx = cKDTree(np.asarray(patch.points)).query(np.asarray(skin.points), k=k)
+    dist, idx = dist.reshape(len(dist), -1), idx.reshape(len(idx), -1)
+    w = 1.0 / np.maximum(dist, 1e-6) ** 2
+    near = dist[:, 0] <= gap
+    out = skin.copy(deep=True)
+    out.clear_data()
+    for name in names:
+        v = np.asarray(patch.point_data[name], dtype=np.float64)
+        carried = np.full(skin.n_points, np.nan)
+        carried[near] = (w[near] * v[idx[near]]).sum(axis=1) / w[near].sum(axis=1)
+        out.point_data[name] = carried
+    return out

@@ -1,0 +1,158 @@
+"""The face figures: view conventions, visibility-based colour ranges, image baselines."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from pvcmf import arrays
+from pvcmf.figures import face_views as fv
+
+RED = np.array([255, 0, 0])
+
+
+def _head():
+    """An ellipsoidal 'head' in the patient frame (x left, y anterior, z superior), a nose."""
+    head = pv.ParametricEllipsoid(70.0, 90.0, 100.0, u_res=60, v_res=60, w_res=60)
+    nose = pv.Cone(center=(0.0, 95.0, 0.0), direction=(0.0, 1.0, 0.0), height=25.0,
+                   radius=12.0, resolution=24)
+    return head.triangulate().clean(), nose.triangulate().clean()
+
+
+def _marker_columns(view):
+    """Image columns of a red marker on the patient's LEFT cheek (+x), seen from ``view``."""
+    head, _ = _head()
+    marker = pv.Sphere(radius=10.0, center=(45.0, 65.0, -10.0))
+    p = pv.Plotter(off_screen=True, window_size=[300, 300])
+    p.set_background("white")
+    fv.add_patient_mesh(p, head, color="peachpuff", lighting=False)
+    fv.add_patient_mesh(p, marker, color="red", lighting=False)
+    fv.set_view(p, fv.to_display(head).bounds, view)
+    img = p.screenshot(return_img=True)
+    p.close()
+    red = np.all(np.abs(img[..., :3].astype(int) - RED) < 30, axis=-1)
+    assert red.sum() > 20, "the marker is not in the image"
+    return np.nonzero(red)[1], img.shape[1]
+
+
+def test_frontal_view_shows_patient_left_on_viewer_right():
+    cols, width = _marker_columns("frontal")
+    assert cols.mean() > 0.6 * width
+
+
+def test_profile_view_faces_right_and_shows_the_right_side():
+    head, nose = _head()
+    p = pv.Plotter(off_screen=True, window_size=[300, 300])
+    fv.add_patient_mesh(p, head, color="peachpuff", lighting=False)
+    fv.add_patient_mesh(p, nose, color="red", lighting=False)
+    fv.set_view(p, fv.to_display(head + nose).bounds, "profile")
+    img = p.screenshot(return_img=True)
+    p.close()
+    red = np.all(np.abs(img[..., :3].astype(int) - RED) < 30, axis=-1)
+    assert np.nonzero(red)[1].mean() > 0.7 * img.shape[1]  # anterior on the viewer's right
+    # a marker on the patient's left cheek is hidden behind the head in the right profile
+    with pytest.raises(AssertionError, match="not in the image"):
+        _marker_columns("profile")
+
+
+def test_visible_points_hides_the_back_and_the_inside():
+    outer = pv.Sphere(radius=50.0, theta_resolution=40, phi_resolution=40)
+    inner = pv.Sphere(radius=20.0, theta_resolution=20, phi_resolution=20)
+    both = outer.merge(inner)
+    seen = fv.visible_points(both, "frontal")
+    pts = np.asarray(both.points)
+    r = np.linalg.norm(pts, axis=1)
+    assert not seen[r < 30].any()  # inner sphere: hidden
+    front = (r > 30) & (pts[:, 1] > 10.0)
+    back = (r > 30) & (pts[:, 1] < -10.0)
+    assert seen[front].mean() > 0.95
+    assert not seen[back].any()
+
+
+def test_colour_range_ignores_hidden_points():
+    outer = pv.Sphere(radius=50.0, theta_resolution=40, phi_resolution=40)
+    inner = pv.Sphere(radius=20.0, theta_resolution=20, phi_resolution=20)
+    skin = outer.merge(inner)
+    pts = np.asarray(skin.points)
+    u = np.zeros((skin.n_points, 3))
+    u[:, 1] = np.clip(pts[:, 1] / 50.0, 0.0, None)  # up to 1 mm on the visible front
+    inside = np.linalg.norm(pts, axis=1) < 30
+    u[inside, 1] = -100.0  # a large move where no camera sees it (the mouth's inside)
+    back = pts[:, 1].argmin()
+    u[back, 1] = 500.0  # and on the back of the head
+    skin.point_data[arrays.DISPLACEMENT] = u
+    limit = fv.displacement_limit(skin, "ap", views=("frontal", "three_quarter"))
+    assert 0.5 < limit <= 1.0
+    everything = fv.symmetric_limit(u[:, 1], np.ones(skin.n_points, bool))
+    assert everything > 50.0  # what an all-points range would have been
+
+
+def test_signed_displacement_components():
+    sphere = pv.Sphere(radius=10.0, theta_resolution=24, phi_resolution=24)
+    sphere.point_data[arrays.DISPLACEMENT] = 2.0 * np.asarray(sphere.points) / 10.0
+    assert np.allclose(fv.signed_displacement(sphere, "normal"), 2.0, atol=0.05)
+    assert np.allclose(fv.signed_displacement(sphere, "magnitude"), 2.0)
+    assert np.allclose(fv.signed_displacement(sphere, "ap"), 0.2 * sphere.points[:, 1])
+    with pytest.raises(ValueError, match="component"):
+        fv.signed_displacement(sphere, "sideways")
+
+
+def test_anterior_profile_is_the_front_outline():
+    head, nose = _head()
+    line = fv.anterior_profile(head + nose, 0.0)
+    assert line[:, 0].max() == pytest.approx(95.0 + 25.0 / 2, abs=1.0)  # the nose tip
+    assert np.all(np.diff(line[:, 1]) > 0)
+    with pytest.raises(ValueError, match="does not cut"):
+        fv.anterior_profile(head, 500.0)
+
+
+def _pre_post():
+    head, nose = _head()
+    pre = (head + nose).triangulate().clean()
+    pts = np.asarray(pre.points)
+    # a chin setback: points low and anterior move back by up to 4 mm
+    u = np.zeros_like(pts)
+    u[:, 1] = -4.0 * np.clip((-pts[:, 2] - 20.0) / 60.0, 0, 1) * np.clip(pts[:, 1] / 90.0, 0, 1)
+    pre.point_data[arrays.DISPLACEMENT] = u
+    post = pre.copy()
+    post.points = pts + u
+    return pre, post
+
+
+def test_face_comparison(verify_image_cache):
+    pre, post = _pre_post()
+    fv.face_comparison(pre, post, views=("frontal", "profile"), window_size=(440, 500)).show()
+
+
+def test_displacement_views(verify_image_cache):
+    pre, _ = _pre_post()
+    fv.displacement_views(pre, "ap", window_size=(600, 400)).show()
+
+
+def test_profile_overlay(verify_chart):
+    pre, post = _pre_post()
+    verify_chart(fv.profile_overlay(pre, post, figsize=(3.5, 4.5)))
+
+
+def test_views_are_checked():
+    head, _ = _head()
+    with pytest.raises(ValueError, match="view"):
+        fv.visible_points(head, "top")
+    with pytest.raises(ValueError, match="visible"):
+        fv.symmetric_limit(np.zeros(3), np.ones(2, bool))
+
+
+def test_carry_to_skin_bridges_gaps_between_regions():
+    skin = pv.Plane(i_size=100.0, j_size=100.0, i_resolution=50, j_resolution=50)
+    x = np.asarray(skin.points)[:, 0]
+    # two boxes with a 6 mm gap between them, and nothing beyond x = 30
+    patch = skin.extract_points((np.abs(x) > 3.0) & (x < 30.0), adjacent_cells=False)
+    patch.point_data["v"] = np.asarray(patch.points)[:, 0].copy()
+    out = fv.carry_to_skin(patch, skin, ["v"], gap=5.0)
+    v = np.asarray(out["v"])
+    gap = np.abs(x) < 3.0
+    assert np.isfinite(v[gap]).all() and np.abs(v[gap]).max() < 6.0
+    assert np.isnan(v[x > 36.0]).all()
+    kept = (np.abs(x) > 3.0) & (x < 30.0)
+    assert np.allclose(v[kept], x[kept], atol=1e-6)
