@@ -267,3 +267,10 @@ ICP_OVERLAP = "icp_overlap"  #: field, float64, share of the samples near the ta
 # scratch arrays of intermediate datasets inside the filters (never in their output)
 SCRATCH_CELL_ID = "cell_id"  #: cell, int64, index of the cell in the input grid
 SCRATCH_HEAD = "head"  #: point, float, smoothed head indicator contoured for the skin
+
+# --------------------------------------------------------------------------- solution checks
+# field data of pvcmf.mtm.solve: what a linear solution does that tissue cannot
+MTM_INVERTED = "mtm_inverted_cells"  #: field, int64, tetrahedra the displacement turns inside out
+#: field, float64, largest |displacement| of a free (or sliding) node over the largest
+#: prescribed |bc_displacement| (NaN when nothing moves)
+MTM_FREE_RATIO = "mtm_free_over_prescribed"

@@ -45,7 +45,8 @@ STEPS = ("read", "segment", "bone segments", "muscles", "mesh", "fibres", "mater
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
 DEFAULT_N_TETS = 25_000
 #: boundary-condition options of the pipeline (see :func:`pvcmf.filters.apply_plan`)
-DEFAULT_BC_OPTIONS = {"fix_unmoved_bone": True}
+#: (fixed nodes near a moving one are left free: no tissue torn along the osteotomy line)
+DEFAULT_BC_OPTIONS = {"fix_unmoved_bone": True, "release_margin": "auto"}
 #: default anterior share of the head that is meshed (the face model of paper 000)
 DEFAULT_FACE_FRACTION = 0.5
 

@@ -24,7 +24,7 @@ import pyvista as pv
 from scipy.spatial import cKDTree
 
 from .. import arrays
-from ..tps import ThinPlateSpline
+from ..tps import ThinPlateSpline, landmark_arrays
 from .surfaces import (FIT_SPACING, _downsample, _PatientSurfaces, _plane_step, _symmetric_goal,
                        _umeyama, _unique_rows)
 
