@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from .. import arrays
 from ..plan import Plan
 from ..progress import Progress
+from ._checks import check_finite_points, check_image_geometry
 from .osteotomy import cut_bones, segment_transforms, voxel_points
 
 log = logging.getLogger(__name__)
@@ -290,6 +291,8 @@ def _check_bones(grid, bones, posterior_depth, contact_distance, normal_sigma, t
         raise TypeError(f"bones must be a pyvista.ImageData, got {type(bones).__name__}")
     if grid.n_points == 0:
         raise ValueError("grid must have points, got an empty mesh")
+    check_finite_points(grid, "grid")
+    check_image_geometry(bones, "bones")
     arrays.require_array(bones, arrays.BONE, "point", dtype="iu", ncomp=1, producer="segment")
     tissue = np.asarray(arrays.require_array(bones, arrays.TISSUE, "point", dtype="iu",
                                              ncomp=1, producer="segment"))

@@ -24,35 +24,9 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from ._checks import check_finite_points  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
-
-
-def check_finite_points(dataset, name):
-    """Raise ``ValueError`` naming ``name`` when some points of ``dataset`` are NaN or inf.
-
-    A single non-finite point poisons every mean, bounding box and closest-point search;
-    filters refuse such data instead of returning silently wrong numbers. Drop the points
-    first if they are known to be garbage, e.g. ``dataset.extract_points(np.isfinite(
-    dataset.points).all(axis=1))``.
-
-    Examples
-    --------
-    >>> import numpy as np, pyvista as pv
-    >>> from pvcmf.filters.distance import check_finite_points
-    >>> s = pv.Sphere(); s.points[0] = np.nan
-    >>> check_finite_points(s, "actual")
-    Traceback (most recent call last):
-    ...
-    ValueError: actual must have finite point coordinates, got 1 of 842 points with NaN/inf (e.g. point 0)
-    """
-    pts = np.asarray(dataset.points)
-    bad = ~np.isfinite(pts).all(axis=1) if pts.size else np.zeros(0, dtype=bool)
-    if bad.any():
-        raise ValueError(
-            f"{name} must have finite point coordinates, got {int(bad.sum())} of {len(pts)} "
-            f"points with NaN/inf (e.g. point {int(np.flatnonzero(bad)[0])})"
-        )
 
 
 def _check_surface(surface, name):

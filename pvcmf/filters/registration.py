@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from .. import arrays
 from ..progress import Progress
-from .distance import check_finite_points
+from ._checks import check_finite_points
 
 log = logging.getLogger(__name__)
 
