@@ -9,8 +9,10 @@
     ``--ct headsq`` takes VTK's real head CT (:func:`pvcmf.datasets.headsq`), for which
     ``examples/headsq_plan.toml`` is written.
 
-Every file is written atomically (temporary file + ``os.replace``), so an interrupted
-run leaves no half-written file. Delegates to :mod:`argparse` and
+Every command checks its ``--out`` path before any work. A run is built in a hidden
+sibling of ``--out`` and renamed onto it at the end, under a lock: an interrupted run
+(Ctrl-C, SIGTERM, a crash) leaves ``--out`` as it was, and a killed one leaves a hidden
+sibling that the next run into that folder removes. Delegates to :mod:`argparse` and
 :func:`pvcmf.pipeline.simulate`. This is the only module of pvcmf that prints.
 """
 
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -28,6 +31,7 @@ import pyvista as pv
 from . import __version__, arrays, datasets
 from .datasets import headsq
 from .io import read_ct
+from .outputs import check_output_dir, check_output_file
 from .pipeline import STEPS, flip_axes, simulate
 from .plan import read_plan
 from .sweeps import add_sweep_parser, run_sweep
@@ -59,8 +63,14 @@ def _positive_float(text):
     return value
 
 
+def _out_path(text):
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a folder path, got {text!r}")
+    return Path(text)
+
+
 def _common(parser):
-    parser.add_argument("--out", required=True, type=Path,
+    parser.add_argument("--out", required=True, type=_out_path,
                         help="output folder (created if missing)")
     parser.add_argument("--n-tets", type=_positive_int, default=DEMO_N_TETS,
                         help=f"requested number of tetrahedra (default {DEMO_N_TETS})")
@@ -169,17 +179,35 @@ def _report(result):
         print(f"  {path}")
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that it cleans up like Ctrl-C."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
+def _check_out(args):
+    """Check ``--out`` before any work (a folder; a .csv/.parquet file for ``sweep``)."""
+    if args.command == "sweep":
+        check_output_file(args.out, "--out", suffixes=(".csv", ".parquet"))
+    else:
+        args.out = check_output_dir(args.out, "--out")
+
+
 def main(argv=None):
     """Entry point of the ``pvcmf`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     pv.OFF_SCREEN = True
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
+        _check_out(args)
         result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep}[args.command](args)
-    except KeyboardInterrupt:
-        print("interrupted: no partial files were left behind", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:
+        print("interrupted: the output folder was left as it was", file=sys.stderr)
+        return 143 if isinstance(err, Terminated) else 130
     except (ValueError, TypeError, FileNotFoundError) as err:  # bad input
         if args.verbose >= 2:
             raise
@@ -189,9 +217,11 @@ def main(argv=None):
         if args.verbose >= 2:
             raise
         print(f"pvcmf {args.command}: failed: {type(err).__name__}: {err}\n"
-              f"(run with -vv for the traceback; no partial files were left behind)",
+              f"(run with -vv for the traceback; the output folder was left as it was)",
               file=sys.stderr)
         return 1
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     (_report_sweep if args.command == "sweep" else _report)(result)
     return 0
 

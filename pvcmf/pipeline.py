@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 from . import arrays, filters, mtm
 from .filters.osteotomy import cut_bones, move_bones
 from .io import read_ct
-from .outputs import render, write_outputs
+from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
 from .plan import Plan, read_plan
 from .progress import Progress
@@ -293,6 +293,9 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         The surgical plan, or a TOML/JSON plan file.
     out : str or pathlib.Path, optional
         Folder for the outputs (see :func:`write_outputs`); nothing is written if None.
+        Checked first (:func:`pvcmf.outputs.check_output_dir`); the run is built in a
+        hidden sibling folder and renamed onto ``out`` at the end, under a lock
+        (:func:`pvcmf.outputs.run_lock`): ``out`` holds one complete run or is unchanged.
     labels : pyvista.ImageData, optional
         Precomputed ``tissue``/``bone`` labels: skips segmentation.
     bones : pyvista.ImageData, optional
@@ -351,8 +354,9 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     plan, opts = _check_inputs(plan, n_tets, face_fraction, bones, segment_options=segment_options,
                                mesh_options=mesh_options, material_options=material_options,
                                bc_options=bc_options, solve_options=solve_options)
+    out = None if out is None else check_output_dir(out)  # before any work
     result = Result(plan=plan)
-    with Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
+    with run_lock(out), Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
         run = _Runner(result, bar)
         ct = _read_step(run, ct)
         labels = _label_steps(run, ct, labels, bones, plan, opts)
@@ -468,4 +472,4 @@ def _output_steps(run, out, *, solve, figures):
     pngs = render(result) if figures else {}
     result.timings["figures"] = time.perf_counter() - start
     run.progress.step("figures")
-    run.run("write", write_outputs, result, out, pngs)
+    run.run("write", write_run, result, out, pngs)
