@@ -17,6 +17,8 @@ purpose (a failed muscle fit leaves homogeneous tissue) are recorded in
 from __future__ import annotations
 
 import logging
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -189,7 +191,12 @@ def _mesh(labels, n_tets, options, progress_bar, face_fraction):
     options = dict(options)
     if face_fraction is not None and "roi" not in options:
         options["roi"] = face_box(labels, face_fraction)
-    return filters.tetrahedralize(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
+    handler = signal.getsignal(signal.SIGTERM)
+    try:
+        return filters.tetrahedralize(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
+    finally:  # gmsh's initialisation resets SIGTERM to the default: restore the caller's
+        if handler is not None and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, handler)
 
 
 def _fibres(grid):
