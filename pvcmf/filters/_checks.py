@@ -10,7 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["check_finite_points", "check_image_geometry"]
+__all__ = ["check_finite_points", "check_image_geometry", "MAX_COORDINATE"]
+
+#: largest |coordinate| (mm) accepted for a point: beyond it squared distances overflow
+#: or lose every digit, and no head is that large
+MAX_COORDINATE = 1e6
 
 
 def check_finite_points(dataset, name):
@@ -32,11 +36,20 @@ def check_finite_points(dataset, name):
     ValueError: actual must have finite point coordinates, got 1 of 842 points with NaN/inf (e.g. point 0)
     """
     pts = np.asarray(dataset.points)
-    bad = ~np.isfinite(pts).all(axis=1) if pts.size else np.zeros(0, dtype=bool)
+    if not pts.size:
+        return
+    bad = ~np.isfinite(pts).all(axis=1)
     if bad.any():
         raise ValueError(
             f"{name} must have finite point coordinates, got {int(bad.sum())} of {len(pts)} "
             f"points with NaN/inf (e.g. point {int(np.flatnonzero(bad)[0])})"
+        )
+    far = (np.abs(pts) > MAX_COORDINATE).any(axis=1)
+    if far.any():
+        raise ValueError(
+            f"{name} must have point coordinates within +-{MAX_COORDINATE:g} mm, got "
+            f"{int(far.sum())} of {len(pts)} points beyond (e.g. point "
+            f"{int(np.flatnonzero(far)[0])} at {pts[far][0].tolist()})"
         )
 
 

@@ -302,8 +302,9 @@ def _check_bones(grid, bones, posterior_depth, contact_distance, normal_sigma, t
     if contact is None:
         contact = float(spacing.max())
     if not (release_margin is None or (isinstance(release_margin, str) and release_margin == "auto")
-            or (np.isscalar(release_margin) and np.isfinite(release_margin)
-                and release_margin >= 0)):
+            or (isinstance(release_margin, (int, float, np.integer, np.floating))
+                and not isinstance(release_margin, bool)
+                and np.isfinite(release_margin) and release_margin >= 0)):
         raise ValueError(f"release_margin must be 'auto', None or a finite number >= 0 (mm), "
                          f"got {release_margin!r}")
     if not np.isfinite(normal_sigma) or normal_sigma < 0:

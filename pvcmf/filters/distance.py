@@ -24,7 +24,7 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
-from ._checks import check_finite_points  # noqa: F401 (re-exported)
+from ._checks import MAX_COORDINATE, check_finite_points  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -236,10 +236,10 @@ class SurfaceDistance:
         if q.size % 3 or (q.ndim == 2 and q.shape[1] != 3):
             raise ValueError(f"query must be an (n, 3) array of points, got shape {q.shape}")
         q = q.reshape(-1, 3)
-        bad = ~np.isfinite(q).all(axis=1)
+        bad = ~(np.abs(q) <= MAX_COORDINATE).all(axis=1)
         if bad.any():
-            raise ValueError(f"query must have finite coordinates, got {int(bad.sum())} of "
-                             f"{len(q)} points with NaN/inf")
+            raise ValueError(f"query must have finite coordinates within +-{MAX_COORDINATE:g} "
+                             f"mm, got {int(bad.sum())} of {len(q)} points with NaN/inf or beyond")
         q = np.ascontiguousarray(q)
         if self.method == "igl":
             d2, fid, closest = self._tree.squared_distance(self._points, self._tris, q)

@@ -161,10 +161,11 @@ def _fibers(grid, needs_fiber, out_vals, default_fiber):
             src = np.asarray(arrays.require_array(grid, arrays.FIBER, "cell", dtype="f", ncomp=3,
                                                   producer="fiber_directions"), float)
         elif default_fiber is not None:
-            src = np.broadcast_to(np.asarray(default_fiber, dtype=float), (m, 3))
-            if src.shape != (m, 3) or not np.all(np.isfinite(src)) or not np.any(src):
+            v = np.asarray(default_fiber, dtype=float)
+            if v.shape != (3,) or not np.all(np.isfinite(v)) or not np.any(v):
                 raise ValueError(f"default_fiber must be a finite non-zero vector of shape (3,), "
                                  f"got {default_fiber!r}")
+            src = np.broadcast_to(v, (m, 3))
         else:
             raise ValueError(
                 f"{int(needs_fiber.sum())} muscle cell(s) are transversely isotropic but the grid "
