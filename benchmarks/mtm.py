@@ -184,7 +184,8 @@ def machine():
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", type=int, nargs="+", default=[30_000])
-    p.add_argument("--against", metavar="REF", help="also run the solver of git revision REF")
+    p.add_argument("--against", metavar="REF", help="also run the solver of git revision REF "
+                   "(labelled 'before' in the tables)")
     p.add_argument("--variants", nargs="*", default=None, choices=sorted(VARIANTS),
                    help="variants of this tree to run (default: all; with --against: default)")
     p.add_argument("--rounds", type=int, default=3)
@@ -201,7 +202,7 @@ def main(argv=None):
     runs = []
     if args.against:
         tree, sha = old_tree(args.against)
-        runs.append((f"{args.against} default", tree, {}))
+        runs.append(("before default", tree, {}))
     runs += [(f"this tree {name}" if args.against else name, ROOT, VARIANTS[name])
              for name in names]
     command = "python benchmarks/mtm.py " + " ".join(argv if argv is not None else sys.argv[1:])

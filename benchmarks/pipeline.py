@@ -1,4 +1,4 @@
-"""End-to-end timings of the prediction (issue 6): seconds per step of ``pvcmf demo``,
+"""End-to-end timings of the prediction: seconds per step of ``pvcmf demo``,
 and the boundary-condition step alone against the solve it feeds.
 
 Run: ``python benchmarks/pipeline.py [--patient 1] [--spacing 2] [--n-tets 25000]``.

@@ -21,7 +21,7 @@ import pvcmf
 from pvcmf.figures.gmm import fig1_gmm
 
 pv.OFF_SCREEN = True
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 case = pvcmf.datasets.phantom(patient=1, spacing=float(os.environ.get("PVCMF_SPACING", 1.0)))

@@ -16,9 +16,8 @@ import pyvista as pv
 from pvcmf.figures.sampling import sampling_figure
 
 pv.OFF_SCREEN = True
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 plotter = sampling_figure(n_points=150, seed=0)
 plotter.screenshot(OUT / "fig1_sampling.png")
-plotter.close()

@@ -19,7 +19,7 @@ from pvcmf import arrays
 from pvcmf.figures.mesh import mesh_figure
 
 pv.OFF_SCREEN = True
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 labels = pvcmf.datasets.phantom(1, spacing=2.0).truth
@@ -29,4 +29,3 @@ with warnings.catch_warnings():
 masseter = mesh.extract_cells(mesh.cell_data[arrays.MUSCLE] == arrays.MUSCLE_IDS["masseter_left"])
 plotter = mesh_figure(mesh, normal=(0.0, 0.0, 1.0), origin=masseter.center)
 plotter.screenshot(OUT / "fig2c_mesh.png")
-plotter.close()

@@ -21,7 +21,7 @@ from pvcmf.figures.boundary_conditions import figure_4
 from pvcmf.pipeline import simulate
 
 pv.OFF_SCREEN = True
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 case = pvcmf.datasets.phantom(1, spacing=2.0)

@@ -18,7 +18,7 @@ import pvcmf
 from pvcmf.figures.osteotomy import figure_5
 
 pv.OFF_SCREEN = True
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 cases = [pvcmf.datasets.phantom(patient, spacing=2.0) for patient in (1, 2, 3, 4)]

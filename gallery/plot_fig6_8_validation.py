@@ -36,7 +36,7 @@ from pvcmf.validation import run_study, study_predictor
 pv.OFF_SCREEN = True
 logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
 log = logging.getLogger("plot_fig6_8_validation")
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 SPACING = float(os.environ.get("PVCMF_STUDY_SPACING", 2.0))
 N_TETS = int(os.environ.get("PVCMF_STUDY_TETS", 30_000))

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from pvcmf.figures.tables import table_1, table_2
 
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 t1 = table_1()

@@ -20,7 +20,7 @@ import pvcmf
 from pvcmf.figures.patient import virtual_patient
 
 pv.OFF_SCREEN = True
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 case = pvcmf.datasets.phantom(patient=1, spacing=1.0)

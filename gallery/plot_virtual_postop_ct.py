@@ -28,7 +28,7 @@ from pvcmf.figures.postop_ct import postop_ct_slices
 from pvcmf.postop import postop_ct, reference_grid
 
 pv.OFF_SCREEN = True
-OUT = Path(os.environ.get("PVCMF_GALLERY_OUT", Path(__file__).resolve().parent / "_out"))
+OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 
 case = pvcmf.datasets.phantom(1, spacing=2.0)

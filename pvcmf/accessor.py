@@ -25,7 +25,9 @@ __all__ = ["CMFAccessor", "METHODS"]
 
 #: accessor method -> (module, function) it delegates to
 METHODS = {
+    "standardize": ("pvcmf.filters", "standardize"),
     "segment": ("pvcmf.filters", "segment"),
+    "find_jaws": ("pvcmf.filters", "find_jaws"),
     "classify_tissue": ("pvcmf.filters", "classify_tissue"),
     "embed_muscles": ("pvcmf.filters", "embed_muscles"),
     "fiber_directions": ("pvcmf.filters", "fiber_directions"),
@@ -40,8 +42,11 @@ METHODS = {
     "register": ("pvcmf.filters", "register"),
     "distance_to": ("pvcmf.filters", "distance_to"),
     "map_to_surface": ("pvcmf.filters", "map_to_surface"),
+    "transfer_operator": ("pvcmf.filters", "transfer_operator"),
+    "plan_response": ("pvcmf.mtm.response", "plan_response"),
     "solve": ("pvcmf.mtm", "solve"),
     "stiffness": ("pvcmf.mtm", "stiffness"),
+    "export": ("pvcmf.io", "export"),
 }
 
 

@@ -42,6 +42,8 @@ MUSCLE_TISSUE = 2
 BONE_TISSUE = 3
 TEETH = 4
 INTRACRANIAL = 5  #: what lies inside the skull (brain, CSF): not part of the face model
+#: metal (fillings, crowns, plates): hard tissue that moves rigidly with its bone segment
+METAL = 6
 
 TISSUE_LABELS = {
     "air": AIR,
@@ -50,11 +52,12 @@ TISSUE_LABELS = {
     "bone": BONE_TISSUE,
     "teeth": TEETH,
     "intracranial": INTRACRANIAL,
+    "metal": METAL,
 }
 #: labels that make up the facial soft-tissue model (meshed)
 SOFT_LABELS = (FAT, MUSCLE_TISSUE)
 #: labels that are hard tissue (move rigidly with their segment)
-HARD_LABELS = (BONE_TISSUE, TEETH)
+HARD_LABELS = (BONE_TISSUE, TEETH, METAL)
 
 # --------------------------------------------------------------------------- bone segments
 BONE_NONE = 0
@@ -233,6 +236,13 @@ SWEEP_METRICS = ("p50", "p90", "p95", "median", "mean_abs", "rms", "within_1mm",
                  "n_skin")
 #: timing columns of a sweep row (s)
 SWEEP_TIMES = ("t_prepare", "t_eval", "cpu_prepare", "cpu_eval")
+SWEEP_CASE = "case"  #: sweep table column: the case label (``P1`` for virtual patient 1)
+SWEEP_CACHED = "cached"  #: sweep table column, bool: the row was read from the cache
+SWEEP_ERROR = "error"  #: sweep table column: why a skipped task failed (``on_error='skip'``)
+SWEEP_N_CELLS = "n_cells"  #: sweep result: tetrahedra of the mesh
+SWEEP_DISTANCE = "distance"  #: sweep result array: signed error per skin point, mm
+SWEEP_SKIN_POINTS = "skin_points"  #: sweep result array (n, 3): the skin's points, mm
+SWEEP_SKIN_FACES = "skin_faces"  #: sweep result array: the skin's VTK face connectivity
 
 # --------------------------------------------------------------------------- meshing
 # field data of the tetrahedral meshes (pvcmf.filters.meshing.tetrahedralize)
@@ -267,6 +277,16 @@ ICP_OVERLAP = "icp_overlap"  #: field, float64, share of the samples near the ta
 # scratch arrays of intermediate datasets inside the filters (never in their output)
 SCRATCH_CELL_ID = "cell_id"  #: cell, int64, index of the cell in the input grid
 SCRATCH_HEAD = "head"  #: point, float, smoothed head indicator contoured for the skin
+
+
+# --------------------------------------------------------------------------- skin transfer and plan response
+TRANSFER_INSIDE = "transfer_inside"  #: point (skin), uint8, 1 where inside a tetrahedron
+#: summary / field data: skin edges stretched beyond the steepest tetrahedron around them
+#: (+10 %) by the mesh -> skin transfer (:func:`pvcmf.filters.surface_mapping.crumple_metric`)
+CRUMPLE_VIOLATIONS = "crumple_violations"
+#: summary / field data: largest ratio of an edge's stretch to that bound (<= 1.1 passes)
+CRUMPLE_MAX_RATIO = "crumple_max_ratio"
+CRUMPLE_EDGES = "crumple_edges"  #: summary / field data: number of skin edges checked
 
 # --------------------------------------------------------------------------- solution checks
 # field data of pvcmf.mtm.solve: what a linear solution does that tissue cannot

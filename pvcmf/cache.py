@@ -10,10 +10,12 @@ Used by the virtual post-operative truths (:mod:`pvcmf.truth`) and the parameter
 * :func:`make_key` - SHA-256 of JSON-serialised key parts;
 * :func:`file_lock` - an exclusive lock file (``os.open`` with ``O_CREAT | O_EXCL``,
   atomic on local and NFSv3+ file systems) shared by processes, threads and Dask
-  workers, broken when its holder died (same host) or when it is older than
+  processes, broken when its holder died (same host) or when it is older than
   ``stale_after`` seconds;
 * :func:`cached` - read an entry, or compute it once across processes and write it
-  atomically (:mod:`pvcmf._atomic`: a file or a whole folder).
+  atomically (:mod:`pvcmf._atomic`: a file or a whole folder);
+* :func:`load_entry`, :func:`store_entry` - the reading and the locked atomic writing of
+  :func:`cached`, for results computed elsewhere (e.g. on Dask).
 
 The cache root is ``PVCMF_CACHE_DIR``, else ``~/.cache/pvcmf`` (:func:`cache_root`).
 """
@@ -36,7 +38,8 @@ from ._atomic import atomic_dir, atomic_path
 
 log = logging.getLogger(__name__)
 
-__all__ = ["cache_root", "cached", "code_hash", "file_lock", "make_key"]
+__all__ = ["cache_root", "cached", "code_hash", "file_lock", "load_entry", "make_key",
+           "store_entry"]
 
 
 def cache_root(sub=None, cache_dir=None):
@@ -219,7 +222,7 @@ def cached(path, compute, *, cache=True, read=None, write=None, folder=False,
     writes the result atomically (:func:`pvcmf._atomic.atomic_path`, or
     :func:`pvcmf._atomic.atomic_dir` for a ``folder`` entry) and releases the lock. Any
     other caller asking for the same ``path`` meanwhile (another process, thread or Dask
-    worker) waits for the lock to go and then reads the result instead of recomputing. A
+    process) waits for the lock to go and then reads the result instead of recomputing. A
     lock left by a crashed caller is broken when its process no longer exists (same host)
     or when it is older than ``stale_after`` seconds; if the holder failed without
     writing, the next waiter computes. An entry that cannot be read is recomputed.
@@ -258,27 +261,72 @@ def cached(path, compute, *, cache=True, read=None, write=None, folder=False,
     read = read or _read_dataset
     write = write or _save_dataset
     path = Path(path)
-    lock = path.with_name(path.name + ".lock")
-
-    def load():
-        try:
-            return read(path)
-        except Exception as err:  # a corrupt entry is recomputed, never trusted
-            log.warning("cache: ignoring unreadable entry %s (%s)", path, err)
-            return None
-
-    if path.exists():
-        out = load()
-        if out is not None:
-            log.info("cache: read %s", path)
-            return out
-    with file_lock(lock, stale_after=stale_after, poll=poll, ready=path.exists) as held:
+    out = load_entry(path, read)
+    if out is not None:
+        log.info("cache: read %s", path)
+        return out
+    with file_lock(_lock_path(path), stale_after=stale_after, poll=poll,
+                   ready=path.exists) as held:
         if not held or path.exists():  # written by another caller meanwhile
-            out = load()
+            out = load_entry(path, read)
             if out is not None:
                 log.info("cache: read %s (computed by another caller)", path)
                 return out
         out = compute()
-        with (atomic_dir if folder else atomic_path)(path) as tmp:
-            write(out, tmp)
+        _write_entry(path, out, write, folder)
         return out
+
+
+def _lock_path(path):
+    return path.with_name(path.name + ".lock")
+
+
+def _write_entry(path, obj, write, folder):
+    with (atomic_dir if folder else atomic_path)(path) as tmp:
+        write(obj, tmp)
+
+
+def load_entry(path, read=None):
+    """The cache entry at ``path`` read by ``read`` (default pyvista's), or None when it is
+    missing or cannot be read (a corrupt entry is logged and never trusted).
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from pvcmf.cache import load_entry
+    >>> load_entry(Path(tempfile.mkdtemp()) / "missing.vtp") is None
+    True
+    """
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        return (read or _read_dataset)(path)
+    except Exception as err:  # a corrupt entry is recomputed, never trusted
+        log.warning("cache: ignoring unreadable entry %s (%s)", path, err)
+        return None
+
+
+def store_entry(path, obj, write=None, *, folder=False, stale_after=7200.0, poll=0.5):
+    """Write ``obj`` to the cache entry ``path`` atomically, holding the entry's lock.
+
+    The writing half of :func:`cached` for a result computed elsewhere (a Dask task): the
+    lock file ``<path>.lock`` (:func:`file_lock`) keeps two writers of one entry apart, and
+    :func:`pvcmf._atomic.atomic_path` (``atomic_dir`` for a ``folder``) makes the entry
+    appear whole or not at all. Returns ``path``.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from pvcmf.cache import load_entry, store_entry
+    >>> path = Path(tempfile.mkdtemp()) / "a.txt"
+    >>> _ = store_entry(path, "text", lambda obj, tmp: Path(tmp).write_text(obj))
+    >>> load_entry(path, lambda p: Path(p).read_text())
+    'text'
+    """
+    path = Path(path)
+    with file_lock(_lock_path(path), stale_after=stale_after, poll=poll):
+        _write_entry(path, obj, write or _save_dataset, folder)
+    return path

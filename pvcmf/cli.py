@@ -8,6 +8,10 @@
     The same on a CT file/folder (DICOM, NIfTI, NRRD, MHA/MHD, VTI) and a plan file;
     ``--ct headsq`` takes VTK's real head CT (:func:`pvcmf.datasets.headsq`), for which
     ``examples/headsq_plan.toml`` is written.
+``pvcmf plan --ct SCAN [--plan start.toml] [--port N]``
+    Interactive planner in the web browser (:mod:`pvcmf.planner`, needs the ``planner``
+    extra): sliders move the jaws, the predicted face updates live, *Save plan* writes a
+    plan file for ``pvcmf simulate``.
 
 Every command checks its ``--out`` path before any work. A run is built in a hidden
 sibling of ``--out`` and renamed onto it at the end, under a lock: an interrupted run
@@ -30,10 +34,10 @@ import pyvista as pv
 
 from . import __version__, arrays, datasets
 from .datasets import headsq
-from .io import read_ct
+from .io import export, read_ct, read_landmarks, read_plan_file
 from .outputs import check_output_dir, check_output_file
 from .pipeline import STEPS, flip_axes, simulate
-from .plan import read_plan
+from .planner import add_plan_parser, run_plan
 from .sweeps import add_sweep_parser, run_sweep
 
 log = logging.getLogger(__name__)
@@ -104,15 +108,31 @@ def build_parser():
     sim.add_argument("--ct", required=True, type=Path,
                      help="CT file or DICOM folder (read by pvcmf.read_ct), or 'headsq' for "
                           "VTK's real head CT (pvcmf.datasets.headsq, in the patient frame)")
-    sim.add_argument("--plan", required=True, type=Path, help="plan file (.toml or .json)")
+    sim.add_argument("--plan", required=True, type=Path,
+                     help="plan file (.toml or .json); an osteotomy may give a 4x4 'matrix' or "
+                          "a 'transform' file (ITK/Slicer .tfm/.h5) instead of translation/"
+                          "rotation (pvcmf.io.read_plan_file)")
+    sim.add_argument("--landmarks", type=Path, default=None,
+                     help="Slicer markups (.mrk.json or .fcsv) with the muscle atlas's "
+                          "landmarks (pvcmf.io.read_landmarks); automatic without")
+    sim.add_argument("--export", type=Path, default=None,
+                     help="also write the solved model for another tool: .inp (CalculiX/"
+                          "Abaqus), .feb (FEBio) or a meshio format (.vtu, .msh, ...)")
     sim.add_argument("--offset", type=float, default=None,
                      help="HU = scale * value + offset (for scanner units; default 0, "
                           "headsq: its loader's default)")
     sim.add_argument("--scale", type=float, default=None, help="see --offset (default 1)")
+    sim.add_argument("--units", default="auto",
+                     help="'auto' (detect scanner units from the histogram; default), 'hu', or "
+                          "the offset to add to reach HU; --offset/--scale imply 'hu'")
+    sim.add_argument("--orient", default="auto",
+                     help="'auto' (face +y and vertex +z checked from the anatomy; default), "
+                          "'none' (trust the file), or where the image axes point, e.g. 'LPI'")
     sim.add_argument("--flip", default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
     add_sweep_parser(sub)  # `pvcmf sweep`: parameter studies on Dask (pvcmf/sweeps.py)
+    add_plan_parser(sub)  # `pvcmf plan`: interactive planner (pvcmf/planner)
     return parser
 
 
@@ -142,7 +162,8 @@ def _simulate(args):
     args.offset_given, args.scale_given = args.offset is not None, args.scale is not None
     args.offset = 0.0 if args.offset is None else args.offset
     args.scale = 1.0 if args.scale is None else args.scale
-    plan = read_plan(args.plan)  # fail on a bad plan before reading the CT
+    plan = read_plan_file(args.plan)  # fail on a bad plan before reading the CT
+    landmarks = read_landmarks(args.landmarks) if args.landmarks else None
     start = time.perf_counter()
     if str(args.ct) == "headsq" and not args.ct.exists():
         ct = headsq(offset=args.offset if args.offset_given else None,
@@ -152,10 +173,21 @@ def _simulate(args):
     if args.flip:
         ct = flip_axes(ct, args.flip)
     seconds = time.perf_counter() - start
-    result = simulate(ct, plan, args.out, n_tets=args.n_tets, predict=not args.no_predict,
-                      muscles=not args.no_muscles, figures=not args.no_figures,
-                      progress_bar=not args.no_progress)
+    units = args.units
+    if units == "auto" and (args.offset_given or args.scale_given or str(args.ct) == "headsq"):
+        units = "hu"  # already mapped to HU by the given offset/scale or by headsq()
+    elif units not in ("auto", "hu"):
+        try:
+            units = float(units)
+        except ValueError:
+            raise ValueError(f"--units must be 'auto', 'hu' or a number, got {units!r}") from None
+    result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
+                      predict=not args.no_predict, muscles=not args.no_muscles,
+                      figures=not args.no_figures, progress_bar=not args.no_progress,
+                      units=units, orient=args.orient)
     result.timings = {"read": seconds, **result.timings}
+    if args.export is not None and result.post is not None:  # --export: the solved model
+        result.files["export"] = export(result.post, args.export)
     return result
 
 
@@ -189,6 +221,8 @@ def _terminate(signum, frame):
 
 def _check_out(args):
     """Check ``--out`` before any work (a folder; a .csv/.parquet file for ``sweep``)."""
+    if getattr(args, "out", None) is None:
+        return
     if args.command == "sweep":
         check_output_file(args.out, "--out", suffixes=(".csv", ".parquet"))
     else:
@@ -203,6 +237,8 @@ def main(argv=None):
     pv.OFF_SCREEN = True
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
+        if args.command == "plan":  # serves until stopped; nothing to report
+            return run_plan(args)
         _check_out(args)
         result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep}[args.command](args)
     except KeyboardInterrupt as err:

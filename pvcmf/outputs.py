@@ -134,15 +134,16 @@ def run_lock(out):
         yield
 
 
-def write_run(result, out, images=None):
+def write_run(result, out, images=None, writer=None):
     """Write a result's files into a temporary sibling of ``out``, then swap it in.
 
     ``out`` then holds this run's files only (an earlier run there is replaced as a
-    whole); an interruption leaves ``out`` as it was. Returns ``result.files``.
+    whole); an interruption leaves ``out`` as it was. ``writer(result, folder, images)``
+    writes the files (default :func:`write_outputs`). Returns ``result.files``.
     """
     out = Path(out)
     with atomic_dir(out) as tmp:
-        files = write_outputs(result, tmp, images)
+        files = (writer or write_outputs)(result, tmp, images)
     result.files = {key: out / Path(path).name for key, path in files.items()}
     return result.files
 
@@ -227,6 +228,8 @@ def write_outputs(result, out, images=None):
     summary = {"plan": result.plan.to_dict(), "seconds": result.timings,
                "skipped": result.skipped, "complete": result.complete,
                "files": {k: Path(v).name for k, v in files.items()}}
+    if result.ct_report:
+        summary["ct"] = result.ct_report
     if result.post is not None:
         u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)
         summary.update(n_tets=int(result.post.n_cells), n_points=int(result.post.n_points),

@@ -16,6 +16,7 @@ purpose (a failed muscle fit leaves homogeneous tissue) are recorded in
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import threading
@@ -29,8 +30,11 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from . import arrays, filters, mtm
+from ._atomic import write_text
+from .filters.surface_mapping import crumple_metric, transfer_operator
 from .filters.osteotomy import cut_bones, move_bones
 from .io import read_ct
+from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
 from .plan import Plan, read_plan
@@ -79,6 +83,9 @@ class Result:
         Post-operative bone segment surfaces (:func:`pvcmf.filters.move_bones`).
     timings : dict
         Step name -> seconds.
+    ct_report : dict
+        Units and orientation found in the CT (:func:`pvcmf.filters.standardize`); empty
+        when the CT was not checked.
     skipped : dict
         Step name -> why it did not run.
     files : dict
@@ -93,6 +100,7 @@ class Result:
     skin_post: pv.PolyData | None = None
     skeleton: pv.MultiBlock | None = None
     timings: dict = field(default_factory=dict)
+    ct_report: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
     files: dict = field(default_factory=dict)
 
@@ -216,28 +224,41 @@ def _apply_plan(grid, plan, labels, options):
 def _skin(labels, post):
     """Pre-operative skin and, with a solved mesh, the predicted skin.
 
-    The skin comes from :func:`pvcmf.filters.extract_skin` of the label image. The mesh displacement is carried onto it by
-    the finite-element interpolation inside the tetrahedra (VTK's probe filter,
-    :meth:`pyvista.DataSet.sample`); skin points just outside the mesh (the label skin and
-    the smoothed mesh surface differ by up to a voxel) take the nearest mesh point's
-    displacement, so skin behind the meshed face takes that of the fixed plane: zero.
+    The skin comes from :func:`pvcmf.filters.extract_skin` of the label image. The mesh
+    displacement is carried onto it by :func:`pvcmf.filters.surface_mapping.transfer_operator`
+    (finite-element interpolation inside the tetrahedra, an exact-for-affine extension of
+    the boundary gradients outside); the crumple metric of the transfer
+    (:func:`~pvcmf.filters.surface_mapping.crumple_metric`) is kept in the predicted skin's
+    field data.
     """
     pre = filters.extract_skin(labels).copy()
     pre.clear_data()
     if post is None:
         return pre, None
-    probe = pre.sample(post)
-    disp = np.asarray(probe[arrays.DISPLACEMENT], dtype=np.float64).copy()
-    outside = np.asarray(probe[arrays.VALID_POINT_MASK]) == 0
-    if outside.any():
-        near = cKDTree(np.asarray(post.points)).query(np.asarray(pre.points)[outside])[1]
-        disp[outside] = np.asarray(post[arrays.DISPLACEMENT])[near]
-    log.info("skin: %d points, %d interpolated in tetrahedra, %d from the nearest mesh point",
-             pre.n_points, int((~outside).sum()), int(outside.sum()))
+    u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
+    disp = np.asarray(transfer_operator(post, pre) @ u_nodes)
+    metric = crumple_metric(pre, disp, post, u_nodes)
+    log.info("skin: %d points, %d edges stretched beyond the mesh's gradients (max ratio %.3g)",
+             pre.n_points, metric[arrays.CRUMPLE_VIOLATIONS], metric[arrays.CRUMPLE_MAX_RATIO])
     pre.point_data[arrays.DISPLACEMENT] = disp
     moved = pre.copy()
     moved.points = np.asarray(pre.points) + disp
+    for name in (arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS, arrays.CRUMPLE_MAX_RATIO):
+        moved.field_data[name] = np.array([metric[name]])
     return pre, moved
+
+
+def _write_outputs(result, out, images=None):
+    """:func:`write_outputs`, plus the transfer's crumple metric in ``summary.json``."""
+    files = write_outputs(result, out, images)
+    skin = result.skin_post
+    if skin is not None and arrays.CRUMPLE_VIOLATIONS in skin.field_data:
+        path = Path(files["summary"])
+        summary = json.loads(path.read_text(encoding="utf-8"))
+        for name in (arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS, arrays.CRUMPLE_MAX_RATIO):
+            summary[name] = skin.field_data[name][0].item()
+        write_text(path, json.dumps(summary, indent=2) + "\n")
+    return files
 
 
 def flip_axes(image, axes):
@@ -289,7 +310,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              n_tets=DEFAULT_N_TETS, segment_options=None, mesh_options=None,
              material_options=None, bc_options=None, solve_options=None, muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
-             progress_bar=False):
+             progress_bar=False, units=None, orient=None):
     """Predict the post-operative face from a CT and a surgical plan.
 
     Parameters
@@ -340,6 +361,11 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         Render the PNGs when ``out`` is given.
     progress_bar : bool, default False
         Show a progress bar over the steps (:class:`pvcmf.progress.Progress`).
+    units, orient : str, optional
+        Units and axes check of :func:`pvcmf.filters.standardize` (``'auto'``, ``'hu'`` or
+        an offset; ``'auto'``, ``'none'`` or a code such as ``'LPI'``). Default: ``'auto'``
+        for a CT read from a path, no check for a CT given in memory. What was found goes
+        to :attr:`Result.ct_report` and ``summary.json`` (``"ct"``).
 
     Returns
     -------
@@ -365,7 +391,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     result = Result(plan=plan)
     with run_lock(out), Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
         run = _Runner(result, bar)
-        ct = _read_step(run, ct)
+        ct = _read_step(run, ct, units, orient)
         labels = _label_steps(run, ct, labels, bones, plan, opts)
         if muscles and predict:
             with_muscles = run.run("muscles", _muscles, labels, landmarks)
@@ -402,11 +428,18 @@ def _check_inputs(plan, n_tets, face_fraction, bones, **options):
     return plan, opts
 
 
-def _read_step(run, ct):
-    """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`)."""
+def _read_step(run, ct, units, orient):
+    """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`), then its units
+    and axes checked on the image (:func:`pvcmf.filters.standardize`): always for a CT read
+    from a path, for a CT in memory when ``units`` or ``orient`` is given."""
     if isinstance(ct, (str, Path)):
-        return run.run("read", read_ct, ct)
-    run.skip("read", "CT given in memory")
+        ct = run.run("read", read_ct, ct)
+        units, orient = units or "auto", orient or "auto"
+    else:
+        run.skip("read", "CT given in memory")
+    if units is not None or orient is not None:
+        ct, run.result.ct_report = standardize(ct, units=units or "auto",
+                                               orient=orient or "auto")
     return ct
 
 
@@ -479,4 +512,4 @@ def _output_steps(run, out, *, solve, figures):
     pngs = render(result) if figures else {}
     result.timings["figures"] = time.perf_counter() - start
     run.progress.step("figures")
-    run.run("write", write_run, result, out, pngs)
+    run.run("write", write_run, result, out, pngs, writer=_write_outputs)

@@ -65,7 +65,7 @@ MAX_TRANSLATION_MM = 50.0
 #: segments a plan may move
 MOVABLE_SEGMENTS = tuple(k for k in arrays.BONE_LABELS if k not in ("none", "cranium"))
 _PLAN_KEYS = ("name", "osteotomy")
-_OSTEOTOMY_KEYS = ("segment", "translation", "rotation", "pivot", "cut")
+_OSTEOTOMY_KEYS = ("segment", "translation", "rotation", "pivot", "cut", "matrix")
 _CUT_KEYS = ("point", "normal")
 
 
@@ -200,6 +200,15 @@ class Osteotomy:
         for i, plane in enumerate(cut):
             _check_keys(plane, _CUT_KEYS, f"{where}.cut[{i}]", required=_CUT_KEYS)
             planes.append((plane["point"], plane["normal"]))
+        if "matrix" in data:  # a 4x4 rigid transform instead of translation + rotation
+            both = sorted({"translation", "rotation"} & set(data))
+            if both:
+                raise ValueError(f"{where} gives 'matrix' and {both}: use one or the other")
+            try:
+                return cls.from_matrix(data["segment"], data["matrix"], pivot=data.get("pivot"),
+                                       cut=tuple(planes))
+            except ValueError as err:
+                raise ValueError(f"{where}: {err}") from None
         try:
             return cls(
                 segment=data["segment"],
@@ -210,6 +219,46 @@ class Osteotomy:
             )
         except ValueError as err:
             raise ValueError(f"{where}: {err}") from None
+
+    @classmethod
+    def from_matrix(cls, segment, matrix, *, pivot=None, cut=(), tol=1e-6):
+        """An osteotomy from a 4x4 rigid transform in the patient frame (mm).
+
+        The rotation is decomposed into the plan's angles (about x, then z, then y) and
+        ``pivot`` (default the origin) is kept, so :meth:`matrix` gives ``matrix`` back.
+
+        Raises
+        ------
+        ValueError
+            ``matrix`` is not 4x4 and finite, its last row is not ``0 0 0 1``, or its 3x3
+            part is not a rotation (orthonormal, determinant +1, within ``tol``).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from pvcmf.plan import Osteotomy
+        >>> m = Osteotomy("maxilla", (1.0, 2.0, 3.0), (4.0, -5.0, 6.0)).matrix()
+        >>> bool(np.allclose(Osteotomy.from_matrix("maxilla", m).matrix(), m))
+        True
+        """
+        from scipy.spatial.transform import Rotation
+
+        m = np.asarray(matrix, dtype=float) if np.ndim(matrix) else np.full(0, np.nan)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f"matrix must be 4x4 finite numbers, got {matrix!r}")
+        if not np.allclose(m[3], [0, 0, 0, 1], atol=tol):
+            raise ValueError(f"matrix must have last row [0, 0, 0, 1], got {m[3].tolist()}")
+        rot = m[:3, :3]
+        dev = float(np.abs(rot.T @ rot - np.eye(3)).max())
+        if dev > tol or np.linalg.det(rot) < 0:
+            raise ValueError(
+                f"matrix must be rigid (a rotation and a translation): its 3x3 part deviates "
+                f"from orthonormal by {dev:.3g} and has determinant {np.linalg.det(rot):.6g}")
+        pivot_ = np.zeros(3) if pivot is None else np.asarray(_vector3(pivot, "pivot"))
+        angles = Rotation.from_matrix(rot).as_euler("xzy", degrees=True)  # R = Ry Rz Rx
+        shift = m[:3, 3] - pivot_ + rot @ pivot_
+        return cls(segment, translation=tuple(shift[list(arrays.PLAN_AXES)]),
+                   rotation=tuple(angles), pivot=tuple(pivot_), cut=tuple(cut))
 
     @property
     def segment_id(self):

@@ -3,6 +3,7 @@ paths and corrupt files raise clear errors; headsq loads from the shared data fo
 
 from __future__ import annotations
 
+import functools
 import gzip
 
 import numpy as np
@@ -12,6 +13,9 @@ import vtk
 
 import pvcmf
 from pvcmf import arrays
+
+#: the file's own geometry (read_ct's default is the patient frame)
+read_file = functools.partial(pvcmf.read_ct, frame="file")
 
 DIMS = (12, 9, 7)  # x, y, z: all different so a transposed read cannot pass
 SPACING = (0.5, 0.8, 2.0)
@@ -46,14 +50,14 @@ def test_vti_roundtrip_with_direction(tmp_path):
     img.direction_matrix = ROTATION
     img["density"] = flat(known_values())
     img.save(tmp_path / "a.vti")
-    check(pvcmf.read_ct(tmp_path / "a.vti"), known_values(), direction=ROTATION)
+    check(read_file(tmp_path / "a.vti"), known_values(), direction=ROTATION)
 
 
 def test_offset_and_scale_are_applied(tmp_path):
     img = pv.ImageData(dimensions=DIMS, spacing=SPACING, origin=ORIGIN)
     img["v"] = flat(known_values())
     img.save(tmp_path / "a.vti")
-    out = pvcmf.read_ct(tmp_path / "a.vti", offset=-1024.0, scale=0.5)
+    out = read_file(tmp_path / "a.vti", offset=-1024.0, scale=0.5)
     check(out, 0.5 * known_values().astype(float) - 1024.0)
 
 
@@ -73,7 +77,7 @@ def test_nifti_roundtrip_qform_and_rescale(tmp_path):
         writer.SetRescaleIntercept(-1000.0)
         writer.SetFileName(str(tmp_path / name))
         writer.Write()
-        out = pvcmf.read_ct(tmp_path / name)
+        out = read_file(tmp_path / name)
         check(out, 2.0 * known_values().astype(float) - 1000.0, direction=ROTATION)
 
 
@@ -85,7 +89,7 @@ def test_metaimage_mha_written_by_vtk(tmp_path):
     writer.SetFileName(str(tmp_path / "a.mha"))
     writer.SetCompression(False)
     writer.Write()
-    check(pvcmf.read_ct(tmp_path / "a.mha"), known_values())
+    check(read_file(tmp_path / "a.mha"), known_values())
 
 
 def test_metaimage_mhd_by_hand_with_transform(tmp_path):
@@ -93,13 +97,14 @@ def test_metaimage_mhd_by_hand_with_transform(tmp_path):
     (tmp_path / "a.mhd").write_text(
         "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
         "CompressedData = False\n"
-        f"TransformMatrix = {' '.join(str(v) for v in ROTATION.ravel())}\n"
+        # MetaIO (as ITK writes it) lists the direction column by column
+        f"TransformMatrix = {' '.join(str(v) for v in ROTATION.T.ravel())}\n"
         f"Offset = {' '.join(map(str, ORIGIN))}\n"
         f"ElementSpacing = {' '.join(map(str, SPACING))}\n"
         f"DimSize = {' '.join(map(str, DIMS))}\n"
         "ElementType = MET_SHORT\nElementDataFile = a.raw\n"
     )
-    check(pvcmf.read_ct(tmp_path / "a.mhd"), known_values(), direction=ROTATION)
+    check(read_file(tmp_path / "a.mhd"), known_values(), direction=ROTATION)
 
 
 def _nrrd_header(extra):
@@ -120,7 +125,7 @@ def test_nrrd_detached_header_with_space_directions(tmp_path):
             "data file: a.raw\n"
         )
     )
-    check(pvcmf.read_ct(tmp_path / "a.nhdr"), known_values(), direction=ROTATION)
+    check(read_file(tmp_path / "a.nhdr"), known_values(), direction=ROTATION)
 
 
 def test_nrrd_attached_gzip_big_endian(tmp_path):
@@ -128,7 +133,7 @@ def test_nrrd_attached_gzip_big_endian(tmp_path):
     header = _nrrd_header(f"spacings: {' '.join(map(str, SPACING))}\nencoding: gzip\n")
     header = header.replace("endian: little", "endian: big")
     (tmp_path / "a.nrrd").write_bytes(header.encode() + b"\n" + payload)
-    check(pvcmf.read_ct(tmp_path / "a.nrrd"), known_values(), origin=(0.0, 0.0, 0.0))
+    check(read_file(tmp_path / "a.nrrd"), known_values(), origin=(0.0, 0.0, 0.0))
 
 
 def test_nrrd_one_file_per_slice(tmp_path):
@@ -141,12 +146,13 @@ def test_nrrd_one_file_per_slice(tmp_path):
             f"data file: s.%d 1 {DIMS[2]} 1\n"
         )
     )
-    check(pvcmf.read_ct(tmp_path / "s.nhdr"), vol, origin=(0.0, 0.0, 0.0))
+    check(read_file(tmp_path / "s.nhdr"), vol, origin=(0.0, 0.0, 0.0))
 
 
 # --------------------------------------------------------------------------- DICOM
 def write_dicom_series(folder, raw, spacing, origin, *, slope=1.0, intercept=-1024.0,
-                       row_dir=(1, 0, 0), col_dir=(0, 1, 0), extra_file=True):
+                       row_dir=(1, 0, 0), col_dir=(0, 1, 0), extra_file=True, drift=(0.0, 0.0),
+                       description="CT"):
     """Write ``raw`` (nx, ny, nz) as one CT slice file per k, in shuffled file order."""
     pydicom = pytest.importorskip("pydicom")
     from pydicom.dataset import Dataset, FileMetaDataset
@@ -169,7 +175,10 @@ def write_dicom_series(folder, raw, spacing, origin, *, slope=1.0, intercept=-10
         ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study, series, frame
         ds.PatientName, ds.PatientID = "Virtual^Patient", "0"
         ds.InstanceNumber = int(names[k]) + 1
-        ds.ImagePositionPatient = [float(v) for v in np.asarray(origin) + k * spacing[2] * normal]
+        ds.SeriesDescription, ds.SeriesNumber = description, 1 + len(description)
+        # drift: in-plane shift (mm along rows, columns) per slice, as a tilted gantry makes
+        ds.ImagePositionPatient = [float(v) for v in np.asarray(origin) + k * spacing[2] * normal
+                                   + k * (drift[0] * row_dir + drift[1] * col_dir)]
         ds.ImageOrientationPatient = [float(v) for v in (*row_dir, *col_dir)]
         ds.PixelSpacing = [float(spacing[1]), float(spacing[0])]  # row spacing, column spacing
         ds.SliceThickness = float(spacing[2])
@@ -188,7 +197,7 @@ def test_dicom_series_sorted_rescaled_oriented(tmp_path):
     raw = known_values()
     write_dicom_series(tmp_path, raw, SPACING, ORIGIN, slope=2.0, intercept=-1024.0,
                        row_dir=ROTATION[:, 0], col_dir=ROTATION[:, 1])
-    out = pvcmf.read_ct(tmp_path)
+    out = read_file(tmp_path)
     check(out, 2.0 * raw.astype(float) - 1024.0, direction=ROTATION)
     # an independent check of the geometry: a voxel's world position is its slice position
     k = 3
@@ -226,8 +235,8 @@ def test_patient_frame(tmp_path, fmt):
             f"space directions: {dirs}\nspace origin: ({','.join(map(str, ORIGIN))})\n"
             "data file: a.raw\n"))
         path, flip = tmp_path / "a.nhdr", np.diag([-1.0, 1.0, 1.0])
-    as_file = pvcmf.read_ct(path)
-    patient = pvcmf.read_ct(path, frame="patient")
+    as_file = read_file(path)
+    patient = read_file(path, frame="patient")
     np.testing.assert_allclose(patient.direction_matrix, np.eye(3))
     v_file, p_file = _positions_by_value(as_file)
     v_pat, p_pat = _positions_by_value(patient)
@@ -236,28 +245,39 @@ def test_patient_frame(tmp_path, fmt):
     assert np.all(np.asarray(patient.spacing) > 0)
 
 
-def test_patient_frame_refuses_oblique_and_unknown(tmp_path):
+def test_patient_frame_resamples_oblique_and_takes_unknown_as_patient(tmp_path, caplog):
     c, s_ = np.cos(0.3), np.sin(0.3)
-    img = pv.ImageData(dimensions=DIMS, spacing=SPACING)
-    img.direction_matrix = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
-    img["v"] = flat(known_values())
+    rot = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    img = pv.ImageData(dimensions=(20, 20, 6), spacing=(1.0, 1.0, 2.0), origin=(5.0, -3.0, 7.0))
+    img.direction_matrix = rot
+    vol = np.zeros((20, 20, 6), np.float32)
+    vol[12:15, 4:7, 2:5] = 1000.0  # a bright block around voxel (13, 5, 3)
+    img["v"] = vol.ravel(order="F")
     img.save(tmp_path / "a.vti")
-    with pytest.raises(ValueError, match="oblique"):
-        pvcmf.read_ct(tmp_path / "a.vti", frame="patient")
+    with caplog.at_level("WARNING"):
+        out = pvcmf.read_ct(tmp_path / "a.vti")
+    assert "oblique" in caplog.text
+    np.testing.assert_allclose(out.direction_matrix, np.eye(3))
+    expected = np.asarray(img.origin) + rot @ (np.array([13, 5, 3]) * img.spacing)
+    ct = out[arrays.CT]
+    found = (out.points * ct[:, None]).sum(axis=0) / ct.sum()  # centre of the block
+    np.testing.assert_allclose(found, expected, atol=0.3)
     with pytest.raises(ValueError, match="frame must be"):
-        pvcmf.read_ct(tmp_path / "a.vti", frame="RAS")
+        read_file(tmp_path / "a.vti", frame="RAS")
     flat(known_values()).astype("<i2").tofile(tmp_path / "b.raw")
     (tmp_path / "b.nhdr").write_text(_nrrd_header(
         "encoding: raw\nspace: 3D-left-handed\nspacings: 1 1 1\ndata file: b.raw\n"))
-    with pytest.raises(ValueError, match="3d-left-handed.*frame='file'"):
-        pvcmf.read_ct(tmp_path / "b.nhdr", frame="patient")
+    with caplog.at_level("WARNING"):
+        unknown = pvcmf.read_ct(tmp_path / "b.nhdr")
+    assert "no anatomical frame" in caplog.text
+    np.testing.assert_array_equal(unknown[arrays.CT], read_file(tmp_path / "b.nhdr")[arrays.CT])
 
 
 def test_dicom_folder_without_images(tmp_path):
     pytest.importorskip("pydicom")
     (tmp_path / "notes.txt").write_text("hello")
     with pytest.raises(ValueError, match="no readable DICOM image"):
-        pvcmf.read_ct(tmp_path)
+        read_file(tmp_path)
 
 
 def test_dicom_uneven_slices(tmp_path):
@@ -268,21 +288,21 @@ def test_dicom_uneven_slices(tmp_path):
     ds = pydicom.dcmread(victim)
     ds.ImagePositionPatient = [ORIGIN[0], ORIGIN[1], ORIGIN[2] + 0.3]
     ds.save_as(victim)
-    with pytest.raises(ValueError, match="non-uniform or duplicate slice"):
-        pvcmf.read_ct(tmp_path)
+    with pytest.raises(ValueError, match="misses slices|uneven"):
+        read_file(tmp_path)
 
 
 # --------------------------------------------------------------------------- errors
 def test_missing_path(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist.*DICOM series folder"):
-        pvcmf.read_ct(tmp_path / "nothing.nii")
+        read_file(tmp_path / "nothing.nii")
 
 
 def test_unsupported_format_names_path_and_formats(tmp_path):
     path = tmp_path / "scan.png"
     path.write_bytes(b"\x89PNG")
     with pytest.raises(ValueError, match=r"scan\.png.*\.nii\.gz.*\.nhdr.*\.mha.*\.vti"):
-        pvcmf.read_ct(path)
+        read_file(path)
 
 
 @pytest.mark.parametrize("name", ["a.nii", "a.nii.gz", "a.mha", "a.vti", "a.nrrd"])
@@ -290,7 +310,7 @@ def test_corrupt_file(tmp_path, name):
     path = tmp_path / name
     path.write_bytes(b"this is not an image" * 50)
     with pytest.raises(ValueError, match=rf"{name.replace('.', '[.]')}"):
-        pvcmf.read_ct(path)
+        read_file(path)
 
 
 def test_truncated_nifti_and_nrrd(tmp_path):
@@ -300,26 +320,26 @@ def test_truncated_nifti_and_nrrd(tmp_path):
     data = (tmp_path / "a.nii").read_bytes()
     (tmp_path / "a.nii").write_bytes(data[: len(data) // 2])
     with pytest.raises(ValueError, match="corrupt or unreadable"):
-        pvcmf.read_ct(tmp_path / "a.nii")
+        read_file(tmp_path / "a.nii")
     flat(known_values())[:100].astype("<i2").tofile(tmp_path / "short.raw")
     (tmp_path / "a.nhdr").write_text(
         _nrrd_header("encoding: raw\nspacings: 1 1 1\ndata file: short.raw\n")
     )
     with pytest.raises(ValueError, match="truncated"):
-        pvcmf.read_ct(tmp_path / "a.nhdr")
+        read_file(tmp_path / "a.nhdr")
 
 
 @pytest.mark.parametrize("kwargs", [{"scale": 0.0}, {"offset": float("nan")}, {"scale": "x"}])
 def test_bad_offset_scale(tmp_path, kwargs):
     with pytest.raises((ValueError, TypeError), match="offset|scale"):
-        pvcmf.read_ct(tmp_path, **kwargs)
+        read_file(tmp_path, **kwargs)
 
 
 # --------------------------------------------------------------------------- headsq
 def test_headsq_from_data_dir(data_dir):
     if not (data_dir / "headsq" / "quarter.nhdr").is_file():
         pytest.skip("headsq not in the data folder")
-    raw = pvcmf.read_ct(data_dir / "headsq" / "quarter.nhdr")
+    raw = read_file(data_dir / "headsq" / "quarter.nhdr")
     ct = pvcmf.datasets.headsq(offset=-1000.0, scale=1.0)
     assert ct.dimensions == (64, 64, 93)
     np.testing.assert_allclose(ct.spacing, (3.2, 3.2, 1.5))
@@ -327,16 +347,18 @@ def test_headsq_from_data_dir(data_dir):
     first = np.fromfile(data_dir / "headsq" / "quarter.1", dtype="<i2").reshape(64, 64)
     vol = raw[arrays.CT].reshape(raw.dimensions, order="F")
     np.testing.assert_array_equal(vol[:, :, 0], first.T)
-    # headsq is turned to the patient frame (y anterior, z superior): y and z reversed
+    # headsq is turned to the patient frame (y anterior, z superior) from its anatomy:
+    # y and z reversed (the file stores the face toward -y and the vertex toward -z)
     hs = ct[arrays.CT].reshape(ct.dimensions, order="F")
     np.testing.assert_array_equal(hs, vol[:, ::-1, ::-1] - 1000.0)
-    # the default map: skin iso-value on segment's default skin threshold, bone iso at 150
-    from pvcmf.datasets.realct import HEADSQ_BONE_ISO, HEADSQ_SKIN_ISO
-    from pvcmf.filters.segmentation import SKIN_THRESHOLD
-
+    # without a hand-given offset the scanner units are found: a CT convention (1000 or
+    # 1024) whose soft-tissue peak lands in the soft-tissue range of HU
     d = pvcmf.datasets.headsq()
-    assert HEADSQ_SKIN_ISO - 1000.0 == SKIN_THRESHOLD and HEADSQ_BONE_ISO - 1000.0 == 150.0
-    np.testing.assert_array_equal(d[arrays.CT], ct[arrays.CT])
+    diff = np.unique(np.round(d[arrays.CT] - ct[arrays.CT], 3))
+    assert diff.size == 1 and diff[0] in (0.0, -24.0)
+    from pvcmf.filters.orientation import check_units
+
+    assert -60 < check_units(d, "hu")[1]["soft_peak"] < 100
 
 
 def test_headsq_download_path_without_network(data_dir, tmp_path, monkeypatch):
@@ -363,12 +385,167 @@ def test_headsq_download_path_without_network(data_dir, tmp_path, monkeypatch):
     monkeypatch.delenv("PVCMF_DATA_DIR")
     monkeypatch.setenv("PVCMF_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(pooch, "retrieve", fake_retrieve)
-    ct = pvcmf.datasets.headsq()
+    ct = pvcmf.datasets.headsq(offset=-1000.0)
     assert len(calls) == 94 and calls[0].endswith("Data/headsq/quarter.nhdr")
-    ref = pvcmf.read_ct(src / "quarter.nhdr", offset=-1000.0)
+    ref = read_file(src / "quarter.nhdr", offset=-1000.0)
     vol = ref[arrays.CT].reshape(ref.dimensions, order="F")[:, ::-1, ::-1]
     np.testing.assert_array_equal(ct[arrays.CT], vol.ravel(order="F"))
     # a corrupted download is refused
     (tmp_path / "cache" / "headsq" / "quarter.7").write_bytes(b"\0" * 8192)
     with pytest.raises(ValueError, match="SHA-256"):
         pvcmf.datasets.headsq()
+
+
+# --------------------------------------------------------------------------- independent writers
+def _patient_position(lps):
+    """LPS (ITK, DICOM) -> pvcmf patient frame (x left, y anterior, z superior)."""
+    return np.asarray(lps, dtype=float) * np.array([1.0, -1.0, 1.0])
+
+
+def _sitk_image(direction):
+    sitk = pytest.importorskip("SimpleITK")
+    vol = known_values()  # (nx, ny, nz); SimpleITK arrays are (z, y, x)
+    img = sitk.GetImageFromArray(np.ascontiguousarray(vol.transpose(2, 1, 0)))
+    img.SetSpacing(SPACING)
+    img.SetOrigin(ORIGIN)
+    img.SetDirection(np.asarray(direction, dtype=float).ravel())
+    return sitk, img
+
+
+CORONAL = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # y index -> -z
+
+
+@pytest.mark.parametrize("suffix", [".mha", ".mhd", ".nii.gz", ".nrrd"])
+def test_coronal_written_by_simpleitk_lands_where_itk_says(tmp_path, suffix):
+    """Every voxel of a coronal file sits where SimpleITK puts it (LPS -> patient frame)."""
+    sitk, img = _sitk_image(CORONAL)
+    sitk.WriteImage(img, str(tmp_path / f"a{suffix}"))
+    out = pvcmf.read_ct(tmp_path / f"a{suffix}")
+    np.testing.assert_allclose(out.direction_matrix, np.eye(3))
+    values, positions = _positions_by_value(out)
+    vol = known_values()
+    for idx in [(0, 0, 0), (11, 8, 6), (3, 5, 2), (7, 1, 4)]:
+        expected = _patient_position(img.TransformIndexToPhysicalPoint(idx))
+        found = positions[np.searchsorted(values, vol[idx])]
+        np.testing.assert_allclose(found, expected, atol=1e-4, err_msg=str(idx))
+
+
+@pytest.mark.parametrize("suffix", [".mha", ".nii.gz", ".nrrd"])
+def test_oblique_written_by_simpleitk_resampled_in_place(tmp_path, suffix):
+    """An oblique file is resampled; a bright block keeps its physical centre."""
+    sitk = pytest.importorskip("SimpleITK")
+    a, b = np.radians(20.0), np.radians(-10.0)
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    direction = rz @ rx
+    vol = np.zeros((10, 16, 24), np.int16)  # (z, y, x)
+    vol[4:7, 9:12, 5:8] = 1000  # block centred on index (x, y, z) = (6, 10, 5)
+    img = sitk.GetImageFromArray(vol)
+    img.SetSpacing((1.0, 1.25, 1.5))
+    img.SetOrigin((-30.0, 12.0, 100.0))
+    img.SetDirection(direction.ravel())
+    sitk.WriteImage(img, str(tmp_path / f"a{suffix}"))
+    out = pvcmf.read_ct(tmp_path / f"a{suffix}")
+    ct = np.asarray(out[arrays.CT], dtype=float)
+    centre = (np.asarray(out.points) * ct[:, None]).sum(axis=0) / ct.sum()
+    expected = _patient_position(img.TransformContinuousIndexToPhysicalPoint((6.0, 10.0, 5.0)))
+    np.testing.assert_allclose(centre, expected, atol=0.35)
+
+
+def test_nifti_written_by_nibabel_sform_and_qform(tmp_path):
+    nib = pytest.importorskip("nibabel")
+    vol = known_values()
+    affine = np.eye(4)
+    affine[:3, :3] = np.array([[0.0, 0.0, -2.0], [-0.5, 0.0, 0.0], [0.0, 0.8, 0.0]])
+    affine[:3, 3] = (40.0, 5.0, -60.0)
+    for code in ("sform", "qform"):
+        img = nib.Nifti1Image(vol, affine)
+        if code == "qform":
+            img.set_sform(None, code=0)
+            img.set_qform(affine, code=1)
+        nib.save(img, tmp_path / f"{code}.nii")
+        out = pvcmf.read_ct(tmp_path / f"{code}.nii")
+        values, positions = _positions_by_value(out)
+        for idx in [(0, 0, 0), (11, 8, 6), (2, 7, 3)]:
+            ras = affine[:3, :3] @ np.array(idx, float) + affine[:3, 3]
+            expected = ras * np.array([-1.0, 1.0, 1.0])  # RAS -> x left
+            found = positions[np.searchsorted(values, vol[idx])]
+            np.testing.assert_allclose(found, expected, atol=1e-4, err_msg=f"{code} {idx}")
+
+
+# --------------------------------------------------------------------------- bad geometry
+@pytest.mark.parametrize("bad", ["0 1 1", "1 -1 1"])
+def test_zero_or_negative_spacing_refused(tmp_path, bad):
+    flat(known_values()).astype("<i2").tofile(tmp_path / "a.raw")
+    (tmp_path / "a.mhd").write_text(
+        "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
+        f"ElementSpacing = {bad}\nDimSize = {' '.join(map(str, DIMS))}\n"
+        "ElementType = MET_SHORT\nElementDataFile = a.raw\n")
+    with pytest.raises(ValueError, match="spacing"):
+        pvcmf.read_ct(tmp_path / "a.mhd")
+    (tmp_path / "a.nhdr").write_text(_nrrd_header(
+        f"encoding: raw\nspacings: {bad}\ndata file: a.raw\n"))
+    with pytest.raises(ValueError, match="spacing"):
+        pvcmf.read_ct(tmp_path / "a.nhdr")
+
+
+def test_two_dimensional_image_refused(tmp_path):
+    nib = pytest.importorskip("nibabel")
+    nib.save(nib.Nifti1Image(np.zeros((8, 9), np.int16), np.eye(4)), tmp_path / "a.nii")
+    with pytest.raises(ValueError, match="2-D"):
+        pvcmf.read_ct(tmp_path / "a.nii")
+    raw = known_values()[:, :, :1]
+    (tmp_path / "one").mkdir()
+    write_dicom_series(tmp_path / "one", raw, SPACING, ORIGIN, extra_file=False)
+    with pytest.raises(ValueError, match="2-D"):
+        pvcmf.read_ct(tmp_path / "one")
+
+
+# --------------------------------------------------------------------------- DICOM folders
+def test_dicom_picks_largest_ct_series_and_lets_the_user_choose(tmp_path, caplog):
+    raw = known_values()
+    for name, vol in (("bone kernel", raw), ("scout", raw[:, :, :4] + 5)):
+        (tmp_path / name).mkdir()
+        write_dicom_series(tmp_path / name, vol, SPACING, ORIGIN, description=name)
+        for path in (tmp_path / name).iterdir():
+            path.rename(tmp_path / f"{name[0]}{path.name}")
+    with caplog.at_level("WARNING"):
+        out = pvcmf.read_ct(tmp_path)
+    assert out.dimensions == DIMS and "2 DICOM series" in caplog.text and "scout" in caplog.text
+    scout = pvcmf.read_ct(tmp_path, series="scout")
+    assert scout.dimensions == (12, 9, 4)
+    assert float(np.min(scout[arrays.CT])) == float(np.min(out[arrays.CT])) + 5
+    with pytest.raises(ValueError, match="matches 0 of the series"):
+        pvcmf.read_ct(tmp_path, series="nothing")
+
+
+def test_dicom_missing_slice_is_named(tmp_path):
+    pydicom = write_dicom_series(tmp_path, known_values(), SPACING, ORIGIN)
+    for path in tmp_path.glob("*.dcm"):
+        if float(pydicom.dcmread(path).ImagePositionPatient[2]) == ORIGIN[2] + 3 * SPACING[2]:
+            path.unlink()
+    with pytest.raises(ValueError, match="misses slices.*34.00..38.00"):
+        pvcmf.read_ct(tmp_path)
+
+
+def test_dicom_gantry_tilt_resampled(tmp_path, caplog):
+    """Slices drifting along the columns (a tilted gantry) are moved back: a structure
+    straight along z in the patient stays straight."""
+    nx, ny, nz = 16, 20, 8
+    spacing, drift = (1.0, 1.0, 2.0), 0.5  # mm per slice along the column direction
+    raw = np.full((nx, ny, nz), -1000, np.int16)
+    for k in range(nz):  # a rod at physical y = 8 mm: at row 8 - k * drift in slice k
+        y = 8.0 - k * drift
+        j0 = int(np.floor(y))
+        raw[6:9, j0, k] += int(round(1000 * (1 - (y - j0))))
+        raw[6:9, j0 + 1, k] += int(round(1000 * (y - j0)))
+    write_dicom_series(tmp_path, raw, spacing, (0.0, 0.0, 0.0), intercept=0.0,
+                       drift=(0.0, drift))
+    with caplog.at_level("WARNING"):
+        out = read_file(tmp_path)
+    assert "tilted" in caplog.text
+    vol = out[arrays.CT].reshape(out.dimensions, order="F")
+    rows = np.arange(ny)
+    weights = vol[7] + 1000.0  # (ny, nz)
+    centre = (weights * rows[:, None]).sum(axis=0) / weights.sum(axis=0)
+    np.testing.assert_allclose(centre, 8.0, atol=0.05)

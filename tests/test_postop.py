@@ -244,7 +244,7 @@ def test_prediction_against_ct_warped_by_the_same_displacement(mtm):
     t = table.set_index("region")
     assert t.loc["face", "p90"] < SPACING / 4
     # regions: 3 mm voxels and a 4 mm lip move; since the mesher snaps its surface onto the
-    # image interface (960a3a0) skin points sit on the mesh boundary, half just outside,
+    # image interface, skin points sit on the mesh boundary, half just outside,
     # where postop_ct extrapolates the nearest node and the MTM's skin the Gaussian fit:
     # upper lip 1.07 mm, cheek 1.01 mm (before: all regions under 1 mm)
     assert (t["p90"] < SPACING / 2.5).all(), t["p90"]

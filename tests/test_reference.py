@@ -178,7 +178,7 @@ def test_bad_input():
 
 
 def test_predictors_agree():
-    """The tangent load-step predictor (default) and session 1's proportional one reach
+    """The tangent load-step predictor (default) and the proportional one reach
     the same equilibrium (they only start Newton differently)."""
     g, u = smooth_problem(2)
     u_old = solve_reference(g, predictor="proportional")[arrays.DISPLACEMENT]

@@ -2,7 +2,7 @@
 
 The engine is tested with the cheap deterministic ``synthetic_evaluate`` (pure numpy), so
 these tests do not depend on the pipeline. Cluster tests run a real Dask scheduler with two
-worker processes over loopback; a watchdog (faulthandler) ends the run instead of hanging CI.
+Dask processes over loopback; a watchdog (faulthandler) ends the run instead of hanging CI.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pvcmf import sweeps  # noqa: E402
 from pvcmf.figures import parameter_studies as ps  # noqa: E402
 from pvcmf.sweeps import synthetic_evaluate, synthetic_skin  # noqa: E402
 
-# functions and classes of this module travel to worker processes by value
+# functions and classes of this module travel to the Dask processes by value
 import cloudpickle  # noqa: E402
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
@@ -62,7 +62,7 @@ def count(folder, kind):
 
 
 class KillOnce:
-    """Kill the worker process the first time case ``victim`` is evaluated (marker file)."""
+    """Kill the Dask process the first time case ``victim`` is evaluated (marker file)."""
 
     def __init__(self, folder, victim=2):
         self.folder, self.victim = str(folder), victim
@@ -89,7 +89,7 @@ def watchdog():
 
 @pytest.fixture(scope="module")
 def client():
-    """A real Dask scheduler with two single-threaded worker processes over loopback."""
+    """A real Dask scheduler with two single-threaded Dask processes over loopback."""
     faulthandler.dump_traceback_later(240, exit=True)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None, memory_limit="1GiB",
@@ -246,11 +246,11 @@ def test_cluster_gives_the_local_table(client, local_table, tmp_path, watchdog):
     pd.testing.assert_frame_equal(df2[METRIC_COLS], local_table[METRIC_COLS])
 
 
-def test_killed_worker_is_retried_and_nothing_lost(client, local_table, tmp_path, watchdog):
+def test_killed_process_is_retried_and_nothing_lost(client, local_table, tmp_path, watchdog):
     cache = tmp_path / "cache"
     df = pvcmf.sweep([1, 2, 3], GRID, evaluate=KillOnce(tmp_path), scheduler=client, cache_dir=cache,
                      retries=2)
-    assert (tmp_path / "killed").exists()  # a worker really died mid-sweep
+    assert (tmp_path / "killed").exists()  # a Dask process really died mid-sweep
     pd.testing.assert_frame_equal(df[METRIC_COLS], local_table[METRIC_COLS])
     n = count(tmp_path, "evaluate")
     assert n >= len(df)
@@ -353,6 +353,50 @@ def test_pvcmf_sweep_command(tmp_path, capsys):
     assert main(bad) == 2
     err = capsys.readouterr().err
     assert "'nu'" in err and "0.5" in err and not (tmp_path / "bad.csv").exists()
+
+
+def test_pvcmf_sweep_without_dask_names_the_extra(tmp_path, monkeypatch):
+    """Without ``distributed`` the command says which extra to install and writes nothing;
+    ``--scheduler synchronous`` still runs."""
+    from pvcmf.cli import main
+
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
+    out = tmp_path / "t.csv"
+    argv = ["sweep", "--grid", "nu=0.3", "--out", str(out), "--synthetic", "--no-progress"]
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert 'pip install "pvcmf[sweep]"' in str(info.value) and "synchronous" in str(info.value)
+    assert not out.exists()
+    assert main([*argv, "--scheduler", "synchronous"]) == 0 and out.exists()
+
+
+@pytest.mark.parametrize("tqdm_installed", [True, False])
+def test_progress_bar_counts_every_point(tmp_path, monkeypatch, caplog, capsys, tqdm_installed):
+    """progress_bar=True shows a tqdm bar over all points (cached ones included), or logs
+    each step at INFO when tqdm is missing; progress_bar=False shows nothing."""
+    import logging
+
+    if tqdm_installed:
+        pytest.importorskip("tqdm")
+    else:
+        monkeypatch.setitem(sys.modules, "tqdm", None)
+        monkeypatch.setitem(sys.modules, "tqdm.auto", None)
+    kw = dict(evaluate=synthetic_evaluate, scheduler="synchronous", cache_dir=tmp_path)
+    pvcmf.sweep([1, 2], {"nu": [0.3]}, **kw)
+    capsys.readouterr()
+    with caplog.at_level(logging.INFO, logger="pvcmf"):
+        pvcmf.sweep([1, 2, 3], {"nu": [0.3], "n_tets": [8000, 9000]}, progress_bar=True, **kw)
+    err = capsys.readouterr().err
+    steps = [r.getMessage() for r in caplog.records if r.getMessage().startswith("sweep [")]
+    if tqdm_installed:
+        assert "6/6" in err and not steps
+    else:
+        assert steps[-1].startswith("sweep [6/6]") and "6/6" not in err
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="pvcmf"):
+        pvcmf.sweep([1, 2, 3], {"nu": [0.3]}, progress_bar=False, **kw)
+    assert "/3" not in capsys.readouterr().err
+    assert not [r for r in caplog.records if r.getMessage().startswith("sweep [")]
 
 
 # --------------------------------------------------------------------------- figures

@@ -15,10 +15,8 @@ import logging
 import os
 from pathlib import Path
 
-import numpy as np
-
-from .. import arrays
 from ..io import read_ct
+from ..io.orientation import standardize
 from ._paths import data_path
 
 log = logging.getLogger(__name__)
@@ -39,30 +37,24 @@ HEADSQ_SCALE = 1.0
 
 
 def headsq(*, offset=None, scale=None):
-    """VTK's real head CT (64 x 64 x 93 voxels, 3.2 x 3.2 x 1.5 mm) as ImageData.
+    """VTK's real head CT (64 x 64 x 93 voxels, 3.2 x 3.2 x 1.5 mm) as ImageData, in HU.
 
-    The scan is stored in scanner units, not HU: ``ct = scale * value + offset``. The
-    defaults (``offset=-1000``, ``scale=1``) put air at -1000 HU, the scan's fat peak (~900
-    units) at about -100 HU, its soft-tissue peak (~1030) at about 30 HU, and its skin
-    iso-value (500) at -500 HU, :func:`pvcmf.filters.segment`'s default ``skin_threshold``.
-    VTK's bone iso-value (1150) lands at 150 HU: a rendering choice for this blurred
-    quarter-resolution scan that also takes dense soft tissue; ``segment``'s default
-    ``bone_threshold`` (500 HU = 1500 units) keeps skull, jaws and spine, so
-    ``headsq().cmf.segment()`` works with its defaults (one skin component with the bone
-    inside it, tested). Pass ``bone_threshold=150`` to segment at VTK's bone iso-value.
+    The scan is stored in scanner units, with the face toward -y and the vertex toward -z, and
+    its header names no anatomical frame. :func:`pvcmf.filters.standardize` finds both from
+    the image (air and soft-tissue peaks give the offset to HU; the anatomy gives the axes),
+    so no hand-made offset or flip is needed. ``offset``/``scale`` override the units:
+    ``ct = scale * value + offset`` (``HEADSQ_OFFSET`` is the classic ``-1000``).
 
     Parameters
     ----------
     offset, scale : float, optional
-        Linear map from scanner units to HU; ``None`` takes the defaults above.
+        Linear map from scanner units to HU; ``None`` for both detects it.
 
     Returns
     -------
     pyvista.ImageData
-        Point array ``ct`` (float32), spacing as in the file, origin 0. The voxel order of
-        the file (skull top first, face toward y = 0) is turned 180 degrees about x (y and z
-        reversed, no mirroring) so that y points anterior and z superior, as in the pvcmf
-        patient frame; left/right is as stored.
+        Point array ``ct`` (float32, HU), spacing as in the file, origin 0, face toward +y
+        and vertex toward +z (a 180-degree turn about x of the file's voxels, no mirroring).
 
     Raises
     ------
@@ -76,19 +68,18 @@ def headsq(*, offset=None, scale=None):
     >>> ct.dimensions  # doctest: +SKIP
     (64, 64, 93)
     """
-    offset = HEADSQ_OFFSET if offset is None else offset
-    scale = HEADSQ_SCALE if scale is None else scale
     local = data_path("headsq", "quarter.nhdr", required=False)
     if local is not None and local.is_file():
         header = local
     else:
         header = _download_headsq()
-    image = read_ct(header, offset=offset, scale=scale)
-    # The scan runs from the skull top down (index z inferior) with the face toward index
-    # y = 0: reverse y and z (a 180-degree turn about x, no mirroring) for the pvcmf patient
-    # frame, y anterior and z superior.
-    vol = image.point_data[arrays.CT].reshape(image.dimensions, order="F")
-    image.point_data[arrays.CT] = np.ascontiguousarray(vol[:, ::-1, ::-1]).ravel(order="F")
+    if offset is None and scale is None:
+        image, report = standardize(read_ct(header))
+    else:
+        offset = HEADSQ_OFFSET if offset is None else offset
+        scale = HEADSQ_SCALE if scale is None else scale
+        image, report = standardize(read_ct(header, offset=offset, scale=scale), units="hu")
+    log.info("headsq: %s; axes %s", report["units"]["how"], report["orientation"]["code"])
     return image
 
 

@@ -10,10 +10,13 @@ label image is given, the bone segments. Reads the ``bc`` arrays written by
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from ..filters.osteotomy import _segment_surface
 
 __all__ = ["figure_4", "BC_COLORS"]
 
@@ -73,8 +76,6 @@ def figure_4(grid, labels=None, window_size=(1500, 520), point_size=9.0):
         else with_ids.extract_surface()
     bone = None
     if labels is not None:
-        from ..filters.osteotomy import _segment_surface
-
         values = np.asarray(arrays.require_array(labels, arrays.BONE, "point", dtype="iu"))
         bone = _segment_surface(labels, values > 0, 0.6)
     points = np.asarray(grid.points)
@@ -95,6 +96,4 @@ def figure_4(grid, labels=None, window_size=(1500, 520), point_size=9.0):
 
 
 def _has_algorithm():
-    import inspect
-
     return "algorithm" in inspect.signature(pv.UnstructuredGrid.extract_surface).parameters

@@ -12,8 +12,11 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from matplotlib.colors import ListedColormap
+from matplotlib.figure import Figure
 
 from .. import arrays
+from ..filters.classify import classify_tissue
 
 log = logging.getLogger(__name__)
 
@@ -65,11 +68,6 @@ def fig1_gmm(image, *, slice_index=None, n_components=2, figsize=(13.0, 4.4), **
     >>> case = pvcmf.datasets.phantom(1, spacing=2.0)  # doctest: +SKIP
     >>> fig = fig1_gmm(case.ct.cmf.segment())  # doctest: +SKIP
     """
-    from matplotlib.figure import Figure
-    from matplotlib.colors import ListedColormap
-
-    from ..filters.classify import classify_tissue
-
     median_size = options.pop("median_size", 5)
     raw, mix = classify_tissue(image, n_components=n_components, median_size=1,
                                return_mixtures=True, **options)
@@ -87,7 +85,13 @@ def fig1_gmm(image, *, slice_index=None, n_components=2, figsize=(13.0, 4.4), **
     ax_h, ax_t, ax_m = fig.subplots(1, 3, width_ratios=[1.35, 1, 1])
     fig.subplots_adjust(left=0.06, right=0.99, bottom=0.12, top=0.92, wspace=0.3)
 
-    # (a) histogram, initial and fitted Gaussians
+    _histogram_panel(ax_h, mix, k)
+    _slice_panels((ax_t, ax_m), image, raw, final, k, median_size)
+    return fig
+
+
+def _histogram_panel(ax_h, mix, k):
+    """Panel (a): slice ``k``'s soft-tissue histogram, initial and EM-fitted Gaussians."""
     x = mix.centers
     ax_h.plot(x, mix.hist[k], color="black", lw=1.0, zorder=2, label="histogram (soft tissue)")
     fine = np.linspace(mix.edges[0], mix.edges[-1], 600)
@@ -120,7 +124,11 @@ def fig1_gmm(image, *, slice_index=None, n_components=2, figsize=(13.0, 4.4), **
         + (" (pooled threshold)" if mix.fallback[k] else ""), fontsize=10)
     ax_h.legend(fontsize=7, loc="upper left", frameon=False)
 
-    # (b), (c) the slice after the threshold and after the median filter
+
+def _slice_panels(axes, image, raw, final, k, median_size):
+    """Panels (b), (c): slice ``k`` after the threshold and after the median filter."""
+    ax_t, ax_m = axes
+    dims = image.dimensions
     ids = sorted(COLORS)
     cmap = ListedColormap([COLORS[i] for i in range(max(ids) + 1)])
     sx, sy = image.spacing[0], image.spacing[1]
@@ -143,4 +151,3 @@ def fig1_gmm(image, *, slice_index=None, n_components=2, figsize=(13.0, 4.4), **
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm, anterior up)")
-    return fig

@@ -15,8 +15,13 @@ from __future__ import annotations
 
 import numpy as np
 import pyvista as pv
+from matplotlib.colors import ListedColormap
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+from scipy import ndimage
 
 from .. import arrays
+from ..filters.fibers import muscle_boxes, obb_polydata
 
 __all__ = ["figure_2a", "figure_2b", "figure_3", "MUSCLE_COLORS", "muscle_surfaces"]
 
@@ -71,8 +76,6 @@ def muscle_surfaces(labels, smoothing_scale=0.5):
 
 def _skin(labels):
     """Outer skin: boundary of the head with enclosed cavities filled, largest piece."""
-    from scipy import ndimage
-
     tissue, _ = _labels(labels)
     head = ndimage.binary_fill_holes((tissue != arrays.AIR).reshape(labels.dimensions,
                                                                       order="F"))
@@ -177,13 +180,6 @@ def figure_2b(labels, z=None, figsize=(6.4, 5.2)):
     -------
     matplotlib.figure.Figure
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    from matplotlib.colors import ListedColormap
-    from matplotlib.figure import Figure
-    from matplotlib.patches import Patch
-
     tissue, muscle = _labels(labels)
     dims = labels.dimensions
     t3 = tissue.reshape(dims, order="F")
@@ -243,8 +239,6 @@ def figure_3(labels, levels=None, window_size=(800, 800)):
     pyvista.Plotter
         Off screen.
     """
-    from ..filters.fibers import muscle_boxes, obb_polydata
-
     surfaces = muscle_surfaces(labels)
     boxes = muscle_boxes(labels, levels=levels)
     p = pv.Plotter(off_screen=True, window_size=list(window_size))

@@ -12,6 +12,8 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from ..filters.osteotomy import move_bones
+from ..filters.skin import extract_skin
 
 __all__ = ["osteotomy_panel", "draw_osteotomy", "figure_5"]
 
@@ -44,8 +46,6 @@ def draw_osteotomy(plotter, labels, plan, skeleton=None):
     skeleton : pyvista.MultiBlock, optional
         Output of :func:`pvcmf.filters.move_bones` (computed when omitted).
     """
-    from ..filters.osteotomy import move_bones
-
     if skeleton is None:
         skeleton = move_bones(labels, plan)
     bounds = []
@@ -93,8 +93,6 @@ def osteotomy_panel(labels, plan, skin=None, skeleton=None, window_size=(900, 45
 
 
 def _draw_patient(p, first, labels, plan, skin, skeleton, title=""):
-    from ..filters.skin import extract_skin
-
     row, col = first
     if skin is None:
         skin = extract_skin(labels)

@@ -4,26 +4,32 @@ Every function takes the tidy table of :func:`pvcmf.sweep` (columns ``case``, th
 parameters, ``p50``/``p90``/``p95`` in mm, ``n_cells``, ``t_eval``/``t_solve`` in s), so it
 can be drawn from the real virtual-patient study or from a synthetic table in tests.
 
-* :func:`fig2_poisson` — 90 % percentile error against the Poisson ratio per case with
-  each minimum marked, and the case-averaged 50/90/95 % curves (matplotlib);
-* :func:`fig3_mesh_size` and :func:`mesh_size_table` — 90 % percentile and simulation time
-  against the mesh size, and the table (N_tetra near 30k, T_sim, D_90 to the finest mesh);
-* :func:`fig4_inhomogeneous` and :func:`inhomogeneous_table` — min/max 50/90 % over
-  (nu_fat, nu_muscle) per E_muscle/E_fat, and the case-averaged 90 % percentile over the
-  (nu_fat, nu_muscle) grid at E ratio 1;
-* :func:`optimal_poisson` and :func:`fig5_optimal_poisson` — per skin point, the Poisson
-  ratio that minimises the local 90 % error percentile and the spread (standard deviation)
-  of that percentile across ratios, on the face (PyVista, off screen).
+* :func:`fig2_poisson`: 90 % error against the Poisson ratio per case, minima marked, and
+  the case-averaged 50/90/95 % curves;
+* :func:`fig3_mesh_size`, :func:`mesh_size_table`: 90 % error and time against the mesh size,
+  and the table (N_tetra near 30k, T_sim, D_90 to the finest mesh);
+* :func:`fig4_inhomogeneous`, :func:`inhomogeneous_table`: min/max 50/90 % over (nu_fat,
+  nu_muscle) per E_muscle/E_fat, and the averaged 90 % error over that grid at E ratio 1;
+* :func:`optimal_poisson`, :func:`fig5_optimal_poisson`: per skin point, the Poisson ratio
+  minimising the local 90 % error and that error's spread across ratios (PyVista).
 
-Delegates to matplotlib (charts, tables), pandas (grouping), scipy's cKDTree (skin
-neighbourhoods) and PyVista (3-D renders).
+Delegates to matplotlib, pandas (grouping), scipy's cKDTree and PyVista (3-D renders).
 """
 
 from __future__ import annotations
 
+import functools
 import logging
+import os
+from pathlib import Path
 
 import numpy as np
+
+from ..study.engine import sweep
+from ..study.evaluation import synthetic_evaluate
+from ..study.pipeline_evaluation import STUDY_SPACING, PipelineEvaluation
+from ..study.tables import save_table
+from ..truth.grid import postop_skin
 
 log = logging.getLogger(__name__)
 
@@ -56,11 +62,6 @@ def study_settings(gallery_dir=None):
         ``out`` (Path), ``synthetic``, ``scheduler``, ``patients`` (list of int),
         ``study`` (``spacing`` and ``truth_tets`` for :func:`run_study`), ``title``.
     """
-    import os
-    from pathlib import Path
-
-    from ..sweeps import STUDY_SPACING
-
     env = os.environ.get
     base = Path(gallery_dir) if gallery_dir is not None else Path.cwd()
     synthetic = env("PVCMF_SYNTHETIC") == "1"
@@ -110,19 +111,11 @@ def run_study(cases, grid, name, out, *, synthetic=False, scheduler=None, keep_a
     pandas.DataFrame
         The sweep table.
     """
-    from pathlib import Path
-
-    from pvcmf.sweeps import PipelineEvaluation, save_table, sweep, synthetic_evaluate
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     truth_tets = options.pop("truth_tets", None)
     if truth_tets is not None and "truth" not in options:  # a coarser (cached) reference truth
-        import functools
-
-        from pvcmf import reference
-
-        options["truth"] = functools.partial(reference.postop_skin, n_tets=int(truth_tets))
+        options["truth"] = functools.partial(postop_skin, n_tets=int(truth_tets))
     evaluate = synthetic_evaluate if synthetic else PipelineEvaluation(
         keep_distance=keep_arrays, cache_dir=out / "sweep-cache" / "prepared", **options)
     df = sweep(cases, grid, evaluate=evaluate, scheduler=scheduler, cache_dir=out / "sweep-cache",
@@ -151,7 +144,6 @@ def _figure(figsize):
 
 
 # --------------------------------------------------------------------------- Fig. 2
-
 
 def poisson_optimum(df, metric="p90"):
     """Per-case and average optimum of ``metric`` over the Poisson ratio ``nu``.
@@ -257,7 +249,6 @@ def _case_colors(n):
 
 
 # --------------------------------------------------------------------------- Fig. 3
-
 
 def _size_column(df):
     return "n_cells" if "n_cells" in df.columns else "n_tets"
@@ -377,7 +368,6 @@ def fig3_mesh_size(df, *, target=30_000, metric="p90", title=None):
 
 # --------------------------------------------------------------------------- Fig. 4
 
-
 def inhomogeneous_table(df, *, case=None):
     """Paper 001 Fig. 4 (a): min/max 50 % and 90 % percentiles over (nu_fat, nu_muscle).
 
@@ -490,7 +480,6 @@ def fig4_inhomogeneous(df, *, case=None, ratio=1.0, title=None):
 
 
 # --------------------------------------------------------------------------- Fig. 5
-
 
 def optimal_poisson(df, skin, *, case=None, neighbours=16, percentile=90.0):
     """Per skin point: the Poisson ratio minimising the local error percentile, and its spread.

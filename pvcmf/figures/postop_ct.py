@@ -10,6 +10,7 @@ matplotlib (``imshow`` of the slice, extracted with numpy from the image's point
 from __future__ import annotations
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from .. import arrays
 
@@ -102,8 +103,6 @@ def postop_ct_slices(pre_ct, post_ct, *, axis="x", position=0.0, window=(-1000.0
     >>> len(fig.axes)  # three panels and two colour bars
     5
     """
-    from matplotlib.figure import Figure
-
     n = 3 if difference else 2
     # fixed layout (a constrained layout settles differently on a second draw)
     fig = Figure(figsize=(4.2 * n + 1.0, 5.4))

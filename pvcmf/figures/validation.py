@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 import pyvista as pv
+from matplotlib.colors import ListedColormap
+from matplotlib.figure import Figure
 
 from .. import arrays
 
@@ -55,8 +57,6 @@ def error_colormap(limit=6.0, acceptable=2.0, n=256):
     >>> [tuple(round(float(c), 2) for c in cmap(x)[:3]) for x in (0.0, 0.5, 1.0)]
     [(0.5, 0.0, 0.0), (1.0, 1.0, 1.0), (0.0, 0.0, 0.5)]
     """
-    from matplotlib.colors import ListedColormap
-
     if not 0 < acceptable < limit:
         raise ValueError(f"need 0 < acceptable < limit, got acceptable={acceptable}, limit={limit}")
     v = np.linspace(-limit, limit, n)
@@ -199,8 +199,6 @@ def fig7_boxplots(distances, *, whis=(5, 95), figsize=(7.0, 3.6)):
     >>> len(fig7_boxplots(d).axes)
     1
     """
-    from matplotlib.figure import Figure
-
     patients, methods = _check_nested(distances, "distances")
     fig = Figure(figsize=figsize, layout="constrained")
     ax = fig.add_subplot()
@@ -270,8 +268,6 @@ def fig8_cumulative(distances, *, marks=(1.0, 2.0), xmax=None, figsize=None):
     >>> len(fig8_cumulative(d).axes)
     2
     """
-    from matplotlib.figure import Figure
-
     patients, methods = _check_nested(distances, "distances")
     if xmax is None:
         xmax = max(float(np.percentile(_abs_errors(distances, p, m), 99))

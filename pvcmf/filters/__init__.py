@@ -19,6 +19,7 @@ extract_skin              ``skin``                    skin surface of a label im
 register                  ``registration``            000 sec. V: ICP (point-to-plane)
 distance_to               ``distance``                000 Fig. 6: signed distance maps
 map_to_surface            ``surface_mapping``         001: tet -> dense skin, Gaussian
+standardize               ``orientation``             CT in HU, face +y, vertex +z
 ========================  ==========================  =====================================
 
 Modules are imported lazily, so ``import pvcmf`` stays fast and a heavy dependency
@@ -42,11 +43,15 @@ _REGISTRY = {
     "assign_materials": "materials",
     "cut_bones": "osteotomy",
     "move_bones": "osteotomy",
+    "find_jaws": "bone_segments",
     "apply_plan": "boundary_conditions",
     "extract_skin": "skin",
     "register": "registration",
     "distance_to": "distance",
     "map_to_surface": "surface_mapping",
+    "transfer_operator": "surface_mapping",
+    "crumple_metric": "surface_mapping",
+    "standardize": "orientation",  # check_units, orient_head: pvcmf.filters.orientation
 }
 
 __all__ = sorted(_REGISTRY)

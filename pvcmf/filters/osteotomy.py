@@ -29,6 +29,7 @@ import pyvista as pv
 
 from .. import arrays
 from ..plan import Plan
+from .bone_segments import find_jaws, segment_volumes
 
 log = logging.getLogger(__name__)
 
@@ -68,9 +69,11 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
     """Label each planned bone segment in the ``bone`` array of a label image.
 
     An osteotomy with cut planes (:attr:`pvcmf.plan.Osteotomy.cut`) takes every bone
-    voxel on the side all its plane normals point to; one without planes keeps the
-    segment the image already labels (the virtual patients label cranium, maxilla and
-    mandible) and the image is checked to contain it.
+    voxel on the side all its plane normals point to (the planes override the anatomy);
+    one without planes keeps the segment the image already labels (the virtual patients
+    label cranium, maxilla and mandible) or, where the image does not label it, finds it
+    from the anatomy (:func:`pvcmf.filters.bone_segments.find_jaws`: the mandible apart at
+    the joints and the occlusion, the maxilla by a Le Fort I level).
 
     Parameters
     ----------
@@ -109,6 +112,14 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
     500
     """
     bone = _check_inputs(labels, plan, "cut_bones")
+    missing = [o.segment for o in plan.osteotomies
+               if not o.cut and not np.any(bone == o.segment_id)]
+    if missing and arrays.TISSUE in labels.point_data:
+        log.info("cut_bones: %s not labelled and no cut planes: found from the anatomy",
+                 ", ".join(missing))
+        found = np.asarray(find_jaws(labels, progress_bar=progress_bar)[arrays.BONE])
+        wanted = [o.segment_id for o in plan.osteotomies if o.segment in missing]
+        bone = np.where(np.isin(found, wanted), found, bone)
     out = labels.copy()
     new = bone.astype(np.uint8, copy=True)
     planned = {o.segment_id for o in plan.osteotomies if not o.cut}
@@ -131,6 +142,8 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
                  len(o.cut))
     out[arrays.BONE] = new
     plan.check_segments(out)
+    log.info("cut_bones: segments (mL) %s", ", ".join(
+        f"{k} {v:.1f}" for k, v in segment_volumes(out).items()))
     return out
 
 

@@ -1,28 +1,36 @@
-"""CT -> tissue and bone labels (paper 000 section II): skin, skull, soft tissue, cavities.
+"""CT -> tissue and bone labels (paper 000 section II): skin, skull, teeth, metal, brain, air.
 
-The steps, all on the voxel grid with ``scipy.ndimage`` (``label``, ``binary_closing``,
-``binary_erosion``)
-and numpy boolean algebra, vectorised over the whole volume:
+The steps, on the voxel grid with ``scipy.ndimage`` and numpy boolean algebra (no loop over
+voxels), the costly decisions on a copy downsampled to about ``coarse`` mm:
 
-1. **head**: ``ct >= skin_threshold``, largest face-connected component (drops the table,
-   head holder and noise, which do not touch the head); with ``fill_holes`` its small
-   enclosed holes (noise, < ``min_cavity`` mm^3) become tissue, larger ones stay air.
-2. **hard tissue**: ``ct >= bone_threshold`` inside the head; ``ct >= teeth_threshold`` is
-   TEETH (enamel and dentine are denser than bone), the rest BONE. The ``bone`` segment array
-   is ``CRANIUM`` on every hard voxel: splitting maxilla and mandible is
-   :func:`pvcmf.filters.cut_bones`.
-3. **intracranial volume**: the skull is closed with a ball of radius ``skull_closing`` mm
-   (``scipy.ndimage.binary_closing``; 2.8x faster than a distance-transform closing at 3 mm,
-   ``benchmarks/segment.py``), each axial
-   slice of the closed skull has its holes filled (a slice-wise fill, so the foramen magnum
-   and a skull vault cut off by the scan do not open the cavity), and the largest 3-D
-   connected non-bone, non-air region enclosed this way is ``INTRACRANIAL``.
-4. **extra-cranial soft tissue** = head minus hard tissue minus intracranial volume minus air
-   cavities (the boolean difference of the paper), labelled ``FAT`` (generic soft tissue, see
-   :func:`pvcmf.filters.classify_tissue` for fat/muscle). Air inside the head (sinuses,
-   airway, mouth, nasal cavity) stays ``AIR``.
+1. **thresholds** from the image's own histogram (:func:`calibrate`): the air and the
+   soft-tissue peaks give the scan's HU scale, and the skin, bone, teeth and metal levels are
+   placed on it (half-way from air to soft tissue; then 0.48, 1.9 and 2.85 times the
+   air-to-soft-tissue step above soft tissue: about -480, 520, 2000 and 3000 HU on a
+   calibrated scan, whatever offset or scale the scanner's values have).
+2. **head**: ``ct >= skin`` opened with a ball of ``object_opening`` mm (on the coarse copy),
+   its largest component, grown back by the same radius within the threshold mask: the
+   table, a headrest, sheets and tubes go even where they touch the skin, being thinner than
+   the ball or joined to the head by a thinner neck. Small enclosed holes (< ``min_cavity``
+   mm^3) become tissue; larger ones (sinuses, airway) stay air.
+3. **hard tissue**: ``ct >= bone`` in the head; ``>= teeth`` is TEETH; ``>= metal`` is METAL
+   (fillings, crowns, plates), hard tissue of its segment. Around the metal
+   (:mod:`pvcmf.filters.metal`) thin bright streaks are not bone and thin dark streaks are not
+   air.
+4. **intracranial volume** (:func:`_intracranial`): the skull is closed with a ball of
+   ``skull_closing`` mm; the distance to it is flooded from the deepest point enclosed by
+   the skull and from the air outside the head (a marker-based watershed, SimpleITK's
+   ``MorphologicalWatershedFromMarkers``): the two floods meet at the narrowest passages,
+   the orbital fissures, foramina and the foramen magnum, so the brain neither leaks through
+   an open skull ring nor stops short of the inner table; a vault cut by the scan stays
+   closed since the flood from outside cannot enter it. Without SimpleITK, an axial
+   slice-wise fill of the closed skull is used (with a warning).
+5. **soft tissue** = head minus hard tissue minus intracranial volume minus air cavities,
+   labelled ``FAT`` (see :func:`pvcmf.filters.classify_tissue` for fat/muscle).
 
-Index axis 2 of the image is taken as the axial (slice) axis.
+A head cut flat by the field of view (nose, forehead, vertex) is reported by a warning that
+names the side and the extent (:func:`clipped_sides`). Index axis 2 is the axial axis; the
+patient frame (x left, y anterior, z superior) is assumed for the side names.
 """
 
 from __future__ import annotations
@@ -35,6 +43,8 @@ import pyvista as pv
 from scipy import ndimage
 
 from .. import arrays
+from ..progress import Progress
+from . import metal as _metal
 
 log = logging.getLogger(__name__)
 
@@ -42,55 +52,134 @@ _FACES = ndimage.generate_binary_structure(3, 1)  # 6-connectivity
 _FACES_2D = np.zeros((3, 3, 3), dtype=bool)
 _FACES_2D[:, :, 1] = ndimage.generate_binary_structure(2, 1)  # in-slice 4-connectivity
 
-#: default HU thresholds. Skin: half-way between air (-1000) and soft tissue (~0). Bone:
-#: half-way between soft tissue (~40) and cancellous bone (~700-1000), where partial volume
-#: puts the bone surface (on the virtual patients 300-400 HU grows the bone by a voxel layer,
-#: hard-tissue Dice 0.90-0.94; 500 HU gives 0.97); lower it for thin bone (orbit floor,
-#: sinus walls) in real scans. Teeth: enamel/dentine (~2500) above cortical bone (~1700).
+#: reference levels (HU) of a calibrated scan; :func:`calibrate` places the thresholds of
+#: each image on its own histogram instead. Skin: half-way between air and soft tissue;
+#: bone: where partial volume puts the surface of cancellous bone; teeth: enamel and dentine
+#: above cortical bone; metal: above any tissue.
 SKIN_THRESHOLD = -500.0
 BONE_THRESHOLD = 500.0
 TEETH_THRESHOLD = 2000.0
+METAL_THRESHOLD = 3000.0
+#: thresholds as multiples of the air -> soft tissue step, above the soft-tissue peak
+#: (skin: below it). On a calibrated scan (step ~1040 HU) they give the levels above.
+SCALE = {"skin": -0.5, "bone": 0.48, "teeth": 1.88, "metal": 2.85}
 #: smallest radius (voxels) of the skull-closing ball: 1.5 takes the in-slice diagonal
 #: neighbours, which bridge a one-voxel gap in a one-voxel-thin skull ring
 MIN_BALL_VOXELS = 1.5
 
 
+def calibrate(ct):
+    """Thresholds of one image from its histogram: air and soft-tissue peaks give the scale.
+
+    Parameters
+    ----------
+    ct : pyvista.ImageData or numpy.ndarray
+        The image (point array ``ct``) or its values.
+
+    Returns
+    -------
+    dict
+        ``air``, ``soft`` (the two peaks) and ``skin``, ``bone``, ``teeth``, ``metal``
+        thresholds, in the image's units.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from pvcmf.filters.segmentation import calibrate
+    >>> rng = np.random.default_rng(0)
+    >>> v = np.concatenate([rng.normal(-1000, 20, 6000), rng.normal(40, 20, 3000),
+    ...                     rng.normal(1200, 200, 500)])
+    >>> t = calibrate(v)
+    >>> round(t["skin"], -1), round(t["bone"], -1)
+    (-480.0, 540.0)
+    """
+    values = np.asarray(ct[arrays.CT] if isinstance(ct, pv.DataSet) else ct, dtype=np.float32)
+    values = values.ravel()
+    if values.size > 2_000_000:
+        values = values[:: values.size // 1_000_000]
+    reference = {"air": -1000.0, "soft": 40.0, "skin": SKIN_THRESHOLD,
+                 "bone": BONE_THRESHOLD, "teeth": TEETH_THRESHOLD, "metal": METAL_THRESHOLD}
+    lo, hi = np.percentile(values, [0.01, 99.99]) if values.size else (0.0, 0.0)
+    if not hi > lo:
+        log.warning("calibrate: the ct values are constant; using the HU reference levels")
+        return reference
+    hist, edges = np.histogram(values, bins=512, range=(lo, hi))
+    centers = 0.5 * (edges[1:] + edges[:-1])
+    split = _otsu(hist, centers)
+    smooth = ndimage.uniform_filter1d(hist.astype(float), 5)
+    low, high = centers < split, centers >= split
+    # soft tissue: the highest peak above the split, among the lower half of the values
+    # above it (bone and metal are far fewer and higher)
+    upper = high & (centers <= split + 0.5 * (hi - split))
+    if not low.any() or not upper.any():
+        log.warning("calibrate: no air and soft-tissue peaks; using the HU reference levels")
+        return reference
+    air = float(centers[low][np.argmax(smooth[low])])
+    soft = float(centers[upper][np.argmax(smooth[upper])])
+    step = soft - air
+    out = {"air": air, "soft": soft}
+    out.update({k: soft + f * step for k, f in SCALE.items()})
+    return out
+
+
+def _otsu(hist, centers):
+    w = np.cumsum(hist).astype(float)
+    m = np.cumsum(hist * centers)
+    total, mean = w[-1], m[-1] / w[-1]
+    w1 = total - w
+    with np.errstate(divide="ignore", invalid="ignore"):
+        between = (mean * w - m) ** 2 / (w * w1)
+    between[~np.isfinite(between)] = -1
+    return float(centers[int(np.argmax(between))])
+
+
 def segment(
     ct,
     *,
-    skin_threshold=SKIN_THRESHOLD,
-    bone_threshold=BONE_THRESHOLD,
-    teeth_threshold=TEETH_THRESHOLD,
+    skin_threshold=None,
+    bone_threshold=None,
+    teeth_threshold=None,
+    metal_threshold=None,
     fill_holes=True,
     min_cavity=30.0,
     skull_closing=3.0,
+    object_opening=5.0,
+    coarse=2.0,
     progress_bar=False,
 ):
-    """Label a CT volume into air, soft tissue, bone, teeth and intracranial volume.
+    """Label a CT volume into air, soft tissue, bone, teeth, metal and intracranial volume.
 
     Parameters
     ----------
     ct : pyvista.ImageData
-        3-D image with a float point array ``ct`` in Hounsfield units.
-    skin_threshold, bone_threshold, teeth_threshold : float
-        HU thresholds, strictly increasing: air/skin, soft tissue/bone, bone/teeth.
+        3-D image with a float point array ``ct`` (HU, or any linear scale of it).
+    skin_threshold, bone_threshold, teeth_threshold, metal_threshold : float, optional
+        Thresholds in the image's units, strictly increasing; each one not given is placed
+        on the image's histogram (:func:`calibrate`).
     fill_holes : bool
         Fill enclosed holes of the head smaller than ``min_cavity`` (noise, partial volume)
         as tissue. Larger enclosed holes (sinuses, a closed airway) stay ``AIR`` either way.
     min_cavity : float
         Volume (mm^3) below which an enclosed air pocket is treated as a hole to fill.
     skull_closing : float
-        Radius (mm) of the morphological closing that seals gaps in the skull (thin bone lost
-        to partial volume, sutures, small foramina) before the intracranial fill; at least
-        ``MIN_BALL_VOXELS`` (1.5) voxels along each axis.
+        Radius (mm) of the closing that seals thin gaps of the skull (partial volume,
+        sutures, small foramina) before the intracranial flood; at least
+        ``MIN_BALL_VOXELS`` (1.5) coarse voxels.
+    object_opening : float
+        Radius (mm) of the opening that detaches objects thinner than ``2 * object_opening``
+        (table, headrest, sheets, tubes) from the head; 0 keeps everything connected.
+    coarse : float
+        Voxel size (mm) of the downsampled copy the head and intracranial decisions use.
     progress_bar : bool
-        Log each stage at INFO level (otherwise DEBUG).
+        Show the stages (:class:`pvcmf.progress.Progress`) and log them at INFO level.
 
     Returns
     -------
     pyvista.ImageData
         A deep copy of ``ct`` (``ct`` kept) with point arrays ``tissue`` (uint8: AIR, FAT,
-        BONE_TISSUE, TEETH, INTRACRANIAL) and ``bone`` (uint8: CRANIUM on hard tissue).
+        BONE_TISSUE, TEETH, INTRACRANIAL, METAL) and ``bone`` (uint8: CRANIUM on hard tissue),
+        and field data ``thresholds`` (skin, bone, teeth, metal) and ``warnings``
+        (one string per warning, e.g. a face clipped by the field of view).
 
     Raises
     ------
@@ -98,9 +187,7 @@ def segment(
         If ``ct`` is not an ImageData.
     ValueError
         If the ``ct`` array is missing, not float or has NaN/inf values, the image is not
-        3-D, the thresholds are not finite and increasing, or a tissue class comes out empty
-        (no head above ``skin_threshold``, no bone, no soft tissue): usually the values are
-        not in HU (rescale them with :func:`pvcmf.read_ct`'s ``offset``/``scale``).
+        3-D, the thresholds are not finite and increasing, or a tissue class comes out empty.
 
     Examples
     --------
@@ -109,79 +196,95 @@ def segment(
     >>> r = np.linalg.norm(img.points - img.center, axis=1)
     >>> img["ct"] = np.select([r < 20, r < 26, r < 34], [30.0, 1200.0, -100.0], -1000.0).astype(np.float32)
     >>> lab = img.cmf.segment()
-    >>> from pvcmf import arrays
     >>> np.unique(lab["tissue"]).tolist()  # air, fat, bone, intracranial
     [0, 1, 3, 5]
     """
-    say = log.info if progress_bar else log.debug
-    vol, spacing = _validate(ct, skin_threshold, bone_threshold, teeth_threshold)
-    for name, value in (("min_cavity", min_cavity), ("skull_closing", skull_closing)):
+    vol, spacing = _validate(ct)
+    for name, value in (("min_cavity", min_cavity), ("skull_closing", skull_closing),
+                        ("object_opening", object_opening)):
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
             raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    if not (isinstance(coarse, (int, float)) and math.isfinite(coarse) and coarse > 0):
+        raise ValueError(f"coarse must be a finite number > 0 (mm), got {coarse!r}")
+    thr = _thresholds(vol, skin_threshold, bone_threshold, teeth_threshold, metal_threshold)
+    bar = Progress(5, "segment", enabled=progress_bar)
+    say = log.info if progress_bar else log.debug
+    factor = np.maximum(1, np.round(coarse / spacing)).astype(int)
+    warnings = []
 
-    # 1. head: largest connected component above the skin threshold
-    say("segment: head mask (threshold %.0f HU, largest component)", skin_threshold)
-    above = vol >= skin_threshold
-    head = _largest_component(above, _FACES)
-    if head is None:
-        raise ValueError(
-            f"segment: no voxel is >= skin_threshold={skin_threshold} HU "
-            f"(ct range [{vol.min():.0f}, {vol.max():.0f}]); are the values in HU?"
-        )
-    inside = _fill(head, _FACES)
-    holes = inside & ~head
-    if fill_holes and holes.any():
-        lab, n = ndimage.label(holes, structure=_FACES)
-        size_mm3 = np.bincount(lab.ravel())[1:] * float(np.prod(spacing))
-        small = np.concatenate([[False], size_mm3 < min_cavity])
-        head = head | small[lab]
-        say("segment: filled %d small holes, kept %d air cavities", int(small.sum()),
-            int(n - small.sum()))
+    say("segment: head mask (skin %.0f, objects < %.1f mm dropped)", thr["skin"], object_opening)
+    head = _head(vol, thr["skin"], spacing, factor, object_opening)
+    box = _box(head, 2)
+    head, sub = head[box], vol[box]
+    if fill_holes:
+        head = _fill_small_holes(head, spacing, min_cavity, say)
+    bar.step()
 
-    # 2. hard tissue
-    hard = head & (vol >= bone_threshold)
+    say("segment: hard tissue (bone %.0f, teeth %.0f, metal %.0f)", thr["bone"], thr["teeth"],
+        thr["metal"])
+    hard = head & (sub >= thr["bone"])
     if not hard.any():
         raise ValueError(
-            f"segment: no voxel inside the head is >= bone_threshold={bone_threshold} HU "
-            f"(head ct range [{vol[head].min():.0f}, {vol[head].max():.0f}]); are the values in "
-            "HU?"
-        )
-    teeth = hard & (vol >= teeth_threshold)
+            f"segment: no voxel inside the head is >= bone_threshold={thr['bone']:.0f} "
+            f"(head ct range [{sub[head].min():.0f}, {sub[head].max():.0f}]); are the values "
+            "in HU?")
+    metal = hard & (sub >= thr["metal"])
+    if metal.any():
+        head, hard = _metal.clean_streaks(sub, head, hard, metal, spacing, thr)
+        warnings += _metal.report(metal, spacing)
+    teeth = hard & (sub >= thr["teeth"]) & ~metal
+    bar.step()
 
-    # 3. intracranial volume
-    say("segment: intracranial volume (closing %.1f mm, slice-wise fill)", skull_closing)
-    intracranial = _intracranial(hard, head, spacing, skull_closing)
+    say("segment: intracranial volume (closing %.1f mm, watershed)", skull_closing)
+    intracranial = _intracranial(hard, head, spacing, factor, skull_closing)
     if intracranial is None:
         log.warning("segment: found no volume enclosed by the skull; no INTRACRANIAL label")
         intracranial = np.zeros_like(hard)
+    bar.step()
 
-    # 4. labels
     soft = head & ~hard & ~intracranial
     if not soft.any():
-        raise ValueError(
-            "segment: no extra-cranial soft tissue left between skin_threshold="
-            f"{skin_threshold} and bone_threshold={bone_threshold} HU"
-        )
-    tissue = np.zeros(vol.shape, dtype=np.uint8)  # AIR
-    tissue[soft] = arrays.FAT
-    tissue[hard] = arrays.BONE_TISSUE
-    tissue[teeth] = arrays.TEETH
-    tissue[intracranial] = arrays.INTRACRANIAL
-    bone = np.where(hard, arrays.CRANIUM, arrays.BONE_NONE).astype(np.uint8)
+        raise ValueError("segment: no extra-cranial soft tissue left between skin_threshold="
+                         f"{thr['skin']:.0f} and bone_threshold={thr['bone']:.0f}")
+    corner = np.asarray(ct.origin) + spacing * [b.start for b in box]
+    for message in clipped_sides(head, spacing, corner, vol=sub):
+        log.warning("segment: %s", message)
+        warnings.append(message)
+    bar.step()
 
-    out = ct.copy(deep=True)
-    out.point_data[arrays.TISSUE] = tissue.ravel(order="F")
-    out.point_data[arrays.BONE] = bone.ravel(order="F")
-    out.point_data.active_scalars_name = arrays.TISSUE
-    say(
-        "segment: %d soft, %d bone, %d teeth, %d intracranial voxels",
-        int(soft.sum()), int((hard & ~teeth).sum()), int(teeth.sum()), int(intracranial.sum()),
-    )
+    out = _write(ct, vol.shape, box, soft, hard, teeth, metal, intracranial)
+    out.field_data["thresholds"] = np.array([thr[k] for k in ("skin", "bone", "teeth", "metal")])
+    out.field_data["warnings"] = np.array(warnings if warnings else [""], dtype=str)
+    volumes = tissue_volumes(out)
+    say("segment: volumes (mL) %s", ", ".join(f"{k} {v:.1f}" for k, v in volumes.items()))
+    bar.step()
+    bar.close()
     return out
 
 
+def tissue_volumes(labels):
+    """Volume (mL) of every tissue label present in ``labels`` (``tissue`` array).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> from pvcmf.filters.segmentation import tissue_volumes
+    >>> img = pv.ImageData(dimensions=(10, 10, 10), spacing=(2, 2, 2))
+    >>> img[arrays.TISSUE] = np.full(1000, arrays.FAT, dtype=np.uint8)
+    >>> tissue_volumes(img)
+    {'fat': 8.0}
+    """
+    tissue = np.asarray(arrays.require_array(labels, arrays.TISSUE, "point", dtype="u"))
+    counts = np.bincount(tissue, minlength=256)
+    voxel = float(np.prod(labels.spacing)) / 1000.0
+    names = {v: k for k, v in arrays.TISSUE_LABELS.items()}
+    return {names.get(i, f"label_{i}"): float(counts[i] * voxel)
+            for i in np.flatnonzero(counts) if i != arrays.AIR}
+
+
 # --------------------------------------------------------------------------- validation
-def _validate(ct, skin_threshold, bone_threshold, teeth_threshold):
+def _validate(ct):
     if not isinstance(ct, pv.ImageData):
         raise TypeError(f"ct must be a pyvista.ImageData, got {type(ct).__name__}")
     values = arrays.require_array(ct, arrays.CT, "point", dtype="f", ncomp=1,
@@ -192,17 +295,24 @@ def _validate(ct, skin_threshold, bone_threshold, teeth_threshold):
     if not np.all(np.isfinite(values)):
         bad = int(np.count_nonzero(~np.isfinite(values)))
         raise ValueError(f"ct array 'ct' must be finite, got {bad} NaN/inf value(s)")
-    names = ("skin_threshold", "bone_threshold", "teeth_threshold")
-    thresholds = (skin_threshold, bone_threshold, teeth_threshold)
-    for name, value in zip(names, thresholds):
-        if not isinstance(value, (int, float, np.number)) or not math.isfinite(value):
-            raise ValueError(f"{name} must be a finite number (HU), got {value!r}")
-    if not skin_threshold < bone_threshold < teeth_threshold:
-        raise ValueError(
-            "thresholds must increase: skin_threshold < bone_threshold < teeth_threshold, got "
-            f"{skin_threshold}, {bone_threshold}, {teeth_threshold}"
-        )
     return values.reshape(dims, order="F"), np.asarray(ct.spacing, dtype=float)
+
+
+def _thresholds(vol, skin, bone, teeth, metal):
+    given = {"skin": skin, "bone": bone, "teeth": teeth, "metal": metal}
+    for name, value in given.items():
+        if value is not None and (not isinstance(value, (int, float, np.number))
+                                  or not math.isfinite(value)):
+            raise ValueError(f"{name}_threshold must be a finite number or None, got {value!r}")
+    thr = dict(calibrate(vol)) if any(v is None for v in given.values()) else {}
+    thr.update({k: float(v) for k, v in given.items() if v is not None})
+    if not thr["skin"] < thr["bone"] < thr["teeth"] <= thr["metal"]:
+        raise ValueError(
+            "thresholds must increase: skin_threshold < bone_threshold < teeth_threshold <= "
+            f"metal_threshold, got {thr['skin']:.0f}, {thr['bone']:.0f}, {thr['teeth']:.0f}, "
+            f"{thr['metal']:.0f}")
+    log.debug("segment: thresholds %s", {k: round(v) for k, v in thr.items()})
+    return thr
 
 
 # --------------------------------------------------------------------------- helpers
@@ -232,10 +342,9 @@ def _fill(mask, structure, z_open=False):
     return mask | keep[lab]
 
 
-def _ball(spacing, radius):
-    """Ellipsoidal structuring element: the ball of ``radius`` mm (>= MIN_BALL_VOXELS voxels
-    per axis)."""
-    r_vox = np.maximum(radius / np.maximum(np.asarray(spacing, float), 1e-12), MIN_BALL_VOXELS)
+def _ball(spacing, radius, minimum=MIN_BALL_VOXELS):
+    """Ellipsoidal structuring element: the ball of ``radius`` mm (>= ``minimum`` voxels)."""
+    r_vox = np.maximum(radius / np.maximum(np.asarray(spacing, float), 1e-12), minimum)
     half = np.floor(r_vox).astype(int)
     grid = np.meshgrid(*(np.arange(-h, h + 1) for h in half), indexing="ij")
     return sum((g / r) ** 2 for g, r in zip(grid, r_vox)) <= 1.0 + 1e-9
@@ -249,16 +358,187 @@ def _closing(mask, spacing, radius):
     return closed[tuple(slice(a, -b) for a, b in pad)]
 
 
-def _intracranial(hard, head, spacing, radius):
-    # work in the bounding box of the hard tissue
-    idx = np.nonzero(hard)
-    box = tuple(slice(int(i.min()), int(i.max()) + 1) for i in idx)
-    skull = _closing(hard[box], spacing, radius)
-    enclosed = _fill(skull, _FACES_2D, z_open=True) & ~skull
-    candidate = enclosed & head[box] & ~hard[box]
-    brain = _largest_component(candidate, _FACES)
-    if brain is None:
+def _box(mask, margin):
+    idx = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != ax)))
+           for ax in range(3)]
+    return tuple(slice(max(int(i[0]) - margin, 0), min(int(i[-1]) + margin + 1, n))
+                 for i, n in zip(idx, mask.shape))
+
+
+def _down(mask, factor, how="any"):
+    """Block-reduce a boolean volume by integer ``factor`` per axis (``any`` or ``mean``)."""
+    f = tuple(int(v) for v in factor)
+    shape = tuple(-(-n // k) * k for n, k in zip(mask.shape, f))
+    pad = np.zeros(shape, dtype=bool)
+    pad[tuple(slice(0, n) for n in mask.shape)] = mask
+    blocks = pad.reshape(shape[0] // f[0], f[0], shape[1] // f[1], f[1], shape[2] // f[2], f[2])
+    if how == "any":
+        return blocks.any(axis=(1, 3, 5))
+    return blocks.mean(axis=(1, 3, 5), dtype=np.float32) >= 0.5
+
+
+def _up(mask, factor, shape):
+    """Nearest upsampling of a block-reduced volume back to ``shape``."""
+    out = mask
+    for ax, k in enumerate(factor):
+        out = np.repeat(out, int(k), axis=ax)
+    return out[tuple(slice(0, n) for n in shape)]
+
+
+def _head(vol, skin, spacing, factor, radius):
+    """The head: thresholded, objects thinner than ``2 radius`` detached (coarse opening)."""
+    above = vol >= skin
+    if not above.any():
+        raise ValueError(f"segment: no voxel is >= skin_threshold={skin:.0f} (ct range "
+                         f"[{vol.min():.0f}, {vol.max():.0f}]); are the values in HU?")
+    cspace = spacing * factor
+    coarse = _down(above, factor, "mean")
+    if radius > 0 and coarse.any():
+        ball = _ball(cspace, radius, minimum=1.0)
+        core = _largest_component(ndimage.binary_opening(coarse, ball), _FACES)
+        if core is None:  # everything thinner than the ball: keep the plain mask
+            core = coarse
+        grow = _ball(cspace, radius + float(np.max(cspace)), minimum=1.0)
+        region = _up(ndimage.binary_dilation(core, grow), factor, vol.shape)
+        box = _box(region, 0)
+        above_box = above[box] & region[box]
+    else:
+        box = tuple(slice(0, n) for n in vol.shape)
+        above_box = above
+    head = np.zeros(vol.shape, dtype=bool)
+    head[box] = _largest_component(above_box, _FACES)
+    return head
+
+
+def _fill_small_holes(head, spacing, min_cavity, say):
+    inside = _fill(head, _FACES)
+    holes = inside & ~head
+    if not holes.any():
+        return head
+    lab, n = ndimage.label(holes, structure=_FACES)
+    size_mm3 = np.bincount(lab.ravel())[1:] * float(np.prod(spacing))
+    small = np.concatenate([[False], size_mm3 < min_cavity])
+    say("segment: filled %d small holes, kept %d air cavities", int(small.sum()),
+        int(n - small.sum()))
+    return head | small[lab]
+
+
+def _write(ct, shape, box, soft, hard, teeth, metal, intracranial):
+    tissue = np.zeros(shape, dtype=np.uint8)  # AIR
+    sub = np.zeros(soft.shape, dtype=np.uint8)
+    sub[soft] = arrays.FAT
+    sub[hard] = arrays.BONE_TISSUE
+    sub[teeth] = arrays.TEETH
+    sub[metal] = arrays.METAL
+    sub[intracranial] = arrays.INTRACRANIAL
+    tissue[box] = sub
+    bone = np.zeros(shape, dtype=np.uint8)
+    bone[box] = np.where(hard, arrays.CRANIUM, arrays.BONE_NONE)
+    out = ct.copy(deep=True)
+    out.point_data[arrays.TISSUE] = tissue.ravel(order="F")
+    out.point_data[arrays.BONE] = bone.ravel(order="F")
+    out.point_data.active_scalars_name = arrays.TISSUE
+    return out
+
+
+# --------------------------------------------------------------------------- intracranial
+def _intracranial(hard, head, spacing, factor, radius):
+    """Intracranial volume: watershed of the distance to the closed skull (coarse grid)."""
+    cspace = spacing * factor
+    skull = _closing(_down(hard, factor, "any"), cspace, radius)
+    head_c = _down(head, factor, "any")
+    enclosed = _fill(skull, _FACES_2D, z_open=True) & ~skull & head_c
+    if not enclosed.any():
         return None
-    out = np.zeros_like(hard)
-    out[box] = brain
+    dist = ndimage.distance_transform_edt(~skull, sampling=cspace)
+    seed = np.unravel_index(int(np.argmax(np.where(enclosed, dist, 0.0))), dist.shape)
+    deep = enclosed & (dist >= 0.5 * dist[seed])
+    lab, _ = ndimage.label(deep, structure=_FACES)
+    markers = np.zeros(skull.shape, dtype=np.uint8)
+    markers[lab == lab[seed]] = 1
+    markers[~_fill(head_c, _FACES) & ~skull] = 2
+    brain = _watershed(dist, skull, markers)
+    if brain is None:
+        log.warning("segment: SimpleITK is not installed; the intracranial volume is the "
+                    "axial slice-wise fill of the skull (leaks where orbits open the ring)")
+        brain = _largest_component(enclosed, _FACES)
+    # closed-skull voxels that are not bone at full resolution: nearest label
+    _, idx = ndimage.distance_transform_edt(skull, sampling=cspace, return_indices=True)
+    brain = brain[tuple(idx)]
+    return _up(brain, factor, hard.shape) & head & ~hard
+
+
+def _watershed(dist, skull, markers):
+    try:
+        import SimpleITK as sitk
+    except ImportError:  # optional: fall back to the slice-wise fill
+        return None
+    elevation = np.where(skull, np.float32(dist.max() + 1.0), -dist.astype(np.float32))
+    img = sitk.GetImageFromArray(np.ascontiguousarray(elevation.transpose(2, 1, 0)))
+    mark = sitk.GetImageFromArray(np.ascontiguousarray(markers.transpose(2, 1, 0)))
+    ws = sitk.MorphologicalWatershedFromMarkers(img, mark, markWatershedLine=False,
+                                                fullyConnected=False)
+    lab = sitk.GetArrayFromImage(ws).transpose(2, 1, 0)
+    return (lab == 1) & ~skull
+
+
+# --------------------------------------------------------------------------- clipped face
+_SIDES = {(0, 1): "left (+x)", (0, -1): "right (-x)", (1, 1): "anterior (+y, face)",
+          (1, -1): "posterior (-y)", (2, 1): "superior (+z, vertex)"}
+
+
+def clipped_sides(head, spacing, origin=(0.0, 0.0, 0.0), vol=None, pad_fraction=0.8):
+    """Sides where the head is cut flat (by the field of view or the scan's end).
+
+    On each side (not the inferior one: the neck always leaves the scan), the head voxels
+    whose outward neighbour is not head are counted per plane. A side is cut when one plane
+    holds more of this exposed surface than the pole of a sphere of the head's volume can
+    (``2 pi R`` mm^2 per mm) and the plane is the image's end or, with ``vol``, at least
+    ``pad_fraction`` of the voxels beyond it hold the image's minimum value (the padding
+    outside the reconstructed field of view), which a skin flattened on a headrest does not.
+
+    Returns
+    -------
+    list of str
+        One message per cut side, naming it and its extent in mm.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from pvcmf.filters.segmentation import clipped_sides
+    >>> head = np.zeros((40, 40, 40), bool)
+    >>> head[5:35, 5:40, 5:35] = True          # cut at the +y border
+    >>> [m.split(" at ")[0] for m in clipped_sides(head, (1.0, 1.0, 1.0))]
+    ['the head is cut flat on the anterior (+y, face) side']
+    """
+    out = []
+    spacing = np.asarray(spacing, float)
+    origin = np.asarray(origin, float)
+    radius = (3.0 * head.sum() * np.prod(spacing) / (4.0 * np.pi)) ** (1.0 / 3.0)
+    floor = None if vol is None else float(vol.min()) + 1e-3 * float(np.ptp(vol))
+    for (axis, sign), name in _SIDES.items():
+        h = np.moveaxis(head, axis, 0)[::sign]  # outward = increasing index
+        other = tuple(a for a in range(3) if a != axis)
+        exposed = h.copy()
+        exposed[:-1] &= ~h[1:]
+        area = exposed.sum(axis=(1, 2)) * float(np.prod(spacing[list(other)]))
+        plane = int(np.argmax(area))
+        if area[plane] < 2.0 * np.pi * radius * spacing[axis]:
+            continue
+        if plane < len(area) - 1 and floor is not None:
+            beyond = np.moveaxis(vol, axis, 0)[::sign][plane + 1][exposed[plane]]
+            if np.mean(beyond <= floor) < pad_fraction:
+                continue
+        elif plane < len(area) - 1:
+            continue
+        index = plane if sign > 0 else head.shape[axis] - 1 - plane
+        ij = np.nonzero(np.take(head, index, axis=axis) & np.take(
+            np.moveaxis(exposed[::sign], 0, axis), index, axis=axis))
+        ext = ", ".join(
+            f"{'xyz'[a]} {origin[a] + spacing[a] * ij[k].min():.0f} to "
+            f"{origin[a] + spacing[a] * ij[k].max():.0f} mm" for k, a in enumerate(other))
+        where = "the image's end" if plane == len(area) - 1 else "the field of view's edge"
+        out.append(f"the head is cut flat on the {name} side at {'xyz'[axis]} = "
+                   f"{origin[axis] + spacing[axis] * index:.0f} mm by {where} "
+                   f"({area[plane]:.0f} mm^2; {ext}): the skin there is not the patient's")
     return out

@@ -1,8 +1,24 @@
 """Reading and writing: CT images in the patient frame, plans, landmarks and model exports.
 
-``read_ct`` (in :mod:`pvcmf.io.ct`) is the entry point for images.
+``read_ct`` (in :mod:`pvcmf.io.ct`) is the entry point for images; :func:`export`
+(:mod:`pvcmf.io.exporters`) writes a model for CalculiX/Abaqus, FEBio or any meshio format;
+:mod:`pvcmf.io.transforms` and :mod:`pvcmf.io.landmarks` read plans and landmarks from
+planning tools (ITK/3D Slicer files).
 """
 
 from .ct import read_ct
+from .exporters import (
+    calculix_available,
+    export,
+    read_calculix_dat,
+    run_calculix,
+    write_feb,
+    write_inp,
+    write_mesh,
+)
+from .landmarks import read_landmarks, write_landmarks
+from .transforms import read_itk_transform, read_plan_file, read_transform, write_itk_transform
 
-__all__ = ["read_ct"]
+__all__ = ["read_ct", "export", "write_mesh", "write_inp", "write_feb", "run_calculix",
+           "read_calculix_dat", "calculix_available", "read_landmarks", "write_landmarks",
+           "read_transform", "read_itk_transform", "write_itk_transform", "read_plan_file"]

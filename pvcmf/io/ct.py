@@ -20,14 +20,28 @@
 
 Geometry and orientation
 ------------------------
-By default (``frame='file'``) no resampling and no axis flips are done: the returned image
-keeps the file's voxel order, its origin, spacing and orientation (as the ImageData's
-``direction_matrix``) in the **file's own world frame**: LPS for DICOM and MetaImage, RAS for
-NIfTI, NRRD's ``space``. ``frame='patient'`` reorders and flips the voxel axes of an
-axis-aligned scan so that it lies in the pvcmf patient frame (x patient's left, y anterior,
-z superior) with an identity direction matrix, as the virtual patients do. Index axis 2 is
-the slice axis (axial for an axial scan), which is what the per-slice steps of
-:mod:`pvcmf.filters.classify` use.
+By default (``frame='patient'``) the image comes out in the pvcmf **patient frame** (x
+patient's left, y anterior, z superior) with an identity direction matrix, from what the
+file says: LPS for DICOM (per-slice ImageOrientationPatient / ImagePositionPatient) and
+MetaImage (TransformMatrix, read in MetaIO's column order as ITK writes it), RAS for NIfTI
+(sform, else qform), NRRD's ``space`` (LPS, RAS or LAS) with ``space directions``. A VTI, or
+a NRRD without an anatomical ``space``, is taken as already in the patient frame (logged).
+Axis-aligned scans are turned exactly (voxel axes reordered and reversed); oblique scans are
+resampled trilinearly onto an axis-aligned grid holding the whole volume (logged), and a
+tilted-gantry DICOM series is first resampled slice by slice onto an orthogonal stack. Units
+and an anatomy-based check of the axes are :func:`pvcmf.filters.standardize`'s job.
+``frame='file'`` keeps the file's voxel order, origin, spacing and direction in the file's
+own world frame.
+
+DICOM folders: files that are not DICOM are ignored; with several series the CT series with
+the most slices is read and the others are listed in the log (``series=`` picks one by UID,
+number or description). Missing slices, uneven or duplicate slice positions are errors that
+say where. Zero, negative or non-finite spacing and 2-D images are refused in every format.
+
+The readers are pydicom (DICOM), VTK (NIfTI pixels and matrices, MetaImage pixels), a small
+numpy NRRD reader and pyvista (VTI). SimpleITK reads MetaImage, NIfTI and NRRD well too, but
+it is not a dependency of pvcmf and refuses NRRD headers that mix ``spacings`` and ``space``
+(VTK's headsq); the tests use SimpleITK and nibabel as independent writers.
 
 Values
 ------
@@ -49,6 +63,8 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from .dicom import check_spacing as _check_spacing
+from .dicom import read_dicom_series as _read_dicom_series
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +81,7 @@ SUPPORTED = {
 _FORMATS = "a DICOM series folder, " + ", ".join(SUPPORTED)
 
 
-def read_ct(path, *, offset=0.0, scale=1.0, frame="file"):
+def read_ct(path, *, offset=0.0, scale=1.0, frame="patient", series=None):
     """Read a CT volume as ImageData with a float32 point array ``ct``.
 
     Parameters
@@ -76,29 +92,29 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="file"):
     offset, scale : float
         Linear map to Hounsfield units: ``ct = scale * value + offset``. The defaults keep
         the file's values (DICOM and NIfTI rescale slopes are applied before).
-    frame : {'file', 'patient'}
-        ``'file'`` keeps the file's voxel order, origin, spacing and orientation in its own
-        world frame. ``'patient'`` turns the image into the pvcmf patient frame (x patient's
-        left, y anterior, z superior; :mod:`pvcmf.arrays`) by reordering and flipping voxel
-        axes, so that the direction matrix becomes the identity: the file's world frame is
-        LPS for DICOM and MetaImage, RAS for NIfTI, NRRD's ``space`` field (LPS, RAS or LAS),
-        and VTI is taken as already in the patient frame. Only for scans whose axes are
-        aligned with the patient axes (an oblique scan raises ``ValueError``: resample it).
+    frame : {'patient', 'file'}
+        ``'patient'`` (default): the pvcmf patient frame (x patient's left, y anterior, z
+        superior), identity direction; oblique scans resampled (module notes). ``'file'``
+        keeps the file's voxel order, origin, spacing and orientation in its own world frame.
+    series : str or int, optional
+        For a DICOM folder with several series: the SeriesInstanceUID, SeriesNumber or a
+        part of the SeriesDescription of the one to read. Default: the CT series with the
+        most slices (logged).
 
     Returns
     -------
     pyvista.ImageData
-        Origin, spacing and orientation (``direction_matrix``) of the file, in the file's
-        world frame (see the module notes); one point array ``ct`` (float32).
+        One point array ``ct`` (float32); geometry as ``frame`` says.
 
     Raises
     ------
     FileNotFoundError
         If ``path`` does not exist.
     ValueError
-        For an unsupported format, an unknown ``frame`` or world frame, an oblique scan
-        with ``frame='patient'``, a corrupt or truncated file, a folder without a readable
-        DICOM series, a volume that is not 3-D scalar, or a bad ``offset``/``scale``.
+        For an unsupported format, an unknown ``frame``, a corrupt or truncated file, a
+        folder without a readable DICOM series (or a ``series`` that matches none), missing
+        or uneven DICOM slices, zero/negative spacing, a 2-D image, a volume that is not
+        scalar, or a bad ``offset``/``scale``.
 
     Examples
     --------
@@ -121,7 +137,7 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="file"):
     if not path.exists():
         raise FileNotFoundError(f"read_ct: {str(path)!r} does not exist (expected {_FORMATS})")
     if path.is_dir():
-        image, values = _read_dicom_series(path)
+        image, values = _read_dicom_series(path, series)
         world = "LPS"
     else:
         name = path.name.lower()
@@ -151,6 +167,11 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="file"):
             ) from err
         world = {".nii": "RAS", ".nii.gz": "RAS", ".mha": "LPS", ".mhd": "LPS",
                  ".vti": "patient"}.get(suffix) or _nrrd_space(path)
+    _check_spacing(image.spacing, path)
+    if min(image.dimensions) < 2:
+        raise ValueError(
+            f"read_ct: {str(path)!r} is a 2-D image (dimensions {tuple(image.dimensions)}); "
+            "expected a 3-D CT volume")
     values = np.asarray(values)
     if values.ndim != 1 or values.size != image.n_points:
         raise ValueError(
@@ -186,24 +207,25 @@ _TO_PATIENT = {
 
 
 def _to_patient_frame(image, world, path):
-    """Reorder / flip the voxel axes so the image lies in the patient frame, direction I."""
+    """The image in the patient frame with an identity direction.
+
+    Axis-aligned scans are turned exactly (voxel axes reordered and reversed); oblique ones
+    are resampled (trilinear) onto an axis-aligned grid that holds the whole volume.
+    """
     if world not in _TO_PATIENT:
-        raise ValueError(
-            f"read_ct: the world frame of {str(path)!r} is {world!r}, not LPS, RAS or LAS: "
-            "cannot turn it into the patient frame; use frame='file'"
-        )
+        log.warning("read_ct: %s gives no anatomical frame (space %r): its axes are taken as "
+                    "x left, y anterior, z superior; pvcmf.filters.standardize checks this "
+                    "from the anatomy", path, world)
+        world = "patient"
     flip = _TO_PATIENT[world]
     direction = flip @ np.asarray(image.direction_matrix, dtype=float)
     axis = np.argmax(np.abs(direction), axis=0)  # patient axis of each voxel axis
     sign = np.sign(direction[axis, np.arange(3)])
-    if sorted(axis) != [0, 1, 2] or np.any(np.abs(direction[axis, np.arange(3)]) < 0.999):
-        raise ValueError(
-            f"read_ct: {str(path)!r} is oblique (direction {np.round(direction, 3).tolist()} "
-            "in the patient frame); frame='patient' needs axis-aligned slices: resample it "
-            "or use frame='file'"
-        )
     dims = np.asarray(image.dimensions)
     vol = image.point_data[arrays.CT].reshape(tuple(dims), order="F")
+    if sorted(axis) != [0, 1, 2] or np.any(np.abs(direction[axis, np.arange(3)]) < 0.999):
+        return _resample(vol, flip @ np.asarray(image.origin, dtype=float), direction,
+                         np.asarray(image.spacing, dtype=float), path)
     # the voxel that becomes index (0, 0, 0): the low end of every patient axis
     corner = np.where(sign > 0, 0, dims - 1)
     origin = flip @ (np.asarray(image.origin) + np.asarray(image.direction_matrix)
@@ -213,7 +235,35 @@ def _to_patient_frame(image, world, path):
     vol = np.transpose(vol, order)
     out = pv.ImageData(dimensions=vol.shape, spacing=np.asarray(image.spacing)[order],
                        origin=origin)
-    out.point_data[arrays.CT] = np.ascontiguousarray(vol).ravel(order="F")
+    out.point_data[arrays.CT] = np.asarray(vol).ravel(order="F")
+    return out
+
+
+def _resample(vol, origin, direction, spacing, path):
+    """Trilinear resampling of an oblique (or sheared) volume onto an axis-aligned grid.
+
+    ``direction`` (columns: voxel axes, in the patient frame) times ``spacing`` maps voxel
+    indices to millimetres from ``origin``.
+    """
+    from scipy import ndimage
+
+    axes = direction * spacing
+    dims = np.asarray(vol.shape)
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) * (dims - 1)
+    points = corners @ axes.T + origin
+    # each patient axis takes the spacing of the voxel axis closest to it
+    step = spacing[np.argmax(np.abs(direction), axis=1)]
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    shape = tuple(int(n) for n in np.floor((hi - lo) / step + 1e-6).astype(int) + 1)
+    inverse = np.linalg.inv(axes)
+    log.warning("read_ct: %s is oblique (voxel axes %s in the patient frame): resampled "
+                "(trilinear) onto an axis-aligned %s grid of %s mm", path,
+                np.round(direction, 3).tolist(), shape, np.round(step, 3).tolist())
+    out_vol = ndimage.affine_transform(
+        np.asarray(vol, dtype=np.float32), inverse @ np.diag(step), offset=inverse @ (lo - origin),
+        output_shape=shape, order=1, mode="constant", cval=float(np.min(vol)))
+    out = pv.ImageData(dimensions=shape, spacing=step, origin=lo)
+    out.point_data[arrays.CT] = np.asarray(out_vol, dtype=np.float32).ravel(order="F")
     return out
 
 
@@ -228,7 +278,7 @@ def _nrrd_space(path):
     return names.get(space, space or "unknown")
 
 
-# --------------------------------------------------------------------------- helpers
+# --------------------------------------------------------------------------- utilities
 def _finite(value, name):
     try:
         value = float(value)
@@ -280,11 +330,39 @@ def _read_vti(path):
     return image, image.point_data[name]
 
 
+def _metaimage_header(path):
+    """Key/value pairs of a MetaImage header (up to ElementDataFile)."""
+    fields = {}
+    with open(path, "rb") as handle:
+        for raw in handle:
+            key, sep, value = raw.decode("latin-1").partition("=")
+            if not sep:
+                continue
+            fields[key.strip().lower()] = value.strip()
+            if key.strip().lower() == "elementdatafile":
+                break
+    return fields
+
+
 def _read_metaimage(path):
     import vtk
 
+    fields = _metaimage_header(path)
+    spacing = fields.get("elementspacing") or fields.get("elementsize")
+    if spacing is not None:
+        _check_spacing([float(v) for v in spacing.split()], path)
     image = _run_vtk(vtk.vtkMetaImageReader(), path)
-    return image, image.point_data.active_scalars
+    geometry = pv.ImageData(dimensions=image.dimensions, spacing=image.spacing,
+                            origin=image.origin)
+    matrix = next((fields[k] for k in ("transformmatrix", "rotation", "orientation")
+                   if k in fields), None)
+    if matrix is not None:
+        values = [float(v) for v in matrix.split()]
+        if len(values) == 9:
+            # MetaIO (ITK's writer) stores the direction matrix column by column: each
+            # triple is the world direction of one voxel axis.
+            geometry.direction_matrix = _orthonormal(np.reshape(values, (3, 3)).T, path)
+    return geometry, image.point_data.active_scalars
 
 
 def _read_nifti(path):
@@ -305,76 +383,6 @@ def _read_nifti(path):
         geometry.direction_matrix = _orthonormal(m[:3, :3], path)
         geometry.origin = m[:3, 3] + m[:3, :3] @ np.asarray(image.origin)
     return geometry, values
-
-
-# --------------------------------------------------------------------------- DICOM
-def _read_dicom_series(folder):
-    try:
-        import pydicom
-    except ImportError as err:  # pragma: no cover - pydicom is a dependency
-        raise ImportError("reading a DICOM series needs pydicom: pip install pydicom") from err
-    from pydicom.errors import InvalidDicomError
-
-    headers = []
-    for file in sorted(p for p in folder.iterdir() if p.is_file()):
-        try:
-            ds = pydicom.dcmread(file, stop_before_pixels=True)
-        except (InvalidDicomError, OSError, EOFError):
-            continue
-        if "ImagePositionPatient" in ds and "PixelSpacing" in ds and "Rows" in ds:
-            headers.append((file, ds))
-    if not headers:
-        raise ValueError(
-            f"read_ct: folder {str(folder)!r} holds no readable DICOM image slice "
-            f"(expected {_FORMATS})"
-        )
-    series = {}
-    for file, ds in headers:
-        series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((file, ds))
-    if len(series) > 1:
-        log.warning("%s holds %d DICOM series; reading the largest", folder, len(series))
-    slices = max(series.values(), key=len)
-    first = slices[0][1]
-    iop = np.array([float(v) for v in first.ImageOrientationPatient], dtype=float)
-    row_dir, col_dir = iop[:3], iop[3:]  # along a row (x index), down a column (y index)
-    normal = np.cross(row_dir, col_dir)
-    pos = np.array([[float(v) for v in ds.ImagePositionPatient] for _, ds in slices])
-    order = np.argsort(pos @ normal)
-    slices = [slices[i] for i in order]
-    dist = (pos @ normal)[order]
-    if len(slices) > 1:
-        steps = np.diff(dist)
-        dz = float(np.mean(steps))
-        if dz <= 0 or np.ptp(steps) > 0.01 * dz + 1e-3:
-            raise ValueError(
-                f"read_ct: DICOM series in {str(folder)!r} has non-uniform or duplicate slice "
-                f"positions (steps {np.unique(np.round(steps, 3))} mm); resample it first"
-            )
-    else:
-        dz = float(first.get("SliceThickness", 1.0) or 1.0)
-    rows, cols = int(first.Rows), int(first.Columns)
-    dy, dx = (float(v) for v in first.PixelSpacing)  # row spacing, column spacing
-    volume = np.empty((len(slices), rows, cols), dtype=np.float32)
-    for k, (file, _) in enumerate(slices):  # one file per slice: I/O, not a voxel loop
-        try:
-            ds = pydicom.dcmread(file)
-            pixels = ds.pixel_array
-        except Exception as err:
-            raise ValueError(
-                f"read_ct: cannot decode DICOM pixel data of {str(file)!r} "
-                f"({type(err).__name__}: {err})"
-            ) from err
-        if pixels.shape != (rows, cols):
-            raise ValueError(
-                f"read_ct: DICOM slice {str(file)!r} is {pixels.shape}, expected {(rows, cols)}"
-            )
-        slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
-        inter = float(ds.get("RescaleIntercept", 0.0) or 0.0)
-        volume[k] = pixels * slope + inter
-    image = pv.ImageData(dimensions=(cols, rows, len(slices)), spacing=(dx, dy, dz))
-    image.direction_matrix = np.column_stack([row_dir, col_dir, normal])
-    image.origin = pos[order[0]]
-    return image, volume.ravel()
 
 
 # --------------------------------------------------------------------------- NRRD

@@ -1,0 +1,161 @@
+"""DICOM series for :func:`pvcmf.read_ct`, read with pydicom.
+
+A folder may hold several series and files that are not DICOM: the latter are ignored, and of
+the series the CT with the most slices is read (the others are logged) unless ``series``
+names one (UID, number or part of the description). Slices are sorted along the slice normal;
+RescaleSlope/RescaleIntercept are applied (a CT comes out in HU); a missing slice, uneven or
+duplicate slice positions are errors that say where. A tilted-gantry series (slice origins
+drifting in-plane along the stack) is resampled slice by slice (linear) onto an orthogonal
+stack. VTK's ``vtkDICOMImageReader`` flips rows and can reverse the slice order without
+saying so, so it is not used.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pyvista as pv
+
+log = logging.getLogger(__name__)
+
+
+def check_spacing(spacing, path):
+    """Refuse zero, negative or non-finite voxel sizes, naming the file."""
+    spacing = np.asarray(spacing, dtype=float)
+    if spacing.size < 3 or not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise ValueError(
+            f"read_ct: {str(path)!r} has voxel spacing {spacing.tolist()}: expected three "
+            "positive, finite sizes in mm (the file's header is wrong)")
+
+
+
+def _pick_series(folder, headers, wanted):
+    """The slices of one series: ``wanted`` (UID, number or description) or the largest CT."""
+    series = {}
+    for file, ds in headers:
+        series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((file, ds))
+
+    def describe(uid):
+        ds = series[uid][0][1]
+        return (f"series {ds.get('SeriesNumber', '?')} {str(ds.get('SeriesDescription', ''))!r} "
+                f"({ds.get('Modality', '?')}, {len(series[uid])} slices, UID {uid})")
+
+    if wanted is not None:
+        text = str(wanted)
+        hits = [uid for uid in series
+                if text == uid or text == str(series[uid][0][1].get("SeriesNumber", ""))
+                or text.lower() in str(series[uid][0][1].get("SeriesDescription", "")).lower()]
+        if len(hits) != 1:
+            raise ValueError(
+                f"read_ct: series={wanted!r} matches {len(hits)} of the series in "
+                f"{str(folder)!r}: " + "; ".join(describe(uid) for uid in series))
+        chosen = hits[0]
+    else:
+        chosen = max(series, key=lambda uid: (
+            str(series[uid][0][1].get("Modality", "CT")).upper() == "CT", len(series[uid])))
+    if len(series) > 1:
+        log.warning("read_ct: %s holds %d DICOM series; reading %s (choose another with "
+                    "series=...): %s", folder, len(series), describe(chosen),
+                    "; ".join(describe(uid) for uid in series if uid != chosen))
+    return series[chosen]
+
+
+def _slice_geometry(folder, slices):
+    """Sort the slices; return them, the slice step, and the in-plane shift per slice (tilt)."""
+    first = slices[0][1]
+    iop = np.array([float(v) for v in first.ImageOrientationPatient], dtype=float)
+    row_dir, col_dir = iop[:3], iop[3:]
+    normal = np.cross(row_dir, col_dir)
+    pos = np.array([[float(v) for v in ds.ImagePositionPatient] for _, ds in slices])
+    order = np.argsort(pos @ normal, kind="stable")
+    slices, pos = [slices[i] for i in order], pos[order]
+    if len(slices) < 2:
+        raise ValueError(f"read_ct: the DICOM series in {str(folder)!r} has one slice: a 2-D "
+                         "image, expected a 3-D CT volume")
+    steps = np.diff(pos @ normal)
+    dz = float(np.median(steps))
+    if dz <= 0 or np.any(steps <= 1e-3 * max(dz, 1e-3)):
+        raise ValueError(f"read_ct: the DICOM series in {str(folder)!r} has two slices at the "
+                         "same position (duplicates or two series with one UID)")
+    gap = np.nonzero(steps > 1.5 * dz)[0]
+    if gap.size:
+        where = ", ".join(f"{(pos @ normal)[i]:.2f}..{(pos @ normal)[i + 1]:.2f} mm"
+                          for i in gap[:5])
+        raise ValueError(f"read_ct: the DICOM series in {str(folder)!r} misses slices "
+                         f"(gaps along the slice normal at {where}; slice step {dz:.3g} mm)")
+    if np.ptp(steps) > 0.01 * dz + 1e-3:
+        raise ValueError(f"read_ct: the DICOM series in {str(folder)!r} has uneven slice "
+                         f"spacing (steps {np.unique(np.round(steps, 3))} mm); resample it")
+    # gantry tilt: slice origins drift in-plane along the stack
+    drift = pos - pos[0] - np.outer((pos - pos[0]) @ normal, normal)
+    shift = np.column_stack([drift @ row_dir, drift @ col_dir])  # mm along row, column
+    return slices, pos[0], (row_dir, col_dir, normal), dz, shift
+
+
+def read_dicom_series(folder, wanted=None):
+    try:
+        import pydicom
+    except ImportError as err:  # pragma: no cover - pydicom is a dependency
+        raise ImportError("reading a DICOM series needs pydicom: pip install pydicom") from err
+    from pydicom.errors import InvalidDicomError
+
+    headers = []
+    for file in sorted(p for p in folder.iterdir() if p.is_file()):
+        try:
+            ds = pydicom.dcmread(file, stop_before_pixels=True)
+        except (InvalidDicomError, OSError, EOFError, ValueError):
+            continue  # not DICOM: ignored
+        if "ImagePositionPatient" in ds and "PixelSpacing" in ds and "Rows" in ds:
+            headers.append((file, ds))
+    if not headers:
+        raise ValueError(
+            f"read_ct: folder {str(folder)!r} holds no readable DICOM image slice "
+            "(expected a DICOM series folder, or a .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd or "
+            ".vti file)"
+        )
+    slices = _pick_series(folder, headers, wanted)
+    slices, origin, (row_dir, col_dir, normal), dz, shift = _slice_geometry(folder, slices)
+    first = slices[0][1]
+    rows, cols = int(first.Rows), int(first.Columns)
+    dy, dx = (float(v) for v in first.PixelSpacing)  # row spacing, column spacing
+    check_spacing([dx, dy, dz], folder)
+    volume = np.empty((len(slices), rows, cols), dtype=np.float32)
+    for k, (file, _) in enumerate(slices):  # one file per slice: I/O, not a voxel loop
+        try:
+            ds = pydicom.dcmread(file)
+            pixels = ds.pixel_array
+        except Exception as err:
+            raise ValueError(
+                f"read_ct: cannot decode DICOM pixel data of {str(file)!r} "
+                f"({type(err).__name__}: {err})"
+            ) from err
+        if pixels.shape != (rows, cols):
+            raise ValueError(
+                f"read_ct: DICOM slice {str(file)!r} is {pixels.shape}, expected {(rows, cols)}"
+            )
+        slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
+        inter = float(ds.get("RescaleIntercept", 0.0) or 0.0)
+        np.multiply(pixels, np.float32(slope), out=volume[k], casting="unsafe")
+        volume[k] += np.float32(inter)
+    if np.abs(shift).max() > 0.01 * min(dx, dy):
+        volume = _untilt(volume, shift, dx, dy, folder)
+    image = pv.ImageData(dimensions=(cols, rows, len(slices)), spacing=(dx, dy, dz))
+    image.direction_matrix = np.column_stack([row_dir, col_dir, normal])
+    image.origin = origin
+    return image, volume.ravel()
+
+
+def _untilt(volume, shift, dx, dy, folder):
+    """Undo a gantry tilt: move each slice in-plane so the stack is orthogonal (linear)."""
+    from scipy import ndimage
+
+    log.warning("read_ct: %s is a tilted-gantry series (slices drift %.2f mm in-plane over "
+                "the stack): each slice resampled (linear) onto an orthogonal stack", folder,
+                float(np.linalg.norm(shift[-1])))
+    fill = float(volume.min())
+    out = np.empty_like(volume)
+    for k in range(volume.shape[0]):  # one 2-D shift per slice, vectorised within the slice
+        out[k] = ndimage.shift(volume[k], (shift[k, 1] / dy, shift[k, 0] / dx), order=1,
+                               mode="constant", cval=fill)
+    return out

@@ -1,0 +1,519 @@
+"""Units and orientation of a head CT, checked from the image itself.
+
+:func:`standardize` (``check_units`` then ``orient_head``) takes the image that
+:func:`pvcmf.read_ct` returns (patient frame as the file says, identity direction) and gives
+it back in Hounsfield units with the face toward +y and the vertex toward +z, plus a report
+of what it found and did.
+
+Units (:func:`check_units`)
+    Otsu's threshold on a subsample of the voxels splits air from the body; the mode of each
+    side gives the air peak ``A`` and the soft-tissue peak ``S`` (brain, muscle). A head CT
+    also has bone: a tail of voxels far above ``S``. Without the two peaks and the bone tail
+    the image is refused (an MR volume, a uniform phantom). In HU ``A`` is near -1000 and
+    ``S`` near +40; scanner units differ by a constant offset (CT conventions store
+    ``HU + 1000`` or ``HU + 1024``). The offset is the convention (0, -1000, -1024, -32768)
+    closest to both peaks, the soft-tissue peak counting twice (air is often clamped at the
+    storage minimum whatever the convention), or, when none fits, the offset that puts ``S``
+    at +40 HU.
+Orientation (:func:`orient_head`)
+    Decided on a copy pooled to about 3 mm voxels (block mean for the body, block maximum for
+    thin bone). Three anatomical facts, none fitted to a scan:
+
+    * the head is mirror-symmetric about its mid-sagittal plane: the left-right axis is the
+      one whose mirror image of the bone mask overlaps it best;
+    * a head scan is cut by the scan range along the body axis (neck, or both ends for a
+      face scan) while the in-plane field of view holds the whole head; where the skull vault
+      is in the scan, the cranial cavity (soft tissue enclosed by bone in slices of at least
+      two orientations) lies superior to the rest of the body;
+    * the skeleton's share of the body grows toward the vertex (skull) and toward the face
+      (jaws, teeth), and the air inside the head (sinuses, nasal cavity, pharynx) lies in
+      front of the cranial cavity.
+
+    Left and right cannot be told from anatomy (the head is symmetric): the left-right sign
+    is taken from the file, so the re-orientation is a proper rotation, never a mirroring.
+    When the cues are weak and the file's axes are not confirmed, the image is refused with
+    a message naming ``orient='none'`` (trust the file) and ``orient='<code>'``.
+
+Orientation codes are three letters, one per image axis (x, y, z), saying toward which side of
+the patient that axis points: ``'LAS'`` is the pvcmf patient frame (x left, y anterior, z
+superior); a scan stored face toward -y and vertex toward -z is ``'LPI'``.
+
+Delegates to numpy and :mod:`scipy.ndimage` (labelling, morphology).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pyvista as pv
+from scipy import ndimage as ndi
+
+from .. import arrays
+
+log = logging.getLogger(__name__)
+
+__all__ = ["check_units", "orient_head", "reorient", "standardize", "HU_OFFSETS"]
+
+#: offsets (HU = value + offset) of the usual CT storage conventions
+HU_OFFSETS = (0.0, -1000.0, -1024.0, -32768.0)
+#: nominal HU of air and of the soft-tissue peak (brain, muscle)
+AIR_HU, SOFT_HU = -1000.0, 40.0
+#: voxel size (mm) of the pooled copy the orientation is decided on
+DECISION_VOXEL = 3.0
+
+_LETTERS = {"L": (0, 1), "R": (0, -1), "A": (1, 1), "P": (1, -1), "S": (2, 1), "I": (2, -1)}
+_NAMES = {(0, 1): "L", (0, -1): "R", (1, 1): "A", (1, -1): "P", (2, 1): "S", (2, -1): "I"}
+
+
+# --------------------------------------------------------------------------- helpers
+def _volume(image, name="image"):
+    if not isinstance(image, pv.ImageData):
+        raise TypeError(f"{name} must be a pyvista.ImageData, got {type(image).__name__}")
+    if arrays.CT not in image.point_data:
+        raise ValueError(f"{name} needs a point array {arrays.CT!r} (pvcmf.read_ct makes it)")
+    dims = tuple(int(d) for d in image.dimensions)
+    if min(dims) < 2:
+        raise ValueError(f"{name} must be a 3-D volume, got dimensions {dims}")
+    return np.asarray(image.point_data[arrays.CT]).reshape(dims, order="F")
+
+
+def _with_volume(image, vol, spacing=None):
+    out = pv.ImageData(dimensions=vol.shape, spacing=image.spacing if spacing is None else spacing,
+                       origin=image.origin)
+    out.point_data[arrays.CT] = np.asarray(vol, dtype=np.float32).ravel(order="F")
+    return out
+
+
+def _otsu(x, bins=256):
+    hist, edges = np.histogram(x, bins=bins)
+    c = 0.5 * (edges[1:] + edges[:-1])
+    w = np.cumsum(hist, dtype=float)
+    m = np.cumsum(hist * c)
+    w2 = w[-1] - w
+    ok = (w > 0) & (w2 > 0)
+    var = np.zeros_like(c)
+    var[ok] = (m[-1] * w[ok] / w[-1] - m[ok]) ** 2 / (w[ok] * w2[ok])
+    return float(c[np.argmax(var)])
+
+
+def _mode(x, lo, hi, width):
+    bins = max(8, int(math.ceil((hi - lo) / width)))
+    hist, edges = np.histogram(x, bins=bins, range=(lo, hi))
+    smooth = ndi.gaussian_filter1d(hist.astype(float), 1.5)
+    i = int(np.argmax(smooth))
+    return float(0.5 * (edges[i] + edges[i + 1]))
+
+
+def _peaks(vol):
+    """Air peak, soft-tissue peak and the air/body threshold of a subsample of ``vol``."""
+    step = max(1, int(round((vol.size / 2e6) ** (1 / 3))))
+    sub = vol[::step, ::step, ::step].ravel().astype(np.float64)
+    lo, hi = np.percentile(sub, [0.5, 99.5])
+    if not hi > lo:
+        return None
+    t = _otsu(np.clip(sub, lo, hi))
+    air, body = sub[sub < t], sub[(sub >= t) & (sub <= hi)]
+    if air.size < 0.01 * sub.size or body.size < 0.01 * sub.size:
+        return None
+    width = (hi - lo) / 256
+    a = _mode(air, float(air.min()), t, width)
+    s = _mode(body, t, hi, width)
+    bone = float(np.mean(sub[sub >= t] > s + 0.6 * (s - a)))
+    return a, s, t, bone
+
+
+# --------------------------------------------------------------------------- units
+def check_units(image, units="auto"):
+    """Bring a CT into Hounsfield units, detecting scanner units from its histogram.
+
+    Parameters
+    ----------
+    image : pyvista.ImageData
+        Point array ``ct``.
+    units : {'auto', 'hu'} or float
+        ``'auto'`` detects the units (module notes); ``'hu'`` keeps the values; a number is
+        the offset to add (HU = value + offset). The image is checked to be a CT in every case.
+
+    Returns
+    -------
+    image : pyvista.ImageData
+        A new image in HU.
+    report : dict
+        ``units`` ('hu' or 'scanner'), ``offset`` applied, ``air_peak`` and ``soft_peak``
+        (in the input's values), ``how`` (a sentence).
+
+    Raises
+    ------
+    ValueError
+        If the image has no air peak, no soft-tissue peak or no bone (not a CT of a body
+        part with bone), or ``units`` is not understood.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf.filters.orientation import check_units
+    >>> img = pv.ImageData(dimensions=(40, 40, 40))
+    >>> r = np.linalg.norm(img.points - 19.5, axis=1)
+    >>> img["ct"] = np.where(r < 15, 1040.0, 0.0) + np.where((r > 12) & (r < 14), 1200.0, 0)
+    >>> hu, rep = check_units(img)
+    >>> rep["units"], rep["offset"]
+    ('scanner', -1000.0)
+    """
+    vol = _volume(image)
+    if isinstance(units, str) and units not in ("auto", "hu"):
+        raise ValueError(f"units must be 'auto', 'hu' or a number, got {units!r}")
+    found = _peaks(vol)
+    if found is None:
+        raise ValueError("check_units: the image has no separate air and tissue peaks in its "
+                         "histogram: not a CT (a uniform or empty volume?)")
+    a, s, _, bone = found
+    span = s - a
+    if not (600.0 <= span <= 1600.0) or bone < 0.002:
+        raise ValueError(
+            f"check_units: not a CT of a body part with bone: air peak {a:.0f}, soft-tissue "
+            f"peak {s:.0f} (a CT has them about 1040 apart), {100 * bone:.2f} % of the body "
+            "far above soft tissue (bone); an MR or a phantom without bone?")
+    report = {"air_peak": round(a, 1), "soft_peak": round(s, 1)}
+    if units == "hu":
+        offset, how = 0.0, "kept as HU (units='hu')"
+    elif not isinstance(units, str):
+        offset, how = float(units), f"offset {float(units):g} given"
+    else:
+        from_soft, from_air = SOFT_HU - s, AIR_HU - a
+        cost = [2 * abs(from_soft - o) + abs(from_air - o) for o in HU_OFFSETS]
+        best = HU_OFFSETS[int(np.argmin(cost))]
+        if abs(from_soft - best) <= 100 and abs(from_air - best) <= 150:
+            offset = best
+            how = (f"air peak {a:.0f} and soft-tissue peak {s:.0f} match the convention "
+                   f"HU = value {best:+g}")
+        else:
+            offset = float(round(from_soft))
+            how = (f"air peak {a:.0f} and soft-tissue peak {s:.0f} fit no usual convention: "
+                   f"offset {offset:+g} puts soft tissue at {SOFT_HU:g} HU")
+    report.update(units="hu" if offset == 0 else "scanner", offset=offset, how=how)
+    if offset != 0:
+        log.warning("check_units: scanner units; HU = value %+g (%s)", offset, how)
+        out = _with_volume(image, vol.astype(np.float32, order="F") + np.float32(offset))
+    else:
+        log.info("check_units: Hounsfield units (%s)", how)
+        out = _with_volume(image, vol.astype(np.float32, order="F", copy=True))
+    return out, report
+
+
+# --------------------------------------------------------------------------- orientation
+def _parse_code(code):
+    code = str(code).upper()
+    picks = [_LETTERS.get(c) for c in code]
+    if len(code) != 3 or None in picks or sorted(p[0] for p in picks) != [0, 1, 2]:
+        raise ValueError(
+            f"orient must be 'auto', 'none' or a 3-letter code with one of L/R, A/P, S/I per "
+            f"image axis (e.g. 'LAS' for the patient frame, 'LPI'), got {code!r}")
+    return code, picks
+
+
+def reorient(image, code):
+    """Turn an image whose axes point as ``code`` says into the patient frame (``'LAS'``).
+
+    Parameters
+    ----------
+    image : pyvista.ImageData
+        Point array ``ct``; identity direction.
+    code : str
+        One letter per image axis (x, y, z): the side of the patient it points to, one of
+        L/R, A/P, S/I each, e.g. ``'LPI'`` for face toward -y and vertex toward -z.
+
+    Returns
+    -------
+    pyvista.ImageData
+        A new image with voxel axes reordered and reversed (spacing reordered, origin kept).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf.filters.orientation import reorient
+    >>> img = pv.ImageData(dimensions=(2, 3, 4))
+    >>> img["ct"] = img.points[:, 2].astype(np.float32)
+    >>> out = reorient(img, "LSP")  # image y is superior, image z posterior
+    >>> out.dimensions, float(out["ct"].reshape(out.dimensions, order="F")[0, 0, 2])
+    ((2, 4, 3), 3.0)
+    """
+    vol = _volume(image)
+    code, picks = _parse_code(code)
+    order = [0, 0, 0]
+    for i, (axis, sign) in enumerate(picks):
+        if sign < 0:
+            vol = np.flip(vol, i)
+        order[axis] = i
+    out = np.transpose(vol, order)
+    return _with_volume(image, out, spacing=np.asarray(image.spacing)[order])
+
+
+def _pool(vol, spacing, body_level, bone_level):
+    """Body and bone masks of ``vol`` pooled to about DECISION_VOXEL mm voxels.
+
+    Body: the voxel at each block's corner above ``body_level``; bone: any voxel of the block
+    above ``bone_level`` (thin skull survives the pooling).
+    """
+    f = [min(max(1, int(round(DECISION_VOXEL / s))), n) for s, n in zip(spacing, vol.shape)]
+    shape = [n // k * k for n, k in zip(vol.shape, f)]
+    v = vol[: shape[0], : shape[1], : shape[2]]
+    body = v[:: f[0], :: f[1], :: f[2]] > body_level
+    bone = v > bone_level
+    for axis, k in enumerate(f):  # block "any", one axis at a time (strided ORs)
+        index = [slice(None)] * 3
+        parts = []
+        for offset in range(k):
+            index[axis] = slice(offset, None, k)
+            parts.append(bone[tuple(index)])
+        bone = np.logical_or.reduce(parts) if k > 1 else bone
+    return body, bone, np.asarray(spacing) * f
+
+
+def _largest(mask):
+    lab, n = ndi.label(mask)
+    if n == 0:
+        return mask
+    sizes = np.bincount(lab.ravel())
+    sizes[0] = 0
+    return lab == np.argmax(sizes)
+
+
+def _enclosed(mask, axis=None):
+    """Voxels not in ``mask`` that no path outside ``mask`` joins to the border.
+
+    With ``axis`` the paths stay in the slices across that axis (a 2-D hole fill per slice).
+    """
+    struct = ndi.generate_binary_structure(3, 1)
+    free = ~mask
+    if axis is not None:
+        index = [slice(None)] * 3
+        index[axis] = [0, 2]
+        struct[tuple(index)] = False
+    lab, _ = ndi.label(free, structure=struct)
+    border = set()
+    for ax in range(3):
+        if ax == axis:
+            continue
+        border.update(np.unique(lab.take(0, axis=ax)))
+        border.update(np.unique(lab.take(-1, axis=ax)))
+    return free & ~np.isin(lab, list(border))
+
+
+def _mirror_overlap(mask, axis):
+    """Share of ``mask`` that its mirror image about its own centre plane overlaps."""
+    idx = np.nonzero(mask)
+    c = idx[axis].mean()
+    mirrored = np.rint(2 * c - idx[axis]).astype(int)
+    inside = (mirrored >= 0) & (mirrored < mask.shape[axis])
+    pts = [i[inside] for i in idx]
+    pts[axis] = mirrored[inside]
+    return float(mask[tuple(pts)].sum() / max(len(idx[0]), 1))
+
+
+def _cues(vol, spacing, air, soft):
+    """Anatomical measurements on the pooled copy (see the module notes)."""
+    body, bone, ds = _pool(vol, spacing, 0.5 * (air + soft), soft + 0.35 * (soft - air))
+    if body.any():  # crop to the body plus a margin; faces the body touches stay faces
+        nz = np.nonzero(body)
+        box = tuple(slice(max(int(i.min()) - 3, 0), int(i.max()) + 4) for i in nz)
+        body, bone = body[box], bone[box]
+    body = _largest(ndi.binary_opening(body, iterations=2))
+    head = body | _enclosed(body)
+    bone &= head
+    voxel_ml = float(np.prod(ds)) / 1e3
+    cues = {"voxel_mm": [round(float(d), 2) for d in ds], "body_ml": round(head.sum() * voxel_ml)}
+    if bone.sum() < 10 or head.sum() < 100:
+        return cues, None
+    votes = sum(_enclosed(ndi.binary_closing(bone), a).astype(np.uint8) for a in range(3))
+    cavity = _largest((votes >= 2) & head & ~bone)
+    extent = [float(np.ptp(np.nonzero(cavity)[a]) * ds[a]) if cavity.any() else 0.0
+              for a in range(3)]
+    has_cavity = bool(cavity.sum() >= 0.05 * head.sum() and min(extent) >= 50.0)
+    cues["cavity_ml"] = round(float(cavity.sum()) * voxel_ml) if has_cavity else 0
+    centre = np.array(ndi.center_of_mass(head)) * ds
+    cues["mirror"] = [round(_mirror_overlap(bone, a), 3) for a in range(3)]
+    face_area = [float(head.take(0, a).sum() + head.take(-1, a).sum())
+                 * float(np.prod(np.delete(ds, a))) for a in range(3)]
+    cues["cut_area_mm2"] = [round(x) for x in face_area]
+    corr = []
+    for a in range(3):
+        other = tuple(i for i in range(3) if i != a)
+        area = head.sum(axis=other).astype(float)
+        ok = area > 0.2 * area.max()
+        frac = bone.sum(axis=other)[ok] / area[ok]
+        x = np.nonzero(ok)[0]
+        corr.append(float(np.corrcoef(x, frac)[0, 1]) if ok.sum() > 2 and np.ptp(frac) > 0 else 0.0)
+    cues["bone_share_trend"] = [round(c, 3) for c in corr]
+    inner_air = head & ~body
+    ref = np.array(ndi.center_of_mass(cavity)) * ds if has_cavity else centre
+    if inner_air.sum() * voxel_ml >= 5.0:
+        cues["inner_air_offset_mm"] = [round(float(v), 1) for v in
+                                       np.array(ndi.center_of_mass(inner_air)) * ds - ref]
+    if has_cavity:
+        cues["body_below_cavity_mm"] = [round(float(v), 1) for v in centre - ref]
+    return cues, True
+
+
+def _decide(cues):
+    """Orientation code from the cues, or (None, why) when they do not settle it."""
+    mirror = np.asarray(cues["mirror"])
+    lr = int(np.argmax(mirror))
+    rest = [a for a in range(3) if a != lr]
+    if mirror[lr] - max(mirror[rest]) < 0.15:
+        return None, (f"no single plane of mirror symmetry (bone overlap {cues['mirror']} "
+                      "for the x, y, z mirrors): not a head, or a head cut too much")
+    trend = np.asarray(cues["bone_share_trend"])
+    cut = np.asarray(cues["cut_area_mm2"], dtype=float)
+    si = None
+    if "body_below_cavity_mm" in cues:
+        d = np.asarray(cues["body_below_cavity_mm"])
+        k = rest[int(np.argmax(np.abs(d[rest])))]
+        other = rest[0] if k == rest[1] else rest[1]
+        if abs(d[k]) >= 15.0 and abs(d[k]) >= 2 * abs(d[other]):
+            si, si_sign = k, -int(np.sign(d[k]))
+    if si is None:
+        k = rest[int(np.argmax(cut[rest]))]
+        other = rest[0] if k == rest[1] else rest[1]
+        if cut[k] < 1000.0 or cut[k] < 2 * cut[other] or abs(trend[k]) < 0.3:
+            return None, ("no cranial cavity, and the scan range does not show which axis is "
+                          f"the body axis (cut areas {cues['cut_area_mm2']} mm2, bone-share "
+                          f"trends {cues['bone_share_trend']})")
+        si, si_sign = k, int(np.sign(trend[k]))
+    ap = rest[0] if si == rest[1] else rest[1]
+    votes = []
+    if abs(trend[ap]) >= 0.3:
+        votes.append(int(np.sign(trend[ap])))
+    if "inner_air_offset_mm" in cues and abs(cues["inner_air_offset_mm"][ap]) >= 10.0:
+        votes.append(int(np.sign(cues["inner_air_offset_mm"][ap])))
+    if not votes or len(set(votes)) > 1:
+        return None, ("the face side is not clear (bone-share trend "
+                      f"{cues['bone_share_trend']}, inner-air offset "
+                      f"{cues.get('inner_air_offset_mm')})")
+    picks = {si: (2, si_sign), ap: (1, votes[0])}
+    m = np.zeros((3, 3))
+    for i, (axis, sign) in picks.items():
+        m[axis, i] = sign
+    m[0, lr] = 1
+    if np.linalg.det(m) < 0:  # left/right from the file: a rotation, never a mirroring
+        m[0, lr] = -1
+    picks[lr] = (0, int(m[0, lr]))
+    return "".join(_NAMES[picks[i]] for i in range(3)), None
+
+
+def orient_head(image, orient="auto", *, air=None, soft=None):
+    """Check from the anatomy that the face points +y and the vertex +z; re-orient if not.
+
+    Parameters
+    ----------
+    image : pyvista.ImageData
+        Point array ``ct`` (HU or scanner units), in the patient frame as the file says
+        (what :func:`pvcmf.read_ct` returns).
+    orient : str
+        ``'auto'`` decides from the anatomy (module notes) and refuses when unsure;
+        ``'none'`` keeps the file's axes; a code such as ``'LPI'`` says where each image
+        axis points and is applied without looking at the anatomy.
+    air, soft : float, optional
+        Air and soft-tissue peaks; found from the histogram when not given.
+
+    Returns
+    -------
+    image : pyvista.ImageData
+        A new image, face toward +y and vertex toward +z.
+    report : dict
+        ``mode``, ``code`` (where the input's axes pointed), ``reoriented`` (bool),
+        ``left_right`` (always taken from the file), and for ``'auto'`` the ``cues``.
+
+    Raises
+    ------
+    ValueError
+        For a bad ``orient``, or with ``'auto'`` when the anatomy does not settle the
+        orientation (not a head CT, or too little of one).
+    """
+    code, report = _orientation(image, orient, air, soft)
+    if code == "LAS":
+        return _with_volume(image, np.array(_volume(image), dtype=np.float32, order="F")), report
+    return reorient(image, code), report
+
+
+def _orientation(image, orient, air, soft):
+    """Where the image axes point (a code) and the report of :func:`orient_head`."""
+    vol = _volume(image)
+    lr_note = ("left/right taken from the file: a head's two sides cannot be told apart "
+               "from the image")
+    if not isinstance(orient, str):
+        raise TypeError(f"orient must be a string, got {type(orient).__name__}")
+    if orient.lower() == "none":
+        return "LAS", {"mode": "none", "code": "LAS", "reoriented": False,
+                       "left_right": lr_note}
+    if orient.lower() != "auto":
+        code, _ = _parse_code(orient)
+        log.info("orient_head: axes %s given; turned into the patient frame (LAS)", code)
+        return code, {"mode": "given", "code": code, "reoriented": code != "LAS",
+                      "left_right": lr_note}
+    if air is None or soft is None:
+        found = _peaks(vol)
+        if found is None:
+            raise ValueError("orient_head: no air and tissue peaks: not a CT")
+        air, soft = found[0], found[1]
+    cues, ok = _cues(vol, np.asarray(image.spacing, dtype=float), float(air), float(soft))
+    code, why = _decide(cues) if ok else (None, "no body with bone found")
+    if code is None:
+        raise ValueError(
+            f"orient_head: cannot tell the head's orientation from the image: {why}. Pass "
+            "orient='none' to trust the file's axes, or a code such as orient='LPI' (one of "
+            "L/R, A/P, S/I per image axis)")
+    if code == "LAS":
+        log.info("orient_head: the anatomy confirms the file's axes (face +y, vertex +z)")
+    else:
+        log.warning("orient_head: the anatomy says the image axes point %s, not LAS: "
+                    "re-oriented (face +y, vertex +z); %s", code, lr_note)
+    return code, {"mode": "auto", "code": code, "reoriented": code != "LAS",
+                  "left_right": lr_note, "cues": cues}
+
+
+def standardize(image, *, units="auto", orient="auto"):
+    """A CT in HU with the face toward +y and the vertex toward +z, and what was done.
+
+    :func:`check_units` then :func:`orient_head`.
+
+    Parameters
+    ----------
+    image : pyvista.ImageData
+        Point array ``ct``, as :func:`pvcmf.read_ct` returns it.
+    units : {'auto', 'hu'} or float
+        See :func:`check_units`.
+    orient : str
+        ``'auto'``, ``'none'`` or a code; see :func:`orient_head`.
+
+    Returns
+    -------
+    image : pyvista.ImageData
+        A new image.
+    report : dict
+        ``{"units": {...}, "orientation": {...}}``, JSON-serialisable.
+
+    Raises
+    ------
+    ValueError
+        If the image is not a head CT, or its orientation cannot be told (see above).
+    """
+    out, units_report = check_units(image, units)
+    offset = units_report["offset"]
+    code, orient_report = _orientation(out, orient, units_report["air_peak"] + offset,
+                                       units_report["soft_peak"] + offset)
+    if code != "LAS":  # ``out`` is already a new image: no second copy when nothing turns
+        out = reorient(out, code)
+    return out, _plain({"units": units_report, "orientation": orient_report})
+
+
+def _plain(obj):
+    """The report with numpy scalars turned into Python ones (JSON-serialisable)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj

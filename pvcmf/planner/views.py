@@ -1,0 +1,175 @@
+"""What the planner shows: the 3D scene and the profile silhouette, without a web framework.
+
+* :class:`Scene` -- one offscreen :class:`pyvista.Plotter` with two linked views: the
+  skeleton (bone at rest in grey, the moved segments in colour) and the predicted face
+  coloured by its signed displacement (mm along the outward skin normal: + outward,
+  - inward). :meth:`Scene.update` moves both for a plan, in place.
+* :func:`profile_png` -- the midsagittal profile before (grey) and after (red) as a PNG
+  (matplotlib's Agg canvas), and :func:`data_url` to put it in a web page.
+
+Delegates to PyVista/VTK (slicing, rendering) and matplotlib (the profile chart).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+
+import numpy as np
+import pyvista as pv
+
+from .. import arrays
+
+__all__ = ["Scene", "data_url", "profile_png", "profile_segments", "signed_displacement",
+           "DISPLACEMENT_CLIM", "SIGNED"]
+
+#: point array of the predicted face: displacement along the outward skin normal (mm)
+SIGNED = "signed displacement (mm)"
+#: colour range of the signed displacement map, mm
+DISPLACEMENT_CLIM = (-8.0, 8.0)
+_SEGMENT_COLOURS = {"maxilla": "mediumseagreen", "mandible": "dodgerblue", "cranium": "wheat"}
+
+
+def signed_displacement(skin, displacement):
+    """Displacement along ``skin``'s outward point normals (mm, + outward).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> sphere = pv.Sphere(radius=10.0)
+    >>> disp = 0.1 * np.asarray(sphere.points)     # 1 mm outward everywhere
+    >>> bool(np.allclose(signed_displacement(sphere, disp), 1.0, atol=0.05))
+    True
+    """
+    disp = np.asarray(displacement, dtype=float)
+    if disp.shape != (skin.n_points, 3):
+        raise ValueError(f"displacement must have shape ({skin.n_points}, 3), got {disp.shape}")
+    normals = np.asarray(skin.point_normals, dtype=float)
+    return np.einsum("ij,ij->i", disp, normals)
+
+
+def profile_segments(surface, x=None):
+    """Line segments of the surface's sagittal section at ``x`` as (m, 2, 2) (y, z) mm.
+
+    ``x`` defaults to the middle of the surface's x bounds (the midsagittal plane).
+    """
+    if x is None:
+        x = 0.5 * (surface.bounds[0] + surface.bounds[1])
+    section = surface.slice(normal="x", origin=(float(x), *surface.center[1:]))
+    if section.n_points == 0:
+        return np.zeros((0, 2, 2))
+    edges = section.extract_all_edges()
+    lines = np.asarray(edges.lines).reshape(-1, 3)[:, 1:]
+    return np.asarray(edges.points)[lines][:, :, 1:]
+
+
+def profile_png(pre, post, x=None, *, size=(4.0, 4.0), dpi=90):
+    """PNG bytes of the profile before (grey) and after (red), face to the right.
+
+    Parameters
+    ----------
+    pre, post : pyvista.PolyData
+        Rest and predicted skin.
+    x : float, optional
+        Sagittal plane (mm); default: the middle of ``pre``'s x bounds.
+    """
+    from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    if x is None:
+        x = 0.5 * (pre.bounds[0] + pre.bounds[1])
+    fig = Figure(figsize=size, dpi=dpi)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    for surface, colour, label in ((pre, "0.55", "pre-op"), (post, "tab:red", "planned")):
+        segs = profile_segments(surface, x)
+        ax.add_collection(LineCollection(segs, colors=colour, linewidths=1.2, label=label))
+    b = pre.bounds
+    ax.set_xlim(0.5 * (b[2] + b[3]), b[3] + 15)  # the face half
+    ax.set_ylim(b[4] - 5, b[5] + 5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("anterior-posterior y (mm)")
+    ax.set_ylabel("vertical z (mm)")
+    ax.legend(loc="lower left", fontsize=8)
+    fig.subplots_adjust(left=0.17, right=0.97, bottom=0.12, top=0.97)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    return buf.getvalue()
+
+
+def data_url(png):
+    """A ``data:image/png;base64,...`` URL of PNG bytes."""
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
+
+
+class Scene:
+    """The planner's 3D scene: skeleton (left) and predicted face (right), linked cameras.
+
+    Parameters
+    ----------
+    model : pvcmf.planner.PlannerModel
+        The prepared model.
+    window_size : tuple of int
+        Render window size in pixels.
+    """
+
+    def __init__(self, model, window_size=(1000, 500)):
+        self.model = model
+        self.plotter = pv.Plotter(shape=(1, 2), off_screen=True, window_size=list(window_size),
+                                  border=False)
+        self.face = model.skin.copy()
+        self.face.point_data[SIGNED] = np.zeros(self.face.n_points)
+        self.bones = {}
+        self.plotter.subplot(0, 0)
+        self.plotter.add_text("skeleton: rest (grey), planned (colour)", font_size=9)
+        for name in model.bones.keys():
+            rest = model.bones[name]
+            if rest is None or rest.n_points == 0:
+                continue
+            if name in model.segments:
+                self.plotter.add_mesh(rest, color="#bbbbbb", opacity=0.35)
+            moved = rest.copy()
+            self.bones[name] = moved
+            self.plotter.add_mesh(moved, color=_SEGMENT_COLOURS.get(name, "white"),
+                                  smooth_shading=True)
+        self.plotter.subplot(0, 1)
+        self.plotter.add_text("predicted face", font_size=9)
+        self.plotter.add_mesh(self.face, scalars=SIGNED, cmap="coolwarm",
+                              clim=DISPLACEMENT_CLIM, smooth_shading=True,
+                              scalar_bar_args={"title": "mm along normal", "n_labels": 5,
+                                               "fmt": "%.0f", "vertical": False})
+        self.plotter.link_views()
+        self._camera()
+
+    def _camera(self):
+        """Front-right oblique view of the face (patient frame: x left, y anterior, z up)."""
+        bounds = np.asarray(self.face.bounds).reshape(3, 2)
+        centre = bounds.mean(axis=1)
+        size = float(np.ptp(bounds, axis=1).max())
+        direction = np.array([-0.8, 1.6, 0.25])
+        direction /= np.linalg.norm(direction)
+        self.plotter.camera_position = [tuple(centre + 2.2 * size * direction), tuple(centre),
+                                        (0.0, 0.0, 1.0)]
+        self.plotter.reset_camera()
+        self.plotter.camera.zoom(1.1)
+
+    def update(self, plan):
+        """Show ``plan``: move the segments and the face; return the signed displacement."""
+        disp = self.model.displacement(plan)
+        self.face.points = np.asarray(self.model.skin.points) + disp
+        self.face.point_data[arrays.DISPLACEMENT] = disp
+        signed = signed_displacement(self.model.skin, disp)
+        self.face.point_data[SIGNED] = signed
+        moved = self.model.skeleton(plan)
+        for name, block in self.bones.items():
+            block.points = np.asarray(moved[name].points)
+        return signed  # the web view (or :meth:`screenshot`) renders
+
+    def screenshot(self, filename=None):
+        """Render and return the image (and save it when ``filename`` is given)."""
+        return self.plotter.screenshot(filename)
+
+    def close(self):
+        """Release the render window."""
+        self.plotter.close()

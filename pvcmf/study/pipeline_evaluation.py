@@ -1,0 +1,391 @@
+"""The pvcmf pipeline as a sweep evaluation (:class:`PipelineEvaluation`).
+
+Per task (a case and its mesh-level parameters) :meth:`PipelineEvaluation.prepare` runs
+:func:`pvcmf.pipeline.simulate` without solving (virtual patient -> segmentation ->
+muscles -> labelled mesh -> materials -> plan -> boundary conditions, pre-operative skin)
+and keeps what does not depend on the material; per parameter set
+:meth:`PipelineEvaluation.evaluate` sets the materials, refactorises a
+:class:`pvcmf.mtm.Solver` numerically, solves, maps the displacement onto the skin
+(:class:`pvcmf.filters.surface_mapping.SurfaceMapping`) and measures the signed distance
+to the post-operative truth (VTK's ``vtkImplicitPolyDataDistance`` on the truth cropped
+to the face, :class:`_TruthSurface`). Prepared cases are kept on disk with
+:func:`pvcmf.cache.cached` (one folder per case and mesh-level parameters).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import inspect
+import json
+import logging
+import numbers
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+import vtk
+from scipy.spatial import cKDTree
+from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+
+from .. import arrays, atlas, filters, mtm
+from ..cache import cached, code_hash
+from ..datasets import phantom
+from ..filters import distance_to
+from ..filters.surface_mapping import SurfaceMapping, map_to_surface
+from ..pipeline import simulate
+from ..truth.grid import postop_skin
+from .evaluation import (Evaluation, FunctionEvaluation, case_identity, code_version,
+                         error_statistics, point_key, source_hash)
+from .parameters import _positive, _positive_int, _solver_method
+from .statistics import label_face_regions
+
+log = logging.getLogger(__name__)
+
+__all__ = ["PipelineEvaluation", "STUDY_SPACING", "TRUTH_MARGIN", "study_truth"]
+
+#: image spacing (mm) of the study's virtual patients, at which the truths are cached
+STUDY_SPACING = 2.0
+#: the truth is cropped to the points within this distance (mm) of the pre-operative face:
+#: far more than any predicted displacement (< 20 mm) plus any error, so every predicted
+#: point's closest truth point is kept
+TRUTH_MARGIN = 40.0
+#: files of a prepared case on disk (state key -> file name)
+PREPARED_FILES = {"grid": "grid.vtu", "skin": "skin.vtp", "postop": "postop.vtp"}
+
+
+class PipelineEvaluation(Evaluation):
+    """The pvcmf pipeline as a sweep evaluation (the default of :func:`pvcmf.study.engine.sweep`).
+
+    ``prepare(case, spacing=, n_tets=, roi=, conforming=)`` builds the virtual patient
+    (``case`` is a patient number for :func:`pvcmf.datasets.phantom`, a mapping of its
+    arguments, or a ``Case``) and runs :func:`pvcmf.pipeline.simulate` once *without
+    solving* (``solve=False``: segmentation, muscles, labelled mesh, materials, plan ->
+    boundary conditions, pre-operative skin), then keeps what does not depend on the
+    material: the face skin, the post-operative truth cropped to the face and oriented
+    (:class:`_TruthSurface`), and, built on first use, the skin mapping operator
+    (:class:`pvcmf.filters.surface_mapping.SurfaceMapping`, per ``sigma``) and a :class:`pvcmf.mtm.Solver` (geometry,
+    block pattern, elimination maps, symbolic factorisation; per ``method``/``tol``).
+    ``evaluate(state, nu=..., ...)`` then only sets the materials of the parameter set
+    (:meth:`materials`), refactorises numerically, solves, applies the mapping operator
+    and measures the signed distance to the truth (:func:`pvcmf.filters.distance.signed_distance`).
+
+    Parameters
+    ----------
+    spacing : float
+        Default image resolution (mm) when the grid does not sweep ``spacing``; default
+        2 mm, the study default at which :func:`pvcmf.truth.grid.postop_skin` caches the
+        truths.
+    n_tets : int
+        Default tetrahedra count when the grid does not sweep ``n_tets``.
+    method : str
+        Default MTM solver (``"direct"``; the grid may sweep ``method`` and ``tol``).
+    keep_distance : bool
+        Return the per-point ``distance`` map and the skin (``skin_points``,
+        ``skin_faces``) with every row (for Fig. 5).
+    truth : callable, optional
+        ``truth(case) -> pyvista.PolyData``: the case's post-operative skin in the
+        pre-operative frame. Default: the case's ``postop_skin`` attribute, else the
+        virtual post-operative truth of :mod:`pvcmf.truth`. Must be picklable (a
+        module-level function, e.g. :func:`study_truth`) to run in Dask processes.
+    region : {'face', 'skin'}
+        Where errors are measured: ``'face'`` (default) the skin points of the face
+        regions of :func:`pvcmf.study.statistics.label_face_regions` (nose, lips, chin,
+        cheeks: what the surgery changes and the paper measures; the back of the head
+        would dilute the percentiles with zeros), ``'skin'`` the whole skin.
+    cache_dir : str or Path, optional
+        Keep each prepared case (mesh with boundary conditions, skin, post-operative
+        skin; VTK XML files) under a hash of (case, mesh-level parameters, options, code
+        version; :func:`pvcmf.cache.cached`), so later sweeps on the same meshes (Figs. 2,
+        4, 5) skip the phantom, segmentation, muscles and meshing.
+    mesh_threads : int, default 1
+        gmsh threads per task. A local sweep runs one single-threaded Dask process per
+        core, so more threads only oversubscribe the machine.
+    """
+
+    version = "3"
+
+    def __init__(self, spacing=2.0, n_tets=30_000, method="direct", keep_distance=False,
+                 truth=None, region="face", cache_dir=None, mesh_threads=1):
+        self.cache_dir = None if cache_dir is None else str(cache_dir)
+        if region not in ("face", "skin"):
+            raise ValueError(f"region must be 'face' or 'skin', got {region!r}")
+        self.region = region
+        self.spacing = _positive("spacing", spacing)
+        self.n_tets = _positive_int("n_tets", n_tets)
+        self.method = _solver_method("method", method)
+        self.keep_distance = bool(keep_distance)
+        if truth is not None and not callable(truth):
+            raise TypeError(f"truth must be callable(case) -> PolyData or None, got {type(truth).__name__}")
+        self.truth = truth
+        if isinstance(mesh_threads, bool) or not isinstance(mesh_threads, numbers.Integral) \
+                or mesh_threads < 1:
+            raise ValueError(f"mesh_threads must be an integer >= 1, got {mesh_threads!r}")
+        self.mesh_threads = int(mesh_threads)
+
+    def identity(self):
+        truth = None if self.truth is None else FunctionEvaluation(self.truth).identity()
+        own = code_hash(type(self), _TruthSurface, _skin_mapping, _face_only, _postop_skin,
+                        error_statistics)
+        return {**super().identity(), "spacing": self.spacing, "n_tets": self.n_tets,
+                "method": self.method, "keep_distance": self.keep_distance, "truth": truth,
+                "region": self.region, "mesh_threads": self.mesh_threads,
+                "code": source_hash(), "own": own}
+
+    def prepare(self, case, *, spacing=None, n_tets=None, roi=None, conforming=True, n_points=None):
+        group = {"spacing": self.spacing if spacing is None else spacing,
+                 "n_tets": self.n_tets if n_tets is None else n_tets,
+                 "roi": roi, "conforming": conforming, "n_points": n_points}
+        if self.cache_dir is None:
+            return self._finish(self._timed_prepare(case, group))
+        _, ident = case_identity(case)
+        what = {k: v for k, v in self.identity().items() if k not in ("method", "keep_distance")}
+        folder = Path(self.cache_dir) / point_key(ident, group, what, code_version())
+        state = cached(folder, lambda: self._timed_prepare(case, group), read=_read_prepared,
+                       write=_write_prepared, folder=True)
+        return self._finish(state)
+
+    def _timed_prepare(self, case, group):
+        _warm_up()  # once per process, outside the timed preparation
+        t0, c0 = time.perf_counter(), time.process_time()
+        state = self._prepare(case, **group)
+        state["prepare_times"] = {"t_prepare": time.perf_counter() - t0,
+                                  "cpu_prepare": time.process_time() - c0}
+        return state
+
+    @staticmethod
+    def _finish(state):
+        """Add the material-independent operators to a prepared (or loaded) state."""
+        t0 = time.perf_counter()
+        truth = _TruthSurface(state["postop"], np.asarray(state["skin"].points, float))
+        log.info("truth cropped to the face: %d of %d points (%.2f s)", truth.surface.n_points,
+                 state["postop"].n_points, time.perf_counter() - t0)
+        return {"solvers": {}, **state, "truth": truth, "mappings": {}}
+
+    def _prepare(self, case, *, spacing, n_tets, roi, conforming, n_points):
+        if isinstance(case, numbers.Integral):
+            case = phantom(patient=int(case), spacing=spacing)
+        elif isinstance(case, Mapping):
+            case = phantom(**{"spacing": spacing, **case})
+        postop = _postop_skin(case) if self.truth is None else self.truth(case)
+        mesh_options = {"threads": self.mesh_threads}
+        if roi is not None:  # the soft tissue within `roi` mm of the (first) moved segment
+            mesh_options["roi"] = (case.plan.osteotomies[0].segment_id, roi)
+        if not conforming:
+            mesh_options["conforming"] = False
+        # no solve, no predicted skin, no skeleton: evaluate() solves per parameter set
+        result = simulate(case.ct, case.plan, bones=getattr(case, "truth", None),
+                          landmarks=getattr(case, "landmarks", None), n_tets=n_tets,
+                          mesh_options=mesh_options, figures=False, solve=False)
+        if result.mesh is None or result.skin_pre is None:
+            raise RuntimeError(f"the pipeline did not produce a mesh and skin for {case.name!r}; "
+                               f"skipped steps: {result.skipped}")
+        grid = result.mesh
+        if not conforming and n_points:
+            grid = grid.cmf.sample_muscle_fraction(result.labels, n_points=n_points)
+        skin = result.skin_pre
+        if self.region == "face":
+            skin = _face_only(skin, getattr(case, "landmarks", None))
+        return {"grid": grid, "skin": skin, "postop": postop}
+
+    @staticmethod
+    def materials(grid, *, nu=None, nu_fat=None, nu_muscle=None, E_ratio=None, E_fat=None,
+                  E_muscle=None):
+        """Per-cell material overrides of one parameter set (paper 001 sec. 2.1 / 2.2).
+
+        ``nu``: homogeneous isotropic material (E = ``E_fat`` or 1; the displacement-driven
+        MTM does not depend on E). Any of ``nu_fat``, ``nu_muscle``, ``E_ratio``, ``E_fat``,
+        ``E_muscle``: isotropic fat and muscle (defaults nu_fat 0.485, nu_muscle 0.43,
+        E_muscle = E_ratio * E_fat), mixed per cell by ``muscle_fraction`` when the grid
+        has it (the baselines) or by the cell's ``tissue`` label. None of them: the grid's
+        own materials (``{}``).
+        """
+        if nu is not None:
+            e = 1.0 if E_fat is None else E_fat
+            return {"E_fiber": e, "E_cross": e, "nu": nu}
+        if all(v is None for v in (nu_fat, nu_muscle, E_ratio, E_fat, E_muscle)):
+            return {}
+        if arrays.MUSCLE_FRACTION in grid.cell_data.keys():
+            f = np.clip(np.asarray(grid.cell_data[arrays.MUSCLE_FRACTION], float), 0.0, 1.0)
+        else:
+            tissue = arrays.require_array(grid, arrays.TISSUE, "cell", producer="tetrahedralize")
+            f = (np.asarray(tissue) == arrays.MUSCLE_TISSUE).astype(float)
+        e_fat = 1.0 if E_fat is None else E_fat
+        e_muscle = E_muscle if E_muscle is not None else e_fat * (1.0 if E_ratio is None else E_ratio)
+        e = (1 - f) * e_fat + f * e_muscle
+        nu_cells = (1 - f) * (0.485 if nu_fat is None else nu_fat) + f * (0.43 if nu_muscle is None else nu_muscle)
+        return {"E_fiber": e, "E_cross": e, "nu": nu_cells}
+
+    def evaluate(self, state, *, nu=None, nu_fat=None, nu_muscle=None, E_ratio=None, E_fat=None,
+                 E_muscle=None, tol=None, method=None, sigma=None):
+        if "truth" not in state:  # a state built by hand: add the reusable operators
+            state.update(self._finish(state))
+        grid = state["grid"]
+        method = self.method if method is None else method
+        key = (method, tol)
+        material = self.materials(grid, nu=nu, nu_fat=nu_fat, nu_muscle=nu_muscle, E_ratio=E_ratio,
+                                  E_fat=E_fat, E_muscle=E_muscle)
+        solver = state["solvers"].get(key)
+        if solver is None:  # first parameter set of this method: structure + symbolic analysis
+            options = {} if tol is None else {"tol": tol}
+            solver = state["solvers"][key] = mtm.Solver(grid, method, **options, **material)
+        elif material:  # no symbolic analysis; direct: the previous factor preconditions CG
+            # (to the same tolerance; it refactors when that needs > 20 iterations)
+            solver.update_materials(**material, refactor=False)
+        u = solver.solve()
+        t_solve = float(solver.info.get("time", np.nan))
+        mapping = state["mappings"].get(sigma)
+        if mapping is None:  # the mapping does not depend on the material: once per sigma
+            mapping = state["mappings"][sigma] = _skin_mapping(grid.points, state["skin"].points,
+                                                               sigma)
+        pred = np.asarray(state["skin"].points, float) + mapping(u)
+        d = state["truth"].distance(pred)
+        out = error_statistics(d)
+        out.update({arrays.SWEEP_N_CELLS: int(grid.n_cells), "t_solve": t_solve,
+                    "residual": float(solver.info.get("residual", np.nan))})
+        if self.keep_distance:
+            skin = state["skin"]
+            out.update({arrays.SWEEP_DISTANCE: d,
+                        arrays.SWEEP_SKIN_POINTS: np.asarray(skin.points, float),
+                        arrays.SWEEP_SKIN_FACES: np.asarray(skin.faces)})
+        return out
+
+
+_WARM = []
+
+
+def _warm_up():
+    """Import the pipeline's modules (and load the muscle atlas) once per process, so the
+    first task of a Dask process does not report the imports as its preparation time."""
+    if _WARM:
+        return
+    for name in filters.__all__ if hasattr(filters, "__all__") else ():
+        with contextlib.suppress(Exception):
+            getattr(filters, name)
+    for module in ("pyamg", "gmsh"):
+        with contextlib.suppress(Exception):
+            importlib.import_module(module)
+    with contextlib.suppress(Exception):
+        atlas.default()
+    _WARM.append(True)
+
+
+def study_truth(case, *, spacing=None, n_tets=None):
+    """The post-operative truth of the study for any image spacing of a virtual patient.
+
+    :func:`pvcmf.truth.grid.postop_skin` of ``phantom(case.patient, spacing=spacing)``
+    (default :data:`STUDY_SPACING`, whose truths are cached; ``n_tets``: the truth's mesh
+    size, default that of ``postop_skin``), whatever ``case.spacing`` is: a sweep over the
+    image resolution must judge every resolution against the same truth. A module-level
+    function, so it travels to Dask processes (``PipelineEvaluation(truth=study_truth)``, or
+    ``functools.partial(study_truth, spacing=2.0, n_tets=16000)``).
+    """
+    spacing = STUDY_SPACING if spacing is None else float(spacing)
+    options = {} if n_tets is None else {"n_tets": int(n_tets)}
+    if float(case.spacing) == spacing:
+        return postop_skin(case, **options)
+    return postop_skin(phantom(patient=case.patient, spacing=spacing), **options)
+
+
+
+class _TruthSurface:
+    """The truth, oriented outward once and cropped to the face, for repeated distances.
+
+    The exact point-to-triangle distance of :func:`pvcmf.filters.distance_to`, for every
+    query point whose closest truth point lies within ``margin`` of ``near``, but with the
+    orientation, the crop and VTK's cell locator (``vtkImplicitPolyDataDistance``, sign
+    from the closest cell's normal) built once per truth instead of once per call. A
+    closed truth is oriented by its signed volume before cropping; an open one (or one
+    with inconsistent winding) is left to :func:`pvcmf.filters.distance_to` on each call.
+    """
+
+    def __init__(self, surface, near, margin=TRUTH_MARGIN):
+        self.closed = surface.n_open_edges == 0 if isinstance(surface, pv.PolyData) else False
+        self._full = surface
+        self._implicit = None
+        self.surface = surface
+        if not self.closed:  # a crop of an open surface cannot be oriented reliably
+            return
+        surf = surface.triangulate() if not surface.is_all_triangles else surface
+        tris = np.asarray(surf.faces).reshape(-1, 4)[:, 1:].astype(np.int64)
+        pts = np.asarray(surf.points, float)
+        directed = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+                           @ np.array([len(pts), 1]))
+        if (directed[1:] == directed[:-1]).any():  # inconsistent winding: leave it to distance_to
+            self.closed = False
+            return
+        a, b, c = pts[tris[:, 0]], pts[tris[:, 1]], pts[tris[:, 2]]
+        if np.einsum("ij,ij->", a - pts.mean(axis=0), np.cross(b - a, c - a)) < 0:
+            tris = tris[:, ::-1]  # outward: positive signed volume
+        dist, _ = cKDTree(np.asarray(near, float)).query(pts, distance_upper_bound=margin)
+        kept = tris[np.isfinite(dist)[tris].all(axis=1)]
+        used = np.unique(kept)
+        new_id = np.full(len(pts), -1)
+        new_id[used] = np.arange(used.size)
+        self.surface = pv.PolyData(pts[used], np.c_[np.full(len(kept), 3), new_id[kept]].ravel())
+
+    def distance(self, points):
+        """Signed distances (mm) of ``(n, 3)`` points, positive outside (anterior)."""
+        points = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        if not self.closed:  # cannot orient a crop of an open surface reliably
+            return np.asarray(distance_to(pv.PolyData(points), self._full).point_data[arrays.DISTANCE])
+        if self._implicit is None:  # VTK's cell locator, built once per truth
+            self._implicit = vtk.vtkImplicitPolyDataDistance()
+            self._implicit.SetInput(self.surface)
+        out = vtk.vtkDoubleArray()
+        self._implicit.FunctionValue(numpy_to_vtk(points, deep=True), out)
+        return vtk_to_numpy(out).astype(np.float64, copy=True)
+
+
+def _skin_mapping(grid_points, skin_points, sigma):
+    """:func:`pvcmf.filters.map_to_surface` as its precomputed sparse operator
+    (:class:`pvcmf.filters.surface_mapping.SurfaceMapping`, built once per mesh and sigma:
+    the weights do not depend on the material)."""
+    if sigma is None:
+        sigma = inspect.signature(map_to_surface).parameters["sigma"].default
+    if not sigma > 0:
+        raise ValueError(f"sigma must be > 0 mm, got {sigma}")
+    return SurfaceMapping(grid_points, skin_points, sigma, 3.0 * sigma)
+
+
+def _face_only(skin, landmarks):
+    """The face regions of a skin (:func:`pvcmf.study.statistics.label_face_regions`)."""
+    labelled = label_face_regions(skin, landmarks=landmarks)
+    face = np.asarray(labelled.point_data[arrays.REGION]) > 0
+    if not face.any():
+        raise ValueError("no skin point lies in a face region; use region='skin'")
+    if not labelled.is_all_triangles:
+        labelled = labelled.triangulate()
+    tri = np.asarray(labelled.faces).reshape(-1, 4)[:, 1:]
+    new_id = np.cumsum(face) - 1
+    kept = new_id[tri[face[tri].all(axis=1)]]
+    out = pv.PolyData(np.asarray(labelled.points)[face],
+                      np.c_[np.full(len(kept), 3), kept].ravel() if len(kept) else None)
+    for name in labelled.point_data.keys():
+        out.point_data[name] = np.asarray(labelled.point_data[name])[face]
+    return out
+
+
+def _postop_skin(case):
+    skin = getattr(case, "postop_skin", None)
+    if skin is not None:
+        return skin
+    return postop_skin(case)
+
+
+def _write_prepared(state, folder):
+    """Fill ``folder`` with a prepared case (VTK XML files, preparation times as JSON)."""
+    folder = Path(folder)
+    for key, name in PREPARED_FILES.items():
+        state[key].save(folder / name)
+    (folder / "times.json").write_text(json.dumps(state["prepare_times"]))
+
+
+def _read_prepared(folder):
+    """A prepared case written by :func:`_write_prepared` (raises when incomplete)."""
+    folder = Path(folder)
+    state = {key: pv.read(folder / name) for key, name in PREPARED_FILES.items()}
+    state["prepare_times"] = json.loads((folder / "times.json").read_text())
+    return state

@@ -1,0 +1,54 @@
+"""find_jaws / cut_bones without cut planes: the anatomy's mandible and Le Fort I maxilla
+against the virtual patients' true segments."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import pvcmf
+from pvcmf import arrays
+from pvcmf.filters.bone_segments import find_jaws, segment_volumes
+from pvcmf.plan import Osteotomy, Plan
+
+
+def dice(a, b):
+    return 2.0 * np.count_nonzero(a & b) / max(np.count_nonzero(a) + np.count_nonzero(b), 1)
+
+
+@pytest.fixture(scope="module")
+def patient1():
+    case = pvcmf.datasets.phantom(patient=1, spacing=2.0)
+    return case, pvcmf.filters.segment(case.ct)
+
+
+def test_jaws_match_phantom_truth(patient1):
+    case, lab = patient1
+    bone = np.asarray(find_jaws(lab)[arrays.BONE])
+    truth = np.asarray(case.truth[arrays.BONE])
+    assert dice(bone == arrays.MANDIBLE, truth == arrays.MANDIBLE) >= 0.95
+    assert dice(bone == arrays.MAXILLA, truth == arrays.MAXILLA) >= 0.95
+    hard = np.isin(np.asarray(lab[arrays.TISSUE]), arrays.HARD_LABELS)
+    assert np.array_equal(bone > 0, hard)
+
+
+def test_cut_bones_without_planes_finds_segments(patient1):
+    _, lab = patient1
+    plan = Plan((Osteotomy("maxilla", (0, 0, 2.0)), Osteotomy("mandible", (0, 0, 1.0))))
+    cut = pvcmf.filters.cut_bones(lab, plan)
+    vols = segment_volumes(cut)
+    assert vols["maxilla"] > 5 and vols["mandible"] > 5 and vols["cranium"] > vols["mandible"]
+    # a cut plane still overrides the anatomy
+    plane = Plan((Osteotomy("maxilla", cut=(((0, 0, 1e4), (0, 0, -1)),)),))
+    over = np.asarray(pvcmf.filters.cut_bones(lab, plane)[arrays.BONE])
+    assert np.array_equal(over == arrays.MAXILLA, np.asarray(lab[arrays.BONE]) > 0)
+
+
+def test_no_teeth_is_an_error(patient1):
+    _, lab = patient1
+    noteeth = lab.copy()
+    t = np.asarray(noteeth[arrays.TISSUE]).copy()
+    t[np.isin(t, (arrays.TEETH, arrays.METAL))] = arrays.BONE_TISSUE
+    noteeth[arrays.TISSUE] = t
+    with pytest.raises(ValueError, match="cut planes"):
+        find_jaws(noteeth)

@@ -1,0 +1,224 @@
+"""Tests of the interactive planner (pvcmf.planner).
+
+* sliders <-> plan conversion against hand-written plans;
+* the prepared model on a coarse virtual patient: a plan that moves nothing predicts
+  nothing, the moved skeleton is the plan's rigid transform, the signed displacement is
+  the normal component;
+* the web page end to end: ``pvcmf plan`` serves on 127.0.0.1, headless Chromium
+  (driven by Playwright) moves a slider with the keyboard, the 3D view must be non-blank
+  and change, and *Save plan* must write the plan the sliders show. Skipped with the
+  reason when Playwright, trame or a Chromium binary is missing.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+import pvcmf
+from pvcmf import arrays
+from pvcmf.plan import TABLE_II, Osteotomy, Plan, read_plan
+from pvcmf.planner import PlanSliders, prepare_model, signed_displacement, slider_key
+from pvcmf.planner.views import profile_segments
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# --------------------------------------------------------------------------- sliders
+def test_slider_keys_and_round_trip():
+    sliders = PlanSliders()
+    assert len(sliders.keys) == 12 and slider_key("mandible", "r", "v") in sliders.keys
+    plan = Plan((Osteotomy("maxilla", (1.0, -2.0, 3.5), (0.5, -1.0, 2.0)),
+                 Osteotomy("mandible", (0.0, 0.0, 5.0))), name="x")
+    values = sliders.from_plan(plan)
+    assert values["maxilla_t_h"] == 1.0 and values["maxilla_t_v"] == -2.0
+    assert values["maxilla_t_ap"] == 3.5 and values["maxilla_r_ap"] == 2.0
+    assert values["mandible_t_ap"] == 5.0 and values["mandible_r_h"] == 0.0
+    assert sliders.to_plan(values, name="x") == plan
+
+
+def test_sliders_keep_template_cuts_and_drop_unmoved():
+    cut = (((0.0, 0.0, 84.0), (0.0, 0.0, -1.0)),)
+    template = Plan((Osteotomy("maxilla", (0.0, 1.0, 3.0), cut=cut, pivot=(1.0, 2.0, 3.0)),),
+                    name="start")
+    sliders = PlanSliders(template=template)
+    values = sliders.from_plan(template)
+    values["maxilla_t_ap"] = -2.0
+    plan = sliders.to_plan(values)
+    assert plan.name == "start" and plan.segments == ("maxilla",)
+    assert plan.osteotomies[0].cut == cut and plan.osteotomies[0].pivot == (1.0, 2.0, 3.0)
+    assert plan.osteotomies[0].translation == (0.0, 1.0, -2.0)
+    values["mandible_r_v"] = 3.0
+    assert sliders.to_plan(values).segments == ("maxilla", "mandible")
+    assert PlanSliders().to_plan({}).segments == ("maxilla", "mandible")  # nothing moved
+    with pytest.raises(ValueError, match="unknown slider"):
+        sliders.to_plan({"maxilla_t_x": 1.0})
+    with pytest.raises(ValueError, match="rotation"):
+        sliders.to_plan({"maxilla_r_h": 45.0})
+
+
+def test_signed_displacement_and_profile():
+    sphere = pv.Sphere(radius=10.0, theta_resolution=60, phi_resolution=60)
+    inward = -0.2 * np.asarray(sphere.points)  # 2 mm inward
+    assert np.allclose(signed_displacement(sphere, inward), -2.0, atol=0.05)
+    segs = profile_segments(sphere, x=0.0)
+    assert segs.shape[1:] == (2, 2) and len(segs) > 20
+    assert np.allclose(np.linalg.norm(segs.reshape(-1, 2), axis=1), 10.0, atol=0.1)
+
+
+# --------------------------------------------------------------------------- model
+@pytest.fixture(scope="module")
+def model():
+    case = pvcmf.datasets.phantom(patient=1, spacing=4.0)
+    return prepare_model(case.ct, case.plan, bones=case.truth, n_tets=2000, muscles=False)
+
+
+def test_model_predicts_and_moves_the_skeleton(model):
+    assert model.segments == ("maxilla", "mandible")
+    still = Plan((Osteotomy("mandible"),))
+    assert not np.any(model.predict(still)[arrays.DISPLACEMENT])
+    plan = Plan((Osteotomy("mandible", translation=(0.0, 0.0, 5.0)),))
+    face = model.predict(plan)
+    disp = np.asarray(face[arrays.DISPLACEMENT])
+    assert np.allclose(face.points, np.asarray(model.skin.points) + disp)
+    # the chin goes forward with the mandible, nothing moves more than the bone
+    assert 2.0 < disp[:, 1].max() <= 5.0 + 0.5 and np.abs(disp).max() <= 5.5
+    bones = model.skeleton(plan)
+    shift = np.asarray(bones["mandible"].points) - np.asarray(model.bones["mandible"].points)
+    assert np.allclose(shift, [0.0, 5.0, 0.0])
+    assert np.allclose(bones["maxilla"].points, model.bones["maxilla"].points)
+
+
+# --------------------------------------------------------------------------- web page
+def _chromium():
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+def _free_port():
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_http(url, proc, timeout):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"the planner exited with {proc.returncode}")
+        try:
+            with urllib.request.urlopen(url, timeout=2):
+                return
+        except OSError:
+            time.sleep(0.5)
+    raise TimeoutError(f"no answer from {url} within {timeout} s")
+
+
+def _image(png):
+    from PIL import Image
+    import io
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
+
+
+@pytest.fixture()
+def planner_server(tmp_path):
+    for module in ("trame", "trame_vtk", "trame_vuetify"):
+        if importlib.util.find_spec(module) is None:
+            pytest.skip(f"{module} is not installed (pip install 'pvcmf[planner]')")
+    port = _free_port()
+    save = tmp_path / "planned.toml"
+    env = {**os.environ, "PYVISTA_OFF_SCREEN": "true", "PYTHONPATH": str(ROOT)}
+    log = open(tmp_path / "server.log", "w")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pvcmf.cli", "plan", "--ct", "phantom:1", "--spacing", "4",
+         "--n-tets", "2000", "--no-muscles", "--port", str(port), "--save", str(save)],
+        stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp_path)
+    try:
+        _wait_http(f"http://127.0.0.1:{port}/", proc, timeout=240)
+        yield f"http://127.0.0.1:{port}/", save
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=15)
+        log.close()
+
+
+def _stable_image(locator, timeout=60.0):
+    """A screenshot of ``locator`` once two taken 1 s apart agree (streaming has settled)."""
+    deadline, last = time.monotonic() + timeout, _image(locator.screenshot())
+    while time.monotonic() < deadline:
+        time.sleep(1.0)
+        now = _image(locator.screenshot())
+        if now.shape == last.shape and np.abs(now - last).mean() < 0.05:
+            return now
+        last = now
+    raise TimeoutError(f"the 3D view did not settle within {timeout} s")
+
+
+def _slider_values(page, keys):
+    return {k: float(page.locator(f"#slider-{k} [role=slider]").get_attribute("aria-valuenow"))
+            for k in keys}
+
+
+@pytest.mark.slow
+def test_page_slider_updates_view_and_saves_plan(planner_server):
+    sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright")
+    chromium = _chromium()
+    if chromium is None:
+        pytest.skip("no Chromium binary (apt-get install chromium)")
+    url, save = planner_server
+    keys = PlanSliders().keys
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=chromium, timeout=60_000,
+                                     args=["--no-sandbox", "--disable-gpu"])
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.set_default_timeout(60_000)
+            page.goto(url)
+            page.wait_for_selector("#view3d img")
+            view = page.locator("#view3d")
+            page.wait_for_function(  # the first streamed image has arrived
+                "() => { const i = document.querySelector('#view3d img');"
+                " return i && i.complete && i.naturalWidth > 100; }")
+            before = _stable_image(view)
+            assert before.std() > 10.0, "the 3D view is blank"
+            thumb = page.locator("#slider-maxilla_t_ap [role=slider]")
+            start = float(thumb.get_attribute("aria-valuenow"))
+            thumb.focus()
+            for _ in range(4):
+                page.keyboard.press("ArrowRight")
+            values = _slider_values(page, keys)
+            assert values["maxilla_t_ap"] == start + 2.0
+            expected = PlanSliders(template=TABLE_II[1]).to_plan(values)
+            line = "translation = " + str(list(expected.osteotomies[0].translation))
+            page.wait_for_function(  # the server has predicted the last slider value
+                f"() => document.querySelector('#plan-toml').innerText.includes('{line}')")
+            after = _stable_image(view)
+            diff = np.abs(after - before).mean() if after.shape == before.shape else 99.0
+            assert diff >= 0.2, f"the 3D view did not change (mean difference {diff:.2f})"
+            assert after.std() > 10.0
+            page.click("#save-button")
+            page.wait_for_function(
+                "() => document.querySelector('#saved').innerText.startsWith('saved')")
+        finally:
+            browser.close()
+    saved = read_plan(save)
+    assert saved == expected
+    assert PlanSliders(template=TABLE_II[1]).from_plan(saved) == values

@@ -1,0 +1,107 @@
+"""Mesh -> skin transfer: exact for affine fields, no steps (crumple metric), Gaussian kept."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from pvcmf import arrays
+from pvcmf.filters import map_to_surface
+from pvcmf.filters.surface_mapping import (
+    SurfaceMapping,
+    Transfer,
+    crumple_metric,
+    transfer_operator,
+)
+
+
+@pytest.fixture(scope="module")
+def ball():
+    """A tetrahedral ball (radius 10 mm) and a skin sphere crossing its boundary."""
+    src = pv.ImageData(dimensions=(23, 23, 23), spacing=(1.0, 1.0, 1.0), origin=(-11, -11, -11))
+    grid = src.triangulate()
+    keep = np.linalg.norm(grid.cell_centers().points, axis=1) < 10.0
+    grid = grid.extract_cells(np.flatnonzero(keep)).clean()
+    grid.clear_data()
+    skin = pv.Sphere(radius=10.3, theta_resolution=80, phi_resolution=60)
+    return grid, skin
+
+
+def test_affine_exact_inside_and_outside(ball):
+    grid, skin = ball
+    rng = np.random.default_rng(0)
+    B, c = rng.normal(size=(3, 3)) * 0.2, rng.normal(size=3)
+    far = pv.PolyData(np.array([[30.0, 0, 0], [0, -25.0, 5.0], [0.0, 0.0, 60.0]]))
+    for pts in (skin.points, np.asarray(grid.points)[:50] * 0.5, far.points):
+        T = transfer_operator(grid, pts, band=np.inf)
+        u = (T @ (grid.points @ B.T + c))
+        assert np.abs(u - (pts @ B.T + c)).max() < 1e-9
+    T = transfer_operator(grid, skin)  # default band: the skin lies within it
+    assert np.abs(T @ (grid.points @ B.T + c) - (skin.points @ B.T + c)).max() < 1e-9
+    assert np.allclose(np.asarray(T.sum(axis=1)).ravel(), 1.0)
+    bounded = transfer_operator(grid, far.points) @ (grid.points @ B.T + c)
+    assert np.abs(bounded).max() < np.abs(grid.points @ B.T + c).max() + 8 * np.abs(B).sum()
+
+
+def test_inside_points_are_barycentric(ball):
+    grid, _ = ball
+    rng = np.random.default_rng(1)
+    cells = grid.cells_dict[pv.CellType.TETRA]
+    lam = rng.dirichlet(np.ones(4), size=40)
+    ids = rng.choice(len(cells), 40, replace=False)
+    pts = np.einsum("na,nai->ni", lam, np.asarray(grid.points)[cells[ids]])
+    T = transfer_operator(grid, pts).toarray()
+    want = np.zeros_like(T)
+    for r, (t, l) in enumerate(zip(ids, lam)):
+        want[r, cells[t]] = l
+    assert np.abs(T - want).max() < 1e-9
+
+
+def test_continuous_across_the_boundary(ball):
+    """A curved field: points just in and just out of the mesh map to nearly equal values."""
+    grid, _ = ball
+    u = np.column_stack([np.sin(grid.points[:, 0] / 3), grid.points[:, 1] ** 2 / 20,
+                         np.zeros(grid.n_points)])
+    d = np.array([0.6, 0.5, 0.62])
+    d /= np.linalg.norm(d)
+    r = np.linspace(9.0, 11.0, 401)
+    line = transfer_operator(grid, r[:, None] * d) @ u
+    jumps = np.linalg.norm(np.diff(line, axis=0), axis=1)
+    assert jumps.max() < 5 * np.median(jumps) + 1e-6  # no step where the line leaves the mesh
+
+
+def test_crumple_metric_flags_nearest_copy(ball):
+    grid, skin = ball
+    u = np.column_stack([np.sin(grid.points[:, 0] / 2), np.cos(grid.points[:, 2] / 3),
+                         0.1 * grid.points[:, 1]])
+    good = transfer_operator(grid, skin) @ u
+    m = crumple_metric(skin, good, grid, u)
+    assert m[arrays.CRUMPLE_VIOLATIONS] == 0 and m[arrays.CRUMPLE_MAX_RATIO] <= 1.1
+    from scipy.spatial import cKDTree
+    near = cKDTree(grid.points).query(skin.points)[1]
+    bad = crumple_metric(skin, u[near], grid, u)  # the nearest-node copy makes steps
+    assert bad[arrays.CRUMPLE_VIOLATIONS] > 0
+
+
+def test_map_to_surface_methods(ball):
+    grid, skin = ball
+    g = grid.copy()
+    g[arrays.DISPLACEMENT] = 0.05 * np.asarray(grid.points, float) + [1.0, 0.0, -2.0]
+    out = map_to_surface(g, skin)
+    want = 0.05 * np.asarray(skin.points, float) + [1, 0, -2]
+    assert np.abs(out[arrays.DISPLACEMENT] - want).max() < 1e-9
+    assert np.allclose(out.points, skin.points + out[arrays.DISPLACEMENT])
+    assert set(np.unique(out[arrays.TRANSFER_INSIDE])) <= {0, 1}
+    gauss = map_to_surface(g, skin, method="gaussian", sigma=1.5)
+    ref = SurfaceMapping(grid.points, skin.points, 1.5, 4.5)(g[arrays.DISPLACEMENT])
+    assert np.allclose(gauss[arrays.DISPLACEMENT], ref)
+    assert arrays.MAPPING_SUPPORT in gauss.point_data
+    assert np.allclose(Transfer(grid, skin.points)(g[arrays.DISPLACEMENT]),
+                       out[arrays.DISPLACEMENT])
+    with pytest.raises(ValueError, match="method"):
+        map_to_surface(g, skin, method="nearest")
+    with pytest.raises(ValueError, match="shape"):
+        transfer_operator(grid, np.zeros((3, 2)))
+    with pytest.raises(TypeError, match="UnstructuredGrid"):
+        transfer_operator(skin, skin.points)
