@@ -52,13 +52,14 @@ from .backends.cholmod import ORDERINGS, node_order
 from .backends.direct import Direct
 from .backends.gpu import GPU
 from .backends.relaxation import Relaxation
-from .constraints import Constraints, SolutionWarning, solution_checks  # noqa: F401
+from .constraints import Constraints, SolutionWarning, solution_checks
 from .materials import check_positive_definite, elastic_coefficients
 
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "Solver", "solve", "ConvergenceError", "IllConditionedWarning", "BackendUnavailableError",
+    "Solver", "solve", "SolutionWarning", "ConvergenceError", "IllConditionedWarning",
+    "BackendUnavailableError",
     "direct_backends", "gpu_available", "METHODS", "ORDERINGS", "PRECISIONS",
     "AUTO_DIRECT_MAX_POINTS", "FIELD_METHOD", "FIELD_BACKEND", "FIELD_RESIDUAL",
     "FIELD_ITERATIONS", "FIELD_TIME", "FIELD_ERROR_ESTIMATE", "FIELD_LOST_DIGITS",
