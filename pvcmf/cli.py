@@ -203,6 +203,11 @@ def _report(result):
     if result.post is not None:
         u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)
         print(f"\nprediction: {result.post.n_cells} tetrahedra, max displacement {u.max():.2f} mm")
+        fd = result.post.field_data
+        if arrays.MTM_INVERTED in fd.keys():
+            print(f"solution check: {int(fd[arrays.MTM_INVERTED][0])} inverted tetrahedra, largest "
+                  f"free displacement {float(fd[arrays.MTM_FREE_RATIO][0]):.2f} x the largest "
+                  "prescribed move")
     else:
         print("\nno prediction (meshing / materials / solver not available): "
               "segmentation and figures only")
