@@ -12,6 +12,15 @@
     Interactive planner in the web browser (:mod:`pvcmf.planner`, needs the ``planner``
     extra): sliders move the jaws, the predicted face updates live, *Save plan* writes a
     plan file for ``pvcmf simulate``.
+``pvcmf validate --pred predicted_skin.vtp --post SKIN_OR_CT --out DIR``
+    Judges a prediction against a post-operative skin (VTP/STL/PLY/OBJ) or CT:
+    point-to-plane ICP on the upper face, signed distances, paper 000 Figs. 6-8, the
+    region table (:mod:`pvcmf.study.validate`).
+
+``demo``, ``simulate`` and ``validate`` also write ``report.html``, one offline page with
+the 3D view, figures, plan, region table, versions and timings (:mod:`pvcmf.report`;
+``--no-report`` to skip); ``--skin-format stl|obj|ply`` adds the predicted skin for
+planning software (:func:`pvcmf.io.write_surface`).
 
 Every command checks its ``--out`` path before any work. A run is built in a hidden
 sibling of ``--out`` and renamed onto it at the end, under a lock: an interrupted run
@@ -34,10 +43,12 @@ import pyvista as pv
 
 from . import __version__, arrays, datasets
 from .datasets import headsq
-from .io import export, read_ct, read_landmarks, read_plan_file
+from . import report
+from .io import export, read_ct, read_landmarks, read_plan_file, write_surface
 from .outputs import check_output_dir, check_output_file
 from .pipeline import STEPS, flip_axes, simulate
 from .planner import add_plan_parser, run_plan
+from .study.validate import validate, write_validation
 from .sweeps import add_sweep_parser, run_sweep
 
 log = logging.getLogger(__name__)
@@ -86,6 +97,38 @@ def _common(parser):
                         help="only segment, cut the bones and draw the plan (no mesh/solve)")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="log more (-v info, -vv debug)")
+    parser.add_argument("--no-report", action="store_true",
+                        help="do not write report.html (pvcmf.report)")
+    parser.add_argument("--skin-format", action="append", choices=("stl", "obj", "ply"),
+                        default=[], help="also write the predicted skin as "
+                        "predicted_skin.stl/.obj/.ply for planning software (repeatable)")
+
+
+def _add_validate_parser(sub):
+    val = sub.add_parser("validate", help="judge a predicted skin against a post-operative "
+                                          "skin or CT (ICP, signed distances, Figs. 6-8)")
+    val.add_argument("--pred", required=True, type=Path,
+                     help="predicted skin (predicted_skin.vtp of pvcmf simulate, or STL/PLY/OBJ)")
+    val.add_argument("--post", required=True, type=Path,
+                     help="post-operative skin (.vtp/.stl/.ply/.obj/.vtk) or CT (DICOM folder, "
+                          ".nii(.gz), .nrrd, .mha/.mhd, .vti), in any pose")
+    val.add_argument("--out", required=True, type=Path, help="output folder")
+    val.add_argument("--pre", type=Path, default=None,
+                     help="pre-operative skin, the ICP target (default: skin_pre.vtp next to "
+                          "--pred if there, else the prediction itself)")
+    val.add_argument("--region", default="upper",
+                     help="ICP region surgery leaves unchanged: 'upper' (forehead, orbits, nose "
+                          "bridge; default) or xmin,xmax,ymin,ymax,zmin,zmax in mm")
+    val.add_argument("--landmarks", type=Path, default=None,
+                     help="Slicer markups (.mrk.json/.fcsv): nasion for the region, nose/lips/"
+                          "chin for the face regions")
+    val.add_argument("--max-distance", type=_positive_float, default=10.0,
+                     help="median distance (mm) above which the skins are said not to overlap")
+    val.add_argument("--no-figures", action="store_true", help="do not draw Figs. 6-8")
+    val.add_argument("--no-report", action="store_true", help="do not write report.html")
+    val.add_argument("--no-progress", action="store_true", help="no progress bar")
+    val.add_argument("-v", "--verbose", action="count", default=0,
+                     help="log more (-v info, -vv debug)")
 
 
 def build_parser():
@@ -131,6 +174,7 @@ def build_parser():
     sim.add_argument("--flip", default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
+    _add_validate_parser(sub)
     add_sweep_parser(sub)  # `pvcmf sweep`: parameter studies on Dask (pvcmf/sweeps.py)
     add_plan_parser(sub)  # `pvcmf plan`: interactive planner (pvcmf/planner)
     return parser
@@ -150,11 +194,25 @@ def _demo(args):
           f"{case.plan.name or 'plan'}: "
           + "; ".join(f"{o.segment} T{o.translation} R{o.rotation}"
                       for o in case.plan.osteotomies))
-    result = simulate(case.ct, case.plan, args.out, bones=case.truth,
-                      landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
-                      predict=not args.no_predict, muscles=not args.no_muscles,
-                      figures=not args.no_figures, progress_bar=not args.no_progress)
+    with report.disabled():  # written below, with every step's time
+        result = simulate(case.ct, case.plan, args.out, bones=case.truth,
+                          landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
+                          predict=not args.no_predict, muscles=not args.no_muscles,
+                          figures=not args.no_figures, progress_bar=not args.no_progress)
     result.timings = {"phantom": seconds, **result.timings}
+    return _finish(result, args)
+
+
+def _finish(result, args):
+    """Skin exports (``--skin-format``) and ``report.html`` (unless ``--no-report``)."""
+    for fmt in args.skin_format:
+        if result.skin_post is not None:
+            result.files[f"skin_{fmt}"] = write_surface(result.skin_post,
+                                                        args.out / f"predicted_skin.{fmt}")
+    if not args.no_report and args.out.is_dir():
+        start = time.perf_counter()
+        result.files["report"] = report.write_report(args.out, result=result)
+        result.timings["report"] = time.perf_counter() - start
     return result
 
 
@@ -181,14 +239,44 @@ def _simulate(args):
             units = float(units)
         except ValueError:
             raise ValueError(f"--units must be 'auto', 'hu' or a number, got {units!r}") from None
-    result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
-                      predict=not args.no_predict, muscles=not args.no_muscles,
-                      figures=not args.no_figures, progress_bar=not args.no_progress,
-                      units=units, orient=args.orient)
+    with report.disabled():  # written below, with every step's time
+        result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
+                          predict=not args.no_predict, muscles=not args.no_muscles,
+                          figures=not args.no_figures, progress_bar=not args.no_progress,
+                          units=units, orient=args.orient)
     result.timings = {"read": seconds, **result.timings}
     if args.export is not None and result.post is not None:  # --export: the solved model
         result.files["export"] = export(result.post, args.export)
-    return result
+    return _finish(result, args)
+
+
+def _validate(args):
+    pre = args.pre
+    if pre is None and (args.pred.parent / "skin_pre.vtp").exists():
+        pre = args.pred.parent / "skin_pre.vtp"
+    landmarks = read_landmarks(args.landmarks) if args.landmarks else None
+    v = validate(args.pred, args.post, pre=pre, region=args.region, landmarks=landmarks,
+                 max_distance=args.max_distance, progress_bar=not args.no_progress)
+    inputs = {"pred": args.pred, "post": args.post, "pre": pre or "(the prediction)",
+              "region": args.region, "landmarks": args.landmarks or "(none)"}
+    args.out.mkdir(parents=True, exist_ok=True)
+    figures = {} if args.no_figures else report.validation_figures(v.skin, args.out,
+                                                                   case=args.pred.stem)
+    write_validation(v, args.out, inputs=inputs, extra_files=figures)
+    if not args.no_report:
+        v.files["report"] = report.write_report(args.out, title=f"Validation: {args.pred}")
+    return v
+
+
+def _report_validation(v):
+    table = v.table[["region", "n", "median", "p50", "p90", "p95", "within_1mm", "within_2mm"]]
+    print(table.to_string(index=False, float_format=lambda x: f"{x:.2f}"))
+    reg = v.registration
+    print(f"\nICP on the unchanged region: RMS {reg['rms_mm']:.3f} mm, "
+          f"{'converged' if reg['converged'] else 'NOT converged'}")
+    print("\nwrote:")
+    for path in v.files.values():
+        print(f"  {path}")
 
 
 def _report(result):
@@ -230,8 +318,8 @@ def _check_out(args):
         return
     if args.command == "sweep":
         check_output_file(args.out, "--out", suffixes=(".csv", ".parquet"))
-    else:
-        args.out = check_output_dir(args.out, "--out")
+    else:  # validate writes beside what is there; demo and simulate replace the folder
+        args.out = check_output_dir(args.out, "--out", replaces=args.command != "validate")
 
 
 def main(argv=None):
@@ -245,7 +333,8 @@ def main(argv=None):
         if args.command == "plan":  # serves until stopped; nothing to report
             return run_plan(args)
         _check_out(args)
-        result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep}[args.command](args)
+        result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep,
+                  "validate": _validate}[args.command](args)
     except KeyboardInterrupt as err:
         print("interrupted: the output folder was left as it was", file=sys.stderr)
         return 143 if isinstance(err, Terminated) else 130
@@ -261,9 +350,12 @@ def main(argv=None):
               f"(run with -vv for the traceback; the output folder was left as it was)",
               file=sys.stderr)
         return 1
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    (_report_sweep if args.command == "sweep" else _report)(result)
+        _check_out(args)
+        result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep,
+                  "validate": _validate}[args.command](args)
+    except KeyboardInterrupt as err:
+        print("interrupted: the output folder was left as it was", file=sys.stderr)
+        return 143 if isinstance(err, Terminated) else 130
     return 0
 
 

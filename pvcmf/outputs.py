@@ -56,20 +56,17 @@ def _check_path(out, name):
                          f"({err.strerror or err})") from None
     os.close(fd)
     os.remove(probe)
-    cwd = Path.cwd()
-    if path == cwd or path in cwd.parents:
-        raise ValueError(f"{name}={str(out)!r} is (or holds) the current folder {cwd}; a run "
-                         "replaces its output folder as a whole: name a new folder")
     return path
 
 
-def check_output_dir(out, name="out"):
+def check_output_dir(out, name="out", *, replaces=True):
     """Check an output folder before any work; returns it as an absolute path.
 
     Refused (``ValueError`` naming ``name``): an empty path, an existing file, a path
-    under a file, a parent folder that is not writable, and an existing non-empty
-    folder that holds no earlier run (no :data:`RUN_MARKER`): a run replaces the whole
-    folder and must never delete files it did not write.
+    under a file, a parent folder that is not writable, and, for a run that replaces
+    the folder (``replaces=True``), the current folder and an existing non-empty folder
+    that holds no earlier run (no :data:`RUN_MARKER`): a run replaces the whole folder
+    and must never delete files it did not write.
 
     Examples
     --------
@@ -84,6 +81,12 @@ def check_output_dir(out, name="out"):
         raise ValueError(f"{name}={str(out)!r} is a file, expected a folder")
     if path.parent == path:
         raise ValueError(f"{name}={str(out)!r} is the file system root, expected a folder")
+    if not replaces:
+        return path
+    cwd = Path.cwd()
+    if path == cwd or path in cwd.parents:
+        raise ValueError(f"{name}={str(out)!r} is (or holds) the current folder {cwd}; a run "
+                         "replaces its output folder as a whole: name a new folder")
     if path.is_dir():
         entries = [e for e in os.listdir(path) if not e.startswith(".")]
         if entries and not (path / RUN_MARKER).is_file():
@@ -208,7 +211,8 @@ def write_outputs(result, out, images=None):
     Files: ``predicted_skin.vtp`` (predicted skin with ``displacement``),
     ``deformed_mesh.vtu`` (the mesh at its predicted position, with ``displacement`` and
     the ``bc`` arrays), ``skin_pre.vtp``, the PNGs in ``images`` and ``summary.json``
-    (seconds per step, skipped steps, the plan). Returns ``result.files``.
+    (seconds per step, skipped steps, the plan), then ``report.html``
+    (:func:`pvcmf.report.write_report`). Returns ``result.files``.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -240,6 +244,10 @@ def write_outputs(result, out, images=None):
             summary.update(inverted_cells=int(fd[arrays.MTM_INVERTED][0]),
                            free_over_prescribed=ratio if np.isfinite(ratio) else None)
     files["summary"] = write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    from .report import write_report  # the report sits above the pipeline: imported on use
+    page = write_report(out, result=result)  # report.html; None in pvcmf.report.disabled()
+    if page is not None:
+        files["report"] = page
     return files
 
 

@@ -88,12 +88,30 @@ def test_male_no_hard_tissue_far_from_the_skeleton(male):
     assert np.all(dist[hard] <= 3.0)
 
 
-@pytest.mark.xfail(reason="find_jaws: the female scan's teeth are below the teeth level of "
-                          "its histogram; the occlusion is not found", strict=False)
+@pytest.mark.xfail(reason="at 2 mm (every second voxel) the temporomandibular joint space is "
+                          "below the voxel size: the mandible touches the skull and erosion by "
+                          "whole 2 mm voxels breaks it apart; the 1 mm scan passes",
+                   strict=False)
 def test_female_jaws(female):
+    """The female's maxilla is edentulous and her mouth open: one dental arch (the lower
+    incisors and canines); the mandible is one piece with both condyles, and the maxilla is
+    seeded by the alveolar ridge."""
     _, lab = female
     bone = _vol(pvcmf.filters.find_jaws(lab), arrays.BONE)
     mand = bone == arrays.MANDIBLE
     _, n = ndimage.label(mand, np.ones((3, 3, 3), bool))
     assert n == 1
-    assert np.count_nonzero(mand) * np.prod(lab.spacing) > 40000.0
+    vox = np.prod(lab.spacing) / 1000.0
+    assert 25.0 < np.count_nonzero(mand) * vox < 60.0  # mL: an adult mandible
+    teeth = _vol(lab) == arrays.TEETH
+    assert np.all(mand[teeth])  # every (lower) tooth in the mandible
+    # both condyles: mandible on each side of the midline up to the skull base, at least
+    # 40 mm above the incisal edges
+    i = np.nonzero(mand)
+    xc = np.median(np.nonzero(teeth)[0])
+    z_teeth = np.nonzero(teeth)[2].max()
+    for side in (i[0] < xc - 20.0 / lab.spacing[0], i[0] > xc + 20.0 / lab.spacing[0]):
+        assert (i[2][side].max() - z_teeth) * lab.spacing[2] > 40.0
+    maxilla = bone == arrays.MAXILLA
+    assert 2.0 < np.count_nonzero(maxilla) * vox < 30.0
+    assert np.all(i[2].min() < np.nonzero(maxilla)[2].min())

@@ -14,6 +14,8 @@
   upper teeth: the cut runs through the lateral nasal walls and the maxillary sinuses, the
   palate and the tooth roots stay below it), in front of the pterygoid region (a margin
   behind the last upper tooth) and joined to the upper teeth; every upper tooth is in it.
+  An edentulous maxilla (one dental arch, the lower one) is seeded by its alveolar ridge over
+  the lower arch and ends behind at the posterior nasal spine.
 
 Everything else is ``CRANIUM``. Delegates to :mod:`scipy.ndimage` (labelling, erosion,
 distance transforms); no loop over voxels.
@@ -35,13 +37,27 @@ __all__ = ["find_jaws", "segment_volumes"]
 
 _FACES = ndimage.generate_binary_structure(3, 1)
 _CUBE = np.ones((3, 3, 3), dtype=bool)
-#: margin (mm) behind the last upper tooth where the Le Fort I cut ends (pterygoid plates)
+#: margin (mm) behind the last upper tooth where the Le Fort I cut ends at the
+#: pterygomaxillary junction: the mesiodistal widths of the second and third molars that may
+#: be missing behind a first molar (9 and 8.5 mm, Wheeler's Dental Anatomy) plus the
+#: maxillary tuberosity behind the third molar (about 7 mm)
 POSTERIOR_MARGIN = 25.0
-#: height (mm) of the Le Fort I cut above the nasal floor: through the lateral nasal walls
-#: and the maxillary sinuses, the palate and every root below it
+#: height (mm) of the Le Fort I cut above the nasal floor: the osteotomy enters the
+#: piriform aperture 5-6 mm above the nasal floor and runs above the apices of the teeth
+#: (Bell, J Oral Surg 1975; Hall & McKenna), the palate and every root below it
 LEFORT_ABOVE_FLOOR = 6.0
 #: dense bone (petrous temporal bone) this close (mm) to the intracranial volume is no tooth
 SKULL_BASE_MM = 15.0
+#: height (mm) of the alveolar process beside the roots that tells a lone arch's side: the
+#: roots are 13-17 mm long (Wheeler's Dental Anatomy: maxillary canine root 17 mm,
+#: mandibular incisor root 12.5 mm)
+ALVEOLAR_MM = 15.0
+#: smallest area (mm^2) of nasal floor seen on the palate in one slice
+PALATE_MM2 = 50.0
+#: thickness (mm) of the nasal mucosa between the palate's bone and the nasal air
+MUCOSA_MM = 4.0
+#: height (mm) of an edentulous alveolar ridge taken as the maxilla's seed
+RIDGE_MM = 5.0
 #: most erosion steps tried to free the mandible from the skull
 MAX_EROSION = 4
 
@@ -108,13 +124,11 @@ def find_jaws(labels, *, progress_bar=False):
     if teeth.sum() < 10:
         raise ValueError("find_jaws: fewer than 10 tooth voxels: cannot find the jaws from the "
                          "anatomy; give the plan's osteotomies cut planes")
-    z_occ = _occlusal_level(teeth, spacing)
-    say("find_jaws: occlusal level at slice %d of the bone box", z_occ)
-    upper = teeth.copy()
-    upper[:, :, :z_occ + 1] = False
-    lower = teeth & ~upper
+    z_occ, upper, lower = _arches(teeth, hard, spacing)
+    say("find_jaws: occlusal level at slice %d of the bone box (%d upper, %d lower tooth "
+        "voxels)", z_occ, int(upper.sum()), int(lower.sum()))
     mandible = _mandible(hard, upper, lower, z_occ, spacing)
-    maxilla = _maxilla(hard & ~mandible, upper, tissue[box] == arrays.AIR, z_occ, spacing)
+    maxilla = _maxilla(hard & ~mandible, upper, lower, tissue[box] == arrays.AIR, z_occ, spacing)
     bone = np.zeros(dims, dtype=np.uint8)
     sub = np.where(hard, arrays.CRANIUM, arrays.BONE_NONE).astype(np.uint8)
     sub[maxilla] = arrays.MAXILLA
@@ -138,20 +152,44 @@ def _far_from(mask, spacing, distance):
     return far[tuple(slice(0, n) for n in mask.shape)]
 
 
-def _occlusal_level(teeth, spacing):
-    """Slice index between the upper and lower teeth: fewest tooth voxels between peaks."""
+def _arches(teeth, hard, spacing):
+    """Occlusal slice and the upper and lower tooth voxels.
+
+    Two arches: the slice of fewest tooth voxels between the two largest peaks of the teeth's
+    height profile. One arch (an edentulous jaw, or an open mouth whose arches share no
+    slice of teeth): the arch is the lower one when its footprint holds more bone in the
+    ``ALVEOLAR_MM`` below the teeth than above them (the alveolar process and the body
+    hold the roots below the lower crowns, the alveolar process and palate above the upper
+    ones), and the occlusal level is at its crowns' free end.
+    """
     profile = teeth.sum(axis=(0, 1)).astype(float)
     smooth = ndimage.gaussian_filter1d(profile, max(1.0, 1.5 / spacing[2]))
     z = np.flatnonzero(profile)
     lo, hi = int(z[0]), int(z[-1])
-    if hi - lo < 2:
-        return lo
-    peaks = [i for i in range(lo, hi + 1)
-             if smooth[i] >= smooth[max(i - 1, 0)] and smooth[i] > smooth[min(i + 1, hi)]]
-    if len(peaks) < 2:  # one arch or one block: split at the middle of the teeth
-        return (lo + hi) // 2
-    a, b = sorted(sorted(peaks, key=lambda i: smooth[i])[-2:])
-    return int(a + np.argmin(smooth[a:b + 1]))
+    inner = np.arange(lo + 1, hi)
+    peaks = inner[(smooth[inner] >= smooth[inner - 1]) & (smooth[inner] > smooth[inner + 1])]
+    gap = int(round(ALVEOLAR_MM / spacing[2]))
+    if len(peaks) >= 2:
+        a, b = sorted(peaks[np.argsort(smooth[peaks])[-2:]])
+        # two peaks of one arch (enamel of the crowns and its partial volume) are closer
+        # than a crown's height apart and have teeth in every slice between them
+        if b - a > gap // 2 or np.any(profile[a:b + 1] == 0):
+            z_occ = int(a + np.argmin(smooth[a:b + 1]))
+            upper = teeth.copy()
+            upper[:, :, :z_occ + 1] = False
+            return z_occ, upper, teeth & ~upper
+    foot = ndimage.binary_dilation(teeth.any(axis=2),
+                                   iterations=max(1, int(round(3.0 / spacing[0]))))
+    bone = (hard & ~teeth)[foot].sum(axis=0)
+    below, above = bone[max(lo - gap, 0):lo].sum(), bone[hi + 1:hi + 1 + gap].sum()
+    none = np.zeros_like(teeth)
+    if below >= above:
+        log.info("find_jaws: one dental arch, the lower one (bone below it %d, above %d "
+                 "voxels); no upper tooth", below, above)
+        return hi, none, teeth.copy()
+    log.info("find_jaws: one dental arch, the upper one (bone below it %d, above %d voxels); "
+             "no lower tooth", below, above)
+    return lo - 1, teeth.copy(), none
 
 
 def _mandible(hard, upper, lower, z_occ, spacing):
@@ -160,7 +198,8 @@ def _mandible(hard, upper, lower, z_occ, spacing):
     foot = ndimage.binary_dilation((upper | lower).any(axis=2),
                                    iterations=max(1, int(round(3.0 / spacing[0]))))
     cut = hard.copy()
-    cut[:, :, z_occ][foot] = False
+    if upper.any():
+        cut[:, :, z_occ][foot] = False
     top = np.zeros_like(hard)
     top[:, :, -max(1, int(round(5.0 / spacing[2]))):] = True
     anchor = (upper | top) & cut  # what must not be mandible
@@ -189,30 +228,82 @@ def _mandible(hard, upper, lower, z_occ, spacing):
     return lab == int(np.argmax(ids))
 
 
-def _maxilla(rest, upper, air, z_occ, spacing):
+def _maxilla(rest, upper, lower, air, z_occ, spacing):
     """Le Fort I segment of the non-mandible hard tissue ``rest`` (see module)."""
-    if not upper.any():
-        log.warning("find_jaws: no upper tooth found; no maxilla")
+    teeth = upper if upper.any() else lower
+    if not teeth.any():
         return np.zeros_like(rest)
-    ui = np.nonzero(upper)
-    z_top = int(ui[2].max())
-    foot = upper.any(axis=2)
-    foot = ndimage.binary_dilation(foot, iterations=max(1, int(round(5.0 / spacing[0]))))
-    # nasal floor: lowest air above the upper teeth over the dental arch
-    above = air & foot[:, :, None]
-    above[:, :, :z_top + 1] = False
-    z_air = np.flatnonzero(above.any(axis=(0, 1)))
-    z_floor = int(z_air[0]) if len(z_air) else z_top + int(round(15.0 / spacing[2]))
+    foot = ndimage.binary_dilation(teeth.any(axis=2),
+                                   iterations=max(1, int(round(5.0 / spacing[0]))))
+    if not upper.any():  # edentulous maxilla: over the lower arch, to its molars
+        foot = ndimage.binary_dilation(foot, iterations=max(1, int(round(10.0 / spacing[0]))))
+    if upper.any():
+        z_top = int(np.nonzero(upper)[2].max())
+    else:  # the alveolar ridge: the lowest RIDGE_MM of non-mandible bone over the arch
+        z_bone = np.flatnonzero((rest & foot[:, :, None])[:, :, z_occ + 1:].any(axis=(0, 1)))
+        if not len(z_bone):
+            log.warning("find_jaws: no upper tooth and no bone over the lower arch; no maxilla")
+            return np.zeros_like(rest)
+        z_top = z_occ + 1 + int(z_bone[0]) + int(round(RIDGE_MM / spacing[2]))
+    z_floor = _nasal_floor(rest, air, foot, z_top, spacing)
     z_cut = max(z_floor + int(round(LEFORT_ABOVE_FLOOR / spacing[2])), z_top + 1)
+    if upper.any():
+        y_back = int(np.nonzero(upper)[1].min()) - int(round(POSTERIOR_MARGIN / spacing[1]))
+    else:
+        y_back = _posterior_nasal_spine(rest, foot, z_floor, spacing)
     region = rest.copy()
     region[:, :, z_cut:] = False
     region[:, :, :max(z_occ - int(round(5.0 / spacing[2])), 0)] = False
-    y_back = int(ui[1].min()) - int(round(POSTERIOR_MARGIN / spacing[1]))
     region[:, :max(y_back, 0), :] = False
-    lab, _ = ndimage.label(region | (upper & rest), _CUBE)
+    # seeds: the upper teeth, or (edentulous) the alveolar ridge over the lower arch
+    seeds = upper & rest if upper.any() else region & foot[:, :, None]
+    seeds[:, :, z_top + 1:] = False
+    if not seeds.any():
+        log.warning("find_jaws: no upper tooth and no alveolar ridge over the lower arch; "
+                    "no maxilla")
+        return np.zeros_like(rest)
+    lab, _ = ndimage.label(region | seeds, _CUBE)
     keep = np.zeros(lab.max() + 1, dtype=bool)
-    keep[np.unique(lab[upper & rest])] = True
+    keep[np.unique(lab[seeds])] = True
     keep[0] = False
-    log.debug("find_jaws: Le Fort I below slice %d (nasal floor %d, upper teeth top %d)",
-              z_cut, z_floor, z_top)
+    log.debug("find_jaws: Le Fort I below slice %d (nasal floor %d, upper teeth top %d), "
+              "in front of y index %d (posterior nasal spine)", z_cut, z_floor, z_top, y_back)
     return keep[lab] | (upper & rest)
+
+
+def _nasal_floor(rest, air, foot, z_top, spacing):
+    """Slice of the nasal floor: the lowest slice above ``z_top`` where the palate (non-mandible
+    bone over the arch's footprint) has air at most ``MUCOSA_MM`` above it over at least
+    ``PALATE_MM2``; 15 mm above the teeth where no such slice exists."""
+    reach = max(1, int(round(MUCOSA_MM / spacing[2])))
+    air_above = np.zeros_like(air)
+    for k in range(1, reach + 1):  # a few shifts along z
+        air_above[:, :, :-k] |= air[:, :, k:]
+    on_bone = rest & air_above & foot[:, :, None]
+    area = on_bone.sum(axis=(0, 1)) * spacing[0] * spacing[1]
+    area[:z_top + 1] = 0
+    z = np.flatnonzero(area >= PALATE_MM2)
+    if len(z):
+        return int(z[0])
+    log.warning("find_jaws: no nasal floor found above the teeth; the Le Fort I level is "
+                "15 mm above them")
+    return z_top + int(round(15.0 / spacing[2]))
+
+
+def _posterior_nasal_spine(rest, foot, z_floor, spacing):
+    """y index of the posterior nasal spine: the back end of the hard palate in the midline
+    (the 4 mm below the nasal floor, the midline +-3 mm of the arch), followed from the
+    arch's front to the first gap of 3 mm; the pterygomaxillary junction, where Le Fort I
+    separates the maxilla from the pterygoid plates, lies in about its coronal plane."""
+    xs = np.flatnonzero(foot.any(axis=1))
+    xc = int(round(0.5 * (xs[0] + xs[-1])))
+    half = max(1, int(round(3.0 / spacing[0])))
+    z0 = max(z_floor - int(round(4.0 / spacing[2])), 0)
+    palate = rest[max(xc - half, 0):xc + half + 1, :, z0:z_floor + 1].any(axis=(0, 2))
+    front = int(np.flatnonzero(foot.any(axis=0)).max())
+    bone_y = np.flatnonzero(palate[:front + 1])[::-1]  # from the front backwards
+    if not len(bone_y):
+        return int(np.flatnonzero(foot.any(axis=0)).min())
+    gap = max(1, int(round(3.0 / spacing[1])))
+    big = np.flatnonzero(-np.diff(bone_y) > gap)
+    return int(bone_y[big[0]]) if len(big) else int(bone_y[-1])

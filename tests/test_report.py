@@ -1,0 +1,153 @@
+"""The per-case report (``pvcmf.report``): contents, size, and a real headless browser.
+
+The browser tests open the page in Debian's Chromium (headless, WebGL on SwiftShader):
+no console error, the 3D view shows a non-blank face (screenshot pixels inside the
+viewer), and the tables hold the numbers of ``summary.json`` (DOM after the scripts
+ran). They skip where no Chromium is installed (CI installs it).
+"""
+
+import json
+import re
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from pvcmf import arrays
+from pvcmf.report import disabled, write_report
+from pvcmf.report.browser import check_page, find_chromium
+from pvcmf.report.scene import pack_skin
+
+needs_chromium = pytest.mark.skipif(find_chromium() is None,
+                                    reason="no Chromium (apt-get install chromium) to open "
+                                           "the report in")
+
+
+def _head(u_res=80, v_res=60):
+    head = pv.ParametricEllipsoid(70, 95, 110, u_res=u_res, v_res=v_res).clean().triangulate()
+    z = head.points[:, 2]
+    head[arrays.DISPLACEMENT] = np.c_[0 * z, -np.clip(-z / 25.0, 0, None), 0 * z]
+    return head
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """A prediction folder: skins, one PNG and a summary.json with timings and a plan."""
+    folder = tmp_path_factory.mktemp("case")
+    head = _head()
+    pre = head.copy()
+    pre.point_data.clear()
+    pre.save(folder / "skin_pre.vtp")
+    moved = head.copy()
+    moved.points = head.points + head[arrays.DISPLACEMENT]
+    moved.save(folder / "predicted_skin.vtp")
+    pl = pv.Plotter(off_screen=True, window_size=(120, 100))
+    pl.add_mesh(head)
+    pl.screenshot(folder / "face_post.png")
+    pl.close()
+    summary = {"plan": {"name": "test plan", "osteotomy": [
+        {"segment": "mandible", "translation": [0.0, 0.0, -5.0], "rotation": [0.0, 0.0, 0.0]}]},
+        "seconds": {"segment": 1.25, "mesh": 3.5, "solve": 0.75}}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    return folder, summary
+
+
+def _cells(dom, table_id):
+    m = re.search(rf'<table id="{table_id}">(.*?)</table>', dom, re.S)
+    assert m, f"no table {table_id}"
+    rows = re.findall(r"<tr>(.*?)</tr>", m.group(1), re.S)
+    return [re.findall(r"<t[dh]>(.*?)</t[dh]>", r, re.S) for r in rows]
+
+
+def test_report_is_self_contained(case):
+    folder, summary = case
+    page = write_report(folder)
+    text = page.read_text(encoding="utf-8")
+    assert page.name == "report.html"
+    # offline: no fetched script, style, image or font
+    assert not re.search(r"""(src|href)\s*=\s*["']?(https?:)?//""", text)
+    assert "data:image/png;base64," in text and "vtkGenericRenderWindow" in text
+    timings = dict((r[0], r[1]) for r in _cells(text, "timings")[1:])
+    assert timings == {**{k: f"{v:.2f}" for k, v in summary["seconds"].items()}, "total": "5.50"}
+    assert _cells(text, "plan")[1] == ["mandible", "0, 0, -5", "0, 0, 0"]
+    assert [r[0] for r in _cells(text, "versions")[1:3]] == ["pvcmf", "python"]
+
+
+def test_region_table_against_numpy(case):
+    folder, _ = case
+    text = write_report(folder).read_text(encoding="utf-8")
+    rows = {r[0]: r[1:] for r in _cells(text, "regions")[1:]}
+    from pvcmf.study.statistics import label_face_regions
+    pre = pv.read(folder / "skin_pre.vtp")
+    reg = label_face_regions(pre)[arrays.REGION]
+    u = np.linalg.norm(_head()[arrays.DISPLACEMENT], axis=1)
+    for name in ("chin", "nose", "all skin"):
+        a = u if name == "all skin" else u[reg == arrays.FACE_REGIONS[name]]
+        want = [str(a.size), *(f"{v:.2f}" for v in np.percentile(a, [50, 90, 95])),
+                f"{100 * np.mean(a <= 1):.2f}", f"{100 * np.mean(a <= 2):.2f}"]
+        assert rows[name] == want, name
+
+
+def test_disabled_writes_nothing(tmp_path):
+    _head().save(tmp_path / "predicted_skin.vtp")
+    with disabled():
+        assert write_report(tmp_path) is None
+    assert not (tmp_path / "report.html").exists()
+    with pytest.raises(FileNotFoundError, match="existing case folder"):
+        write_report(tmp_path / "missing")
+
+
+def test_size_of_a_100k_point_skin():
+    skin = pv.Sphere(radius=100, theta_resolution=400, phi_resolution=250)
+    assert skin.n_points > 99_000
+    rng = np.random.default_rng(0)
+    skin.points = skin.points + rng.normal(0, 0.3, skin.points.shape)  # a rough real skin
+    packed = pack_skin(skin, {"u": rng.random(skin.n_points)})
+    size = len(json.dumps(packed))
+    assert size < 5e6, size  # two such skins + 2.5 MB of vtk.js stay far below 15 MB
+    assert packed["n_points"] == skin.n_points
+    small = pack_skin(skin, max_points=20_000)
+    assert small["n_points"] <= 21_000
+
+
+@needs_chromium
+def test_report_in_headless_chromium(case, tmp_path):
+    folder, summary = case
+    page = write_report(folder)
+    shot = tmp_path / "shot.png"
+    check = check_page(page, shot, size=(1280, 900))
+    assert check.errors == [], check.errors
+    assert 'data-viewer="ready"' in check.dom, check.dom[-2000:]
+    # the numbers of summary.json, as the browser shows them
+    timings = dict((r[0], r[1]) for r in _cells(check.dom, "timings")[1:])
+    assert timings["mesh"] == f"{summary['seconds']['mesh']:.2f}"
+    # the 3D view: the viewer's box (about x 40-800, y 160-720 at this width) is not blank
+    from PIL import Image
+    img = np.asarray(Image.open(shot).convert("RGB"), dtype=int)
+    view = img[200:650, 100:740]
+    coloured = np.abs(view - 255).sum(axis=2) > 60
+    assert 0.05 < coloured.mean() < 0.9, coloured.mean()
+    # the displacement map is on: more than one colour in the face
+    assert len(np.unique(view[coloured] // 32, axis=0)) > 3
+
+
+@needs_chromium
+def test_browser_check_sees_errors(tmp_path):
+    page = tmp_path / "broken.html"
+    page.write_text("<html><body><script>undefinedFunction();</script></body></html>")
+    check = check_page(page, budget_ms=1000)
+    assert any("undefinedFunction" in e for e in check.errors), check.console
+
+
+def test_write_outputs_writes_the_report(tmp_path):
+    """``simulate(..., out)`` writes the page through ``write_outputs``; not when disabled."""
+    from test_cli import _small_result
+
+    from pvcmf.outputs import write_outputs
+
+    files = write_outputs(_small_result(), tmp_path / "a")
+    text = files["report"].read_text(encoding="utf-8")
+    assert files["report"].name == "report.html" and "<table id=\"plan\">" in text
+    with disabled():
+        files = write_outputs(_small_result(), tmp_path / "b")
+    assert "report" not in files and not (tmp_path / "b" / "report.html").exists()
