@@ -350,12 +350,9 @@ def main(argv=None):
               f"(run with -vv for the traceback; the output folder was left as it was)",
               file=sys.stderr)
         return 1
-        _check_out(args)
-        result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep,
-                  "validate": _validate}[args.command](args)
-    except KeyboardInterrupt as err:
-        print("interrupted: the output folder was left as it was", file=sys.stderr)
-        return 143 if isinstance(err, Terminated) else 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    {"sweep": _report_sweep, "validate": _report_validation}.get(args.command, _report)(result)
     return 0
 
 
