@@ -106,7 +106,10 @@ def _assert_one_run(out, before):
         return "unchanged"
     summary = json.loads(now["summary.json"])
     assert summary["complete"]
-    assert sorted(now) == sorted({*summary["files"].values(), "summary.json"}), "mixed runs"
+    # the CLI adds report.html to the swapped-in folder (same process, same run)
+    extra = set(now) - {*summary["files"].values(), "summary.json"} - {"report.html"}
+    assert not extra, f"files of another run: {extra}"
+    assert set(summary["files"].values()) <= set(now), "files missing"
     assert not [n for n in now if n.startswith(".")], "hidden temporary file inside the run"
     return "new run"
 
