@@ -1,16 +1,54 @@
 """Atomic file writing: write next to the target, then ``os.replace`` it into place.
 
 An interrupted write (exception, Ctrl-C, crash) leaves either the previous file or no
-file at all, never a half-written one. Delegates to :func:`tempfile.mkstemp` and
-:func:`os.replace` (atomic on POSIX and Windows when both paths share a folder).
+file at all, never a half-written one. The temporary files and folders are hidden
+siblings named ``.<name>.<random>.part<suffix>``, so that a later writer can remove
+those a killed process left behind (:func:`remove_temporaries`). Files and folders get the
+permissions the process's umask allows (``mkstemp``'s 0600 is widened to them).
+Delegates to :func:`tempfile.mkstemp` and :func:`os.replace` (atomic on POSIX and
+Windows when both paths share a folder).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
+
+
+def umask():
+    """The process's file-creation mask (read without changing it where the OS allows)."""
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def remove_temporaries(path):
+    """Remove the temporary siblings of ``path`` (files and folders) a dead writer left.
+
+    Call it only while no other writer of ``path`` can be running (e.g. under a lock).
+    Returns the removed paths.
+    """
+    path = Path(path)
+    removed = []
+    if not path.parent.is_dir():
+        return removed
+    for entry in path.parent.iterdir():
+        if entry.name.startswith(f".{path.name}.") and ".part" in entry.name:
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    entry.unlink()
+            removed.append(entry)
+    return removed
 
 
 @contextlib.contextmanager
@@ -36,6 +74,7 @@ def atomic_path(path):
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}",
                                dir=path.parent)
     os.close(fd)
+    os.chmod(tmp, 0o666 & ~umask())
     try:
         yield tmp
         os.replace(tmp, path)
@@ -56,8 +95,10 @@ def write_text(path, text):
 def atomic_dir(path):
     """Yield a temporary folder next to ``path``; move it onto ``path`` on success.
 
-    Whatever the caller writes into the folder appears at ``path`` all at once (a folder
-    already there is replaced). On any exception the temporary folder is removed and
+    Whatever the caller writes into the folder appears at ``path`` all at once: a folder
+    already there is first renamed aside (``.<name>.<random>.old.part``), the new one
+    renamed onto ``path``, then the old one removed, so ``path`` holds either the old or
+    the new folder, never a mix. On any exception the temporary folder is removed and
     ``path`` is left untouched.
 
     Examples
@@ -71,16 +112,23 @@ def atomic_dir(path):
     >>> sorted(os.listdir(out))
     ['a.txt']
     """
-    import shutil
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
+    os.chmod(tmp, 0o777 & ~umask())
+    old = None
     try:
         yield tmp
         if path.exists():
-            shutil.rmtree(path, ignore_errors=True)
+            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old.part",
+                                        dir=path.parent))
+            os.replace(path, old / "previous")
         os.replace(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and (old / "previous").exists() and not path.exists():
+            os.replace(old / "previous", path)  # put the previous folder back
         raise
+    finally:
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)

@@ -293,3 +293,11 @@ CRUMPLE_EDGES = "crumple_edges"  #: summary / field data: number of skin edges c
 SKIN_MODELLED = "skin_modelled"
 #: summary / field data: skin points the mesh models (:data:`SKIN_MODELLED`)
 SKIN_MODELLED_POINTS = "skin_modelled_points"
+
+
+# --------------------------------------------------------------------------- solution checks
+# field data of pvcmf.mtm.solve: what a linear solution does that tissue cannot
+MTM_INVERTED = "mtm_inverted_cells"  #: field, int64, tetrahedra the displacement turns inside out
+#: field, float64, largest |displacement| of a free (or sliding) node over the largest
+#: prescribed |bc_displacement| (NaN when nothing moves)
+MTM_FREE_RATIO = "mtm_free_over_prescribed"

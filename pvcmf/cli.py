@@ -22,8 +22,10 @@ the 3D view, figures, plan, region table, versions and timings (:mod:`pvcmf.repo
 ``--no-report`` to skip); ``--skin-format stl|obj|ply`` adds the predicted skin for
 planning software (:func:`pvcmf.io.write_surface`).
 
-Every file is written atomically (temporary file + ``os.replace``), so an interrupted
-run leaves no half-written file. Delegates to :mod:`argparse` and
+Every command checks its ``--out`` path before any work. A run is built in a hidden
+sibling of ``--out`` and renamed onto it at the end, under a lock: an interrupted run
+(Ctrl-C, SIGTERM, a crash) leaves ``--out`` as it was, and a killed one leaves a hidden
+sibling that the next run into that folder removes. Delegates to :mod:`argparse` and
 :func:`pvcmf.pipeline.simulate`. This is the only module of pvcmf that prints.
 """
 
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -43,6 +46,7 @@ from ._version import __version__
 from .datasets import headsq
 from . import report
 from .io import export, read_ct, read_landmarks, read_plan_file, write_surface
+from .outputs import check_output_dir, check_output_file
 from .pipeline import STEPS, flip_axes, simulate
 from .planner import add_plan_parser, run_plan
 from .study.validate import validate, write_validation
@@ -75,8 +79,14 @@ def _positive_float(text):
     return value
 
 
+def _out_path(text):
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"expected a folder path, got {text!r}")
+    return Path(text)
+
+
 def _common(parser):
-    parser.add_argument("--out", required=True, type=Path,
+    parser.add_argument("--out", required=True, type=_out_path,
                         help="output folder (created if missing)")
     parser.add_argument("--n-tets", type=_positive_int, default=DEMO_N_TETS,
                         help=f"requested number of tetrahedra (default {DEMO_N_TETS})")
@@ -280,6 +290,11 @@ def _report(result):
     if result.post is not None:
         u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)
         print(f"\nprediction: {result.post.n_cells} tetrahedra, max displacement {u.max():.2f} mm")
+        fd = result.post.field_data
+        if arrays.MTM_INVERTED in fd.keys():
+            print(f"solution check: {int(fd[arrays.MTM_INVERTED][0])} inverted tetrahedra, largest "
+                  f"free displacement {float(fd[arrays.MTM_FREE_RATIO][0]):.2f} x the largest "
+                  "prescribed move")
     else:
         print("\nno prediction (meshing / materials / solver not available): "
               "segmentation and figures only")
@@ -288,20 +303,40 @@ def _report(result):
         print(f"  {path}")
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that it cleans up like Ctrl-C."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
+def _check_out(args):
+    """Check ``--out`` before any work (a folder; a .csv/.parquet file for ``sweep``)."""
+    if getattr(args, "out", None) is None:
+        return
+    if args.command == "sweep":
+        check_output_file(args.out, "--out", suffixes=(".csv", ".parquet"))
+    else:  # validate writes beside what is there; demo and simulate replace the folder
+        args.out = check_output_dir(args.out, "--out", replaces=args.command != "validate")
+
+
 def main(argv=None):
     """Entry point of the ``pvcmf`` console script; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     pv.OFF_SCREEN = True
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         if args.command == "plan":  # serves until stopped; nothing to report
             return run_plan(args)
+        _check_out(args)
         result = {"demo": _demo, "simulate": _simulate, "sweep": _sweep,
                   "validate": _validate}[args.command](args)
-    except KeyboardInterrupt:
-        print("interrupted: no partial files were left behind", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:
+        print("interrupted: the output folder was left as it was", file=sys.stderr)
+        return 143 if isinstance(err, Terminated) else 130
     except (ValueError, TypeError, FileNotFoundError) as err:  # bad input
         if args.verbose >= 2:
             raise
@@ -311,9 +346,11 @@ def main(argv=None):
         if args.verbose >= 2:
             raise
         print(f"pvcmf {args.command}: failed: {type(err).__name__}: {err}\n"
-              f"(run with -vv for the traceback; no partial files were left behind)",
+              f"(run with -vv for the traceback; the output folder was left as it was)",
               file=sys.stderr)
         return 1
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     {"sweep": _report_sweep, "validate": _report_validation}.get(args.command, _report)(result)
     return 0
 

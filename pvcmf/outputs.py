@@ -3,12 +3,20 @@
 :func:`write_outputs` writes the predicted skin (VTP), the deformed mesh (VTU), the PNGs
 and a JSON summary, each atomically (temporary file in the same folder + ``os.replace``).
 Rendering delegates to :mod:`pvcmf.figures.face_views` (PyVista off screen, matplotlib),
-writing to VTK's XML writers and Pillow.
+writing to VTK's XML writers and Pillow. :func:`write_run` writes them into a hidden
+sibling folder and renames it onto the output folder: a folder holds one complete run,
+never files of two. :func:`check_output_dir` refuses a bad output path before any work,
+:func:`run_lock` serialises runs into one folder (:func:`pvcmf.cache.file_lock`) and
+removes what a killed run left beside it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +24,133 @@ import pyvista as pv
 from PIL import Image
 
 from . import arrays
-from ._atomic import atomic_path, write_text
+from ._atomic import atomic_dir, atomic_path, remove_temporaries, write_text
+from .cache import file_lock
 from .figures import face_views
 from .figures.osteotomy import osteotomy_panel
 
-__all__ = ["render", "write_outputs"]
+log = logging.getLogger(__name__)
+
+__all__ = ["render", "write_outputs", "write_run", "check_output_dir", "check_output_file",
+           "run_lock", "RUN_MARKER"]
+
+#: the file that marks a folder as a pvcmf run (a folder without it is never replaced)
+RUN_MARKER = "summary.json"
+
+
+def _check_path(out, name):
+    """``out`` as an absolute path; refuse empty paths and paths under a file."""
+    if out is None or not isinstance(out, (str, os.PathLike)):
+        raise TypeError(f"{name} must be a path (str or pathlib.Path), got {type(out).__name__}")
+    if not str(os.fspath(out)).strip():
+        raise ValueError(f"{name} must name a folder or file, got an empty path {out!r}")
+    path = Path(os.path.abspath(Path(out).expanduser()))
+    ancestor = path.parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ValueError(f"{name}={str(out)!r} lies under {ancestor}, which is a file, "
+                         "not a folder")
+    try:  # a probe file: permissions, read-only or special file systems all show here
+        fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=ancestor)
+    except OSError as err:
+        raise ValueError(f"{name}={str(out)!r}: cannot write in {ancestor} "
+                         f"({err.strerror or err})") from None
+    os.close(fd)
+    os.remove(probe)
+    return path
+
+
+def check_output_dir(out, name="out", *, replaces=True):
+    """Check an output folder before any work; returns it as an absolute path.
+
+    Refused (``ValueError`` naming ``name``): an empty path, an existing file, a path
+    under a file, a parent folder that is not writable, and, for a run that replaces
+    the folder (``replaces=True``), the current folder and an existing non-empty folder
+    that holds no earlier run (no :data:`RUN_MARKER`): a run replaces the whole folder
+    and must never delete files it did not write.
+
+    Examples
+    --------
+    >>> from pvcmf.outputs import check_output_dir
+    >>> check_output_dir("")
+    Traceback (most recent call last):
+    ...
+    ValueError: out must name a folder or file, got an empty path ''
+    """
+    path = _check_path(out, name)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{name}={str(out)!r} is a file, expected a folder")
+    if path.parent == path:
+        raise ValueError(f"{name}={str(out)!r} is the file system root, expected a folder")
+    if not replaces:
+        return path
+    cwd = Path.cwd()
+    if path == cwd or path in cwd.parents:
+        raise ValueError(f"{name}={str(out)!r} is (or holds) the current folder {cwd}; a run "
+                         "replaces its output folder as a whole: name a new folder")
+    if path.is_dir():
+        entries = [e for e in os.listdir(path) if not e.startswith(".")]
+        if entries and not (path / RUN_MARKER).is_file():
+            raise ValueError(
+                f"{name}={str(out)!r} is a folder with {len(entries)} entries but no "
+                f"{RUN_MARKER}: it holds no earlier pvcmf run, and a run replaces the whole "
+                "folder; choose a new or empty folder"
+            )
+        if not os.access(path.parent, os.W_OK | os.X_OK):
+            raise ValueError(f"{name}={str(out)!r}: its parent folder {path.parent} is not "
+                             "writable (the run is built beside it and renamed into place)")
+    return path
+
+
+def check_output_file(out, name="out", suffixes=None):
+    """Check an output file path before any work; returns it as an absolute path.
+
+    Refused: an empty path, an existing folder, a path under a file, a folder that is
+    not writable, and (with ``suffixes``) another extension.
+    """
+    path = _check_path(out, name)
+    if path.is_dir():
+        raise ValueError(f"{name}={str(out)!r} is a folder, expected a file path")
+    if suffixes is not None and path.suffix.lower() not in suffixes:
+        raise ValueError(f"{name}={str(out)!r} must end in one of {list(suffixes)}, "
+                         f"got {path.suffix!r}")
+    return path
+
+
+@contextlib.contextmanager
+def run_lock(out):
+    """Hold the lock of output folder ``out`` (waiting for a run writing there).
+
+    The lock is the hidden sibling file ``.<name>.lock`` (:func:`pvcmf.cache.file_lock`;
+    a lock whose process died is broken). Once held, the temporary siblings a killed run
+    left are removed. ``out=None`` does nothing.
+    """
+    if out is None:
+        yield
+        return
+    out = Path(out)
+    lock = out.parent / f".{out.name}.lock"
+    if lock.exists():
+        log.warning("another pvcmf run is writing to %s; waiting for it", out)
+    with file_lock(lock, stale_after=float("inf")):
+        for stale in remove_temporaries(out):
+            log.warning("removed %s, left by an interrupted run", stale)
+        yield
+
+
+def write_run(result, out, images=None, writer=None):
+    """Write a result's files into a temporary sibling of ``out``, then swap it in.
+
+    ``out`` then holds this run's files only (an earlier run there is replaced as a
+    whole); an interruption leaves ``out`` as it was. ``writer(result, folder, images)``
+    writes the files (default :func:`write_outputs`). Returns ``result.files``.
+    """
+    out = Path(out)
+    with atomic_dir(out) as tmp:
+        files = (writer or write_outputs)(result, tmp, images)
+    result.files = {key: out / Path(path).name for key, path in files.items()}
+    return result.files
 
 
 def _front_camera(plotter, bounds, zoom=1.0):
@@ -138,6 +268,11 @@ def write_outputs(result, out, images=None):
         u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)
         summary.update(n_tets=int(result.post.n_cells), n_points=int(result.post.n_points),
                        max_displacement_mm=float(u.max()))
+        fd = result.post.field_data
+        if arrays.MTM_INVERTED in fd.keys():  # the solver's flags (pvcmf.mtm.solution_checks)
+            ratio = float(fd[arrays.MTM_FREE_RATIO][0])
+            summary.update(inverted_cells=int(fd[arrays.MTM_INVERTED][0]),
+                           free_over_prescribed=ratio if np.isfinite(ratio) else None)
     files["summary"] = write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     return files
 

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +35,7 @@ from .filters.surface_mapping import Transfer, crumple_metric
 from .filters.osteotomy import cut_bones, move_bones
 from .io import read_ct
 from .io.orientation import standardize
-from .outputs import render, write_outputs
+from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
 from .plan import Plan, read_plan
 from .progress import Progress
@@ -49,7 +51,8 @@ STEPS = ("read", "segment", "bone segments", "muscles", "mesh", "fibres", "mater
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
 DEFAULT_N_TETS = 25_000
 #: boundary-condition options of the pipeline (see :func:`pvcmf.filters.apply_plan`)
-DEFAULT_BC_OPTIONS = {"fix_unmoved_bone": True}
+#: (fixed nodes near a moving one are left free: no tissue torn along the osteotomy line)
+DEFAULT_BC_OPTIONS = {"fix_unmoved_bone": True, "release_margin": "auto"}
 #: default anterior share of the head that is meshed (the face model of paper 000)
 DEFAULT_FACE_FRACTION = 0.5
 
@@ -196,7 +199,12 @@ def _mesh(labels, n_tets, options, progress_bar, face_fraction):
     options = dict(options)
     if face_fraction is not None and "roi" not in options:
         options["roi"] = face_box(labels, face_fraction)
-    return filters.tetrahedralize(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
+    handler = signal.getsignal(signal.SIGTERM)
+    try:
+        return filters.tetrahedralize(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
+    finally:  # gmsh's initialisation resets SIGTERM to the default: restore the caller's
+        if handler is not None and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, handler)
 
 
 def _fibres(grid):
@@ -323,6 +331,9 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         The surgical plan, or a TOML/JSON plan file.
     out : str or pathlib.Path, optional
         Folder for the outputs (see :func:`write_outputs`); nothing is written if None.
+        Checked first (:func:`pvcmf.outputs.check_output_dir`); the run is built in a
+        hidden sibling folder and renamed onto ``out`` at the end, under a lock
+        (:func:`pvcmf.outputs.run_lock`): ``out`` holds one complete run or is unchanged.
     labels : pyvista.ImageData, optional
         Precomputed ``tissue``/``bone`` labels: skips segmentation.
     bones : pyvista.ImageData, optional
@@ -386,8 +397,9 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     plan, opts = _check_inputs(plan, n_tets, face_fraction, bones, segment_options=segment_options,
                                mesh_options=mesh_options, material_options=material_options,
                                bc_options=bc_options, solve_options=solve_options)
+    out = None if out is None else check_output_dir(out)  # before any work
     result = Result(plan=plan)
-    with Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
+    with run_lock(out), Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
         run = _Runner(result, bar)
         ct = _read_step(run, ct, units, orient)
         labels = _label_steps(run, ct, labels, bones, plan, opts)
@@ -510,4 +522,4 @@ def _output_steps(run, out, *, solve, figures):
     pngs = render(result) if figures else {}
     result.timings["figures"] = time.perf_counter() - start
     run.progress.step("figures")
-    run.run("write", _write_outputs, result, out, pngs)
+    run.run("write", write_run, result, out, pngs, writer=_write_outputs)

@@ -39,7 +39,8 @@ Plans are read and written as TOML or JSON (:meth:`Plan.from_file`, :meth:`Plan.
     point = [0.0, 0.0, -20.0]
     normal = [0.0, 0.0, -1.0]
 
-Unknown keys, non-finite numbers, rotations over :data:`MAX_ROTATION_DEG` and segments
+Unknown keys, non-finite numbers, rotations over :data:`MAX_ROTATION_DEG`, translations
+over :data:`MAX_TRANSLATION_MM` and segments
 the bone label image does not contain (:meth:`Plan.check_segments`) raise
 :class:`ValueError` naming the key and the value. Reading delegates to :mod:`tomllib`
 (``tomli`` on Python 3.10) and :mod:`json`; writing is atomic (temp file + ``os.replace``).
@@ -59,6 +60,8 @@ from ._atomic import write_text
 
 #: largest rotation (degrees, about any one axis) a plan may ask for
 MAX_ROTATION_DEG = 30.0
+#: largest translation (mm, along any one axis) a plan may ask for
+MAX_TRANSLATION_MM = 50.0
 #: segments a plan may move
 MOVABLE_SEGMENTS = tuple(k for k in arrays.BONE_LABELS if k not in ("none", "cranium"))
 _PLAN_KEYS = ("name", "osteotomy")
@@ -111,7 +114,8 @@ class Osteotomy:
     Raises
     ------
     ValueError
-        Unknown segment, non-finite numbers, a rotation above :data:`MAX_ROTATION_DEG`
+        Unknown segment, non-finite numbers, a rotation above :data:`MAX_ROTATION_DEG`,
+        a translation above :data:`MAX_TRANSLATION_MM`
         or a zero-length cut normal.
 
     Examples
@@ -141,6 +145,13 @@ class Osteotomy:
                 f"rotation must be within +-{MAX_ROTATION_DEG:g} degrees about each axis "
                 f"(a larger angle is almost surely a unit error: degrees are expected), "
                 f"got {self.rotation!r} for segment {self.segment!r}"
+            )
+        far = [t for t in self.translation if abs(t) > MAX_TRANSLATION_MM]
+        if far:
+            raise ValueError(
+                f"translation must be within +-{MAX_TRANSLATION_MM:g} mm along each axis "
+                f"(MAX_TRANSLATION_MM; a larger move is almost surely a unit error: mm are "
+                f"expected), got {self.translation!r} for segment {self.segment!r}"
             )
         if self.pivot is not None:
             try:

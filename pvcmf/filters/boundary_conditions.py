@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from .. import arrays
 from ..plan import Plan
 from ..progress import Progress
+from ._checks import check_finite_points, check_image_geometry
 from .osteotomy import cut_bones, segment_transforms, voxel_points
 
 log = logging.getLogger(__name__)
@@ -122,7 +123,7 @@ MIN_FIXED_SHARE = 0.01
 
 def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_posterior=True,
                posterior_depth=2.0, fix_unmoved_bone=False, contact_distance=None,
-               teeth_margin=None, normal_sigma=1.0, progress_bar=False):
+               teeth_margin=None, normal_sigma=1.0, release_margin=None, progress_bar=False):
     """Turn a surgical plan into the soft-tissue mesh's boundary conditions.
 
     Parameters
@@ -161,6 +162,14 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     normal_sigma : float, default 1.0
         Gaussian sigma (voxels) smoothing the hard-tissue indicator whose gradient gives
         the sliding normals.
+    release_margin : float or 'auto' or None, default None
+        Fixed nodes (posterior plane, unmoved bone) closer than this (mm) to a node that
+        the plan moves are left free. A fixed node one element away from a node moving
+        ``d`` mm tears the tissue between them (strain ``d / h``, unbounded as the mesh is
+        refined; the linear model then inverts tetrahedra): near the osteotomy line the
+        tissue over the unmoved bone is free, as in paper 000. ``'auto'``: twice the
+        largest prescribed move (strain about 0.5 at most; :func:`pvcmf.pipeline.simulate`
+        uses it); ``None`` or 0 keeps every fixed node.
     progress_bar : bool, default False
         Show the steps (:class:`pvcmf.progress.Progress`).
 
@@ -202,7 +211,7 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     if not isinstance(plan, Plan):
         raise TypeError(f"plan must be a pvcmf.Plan, got {type(plan).__name__}")
     tissue, posterior_depth, contact, teeth_margin = _check_bones(
-        grid, bones, posterior_depth, contact_distance, normal_sigma, teeth_margin)
+        grid, bones, posterior_depth, contact_distance, normal_sigma, teeth_margin, release_margin)
     with Progress(total=3, desc="apply_plan", enabled=progress_bar, logger=log) as bar:
         labels = cut_bones(bones, plan)
         transforms = segment_transforms(labels, plan)
@@ -252,6 +261,7 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
                         f"contact_distance={contact:g} mm of it: is the mesh in the same frame "
                         f"as bones, or should contact_distance be larger?"
                     )
+        _release_near_moves(code, disp, points, release_margin)
         if fixed_posterior and not fix_unmoved_bone:
             _warn_few_fixed(code, posterior_depth)
         counts = {k: int(np.sum(code == v)) for k, v in arrays.BC_CODES.items()}
@@ -265,7 +275,8 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     return out
 
 
-def _check_bones(grid, bones, posterior_depth, contact_distance, normal_sigma, teeth_margin):
+def _check_bones(grid, bones, posterior_depth, contact_distance, normal_sigma, teeth_margin,
+                 release_margin=None):
     """Check :func:`apply_plan`'s image and distances.
 
     Returns the tissue labels and the posterior depth, contact distance and teeth margin
@@ -280,6 +291,8 @@ def _check_bones(grid, bones, posterior_depth, contact_distance, normal_sigma, t
         raise TypeError(f"bones must be a pyvista.ImageData, got {type(bones).__name__}")
     if grid.n_points == 0:
         raise ValueError("grid must have points, got an empty mesh")
+    check_finite_points(grid, "grid")
+    check_image_geometry(bones, "bones")
     arrays.require_array(bones, arrays.BONE, "point", dtype="iu", ncomp=1, producer="segment")
     tissue = np.asarray(arrays.require_array(bones, arrays.TISSUE, "point", dtype="iu",
                                              ncomp=1, producer="segment"))
@@ -288,6 +301,12 @@ def _check_bones(grid, bones, posterior_depth, contact_distance, normal_sigma, t
     contact = _positive("contact_distance", contact_distance, allow_none=True)
     if contact is None:
         contact = float(spacing.max())
+    if not (release_margin is None or (isinstance(release_margin, str) and release_margin == "auto")
+            or (isinstance(release_margin, (int, float, np.integer, np.floating))
+                and not isinstance(release_margin, bool)
+                and np.isfinite(release_margin) and release_margin >= 0)):
+        raise ValueError(f"release_margin must be 'auto', None or a finite number >= 0 (mm), "
+                         f"got {release_margin!r}")
     if not np.isfinite(normal_sigma) or normal_sigma < 0:
         raise ValueError(f"normal_sigma must be a finite number >= 0, got {normal_sigma!r}")
     if teeth_margin is None:
@@ -334,6 +353,23 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
             ~vol_teeth[box], sampling=spacing) <= teeth_margin * (1 + 1e-9)
         teeth = hard & near_teeth.ravel(order="F")
     return hard, vox, nodes, near, bone[near_ids], teeth[near_ids]
+
+
+def _release_near_moves(code, disp, points, margin):
+    """In place: free the fixed nodes within ``margin`` mm of a node the plan moves."""
+    moving = ((code == arrays.BC_JOINT) | (code == arrays.BC_SLIDING)) & (
+        np.linalg.norm(disp, axis=1) > 0)
+    if isinstance(margin, str) and margin == "auto":
+        margin = 2.0 * float(np.linalg.norm(disp[moving], axis=1).max(initial=0.0))
+    margin = 0.0 if margin is None else float(margin)
+    fixed = np.flatnonzero(code == arrays.BC_FIXED)
+    if margin <= 0 or not moving.any() or not fixed.size:
+        return
+    dist, _ = cKDTree(points[moving]).query(points[fixed], distance_upper_bound=margin)
+    near = fixed[np.isfinite(dist)]
+    code[near] = arrays.BC_FREE
+    log.info("apply_plan: %d of %d fixed nodes within %.3g mm of a moving node left free",
+             len(near), len(fixed), margin)
 
 
 def _warn_few_fixed(code, posterior_depth):

@@ -24,6 +24,7 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from ._checks import MAX_COORDINATE, check_finite_points  # noqa: F401 (re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +37,7 @@ def _check_surface(surface, name):
             f"{name} must be a non-empty surface with polygons, got {surface.n_points} "
             f"points and {surface.faces.size // 4 if surface.faces.size else 0} polygons"
         )
+    check_finite_points(surface, name)
 
 
 def _edge_counts(tris, n_points):
@@ -71,10 +73,12 @@ def _outward(surface):
     points = np.asarray(surf.points, float)
     a, b, c = points[tris[:, 0]], points[tris[:, 1]], points[tris[:, 2]]
     cross = np.cross(b - a, c - a)
+    centre = points[np.unique(tris)].mean(axis=0)  # of the triangles' vertices only
+    if not np.all(np.isfinite(centre)):
+        raise ValueError(f"actual must have finite point coordinates, got centre {centre}")
     if closed:
-        outward = np.einsum("ij,ij->", a - points.mean(axis=0), cross) > 0  # 6 x volume
+        outward = np.einsum("ij,ij->", a - centre, cross) > 0  # 6 x volume
     else:
-        centre = points.mean(axis=0)
         outward = np.einsum("ij,ij->", (a + b + c) / 3 - centre, cross) > 0
     if not outward:
         surf.faces = np.column_stack([np.full(len(tris), 3), tris[:, ::-1]]).ravel()
@@ -228,7 +232,15 @@ class SurfaceDistance:
 
     def __call__(self, query):
         """Signed distances (mm) of ``(n, 3)`` points."""
-        q = np.ascontiguousarray(np.asarray(query, dtype=np.float64).reshape(-1, 3))
+        q = np.asarray(query, dtype=np.float64)
+        if q.size % 3 or (q.ndim == 2 and q.shape[1] != 3):
+            raise ValueError(f"query must be an (n, 3) array of points, got shape {q.shape}")
+        q = q.reshape(-1, 3)
+        bad = ~(np.abs(q) <= MAX_COORDINATE).all(axis=1)
+        if bad.any():
+            raise ValueError(f"query must have finite coordinates within +-{MAX_COORDINATE:g} "
+                             f"mm, got {int(bad.sum())} of {len(q)} points with NaN/inf or beyond")
+        q = np.ascontiguousarray(q)
         if self.method == "igl":
             d2, fid, closest = self._tree.squared_distance(self._points, self._tris, q)
             sign = _pseudonormal_sign(q, self._points, self._tris, fid, closest)
@@ -312,7 +324,8 @@ def distance_to(pred, actual, *, orient=True, max_distance=None, method="auto"):
     TypeError
         If ``actual`` is not a PolyData or ``pred`` not a dataset.
     ValueError
-        If either surface is empty, or the surfaces are further apart than ``max_distance``.
+        If either surface is empty or has NaN/inf points (their count is named), or the
+        surfaces are further apart than ``max_distance``.
 
     Examples
     --------
@@ -327,6 +340,7 @@ def distance_to(pred, actual, *, orient=True, max_distance=None, method="auto"):
         raise TypeError(f"pred must be a pyvista dataset, got {type(pred).__name__}")
     if pred.n_points == 0:
         raise ValueError("pred must have points, got an empty dataset")
+    check_finite_points(pred, "pred")
     _check_surface(actual, "actual")
     target = _outward(actual) if orient else actual
     d = signed_distance(pred.points, target, method=method)

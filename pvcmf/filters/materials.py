@@ -97,7 +97,7 @@ def assign_materials(grid, table="paper000", *, e_ratio=None, fat=None, muscle=N
         iso = out_vals["E_fiber"] == out_vals["E_cross"]
         fib[iso] = 0.0
         check_positive_definite(out_vals["E_fiber"], out_vals["E_cross"], out_vals["nu"])
-        out = grid.copy(deep=False)
+        out = grid.copy()  # deep: no array of the result shares the input's memory
         out.cell_data[arrays.E_FIBER] = out_vals["E_fiber"]
         out.cell_data[arrays.E_CROSS] = out_vals["E_cross"]
         out.cell_data[arrays.NU] = out_vals["nu"]
@@ -111,6 +111,15 @@ def assign_materials(grid, table="paper000", *, e_ratio=None, fat=None, muscle=N
 def _muscle_weight(grid, use_fraction, muscle_aniso):
     """Muscle weight per cell, the cells needing a fibre, and the array the weight came from."""
     have_fraction = arrays.MUSCLE_FRACTION in grid.cell_data.keys()
+    if arrays.TISSUE in grid.cell_data.keys():
+        ids = np.unique(np.asarray(grid.cell_data[arrays.TISSUE]))
+        unknown = np.setdiff1d(ids, list(arrays.TISSUE_LABELS.values()))
+        if unknown.size:
+            raise ValueError(
+                f"cell array {arrays.TISSUE!r} must hold tissue label ids "
+                f"{sorted(arrays.TISSUE_LABELS.values())} (pvcmf.arrays.TISSUE_LABELS), got "
+                f"unknown ids {unknown.tolist()}"
+            )
     if use_fraction is None:
         use_fraction = have_fraction
     if use_fraction:
@@ -152,14 +161,23 @@ def _fibers(grid, needs_fiber, out_vals, default_fiber):
             src = np.asarray(arrays.require_array(grid, arrays.FIBER, "cell", dtype="f", ncomp=3,
                                                   producer="fiber_directions"), float)
         elif default_fiber is not None:
-            src = np.broadcast_to(np.asarray(default_fiber, dtype=float), (m, 3))
-            if src.shape != (m, 3):
-                raise ValueError(f"default_fiber must have shape (3,), got {np.shape(default_fiber)}")
+            v = np.asarray(default_fiber, dtype=float)
+            if v.shape != (3,) or not np.all(np.isfinite(v)) or not np.any(v):
+                raise ValueError(f"default_fiber must be a finite non-zero vector of shape (3,), "
+                                 f"got {default_fiber!r}")
+            src = np.broadcast_to(v, (m, 3))
         else:
             raise ValueError(
                 f"{int(needs_fiber.sum())} muscle cell(s) are transversely isotropic but the grid "
                 f"has no cell array {arrays.FIBER!r}: run fiber_directions first or pass "
                 "default_fiber=(x, y, z)"
+            )
+        bad = needs_fiber & ~np.isfinite(src).all(axis=1)
+        if np.any(bad):
+            raise ValueError(
+                f"cell array {arrays.FIBER!r} must hold finite vectors, got NaN/inf in "
+                f"{int(bad.sum())} muscle cell(s) (e.g. cell {int(np.flatnonzero(bad)[0])}); "
+                "a zero vector marks a muscle cell without a known fibre"
             )
         norm = np.linalg.norm(src, axis=1)
         zero = needs_fiber & ~(norm > 0)

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from .. import arrays
 from ..progress import Progress
+from ._checks import check_finite_points
 
 log = logging.getLogger(__name__)
 
@@ -91,6 +92,7 @@ def _surface(dataset, name):
         raise TypeError(f"{name} must be a pyvista dataset, got {type(dataset).__name__}")
     if dataset.n_points < 6:
         raise ValueError(f"{name} must have at least 6 points, got {dataset.n_points}")
+    check_finite_points(dataset, name)
 
 
 def _target_normals(target):
@@ -277,6 +279,9 @@ def register(
     _surface(target, "target")
     if not 0 < trim <= 1:
         raise ValueError(f"trim must be in (0, 1], got {trim}")
+    if initial is not None and (np.shape(initial) not in ((4, 4), (16,))
+                                or not np.all(np.isfinite(np.asarray(initial, dtype=float)))):
+        raise ValueError(f"initial must be a finite 4x4 matrix or None, got {initial!r}")
     if max_iterations < 1:
         raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
     tgt_pts = np.asarray(target.points, dtype=float)

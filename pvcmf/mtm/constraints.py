@@ -16,6 +16,7 @@ must have full rank. Delegates to numpy and ``scipy.sparse.csgraph.connected_com
 from __future__ import annotations
 
 import logging
+import warnings
 
 import numpy as np
 import scipy.sparse as sp
@@ -25,7 +26,7 @@ from .. import arrays
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Constraints", "RigidModeError", "sliding_frames"]
+__all__ = ["Constraints", "RigidModeError", "SolutionWarning", "sliding_frames", "solution_checks"]
 
 
 class RigidModeError(ValueError):
@@ -216,3 +217,64 @@ class Constraints:
                 + (f"; {bad.size - 1} more component(s) are unconstrained" if bad.size > 1 else "")
             )
         return ncomp
+
+
+class SolutionWarning(UserWarning):
+    """A solution that real tissue cannot follow: inverted tetrahedra, runaway free nodes."""
+
+
+#: :func:`solution_checks` warns when a free node moves more than this many times the
+#: largest prescribed move (linear elasticity held by moving bone rarely exceeds 1)
+MAX_FREE_RATIO = 1.5
+
+
+def solution_checks(points, cells, u, bc, bc_displacement, *, warn=True):
+    """Count inverted tetrahedra and the free-to-prescribed displacement ratio.
+
+    A tetrahedron is inverted when its signed volume after the move has the opposite sign
+    of (or is zero against) its rest volume. The ratio is the largest displacement of a
+    free or sliding node over the largest prescribed ``bc_displacement`` of a joint or
+    sliding node (NaN when nothing is prescribed to move). Warns
+    (:class:`SolutionWarning`) when a tetrahedron is inverted or the ratio exceeds
+    :data:`MAX_FREE_RATIO`.
+
+    Returns
+    -------
+    (int, float)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from pvcmf.mtm.constraints import solution_checks
+    >>> pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    >>> u = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0, 0, -2.0]])   # apex through the base
+    >>> solution_checks(pts, np.array([[0, 1, 2, 3]]), u, np.array([1, 1, 1, 2]), u, warn=False)
+    (1, 0.0)
+    """
+    pts = np.asarray(points, dtype=float)
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1, 4)
+    u = np.asarray(u, dtype=float)
+
+    def volumes(x):
+        a = x[cells[:, 0]]
+        return np.einsum("ij,ij->i", np.cross(x[cells[:, 1]] - a, x[cells[:, 2]] - a),
+                         x[cells[:, 3]] - a)
+
+    rest, moved = volumes(pts), volumes(pts + u)
+    inverted = int(np.sum(np.sign(moved) != np.sign(rest)))
+    bc = np.asarray(bc)
+    mag = np.linalg.norm(u, axis=1)
+    driven = (bc == arrays.BC_JOINT) | (bc == arrays.BC_SLIDING)
+    loose = (bc == arrays.BC_FREE) | (bc == arrays.BC_SLIDING)
+    top = float(np.linalg.norm(np.asarray(bc_displacement, float)[driven], axis=1).max(initial=0))
+    ratio = float(mag[loose].max(initial=0.0) / top) if top > 0 else float("nan")
+    if warn and (inverted or ratio > MAX_FREE_RATIO):
+        warnings.warn(
+            f"the MTM solution inverts {inverted} of {len(cells)} tetrahedra and moves a free "
+            f"node {ratio:.2f} times the largest prescribed move ({top:.3g} mm); field data "
+            f"{arrays.MTM_INVERTED!r} and {arrays.MTM_FREE_RATIO!r} hold both. A linear model "
+            "is not valid there: check the boundary conditions (tissue torn between fixed and "
+            "moving nodes one element apart) or refine the mesh",
+            SolutionWarning, stacklevel=3,
+        )
+    return inverted, ratio

@@ -52,13 +52,14 @@ from .backends.cholmod import ORDERINGS, node_order
 from .backends.direct import Direct
 from .backends.gpu import GPU
 from .backends.relaxation import Relaxation
-from .constraints import Constraints
+from .constraints import Constraints, SolutionWarning, solution_checks
 from .materials import check_positive_definite, elastic_coefficients
 
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "Solver", "solve", "ConvergenceError", "IllConditionedWarning", "BackendUnavailableError",
+    "Solver", "solve", "SolutionWarning", "ConvergenceError", "IllConditionedWarning",
+    "BackendUnavailableError",
     "direct_backends", "gpu_available", "METHODS", "ORDERINGS", "PRECISIONS",
     "AUTO_DIRECT_MAX_POINTS", "FIELD_METHOD", "FIELD_BACKEND", "FIELD_RESIDUAL",
     "FIELD_ITERATIONS", "FIELD_TIME", "FIELD_ERROR_ESTIMATE", "FIELD_LOST_DIGITS",
@@ -206,6 +207,7 @@ class Solver:
         self.grid = grid
         t0 = time.perf_counter()
         self.points, cells = tetrahedra(grid)
+        self._cells = cells
         self.assembler = asm = Assembler(self.points, cells)
         self.constraints = cons = Constraints(grid, used=asm.used)
         cons.check_rigid_modes(self.points, asm.indptr, asm.indices)
@@ -501,6 +503,8 @@ class Solver:
         full = cons.prescribed.copy()
         full[self.F] = y
         u = cons.to_global(full)
+        info["inverted"], info["free_ratio"] = solution_checks(
+            self.points, self._cells, u, cons.bc, cons.to_global(cons.prescribed))
         self.timings["solve"] = time.perf_counter() - t0
         info["assembly_time"] = self.timings["assembly"]
         info["factor_time"] = self.timings["factor"]
@@ -521,9 +525,11 @@ class Solver:
     def to_grid(self, u, grid=None):
         """Copy of ``grid`` (default the solver's) with point ``displacement`` and field data."""
         grid = self.grid if grid is None else grid
-        out = grid.copy(deep=False)
-        out.point_data[arrays.DISPLACEMENT] = np.asarray(u, dtype=float)
+        out = grid.copy()  # deep: the result shares no memory with the input
+        out.point_data[arrays.DISPLACEMENT] = np.array(u, dtype=float)
         info = getattr(self, "info", {})
+        out.field_data[arrays.MTM_INVERTED] = np.array([int(info.get("inverted", -1))])
+        out.field_data[arrays.MTM_FREE_RATIO] = np.array([float(info.get("free_ratio", np.nan))])
         for key, name in ((FIELD_METHOD, "method"), (FIELD_BACKEND, "backend")):
             out.field_data[key] = np.array([str(info.get(name, ""))])
         for key, name in ((FIELD_RESIDUAL, "residual"), (FIELD_ITERATIONS, "iterations"),
@@ -559,7 +565,11 @@ def solve(grid, method="direct", tol=1e-10, progress_bar=False, **kwargs):
     pyvista.UnstructuredGrid
         A copy with point array ``displacement`` (n, 3) and field data ``mtm_method``,
         ``mtm_backend``, ``mtm_residual``, ``mtm_iterations``, ``mtm_time``,
-        ``mtm_error_estimate``, ``mtm_lost_digits``.
+        ``mtm_error_estimate``, ``mtm_lost_digits``, ``mtm_inverted_cells`` (tetrahedra the
+        displacement inverts) and ``mtm_free_over_prescribed`` (largest free displacement
+        over the largest prescribed one); a :class:`SolutionWarning` says when either is
+        suspect (:func:`pvcmf.mtm.constraints.solution_checks`). No array shares memory
+        with ``grid``.
 
     Raises
     ------

@@ -14,6 +14,7 @@ import pyvista as pv
 from scipy import ndimage
 
 from ... import arrays
+from .._checks import check_image_geometry
 
 #: range of ``n_tets`` accepted (the count is calibrated within +-20 % from 5k to 500k)
 N_TETS_RANGE = (1_000, 2_000_000)
@@ -24,6 +25,7 @@ def _check_image(labels, conforming):
         raise TypeError(
             f"labels must be a pyvista.ImageData label image, got {type(labels).__name__}"
         )
+    check_image_geometry(labels, "labels")
     if not np.allclose(labels.direction_matrix, np.eye(3)):
         raise ValueError("labels must be axis aligned (identity direction_matrix)")
     tissue = arrays.require_array(labels, arrays.TISSUE, "point", producer="segment")
