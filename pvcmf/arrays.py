@@ -287,3 +287,8 @@ CRUMPLE_VIOLATIONS = "crumple_violations"
 #: summary / field data: largest ratio of an edge's stretch to that bound (<= 1.1 passes)
 CRUMPLE_MAX_RATIO = "crumple_max_ratio"
 CRUMPLE_EDGES = "crumple_edges"  #: summary / field data: number of skin edges checked
+
+# --------------------------------------------------------------------------- validation study
+#: point (judged skin), int64, index of the point in the skin every method was mapped to
+#: (pairs the skin points of two methods: :mod:`pvcmf.study.inference`)
+SKIN_POINT_ID = "skin_point_id"

@@ -1,6 +1,8 @@
 """Paper 000's validation study on the virtual patients (``validation.study_predictor``):
 the whole path (truth grid -> virtual post-operative CT, posed and noisy -> segment ->
-skin -> ICP -> signed distance -> statistics) gives the same numbers twice. In CI on a
+skin -> ICP -> signed distance -> statistics) gives the same numbers twice, and its
+paired inference ranks a deliberately degraded method (no muscles) worse and finds no
+difference between two identical ones. In CI on a
 synthetic truth (the truth's own fine grid solved by the MTM: no NGSolve needed); with
 the optional extra ``pvcmf[reference]`` also on the reference model's truth, recomputed
 from scratch and read from its disk cache."""
@@ -14,6 +16,7 @@ import pytest
 
 from pvcmf import arrays, mtm, reference
 from pvcmf.filters.registration import registration_result
+from pvcmf.study.inference import compare_methods
 from pvcmf.validation import STAT_COLUMNS, STUDY_METHODS, run_study, study_predictor
 
 SMALL = dict(spacing=3.0, n_tets=2000, truth_tets=4000)
@@ -51,7 +54,7 @@ def assert_same(a, b, atol=1e-9):
 def synthetic_runs():
     # the second run, a fresh predictor (new truth, CT, pose, noise, skins), skips the
     # state of the art to keep CI fast: its own path differs by the sampling alone
-    return (small_study(truth=synthetic_truth),
+    return (small_study(STUDY_METHODS + ("no_muscles",), truth=synthetic_truth),
             small_study(("proposed", "truth"), truth=synthetic_truth))
 
 
@@ -60,15 +63,34 @@ def test_study_through_the_ct_path_is_reproducible(synthetic_runs):
     assert_same(first, second)
     skins, _, table = first
     face = table[table["region"] == "face"].set_index("method")
-    assert list(face.index) == list(STUDY_METHODS)
+    assert list(face.index) == [*STUDY_METHODS, "no_muscles"]
     assert (face["n"] > 1000).all()  # a real face was judged
-    for method in STUDY_METHODS:  # the posed post-operative CT was registered back
+    for method in face.index:  # the posed post-operative CT was registered back
         _, rms, converged = registration_result(skins[1][method])
         assert converged and rms < 0.5
     # the truth judged through the CT path: only what the path adds (3 mm voxels, noise,
     # segmentation, ICP), far below the plan's 4 mm lip set-back the models predict
     assert abs(face.loc["truth", "median"]) < 0.3 and face.loc["truth", "p90"] < 1.0
-    assert (face["p90"] < 3.0).all()
+    assert (face.loc[list(STUDY_METHODS), "p90"] < 3.0).all()
+
+
+def test_inference_ranks_a_degraded_method_worse(synthetic_runs):
+    """Without muscles (all soft tissue fat) the prediction errs more on the face's skin
+    points: the paired test says so with p < 0.05 and a positive effect."""
+    skins = synthetic_runs[0][0]
+    row = compare_methods(skins, "no_muscles", "proposed", n_boot=200).iloc[0]
+    assert row["verdict"] == "b better" and row["p_value"] < 0.05
+    assert row["difference"] > 0 and row["ci_low"] > 0 and row["effect_size"] > 0
+
+
+def test_inference_finds_no_difference_between_identical_methods(synthetic_runs):
+    """The same method run twice (recomputed from scratch): no difference, p = 1; the
+    test of the degraded method above can fail."""
+    (first, _, _), (second, _, _) = synthetic_runs
+    skins = {1: {"a": first[1]["proposed"], "b": second[1]["proposed"]}}
+    row = compare_methods(skins, "a", "b", n_boot=200).iloc[0]
+    assert row["verdict"] == "no difference" and row["p_value"] == 1.0
+    assert row["difference"] == 0.0 and row["n"] > 1000
 
 
 def test_study_predictor_bad_input():

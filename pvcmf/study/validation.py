@@ -28,7 +28,7 @@ from .statistics import _distances, error_statistics
 
 log = logging.getLogger("pvcmf.validation")
 
-__all__ = ["STUDY_METHODS", "TRUTH_REACH", "run_study", "study_predictor"]
+__all__ = ["CONTROL_METHODS", "STUDY_METHODS", "TRUTH_REACH", "run_study", "study_predictor"]
 
 
 def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the_art"), *,
@@ -89,6 +89,10 @@ def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the
 
 #: methods of :func:`study_predictor`: the two models of paper 000 and the truth itself
 STUDY_METHODS = ("proposed", "state_of_the_art", "truth")
+#: deliberately degraded controls of :func:`study_predictor` (the inference must rank them
+#: worse): "no_muscles" is "proposed" without the muscles (all soft tissue fat),
+#: "wrong_nu" is "proposed" with every Poisson ratio set to 0.3 (Table I: 0.43-0.46)
+CONTROL_METHODS = ("no_muscles", "wrong_nu")
 #: how far (mm) outside its grid the study's truth reaches (``postop_ct``'s ``extrapolate``:
 #: tissue there moves with the nearest truth node); skin beyond it is not judged
 TRUTH_REACH = 10.0
@@ -125,7 +129,11 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     be judged there). "truth" judges that same skin moved by the truth grid (its displacement probed
     inside the grid, the nearest node's outside) on the anterior face through the same
     path: what the CT path itself adds (warping, noise, voxels, segmentation, ICP), the
-    floor against which the differences between the methods are to be read.
+    floor against which the differences between the methods are to be read. The controls
+    of :data:`CONTROL_METHODS` ("no_muscles", "wrong_nu") are "proposed" made deliberately
+    worse, to test that the study's inference (:mod:`pvcmf.study.inference`) can tell
+    methods apart. Every judged skin carries the point array ``arrays.SKIN_POINT_ID`` (the
+    index of its points in the pre-operative skin), which pairs the points of two methods.
 
     Parameters
     ----------
@@ -183,9 +191,9 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         return cases[patient]
 
     def predict(patient, method):
-        if method not in STUDY_METHODS:
-            raise ValueError(f"method must be 'proposed', 'state_of_the_art' or 'truth', "
-                             f"got {method!r}")
+        if method not in STUDY_METHODS + CONTROL_METHODS:
+            raise ValueError(f"method must be 'proposed', 'state_of_the_art' or 'truth' "
+                             f"(or a control of {CONTROL_METHODS}), got {method!r}")
         c = case(patient)
         if patient not in scans:
             scans[patient] = _scan(c, patient, truth, noise_hu, ct_spacing)
@@ -222,10 +230,15 @@ def _prediction(case, method, grid, pre_skin, n_tets, sigma):
         pred = _skin_of(pre_skin, grid)
         pred.point_data[arrays.MAPPING_SUPPORT] = np.ones(pred.n_points)
         return cut_bones(case.truth, case.plan), pred
-    conforming = method == "proposed"
+    conforming = method != "state_of_the_art"
     res = simulate(case.ct, case.plan, bones=case.truth, landmarks=case.landmarks,
-                   n_tets=n_tets, mesh_options={"conforming": conforming}, figures=False)
+                   n_tets=n_tets, mesh_options={"conforming": conforming}, figures=False,
+                   muscles=method != "no_muscles")
     post = res.post
+    if method == "wrong_nu":  # control: the proposed mesh with a wrong Poisson ratio
+        g = res.mesh.copy()
+        g.cell_data[arrays.NU] = np.full(g.n_cells, 0.3)
+        post = mtm.solve(g)
     if not conforming:  # state of the art: muscle share by random points, re-solved
         g = filters.sample_muscle_fraction(res.mesh, res.labels)
         g = filters.fiber_directions(g)
@@ -235,7 +248,7 @@ def _prediction(case, method, grid, pre_skin, n_tets, sigma):
                                                         volume=False)
     width = max(sigma, 0.5 * float(np.median(edges["Length"])))
     # the skin of the pre-operative CT, as the truth is measured
-    return res.labels, post.cmf.map_to_surface(pre_skin, sigma=width)
+    return res.labels, post.cmf.map_to_surface(pre_skin, method="gaussian", sigma=width)
 
 
 def _judge(case, ct, pred, pre_skin, labels, covered):
@@ -244,7 +257,8 @@ def _judge(case, ct, pred, pre_skin, labels, covered):
                               regions=False)
     # only the face the model simulates (the meshed, anterior part) is judged
     y0 = face_box(labels, DEFAULT_FACE_FRACTION)[2]
-    # (every prediction is a copy of pre_skin, point for point)
+    # (every prediction is a copy of pre_skin, point for point: its ids pair the methods)
+    out.point_data[arrays.SKIN_POINT_ID] = np.arange(out.n_points, dtype=np.int64)
     face = (out[arrays.MAPPING_SUPPORT] > 0) & covered & (out.points[:, 1] >= y0)
     judged = out.extract_points(face, adjacent_cells=False).extract_surface(
         algorithm="dataset_surface")
