@@ -141,3 +141,58 @@ def test_small_strain_control_fails_the_uniaxial_stretch():
 def test_law_is_checked():
     with pytest.raises(ValueError, match="law must be one of"):
         solve_reference(block(n=(1, 1, 1)), law="hooke")
+
+
+# --------------------------------------------------------------------------- independent truth
+# its mesh and boundary model (CI-fast, no solve): the solve is solve_reference's, tested
+# above; a solved 7k-tetrahedra truth takes minutes (benchmarks/study.py --refinement)
+
+@pytest.fixture(scope="module")
+def independent_mesh():
+    import pvcmf
+    from pvcmf.truth.independent import _boundary_conditions, soft_tissue_mesh
+
+    case = pvcmf.datasets.phantom(1, spacing=3.0)
+    return case, _boundary_conditions(case, soft_tissue_mesh(case, n_tets=8000))
+
+
+def test_independent_truth_mesh_follows_the_exact_anatomy(independent_mesh):
+    from pvcmf.datasets import template
+    from pvcmf.truth.independent import _BOUNDARY, _fields, _region
+
+    case, grid = independent_mesh
+    x = np.asarray(grid.points)
+    q = x[grid.cells_dict[pv.CellType.TETRA]]
+    vol = np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), q[:, 3] - q[:, 0])
+    assert vol.min() > 0
+    kind = np.asarray(grid["boundary"])
+    surface = (kind > 0) & (kind <= len(_BOUNDARY))
+    r, _ = _region(_fields(template.patient_warp(1), x[surface]))
+    # most boundary nodes were snapped onto the exact surfaces (the rest: snaps longer
+    # than half the lattice spacing or undone; measured 73 % on this coarse ~6 mm lattice)
+    assert np.mean(np.abs(r) < 0.05) > 0.7
+    # every facial muscle, and generic muscle tissue (tongue, temporalis, neck)
+    assert set(np.unique(grid.cell_data[arrays.MUSCLE])) == set(range(len(arrays.MUSCLES) + 1))
+    generic = (grid.cell_data[arrays.TISSUE] == arrays.MUSCLE_TISSUE) & (
+        grid.cell_data[arrays.MUSCLE] == 0)
+    assert generic.sum() > 50
+
+
+def test_independent_truth_ties_soft_tissue_to_the_moved_bones(independent_mesh):
+    from pvcmf.filters.osteotomy import cut_bones, segment_transforms
+    from pvcmf.truth.independent import _BOUNDARY
+
+    case, grid = independent_mesh
+    kind = np.asarray(grid["boundary"])
+    bc, g, x = np.asarray(grid[arrays.BC]), np.asarray(grid[arrays.BC_DISPLACEMENT]), grid.points
+    on_bone = kind == 1 + _BOUNDARY.index("bone")
+    assert np.all(bc[on_bone] == arrays.BC_JOINT)
+    assert np.all(bc[kind == len(_BOUNDARY) + 1] == arrays.BC_FIXED)
+    assert np.all(bc[~on_bone & (kind <= len(_BOUNDARY))] == arrays.BC_FREE)  # no contact
+    moves = segment_transforms(cut_bones(case.truth, case.plan), case.plan)
+    rigid = np.zeros(on_bone.sum(), dtype=bool)
+    for m in moves.values():  # each tied node moves rigidly with one segment, or not at all
+        p = x[on_bone]
+        rigid |= np.linalg.norm(p @ m[:3, :3].T + m[:3, 3] - p - g[on_bone], axis=1) < 1e-9
+    rigid |= np.linalg.norm(g[on_bone], axis=1) == 0
+    assert rigid.all() and (np.linalg.norm(g[on_bone], axis=1) > 1.0).sum() > 20

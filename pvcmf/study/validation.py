@@ -22,6 +22,7 @@ from ..datasets import phantom
 from ..filters.osteotomy import cut_bones
 from ..pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
 from ..truth.grid import _skin_of, truth_grid
+from ..truth.independent import independent_truth_grid
 from ..truth.postop import postop_ct
 from .from_ct import skin_from_ct, validate_from_ct
 from .statistics import _distances, error_statistics
@@ -149,10 +150,13 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         Use the truth's on-disk cache.
     cache_dir : path, optional
         Truth cache folder (default ``PVCMF_CACHE_DIR`` / ``~/.cache/pvcmf``).
-    truth : callable, optional
+    truth : callable or 'independent', optional
         ``truth(case) -> pyvista.UnstructuredGrid`` with ``arrays.DISPLACEMENT`` in the
         pre-operative frame, instead of the reference model (e.g. a synthetic truth in
-        tests, where NGSolve is not installed).
+        tests, where NGSolve is not installed); ``'independent'``:
+        :func:`pvcmf.truth.independent.independent_truth_grid` (own mesher, exact anatomy,
+        own boundary model; ``truth_tets`` tetrahedra). Default: the reference model of
+        :func:`pvcmf.truth.truth_grid`.
     noise_hu : float, default 18.0
         Noise of the post-operative CT (HU).
     ct_spacing : float, optional
@@ -176,8 +180,12 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     for name, value in (("n_tets", n_tets), ("truth_tets", truth_tets)):
         if int(value) < 100:
             raise ValueError(f"{name} must be an integer >= 100, got {value!r}")
+    if truth == "independent":
+        truth = functools.partial(independent_truth_grid, n_tets=truth_tets,
+                                  cache=truth_cache, cache_dir=cache_dir)
     if truth is not None and not callable(truth):
-        raise TypeError(f"truth must be callable(case) -> grid, got {type(truth).__name__}")
+        raise TypeError(f"truth must be callable(case) -> grid or 'independent', got "
+                        f"{type(truth).__name__}")
     if not noise_hu >= 0:
         raise ValueError(f"noise_hu must be >= 0, got {noise_hu!r}")
     if truth is None:
