@@ -398,7 +398,7 @@ def test_map_to_surface_reproduces_linear_field(block_grid):
     grid[arrays.DISPLACEMENT] = grid.points @ a.T + [0.5, -1.0, 2.0]
     skin = pv.Sphere(radius=13.0, theta_resolution=40, phi_resolution=40)
     skin.points = skin.points.astype(np.float64)
-    out = grid.cmf.map_to_surface(skin, sigma=2.0)
+    out = grid.cmf.map_to_surface(skin, method="gaussian", sigma=2.0)
     expect = skin.points @ a.T + [0.5, -1.0, 2.0]
     np.testing.assert_allclose(out[arrays.DISPLACEMENT], expect, atol=1e-9)
     np.testing.assert_allclose(out.points, skin.points + expect, atol=1e-9)
@@ -413,7 +413,7 @@ def test_map_to_surface_smooths_noise(block_grid):
     skin = pv.Sphere(radius=10.0, theta_resolution=60, phi_resolution=60)
     err, slope = {}, {}
     for sigma in (1.0, 3.0):
-        out = grid.cmf.map_to_surface(skin, sigma=sigma)
+        out = grid.cmf.map_to_surface(skin, method="gaussian", sigma=sigma)
         err[sigma] = np.abs(out[arrays.DISPLACEMENT] - 0.05 * skin.points).std()
         # smoothness: largest change of the mapped displacement per mm along skin edges
         edges = out.extract_all_edges()
@@ -427,16 +427,16 @@ def test_map_to_surface_smooths_noise(block_grid):
     # at the edge of the mesh (a skin reaching 3 mm beyond it) nothing is extrapolated
     curved = block_grid.copy()
     curved[arrays.DISPLACEMENT] = 0.02 * curved.points ** 2
-    edge = curved.cmf.map_to_surface(pv.Sphere(radius=18.0), sigma=2.0)
+    edge = curved.cmf.map_to_surface(pv.Sphere(radius=18.0), method="gaussian", sigma=2.0)
     u = edge[arrays.DISPLACEMENT][edge["mapping_support"] > 0]
     assert u.min() >= 0.0 and u.max() <= 0.02 * 15.0 ** 2 + 1e-12
     far = pv.Sphere(radius=2.0, center=(100.0, 0, 0))
-    out = grid.cmf.map_to_surface(far, sigma=1.0)
+    out = grid.cmf.map_to_surface(far, method="gaussian", sigma=1.0)
     assert (out["mapping_support"] == 0).all() and not out[arrays.DISPLACEMENT].any()
     with pytest.raises(ValueError, match="no point array 'displacement'"):
         block_grid.cmf.map_to_surface(skin)
     with pytest.raises(ValueError, match="sigma must be > 0"):
-        grid.cmf.map_to_surface(skin, sigma=0)
+        grid.cmf.map_to_surface(skin, method="gaussian", sigma=0)
 
 
 # ----------------------------------------------------------------------------- figures
