@@ -129,3 +129,52 @@ def test_small_study_from_cached_truth(reference_runs):
     assert len(list(cache.glob("truth_grid_*.vtu"))) == 1
     third = small_study(("proposed", "truth"), cache_dir=cache)
     assert_same(first, third, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- cohort
+def test_cohort_is_seeded_and_varied():
+    from pvcmf.study.cohort import cohort_parameters
+
+    draw = cohort_parameters(16, seed=3)
+    assert draw == cohort_parameters(16, seed=3) and draw != cohort_parameters(16, seed=4)
+    params = [p for p, _ in draw]
+    # skeletal classes II and III of both jaws, four patients each
+    shifts = np.array([(p.maxilla, p.mandible) for p in params])
+    assert ((shifts[:, 0] > 0).sum(), (shifts[:, 0] < 0).sum(), (shifts[:, 1] > 0).sum(),
+            (shifts[:, 1] < 0).sum()) == (4, 4, 4, 4)
+    assert np.all(np.abs(shifts).max(axis=1) >= 3.0) and np.all(np.abs(shifts) <= 6.0)
+    thick = np.array([p.thickness for p in params])
+    assert thick.min() >= 0.8 and thick.max() <= 1.2 and thick.std() > 0.05
+    assert np.ptp([p.scale for p in params], axis=0).min() > 0.05
+    for p, plan in draw:  # each plan corrects its patient's jaw
+        (o,) = plan.osteotomies
+        assert -o.translation[2] == pytest.approx(p.maxilla if o.segment == "maxilla"
+                                                  else p.mandible)
+
+
+def test_cohort_patient_follows_its_own_anatomy():
+    """A cohort patient's labels and the true level sets of its own warp agree."""
+    from pvcmf.study.cohort import cohort
+    from pvcmf.truth.anatomy import true_level_set
+
+    case = next(cohort(1, seed=5, spacing=4.0))
+    assert case.patient == 101 and case.parameters is not None
+    tissue = np.asarray(case.truth[arrays.TISSUE])
+    rng = np.random.default_rng(0)
+    ids = rng.choice(case.truth.n_points, 4000, replace=False)
+    inside = true_level_set(case, "skin", case.truth.points[ids]) < -2.0
+    outside = true_level_set(case, "skin", case.truth.points[ids]) > 2.0
+    assert np.mean(tissue[ids][outside] == arrays.AIR) > 0.97
+    assert np.mean(tissue[ids][inside] != arrays.AIR) > 0.9
+    muscles = set(np.unique(case.truth[arrays.MUSCLE]).tolist())
+    assert len(muscles) >= 10
+
+
+def test_claims_do_not_hold_for_identical_methods(synthetic_runs):
+    from pvcmf.study.inference import claims_table
+
+    skins = synthetic_runs[0][0]
+    same = {p: {"proposed": skins[1]["proposed"], "state_of_the_art": skins[1]["proposed"]}
+            for p in range(6)}
+    table = claims_table(same, n_boot=100)
+    assert not table["holds"].any() and (table["verdict"] == "no difference").all()

@@ -32,7 +32,21 @@ from .. import arrays
 
 log = logging.getLogger("pvcmf.validation")
 
-__all__ = ["compare_methods", "paired_comparison", "paired_errors"]
+__all__ = ["PAPER_CLAIMS", "claims_table", "compare_methods", "paired_comparison",
+           "paired_errors"]
+
+#: paper 000's claims as paired comparisons over patients: (claim, method a, method b,
+#: per-patient statistic of |d|); each holds when the verdict is "a better"
+PAPER_CLAIMS = (
+    ("muscle-embedded mesh errs less than the homogeneous one (median)", "proposed",
+     "state_of_the_art", "median"),
+    ("muscle-embedded mesh errs less than the homogeneous one (p90)", "proposed",
+     "state_of_the_art", "p90"),
+    ("more skin within 2 mm with the muscle-embedded mesh (share outside 2 mm)", "proposed",
+     "state_of_the_art", "outside_2mm"),
+)
+_STATISTICS = {"median": np.median, "p90": lambda a: np.percentile(a, 90),
+               "outside_2mm": lambda a: float(np.mean(a > 2.0))}
 
 #: verdicts of :func:`paired_comparison`
 VERDICTS = ("a better", "b better", "no difference")
@@ -219,3 +233,55 @@ def compare_methods(skins, method_a, method_b, *, alpha=0.05, n_boot=1000, seed=
     table = pd.DataFrame(rows)
     table["method_a"], table["method_b"] = method_a, method_b
     return table
+
+
+def claims_table(skins, claims=PAPER_CLAIMS, *, alpha=0.05, n_boot=1000, seed=0):
+    """Each claim tested over the patients: paired statistic per patient, Wilcoxon test,
+    Hodges-Lehmann difference with its 95 % bootstrap interval, effect size.
+
+    Parameters
+    ----------
+    skins : dict
+        ``skins[patient][method]`` -> judged skin (:func:`pvcmf.study.validation.run_study`).
+    claims : sequence, default :data:`PAPER_CLAIMS`
+        ``(claim, method a, method b, statistic)`` with statistic ``'median'``, ``'p90'``
+        or ``'outside_2mm'`` of the patient's paired ``|d|``.
+    alpha, n_boot, seed :
+        See :func:`paired_comparison`.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per claim: ``claim``, ``statistic``, the columns of
+        :func:`paired_comparison` (over the patients) and ``holds`` (verdict "a better").
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> from pvcmf.study.inference import claims_table
+    >>> def skin(err):
+    ...     s = pv.PolyData(np.zeros((50, 3)))
+    ...     s[arrays.SKIN_POINT_ID] = np.arange(50)
+    ...     s[arrays.DISTANCE] = err * np.linspace(0.5, 3.0, 50)
+    ...     return s
+    >>> skins = {p: {"proposed": skin(1.0), "state_of_the_art": skin(1.2 + 0.1 * p)}
+    ...          for p in range(8)}
+    >>> claims_table(skins, n_boot=100)["holds"].tolist()
+    [True, True, True]
+    """
+    import pandas as pd
+
+    rows = []
+    for claim, a, b, stat in claims:  # a few claims
+        if stat not in _STATISTICS:
+            raise ValueError(f"statistic must be one of {sorted(_STATISTICS)}, got {stat!r}")
+        fa, fb = [], []
+        for by_method in skins.values():  # the patients
+            da, db = paired_errors(by_method[a], by_method[b])
+            fa.append(_STATISTICS[stat](da))
+            fb.append(_STATISTICS[stat](db))
+        res = paired_comparison(fa, fb, alpha=alpha, n_boot=n_boot, seed=seed)
+        rows.append({"claim": claim, "statistic": stat, **res,
+                     "holds": res["verdict"] == "a better"})
+    return pd.DataFrame(rows)

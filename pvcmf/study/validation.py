@@ -101,7 +101,7 @@ TRUTH_REACH = 10.0
 
 def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                     truth_cache=True, cache_dir=None, truth=None, noise_hu=18.0,
-                    ct_spacing=None):
+                    ct_spacing=None, cases=None):
     """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
 
     The study runs the path of a real post-operative scan. For virtual patient ``patient``
@@ -161,6 +161,9 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         Noise of the post-operative CT (HU).
     ct_spacing : float, optional
         Voxel size of the post-operative CT (default: the pre-operative one).
+    cases : mapping, optional
+        ``patient -> pvcmf.datasets.Case`` (e.g. :func:`pvcmf.study.cohort.cohort`'s
+        patients by number) instead of ``datasets.phantom(patient, spacing=spacing)``.
 
     Returns
     -------
@@ -191,12 +194,12 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     if truth is None:
         truth = functools.partial(_reference_truth, truth_tets=truth_tets, cache=truth_cache,
                                   cache_dir=cache_dir)
-    cases, scans = {}, {}
+    built, scans = dict(cases or {}), {}
 
     def case(patient):
-        if patient not in cases:
-            cases[patient] = phantom(patient=patient, spacing=spacing)
-        return cases[patient]
+        if patient not in built:
+            built[patient] = phantom(patient=patient, spacing=spacing)
+        return built[patient]
 
     def predict(patient, method):
         if method not in STUDY_METHODS + CONTROL_METHODS:

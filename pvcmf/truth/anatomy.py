@@ -43,7 +43,10 @@ _OTHER = {"eyes": eyes_sdf, "skin": skin_sdf, **GENERIC_MUSCLES}
 
 
 def _warp(patient):
-    if hasattr(patient, "patient"):  # a Case
+    """The patient warp of a patient number (1-4) or a Case (its ``parameters``)."""
+    if getattr(patient, "parameters", None) is not None:  # a Case, e.g. of a cohort
+        return template.PatientWarp(patient.parameters)
+    if hasattr(patient, "patient"):
         patient = patient.patient
     return template.patient_warp(int(patient))
 
@@ -54,7 +57,7 @@ def true_level_set(patient, name, points):
     Parameters
     ----------
     patient : int or pvcmf.datasets.Case
-        Virtual patient (1-4).
+        Virtual patient (1-4, or a Case whose ``parameters`` define its warp).
     name : str
         A facial muscle of ``arrays.MUSCLES``, ``'tongue'``, ``'temporalis'``, ``'neck'``,
         ``'eyes'`` or ``'skin'``.

@@ -46,9 +46,9 @@ from ..atlas.skull import (braincase_sdf, cranium_vault_sdf, face_bone_sdf,
 from ..atlas.soft_tissue import (airway_sdf, eyes_sdf, neck_muscles_sdf, oral_air_sdf,
                                  skin_sdf, temporalis_sdf, tongue_sdf)
 from ..cache import cache_root
-from ..datasets import template
 from ..filters.model_region import face_box
 from ..filters.osteotomy import cut_bones, segment_transforms, voxel_points
+from .anatomy import _warp
 from .grid import cached, grid_hash
 from .solver import solve_reference
 
@@ -157,7 +157,7 @@ def soft_tissue_mesh(case, *, n_tets=30_000, face_fraction=0.5, progress_bar=Fal
         ``arrays.MUSCLE`` (facial muscle ids, 0 elsewhere) and point array ``boundary``
         (index into ``("interior", "skin", "bone", "teeth", "air", "brain", "plane")``).
     """
-    warp = template.patient_warp(case.patient)
+    warp = _warp(case)
     box = face_box(case.truth, face_fraction)
     soft = np.isin(np.asarray(case.truth[arrays.TISSUE]), arrays.SOFT_LABELS)
     pts = voxel_points(case.truth, np.flatnonzero(soft))
