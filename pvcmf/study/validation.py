@@ -29,7 +29,7 @@ from .statistics import _distances, error_statistics
 
 log = logging.getLogger("pvcmf.validation")
 
-__all__ = ["CONTROL_METHODS", "STUDY_METHODS", "TRUTH_REACH", "run_study", "study_predictor"]
+__all__ = ["AUTO_METHODS", "CONTROL_METHODS", "STUDY_METHODS", "TRUTH_REACH", "run_study", "study_predictor"]
 
 
 def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the_art"), *,
@@ -94,6 +94,10 @@ STUDY_METHODS = ("proposed", "state_of_the_art", "truth")
 #: worse): "no_muscles" is "proposed" without the muscles (all soft tissue fat),
 #: "wrong_nu" is "proposed" with every Poisson ratio set to 0.3 (Table I: 0.43-0.46)
 CONTROL_METHODS = ("no_muscles", "wrong_nu")
+#: the two models with what a real pipeline has (no oracle inputs): the CT and the plan
+#: alone (automatic segmentation, bone segments and atlas fit, no true bone labels or
+#: landmarks); the second row next to the oracle-input row of :data:`STUDY_METHODS`
+AUTO_METHODS = ("proposed_auto", "state_of_the_art_auto")
 #: how far (mm) outside its grid the study's truth reaches (``postop_ct``'s ``extrapolate``:
 #: tissue there moves with the nearest truth node); skin beyond it is not judged
 TRUTH_REACH = 10.0
@@ -133,8 +137,12 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     floor against which the differences between the methods are to be read. The controls
     of :data:`CONTROL_METHODS` ("no_muscles", "wrong_nu") are "proposed" made deliberately
     worse, to test that the study's inference (:mod:`pvcmf.study.inference`) can tell
-    methods apart. Every judged skin carries the point array ``arrays.SKIN_POINT_ID`` (the
-    index of its points in the pre-operative skin), which pairs the points of two methods.
+    methods apart. The methods of :data:`AUTO_METHODS` ("proposed_auto",
+    "state_of_the_art_auto") predict from the CT and the plan alone, as a real pipeline
+    would (automatic segmentation, bone segments and atlas fit); the others get the true
+    bone labels and landmarks. Every judged skin carries the point array
+    ``arrays.SKIN_POINT_ID`` (the index of its points in the pre-operative skin), which
+    pairs the points of two methods.
 
     Parameters
     ----------
@@ -202,9 +210,9 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         return built[patient]
 
     def predict(patient, method):
-        if method not in STUDY_METHODS + CONTROL_METHODS:
+        if method not in STUDY_METHODS + CONTROL_METHODS + AUTO_METHODS:
             raise ValueError(f"method must be 'proposed', 'state_of_the_art' or 'truth' "
-                             f"(or a control of {CONTROL_METHODS}), got {method!r}")
+                             f"(or one of {CONTROL_METHODS + AUTO_METHODS}), got {method!r}")
         c = case(patient)
         if patient not in scans:
             scans[patient] = _scan(c, patient, truth, noise_hu, ct_spacing)
@@ -241,9 +249,11 @@ def _prediction(case, method, grid, pre_skin, n_tets, sigma):
         pred = _skin_of(pre_skin, grid)
         pred.point_data[arrays.MAPPING_SUPPORT] = np.ones(pred.n_points)
         return cut_bones(case.truth, case.plan), pred
-    conforming = method != "state_of_the_art"
-    res = simulate(case.ct, case.plan, bones=case.truth, landmarks=case.landmarks,
-                   n_tets=n_tets, mesh_options={"conforming": conforming}, figures=False,
+    oracle = method not in AUTO_METHODS  # true bone labels and landmarks given
+    conforming = method not in ("state_of_the_art", "state_of_the_art_auto")
+    res = simulate(case.ct, case.plan, bones=case.truth if oracle else None,
+                   landmarks=case.landmarks if oracle else None, n_tets=n_tets,
+                   mesh_options={"conforming": conforming}, figures=False,
                    muscles=method != "no_muscles")
     post = res.post
     if method == "wrong_nu":  # control: the proposed mesh with a wrong Poisson ratio
