@@ -301,3 +301,9 @@ MTM_INVERTED = "mtm_inverted_cells"  #: field, int64, tetrahedra the displacemen
 #: field, float64, largest |displacement| of a free (or sliding) node over the largest
 #: prescribed |bc_displacement| (NaN when nothing moves)
 MTM_FREE_RATIO = "mtm_free_over_prescribed"
+
+
+# --------------------------------------------------------------------------- validation study
+#: point (judged skin), int64, index of the point in the skin every method was mapped to
+#: (pairs the skin points of two methods: :mod:`pvcmf.study.inference`)
+SKIN_POINT_ID = "skin_point_id"

@@ -1,6 +1,8 @@
 """Paper 000's validation study on the virtual patients (``validation.study_predictor``):
 the whole path (truth grid -> virtual post-operative CT, posed and noisy -> segment ->
-skin -> ICP -> signed distance -> statistics) gives the same numbers twice. In CI on a
+skin -> ICP -> signed distance -> statistics) gives the same numbers twice, and its
+paired inference ranks a deliberately degraded method (no muscles) worse and finds no
+difference between two identical ones. In CI on a
 synthetic truth (the truth's own fine grid solved by the MTM: no NGSolve needed); with
 the optional extra ``pvcmf[reference]`` also on the reference model's truth, recomputed
 from scratch and read from its disk cache."""
@@ -14,6 +16,7 @@ import pytest
 
 from pvcmf import arrays, mtm, reference
 from pvcmf.filters.registration import registration_result
+from pvcmf.study.inference import compare_methods
 from pvcmf.validation import STAT_COLUMNS, STUDY_METHODS, run_study, study_predictor
 
 SMALL = dict(spacing=3.0, n_tets=2000, truth_tets=4000)
@@ -51,7 +54,7 @@ def assert_same(a, b, atol=1e-9):
 def synthetic_runs():
     # the second run, a fresh predictor (new truth, CT, pose, noise, skins), skips the
     # state of the art to keep CI fast: its own path differs by the sampling alone
-    return (small_study(truth=synthetic_truth),
+    return (small_study(STUDY_METHODS + ("no_muscles",), truth=synthetic_truth),
             small_study(("proposed", "truth"), truth=synthetic_truth))
 
 
@@ -60,15 +63,34 @@ def test_study_through_the_ct_path_is_reproducible(synthetic_runs):
     assert_same(first, second)
     skins, _, table = first
     face = table[table["region"] == "face"].set_index("method")
-    assert list(face.index) == list(STUDY_METHODS)
+    assert list(face.index) == [*STUDY_METHODS, "no_muscles"]
     assert (face["n"] > 1000).all()  # a real face was judged
-    for method in STUDY_METHODS:  # the posed post-operative CT was registered back
+    for method in face.index:  # the posed post-operative CT was registered back
         _, rms, converged = registration_result(skins[1][method])
         assert converged and rms < 0.5
     # the truth judged through the CT path: only what the path adds (3 mm voxels, noise,
     # segmentation, ICP), far below the plan's 4 mm lip set-back the models predict
     assert abs(face.loc["truth", "median"]) < 0.3 and face.loc["truth", "p90"] < 1.0
-    assert (face["p90"] < 3.0).all()
+    assert (face.loc[list(STUDY_METHODS), "p90"] < 3.0).all()
+
+
+def test_inference_ranks_a_degraded_method_worse(synthetic_runs):
+    """Without muscles (all soft tissue fat) the prediction errs more on the face's skin
+    points: the paired test says so with p < 0.05 and a positive effect."""
+    skins = synthetic_runs[0][0]
+    row = compare_methods(skins, "no_muscles", "proposed", n_boot=200).iloc[0]
+    assert row["verdict"] == "b better" and row["p_value"] < 0.05
+    assert row["difference"] > 0 and row["ci_low"] > 0 and row["effect_size"] > 0
+
+
+def test_inference_finds_no_difference_between_identical_methods(synthetic_runs):
+    """The same method run twice (recomputed from scratch): no difference, p = 1; the
+    test of the degraded method above can fail."""
+    (first, _, _), (second, _, _) = synthetic_runs
+    skins = {1: {"a": first[1]["proposed"], "b": second[1]["proposed"]}}
+    row = compare_methods(skins, "a", "b", n_boot=200).iloc[0]
+    assert row["verdict"] == "no difference" and row["p_value"] == 1.0
+    assert row["difference"] == 0.0 and row["n"] > 1000
 
 
 def test_study_predictor_bad_input():
@@ -107,3 +129,52 @@ def test_small_study_from_cached_truth(reference_runs):
     assert len(list(cache.glob("truth_grid_*.vtu"))) == 1
     third = small_study(("proposed", "truth"), cache_dir=cache)
     assert_same(first, third, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- cohort
+def test_cohort_is_seeded_and_varied():
+    from pvcmf.study.cohort import cohort_parameters
+
+    draw = cohort_parameters(16, seed=3)
+    assert draw == cohort_parameters(16, seed=3) and draw != cohort_parameters(16, seed=4)
+    params = [p for p, _ in draw]
+    # skeletal classes II and III of both jaws, four patients each
+    shifts = np.array([(p.maxilla, p.mandible) for p in params])
+    assert ((shifts[:, 0] > 0).sum(), (shifts[:, 0] < 0).sum(), (shifts[:, 1] > 0).sum(),
+            (shifts[:, 1] < 0).sum()) == (4, 4, 4, 4)
+    assert np.all(np.abs(shifts).max(axis=1) >= 3.0) and np.all(np.abs(shifts) <= 6.0)
+    thick = np.array([p.thickness for p in params])
+    assert thick.min() >= 0.8 and thick.max() <= 1.2 and thick.std() > 0.05
+    assert np.ptp([p.scale for p in params], axis=0).min() > 0.05
+    for p, plan in draw:  # each plan corrects its patient's jaw
+        (o,) = plan.osteotomies
+        assert -o.translation[2] == pytest.approx(p.maxilla if o.segment == "maxilla"
+                                                  else p.mandible)
+
+
+def test_cohort_patient_follows_its_own_anatomy():
+    """A cohort patient's labels and the true level sets of its own warp agree."""
+    from pvcmf.study.cohort import cohort
+    from pvcmf.truth.anatomy import true_level_set
+
+    case = next(cohort(1, seed=5, spacing=4.0))
+    assert case.patient == 101 and case.parameters is not None
+    tissue = np.asarray(case.truth[arrays.TISSUE])
+    rng = np.random.default_rng(0)
+    ids = rng.choice(case.truth.n_points, 4000, replace=False)
+    inside = true_level_set(case, "skin", case.truth.points[ids]) < -2.0
+    outside = true_level_set(case, "skin", case.truth.points[ids]) > 2.0
+    assert np.mean(tissue[ids][outside] == arrays.AIR) > 0.97
+    assert np.mean(tissue[ids][inside] != arrays.AIR) > 0.9
+    muscles = set(np.unique(case.truth[arrays.MUSCLE]).tolist())
+    assert len(muscles) >= 10
+
+
+def test_claims_do_not_hold_for_identical_methods(synthetic_runs):
+    from pvcmf.study.inference import claims_table
+
+    skins = synthetic_runs[0][0]
+    same = {p: {"proposed": skins[1]["proposed"], "state_of_the_art": skins[1]["proposed"]}
+            for p in range(6)}
+    table = claims_table(same, n_boot=100)
+    assert not table["holds"].any() and (table["verdict"] == "no difference").all()

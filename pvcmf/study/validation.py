@@ -22,13 +22,14 @@ from ..datasets import phantom
 from ..filters.osteotomy import cut_bones
 from ..pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
 from ..truth.grid import _skin_of, truth_grid
+from ..truth.independent import independent_truth_grid
 from ..truth.postop import postop_ct
 from .from_ct import skin_from_ct, validate_from_ct
 from .statistics import _distances, error_statistics
 
 log = logging.getLogger("pvcmf.validation")
 
-__all__ = ["STUDY_METHODS", "TRUTH_REACH", "run_study", "study_predictor"]
+__all__ = ["AUTO_METHODS", "CONTROL_METHODS", "STUDY_METHODS", "TRUTH_REACH", "run_study", "study_predictor"]
 
 
 def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the_art"), *,
@@ -89,6 +90,14 @@ def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the
 
 #: methods of :func:`study_predictor`: the two models of paper 000 and the truth itself
 STUDY_METHODS = ("proposed", "state_of_the_art", "truth")
+#: deliberately degraded controls of :func:`study_predictor` (the inference must rank them
+#: worse): "no_muscles" is "proposed" without the muscles (all soft tissue fat),
+#: "wrong_nu" is "proposed" with every Poisson ratio set to 0.3 (Table I: 0.43-0.46)
+CONTROL_METHODS = ("no_muscles", "wrong_nu")
+#: the two models with what a real pipeline has (no oracle inputs): the CT and the plan
+#: alone (automatic segmentation, bone segments and atlas fit, no true bone labels or
+#: landmarks); the second row next to the oracle-input row of :data:`STUDY_METHODS`
+AUTO_METHODS = ("proposed_auto", "state_of_the_art_auto")
 #: how far (mm) outside its grid the study's truth reaches (``postop_ct``'s ``extrapolate``:
 #: tissue there moves with the nearest truth node); skin beyond it is not judged
 TRUTH_REACH = 10.0
@@ -96,7 +105,7 @@ TRUTH_REACH = 10.0
 
 def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                     truth_cache=True, cache_dir=None, truth=None, noise_hu=18.0,
-                    ct_spacing=None):
+                    ct_spacing=None, cases=None):
     """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
 
     The study runs the path of a real post-operative scan. For virtual patient ``patient``
@@ -125,7 +134,15 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     be judged there). "truth" judges that same skin moved by the truth grid (its displacement probed
     inside the grid, the nearest node's outside) on the anterior face through the same
     path: what the CT path itself adds (warping, noise, voxels, segmentation, ICP), the
-    floor against which the differences between the methods are to be read.
+    floor against which the differences between the methods are to be read. The controls
+    of :data:`CONTROL_METHODS` ("no_muscles", "wrong_nu") are "proposed" made deliberately
+    worse, to test that the study's inference (:mod:`pvcmf.study.inference`) can tell
+    methods apart. The methods of :data:`AUTO_METHODS` ("proposed_auto",
+    "state_of_the_art_auto") predict from the CT and the plan alone, as a real pipeline
+    would (automatic segmentation, bone segments and atlas fit); the others get the true
+    bone labels and landmarks. Every judged skin carries the point array
+    ``arrays.SKIN_POINT_ID`` (the index of its points in the pre-operative skin), which
+    pairs the points of two methods.
 
     Parameters
     ----------
@@ -141,14 +158,20 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         Use the truth's on-disk cache.
     cache_dir : path, optional
         Truth cache folder (default ``PVCMF_CACHE_DIR`` / ``~/.cache/pvcmf``).
-    truth : callable, optional
+    truth : callable or 'independent', optional
         ``truth(case) -> pyvista.UnstructuredGrid`` with ``arrays.DISPLACEMENT`` in the
         pre-operative frame, instead of the reference model (e.g. a synthetic truth in
-        tests, where NGSolve is not installed).
+        tests, where NGSolve is not installed); ``'independent'``:
+        :func:`pvcmf.truth.independent.independent_truth_grid` (own mesher, exact anatomy,
+        own boundary model; ``truth_tets`` tetrahedra). Default: the reference model of
+        :func:`pvcmf.truth.truth_grid`.
     noise_hu : float, default 18.0
         Noise of the post-operative CT (HU).
     ct_spacing : float, optional
         Voxel size of the post-operative CT (default: the pre-operative one).
+    cases : mapping, optional
+        ``patient -> pvcmf.datasets.Case`` (e.g. :func:`pvcmf.study.cohort.cohort`'s
+        patients by number) instead of ``datasets.phantom(patient, spacing=spacing)``.
 
     Returns
     -------
@@ -168,24 +191,28 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     for name, value in (("n_tets", n_tets), ("truth_tets", truth_tets)):
         if int(value) < 100:
             raise ValueError(f"{name} must be an integer >= 100, got {value!r}")
+    if truth == "independent":
+        truth = functools.partial(independent_truth_grid, n_tets=truth_tets,
+                                  cache=truth_cache, cache_dir=cache_dir)
     if truth is not None and not callable(truth):
-        raise TypeError(f"truth must be callable(case) -> grid, got {type(truth).__name__}")
+        raise TypeError(f"truth must be callable(case) -> grid or 'independent', got "
+                        f"{type(truth).__name__}")
     if not noise_hu >= 0:
         raise ValueError(f"noise_hu must be >= 0, got {noise_hu!r}")
     if truth is None:
         truth = functools.partial(_reference_truth, truth_tets=truth_tets, cache=truth_cache,
                                   cache_dir=cache_dir)
-    cases, scans = {}, {}
+    built, scans = dict(cases or {}), {}
 
     def case(patient):
-        if patient not in cases:
-            cases[patient] = phantom(patient=patient, spacing=spacing)
-        return cases[patient]
+        if patient not in built:
+            built[patient] = phantom(patient=patient, spacing=spacing)
+        return built[patient]
 
     def predict(patient, method):
-        if method not in STUDY_METHODS:
-            raise ValueError(f"method must be 'proposed', 'state_of_the_art' or 'truth', "
-                             f"got {method!r}")
+        if method not in STUDY_METHODS + CONTROL_METHODS + AUTO_METHODS:
+            raise ValueError(f"method must be 'proposed', 'state_of_the_art' or 'truth' "
+                             f"(or one of {CONTROL_METHODS + AUTO_METHODS}), got {method!r}")
         c = case(patient)
         if patient not in scans:
             scans[patient] = _scan(c, patient, truth, noise_hu, ct_spacing)
@@ -222,10 +249,17 @@ def _prediction(case, method, grid, pre_skin, n_tets, sigma):
         pred = _skin_of(pre_skin, grid)
         pred.point_data[arrays.MAPPING_SUPPORT] = np.ones(pred.n_points)
         return cut_bones(case.truth, case.plan), pred
-    conforming = method == "proposed"
-    res = simulate(case.ct, case.plan, bones=case.truth, landmarks=case.landmarks,
-                   n_tets=n_tets, mesh_options={"conforming": conforming}, figures=False)
+    oracle = method not in AUTO_METHODS  # true bone labels and landmarks given
+    conforming = method not in ("state_of_the_art", "state_of_the_art_auto")
+    res = simulate(case.ct, case.plan, bones=case.truth if oracle else None,
+                   landmarks=case.landmarks if oracle else None, n_tets=n_tets,
+                   mesh_options={"conforming": conforming}, figures=False,
+                   muscles=method != "no_muscles")
     post = res.post
+    if method == "wrong_nu":  # control: the proposed mesh with a wrong Poisson ratio
+        g = res.mesh.copy()
+        g.cell_data[arrays.NU] = np.full(g.n_cells, 0.3)
+        post = mtm.solve(g)
     if not conforming:  # state of the art: muscle share by random points, re-solved
         g = filters.sample_muscle_fraction(res.mesh, res.labels)
         g = filters.fiber_directions(g)
@@ -244,7 +278,8 @@ def _judge(case, ct, pred, pre_skin, labels, covered):
                               regions=False)
     # only the face the model simulates (the meshed, anterior part) is judged
     y0 = face_box(labels, DEFAULT_FACE_FRACTION)[2]
-    # (every prediction is a copy of pre_skin, point for point)
+    # (every prediction is a copy of pre_skin, point for point: its ids pair the methods)
+    out.point_data[arrays.SKIN_POINT_ID] = np.arange(out.n_points, dtype=np.int64)
     face = (out[arrays.MAPPING_SUPPORT] > 0) & covered & (out.points[:, 1] >= y0)
     judged = out.extract_points(face, adjacent_cells=False).extract_surface(
         algorithm="dataset_surface")

@@ -26,7 +26,12 @@ Modules:
   grid -> solve, cached on disk by :func:`grid_hash` through :mod:`pvcmf.cache`) and
   :func:`postop_skin`;
 * :mod:`pvcmf.truth.postop` - :func:`postop_ct`, the virtual post-operative CT, and
-  :func:`reference_grid`.
+  :func:`reference_grid`;
+* :mod:`pvcmf.truth.anatomy` - the patient's true anatomy as level sets, and a mesh's
+  accuracy against it (``interface_distance``, ``muscle_volume_errors``);
+* :mod:`pvcmf.truth.independent` - ``independent_truth_grid``: a truth on its own mesh
+  of the exact anatomy with its own boundary model (``study_predictor(truth=
+  "independent")``; the study's default truth is still :func:`truth_grid`).
 
 The truth is built from the filters directly, never through the pipeline it judges.
 """

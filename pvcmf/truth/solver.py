@@ -205,7 +205,8 @@ def _damped_newton(ngs, form, gfu, maxerr, maxit, linear):
 
 def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton=30,
                     inverse="sparsecholesky", reuse_factor=False, threads=None,
-                    predictor="tangent", release_below=0.2, progress_bar=False):
+                    predictor="tangent", release_below=0.2, law="neo-hookean",
+                    progress_bar=False):
     """Large-deformation neo-Hookean solve of a planned tetrahedral grid with NGSolve.
 
     Parameters
@@ -247,6 +248,13 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
         large-deformation solution exists otherwise (0: release only where the data
         inverts an element; None: never). The released nodes are listed in the result's
         field array ``arrays.REFERENCE_RELEASED`` and logged as a warning.
+    law : {'neo-hookean', 'linear'}, default 'neo-hookean'
+        Strain energy. ``'neo-hookean'``: the truth's model (module docstring).
+        ``'linear'``: small-strain linear elasticity
+        ``mu eps:eps + lambda/2 tr(eps)^2`` with ``eps = sym(grad u)`` (fibre term
+        ``k/2 (2 a.eps a)^2``), the linearisation of the same energy at the undeformed state:
+        a control that the tests of the large-deformation behaviour must reject (it is
+        not rotation invariant).
     threads : bool, optional
         Assemble and factorise inside ``ngsolve.TaskManager()`` (all cores). Default: only
         when the 1-minute load average is below half the cores (NGSolve's threads spin
@@ -290,8 +298,10 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     """
     ngm, ngs = _ngsolve()
     inp = _inputs(grid, release_below, predictor)
+    if law not in _LAWS:
+        raise ValueError(f"law must be one of {_LAWS}, got {law!r}")
     released = _release(inp, release_below)
-    model = _model(ngm, ngs, inp, order, penalty)
+    model = _model(ngm, ngs, inp, order, penalty, law)
     linear = _Linear(ngs, model["form"], model["freedofs"], inverse, reuse=reuse_factor)
     start = time.perf_counter()
     if threads is None:
@@ -310,6 +320,10 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     stats = [3 * model["fes"].ndof, newton_its, linear.factorizations,
              time.perf_counter() - start]
     return _result(grid, inp, disp, released, stats)
+
+
+#: strain energies of :func:`solve_reference` (``law``)
+_LAWS = ("neo-hookean", "linear")
 
 
 def _inputs(grid, release_below, predictor):
@@ -369,7 +383,7 @@ def _release(inp, release_below):
     return released
 
 
-def _model(ngm, ngs, inp, order, penalty):
+def _model(ngm, ngs, inp, order, penalty, law="neo-hookean"):
     """The NGSolve mesh, space, energy form and prescribed data of the truth."""
     points, tets, faces, constrained = inp["points"], inp["tets"], inp["faces"], inp["constrained"]
     sliding = inp["bc"] == arrays.BC_SLIDING
@@ -391,14 +405,20 @@ def _model(ngm, ngs, inp, order, penalty):
     lam = cellwise(e_cross * nu / ((1 + nu) * (1 - 2 * nu)))
     fes = ngs.H1(mesh, order=order, dim=3, dirichlet="dirichlet")
     u = fes.TrialFunction()
-    F = ngs.Id(3) + ngs.Grad(u)
-    C = F.trans * F
-    J = ngs.Det(F)
-    energy = mu / 2 * (ngs.Trace(C) - 3 - 2 * ngs.log(J)) + lam / 2 * ngs.log(J) ** 2
+    if law == "linear":  # small strain: the control the large-deformation tests reject
+        eps = ngs.Sym(ngs.Grad(u))
+        energy = mu * ngs.InnerProduct(eps, eps) + lam / 2 * ngs.Trace(eps) ** 2
+        stretch = 2 * eps  # linearisation of C - I
+    else:
+        F = ngs.Id(3) + ngs.Grad(u)
+        C = F.trans * F
+        J = ngs.Det(F)
+        energy = mu / 2 * (ngs.Trace(C) - 3 - 2 * ngs.log(J)) + lam / 2 * ngs.log(J) ** 2
+        stretch = C - ngs.Id(3)
     if np.any(k_fib > 0):
         a = ngs.CoefficientFunction(tuple(cellwise(fib[:, i]) for i in range(3)))
-        i4 = ngs.InnerProduct(a, C * a)
-        energy = energy + cellwise(k_fib) / 2 * (i4 - 1) ** 2
+        i4m1 = ngs.InnerProduct(a, stretch * a)  # I4 - 1
+        energy = energy + cellwise(k_fib) / 2 * i4m1 ** 2
     form = ngs.BilinearForm(fes, symmetric=True)
     form += ngs.Variation(energy.Compile() * ngs.dx)
     # prescribed data as P1 fields (vertex dofs = vertex numbers), ramped by `load`

@@ -1,0 +1,278 @@
+"""An independent truth: the virtual patient's true anatomy meshed and constrained on its own.
+
+:func:`independent_truth_grid` shares with the models it judges neither the mesher, nor
+the labels, nor the boundary model:
+
+* geometry: the exact level sets of the patient (:mod:`pvcmf.truth.anatomy`; atlas signed
+  distances through the patient warp), never the voxel labels. The meshed soft tissue is
+  inside the skin, outside every bone, tooth, air cavity and the brain case, in front of
+  the coronal plane of the face box (``face_fraction``);
+* mesher: a Freudenthal lattice (six tetrahedra per cube, spacing
+  from ``n_tets``) whose boundary nodes are snapped onto the exact surfaces by Newton
+  projection (a snap that would flatten an element below a tenth of its volume is
+  undone), not :func:`pvcmf.filters.tetrahedralize`;
+* materials: every tetrahedron whose centroid lies in a muscle (the twelve facial
+  muscles, tongue, temporalis, neck muscles; the eyes excluded) is muscle, the rest fat;
+  Table I values, muscle isotropic (the truth's fibre term vanishes for Table I);
+* boundary model, no :func:`pvcmf.filters.apply_plan`: soft tissue is tied to the bone
+  surfaces it touches (periosteum): a node on a bone surface follows its bone segment's
+  rigid move of the plan (``segment_transforms`` of the plan's cut bones; the segment of a
+  node is that of the nearest bone voxel), unmoved bone holds it; nodes on the posterior
+  plane are held. Tooth surfaces and air cavities (mouth, airway, sinuses) are free
+  surfaces: **no contact is modelled** (lips and cheeks neither slide on nor are pushed
+  by the teeth; a lip that would enter a moved tooth is not stopped);
+* law and solver: :func:`pvcmf.truth.solver.solve_reference` (compressible neo-Hookean,
+  P2, load stepping, damped Newton).
+
+The study uses it with ``study_predictor(truth="independent")``; its default truth is
+still :func:`pvcmf.truth.grid.truth_grid` (until the refinement study of
+``benchmarks/study.py --refinement`` has shown this one converged on every patient).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pyvista as pv
+from scipy.spatial import cKDTree
+
+from .. import arrays, filters
+from ..atlas.muscles import _muscle_models
+from ..atlas.shapes import F32
+from ..atlas.skull import (braincase_sdf, cranium_vault_sdf, face_bone_sdf,
+                           face_cavities_sdf, lower_teeth_sdf, mandible_sdf, spine_sdf,
+                           upper_teeth_sdf)
+from ..atlas.soft_tissue import (airway_sdf, eyes_sdf, neck_muscles_sdf, oral_air_sdf,
+                                 skin_sdf, temporalis_sdf, tongue_sdf)
+from ..cache import cache_root
+from ..filters.model_region import face_box
+from ..filters.osteotomy import cut_bones, segment_transforms, voxel_points
+from .anatomy import _warp
+from .grid import cached, grid_hash
+from .solver import solve_reference
+
+log = logging.getLogger("pvcmf.reference")
+
+__all__ = ["independent_truth_grid", "soft_tissue_mesh"]
+
+#: boundary components of the soft tissue: (name, sign): the region is where every
+#: ``sign * f < 0``
+_BOUNDARY = ("skin", "bone", "teeth", "air", "brain")
+
+
+def _fields(warp, x):
+    """The boundary level sets (mm, atlas frame; negative inside the structure) at patient
+    points ``x`` (n, 3): dict name -> (n,)."""
+    X = tuple(x[:, i].astype(F32) for i in range(3))
+    base = warp.base_inverse(X)
+    soft, face, mand = warp.soft(base), warp.face(base), warp.mandible(base)
+
+    def f(fn, s):
+        return np.asarray(fn(s), dtype=float)
+
+    bone = np.minimum.reduce([f(cranium_vault_sdf, base), f(spine_sdf, base),
+                              f(face_bone_sdf, face), f(mandible_sdf, mand)])
+    teeth = np.minimum(f(upper_teeth_sdf, face), f(lower_teeth_sdf, mand))
+    air = np.minimum.reduce([f(face_cavities_sdf, face), f(oral_air_sdf, face),
+                             f(airway_sdf, soft)])
+    return {"skin": f(skin_sdf, soft), "bone": bone, "teeth": teeth, "air": air,
+            "brain": f(braincase_sdf, base)}
+
+
+def _region(fields):
+    """Signed region function (< 0 in the soft tissue) and the active component index."""
+    parts = np.stack([fields["skin"], -fields["bone"], -fields["teeth"], -fields["air"],
+                      -fields["brain"]])
+    return parts.max(axis=0), parts.argmax(axis=0)
+
+
+def _lattice(box, h):
+    """Freudenthal lattice of ``box`` (x0, x1, y0, y1, z0, z1) at spacing ``h``: points
+    and tetrahedra (six per cube, conforming)."""
+    axes = [np.arange(box[2 * i], box[2 * i + 1] + h, h) for i in range(3)]
+    n = [len(a) for a in axes]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    idx = np.arange(np.prod(n)).reshape(n)
+    c = idx[:-1, :-1, :-1].ravel()
+    sx, sy, sz = n[1] * n[2], n[2], 1
+    corner = {(i, j, k): c + i * sx + j * sy + k * sz for i in (0, 1) for j in (0, 1)
+              for k in (0, 1)}
+    paths = [((1, 0, 0), (1, 1, 0)), ((1, 0, 0), (1, 0, 1)), ((0, 1, 0), (1, 1, 0)),
+             ((0, 1, 0), (0, 1, 1)), ((0, 0, 1), (1, 0, 1)), ((0, 0, 1), (0, 1, 1))]
+    tets = np.concatenate([np.column_stack([corner[(0, 0, 0)], corner[a], corner[b],
+                                            corner[(1, 1, 1)]]) for a, b in paths])
+    flip = _volumes(grid, tets) < 0  # positive orientation
+    tets[flip] = tets[flip][:, [0, 2, 1, 3]]
+    return grid, tets
+
+
+def _volumes(x, tets):
+    q = x[tets]
+    return np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]),
+                     q[:, 3] - q[:, 0]) / 6
+
+
+def _snap(warp, x, tets, nodes, h, steps=3, dh=0.2):
+    """Newton projection of boundary ``nodes`` onto their active surface (at most ``h/2``
+    each); snaps that flatten an element below a tenth of its volume are undone."""
+    y = x.copy()
+    p = x[nodes].copy()
+    for _ in range(steps):  # a few Newton steps, each vectorised over the nodes
+        r, _ = _region(_fields(warp, p))
+        grad = np.column_stack([(_region(_fields(warp, p + dh * e))[0]
+                                 - _region(_fields(warp, p - dh * e))[0]) / (2 * dh)
+                                for e in np.eye(3)])
+        p = p - (r / np.maximum(np.einsum("ij,ij->i", grad, grad), 1e-12))[:, None] * grad
+    ok = np.linalg.norm(p - x[nodes], axis=1) <= 0.5 * h
+    y[nodes[ok]] = p[ok]
+    v0 = _volumes(x, tets)
+    for _ in range(10):  # a few rounds, each vectorised over the elements
+        bad = _volumes(y, tets) < 0.1 * v0
+        if not bad.any():
+            break
+        back = np.unique(tets[bad])
+        y[back] = x[back]
+    return y
+
+
+def soft_tissue_mesh(case, *, n_tets=30_000, face_fraction=0.5, progress_bar=False):
+    """The patient's true soft tissue meshed by the lattice-and-snap mesher (module doc).
+
+    Parameters
+    ----------
+    case : pvcmf.datasets.Case
+        Virtual patient.
+    n_tets : int, default 30000
+        About how many tetrahedra (sets the lattice spacing).
+    face_fraction : float, default 0.5
+        Anterior share of the head that is meshed.
+    progress_bar : bool, default False
+        Unused (one vectorised pass); kept for the common signature.
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+        Linear tetrahedra with cell arrays ``arrays.TISSUE`` (FAT / MUSCLE_TISSUE) and
+        ``arrays.MUSCLE`` (facial muscle ids, 0 elsewhere) and point array ``boundary``
+        (index into ``("interior", "skin", "bone", "teeth", "air", "brain", "plane")``).
+    """
+    warp = _warp(case)
+    box = face_box(case.truth, face_fraction)
+    soft = np.isin(np.asarray(case.truth[arrays.TISSUE]), arrays.SOFT_LABELS)
+    pts = voxel_points(case.truth, np.flatnonzero(soft))
+    volume = float(np.count_nonzero(pts[:, 1] >= box[2])) * float(np.prod(case.truth.spacing))
+    h = (6.0 * volume / n_tets) ** (1 / 3)
+    lo, hi = pts[pts[:, 1] >= box[2]].min(axis=0) - h, pts.max(axis=0) + h
+    x, tets = _lattice((lo[0], hi[0], box[2], hi[1], lo[2], hi[2]), h)
+    r, _ = _region(_fields(warp, x))
+    keep = r[tets].mean(axis=1) < 0
+    tets = tets[keep]
+    used = np.unique(tets)
+    remap = np.full(len(x), -1)
+    remap[used] = np.arange(len(used))
+    x, tets, r = x[used], remap[tets], r[used]
+    surf = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, x).extract_surface(
+        pass_pointid=True, algorithm="dataset_surface")
+    boundary = np.zeros(len(x), dtype=np.uint8)
+    on = np.unique(np.asarray(surf.point_data[arrays.ORIGINAL_POINT_IDS]))
+    plane = on[np.isclose(x[on, 1], box[2])]
+    free = np.setdiff1d(on, plane)
+    x = _snap(warp, x, tets, free, h)
+    _, active = _region(_fields(warp, x[free]))
+    boundary[free] = active + 1
+    boundary[plane] = len(_BOUNDARY) + 1
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, x)
+    grid.point_data["boundary"] = boundary
+    _materials(grid, warp)
+    log.info("independent truth mesh: %d tetrahedra at %.2f mm, %d boundary nodes",
+             grid.n_cells, h, len(on))
+    return grid
+
+
+def _materials(grid, warp):
+    """Cell arrays tissue / muscle from the exact muscle level sets at the centroids."""
+    c = np.asarray(grid.cell_centers().points, dtype=float)
+    X = tuple(c[:, i].astype(F32) for i in range(3))
+    s = warp.soft(warp.base_inverse(X))
+    muscle = np.zeros(len(c), dtype=np.uint8)
+    for name, model in _muscle_models().items():  # twelve muscles, vectorised inside
+        muscle[(muscle == 0) & (np.asarray(model(s)) < 0)] = arrays.MUSCLE_IDS[name]
+    generic = np.minimum.reduce([np.asarray(fn(s), float)
+                                 for fn in (tongue_sdf, temporalis_sdf, neck_muscles_sdf)])
+    eye = np.asarray(eyes_sdf(s), float) < 0
+    muscle[eye] = 0
+    tissue = np.where(((muscle > 0) | (generic < 0)) & ~eye, arrays.MUSCLE_TISSUE, arrays.FAT)
+    grid.cell_data[arrays.TISSUE] = tissue.astype(np.uint8)
+    grid.cell_data[arrays.MUSCLE] = muscle
+
+
+def _boundary_conditions(case, grid):
+    """Point arrays bc / bc_displacement of the truth's own boundary model (module doc)."""
+    labels = cut_bones(case.truth, case.plan)
+    moves = segment_transforms(labels, case.plan)
+    bone_ids = np.asarray(labels[arrays.BONE])
+    ids = np.flatnonzero(bone_ids > 0)
+    tree = cKDTree(voxel_points(labels, ids))
+    kind = np.asarray(grid.point_data["boundary"])
+    x = np.asarray(grid.points, dtype=float)
+    bc = np.full(len(x), arrays.BC_FREE, dtype=np.int8)
+    disp = np.zeros((len(x), 3))
+    on_bone = kind == 1 + _BOUNDARY.index("bone")
+    _, near = tree.query(x[on_bone])
+    seg = bone_ids[ids[near]]
+    bc[on_bone] = arrays.BC_JOINT
+    sub = np.zeros((int(on_bone.sum()), 3))
+    for segment, m in moves.items():  # a few bone segments
+        sel = seg == segment
+        p = x[on_bone][sel]
+        sub[sel] = p @ m[:3, :3].T + m[:3, 3] - p
+    disp[on_bone] = sub
+    bc[kind == len(_BOUNDARY) + 1] = arrays.BC_FIXED
+    grid.point_data[arrays.BC] = bc
+    grid.point_data[arrays.BC_DISPLACEMENT] = disp
+    return grid
+
+
+def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fraction=0.5,
+                           cache=True, cache_dir=None, progress_bar=False):
+    """The solved independent truth of a virtual patient (module docstring).
+
+    Parameters
+    ----------
+    case : pvcmf.datasets.Case
+        Virtual patient (``truth`` labels for the bone segments, ``plan``).
+    n_tets : int, default 30000
+        About how many tetrahedra (P2 elements).
+    order, steps :
+        See :func:`pvcmf.truth.solver.solve_reference`.
+    face_fraction : float, default 0.5
+        Anterior share of the head that is meshed.
+    cache : bool, default True
+        Read / write the on-disk cache (``reference/independent_<key>.vtu``, keyed by
+        :func:`pvcmf.truth.grid_hash` of the planned grid and the options).
+    cache_dir : path, optional
+        Cache folder.
+    progress_bar : bool, default False
+        Show the solver's load steps.
+
+    Returns
+    -------
+    pyvista.UnstructuredGrid
+        The planned grid (pre-operative frame) with point array ``arrays.DISPLACEMENT``.
+
+    Examples
+    --------
+    >>> import pvcmf                                                            # doctest: +SKIP
+    >>> from pvcmf.truth.independent import independent_truth_grid              # doctest: +SKIP
+    >>> g = independent_truth_grid(pvcmf.datasets.phantom(1, spacing=2.0))      # doctest: +SKIP
+    """
+    grid = soft_tissue_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
+    grid = _boundary_conditions(case, grid)
+    # Table I; the fibre direction is immaterial to the truth's law for Table I (its fibre
+    # term vanishes where the muscle is softer along the fibre than across)
+    grid = filters.assign_materials(grid, default_fiber=(0.0, 0.0, 1.0))
+    key = grid_hash(grid, f"independent|order={order}|steps={steps}")
+    path = cache_root("reference", cache_dir) / f"independent_{key}.vtu"
+    return cached(path, lambda: solve_reference(grid, order=order, steps=steps,
+                                                progress_bar=progress_bar), cache=cache)

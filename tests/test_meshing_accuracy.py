@@ -1,0 +1,133 @@
+"""Meshing accuracy against the virtual patient's true anatomy (:mod:`pvcmf.truth.anatomy`).
+
+The label image is a voxel staircase of smooth analytic surfaces; a mesh is judged against
+the surfaces themselves: the distance of its muscle interfaces to the true ones (goal: p90
+within half a voxel) and each facial muscle's volume against its true volume in the same
+mesh. The measure is checked first on points placed at known distances from a true
+surface. ``benchmarks/meshing_accuracy.py`` tabulates both against the tetrahedra count
+(docs/benchmarks/meshing_accuracy.md).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+import pvcmf
+from pvcmf import arrays
+from pvcmf.filters import tetrahedralize
+from pvcmf.pipeline import face_box
+from pvcmf.truth.anatomy import (_distance, interface_distance, muscle_volume_errors,
+                                 true_level_set)
+
+SPACING = 3.0  # CI: a 3 mm virtual patient, 10k tetrahedra over the anterior half
+N_TETS = 10_000
+
+
+def on_surface(patient, name, points, iterations=8, h=0.25):
+    """Newton projection of ``points`` onto the zero set of ``phi o T``; with the unit
+    normals there."""
+    x = np.array(points, dtype=float)
+    for _ in range(iterations):  # a few Newton steps, each vectorised over the points
+        f = true_level_set(patient, name, x)
+        grad = np.column_stack([
+            (true_level_set(patient, name, x + h * e) - true_level_set(patient, name, x - h * e))
+            / (2 * h) for e in np.eye(3)])
+        x = x - (f / np.einsum("ij,ij->i", grad, grad))[:, None] * grad
+    return x, grad / np.linalg.norm(grad, axis=1, keepdims=True)
+
+
+def contour_distance(patient, name, x, half=2.5, step=0.1):
+    """Independent distance: to the marching-cubes contour of ``phi o T`` on a fine box
+    around ``x`` (its vertices and triangle points)."""
+    import pyvista as pv
+
+    n = int(round(2 * half / step)) + 1
+    box = pv.ImageData(dimensions=(n, n, n), spacing=(step,) * 3, origin=x - half)
+    box["f"] = true_level_set(patient, name, box.points)
+    surface = box.contour([0.0], scalars="f").triangulate()
+    _, closest = surface.find_closest_cell(x[None], return_closest_point=True)
+    return float(np.linalg.norm(closest[0] - x))
+
+
+@pytest.mark.parametrize("name", ["masseter_left", "zygomaticus_major_right", "tongue"])
+def test_distance_measure_against_an_independent_contour(name):
+    """The Newton-projection distance agrees with the distance to a 0.1 mm
+    marching-cubes contour of the same level set, at points 0.5 and 1 mm off it."""
+    rng = np.random.default_rng(0)
+    warp = pvcmf.datasets.template.patient_warp(2)
+    from pvcmf.atlas.muscles import _muscle_models
+
+    if name in arrays.MUSCLE_IDS:
+        lo, hi = (np.asarray(b, float) for b in _muscle_models()[name].bounds)
+    else:
+        lo, hi = np.array([-20.0, 40.0, -60.0]), np.array([20.0, 80.0, -30.0])
+    start = warp.forward(lo + (hi - lo) * rng.uniform(0.3, 0.7, (4, 3)))
+    x, n = on_surface(2, name, start)
+    assert np.abs(true_level_set(2, name, x)).max() < 1e-3
+    for shift in (0.5, 1.0, -0.5):
+        probe = x + shift * n
+        d = _distance(2, name, probe)
+        ref = np.array([contour_distance(2, name, p) for p in probe])
+        np.testing.assert_allclose(d, ref, atol=0.05 + 0.05 * abs(shift))
+        assert np.all(ref > 0.4 * abs(shift))  # the points are off the surface
+
+
+@pytest.fixture(scope="module")
+def patient_mesh():
+    case = pvcmf.datasets.phantom(1, spacing=SPACING)
+    with warnings.catch_warnings():  # coarse meshes drop the thinnest muscles (warned)
+        warnings.simplefilter("ignore")
+        grid = tetrahedralize(case.truth, n_tets=N_TETS, conforming=True,
+                              roi=face_box(case.truth, 0.5))
+    return case, grid
+
+
+def test_muscle_interfaces_against_the_true_surfaces(patient_mesh):
+    case, grid = patient_mesh
+    d = interface_distance(grid, case)
+    assert len(d["muscle"]) > 500 and len(d["generic"]) > 500
+    # measured at 3 mm / 10k: p50 1.1, p90 4.1 (facial muscles); p50 1.1, p90 2.5 (generic)
+    assert np.percentile(d["muscle"], 50) < 0.5 * SPACING
+    assert np.percentile(d["generic"], 90) < SPACING
+    assert np.percentile(d["muscle"], 90) < 1.6 * SPACING
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known limitation: the muscle interfaces of the mesh lie at p90 4.1 mm (3 mm "
+    "voxels, 10k tetrahedra) and 1.6 mm (2 mm voxels, 60k) from the true surfaces, not "
+    "within half a voxel: the facial muscles are 3-5 mm thick straps, one or two voxels, "
+    "and the mesher follows the voxel labels (docs/benchmarks/meshing_accuracy.md)",
+)
+def test_muscle_interfaces_within_half_a_voxel_goal(patient_mesh):
+    case, grid = patient_mesh
+    assert np.percentile(interface_distance(grid, case)["muscle"], 90) <= 0.5 * SPACING
+
+
+def test_muscle_volumes_against_the_true_volumes(patient_mesh):
+    case, grid = patient_mesh
+    table = muscle_volume_errors(grid, case).set_index("muscle")
+    assert list(table.index) == list(arrays.MUSCLES)
+    assert (table["true_mm3"] > 0).all()
+    # the masseters (thick) within 25 %; measured -10 and -19 %
+    assert table.loc[["masseter_left", "masseter_right"], "error"].abs().max() < 0.25
+
+
+def test_volume_measure_counts_the_true_volume():
+    """A mesh whose muscle labels are set from the true level set at the centroids has
+    volume errors near zero on a fine grid: the measure can pass."""
+    import pyvista as pv
+
+    case = pvcmf.datasets.phantom(1, spacing=SPACING)
+    lo, hi = np.array([40.0, 0.0, -70.0]), np.array([75.0, 40.0, -10.0])
+    box = pv.ImageData(dimensions=(19, 21, 31), spacing=(2.0, 2.0, 2.0), origin=lo)
+    grid = box.cast_to_unstructured_grid().triangulate()
+    name = "masseter_left"
+    inside = true_level_set(case, name, grid.cell_centers().points) < 0
+    grid.cell_data[arrays.MUSCLE] = np.where(inside, arrays.MUSCLE_IDS[name], 0).astype(np.uint8)
+    assert inside.any() and not inside.all() and hi[0] > lo[0]
+    row = muscle_volume_errors(grid, case).set_index("muscle").loc[name]
+    assert abs(row["error"]) < 0.05

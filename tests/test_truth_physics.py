@@ -1,0 +1,198 @@
+"""Large-deformation physics of the truth (:func:`pvcmf.truth.solve_reference`) against
+analytic answers that a small-strain model cannot reproduce.
+
+* a large rigid rotation imposed on one face of a block: the whole block rotates rigidly
+  (zero strain, zero stress); small-strain linear elasticity is not rotation invariant and
+  strains it;
+* a large uniaxial stretch (ends sliding, sides free): the lateral stretch of the
+  compressible neo-Hookean energy ``W = mu/2 (I1 - 3 - 2 ln J) + lambda/2 (ln J)^2``
+  (the truth's energy, read from :mod:`pvcmf.truth.solver`), the root of
+  ``mu (b^2 - 1) + lambda ln(a b^2) = 0`` (zero lateral Cauchy stress, derived below),
+  and the axial nominal stress ``P11 = mu (a - 1/a) + lambda ln(J) / a``.
+
+Each test runs with the truth's law and with the control ``law="linear"`` (the same
+solver with a small-strain energy), which must fail it: the tests can tell the two apart.
+Small P2 blocks (a few hundred tetrahedra), a second or two each.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import pyvista as pv
+from scipy.optimize import brentq
+from scipy.spatial.transform import Rotation
+
+from pvcmf import arrays
+
+pytest.importorskip("ngsolve")
+from pvcmf.truth import solve_reference  # noqa: E402
+
+E, NU = 0.003, 0.46  # Table I fat
+MU, LAM = E / (2 * (1 + NU)), E * NU / ((1 + NU) * (1 - 2 * NU))
+
+
+def block(n=(4, 4, 4), size=(10.0, 10.0, 10.0), origin=(0.0, 0.0, 0.0)):
+    """Tetrahedral block with free nodes and fat materials."""
+    spacing = np.asarray(size) / np.asarray(n)
+    g = pv.ImageData(dimensions=np.asarray(n) + 1, spacing=spacing, origin=origin)
+    g = g.cast_to_unstructured_grid().triangulate()
+    g[arrays.BC] = np.full(g.n_points, arrays.BC_FREE, np.int8)
+    g[arrays.BC_DISPLACEMENT] = np.zeros((g.n_points, 3))
+    g.cell_data[arrays.E_CROSS] = np.full(g.n_cells, E)
+    g.cell_data[arrays.NU] = np.full(g.n_cells, NU)
+    return g
+
+
+def rigid_rotation_error(law, degrees=60.0):
+    """Largest deviation (mm) from the rigid rotation, and largest |C - I| of the elements
+    (from the vertex displacements), of a block whose face x = 0 is rotated by ``degrees``
+    about the z axis through the block's centre, every other face free."""
+    g = block()
+    rot = Rotation.from_euler("z", degrees, degrees=True).as_matrix()
+    centre = np.array([5.0, 5.0, 5.0])
+    rigid = (g.points - centre) @ rot.T + centre - g.points
+    face = np.isclose(g.points[:, 0], 0.0)
+    g[arrays.BC] = np.where(face, arrays.BC_JOINT, arrays.BC_FREE).astype(np.int8)
+    g[arrays.BC_DISPLACEMENT] = np.where(face[:, None], rigid, 0.0)
+    u = solve_reference(g, law=law, steps=4)[arrays.DISPLACEMENT]
+    tets = g.cells_dict[pv.CellType.TETRA]
+    x0, x1 = g.points[tets], (g.points + u)[tets]
+    d0 = (x0[:, 1:] - x0[:, :1]).transpose(0, 2, 1)
+    d1 = (x1[:, 1:] - x1[:, :1]).transpose(0, 2, 1)
+    f = d1 @ np.linalg.inv(d0)
+    strain = np.abs(f.transpose(0, 2, 1) @ f - np.eye(3)).max()
+    return float(np.abs(u - rigid).max()), float(strain)
+
+
+def lateral_stretch(a):
+    """Lateral stretch ``b`` of the neo-Hookean energy under uniaxial stretch ``a``.
+
+    ``F = diag(a, b, b)``, ``I1 = a^2 + 2 b^2``, ``J = a b^2``;
+    ``dW/db = 2 mu (b - 1/b) + 2 lambda ln(J) / b = 0`` (free sides), i.e.
+    ``mu (b^2 - 1) + lambda ln(a b^2) = 0``: one root in (0, 1] for ``a >= 1``.
+    """
+    return brentq(lambda b: MU * (b * b - 1) + LAM * np.log(a * b * b), 1e-3, 1.0)
+
+
+def uniaxial_error(law, a=1.5, length=10.0, width=6.0):
+    """Largest deviation (mm) of the solved block from the analytic homogeneous
+    uniaxial stretch ``diag(a, b, b)``.
+
+    The ends x = 0 and x = length slide (normal displacement 0 and ``(a - 1) length``,
+    tangential motion free), the sides are free. The gauge (translation and rotation
+    about the axis, free in this problem) is fixed by the node at the centre of the end
+    x = 0 (held) and the node at (0, width/2, 0) (given its analytic displacement); every
+    other node, in particular the whole far end, follows from the solve."""
+    half = width / 2
+    g = block(n=(4, 4, 4), size=(length, width, width), origin=(0.0, -half, -half))
+    b = lateral_stretch(a)
+    exact = g.points * np.array([a - 1, b - 1, b - 1])
+    bc = np.full(g.n_points, arrays.BC_FREE, np.int8)
+    ends = np.isclose(g.points[:, 0], 0.0) | np.isclose(g.points[:, 0], length)
+    bc[ends] = arrays.BC_SLIDING
+    g[arrays.BC_NORMAL] = np.tile([1.0, 0.0, 0.0], (g.n_points, 1))
+    disp = np.zeros((g.n_points, 3))
+    disp[ends, 0] = exact[ends, 0]
+    gauge = [int(np.argmin(np.linalg.norm(g.points - p, axis=1)))
+             for p in ((0.0, 0.0, 0.0), (0.0, half, 0.0))]
+    bc[gauge] = arrays.BC_JOINT
+    disp[gauge] = exact[gauge]
+    g[arrays.BC] = bc
+    g[arrays.BC_DISPLACEMENT] = disp
+    u = solve_reference(g, law=law, steps=4)[arrays.DISPLACEMENT]
+    return float(np.abs(u - exact).max()), b
+
+
+def test_lateral_stretch_solves_the_zero_lateral_stress_condition():
+    a = 1.5
+    b = lateral_stretch(a)
+    j = a * b * b
+    # Cauchy stress of this energy: sigma = mu/J (B - I) + lambda ln(J)/J I
+    sigma_lateral = MU / j * (b * b - 1) + LAM * np.log(j) / j
+    assert abs(sigma_lateral) < 1e-12
+    # nearly incompressible (nu 0.46): between the small-strain 1 - nu (a - 1) and the
+    # incompressible 1 / sqrt(a)
+    assert 1 - NU * (a - 1) < b < 1 / np.sqrt(a) + 0.02
+
+
+def test_large_rigid_rotation_is_stress_free():
+    err, strain = rigid_rotation_error("neo-hookean")
+    assert err < 1e-6 and strain < 1e-6
+
+
+def test_small_strain_control_fails_the_rigid_rotation():
+    err, strain = rigid_rotation_error("linear")
+    assert err > 0.5 and strain > 0.1  # far from 1e-6: the test above can fail
+
+
+def test_large_uniaxial_stretch_matches_the_analytic_neo_hookean_answer():
+    err, b = uniaxial_error("neo-hookean")
+    # the sliding ends are a penalty (traction / penalty stiffness: ~1e-4 mm here)
+    assert err < 2e-3
+    assert 0.8 < b < 0.85  # a 50 % stretch narrows the block by ~17 % (not 23 %: linear)
+
+
+def test_small_strain_control_fails_the_uniaxial_stretch():
+    err, _ = uniaxial_error("linear")
+    assert err > 0.05
+
+
+def test_law_is_checked():
+    with pytest.raises(ValueError, match="law must be one of"):
+        solve_reference(block(n=(1, 1, 1)), law="hooke")
+
+
+# --------------------------------------------------------------------------- independent truth
+# its mesh and boundary model (CI-fast, no solve): the solve is solve_reference's, tested
+# above; a solved 7k-tetrahedra truth takes minutes (benchmarks/study.py --refinement)
+
+@pytest.fixture(scope="module")
+def independent_mesh():
+    import pvcmf
+    from pvcmf.truth.independent import _boundary_conditions, soft_tissue_mesh
+
+    case = pvcmf.datasets.phantom(1, spacing=3.0)
+    return case, _boundary_conditions(case, soft_tissue_mesh(case, n_tets=8000))
+
+
+def test_independent_truth_mesh_follows_the_exact_anatomy(independent_mesh):
+    from pvcmf.datasets import template
+    from pvcmf.truth.independent import _BOUNDARY, _fields, _region
+
+    case, grid = independent_mesh
+    x = np.asarray(grid.points)
+    q = x[grid.cells_dict[pv.CellType.TETRA]]
+    vol = np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), q[:, 3] - q[:, 0])
+    assert vol.min() > 0
+    kind = np.asarray(grid["boundary"])
+    surface = (kind > 0) & (kind <= len(_BOUNDARY))
+    r, _ = _region(_fields(template.patient_warp(1), x[surface]))
+    # most boundary nodes were snapped onto the exact surfaces (the rest: snaps longer
+    # than half the lattice spacing or undone; measured 73 % on this coarse ~6 mm lattice)
+    assert np.mean(np.abs(r) < 0.05) > 0.7
+    # every facial muscle, and generic muscle tissue (tongue, temporalis, neck)
+    assert set(np.unique(grid.cell_data[arrays.MUSCLE])) == set(range(len(arrays.MUSCLES) + 1))
+    generic = (grid.cell_data[arrays.TISSUE] == arrays.MUSCLE_TISSUE) & (
+        grid.cell_data[arrays.MUSCLE] == 0)
+    assert generic.sum() > 50
+
+
+def test_independent_truth_ties_soft_tissue_to_the_moved_bones(independent_mesh):
+    from pvcmf.filters.osteotomy import cut_bones, segment_transforms
+    from pvcmf.truth.independent import _BOUNDARY
+
+    case, grid = independent_mesh
+    kind = np.asarray(grid["boundary"])
+    bc, g, x = np.asarray(grid[arrays.BC]), np.asarray(grid[arrays.BC_DISPLACEMENT]), grid.points
+    on_bone = kind == 1 + _BOUNDARY.index("bone")
+    assert np.all(bc[on_bone] == arrays.BC_JOINT)
+    assert np.all(bc[kind == len(_BOUNDARY) + 1] == arrays.BC_FIXED)
+    assert np.all(bc[~on_bone & (kind <= len(_BOUNDARY))] == arrays.BC_FREE)  # no contact
+    moves = segment_transforms(cut_bones(case.truth, case.plan), case.plan)
+    rigid = np.zeros(on_bone.sum(), dtype=bool)
+    for m in moves.values():  # each tied node moves rigidly with one segment, or not at all
+        p = x[on_bone]
+        rigid |= np.linalg.norm(p @ m[:3, :3].T + m[:3, 3] - p - g[on_bone], axis=1) < 1e-9
+    rigid |= np.linalg.norm(g[on_bone], axis=1) == 0
+    assert rigid.all() and (np.linalg.norm(g[on_bone], axis=1) > 1.0).sum() > 20
