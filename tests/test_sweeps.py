@@ -633,7 +633,7 @@ def test_skin_mapping_operator_matches_independent_fit():
                                 phi_resolution=4))  # far from every node
     x = np.asarray(grid.points)
     p = np.asarray(skin.points)
-    op = sweeps._skin_mapping(x, p, 1.5)
+    op = sweeps._skin_mapping(x, p, 1.5, "gaussian")
     rng = np.random.default_rng(3)
     for u in (np.c_[np.sin(x[:, 0] / 5), x[:, 1] ** 2 / 50, np.cos(x[:, 2] / 3)],
               rng.normal(size=x.shape)):
@@ -645,7 +645,51 @@ def test_skin_mapping_operator_matches_independent_fit():
                                    rtol=0, atol=1e-6)
     assert np.abs(op(u)[-6:]).max() == 0.0  # beyond the radius: not moved
     with pytest.raises(ValueError, match="sigma"):
-        sweeps._skin_mapping(x, p, 0.0)
+        sweeps._skin_mapping(x, p, 0.0, "gaussian")
+
+
+def test_skin_mapping_interpolate_is_the_pipelines_transfer():
+    """The sweep's default operator is the pipeline's transfer (map_to_surface's default):
+    the same displacement for a curved field, exact for an affine one inside and near the
+    mesh; PipelineEvaluation builds it once per mesh and refuses a Gaussian width."""
+    import pyvista as pv
+
+    from pvcmf import arrays
+    from pvcmf.filters import map_to_surface
+    from pvcmf.filters.surface_mapping import SurfaceMapping, Transfer
+
+    grid = pv.ImageData(dimensions=(7, 7, 7), spacing=(2.0, 2.0, 2.0)).triangulate()
+    grid = grid.cast_to_unstructured_grid()
+    skin = pv.Sphere(radius=7.0, center=(6.0, 6.0, 6.0), theta_resolution=12, phi_resolution=12)
+    x = np.asarray(grid.points)
+    op = sweeps._skin_mapping(grid, skin.points)
+    curved = np.c_[np.sin(x[:, 0] / 5), x[:, 1] ** 2 / 50, np.cos(x[:, 2] / 3)]
+    g = grid.copy()
+    g.point_data[arrays.DISPLACEMENT] = curved
+    np.testing.assert_allclose(op(curved), map_to_surface(g, skin)[arrays.DISPLACEMENT],
+                               rtol=0, atol=1e-12)
+    affine = x @ np.array([[0.1, 0.02, 0.0], [0.0, -0.05, 0.03], [0.01, 0.0, 0.08]]) + 0.5
+    expected = np.asarray(skin.points) @ np.array([[0.1, 0.02, 0.0], [0.0, -0.05, 0.03],
+                                                   [0.01, 0.0, 0.08]]) + 0.5
+    assert (np.linalg.norm(skin.points - 6.0, axis=1) > 6.0).any()  # partly outside the grid
+    np.testing.assert_allclose(op(affine), expected, atol=1e-9)
+    with pytest.raises(ValueError, match="mapping"):
+        sweeps._skin_mapping(grid, skin.points, mapping="nearest")
+    with pytest.raises(ValueError, match="mapping"):
+        sweeps.PipelineEvaluation(mapping="nearest")
+    _need_mtm()
+    state = _squeezed_cube()
+    ev = sweeps.PipelineEvaluation()
+    ev.evaluate(state, nu=0.0)
+    ev.evaluate(state, nu=0.3)
+    assert list(state["mappings"]) == [("interpolate", None)]  # one operator for the mesh
+    assert isinstance(state["mappings"][("interpolate", None)], Transfer)
+    with pytest.raises(ValueError, match="sigma applies to mapping='gaussian'"):
+        ev.evaluate(state, nu=0.0, sigma=2.0)
+    gauss = sweeps.PipelineEvaluation(mapping="gaussian")
+    gauss.evaluate(state, nu=0.0, sigma=1.5)
+    assert isinstance(state["mappings"][("gaussian", 1.5)], SurfaceMapping)
+    assert ev.identity()["mapping"] == "interpolate" != gauss.identity()["mapping"]
 
 
 def test_truth_surface_distance_equals_distance_to():

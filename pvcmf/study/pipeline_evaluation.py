@@ -6,7 +6,9 @@ muscles -> labelled mesh -> materials -> plan -> boundary conditions, pre-operat
 and keeps what does not depend on the material; per parameter set
 :meth:`PipelineEvaluation.evaluate` sets the materials, refactorises a
 :class:`pvcmf.mtm.Solver` numerically, solves, maps the displacement onto the skin
-(:class:`pvcmf.filters.surface_mapping.SurfaceMapping`) and measures the signed distance
+(the pipeline's :class:`pvcmf.filters.surface_mapping.Transfer` by default, paper 001's
+Gaussian :class:`pvcmf.filters.surface_mapping.SurfaceMapping` with ``mapping="gaussian"``)
+and measures the signed distance
 to the post-operative truth (VTK's ``vtkImplicitPolyDataDistance`` on the truth cropped
 to the face, :class:`_TruthSurface`). Prepared cases are kept on disk with
 :func:`pvcmf.cache.cached` (one folder per case and mesh-level parameters).
@@ -34,7 +36,7 @@ from .. import arrays, atlas, filters, mtm
 from ..cache import cached, code_hash
 from ..datasets import phantom
 from ..filters import distance_to
-from ..filters.surface_mapping import SurfaceMapping, map_to_surface
+from ..filters.surface_mapping import SurfaceMapping, Transfer, map_to_surface
 from ..pipeline import simulate
 from ..truth.grid import postop_skin
 from .evaluation import (Evaluation, FunctionEvaluation, case_identity, code_version,
@@ -44,7 +46,7 @@ from .statistics import label_face_regions
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PipelineEvaluation", "STUDY_SPACING", "TRUTH_MARGIN", "study_truth"]
+__all__ = ["MAPPINGS", "PipelineEvaluation", "STUDY_SPACING", "TRUTH_MARGIN", "study_truth"]
 
 #: image spacing (mm) of the study's virtual patients, at which the truths are cached
 STUDY_SPACING = 2.0
@@ -52,6 +54,8 @@ STUDY_SPACING = 2.0
 #: far more than any predicted displacement (< 20 mm) plus any error, so every predicted
 #: point's closest truth point is kept
 TRUTH_MARGIN = 40.0
+#: skin mappings of :class:`PipelineEvaluation` (``map_to_surface``'s methods)
+MAPPINGS = ("interpolate", "gaussian")
 #: files of a prepared case on disk (state key -> file name)
 PREPARED_FILES = {"grid": "grid.vtu", "skin": "skin.vtp", "postop": "postop.vtp"}
 
@@ -66,7 +70,8 @@ class PipelineEvaluation(Evaluation):
     boundary conditions, pre-operative skin), then keeps what does not depend on the
     material: the face skin, the post-operative truth cropped to the face and oriented
     (:class:`_TruthSurface`), and, built on first use, the skin mapping operator
-    (:class:`pvcmf.filters.surface_mapping.SurfaceMapping`, per ``sigma``) and a :class:`pvcmf.mtm.Solver` (geometry,
+    (:class:`pvcmf.filters.surface_mapping.Transfer`, once per mesh, or
+    :class:`pvcmf.filters.surface_mapping.SurfaceMapping` per ``sigma``) and a :class:`pvcmf.mtm.Solver` (geometry,
     block pattern, elimination maps, symbolic factorisation; per ``method``/``tol``).
     ``evaluate(state, nu=..., ...)`` then only sets the materials of the parameter set
     (:meth:`materials`), refactorises numerically, solves, applies the mapping operator
@@ -103,12 +108,24 @@ class PipelineEvaluation(Evaluation):
     mesh_threads : int, default 1
         gmsh threads per task. A local sweep runs one single-threaded Dask process per
         core, so more threads only oversubscribe the machine.
+    mapping : {'interpolate', 'gaussian'}, default 'interpolate'
+        How the mesh displacement reaches the skin: ``'interpolate'`` the operator of
+        :func:`pvcmf.pipeline.simulate` and ``map_to_surface``
+        (:func:`pvcmf.filters.surface_mapping.transfer_operator`: finite-element
+        interpolation inside the mesh, an exact-for-affine extension outside);
+        ``'gaussian'`` paper 001's Gaussian moving least squares
+        (:class:`pvcmf.filters.surface_mapping.SurfaceMapping`, width ``sigma`` per
+        parameter set: what reproduces the paper's figures).
     """
 
     version = "3"
 
     def __init__(self, spacing=2.0, n_tets=30_000, method="direct", keep_distance=False,
-                 truth=None, region="face", cache_dir=None, mesh_threads=1):
+                 truth=None, region="face", cache_dir=None, mesh_threads=1,
+                 mapping="interpolate"):
+        if mapping not in MAPPINGS:
+            raise ValueError(f"mapping must be one of {MAPPINGS}, got {mapping!r}")
+        self.mapping = mapping
         self.cache_dir = None if cache_dir is None else str(cache_dir)
         if region not in ("face", "skin"):
             raise ValueError(f"region must be 'face' or 'skin', got {region!r}")
@@ -132,6 +149,7 @@ class PipelineEvaluation(Evaluation):
         return {**super().identity(), "spacing": self.spacing, "n_tets": self.n_tets,
                 "method": self.method, "keep_distance": self.keep_distance, "truth": truth,
                 "region": self.region, "mesh_threads": self.mesh_threads,
+                "mapping": self.mapping,
                 "code": source_hash(), "own": own}
 
     def prepare(self, case, *, spacing=None, n_tets=None, roi=None, conforming=True, n_points=None):
@@ -141,7 +159,8 @@ class PipelineEvaluation(Evaluation):
         if self.cache_dir is None:
             return self._finish(self._timed_prepare(case, group))
         _, ident = case_identity(case)
-        what = {k: v for k, v in self.identity().items() if k not in ("method", "keep_distance")}
+        what = {k: v for k, v in self.identity().items()
+                if k not in ("method", "keep_distance", "mapping")}
         folder = Path(self.cache_dir) / point_key(ident, group, what, code_version())
         state = cached(folder, lambda: self._timed_prepare(case, group), read=_read_prepared,
                        write=_write_prepared, folder=True)
@@ -236,10 +255,13 @@ class PipelineEvaluation(Evaluation):
             solver.update_materials(**material, refactor=False)
         u = solver.solve()
         t_solve = float(solver.info.get("time", np.nan))
-        mapping = state["mappings"].get(sigma)
-        if mapping is None:  # the mapping does not depend on the material: once per sigma
-            mapping = state["mappings"][sigma] = _skin_mapping(grid.points, state["skin"].points,
-                                                               sigma)
+        if sigma is not None and self.mapping != "gaussian":
+            raise ValueError(f"sigma applies to mapping='gaussian' only, got sigma={sigma!r} "
+                             f"with mapping={self.mapping!r}")
+        mapping = state["mappings"].get((self.mapping, sigma))
+        if mapping is None:  # independent of the material: once per mesh (and sigma)
+            mapping = state["mappings"][(self.mapping, sigma)] = _skin_mapping(
+                grid, state["skin"].points, sigma, self.mapping)
         pred = np.asarray(state["skin"].points, float) + mapping(u)
         d = state["truth"].distance(pred)
         out = error_statistics(d)
@@ -339,10 +361,18 @@ class _TruthSurface:
         return vtk_to_numpy(out).astype(np.float64, copy=True)
 
 
-def _skin_mapping(grid_points, skin_points, sigma):
-    """:func:`pvcmf.filters.map_to_surface` as its precomputed sparse operator
-    (:class:`pvcmf.filters.surface_mapping.SurfaceMapping`, built once per mesh and sigma:
-    the weights do not depend on the material)."""
+def _skin_mapping(grid, skin_points, sigma=None, mapping="interpolate"):
+    """:func:`pvcmf.filters.map_to_surface` as its precomputed sparse operator, built once
+    per mesh (the weights do not depend on the material): ``'interpolate'``
+    :class:`pvcmf.filters.surface_mapping.Transfer` of the tetrahedral ``grid`` (the
+    pipeline's defaults); ``'gaussian'``
+    :class:`pvcmf.filters.surface_mapping.SurfaceMapping` of ``grid``'s points (a dataset
+    or an ``(n, 3)`` array) per ``sigma``."""
+    if mapping not in MAPPINGS:
+        raise ValueError(f"mapping must be one of {MAPPINGS}, got {mapping!r}")
+    if mapping == "interpolate":
+        return Transfer(grid, skin_points)
+    grid_points = np.asarray(grid.points if isinstance(grid, pv.DataSet) else grid, float)
     if sigma is None:
         sigma = inspect.signature(map_to_surface).parameters["sigma"].default
     if not sigma > 0:

@@ -232,9 +232,10 @@ def _scan(case, patient, truth, noise_hu, ct_spacing):
     mask of the skin points the truth covers."""
     grid = truth(case)
     ct, _ = postop_ct(case, grid, noise_hu=noise_hu, pose="random", seed=patient,
-                      spacing=ct_spacing, extrapolate=TRUTH_REACH)
+                      spacing=ct_spacing, extrapolate=TRUTH_REACH, extension="nearest")
     pre_skin = skin_from_ct(case.ct, name="pre-operative CT")
-    # the truth is defined inside its grid and, by postop_ct's full extrapolation,
+    # the truth is defined inside its grid and, by postop_ct's full extrapolation of the
+    # nearest node (as the truth's own skin, pvcmf.truth.grid's _skin_of, moves),
     # up to TRUTH_REACH mm outside it: only that skin is judged
     covered = np.asarray(pre_skin.sample(grid, progress_bar=False)[
         arrays.VALID_POINT_MASK], dtype=bool)

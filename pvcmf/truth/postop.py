@@ -24,6 +24,7 @@ import pyvista as pv
 
 from .. import arrays
 from ..filters.osteotomy import cut_bones, segment_transforms, voxel_points
+from ..filters.surface_mapping import DEFAULT_BAND, Transfer
 from .grid import truth_grid
 
 log = logging.getLogger("pvcmf.postop")
@@ -143,7 +144,7 @@ def _sample(image, values, points, order, cval):
 
 
 def postop_ct(case, displacement_grid=None, *, noise_hu=18.0, pose=None, seed=0, spacing=None,
-              labels=None, extrapolate=5.0, progress_bar=False):
+              labels=None, extrapolate=DEFAULT_BAND, extension="transfer", progress_bar=False):
     """Virtual post-operative CT: the pre-operative CT warped by a post-operative truth.
 
     For each output voxel ``y`` (scanner frame) the patient point is ``x = pose^-1 y`` and
@@ -156,10 +157,14 @@ def postop_ct(case, displacement_grid=None, *, noise_hu=18.0, pose=None, seed=0,
     2. inside the displaced soft-tissue grid: ``X = x - u``, with ``u`` probed on the
        displaced grid (``points + displacement``): backward warping, exact for linear
        tetrahedra;
-    3. outside the displaced grid but within ``2 * extrapolate`` mm of it (skin a coarse
-       mesh does not reach): ``X = x - w u_n``, ``u_n`` the displacement of the nearest
-       displaced node (as :func:`pvcmf.truth.postop_skin` moves skin points outside
-       its mesh), ``w`` 1 up to ``extrapolate`` mm and fading to 0 at twice that;
+    3. outside the displaced grid (skin a coarse mesh does not reach), ``extension``
+       ``'transfer'``: ``X + T(X) u = x``, ``T`` the transfer operator the prediction's
+       skin is moved by (:class:`pvcmf.filters.surface_mapping.Transfer` with
+       ``band=extrapolate``: exact for affine fields up to ``extrapolate`` mm from the
+       grid, fading to 0 at twice that), solved by fixed-point iteration; ``'nearest'``:
+       ``X = x - w u_n``, ``u_n`` the displacement of the nearest displaced node (as
+       :func:`pvcmf.truth.postop_skin` moves skin points outside its mesh), ``w`` 1 up
+       to ``extrapolate`` mm and fading to 0 at twice that;
     4. elsewhere ``X = x`` (stays put). Where ``X`` is material that moved elsewhere
        (inside the undisplaced grid: e.g. the lip retreated; on a moved segment: the bone
        left) the voxel is air (``AIR_HU``) or soft tissue (``GAP_HU``).
@@ -190,8 +195,14 @@ def postop_ct(case, displacement_grid=None, *, noise_hu=18.0, pose=None, seed=0,
     labels : pyvista.ImageData, optional
         Label image with the ``bone`` array on the CT's grid (default ``case.truth``, cut
         by the plan with :func:`pvcmf.filters.cut_bones`).
-    extrapolate : float, default 5.0
-        Reach (mm) of the grid's displacement outside the grid (step 3); 0 for none.
+    extrapolate : float, default 4.0
+        Reach (mm) of the grid's displacement outside the grid (step 3; the transfer's
+        ``band``, default that of :func:`pvcmf.pipeline.simulate`'s skin); 0 for none.
+    extension : {'transfer', 'nearest'}, default 'transfer'
+        How the displacement is extended outside the grid (step 3): ``'transfer'`` as the
+        predicted skin (a CT warped by a model's own displacement then matches that
+        model's skin), ``'nearest'`` as :func:`pvcmf.truth.postop_skin`. ``'transfer'``
+        needs a grid of tetrahedra.
     progress_bar : bool, default False
         Accepted for symmetry with the other long steps; the warp is one vectorised pass
         and logs its summary at INFO.
@@ -221,6 +232,8 @@ def postop_ct(case, displacement_grid=None, *, noise_hu=18.0, pose=None, seed=0,
     """
     out, labels, bone, disp = _postop_inputs(case, displacement_grid, labels, noise_hu,
                                              extrapolate, spacing)
+    if extension not in ("transfer", "nearest"):
+        raise ValueError(f"extension must be 'transfer' or 'nearest', got {extension!r}")
     pre = case.ct
     matrix = _pose_matrix(pose, seed, np.asarray(pre.center))
     inv_pose = np.linalg.inv(matrix)
@@ -228,7 +241,8 @@ def postop_ct(case, displacement_grid=None, *, noise_hu=18.0, pose=None, seed=0,
     x = y @ inv_pose[:3, :3].T + inv_pose[:3, 3]
     src, done, fill, n_moved = _warp_bones(x, labels, bone, case.plan)
     if displacement_grid is not None and displacement_grid.n_points:
-        _warp_soft_tissue(x, src, done, fill, displacement_grid, disp, extrapolate)
+        _warp_soft_tissue(x, src, done, fill, displacement_grid, disp, extrapolate,
+                          extension)
     values = _sample(pre, np.asarray(pre[arrays.CT]).astype(np.float64), src, 1, AIR_HU)
     values = np.where(np.isnan(fill), values, fill).astype(np.float32)
     if noise_hu > 0:
@@ -305,10 +319,8 @@ def _warp_bones(x, labels, bone, plan):
     return src, done, fill, len(transforms)
 
 
-def _warp_soft_tissue(x, src, done, fill, displacement_grid, disp, extrapolate):
+def _warp_soft_tissue(x, src, done, fill, displacement_grid, disp, extrapolate, extension):
     """Steps 2-4 for soft tissue, in place on ``src``, ``done`` and ``fill``."""
-    from scipy.spatial import cKDTree
-
     # 2. backward warp through the displaced grid
     displaced = pv.UnstructuredGrid(displacement_grid.cells, displacement_grid.celltypes,
                                     np.asarray(displacement_grid.points, float) + disp)
@@ -318,20 +330,63 @@ def _warp_soft_tissue(x, src, done, fill, displacement_grid, disp, extrapolate):
     src[hit] = x[hit] - u[inside]
     done[hit] = True
     fill[hit] = np.nan
-    # 3. just outside the grid (tissue the mesh does not reach): the displacement of
-    # the nearest displaced node, fading from 1 at `extrapolate` mm to 0 at twice that
+    # 3. just outside the grid (tissue the mesh does not reach)
     rest = np.flatnonzero(~done & np.isnan(fill))
-    if extrapolate > 0:
-        dist, idx = cKDTree(displaced.points).query(x[rest], distance_upper_bound=2 * extrapolate,
-                                                     workers=-1)
-        near = np.isfinite(dist)
-        w = np.clip((2 * extrapolate - dist[near]) / extrapolate, 0.0, 1.0)
-        src[rest[near]] = x[rest[near]] - w[:, None] * disp[idx[near]]
+    if extrapolate > 0 and rest.size:
+        src[rest] = _extend(x[rest], displacement_grid, displaced, disp, extrapolate, extension)
     # 4. material the grid moved away (the source lies in the undisplaced grid): air
     _, was = _probe(src[rest], displacement_grid, np.zeros((displacement_grid.n_points, 1)))
     fill[rest[was]] = AIR_HU
     log.info("postop_ct: %d voxels warped by the soft tissue, %d vacated", hit.size,
              int(was.sum()))
+
+
+#: fixed-point iterations of the inverse of the extension outside the grid, and the step
+#: (mm) under which a point counts as converged
+EXTEND_ITERATIONS = 12
+EXTEND_TOLERANCE = 1e-3
+
+
+def _extend(x, grid, displaced, disp, extrapolate, extension):
+    """Step 3: the source ``X`` of points ``x`` outside the displaced grid.
+
+    ``'nearest'``: ``X = x - w u_n`` (nearest displaced node, ``w`` 1 up to ``extrapolate``
+    mm, 0 at twice that). ``'transfer'``: ``X + T(X) u = x`` with ``T`` the prediction's
+    transfer operator (:class:`pvcmf.filters.surface_mapping.Transfer` of the grid at rest,
+    ``band=extrapolate``), solved by the fixed-point iteration ``X <- x - T(X) u`` from the
+    nearest-node guess (a contraction where the displacement gradient is below 1).
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(grid.points, dtype=float)
+    tree = cKDTree(displaced.points)
+    dist, idx = tree.query(x, distance_upper_bound=2 * extrapolate, workers=-1)
+    near = np.isfinite(dist)
+    guess = x.copy()
+    w = np.clip((2 * extrapolate - dist[near]) / extrapolate, 0.0, 1.0)
+    guess[near] -= w[:, None] * disp[idx[near]]
+    if extension == "nearest":
+        return guess
+    # points a source within the transfer's reach (2 extrapolate) can move to
+    cells = grid.cells_dict
+    cells = np.asarray(cells.get(pv.CellType.TETRA, cells.get(int(pv.CellType.TETRA), [[0] * 4])))
+    h = float(np.linalg.norm(pts[cells[:, 1:]] - pts[cells[:, :1]], axis=2).max(initial=0.0))
+    bound = 2 * extrapolate + h + 2 * float(np.linalg.norm(disp, axis=1).max(initial=0.0))
+    cand = np.flatnonzero(tree.query(x, distance_upper_bound=bound, workers=-1)[0] <= bound)
+    src, target = guess[cand], x[cand]
+    active = np.arange(cand.size)
+    for _ in range(EXTEND_ITERATIONS):
+        if not active.size:
+            break
+        new = target[active] - Transfer(grid, src[active], band=extrapolate)(disp)
+        step = np.linalg.norm(new - src[active], axis=1)
+        src[active] = new
+        active = active[step > EXTEND_TOLERANCE]
+    if active.size:
+        log.warning("postop_ct: %d of %d voxels outside the grid did not converge to their "
+                    "source within %.3g mm", active.size, cand.size, EXTEND_TOLERANCE)
+    guess[cand] = src
+    return guess
 
 
 def reference_grid(case, *, n_tets=16_000, order=2, steps=4, face_fraction=0.5, cache=True,
