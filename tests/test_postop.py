@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 import pvcmf
 from pvcmf import arrays
 from pvcmf.filters.osteotomy import voxel_points
+from pvcmf.plan import Plan
 from pvcmf.filters.registration import registration_result
 from pvcmf.plan import Osteotomy, Plan
 from pvcmf.postop import AIR_HU, postop_ct, skin_from_ct, validate_from_ct
@@ -242,7 +243,15 @@ def test_prediction_against_ct_warped_by_the_same_displacement(mtm):
     pre = skin_from_ct(c.ct)
     _, table = validate_from_ct(c, ct, result.skin_post, pre_skin=pre)
     t = table.set_index("region")
-    assert t.loc["face", "p90"] < SPACING / 4
+    # the floor of the CT path: the same skin unmoved against the CT of an empty plan
+    # (same pose and noise); the skins' own sub-voxel difference, with no model error
+    still = c.copy()
+    still.plan = Plan(())
+    ct0, _ = postop_ct(still, None, pose="random", seed=2)
+    _, floor = validate_from_ct(still, ct0, result.skin_pre, pre_skin=pre)
+    floor_p90 = floor.set_index("region").loc["face", "p90"]
+    assert floor_p90 < SPACING / 3
+    assert t.loc["face", "p90"] < floor_p90 + 0.1, (t.loc["face", "p90"], floor_p90)
     # regions: 3 mm voxels and a 4 mm lip move; skin points sit on the mesh boundary,
     # half just outside, where postop_ct and the MTM's skin extend the displacement by the
     # same transfer operator: what is left is the skins' own sub-voxel difference
