@@ -278,6 +278,15 @@ def write_outputs(result, out, images=None):
 
 
 def _save(dataset, path):
+    """Write ``dataset`` atomically with VTK's XML writer, without string field data (which
+    meshio and other readers refuse), so that every file of a run reads back in meshio."""
+    strings = [k for k in dataset.field_data.keys()
+               if np.asarray(dataset.field_data[k]).dtype.kind in "USO"]
+    if strings:
+        dataset = dataset.copy(deep=False)
+        for key in strings:
+            dataset.field_data.remove(key)
+        log.debug("%s: string field data %s not written", Path(path).name, strings)
     with atomic_path(path) as tmp:
         dataset.save(tmp)
     return Path(path)

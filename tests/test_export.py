@@ -191,3 +191,20 @@ def test_bad_input(box, tmp_path):
     with pytest.raises(ValueError, match="fiber"):
         write_feb(grid, tmp_path / "a.feb")
     assert not (tmp_path / "a.feb").exists()
+
+
+def test_run_outputs_read_back_in_meshio(tmp_path):
+    """The deformed mesh a run writes reads back in meshio, string field data and all."""
+    from test_cli import _small_result
+
+    from pvcmf.outputs import write_outputs
+
+    result = _small_result()
+    result.post.field_data[arrays.LANDMARK_NAMES] = np.array(["nasion", "pogonion"])
+    files = write_outputs(result, tmp_path)
+    mesh = meshio.read(files["deformed_mesh"])
+    assert len(mesh.points) == result.post.n_points
+    assert sum(len(c.data) for c in mesh.cells) == result.post.n_cells
+    np.testing.assert_allclose(mesh.point_data[arrays.DISPLACEMENT],
+                               result.post[arrays.DISPLACEMENT])
+    assert arrays.LANDMARK_NAMES in result.post.field_data  # input untouched
