@@ -28,32 +28,13 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from ..arrays import voxel_points
 from ..plan import Plan
 from .bone_segments import find_jaws, segment_volumes
 
 log = logging.getLogger(__name__)
 
 __all__ = ["cut_bones", "move_bones", "segment_transforms", "voxel_points"]
-
-
-def voxel_points(image, ids):
-    """Coordinates (mm) of the voxels ``ids`` (flat point ids) of an ImageData.
-
-    Computed from origin, spacing and dimensions, without materialising every point of
-    the image (``image.points`` builds an (n, 3) array for the whole volume).
-
-    Examples
-    --------
-    >>> import numpy as np, pyvista as pv
-    >>> from pvcmf.filters.osteotomy import voxel_points
-    >>> img = pv.ImageData(dimensions=(3, 4, 5), spacing=(1, 2, 3), origin=(10, 0, 0))
-    >>> bool(np.allclose(voxel_points(img, [0, 7, 59]), img.points[[0, 7, 59]]))
-    True
-    """
-    ids = np.asarray(ids, dtype=np.int64)
-    nx, ny, _ = image.dimensions
-    ijk = np.stack([ids % nx, (ids // nx) % ny, ids // (nx * ny)], axis=1)
-    return np.asarray(image.origin, dtype=float) + ijk * np.asarray(image.spacing, dtype=float)
 
 
 def _check_inputs(labels, plan, func):
