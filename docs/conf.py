@@ -73,7 +73,8 @@ napoleon_use_rtype = False
 napoleon_use_ivar = True  # "Attributes" as fields: dataclass members are documented once
 # absolute values written |x| in docstrings read as substitutions: define them as themselves
 rst_epilog = "\n".join(f".. |{name}| replace:: \\|{name}\\|"
-                        for name in ("distance", "x - x_tip", "error", "d", "u"))
+                        for name in ("distance", "x - x_tip", "error", "d", "u", "displacement",
+                                     "bc_displacement"))
 
 # no network: no intersphinx, no remote images
 intersphinx_mapping = {}

@@ -1,5 +1,5 @@
 """A sequence of plans and their predicted faces
-============================================
+=============================================
 
 What the interactive planner (``pvcmf plan``) shows while a slider moves: virtual
 patient 1's mandible advanced 0, 3, 6 and 9 mm (anterior-posterior translation of a

@@ -287,7 +287,7 @@ CRUMPLE_VIOLATIONS = "crumple_violations"
 #: summary / field data: largest ratio of an edge's stretch to that bound (<= 1.1 passes)
 CRUMPLE_MAX_RATIO = "crumple_max_ratio"
 CRUMPLE_EDGES = "crumple_edges"  #: summary / field data: number of skin edges checked
-#: point (skin), uint8: 1 where the mesh models the skin (inside it or within the transfer's
+#: point (skin), uint8, 1 where the mesh models the skin (inside it or within the transfer's
 #: band); 0 where the skin is not modelled (e.g. behind a face model's posterior cut) and its
 #: displacement is the extension decayed to the fixed plane's zero
 SKIN_MODELLED = "skin_modelled"

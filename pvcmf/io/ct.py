@@ -406,8 +406,8 @@ def _nrrd_vector(text):
     return np.array([float(v) for v in text.strip().strip("()").split(",")])
 
 
-def _read_nrrd(path):
-    raw = path.read_bytes()
+def _nrrd_header(path, raw):
+    """Parse a NRRD header: its fields, sizes, dtype, encoding and where the data begins."""
     if not raw.startswith(b"NRRD000"):
         raise ValueError(f"read_ct: {str(path)!r} is not a NRRD file (no 'NRRD000x' magic)")
     header_end = raw.find(b"\n\n")
@@ -443,8 +443,11 @@ def _read_nrrd(path):
     encoding = fields["encoding"].lower()
     if encoding not in ("raw", "gzip", "gz", "bzip2", "bz2", "ascii", "text", "txt"):
         raise ValueError(f"read_ct: unsupported NRRD encoding {encoding!r} in {str(path)!r}")
+    return fields, data_files, attached, header_end, sizes, dtype, encoding
 
-    # where the data lives
+
+def _nrrd_chunks(path, raw, fields, data_files, attached, header_end):
+    """The raw bytes of a NRRD's data: attached, one detached file or a list of them."""
     spec = fields.get("data file", fields.get("datafile"))
     if spec is None:
         if not attached:
@@ -465,6 +468,11 @@ def _read_nrrd(path):
             if not file.is_file():
                 raise ValueError(f"read_ct: NRRD data file {str(file)!r} (from {str(path)!r}) is missing")
             chunks.append(file.read_bytes())
+    return chunks
+
+
+def _nrrd_values(path, chunks, fields, sizes, dtype, encoding):
+    """Decode a NRRD's data chunks into a flat array of ``prod(sizes)`` voxel values."""
     count = int(np.prod(sizes))
     decoded = []
     for chunk in chunks:
@@ -494,6 +502,14 @@ def _read_nrrd(path):
         values = np.frombuffer(buf, dtype=dtype, count=count)
     if values.size != count:
         raise ValueError(f"read_ct: NRRD {str(path)!r} holds {values.size} values, expected {count}")
+    return values
+
+
+def _read_nrrd(path):
+    raw = path.read_bytes()
+    fields, data_files, attached, header_end, sizes, dtype, encoding = _nrrd_header(path, raw)
+    chunks = _nrrd_chunks(path, raw, fields, data_files, attached, header_end)
+    values = _nrrd_values(path, chunks, fields, sizes, dtype, encoding)
 
     # geometry
     origin = _nrrd_vector(fields["space origin"]) if "space origin" in fields else np.zeros(3)

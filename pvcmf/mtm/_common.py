@@ -1,4 +1,4 @@
-"""Pieces shared by the MTM solver and its backends: errors, norms, the triangle operator.
+"""Pieces shared by the MTM solver and its backends: errors, norms, operators, field data.
 
 Delegates to numpy and scipy.sparse.
 """
@@ -13,10 +13,21 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .. import arrays
+
 log = logging.getLogger(__name__)
 
 EPS = np.finfo(float).eps
 EPS32 = float(np.finfo(np.float32).eps)
+
+#: field-data names written by :func:`pvcmf.mtm.solve`
+FIELD_METHOD = "mtm_method"
+FIELD_BACKEND = "mtm_backend"
+FIELD_RESIDUAL = "mtm_residual"  #: relative residual ||K_ff y - b|| / ||b||
+FIELD_ITERATIONS = "mtm_iterations"
+FIELD_TIME = "mtm_time"  #: time in s of assembly + factorisation/setup + solve
+FIELD_ERROR_ESTIMATE = "mtm_error_estimate"  #: estimated relative forward error (direct)
+FIELD_LOST_DIGITS = "mtm_lost_digits"  #: estimated significant digits lost (direct)
 
 
 class ConvergenceError(RuntimeError):
@@ -96,3 +107,18 @@ def blas_threads(threads):
         log.debug("threads=%s: threadpoolctl is not installed, BLAS keeps its threads", threads)
         return contextlib.nullcontext()
     return threadpool_limits(limits=int(threads), user_api="blas")
+
+
+def solution_grid(grid, u, info):
+    """Copy of ``grid`` with point ``displacement`` ``u`` and the solve's ``info`` as field data."""
+    out = grid.copy()  # deep: the result shares no memory with the input
+    out.point_data[arrays.DISPLACEMENT] = np.array(u, dtype=float)
+    out.field_data[arrays.MTM_INVERTED] = np.array([int(info.get("inverted", -1))])
+    out.field_data[arrays.MTM_FREE_RATIO] = np.array([float(info.get("free_ratio", np.nan))])
+    for key, name in ((FIELD_METHOD, "method"), (FIELD_BACKEND, "backend")):
+        out.field_data[key] = np.array([str(info.get(name, ""))])
+    for key, name in ((FIELD_RESIDUAL, "residual"), (FIELD_ITERATIONS, "iterations"),
+                      (FIELD_TIME, "time"), (FIELD_ERROR_ESTIMATE, "error_estimate"),
+                      (FIELD_LOST_DIGITS, "lost_digits")):
+        out.field_data[key] = np.array([float(info.get(name, np.nan))])
+    return out

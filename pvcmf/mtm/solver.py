@@ -37,13 +37,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from .. import arrays
-from ._common import (
-    BackendUnavailableError,
-    ConvergenceError,
-    IllConditionedWarning,
-    SymmetricFromTriangle,
-    blas_threads as _blas_threads,
-    norm,
+from ._common import (  # the field-data names written by solve live with solution_grid
+    FIELD_BACKEND, FIELD_ERROR_ESTIMATE, FIELD_ITERATIONS, FIELD_LOST_DIGITS, FIELD_METHOD,
+    FIELD_RESIDUAL, FIELD_TIME, BackendUnavailableError, ConvergenceError,
+    IllConditionedWarning, SymmetricFromTriangle, blas_threads as _blas_threads, norm,
+    solution_grid,
 )
 from .assembly import _LINEAR_CELLS, Assembler, _merge_pairs, grid_materials, tetrahedra
 from .backends import direct_backends, gpu_available, resolve
@@ -72,14 +70,6 @@ PRECISIONS = ("auto", "double", "mixed")
 #: ``method="auto"`` uses ``direct`` up to this many points, else ``cg`` (the memory of a
 #: sparse factor of a 3D mesh grows faster than linearly)
 AUTO_DIRECT_MAX_POINTS = 100_000
-#: field-data names written by :func:`solve`
-FIELD_METHOD = "mtm_method"
-FIELD_BACKEND = "mtm_backend"
-FIELD_RESIDUAL = "mtm_residual"  #: relative residual ||K_ff y - b|| / ||b||
-FIELD_ITERATIONS = "mtm_iterations"
-FIELD_TIME = "mtm_time"  #: seconds: assembly + factorisation/setup + solve
-FIELD_ERROR_ESTIMATE = "mtm_error_estimate"  #: estimated relative forward error (direct)
-FIELD_LOST_DIGITS = "mtm_lost_digits"  #: estimated significant digits lost (direct)
 
 _METHOD_CLASSES = {"direct": Direct, "cg": CG, "relaxation": Relaxation, "gpu": GPU}
 
@@ -524,19 +514,7 @@ class Solver:
     # ------------------------------------------------------------------ output
     def to_grid(self, u, grid=None):
         """Copy of ``grid`` (default the solver's) with point ``displacement`` and field data."""
-        grid = self.grid if grid is None else grid
-        out = grid.copy()  # deep: the result shares no memory with the input
-        out.point_data[arrays.DISPLACEMENT] = np.array(u, dtype=float)
-        info = getattr(self, "info", {})
-        out.field_data[arrays.MTM_INVERTED] = np.array([int(info.get("inverted", -1))])
-        out.field_data[arrays.MTM_FREE_RATIO] = np.array([float(info.get("free_ratio", np.nan))])
-        for key, name in ((FIELD_METHOD, "method"), (FIELD_BACKEND, "backend")):
-            out.field_data[key] = np.array([str(info.get(name, ""))])
-        for key, name in ((FIELD_RESIDUAL, "residual"), (FIELD_ITERATIONS, "iterations"),
-                          (FIELD_TIME, "time"), (FIELD_ERROR_ESTIMATE, "error_estimate"),
-                          (FIELD_LOST_DIGITS, "lost_digits")):
-            out.field_data[key] = np.array([float(info.get(name, np.nan))])
-        return out
+        return solution_grid(self.grid if grid is None else grid, u, getattr(self, "info", {}))
 
 
 def solve(grid, method="direct", tol=1e-10, progress_bar=False, **kwargs):
