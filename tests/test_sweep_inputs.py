@@ -22,6 +22,7 @@ from pvcmf.study.cli import add_sweep_parser  # noqa: E402
 from pvcmf.study.engine import NonFiniteResultError, sweep  # noqa: E402
 from pvcmf.study.evaluation import error_statistics, synthetic_evaluate  # noqa: E402
 from pvcmf.study.parameters import parse_grid, validate_grid  # noqa: E402
+from pvcmf.study.pipeline_evaluation import PipelineEvaluation  # noqa: E402
 
 ROOT = Path(pvcmf.__file__).resolve().parent.parent
 
@@ -206,3 +207,92 @@ def test_script_without_main_guard_is_told_why(tmp_path):
     last = proc.stderr.strip().splitlines()[-1]
     assert "LocalClusterStartError" in last
     assert 'if __name__ == "__main__":' in last and 'scheduler="synchronous"' in last
+
+
+# --------------------------------------------------------------------------- plan sweeps
+
+
+def _block_case():
+    """A small case: a soft-tissue shell around a two-segment bone block (maxilla above,
+    mandible below), its label image, a skin sphere, a truth sphere, and a maxilla plan;
+    the grid carries the boundary conditions of that plan (as a prepared case does)."""
+    import pyvista as pv
+
+    from pvcmf import arrays
+    from pvcmf.filters import apply_plan
+    from pvcmf.plan import Osteotomy, Plan
+
+    img = pv.ImageData(dimensions=(13, 13, 13), origin=(-6, -6, -6))
+    p = np.asarray(img.points)
+    inner = (np.abs(p) <= 3).all(axis=1)
+    img[arrays.BONE] = np.where(inner, np.where(p[:, 2] > 0, arrays.MAXILLA, arrays.MANDIBLE),
+                                0).astype(np.uint8)
+    tissue = np.where(inner, arrays.BONE_TISSUE, arrays.FAT)
+    tissue[inner & (p[:, 2] == 0) & (p[:, 1] >= 3)] = arrays.TEETH
+    img[arrays.TISSUE] = tissue.astype(np.uint8)
+    soft = ~(np.abs(img.cell_centers().points) < 3).all(axis=1)
+    grid = img.extract_cells(np.flatnonzero(soft)).triangulate().clean()
+    grid.clear_data()
+    grid.cell_data[arrays.E_FIBER] = np.full(grid.n_cells, 3e-3)
+    grid.cell_data[arrays.NU] = np.full(grid.n_cells, 0.45)
+    plan = Plan((Osteotomy("maxilla", (0.5, 1.0, 2.0), (0.0, 3.0, 0.0)),), name="block")
+    grid = apply_plan(grid, plan, img, fix_unmoved_bone=True, release_margin="auto")
+    skin = pv.Sphere(radius=6.2, theta_resolution=24, phi_resolution=16)
+    truth = pv.Sphere(radius=6.5, theta_resolution=30, phi_resolution=20)
+    return {"grid": grid, "skin": skin, "postop": truth, "labels": img, "plan": plan}
+
+
+class _BlockPipeline(PipelineEvaluation):
+    """The pipeline evaluation on the block case (no virtual patient built)."""
+
+    def _prepare(self, case, **group):
+        return _block_case()
+
+
+@pytest.mark.filterwarnings("ignore:the MTM solution inverts")
+def test_plan_sweep_equals_full_predictions_with_one_operator_per_case(monkeypatch):
+    from pvcmf import arrays
+    from pvcmf.filters import apply_plan
+    from pvcmf.filters.surface_mapping import transfer_operator
+    from pvcmf.mtm import solve
+    from pvcmf.mtm import response as response_module
+    from pvcmf.plan import Osteotomy, Plan
+    from pvcmf.study import pipeline_evaluation
+
+    builds = []
+
+    def counted(*args, **kwargs):
+        builds.append(kwargs.get("plan"))
+        return response_module.plan_response(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline_evaluation, "plan_response", counted)
+    grid = {"maxilla_t_ap": [-1.0, 2.0, 4.0], "maxilla_r_pitch": [0.0, 5.0]}
+    df = sweep(["A", "B"], grid, evaluate=_BlockPipeline(keep_distance=True, region="skin"),
+               scheduler="synchronous", keep_arrays=True)
+    assert len(df) == 12 and len(builds) == 2  # one operator per case, 6 plans each
+    assert df["error"].isna().all() if "error" in df else True
+
+    # independent reference: the case's plan with the swept components replaced, boundary
+    # conditions with the release margin the case's own plan had, a full solve, transfer
+    case = _block_case()
+    g, img, skin = case["grid"], case["labels"], case["skin"]
+    moving = np.isin(np.asarray(g[arrays.BC]), (arrays.BC_JOINT, arrays.BC_SLIDING))
+    margin = 2 * np.linalg.norm(np.asarray(g[arrays.BC_DISPLACEMENT])[moving], axis=1).max()
+    T = transfer_operator(g, skin)
+    for _, row in df[df["case"] == "A"].iterrows():
+        plan = Plan((Osteotomy("maxilla", (0.5, 1.0, row["maxilla_t_ap"]),
+                               (row["maxilla_r_pitch"], 3.0, 0.0)),))
+        bcs = apply_plan(g, plan, img, fix_unmoved_bone=True, release_margin=margin)
+        u = np.asarray(T @ np.asarray(solve(bcs)[arrays.DISPLACEMENT]))
+        assert np.abs(u).max() > 0.5
+        assert np.abs(row[arrays.DISPLACEMENT] - u).max() < 1e-9
+    a, b = (np.stack(df[df["case"] == c][arrays.DISPLACEMENT].tolist()) for c in "AB")
+    np.testing.assert_array_equal(a, b)  # the same case under two names
+
+
+def test_plan_parameters_validated():
+    assert validate_grid({"mandible_r_pitch": [0, 5]}) == {"mandible_r_pitch": (0.0, 5.0)}
+    with pytest.raises(ValueError, match=r"'maxilla_r_yaw'.*30 degrees.*45"):
+        validate_grid({"maxilla_r_yaw": [45]})
+    with pytest.raises(ValueError, match="twice"):
+        validate_grid({"maxilla_r_h": [1], "maxilla_r_pitch": [2]})

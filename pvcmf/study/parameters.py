@@ -94,12 +94,27 @@ _AXES = {"h": "horizontal (+ patient-left)", "v": "vertical (+ superior)",
 #: :func:`pvcmf.planner.state.slider_key`): one component of a segment's translation (mm)
 #: or rotation (degrees) in the plan's (horizontal, vertical, anterior-posterior) terms
 #: (:mod:`pvcmf.plan`). A component the grid does not name keeps the case's own plan value.
+#: Rotations may also name their axis as an angle: ``_r_pitch`` (= ``_r_h``), ``_r_yaw``
+#: (= ``_r_v``), ``_r_roll`` (= ``_r_ap``).
 PLAN_PARAMETERS = {
     f"{segment}_{kind}_{axis}": (
         "plan", _translation if kind == "t" else _rotation,
         f"{segment} {'translation, mm' if kind == 't' else 'rotation, degrees'}, {meaning}")
     for segment in MOVABLE_SEGMENTS for kind in ("t", "r") for axis, meaning in _AXES.items()
 }
+_ANGLES = {"pitch": "h", "yaw": "v", "roll": "ap"}
+PLAN_PARAMETERS.update({
+    f"{segment}_r_{angle}": ("plan", _rotation, f"{segment} rotation, degrees, {angle} "
+                             f"(= {segment}_r_{axis})")
+    for segment in MOVABLE_SEGMENTS for angle, axis in _ANGLES.items()
+})
+
+
+def _plan_component(name):
+    """(segment, 'translation'|'rotation', axis index) of a plan parameter."""
+    segment, kind, axis = name.rsplit("_", 2)
+    return (segment, "translation" if kind == "t" else "rotation",
+            list(_AXES).index(_ANGLES.get(axis, axis)))
 
 
 def plan_values(params):
@@ -113,13 +128,10 @@ def plan_values(params):
     {'maxilla': {'translation': {2: 4.0}}}
     """
     out = {}
-    axes = list(_AXES)
     for name, value in params.items():
-        if name not in PLAN_PARAMETERS:
-            continue
-        segment, kind, axis = name.rsplit("_", 2)
-        attr = "translation" if kind == "t" else "rotation"
-        out.setdefault(segment, {}).setdefault(attr, {})[axes.index(axis)] = float(value)
+        if name in PLAN_PARAMETERS:
+            segment, attr, axis = _plan_component(name)
+            out.setdefault(segment, {}).setdefault(attr, {})[axis] = float(value)
     return out
 
 
@@ -204,6 +216,13 @@ def validate_grid(grid):
         if len(set(clean)) != len(clean):
             raise ValueError(f"grid[{name!r}] has duplicated values: {list(values)}")
         out[name] = clean
+    components = {}
+    for name in out:
+        if name in PLAN_PARAMETERS:
+            components.setdefault(_plan_component(name), []).append(name)
+    twice = [names for names in components.values() if len(names) > 1]
+    if twice:
+        raise ValueError(f"grid names one plan component twice: {twice[0]}; keep one name")
     if "nu" in out and ({"nu_fat", "nu_muscle"} & set(out)):
         raise ValueError(
             "grid may sweep either the homogeneous 'nu' or the per-tissue 'nu_fat'/'nu_muscle', "
