@@ -27,6 +27,8 @@ import contextlib
 import itertools
 import json
 import logging
+import math
+import multiprocessing
 import numbers
 import os
 import time
@@ -39,6 +41,7 @@ import pandas as pd
 
 from .. import arrays
 from ..cache import load_entry, store_entry
+from ..plan import TABLE_II
 from ..progress import Progress
 from .evaluation import Evaluation, FunctionEvaluation, case_identity, code_version, point_key
 from .parameters import METRICS, PARAMETERS, TIMES, validate_grid
@@ -46,10 +49,26 @@ from .pipeline_evaluation import PipelineEvaluation
 
 log = logging.getLogger(__name__)
 
-__all__ = ["resolve_evaluation", "sweep"]
+__all__ = ["LocalClusterStartError", "NonFiniteResultError", "resolve_evaluation", "sweep"]
 
 #: metrics without which a row is not a result
 REQUIRED_METRICS = ("p50", "p90", "p95")
+#: patient numbers of the virtual patients (:func:`pvcmf.datasets.phantom`, Table II)
+PATIENTS = tuple(sorted(TABLE_II))
+
+#: what a sweep says when its local Dask cluster cannot start processes
+GUARD_HINT = ('the local Dask cluster starts its processes with "spawn", which re-imports '
+              "the main module: a script that calls pvcmf.sweep must do so under "
+              '`if __name__ == "__main__":`, or run with scheduler="synchronous" or '
+              'scheduler="threads"')
+
+
+class NonFiniteResultError(ValueError):
+    """A sweep point gave a NaN or infinite metric (a failed point, never cached)."""
+
+
+class LocalClusterStartError(RuntimeError):
+    """The local Dask cluster of a sweep could not start its processes."""
 
 
 def resolve_evaluation(evaluate):
@@ -102,20 +121,36 @@ class _Results:
         self.results, self.cached, self.failed = {}, set(), {}
 
     def load(self, keys):
-        """Read the cached entries of ``keys`` (none without a ``cache_dir``)."""
+        """Read the cached entries of ``keys`` (none without a ``cache_dir``); an entry
+        with a non-finite metric (written by an older version) is computed again."""
         if self.cache_dir is None:
             return
         for key in keys:
             hit = load_entry(_entry_path(self.cache_dir, key), _read_result)
-            if hit is not None:
+            if hit is not None and _non_finite(hit) is None:
                 self.results[key] = hit
                 self.cached.add(key)
 
     def accept(self, task, task_results):
-        for key, result in zip(task[3], task_results):
+        """Keep (and cache) a task's results; a point with a NaN/inf metric is a failed
+        point: not cached, recorded (``on_error='skip'``) or raised after the task's
+        finite points are cached (``'raise'``)."""
+        bad = []
+        for key, params, result in zip(task[3], task[2], task_results):
+            reason = _non_finite(result)
+            if reason is not None:
+                bad.append((key, params, reason))
+                continue
             self.results[key] = result
             if self.cache_dir is not None:
                 store_entry(_entry_path(self.cache_dir, key), result, _write_result)
+        for key, params, reason in bad:
+            message = (f"sweep point for case {self.labels[task[0]]!r} with "
+                       f"{ {**task[1], **params} } gave {reason}")
+            if self.on_error == "raise":
+                raise NonFiniteResultError(message)
+            log.error("%s (skipped)", message)
+            self.failed[key] = f"NonFiniteResultError: {reason}"
 
     def fail(self, task, err):
         ci, gparams = task[0], task[1]
@@ -126,6 +161,17 @@ class _Results:
         log.error("%s (skipped)", message)
         for key in task[3]:
             self.failed[key] = f"{type(err).__name__}: {err}"
+
+
+def _non_finite(result):
+    """Why ``result`` is not a result (a NaN/inf scalar metric), or None."""
+    bad = []
+    for name in METRICS:
+        value = result.get(name)
+        if isinstance(value, (numbers.Real, np.generic)) and not isinstance(value, bool) \
+                and not math.isfinite(float(value)):
+            bad.append(f"{name}={float(value)}")
+    return f"non-finite metrics {', '.join(bad)}" if bad else None
 
 
 # --------------------------------------------------------------------------- tasks
@@ -167,10 +213,17 @@ def _make_client(scheduler, n_tasks, n_workers, memory_limit):
     cpus = os.cpu_count() or 1
     if scheduler in (None, "processes"):
         workers = n_workers or max(1, min(cpus, n_tasks))
-        cluster = stack.enter_context(LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True,
-            dashboard_address=None, memory_limit=memory_limit,
-        ))
+        try:
+            cluster = stack.enter_context(LocalCluster(
+                n_workers=workers, threads_per_worker=1, processes=True,
+                dashboard_address=None, memory_limit=memory_limit,
+            ))
+        except Exception as err:
+            stack.close()
+            raise LocalClusterStartError(
+                f"sweep could not start its local Dask cluster ({type(err).__name__}: {err}). "
+                f"Most often {GUARD_HINT}."
+            ) from err
     elif scheduler == "threads":
         cluster = stack.enter_context(LocalCluster(
             n_workers=1, threads_per_worker=n_workers or cpus, processes=False,
@@ -226,8 +279,8 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     keep_arrays : bool
         Keep array results (e.g. the per-point ``distance`` map) as object columns.
     n_workers : int, optional
-        Dask processes (threads for ``"threads"``) of a local cluster; default one per
-        CPU, at most one per task.
+        Dask processes (threads for ``"threads"``) of a local cluster, a positive integer;
+        default (``None``) one per CPU, at most one per task.
     memory_limit : str
         Memory limit per Dask process of a local cluster (Dask syntax, e.g. ``"2GiB"``).
     version : str, optional
@@ -238,9 +291,11 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
         :data:`~pvcmf.study.evaluation.RESULT_SOURCES`), so code
         that changes results recomputes and code that does not (figures, CLI) does not.
     on_error : {'raise', 'skip'}
-        A task that still fails after its retries: ``'raise'`` stops the sweep with a
-        :class:`RuntimeError` naming the case; ``'skip'`` finishes the other tasks and
-        gives the failed points NaN metrics and the message in an ``error`` column
+        A task that still fails after its retries, or a point whose metrics are NaN or
+        infinite: ``'raise'`` stops the sweep with a :class:`RuntimeError` naming the
+        case (:class:`NonFiniteResultError`, a ``ValueError``, naming the case and the
+        parameters for a non-finite metric); ``'skip'`` finishes the other tasks and
+        gives the failed points NaN metrics and the reason in an ``error`` column
         (failures are not cached, so a rerun tries them again).
 
     Returns
@@ -255,10 +310,13 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     Raises
     ------
     ValueError
-        Invalid grid or cases (before anything runs).
+        Invalid grid, cases (a patient number that is no virtual patient) or options
+        (``n_workers``, ``retries``, ``on_error``), before anything runs; a non-finite
+        metric (:class:`NonFiniteResultError`, ``on_error='raise'``).
     RuntimeError
         A task failed after its retries (``on_error='raise'``); results of finished
-        tasks stay cached.
+        tasks stay cached. :class:`LocalClusterStartError` when the local Dask cluster
+        cannot start (a script without an ``if __name__ == "__main__":`` guard).
 
     Examples
     --------
@@ -269,11 +327,12 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     >>> df[["case", "nu"]].values.tolist()
     [['P1', 0.3], ['P1', 0.46], ['P2', 0.3], ['P2', 0.46]]
     """
+    _refuse_bootstrapping(scheduler)
     t_start = time.perf_counter()
     grid = validate_grid(grid)
     cases, identities = _check_cases(cases)
     labels = [label for label, _ in identities]
-    _check_options(scheduler, retries, on_error)
+    _check_options(scheduler, retries, on_error, n_workers)
     evaluation = resolve_evaluation(evaluate)
     version = code_version() if version is None else str(version)
     points = _points(grid, identities, evaluation.identity(), version)
@@ -303,13 +362,39 @@ def sweep(cases, grid, *, evaluate=None, scheduler=None, cache_dir=None, progres
     return df
 
 
+def _refuse_bootstrapping(scheduler):
+    """Refuse a sweep started while a spawned process re-imports an unguarded main module
+    (it would start a cluster of its own, and so on); one short message, no traceback."""
+    if scheduler in ("synchronous", "threads"):
+        return
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        raise SystemExit(f"pvcmf.sweep called while a new process imports the main module: "
+                         f"{GUARD_HINT}")
+
+
+def _check_patient(case, where):
+    patient = case
+    if isinstance(case, Mapping):
+        if "patient" not in case:
+            return
+        patient = case["patient"]
+    if isinstance(patient, bool) or not isinstance(patient, numbers.Integral) \
+            or int(patient) not in PATIENTS:
+        raise ValueError(f"{where} must be a virtual patient number {list(PATIENTS)} "
+                         f"(pvcmf.datasets.phantom, Table II), got {patient!r}")
+
+
 def _check_cases(cases):
-    """The cases as a list and their (label, identity) pairs; distinct labels."""
+    """The cases as a list and their (label, identity) pairs; distinct labels; patient
+    numbers (alone or as a spec's ``patient``) must be virtual patients."""
     if isinstance(cases, (str, bytes, Mapping, numbers.Integral)) or not isinstance(cases, Sequence):
         cases = [cases]
     cases = list(cases)
     if not cases:
         raise ValueError("cases must hold at least one case, got an empty list")
+    for i, case in enumerate(cases):
+        if isinstance(case, (numbers.Integral, Mapping)):
+            _check_patient(case, f"cases[{i}]")
     identities = [case_identity(c) for c in cases]
     labels = [label for label, _ in identities]
     if len(set(labels)) != len(labels):
@@ -317,7 +402,12 @@ def _check_cases(cases):
     return cases, identities
 
 
-def _check_options(scheduler, retries, on_error):
+def _check_options(scheduler, retries, on_error, n_workers=None):
+    if n_workers is not None and (isinstance(n_workers, bool)
+                                  or not isinstance(n_workers, numbers.Integral)
+                                  or n_workers < 1):
+        raise ValueError(f"n_workers must be a positive integer or None (one per CPU), "
+                         f"got {n_workers!r}")
     if on_error not in ("raise", "skip"):
         raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
     if not isinstance(retries, numbers.Integral) or retries < 0:
@@ -334,7 +424,7 @@ def _points(grid, identities, eval_identity, version):
     """Every point of the sweep in output order: (case index, mesh-level parameters,
     solve-level parameters, cache key)."""
     group_names = [n for n in grid if PARAMETERS[n][0] == "mesh"]
-    inner_names = [n for n in grid if PARAMETERS[n][0] == "solve"]
+    inner_names = [n for n in grid if PARAMETERS[n][0] in ("solve", "plan")]
     group_combos = list(itertools.product(*(grid[n] for n in group_names)))
     inner_combos = list(itertools.product(*(grid[n] for n in inner_names)))
     points = []

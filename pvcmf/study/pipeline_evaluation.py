@@ -10,13 +10,18 @@ and keeps what does not depend on the material; per parameter set
 Gaussian :class:`pvcmf.filters.surface_mapping.SurfaceMapping` with ``mapping="gaussian"``)
 and measures the signed distance
 to the post-operative truth (VTK's ``vtkImplicitPolyDataDistance`` on the truth cropped
-to the face, :class:`_TruthSurface`). Prepared cases are kept on disk with
+to the face, :class:`_TruthSurface`). Plan parameters
+(:data:`pvcmf.study.parameters.PLAN_PARAMETERS`, e.g. ``maxilla_t_ap``) are predicted by
+one plan-response operator per case, material and solver
+(:func:`pvcmf.mtm.response.plan_response`: one factorisation and twelve solves per moved
+segment, then one matrix product per plan). Prepared cases are kept on disk with
 :func:`pvcmf.cache.cached` (one folder per case and mesh-level parameters).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import importlib
 import inspect
 import json
@@ -37,11 +42,13 @@ from ..cache import cached, code_hash
 from ..datasets import phantom
 from ..filters import distance_to
 from ..filters.surface_mapping import SurfaceMapping, Transfer, map_to_surface
-from ..pipeline import simulate
+from ..mtm.response import plan_response
+from ..pipeline import DEFAULT_BC_OPTIONS, simulate
+from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan, read_plan, write_plan
 from ..truth.grid import postop_skin
 from .evaluation import (Evaluation, FunctionEvaluation, case_identity, code_version,
                          error_statistics, point_key, source_hash)
-from .parameters import _positive, _positive_int, _solver_method
+from .parameters import PLAN_PARAMETERS, _positive, _positive_int, _solver_method, plan_values
 from .statistics import label_face_regions
 
 log = logging.getLogger(__name__)
@@ -57,7 +64,10 @@ TRUTH_MARGIN = 40.0
 #: skin mappings of :class:`PipelineEvaluation` (``map_to_surface``'s methods)
 MAPPINGS = ("interpolate", "gaussian")
 #: files of a prepared case on disk (state key -> file name)
-PREPARED_FILES = {"grid": "grid.vtu", "skin": "skin.vtp", "postop": "postop.vtp"}
+PREPARED_FILES = {"grid": "grid.vtu", "skin": "skin.vtp", "postop": "postop.vtp",
+                  "labels": "labels.vti"}
+#: files a prepared case cannot do without (the label image and the plan serve plan sweeps)
+REQUIRED_PREPARED = ("grid", "skin", "postop")
 
 
 class PipelineEvaluation(Evaluation):
@@ -76,6 +86,15 @@ class PipelineEvaluation(Evaluation):
     ``evaluate(state, nu=..., ...)`` then only sets the materials of the parameter set
     (:meth:`materials`), refactorises numerically, solves, applies the mapping operator
     and measures the signed distance to the truth (:func:`pvcmf.filters.distance.signed_distance`).
+
+    Plan parameters (``maxilla_t_ap=4.0``, ...: :data:`pvcmf.study.parameters.PLAN_PARAMETERS`)
+    replace those components of the case's own plan (the others keep its values; a
+    segment the case's plan does not move joins it with a zero move). Their points are
+    predicted by one :func:`pvcmf.mtm.response.plan_response` operator per case,
+    material, solver and set of moved segments (kept in ``state["responses"]``): the
+    same answer as ``apply_plan`` + solve + skin transfer per plan, with the boundary
+    conditions of :meth:`plan_bc_options` (the pipeline's, with the release margin fixed
+    at the one of the case's own plan, so that every plan has the same boundary types).
 
     Parameters
     ----------
@@ -118,7 +137,7 @@ class PipelineEvaluation(Evaluation):
         parameter set: what reproduces the paper's figures).
     """
 
-    version = "3"
+    version = "4"
 
     def __init__(self, spacing=2.0, n_tets=30_000, method="direct", keep_distance=False,
                  truth=None, region="face", cache_dir=None, mesh_threads=1,
@@ -181,7 +200,7 @@ class PipelineEvaluation(Evaluation):
         truth = _TruthSurface(state["postop"], np.asarray(state["skin"].points, float))
         log.info("truth cropped to the face: %d of %d points (%.2f s)", truth.surface.n_points,
                  state["postop"].n_points, time.perf_counter() - t0)
-        return {"solvers": {}, **state, "truth": truth, "mappings": {}}
+        return {"solvers": {}, "responses": {}, **state, "truth": truth, "mappings": {}}
 
     def _prepare(self, case, *, spacing, n_tets, roi, conforming, n_points):
         if isinstance(case, numbers.Integral):
@@ -207,7 +226,8 @@ class PipelineEvaluation(Evaluation):
         skin = result.skin_pre
         if self.region == "face":
             skin = _face_only(skin, getattr(case, "landmarks", None))
-        return {"grid": grid, "skin": skin, "postop": postop}
+        return {"grid": grid, "skin": skin, "postop": postop, "labels": result.labels,
+                "plan": case.plan}
 
     @staticmethod
     def materials(grid, *, nu=None, nu_fat=None, nu_muscle=None, E_ratio=None, E_fat=None,
@@ -238,23 +258,17 @@ class PipelineEvaluation(Evaluation):
         return {"E_fiber": e, "E_cross": e, "nu": nu_cells}
 
     def evaluate(self, state, *, nu=None, nu_fat=None, nu_muscle=None, E_ratio=None, E_fat=None,
-                 E_muscle=None, tol=None, method=None, sigma=None):
+                 E_muscle=None, tol=None, method=None, sigma=None, **plan):
+        unknown = sorted(set(plan) - set(PLAN_PARAMETERS))
+        if unknown:
+            raise TypeError(f"evaluate got unknown parameter(s) {unknown}")
         if "truth" not in state:  # a state built by hand: add the reusable operators
             state.update(self._finish(state))
         grid = state["grid"]
         method = self.method if method is None else method
-        key = (method, tol)
-        material = self.materials(grid, nu=nu, nu_fat=nu_fat, nu_muscle=nu_muscle, E_ratio=E_ratio,
-                                  E_fat=E_fat, E_muscle=E_muscle)
-        solver = state["solvers"].get(key)
-        if solver is None:  # first parameter set of this method: structure + symbolic analysis
-            options = {} if tol is None else {"tol": tol}
-            solver = state["solvers"][key] = mtm.Solver(grid, method, **options, **material)
-        elif material:  # no symbolic analysis; direct: the previous factor preconditions CG
-            # (to the same tolerance; it refactors when that needs > 20 iterations)
-            solver.update_materials(**material, refactor=False)
-        u = solver.solve()
-        t_solve = float(solver.info.get("time", np.nan))
+        materials = {"nu": nu, "nu_fat": nu_fat, "nu_muscle": nu_muscle, "E_ratio": E_ratio,
+                     "E_fat": E_fat, "E_muscle": E_muscle}
+        material = self.materials(grid, **materials)
         if sigma is not None and self.mapping != "gaussian":
             raise ValueError(f"sigma applies to mapping='gaussian' only, got sigma={sigma!r} "
                              f"with mapping={self.mapping!r}")
@@ -262,17 +276,96 @@ class PipelineEvaluation(Evaluation):
         if mapping is None:  # independent of the material: once per mesh (and sigma)
             mapping = state["mappings"][(self.mapping, sigma)] = _skin_mapping(
                 grid, state["skin"].points, sigma, self.mapping)
-        pred = np.asarray(state["skin"].points, float) + mapping(u)
+        if plan:
+            t0 = time.perf_counter()
+            disp = self._plan_displacement(state, plan, material, method, tol,
+                                           tuple(materials.values()), mapping)
+            t_solve, residual = time.perf_counter() - t0, np.nan
+        else:
+            solver = state["solvers"].get((method, tol))
+            if solver is None:  # first parameter set of this method: structure + symbolic analysis
+                options = {} if tol is None else {"tol": tol}
+                solver = state["solvers"][(method, tol)] = mtm.Solver(grid, method, **options,
+                                                                      **material)
+            elif material:  # no symbolic analysis; direct: the previous factor preconditions CG
+                # (to the same tolerance; it refactors when that needs > 20 iterations)
+                solver.update_materials(**material, refactor=False)
+            disp = np.asarray(mapping(solver.solve()), float)
+            t_solve = float(solver.info.get("time", np.nan))
+            residual = float(solver.info.get("residual", np.nan))
+        pred = np.asarray(state["skin"].points, float) + disp
         d = state["truth"].distance(pred)
         out = error_statistics(d)
         out.update({arrays.SWEEP_N_CELLS: int(grid.n_cells), "t_solve": t_solve,
-                    "residual": float(solver.info.get("residual", np.nan))})
+                    "residual": residual})
         if self.keep_distance:
             skin = state["skin"]
-            out.update({arrays.SWEEP_DISTANCE: d,
+            out.update({arrays.SWEEP_DISTANCE: d, arrays.DISPLACEMENT: disp,
                         arrays.SWEEP_SKIN_POINTS: np.asarray(skin.points, float),
                         arrays.SWEEP_SKIN_FACES: np.asarray(skin.faces)})
         return out
+
+    @staticmethod
+    def plan_bc_options(state):
+        """Boundary-condition options of plan-parameter points
+        (:func:`pvcmf.filters.apply_plan`): the pipeline's
+        (:data:`pvcmf.pipeline.DEFAULT_BC_OPTIONS`) with ``release_margin`` fixed at twice
+        the largest move the prepared grid's boundary conditions prescribe (what ``'auto'``
+        gave the case's own plan), so every plan of a sweep has the same boundary types."""
+        options = dict(DEFAULT_BC_OPTIONS)
+        grid = state["grid"]
+        if arrays.BC in grid.point_data.keys() and arrays.BC_DISPLACEMENT in grid.point_data.keys():
+            code = np.asarray(grid.point_data[arrays.BC])
+            disp = np.asarray(grid.point_data[arrays.BC_DISPLACEMENT], float)
+            moving = (code == arrays.BC_JOINT) | (code == arrays.BC_SLIDING)
+            options["release_margin"] = 2.0 * float(
+                np.linalg.norm(disp[moving], axis=1).max(initial=0.0))
+        else:
+            options["release_margin"] = None
+        return options
+
+    @staticmethod
+    def plan_of(state, plan):
+        """The plan of a point: the case's plan (``state["plan"]``) with the components
+        named by the plan parameters ``plan`` replaced; every swept segment is in it."""
+        base = state.get("plan")
+        if base is None or state.get("labels") is None:
+            raise ValueError("plan parameters need the case's plan and label image in the "
+                             "prepared state (keys 'plan' and 'labels'), got "
+                             f"{sorted(k for k in ('plan', 'labels') if state.get(k) is not None)}")
+        values = plan_values(plan)
+        have = {o.segment: o for o in base.osteotomies}
+        osteotomies = []
+        for segment in MOVABLE_SEGMENTS:
+            if segment not in have and segment not in values:
+                continue
+            o = have.get(segment) or Osteotomy(segment)
+            move = {}
+            for attr, given in values.get(segment, {}).items():
+                vec = list(getattr(o, attr))
+                for axis, v in given.items():
+                    vec[axis] = v
+                move[attr] = tuple(vec)
+            osteotomies.append(dataclasses.replace(o, **move))
+        return Plan(tuple(osteotomies), name=base.name)
+
+    def _plan_displacement(self, state, plan, material, method, tol, material_key, mapping):
+        """Skin displacement of a plan point, from the case's plan-response operator
+        (built on the first point of each material, solver and set of moved segments)."""
+        target = self.plan_of(state, plan)
+        key = (method, tol, material_key, target.segments)
+        resp = state["responses"].get(key)
+        if resp is None:
+            log.info("plan response of %s (%s)", list(target.segments), method)
+            options = {"method": method, **({} if tol is None else {"tol": tol}), **material}
+            interpolate = self.mapping == "interpolate"
+            resp = state["responses"][key] = plan_response(
+                state["grid"], state["labels"], skin=state["skin"] if interpolate else None,
+                plan=target, dtype="float64", bc_options=self.plan_bc_options(state),
+                solver_options=options)
+        if resp.skin_response is not None:
+            return resp.predict_displacement(target)
+        return np.asarray(mapping(resp.predict_mesh(target)), float)
 
 
 _WARM = []
@@ -409,13 +502,19 @@ def _write_prepared(state, folder):
     """Fill ``folder`` with a prepared case (VTK XML files, preparation times as JSON)."""
     folder = Path(folder)
     for key, name in PREPARED_FILES.items():
-        state[key].save(folder / name)
+        if state.get(key) is not None:  # labels: only when the state has them
+            state[key].save(folder / name)
+    if state.get("plan") is not None:
+        write_plan(state["plan"], folder / "plan.json")
     (folder / "times.json").write_text(json.dumps(state["prepare_times"]))
 
 
 def _read_prepared(folder):
     """A prepared case written by :func:`_write_prepared` (raises when incomplete)."""
     folder = Path(folder)
-    state = {key: pv.read(folder / name) for key, name in PREPARED_FILES.items()}
+    state = {key: pv.read(folder / name) for key, name in PREPARED_FILES.items()
+             if key in REQUIRED_PREPARED or (folder / name).exists()}
+    if (folder / "plan.json").exists():
+        state["plan"] = read_plan(folder / "plan.json")
     state["prepare_times"] = json.loads((folder / "times.json").read_text())
     return state

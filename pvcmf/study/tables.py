@@ -1,7 +1,9 @@
 """Sweep tables on disk: CSV or Parquet, chosen by the file's suffix, written atomically.
 
 Delegates to :meth:`pandas.DataFrame.to_csv` / :meth:`~pandas.DataFrame.to_parquet`
-(``pyarrow``) and :func:`pvcmf._atomic.atomic_path`.
+(``pyarrow``) and :func:`pvcmf._atomic.atomic_path`; :func:`check_table_path` refuses a
+path that could not be written (:func:`pvcmf.outputs.check_output_file`) before a sweep
+computes anything.
 """
 
 from __future__ import annotations
@@ -13,10 +15,45 @@ import numpy as np
 import pandas as pd
 
 from .._atomic import atomic_path
+from ..outputs import check_output_file
 
 log = logging.getLogger(__name__)
 
-__all__ = ["load_table", "save_table"]
+__all__ = ["TABLE_SUFFIXES", "check_table_path", "load_table", "save_table"]
+
+#: file extensions of a sweep table
+TABLE_SUFFIXES = (".csv", ".parquet")
+#: what writing Parquet without pyarrow says
+NO_PYARROW = "writing Parquet needs pyarrow: pip install pyarrow (or use .csv)"
+
+
+def _has_pyarrow():
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def check_table_path(path, name="path"):
+    """Check where a sweep table will go, before the sweep runs; returns it absolute.
+
+    Refused with a ``ValueError`` naming ``name``: an empty path, a folder, a path under
+    a file, a folder that cannot be written (:func:`pvcmf.outputs.check_output_file`),
+    an extension other than ``.csv``/``.parquet``, and ``.parquet`` without ``pyarrow``.
+
+    Examples
+    --------
+    >>> from pvcmf.study.tables import check_table_path
+    >>> check_table_path("table.xlsx", "--out")
+    Traceback (most recent call last):
+    ...
+    ValueError: --out='table.xlsx' must end in one of ['.csv', '.parquet'], got '.xlsx'
+    """
+    out = check_output_file(path, name, suffixes=TABLE_SUFFIXES)
+    if out.suffix.lower() == ".parquet" and not _has_pyarrow():
+        raise ValueError(f"{name}={str(path)!r}: {NO_PYARROW}")
+    return out
 
 
 def save_table(df, path):
@@ -61,7 +98,7 @@ def save_table(df, path):
         try:
             import pyarrow  # noqa: F401
         except ImportError as err:
-            raise ImportError("writing Parquet needs pyarrow: pip install pyarrow (or use .csv)") from err
+            raise ImportError(NO_PYARROW) from err
         for c in array_cols:
             out[c] = out[c].map(lambda v: v.ravel().tolist() if isinstance(v, np.ndarray) else v)
     out.attrs = {}
