@@ -322,17 +322,18 @@ class PlanResponse:
                 raise ValueError(f"out must be a C-contiguous float64 array of shape ({n}, 3), "
                                  f"got {getattr(out, 'dtype', type(out).__name__)} "
                                  f"{getattr(out, 'shape', '')}")
-            out[self._unreached] = 0.0
+        dest = np.asarray(out)  # plain view: no per-write bookkeeping of VTK-backed arrays
+        dest[self._unreached] = 0.0
         a = self.parameters(plan)
         if a is None:
             u = self._full(plan, self.skin)
-            out[:] = transfer_operator(self.mesh, self.skin) @ u
+            dest[:] = transfer_operator(self.mesh, self.skin) @ u
             return out
         op = self._op.reshape(-1, self._op.shape[2])
         v = np.empty(len(op), dtype=op.dtype)
         with _one_thread(self.threads):
             np.dot(op, a.astype(op.dtype), out=v)
-        out[self.reached] = v.reshape(-1, 3)
+        dest[self.reached] = v.reshape(-1, 3)
         return out
 
     def predict(self, plan, out=None):
@@ -359,7 +360,7 @@ class PlanResponse:
         if pts.dtype != np.float64:
             out.points = np.asarray(pts, dtype=float)
             pts = out.points
-        np.add(self._skin_points, disp, out=pts)
+        np.add(self._skin_points, np.asarray(disp), out=np.asarray(pts))
         out.GetPoints().Modified()
         out.GetPointData().GetArray(arrays.DISPLACEMENT).Modified()
         out.Modified()
