@@ -10,8 +10,9 @@ and measures, for a two-segment template (maxilla and mandible):
 * ``build``: :func:`pvcmf.mtm.response.plan_response` (boundary conditions, one
   factorisation, twelve solves per segment, the transfer folded in), and its ratio to the
   factorisation plus solves it contains;
-* ``predict``: one plan's dense-skin displacement and the mesh's surface nodes (medians over
-  ``--plans`` random plans);
+* ``predict``: one plan's dense-skin displacement (new array, or written into a kept one),
+  the predicted surface (a new PolyData, or a kept one updated in place) and the mesh's
+  surface nodes (medians over ``--plans`` random plans);
 * ``statistics``: max / mean / RMS of the skin displacement of ``--batch`` random plans;
 * errors: the operator against the full solve, and the float32 skin operator against the
   same product in float64.
@@ -22,7 +23,6 @@ Every time is a median; ratios are taken within the run.
 from __future__ import annotations
 
 import argparse
-import copy
 import os
 import platform
 import statistics
@@ -104,12 +104,23 @@ def run(args):
     rows["build / (factorisation + solves)"] = build / (op.timings["factor"] + op.timings["solves"])
     rows["skin operator dtype ('auto')"] = str(op.skin_response.dtype)
     rows["float32 product error, random plans to 30 deg / 20 mm (mm)"] = op.float32_error
-    op32 = copy.copy(op)
-    op32.skin_response = op.skin_response.astype(np.float32)
+    op32 = op.astype(np.float32)
+    rows["skin points the transfer reaches (stored rows)"] = len(op.reached)
     rows["predict, dense skin, per plan (ms)"] = 1e3 * statistics.median(
         [median_time(lambda p=p: op.predict_displacement(p), 1) for p in plans[:args.plans]])
     rows["predict, dense skin, float32, per plan (ms)"] = 1e3 * statistics.median(
         [median_time(lambda p=p: op32.predict_displacement(p), 1) for p in plans[:args.plans]])
+    buf = np.zeros((skin.n_points, 3))
+    rows["predict, dense skin, into a kept array, per plan (ms)"] = 1e3 * statistics.median(
+        [median_time(lambda p=p: op.predict_displacement(p, out=buf), 1) for p in plans[:args.plans]])
+    buf32 = np.zeros((skin.n_points, 3))
+    rows["predict, dense skin, float32, into a kept array, per plan (ms)"] = 1e3 * statistics.median(
+        [median_time(lambda p=p: op32.predict_displacement(p, out=buf32), 1) for p in plans[:args.plans]])
+    rows["predict, new PolyData, per plan (ms)"] = 1e3 * statistics.median(
+        [median_time(lambda p=p: op.predict(p), 1) for p in plans[:args.plans]])
+    surf = op.predict(plans[0])
+    rows["predict, kept PolyData updated in place, per plan (ms)"] = 1e3 * statistics.median(
+        [median_time(lambda p=p: op.predict(p, out=surf), 1) for p in plans[:args.plans]])
     rows["predict, surface nodes, per plan (ms)"] = 1e3 * statistics.median(
         [median_time(lambda p=p: op.predict_nodes(p), 1) for p in plans[:args.plans]])
     rows["full / predict (dense skin)"] = (rows["full solve per plan (s)"]

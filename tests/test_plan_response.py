@@ -121,3 +121,54 @@ def test_plan_sweep_finds_the_advancement(block):
         assert (np.linalg.norm(x[lip] + v - target) <= 2.0) == ok[i]
     with pytest.raises(ValueError, match="translations"):
         plan_grid("mandible", translations=[1.0, 2.0])
+
+
+def test_predict_in_place_equals_a_new_surface(block):
+    """``predict(plan, out=previous)`` updates the earlier surface in place and equals a new
+    prediction; ``predict_displacement(out=)`` overwrites whatever the buffer held; skin
+    beyond the transfer's reach stays at rest."""
+    grid, img, skin = block
+    skin = skin.merge(pv.Sphere(radius=2.0, center=(30.0, 0.0, 0.0)))  # far: unreached
+    resp = plan_response(grid, img, skin=skin, dtype="float64",
+                         bc_options={"fix_unmoved_bone": True})
+    rng = np.random.default_rng(6)
+    first, second = _random_plan(rng), _random_plan(rng)
+    surf = resp.predict(first)
+    again = resp.predict(second, out=surf)
+    fresh = resp.predict(second)
+    assert again is surf
+    assert np.array_equal(again[arrays.DISPLACEMENT], fresh[arrays.DISPLACEMENT])
+    assert np.allclose(again.points, fresh.points, rtol=0, atol=1e-12)
+    buf = np.full((skin.n_points, 3), np.nan)
+    assert resp.predict_displacement(second, out=buf) is buf
+    assert np.array_equal(buf, fresh[arrays.DISPLACEMENT])
+    assert len(resp.reached) < skin.n_points  # some skin lies beyond the transfer's reach
+    assert np.all(buf[np.setdiff1d(np.arange(skin.n_points), resp.reached)] == 0)
+    with pytest.raises(ValueError, match="out must be"):
+        resp.predict_displacement(second, out=np.zeros((skin.n_points, 3), dtype=np.float32))
+    with pytest.raises(ValueError, match="out must be"):
+        resp.predict(second, out=pv.Sphere())
+
+
+def test_float32_error_within_the_rounding_bound(block):
+    """The float32 operator's error is within the rounding bound of a float32 product,
+    ``(k + 2) eps |R| |a|`` (k terms per row, one rounding of storage and one of the
+    parameters), and the statistics over every skin point equal the point-by-point ones."""
+    grid, img, skin = block
+    exact = plan_response(grid, img, skin=skin, dtype="float64",
+                          bc_options={"fix_unmoved_bone": True})
+    single = exact.astype(np.float32)
+    R = exact.skin_response.reshape(-1, exact.skin_response.shape[2])
+    eps = np.finfo(np.float32).eps / 2
+    rng = np.random.default_rng(7)
+    plans = [_random_plan(rng) for _ in range(4)]
+    for plan in plans:
+        a = exact.parameters(plan)
+        bound = (R.shape[1] + 2) * eps * (np.abs(R) @ np.abs(a))
+        err = np.abs(single.predict_displacement(plan) - exact.predict_displacement(plan))
+        assert np.all(err.T.ravel() <= bound + 1e-300)
+        assert err.max() > 0  # float32 is really used
+    stats = exact.statistics(plans, chunk=3, modelled=False)
+    for row, plan in zip(stats, plans):
+        mag = np.linalg.norm(exact.predict_displacement(plan), axis=1)
+        assert np.allclose(row, [mag.max(), mag.mean(), np.sqrt((mag ** 2).mean())], rtol=1e-12)

@@ -129,3 +129,24 @@ def test_modelled_skin_affine_and_unmodelled_decays(ball):
     g[arrays.DISPLACEMENT] = grid.points @ B.T + c
     out = map_to_surface(g, pv.PolyData(pts), band=3.0)
     assert np.array_equal(out[arrays.SKIN_MODELLED].astype(bool), tr.modelled)
+
+
+def test_pruned_feet_equal_every_candidate_measured(ball):
+    """The feet measure far candidate triangles only where they could enter the blend
+    window: the result equals measuring all of them."""
+    from pvcmf.filters.transfer_locate import Located
+
+    grid, skin = ball
+    pts = np.asarray(skin.points) * np.r_[1.0, 1.1, 1.3]  # some points well outside
+    pruned = Located(grid, pts, reach=8.0)
+    full = Located.__new__(Located)
+    full.__dict__.update({k: getattr(pruned, k) for k in ("points", "tets", "p")})
+    full.dist = np.where(pruned.inside, 0.0, np.inf)
+    from pvcmf.filters.skin import _boundary_faces
+
+    src = pv.UnstructuredGrid({pv.CellType.TETRA: pruned.tets}, pruned.points)
+    rows, q, bary, face = full._feet(_boundary_faces(src), pruned.outside, 24, exact=24)
+    assert np.array_equal(rows, pruned.pair_row) and np.array_equal(face, pruned.face)
+    assert np.allclose(q, pruned.q, rtol=0, atol=1e-12)
+    assert np.allclose(full.pair_w, pruned.pair_w, rtol=0, atol=1e-12)
+    assert np.array_equal(full.dist, pruned.dist)

@@ -37,11 +37,10 @@ and skin:
     zero displacement (point array ``SUPPORT`` holds the weight sums). Kept for the
     paper's figures; the clamp can tear a step at the edge of the mesh.
 
-Delegates to VTK's probe filter (:meth:`pyvista.DataSet.sample`: the tetrahedron holding
-each point), VTK's surface extraction (the mesh's boundary triangles),
-:class:`scipy.spatial.cKDTree` (nearest boundary triangles and nodes), batched
-:func:`numpy.linalg.solve` / :func:`numpy.linalg.inv` (barycentric coordinates, gradients)
-and :mod:`scipy.sparse` (the operators).
+Delegates the geometry (containing tetrahedra, feet on the boundary, nearest boundary
+nodes: VTK's probe filter, :class:`scipy.spatial.cKDTree`, vectorised closest points) to
+:mod:`pvcmf.filters.transfer_locate`, the gradients to batched :func:`numpy.linalg.inv` and
+the operators to :mod:`scipy.sparse`.
 """
 
 from __future__ import annotations
@@ -51,13 +50,12 @@ import logging
 import numpy as np
 import pyvista as pv
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
 from .. import arrays
 from ..progress import Progress
-from ._tet_geometry import _closest_on_triangles, _gradient_operators, _gradients, _tetra
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
-from .skin import _boundary_faces
+from .transfer_locate import Located as _Located
+from .transfer_locate import tet_gradients as _gradients
 
 log = logging.getLogger(__name__)
 
@@ -73,151 +71,29 @@ DEFAULT_K = 8
 #: default distance (mm) from the mesh within which the extension is exactly affine (the
 #: modelled skin); beyond it the extension falls smoothly to zero at twice this
 DEFAULT_BAND = 4.0
-#: barycentric coordinates down to this (negative) value still count as inside a tetrahedron
-_INSIDE_TOL = 1e-6
-#: width of the foot blend (in units of d h / (d + h), d the distance, h the median boundary edge)
-_WINDOW = 10.0
 
 
-class _Located:
-    """Where skin points lie relative to a tetrahedral mesh (shared by the transfer and the
-    crumple metric).
-
-    Inside: the containing tetrahedron and barycentric coordinates. Outside, within
-    ``reach`` of the mesh: "feet" on the boundary, one per nearby boundary triangle whose
-    distance is within a window of the smallest (width ``10 d_1 h / (d_1 + h)``, ``h`` the
-    median boundary edge), each with its closest point; the feet are blended with weights
-    ``(1 - s^2)^2`` (``s`` the excess distance over the window), so the blended foot
-    ``q`` never jumps where the closest triangle changes (concave boundary), and the blend
-    shrinks to the closest point as the point nears the boundary. The ``k`` boundary nodes
-    nearest to ``q`` and their smooth weights give the gradient ``G(q)``. ``dist`` is the distance to the mesh (0 inside, ``inf``
-    beyond ``reach``: such points get no feet).
-    """
-
-    def __init__(self, grid, points, k=DEFAULT_K, n_triangles=24, reach=np.inf):
-        self.points, self.tets = _tetra(grid)
-        p = np.asarray(points, dtype=float)
-        self.p = p
-        src = pv.UnstructuredGrid({pv.CellType.TETRA: self.tets}, self.points)
-        self._find_cells(src)
-        tri = _boundary_faces(src)
-        self.boundary = np.unique(tri)
-        self.dist = np.where(self.inside, 0.0, np.inf)
-        out = np.flatnonzero(~self.inside)
-        if out.size and np.isfinite(reach):  # cheap reject: far from every boundary node
-            e = self.points[tri[:, [0, 1, 2]]] - self.points[tri[:, [1, 2, 0]]]
-            h_max = float(np.linalg.norm(e, axis=2).max())
-            dn = cKDTree(self.points[self.boundary]).query(p[out])[0]
-            out = out[dn - h_max <= reach]
-        self.outside = out
-        n_pairs = 0
-        if out.size:
-            rows, q, bary, face = self._feet(tri, out, n_triangles)
-            n_pairs = len(rows)
-            slot = np.full(len(p), -1)
-            slot[out] = np.arange(out.size)
-            qbar = np.zeros((out.size, 3))  # blended foot: sum of the feet's weights is 1
-            for c in range(3):
-                qbar[:, c] = np.bincount(slot[rows], self.pair_w * q[:, c], minlength=out.size)
-            kk = max(1, min(k, len(self.boundary) - 1))
-            dist, idx = cKDTree(self.points[self.boundary]).query(qbar, k=kk + 1)
-            dist, idx = dist.reshape(out.size, -1), idx.reshape(out.size, -1)
-            h = dist[:, -1:]
-            s = np.where(h > 0, dist[:, :-1] / np.where(h > 0, h, 1.0), 0.0)
-            w = (1.0 - s**2) ** 2
-            w /= w.sum(axis=1, keepdims=True)
-            self.near, self.near_w = idx[:, :-1], w  # per outside point, into self.boundary
-            self.pair_row, self.q, self.face_bary, self.face = rows, q, bary, face
-            self.qbar = qbar
-        if not n_pairs:
-            self.outside = np.zeros(0, dtype=np.int64)
-            self.pair_row, self.pair_w = np.zeros(0, dtype=np.int64), np.zeros(0)
-            self.q, self.qbar = np.zeros((0, 3)), np.zeros((0, 3))
-            self.face_bary, self.face = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-            self.near, self.near_w = np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
-
-    def _find_cells(self, src):
-        """Containing tetrahedra. Points farther from every tetrahedron's centroid than the
-        largest centroid-vertex distance lie in none; the others go to VTK's probe, then
-        to the tetrahedra with the nearest centroids for the points it misses (on shared
-        faces, within round-off)."""
-        p, pts, tets = self.p, self.points, self.tets
-        n = len(p)
-        centre = pts[tets].mean(axis=1)
-        r_max = float(np.linalg.norm(pts[tets] - centre[:, None, :], axis=2).max())
-        tree = cKDTree(centre)
-        near = np.flatnonzero(tree.query(p, distance_upper_bound=r_max * (1 + 1e-9))[0] < np.inf)
-        cell = np.full(n, -1, dtype=np.int64)
-        bary = np.full((n, 4), -np.inf)
-        if near.size:
-            src.cell_data[arrays.SCRATCH_CELL_ID] = np.arange(len(tets), dtype=np.int64)
-            probe = pv.PolyData(p[near]).sample(src, pass_point_data=False, progress_bar=False)
-            cell[near] = np.where(np.asarray(probe[arrays.VALID_POINT_MASK]).astype(bool),
-                                  np.asarray(probe[arrays.SCRATCH_CELL_ID]).astype(np.int64), -1)
-
-        def barycentric(idx, cells):
-            t = tets[cells]
-            x0 = pts[t[:, 0]]
-            edges = pts[t[:, 1:]] - x0[:, None, :]
-            ok = np.abs(np.linalg.det(edges)) > 1e-300
-            lam = np.full((len(idx), 3), -np.inf)
-            if ok.any():
-                lam[ok] = np.linalg.solve(np.swapaxes(edges[ok], 1, 2),
-                                          (p[idx[ok]] - x0[ok])[:, :, None])[:, :, 0]
-            return np.column_stack([1 - lam.sum(axis=1), lam])
-
-        hit = np.flatnonzero(cell >= 0)
-        bary[hit] = barycentric(hit, cell[hit])
-        miss = near[bary[near].min(axis=1) < -_INSIDE_TOL]
-        if miss.size:
-            kc = min(8, len(tets))
-            cand = tree.query(p[miss], k=kc)[1].reshape(len(miss), kc)
-            for j in range(kc):
-                b = barycentric(miss, cand[:, j])
-                better = b.min(axis=1) > bary[miss].min(axis=1)
-                bary[miss[better]], cell[miss[better]] = b[better], cand[better, j]
-        self.inside = bary.min(axis=1) >= -_INSIDE_TOL
-        self.cell = np.where(self.inside, cell, -1)
-        self.bary = np.where(self.inside[:, None], bary, 0.0)
-
-    def _feet(self, tri, out, n_triangles, exact=6):
-        """Blended feet of the outside points on the boundary triangles ``tri``.
-
-        The ``exact`` nearest candidates (by centroid) are measured for every point; a
-        farther candidate only where its centroid distance less its radius could fall
-        inside the blend window (elsewhere its weight is zero)."""
-        p, pts = self.p[out], self.points
-        kt = min(n_triangles, len(tri))
-        centre = pts[tri].mean(axis=1)
-        radius = np.linalg.norm(pts[tri] - centre[:, None, :], axis=2).max(axis=1)
-        cdist, cand = cKDTree(centre).query(p, k=kt)
-        cdist, cand = cdist.reshape(len(out), kt), cand.reshape(len(out), kt)
-        e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
-        h = float(np.median(np.linalg.norm(e, axis=2)))
-        n = len(out)
-        d = np.full((n, kt), np.inf)
-        q_all, b_all = np.zeros((n, kt, 3)), np.zeros((n, kt, 3))
-        d1 = np.full(n, np.inf)
-        for j in range(kt):  # a few candidate triangles per point, each vectorised
-            rows = np.arange(n) if j < exact else np.flatnonzero(
-                cdist[:, j] - radius[cand[:, j]] < d1 + _WINDOW * d1 * h / (d1 + h))
-            if not rows.size:
-                continue
-            tj = tri[cand[rows, j]]
-            q, b = _closest_on_triangles(p[rows], pts[tj[:, 0]], pts[tj[:, 1]], pts[tj[:, 2]])
-            d[rows, j] = np.linalg.norm(q - p[rows], axis=1)
-            q_all[rows, j], b_all[rows, j] = q, b
-            d1[rows] = np.minimum(d1[rows], d[rows, j])
-        d1 = d1[:, None]
-        self.dist[out] = d1[:, 0]
-        window = _WINDOW * d1 * h / (d1 + h)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = np.where(window > 0, (d - d1) / window, np.where(d > d1, np.inf, 0.0))
-        w = np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
-        w /= w.sum(axis=1, keepdims=True)
-        r, j = np.nonzero(w > 0)
-        self.pair_w = w[r, j]
-        return out[r], q_all[r, j], b_all[r, j], tri[cand[r, j]]
+def _gradient_operators(points, tets, rows):
+    """Sparse ``(len(rows), n)`` operators ``D_c`` (c = x, y, z): the volume-weighted mean
+    of the displacement gradients of the tetrahedra around each node ``rows``."""
+    n, m = len(points), len(tets)
+    inv, vol = _gradients(points, tets)
+    coef = np.empty((m, 3, 4))  # d/dx_c of the linear interpolant: coefficient of node a
+    coef[:, :, 1:] = inv
+    coef[:, :, 0] = -inv.sum(axis=2)
+    slot = np.full(n, -1)
+    slot[rows] = np.arange(len(rows))
+    t_of = np.repeat(np.arange(m), 4)
+    node = tets.ravel()
+    keep = slot[node] >= 0
+    avg = sp.csr_matrix((vol[t_of[keep]], (slot[node[keep]], t_of[keep])), shape=(len(rows), m))
+    total = np.asarray(avg.sum(axis=1)).ravel()
+    avg = sp.diags(1.0 / np.where(total > 0, total, 1.0)) @ avg
+    out = []
+    for c in range(3):
+        grad = sp.csr_matrix((coef[:, c, :].ravel(), (t_of, node)), shape=(m, n))
+        out.append((avg @ grad).tocsr())
+    return out
 
 
 def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
@@ -396,8 +272,8 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
     Raises
     ------
     ValueError
-        Missing ``displacement``, empty inputs, an unknown ``method``, or ``sigma`` /
-        ``radius`` not positive.
+        Missing ``displacement``, empty inputs, an unknown ``method``, ``sigma`` /
+        ``radius`` not positive, or a skin of which no point lies near the grid.
 
     Examples
     --------
@@ -431,8 +307,15 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
             bar.step(f"{skin.n_points} skin points")
         out.point_data[arrays.TRANSFER_INSIDE] = mapping.inside.astype(np.uint8)
         out.point_data[arrays.SKIN_MODELLED] = mapping.modelled.astype(np.uint8)
+        reached = mapping.modelled
     else:
         disp = _gaussian(grid, skin, u, sigma, radius, progress_bar, out)
+        reached = np.asarray(out.point_data[SUPPORT]) > 0
+    if not reached.any():
+        far = float(np.linalg.norm(np.asarray(skin.center) - np.asarray(grid.center)))
+        raise ValueError(
+            f"skin: none of its {skin.n_points} points lies near the grid (centres {far:.0f} "
+            f"mm apart; method={method!r}): are the skin and the grid in the same frame?")
     out.point_data[arrays.DISPLACEMENT] = disp
     if warp:
         out.points = np.asarray(skin.points, float) + disp
