@@ -13,8 +13,9 @@ voxels), the costly decisions on a copy downsampled to about ``coarse`` mm:
    table, a headrest, sheets and tubes go even where they touch the skin, being thinner than
    the ball or joined to the head by a thinner neck. Small enclosed holes (< ``min_cavity``
    mm^3) become tissue; larger ones (sinuses, airway) stay air.
-3. **hard tissue**: ``ct >= bone`` in the head; ``>= teeth`` is TEETH; ``>= metal`` is METAL
-   (fillings, crowns, plates), hard tissue of its segment. Around the metal
+3. **hard tissue**: ``ct >= bone`` in the head; ``>= teeth`` is TEETH (except near the
+   intracranial volume: the otic capsule of the petrous bone is as dense); ``>= metal`` is
+   METAL (fillings, crowns, plates), hard tissue of its segment. Around the metal
    (:mod:`pvcmf.filters.metal`) thin bright streaks are not bone and thin dark streaks are not
    air.
 4. **intracranial volume** (:func:`_intracranial`): the skull is closed with a ball of
@@ -63,6 +64,10 @@ METAL_THRESHOLD = 3000.0
 #: thresholds as multiples of the air -> soft tissue step, above the soft-tissue peak
 #: (skin: below it). On a calibrated scan (step ~1040 HU) they give the levels above.
 SCALE = {"skin": -0.5, "bone": 0.48, "teeth": 1.88, "metal": 2.85}
+#: dense bone within this distance (mm) of the intracranial volume is not teeth: the otic
+#: capsule of the petrous bone is as dense as dentine, ~5-10 mm from the brain; the
+#: teeth are > 25 mm from it (the maxillary sinus and the orbits lie between)
+TEETH_BRAIN_MM = 15.0
 #: smallest radius (voxels) of the skull-closing ball: 1.5 takes the in-slice diagonal
 #: neighbours, which bridge a one-voxel gap in a one-voxel-thin skull ring
 MIN_BALL_VOXELS = 1.5
@@ -240,6 +245,7 @@ def segment(
     if intracranial is None:
         log.warning("segment: found no volume enclosed by the skull; no INTRACRANIAL label")
         intracranial = np.zeros_like(hard)
+    teeth = _teeth_off_the_brain(teeth, intracranial, spacing, factor)
     bar.step()
 
     soft = head & ~hard & ~intracranial
@@ -439,6 +445,25 @@ def _write(ct, shape, box, soft, hard, teeth, metal, intracranial):
     out.point_data[arrays.BONE] = bone.ravel(order="F")
     out.point_data.active_scalars_name = arrays.TISSUE
     return out
+
+
+def _teeth_off_the_brain(teeth, intracranial, spacing, factor, reach=TEETH_BRAIN_MM):
+    """Teeth without the tooth-dense bone of the skull base: components of ``teeth`` that
+    come within ``reach`` mm of the intracranial volume (distance on the coarse grid) are
+    bone."""
+    if not teeth.any() or not intracranial.any():
+        return teeth
+    dist = ndimage.distance_transform_edt(~_down(intracranial, factor, "any"),
+                                          sampling=spacing * factor)
+    comp, n = ndimage.label(teeth, structure=np.ones((3, 3, 3), dtype=bool))
+    idx = np.nonzero(teeth)
+    near = np.full(n + 1, np.inf)
+    np.minimum.at(near, comp[idx], dist[tuple(i // int(f) for i, f in zip(idx, factor))])
+    drop = near < reach
+    if drop[1:].any():
+        log.debug("segment: %d dense bone component(s) within %.0f mm of the brain are not "
+                  "teeth", int(drop[1:].sum()), reach)
+    return teeth & ~drop[comp]
 
 
 # --------------------------------------------------------------------------- intracranial
