@@ -1,9 +1,10 @@
 """segment and find_jaws on the real head CTs of PVCMF_DATA_DIR (Visible Human female and
 male); skipped without the data.
 
-Whole-head checks run on a 2 mm copy (every second voxel). Checks of anatomy thinner than
-2 mm (the temporomandibular joint space, metal streaks, the field of view's cut) run on
-1 mm crops around the jaws and the face."""
+At the scans' 1 mm, cropped in-slice to the head: a 2 mm copy cannot represent the
+temporomandibular joint space, the sinus mucosa or the metal streaks. The female is
+segmented whole (the intracranial volume); find_jaws runs on the jaw region of its labels;
+the male on a crop from below the mandible to above the nose."""
 
 from __future__ import annotations
 
@@ -28,16 +29,6 @@ def _read(name):
     if not folder.is_dir():
         pytest.skip(f"{folder} not found (set PVCMF_DATA_DIR to the real-data folder)")
     return pvcmf.read_ct(folder, frame="patient")
-
-
-def _scan(name):
-    """The scan at 2 mm: every second voxel."""
-    ct = _read(name)
-    v = np.asarray(ct[arrays.CT]).reshape(ct.dimensions, order="F")[::2, ::2, ::2]
-    img = pv.ImageData(dimensions=v.shape, spacing=tuple(2 * np.asarray(ct.spacing)),
-                       origin=ct.origin)
-    img[arrays.CT] = np.ascontiguousarray(v).ravel(order="F")
-    return img
 
 
 def _crop(name, z_mm):
@@ -65,15 +56,17 @@ def _vol(img, name=arrays.TISSUE):
 
 @pytest.fixture(scope="module")
 def female():
-    ct = _scan("vhp_female_head")
+    """The whole head at 1 mm."""
+    ct = _crop("vhp_female_head", (0.0, 1000.0))
     return ct, pvcmf.filters.segment(ct)
 
 
 @pytest.fixture(scope="module")
-def female_jaws():
-    """1 mm, from the neck to above the skull base (both condyles, the nasal floor)."""
-    ct = _crop("vhp_female_head", (0.0, 140.0))
-    return ct, pvcmf.filters.segment(ct)
+def female_jaws(female):
+    """The labels from the neck to above the skull base (both condyles, the nasal floor)."""
+    ct, lab = female
+    n = int(140.0 / lab.spacing[2])
+    return ct, lab.extract_subset((0, lab.dimensions[0] - 1, 0, lab.dimensions[1] - 1, 0, n))
 
 
 @pytest.fixture(scope="module")
