@@ -121,7 +121,7 @@ def find_jaws(labels, *, progress_bar=False):
         hard_all |= tissue == label
     if not hard_all.any():
         raise ValueError("find_jaws: the image has no hard tissue (tissue BONE/TEETH/METAL)")
-    box = tuple(slice(int(i.min()), int(i.max()) + 1) for i in np.nonzero(hard_all))
+    box = _bounds(hard_all, 0)
     hard = hard_all[box]
     teeth = (tissue[box] == arrays.TEETH) | (tissue[box] == arrays.METAL)
     teeth &= _far_from(tissue[box] == arrays.INTRACRANIAL, spacing, SKULL_BASE_MM)
@@ -145,6 +145,17 @@ def find_jaws(labels, *, progress_bar=False):
         f"{arrays.BONE_NAMES[i]} {np.count_nonzero(sub == i) * voxel:.1f}"
         for i in (arrays.CRANIUM, arrays.MAXILLA, arrays.MANDIBLE)))
     return out
+
+
+def _bounds(mask, margin):
+    """Index box of a non-empty mask, ``margin`` voxels wider (projections, no index
+    arrays of every voxel)."""
+    box = []
+    for axis in range(3):
+        hit = np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis)))
+        box.append(slice(max(int(hit[0]) - margin, 0),
+                         min(int(hit[-1]) + margin + 1, mask.shape[axis])))
+    return tuple(box)
 
 
 def _far_from(mask, spacing, distance):
@@ -235,8 +246,7 @@ def _regrow(jaw, work, hard, step, spacing):
     """The hard voxels nearer to the eroded ``jaw`` than to the rest of ``work``: the
     mandible at full size. Only the jaw's box, ``step + 2`` voxels wider, can change."""
     grow = step + 2
-    box = tuple(slice(max(int(i.min()) - grow, 0), int(i.max()) + grow + 1)
-                for i in np.nonzero(jaw))
+    box = _bounds(jaw, grow)
     seeds = np.where(jaw[box], 1, np.where(work[box], 2, 0)).astype(np.uint8)
     _, idx = ndimage.distance_transform_edt(seeds == 0, sampling=spacing,
                                             return_indices=True)
