@@ -10,9 +10,11 @@ Implementation: numpy only. The EM runs on the per-slice histograms (``bin_width
 depend on the number of voxels and no Python loop runs over slices or voxels. The threshold
 solves ``w_f N(t; m_f, s_f) = w_m N(t; m_m, s_m)`` (a quadratic) between the two means (with
 more components, the crossing of the fat group's and muscle group's posteriors). The
-median filter of a two-class map is a majority vote; it is computed with
-``scipy.ndimage.convolve`` counts over the soft-tissue voxels of each 5x5 window only (air,
-bone and intracranial voxels do not vote). Initialisation is deterministic: the
+median filter of a two-class map is a majority vote; it is computed with separable running
+sums (``scipy.ndimage.uniform_filter1d``) over the soft-tissue voxels of each 5x5 window only
+(air, bone and intracranial voxels do not vote). The work is done in the in-slice box of the
+soft tissue; the soft tissue within the metal streak zone (:mod:`pvcmf.filters.metal`) is
+classified but left out of the fit. Initialisation is deterministic: the
 ``n_components`` most prominent peaks of each smoothed histogram. A uniform background
 component over ``hu_range`` absorbs partial-volume voxels.
 

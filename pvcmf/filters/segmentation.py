@@ -326,7 +326,7 @@ def _thresholds(vol, skin, bone, teeth, metal):
     return thr
 
 
-# --------------------------------------------------------------------------- helpers
+# --------------------------------------------------------------------------- utilities
 def _largest_component(mask, structure):
     lab, n = ndimage.label(mask, structure=structure)
     if n == 0:
