@@ -491,26 +491,31 @@ def _teeth_off_the_brain(teeth, intracranial, spacing, factor, reach=TEETH_BRAIN
     bone."""
     if not teeth.any() or not intracranial.any():
         return teeth
-    # only the teeth's box (``reach`` wider) matters: a coarse distance map of it
+    # only the teeth's box matters: the coarse distance map of it, ``reach`` wider
     cspace = spacing * factor
+    f = [int(v) for v in factor]
     grow = np.ceil(reach / cspace).astype(int) + 1
     tbox = _box(teeth, 0)
-    cbox = tuple(slice(max(b.start // int(f) - g, 0), b.stop // int(f) + g + 1)
-                 for b, f, g in zip(tbox, factor, grow))
-    ic = _down(intracranial, factor, "any")[cbox]
+    start = [max(b.start // k - g, 0) * k for b, k, g in zip(tbox, f, grow)]  # block-aligned
+    wide = tuple(slice(a, min(b.stop + (g + 1) * k, n))
+                 for a, b, k, g, n in zip(start, tbox, f, grow, teeth.shape))
+    ic = _down(intracranial[wide], f, "any")
     if not ic.any():
         return teeth
-    dist = np.full(tuple(-(-n // int(f)) for n, f in zip(teeth.shape, factor)), np.inf)
-    dist[cbox] = ndimage.distance_transform_edt(~ic, sampling=cspace)
-    comp, n = ndimage.label(teeth, structure=np.ones((3, 3, 3), dtype=bool))
-    idx = np.nonzero(teeth)
+    dist = ndimage.distance_transform_edt(~ic, sampling=cspace)
+    sub = teeth[tbox]
+    comp, n = ndimage.label(sub, structure=np.ones((3, 3, 3), dtype=bool))
+    idx = np.nonzero(sub)
+    coarse_idx = tuple((i + b.start - a) // k for i, b, a, k in zip(idx, tbox, start, f))
     near = np.full(n + 1, np.inf)
-    np.minimum.at(near, comp[idx], dist[tuple(i // int(f) for i, f in zip(idx, factor))])
+    np.minimum.at(near, comp[idx], dist[coarse_idx])
     drop = near < reach
     if drop[1:].any():
         log.debug("segment: %d dense bone component(s) within %.0f mm of the brain are not "
                   "teeth", int(drop[1:].sum()), reach)
-    return teeth & ~drop[comp]
+    out = teeth.copy()
+    out[tbox] &= ~drop[comp]
+    return out
 
 
 # --------------------------------------------------------------------------- intracranial
