@@ -241,8 +241,9 @@ def write_outputs(result, out, images=None):
     Files: ``predicted_skin.vtp`` (predicted skin with ``displacement``),
     ``deformed_mesh.vtu`` (the mesh at its predicted position, with ``displacement`` and
     the ``bc`` arrays), ``skin_pre.vtp``, the PNGs in ``images`` and ``summary.json``
-    (seconds per step, skipped steps, the plan). Returns ``result.files``. The command line
-    adds ``report.html`` (:func:`pvcmf.report.write_report`, a layer above the pipeline).
+    (seconds per step, skipped steps, the plan, tissue and bone segment volumes in mL).
+    Returns ``result.files``. The command line adds ``report.html``
+    (:func:`pvcmf.report.write_report`, a layer above the pipeline).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -264,6 +265,9 @@ def write_outputs(result, out, images=None):
                "files": {k: Path(v).name for k, v in files.items()}}
     if result.ct_report:
         summary["ct"] = result.ct_report
+    for key in ("tissue_volumes", "segment_volumes"):  # mL per tissue / bone segment
+        if getattr(result, key, None):
+            summary[f"{key}_ml"] = getattr(result, key)
     if result.post is not None:
         u = np.linalg.norm(np.asarray(result.post[arrays.DISPLACEMENT]), axis=1)
         summary.update(n_tets=int(result.post.n_cells), n_points=int(result.post.n_points),

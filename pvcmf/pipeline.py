@@ -1,12 +1,12 @@
 """End-to-end prediction: CT + surgical plan -> predicted post-operative face.
 
 :func:`simulate` chains the pipeline steps of :mod:`pvcmf.filters` and :mod:`pvcmf.mtm`
-(segmentation, muscles, meshing, materials, plan -> boundary conditions, MTM solve,
+(segmentation, fat/muscle classification, muscles, meshing, materials, plan -> boundary conditions, MTM solve,
 skin), times every step, and, given an output folder, writes the predicted skin (VTP),
 the deformed mesh (VTU) and offscreen PNGs, each atomically (temporary file in the same
 folder + ``os.replace``: an interrupted run leaves no half-written file).
 
-Each stage is a named function (read, segment and cut, muscles, mesh, materials, boundary
+Each stage is a named function (read, segment, classify and cut, muscles, mesh, materials, boundary
 conditions from the plan, solve, map to skin, write) calling the filter of that name in
 :mod:`pvcmf.filters`; steps the caller turns off (muscles, prediction) or that decline on
 purpose (a failed muscle fit leaves homogeneous tissue) are recorded in
@@ -31,8 +31,10 @@ from scipy.spatial import cKDTree
 
 from . import arrays, filters, mtm
 from ._atomic import write_text
+from .filters.bone_segments import segment_volumes
 from .filters.surface_mapping import Transfer, crumple_metric
 from .filters.osteotomy import cut_bones, move_bones
+from .filters.segmentation import tissue_volumes
 from .io import read_ct
 from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
@@ -45,7 +47,7 @@ log = logging.getLogger(__name__)
 __all__ = ["Result", "simulate", "STEPS", "write_outputs"]
 
 #: the steps of :func:`simulate`, in order, as named in the timing summary
-STEPS = ("read", "segment", "bone segments", "muscles", "mesh", "fibres", "materials",
+STEPS = ("read", "segment", "classify", "bone segments", "muscles", "mesh", "fibres", "materials",
          "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
 
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
@@ -83,6 +85,11 @@ class Result:
         Post-operative bone segment surfaces (:func:`pvcmf.filters.move_bones`).
     timings : dict
         Step name -> seconds.
+    tissue_volumes : dict
+        Tissue name -> volume (mL) of the final labels
+        (:func:`pvcmf.filters.segmentation.tissue_volumes`).
+    segment_volumes : dict
+        Bone segment name -> volume (mL) (:func:`pvcmf.filters.bone_segments.segment_volumes`).
     ct_report : dict
         Units and orientation found in the CT (:func:`pvcmf.filters.standardize`); empty
         when the CT was not checked.
@@ -100,6 +107,8 @@ class Result:
     skin_post: pv.PolyData | None = None
     skeleton: pv.MultiBlock | None = None
     timings: dict = field(default_factory=dict)
+    tissue_volumes: dict = field(default_factory=dict)
+    segment_volumes: dict = field(default_factory=dict)
     ct_report: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
     files: dict = field(default_factory=dict)
@@ -185,6 +194,15 @@ def _segment(ct, options):
     return filters.segment(ct, **options)
 
 
+def _classify(labels):
+    """Step "classify": fat / muscle by per-slice Gaussian mixtures (paper 001); the muscle
+    tissue the atlas does not name (tongue, temporalis, neck) comes from here."""
+    out = filters.classify_tissue(labels)
+    if arrays.MUSCLE not in out.point_data.keys():  # generic muscle: no atlas id
+        out.point_data[arrays.MUSCLE] = np.full(out.n_points, arrays.MUSCLE_NONE, np.uint8)
+    return out
+
+
 def _muscles(labels, landmarks):
     """Embed the muscles; a failing fit falls back to homogeneous tissue with a warning."""
     embed = filters.embed_muscles
@@ -209,6 +227,9 @@ def _mesh(labels, n_tets, options, progress_bar, face_fraction):
 
 def _fibres(grid):
     if arrays.MUSCLE not in grid.cell_data or not np.any(grid.cell_data[arrays.MUSCLE]):
+        if np.any(np.asarray(grid.cell_data.get(arrays.TISSUE, [])) == arrays.MUSCLE_TISSUE):
+            grid = grid.copy()  # generic muscle only (no atlas id): no fibre, isotropic
+            grid.cell_data[arrays.FIBER] = np.zeros((grid.n_cells, 3))
         return grid
     return filters.fiber_directions(grid)
 
@@ -318,7 +339,8 @@ def flip_axes(image, axes):
 # --------------------------------------------------------------------------- main entry
 def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              n_tets=DEFAULT_N_TETS, segment_options=None, mesh_options=None,
-             material_options=None, bc_options=None, solve_options=None, muscles=True,
+             material_options=None, bc_options=None, solve_options=None, classify=True,
+             muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
              progress_bar=False, units=None, orient=None):
     """Predict the post-operative face from a CT and a surgical plan.
@@ -363,6 +385,11 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         :attr:`Result.skin_pre` are made, but no solve, no predicted skin, no skeleton and
         no outputs. This is what a parameter sweep needs once per mesh
         (:class:`pvcmf.sweeps.PipelineEvaluation` then solves per parameter set).
+    classify : bool, default True
+        Label the segmented soft tissue fat or muscle from the CT values
+        (:func:`pvcmf.filters.classify_tissue`, paper 001): the muscle the atlas does not
+        name (tongue, temporalis, neck) becomes muscle tissue. Off: soft tissue that no
+        atlas muscle covers is fat. Not run when ``labels`` are given.
     muscles : bool, default True
         Embed the facial muscles (``embed_muscles``); without, the soft tissue is
         homogeneous. A muscle fit that fails (e.g. bad landmarks) is logged as a warning,
@@ -402,13 +429,16 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     with run_lock(out), Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
         run = _Runner(result, bar)
         ct = _read_step(run, ct, units, orient)
-        labels = _label_steps(run, ct, labels, bones, plan, opts)
+        labels = _label_steps(run, ct, labels, bones, plan, opts, classify)
         if muscles and predict:
             with_muscles = run.run("muscles", _muscles, labels, landmarks)
             labels = labels if with_muscles is None else with_muscles
         else:
             run.skip("muscles", "muscles=False" if predict else "predict=False")
         result.labels = labels
+        result.tissue_volumes = tissue_volumes(labels)
+        if arrays.BONE in labels.point_data:
+            result.segment_volumes = segment_volumes(labels)
         _model_steps(run, labels, plan, opts, n_tets=n_tets, face_fraction=face_fraction,
                      predict=predict, solve=solve, progress_bar=progress_bar)
         _output_steps(run, out, solve=solve, figures=figures)
@@ -453,15 +483,21 @@ def _read_step(run, ct, units, orient):
     return ct
 
 
-def _label_steps(run, ct, labels, bones, plan, opts):
-    """Steps "segment" and "bone segments", then the plan's cuts: the label image."""
+def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
+    """Steps "segment", "classify" and "bone segments", then the plan's cuts: the label
+    image."""
     if labels is None:
         if not isinstance(ct, pv.ImageData):
             raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
         arrays.require_array(ct, arrays.CT, "point", dtype="f", producer="pvcmf.read_ct")
         labels = run.run("segment", _segment, ct, opts["segment_options"])
+        if classify:
+            labels = run.run("classify", _classify, labels)
+        else:
+            run.skip("classify", "classify=False")
     else:
         run.skip("segment", "labels given")
+        run.skip("classify", "labels given")
     if bones is not None:
         labels = run.run("bone segments", _transfer_bone_segments, labels, bones)
     else:

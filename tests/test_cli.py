@@ -11,7 +11,7 @@ import pyvista as pv
 
 from pvcmf import arrays
 from pvcmf.cli import main
-from pvcmf.pipeline import Result, simulate, write_outputs
+from pvcmf.pipeline import STEPS, Result, simulate, write_outputs
 from pvcmf.plan import TABLE_II, Osteotomy, Plan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -237,4 +237,5 @@ def test_progress_bar_without_tqdm(monkeypatch, caplog):
     monkeypatch.setattr(builtins, "__import__", no_tqdm)
     simulate(None, plan, labels=labels, predict=False, progress_bar=True)
     steps = [r.getMessage() for r in caplog.records if r.getMessage().startswith("simulate [")]
-    assert len(steps) == 13 and steps[-1].startswith("simulate [13/13]")
+    n = len(STEPS)
+    assert len(steps) == n and steps[-1].startswith(f"simulate [{n}/{n}]")

@@ -76,7 +76,9 @@ def segment_volumes(labels):
     {'mandible': 1.0}
     """
     bone = np.asarray(arrays.require_array(labels, arrays.BONE, "point", dtype="iu"))
-    counts = np.bincount(bone.astype(np.int64), minlength=len(arrays.BONE_NAMES))
+    counts = np.array([np.count_nonzero(bone == i) for i in range(len(arrays.BONE_NAMES))])
+    if counts.sum() != bone.size:  # other ids: count them all
+        counts = np.bincount(bone.astype(np.int64), minlength=len(arrays.BONE_NAMES))
     voxel = float(np.prod(labels.spacing)) / 1000.0
     return {arrays.BONE_NAMES.get(i, f"bone_{i}"): float(counts[i] * voxel)
             for i in np.flatnonzero(counts) if i != arrays.BONE_NONE}
@@ -114,12 +116,14 @@ def find_jaws(labels, *, progress_bar=False):
     dims = tuple(int(d) for d in labels.dimensions)
     spacing = np.asarray(labels.spacing, float)
     tissue = tissue.reshape(dims, order="F")
-    hard_all = np.isin(tissue, arrays.HARD_LABELS)
+    hard_all = np.zeros(dims, dtype=bool, order="F")
+    for label in arrays.HARD_LABELS:  # comparisons in memory order, no flattening copy
+        hard_all |= tissue == label
     if not hard_all.any():
         raise ValueError("find_jaws: the image has no hard tissue (tissue BONE/TEETH/METAL)")
-    box = tuple(slice(int(i.min()), int(i.max()) + 1) for i in np.nonzero(hard_all))
+    box = _bounds(hard_all, 0)
     hard = hard_all[box]
-    teeth = np.isin(tissue[box], (arrays.TEETH, arrays.METAL))
+    teeth = (tissue[box] == arrays.TEETH) | (tissue[box] == arrays.METAL)
     teeth &= _far_from(tissue[box] == arrays.INTRACRANIAL, spacing, SKULL_BASE_MM)
     if teeth.sum() < 10:
         raise ValueError("find_jaws: fewer than 10 tooth voxels: cannot find the jaws from the "
@@ -129,16 +133,29 @@ def find_jaws(labels, *, progress_bar=False):
         "voxels)", z_occ, int(upper.sum()), int(lower.sum()))
     mandible = _mandible(hard, upper, lower, z_occ, spacing)
     maxilla = _maxilla(hard & ~mandible, upper, lower, tissue[box] == arrays.AIR, z_occ, spacing)
-    bone = np.zeros(dims, dtype=np.uint8)
+    bone = np.zeros(dims, dtype=np.uint8, order="F")
     sub = np.where(hard, arrays.CRANIUM, arrays.BONE_NONE).astype(np.uint8)
     sub[maxilla] = arrays.MAXILLA
     sub[mandible] = arrays.MANDIBLE
     bone[box] = sub
     out = labels.copy()
     out[arrays.BONE] = bone.ravel(order="F")
+    voxel = float(np.prod(spacing)) / 1000.0
     log.info("find_jaws: segments (mL) %s", ", ".join(
-        f"{k} {v:.1f}" for k, v in segment_volumes(out).items()))
+        f"{arrays.BONE_NAMES[i]} {np.count_nonzero(sub == i) * voxel:.1f}"
+        for i in (arrays.CRANIUM, arrays.MAXILLA, arrays.MANDIBLE)))
     return out
+
+
+def _bounds(mask, margin):
+    """Index box of a non-empty mask, ``margin`` voxels wider (projections, no index
+    arrays of every voxel)."""
+    box = []
+    for axis in range(3):
+        hit = np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis)))
+        box.append(slice(max(int(hit[0]) - margin, 0),
+                         min(int(hit[-1]) + margin + 1, mask.shape[axis])))
+    return tuple(box)
 
 
 def _far_from(mask, spacing, distance):
@@ -212,11 +229,8 @@ def _mandible(hard, upper, lower, z_occ, spacing):
             break
         jaw = int(np.argmax(ids))
         if not np.any(lab[anchor & work] == jaw):
-            seeds = np.where(lab == jaw, 1, np.where(work, 2, 0)).astype(np.uint8)
-            _, idx = ndimage.distance_transform_edt(seeds == 0, sampling=spacing,
-                                                    return_indices=True)
             log.debug("find_jaws: mandible free after %d erosion(s)", step)
-            return (seeds[tuple(idx)] == 1) & hard
+            return _regrow(lab == jaw, work, hard, step, spacing)
         work = ndimage.binary_erosion(work, _FACES)
     log.warning("find_jaws: the mandible stays joined to the skull after %d erosions; it is "
                 "the lower teeth's part below the occlusal level", MAX_EROSION)
@@ -226,6 +240,19 @@ def _mandible(hard, upper, lower, z_occ, spacing):
     ids = np.bincount(lab[lower], minlength=lab.max() + 1)
     ids[0] = 0
     return lab == int(np.argmax(ids))
+
+
+def _regrow(jaw, work, hard, step, spacing):
+    """The hard voxels nearer to the eroded ``jaw`` than to the rest of ``work``: the
+    mandible at full size. Only the jaw's box, ``step + 2`` voxels wider, can change."""
+    grow = step + 2
+    box = _bounds(jaw, grow)
+    seeds = np.where(jaw[box], 1, np.where(work[box], 2, 0)).astype(np.uint8)
+    _, idx = ndimage.distance_transform_edt(seeds == 0, sampling=spacing,
+                                            return_indices=True)
+    out = np.zeros_like(hard)
+    out[box] = (seeds[tuple(idx)] == 1) & hard[box]
+    return out
 
 
 def _maxilla(rest, upper, lower, air, z_occ, spacing):

@@ -10,9 +10,11 @@ Implementation: numpy only. The EM runs on the per-slice histograms (``bin_width
 depend on the number of voxels and no Python loop runs over slices or voxels. The threshold
 solves ``w_f N(t; m_f, s_f) = w_m N(t; m_m, s_m)`` (a quadratic) between the two means (with
 more components, the crossing of the fat group's and muscle group's posteriors). The
-median filter of a two-class map is a majority vote; it is computed with
-``scipy.ndimage.convolve`` counts over the soft-tissue voxels of each 5x5 window only (air,
-bone and intracranial voxels do not vote). Initialisation is deterministic: the
+median filter of a two-class map is a majority vote; it is computed with separable running
+sums (``scipy.ndimage.uniform_filter1d``) over the soft-tissue voxels of each 5x5 window only
+(air, bone and intracranial voxels do not vote). The work is done in the in-slice box of the
+soft tissue; the soft tissue within the metal streak zone (:mod:`pvcmf.filters.metal`) is
+classified but left out of the fit. Initialisation is deterministic: the
 ``n_components`` most prominent peaks of each smoothed histogram. A uniform background
 component over ``hu_range`` absorbs partial-volume voxels.
 
@@ -33,6 +35,7 @@ import pyvista as pv
 from scipy import ndimage, special
 
 from .. import arrays
+from . import metal as _metal
 
 log = logging.getLogger(__name__)
 
@@ -267,6 +270,45 @@ def classify_tissue(
     [-100.0, 40.0]
     """
     say = log.info if progress_bar else log.debug
+    vol, lab, soft, (lo, hi) = _check(image, median_size, n_components, hu_range, bin_width,
+                                      min_weight)
+    dims = lab.shape
+    box = _soft_box(soft)  # in-slice box of the soft tissue: every slice is kept
+    vol, lab, soft = vol[box], lab[box], soft[box]
+
+    say("classify_tissue: per-slice histograms")
+    edges, hist, n_voxels = _histograms(vol, lab, soft, lo, hi, bin_width, interior,
+                                        image.spacing)
+
+    # EM: first on all slices pooled (initialised at the histogram's peaks), then on every
+    # slice at once, initialised at the pooled mixture (same components in every slice)
+    say("classify_tissue: EM on %d slices, %d components", dims[2], n_components)
+    fit = _fit(hist, edges, n_components, max_iter, tol, hi - lo if background else None,
+               partial_volume)
+    slice_thr, fallback, pooled_thr = _thresholds(fit, hist, n_components, partial_volume,
+                                                  min_voxels, min_weight)
+
+    # threshold, then the per-slice median (majority) filter over soft-tissue voxels
+    say("classify_tissue: thresholds (%d of %d slices use the pooled one), %dx%d median",
+        int(fallback[n_voxels > 0].sum()), int((n_voxels > 0).sum()), median_size, median_size)
+    is_muscle = soft & (vol >= slice_thr[None, None, :].astype(vol.dtype))
+    if median_size > 1:
+        is_muscle = _majority(is_muscle, soft, median_size)
+    full = np.asarray(image.point_data[arrays.TISSUE]).reshape(dims, order="F").copy()
+    sub = full[box]
+    sub[soft] = arrays.FAT
+    sub[is_muscle] = arrays.MUSCLE_TISSUE
+    full[box] = sub
+
+    out = image.copy(deep=True)
+    out.point_data[arrays.TISSUE] = full.ravel(order="F")
+    if not return_mixtures:
+        return out
+    return out, _mixtures(fit, edges, hist, n_voxels, slice_thr, fallback, pooled_thr, hi - lo)
+
+
+def _check(image, median_size, n_components, hu_range, bin_width, min_weight):
+    """Validated inputs: the ct and tissue volumes, the soft-tissue mask and the HU window."""
     if not isinstance(image, pv.ImageData):
         raise TypeError(f"image must be a pyvista.ImageData, got {type(image).__name__}")
     ct = arrays.require_array(image, arrays.CT, "point", dtype="f", ncomp=1,
@@ -287,65 +329,96 @@ def classify_tissue(
         raise ValueError(f"bin_width must be in (0, {(hi - lo) / 4}] HU, got {bin_width!r}")
     if not 0 <= min_weight < 0.5:
         raise ValueError(f"min_weight must be in [0, 0.5), got {min_weight!r}")
-
-    vol = ct.reshape(dims, order="F")
-    lab = tissue.reshape(dims, order="F")
-    soft = np.isin(lab, arrays.SOFT_LABELS)
+    vol = np.asarray(ct).reshape(dims, order="F")
+    lab = np.asarray(tissue).reshape(dims, order="F")
+    soft = (lab == arrays.FAT) | (lab == arrays.MUSCLE_TISSUE)
     if not soft.any():
         raise ValueError(
             "image has no soft tissue (tissue FAT or MUSCLE) to classify; run segment first"
         )
     if not np.all(np.isfinite(vol[soft])):
         raise ValueError("ct array 'ct' must be finite on the soft tissue, got NaN/inf values")
+    return vol, lab, soft, (lo, hi)
 
-    # per-slice histograms of the soft tissue (slice = index axis 2)
-    say("classify_tissue: per-slice histograms")
+
+def _soft_box(soft, margin=3):
+    """Index box (all slices) around the soft tissue in-slice, ``margin`` voxels wider."""
+    box = []
+    for axis in (0, 1):
+        hit = np.flatnonzero(soft.any(axis=(1 - axis, 2)))
+        box.append(slice(max(int(hit[0]) - margin, 0),
+                         min(int(hit[-1]) + margin + 1, soft.shape[axis])))
+    return (*box, slice(None))
+
+
+def _histograms(vol, lab, soft, lo, hi, bin_width, interior, spacing):
+    """Per-slice histograms of the soft tissue that is fitted: interior voxels only (with
+    ``interior``), and none near metal (its streaks falsify the values, though those voxels
+    are still classified). Returns the bin edges, the histograms (n_slices, n_bins) and the
+    number of fitted voxels per slice."""
+    n_slices = vol.shape[2]
     n_bins = int(round((hi - lo) / bin_width))
     edges = lo + bin_width * np.arange(n_bins + 1)
     fit_mask = soft
     if interior:  # leave out partial-volume voxels at the air / bone / brain borders
         fit_mask = ndimage.binary_erosion(  # the scan's end is not a tissue border
             soft, structure=ndimage.generate_binary_structure(3, 1), border_value=1)
-    k_index = np.broadcast_to(np.arange(dims[2]), dims)[fit_mask]
-    values = vol[fit_mask].astype(np.float64)
+    metal = lab == arrays.METAL
+    if metal.any():
+        zone_box, zone = _metal.streak_zone(metal, spacing)
+        fit_mask = fit_mask.copy()
+        fit_mask[zone_box] &= ~zone
+    k_index = np.broadcast_to(np.arange(n_slices, dtype=np.int32), vol.shape)[fit_mask]
+    values = vol[fit_mask]
     inside = (values >= edges[0]) & (values < edges[-1])
     b_index = np.floor((values[inside] - lo) / bin_width).astype(np.int64)
-    hist = np.bincount(k_index[inside] * n_bins + b_index, minlength=dims[2] * n_bins)
-    hist = hist.reshape(dims[2], n_bins).astype(np.float64)
-    n_voxels = np.bincount(k_index, minlength=dims[2])
-    if interior and hist.sum() == 0:
-        raise ValueError("the soft tissue has no interior voxel to fit; use interior=False")
+    hist = np.bincount(k_index[inside] * n_bins + b_index, minlength=n_slices * n_bins)
+    hist = hist.reshape(n_slices, n_bins).astype(np.float64)
+    n_voxels = np.bincount(k_index, minlength=n_slices)
+    if hist.sum() == 0:
+        raise ValueError("the soft tissue has no voxel to fit (interior, away from metal); "
+                         "use interior=False")
+    return edges, hist, n_voxels
 
-    # EM: first on all slices pooled (initialised at the histogram's peaks), then on every
-    # slice at once, initialised at the pooled mixture (same components in every slice)
-    say("classify_tissue: EM on %d slices, %d components", dims[2], n_components)
+
+def _fit(hist, edges, n_components, max_iter, tol, span, partial_volume):
+    """EM on the pooled histogram, then on every slice from the pooled mixture. Returns the
+    fit with the pooled one as the last row, the fat/muscle grouping and the thresholds."""
+    n_slices = hist.shape[0]
     centers = 0.5 * (edges[1:] + edges[:-1])
-    span = hi - lo if background else None
     pooled = _em(hist.sum(axis=0, keepdims=True), centers, n_components, max_iter, tol, span,
                  pv=partial_volume)
-    seed = {key: np.repeat(pooled[key], dims[2], axis=0)
+    seed = {key: np.repeat(pooled[key], n_slices, axis=0)
             for key in ("weights", "means", "stds", "background", "partial_volume")}
     per_slice = _em(hist, centers, n_components, max_iter, tol, span, init=seed,
                     pv=partial_volume)
     fit = {key: np.concatenate([per_slice[key], pooled[key]]) for key in per_slice}
-    rows = np.vstack([hist, hist.sum(axis=0, keepdims=True)])
     w, m, s = fit["weights"], fit["means"], fit["stds"]
-    fat_group, fat, muscle = _fat_muscle(w, m, s)
-    thr, found = _crossing(w, m, s, fat_group, fat, muscle)
+    fit["fat_group"], fit["fat"], fit["muscle"] = _fat_muscle(w, m, s)
+    fit["threshold"], fit["found"] = _crossing(w, m, s, fit["fat_group"], fit["fat"],
+                                               fit["muscle"])
+    fit["centers"], fit["span"], fit["max_iter"], fit["tol"] = centers, span, max_iter, tol
+    return fit
 
-    # which slices have a trustworthy own threshold
+
+def _thresholds(fit, hist, n_components, partial_volume, min_voxels, min_weight):
+    """Which slices have a trustworthy own threshold (clearly bimodal, near the pooled
+    mixture); the others take the pooled one. Returns the per-slice thresholds, the
+    fallback flags and the pooled threshold (inf when even the pool is not bimodal)."""
+    rows = np.vstack([hist, hist.sum(axis=0, keepdims=True)])
+    w, m, s, fat, muscle = (fit[k] for k in ("weights", "means", "stds", "fat", "muscle"))
     counts = rows.sum(axis=1)
     r = np.arange(rows.shape[0])
     m1, m2, s1, s2 = m[r, fat], m[r, muscle], s[r, fat], s[r, muscle]
     ashman = math.sqrt(2.0) * np.abs(m2 - m1) / np.sqrt(s1**2 + s2**2)
-    one = _em(rows, centers, 1, max_iter, tol, span)["loglik"]
+    one = _em(rows, fit["centers"], 1, fit["max_iter"], fit["tol"], fit["span"])["loglik"]
     extra = 3 * (n_components - 1) + bool(partial_volume)  # parameters in addition
     with np.errstate(divide="ignore", invalid="ignore"):
         bic_gain = 2.0 * (fit["loglik"] - one) - extra * np.log(np.maximum(counts, 1.0))
     # a slice's fat and muscle must stay within 3 pooled stds of the pooled ones
     near = (np.abs(m1 - m1[-1]) <= 3.0 * s1[-1]) & (np.abs(m2 - m2[-1]) <= 3.0 * s2[-1])
     good = (
-        found
+        fit["found"]
         & (counts >= min_voxels)
         & (ashman >= 2.0)
         & (np.minimum(w[r, fat], w[r, muscle]) >= min_weight)
@@ -353,32 +426,21 @@ def classify_tissue(
         & near
     )
     pooled_ok = bool(good[-1])
-    pooled_thr = float(thr[-1]) if pooled_ok else math.inf
+    pooled_thr = float(fit["threshold"][-1]) if pooled_ok else math.inf
     if not pooled_ok:
         log.warning(
             "classify_tissue: the soft-tissue histogram is not bimodal (no fat/muscle "
             "separation found); slices without their own fit are labelled FAT"
         )
-    slice_thr = np.where(good[:-1], thr[:-1], pooled_thr)
-    fallback = ~good[:-1]
+    return np.where(good[:-1], fit["threshold"][:-1], pooled_thr), ~good[:-1], pooled_thr
 
-    # threshold, then the per-slice median (majority) filter over soft-tissue voxels
-    say("classify_tissue: thresholds (%d of %d slices use the pooled one), %dx%d median",
-        int(fallback[n_voxels > 0].sum()), int((n_voxels > 0).sum()), median_size, median_size)
-    is_muscle = soft & (vol >= slice_thr[None, None, :])
-    if median_size > 1:
-        is_muscle = _majority(is_muscle, soft, median_size)
-    new = lab.copy()
-    new[soft] = arrays.FAT
-    new[is_muscle] = arrays.MUSCLE_TISSUE
 
-    out = image.copy(deep=True)
-    out.point_data[arrays.TISSUE] = new.ravel(order="F")
-    if not return_mixtures:
-        return out
+def _mixtures(fit, edges, hist, n_voxels, slice_thr, fallback, pooled_thr, span):
+    """The :class:`SliceMixtures` of a fit (rows of empty slices NaN)."""
     empty = n_voxels == 0
     nanrow = np.where(empty[:, None], np.nan, 1.0)
-    mixtures = SliceMixtures(
+    w, m, s = fit["weights"], fit["means"], fit["stds"]
+    return SliceMixtures(
         edges=edges,
         hist=hist,
         n_voxels=n_voxels,
@@ -388,9 +450,9 @@ def classify_tissue(
         weights=w[:-1] * nanrow,
         means=m[:-1] * nanrow,
         stds=s[:-1] * nanrow,
-        fat=fat[:-1],
-        muscle=muscle[:-1],
-        fat_group=fat_group[:-1],
+        fat=fit["fat"][:-1],
+        muscle=fit["muscle"][:-1],
+        fat_group=fit["fat_group"][:-1],
         threshold=np.where(empty, np.nan, slice_thr),
         fallback=fallback,
         iterations=fit["iterations"][:-1],
@@ -407,9 +469,8 @@ def classify_tissue(
         pooled_partial_volume=float(fit["partial_volume"][-1]),
         init_background=fit["init_background"][:-1] * nanrow[:, 0],
         init_partial_volume=fit["init_partial_volume"][:-1] * nanrow[:, 0],
-        span=hi - lo,
+        span=span,
     )
-    return out, mixtures
 
 
 # --------------------------------------------------------------------------- EM
@@ -634,9 +695,12 @@ def _crossing_two(weights, means, stds, fat, muscle):
 
 
 def _majority(is_muscle, soft, size):
-    """Per-slice ``size`` x ``size`` median of the fat/muscle map over soft-tissue voxels."""
-    kernel = np.ones((size, size, 1), dtype=np.float32)
-    n_muscle = ndimage.convolve(is_muscle.astype(np.float32), kernel, mode="constant")
-    n_soft = ndimage.convolve(soft.astype(np.float32), kernel, mode="constant")
-    vote = 2.0 * n_muscle - n_soft  # > 0: muscle majority, < 0: fat, 0: tie (keep)
+    """Per-slice ``size`` x ``size`` median of the fat/muscle map over soft-tissue voxels:
+    window counts by two separable running sums (in-slice axes 0 and 1)."""
+    def count(mask):
+        c = ndimage.uniform_filter1d(mask.astype(np.float32), size, axis=0, mode="constant")
+        c = ndimage.uniform_filter1d(c, size, axis=1, mode="constant")
+        return np.rint(c * (size * size)).astype(np.int16)
+
+    vote = 2 * count(is_muscle) - count(soft)  # > 0: muscle majority, < 0: fat, 0: tie (keep)
     return soft & ((vote > 0) | ((vote == 0) & is_muscle))

@@ -13,8 +13,9 @@ voxels), the costly decisions on a copy downsampled to about ``coarse`` mm:
    table, a headrest, sheets and tubes go even where they touch the skin, being thinner than
    the ball or joined to the head by a thinner neck. Small enclosed holes (< ``min_cavity``
    mm^3) become tissue; larger ones (sinuses, airway) stay air.
-3. **hard tissue**: ``ct >= bone`` in the head; ``>= teeth`` is TEETH; ``>= metal`` is METAL
-   (fillings, crowns, plates), hard tissue of its segment. Around the metal
+3. **hard tissue**: ``ct >= bone`` in the head; ``>= teeth`` is TEETH (except near the
+   intracranial volume: the otic capsule of the petrous bone is as dense); ``>= metal`` is
+   METAL (fillings, crowns, plates), hard tissue of its segment. Around the metal
    (:mod:`pvcmf.filters.metal`) thin bright streaks are not bone and thin dark streaks are not
    air.
 4. **intracranial volume** (:func:`_intracranial`): the skull is closed with a ball of
@@ -63,6 +64,10 @@ METAL_THRESHOLD = 3000.0
 #: thresholds as multiples of the air -> soft tissue step, above the soft-tissue peak
 #: (skin: below it). On a calibrated scan (step ~1040 HU) they give the levels above.
 SCALE = {"skin": -0.5, "bone": 0.48, "teeth": 1.88, "metal": 2.85}
+#: dense bone within this distance (mm) of the intracranial volume is not teeth: the otic
+#: capsule of the petrous bone is as dense as dentine, ~5-10 mm from the brain; the
+#: teeth are > 25 mm from it (the maxillary sinus and the orbits lie between)
+TEETH_BRAIN_MM = 15.0
 #: smallest radius (voxels) of the skull-closing ball: 1.5 takes the in-slice diagonal
 #: neighbours, which bridge a one-voxel gap in a one-voxel-thin skull ring
 MIN_BALL_VOXELS = 1.5
@@ -94,7 +99,7 @@ def calibrate(ct):
     (-480.0, 540.0)
     """
     values = np.asarray(ct[arrays.CT] if isinstance(ct, pv.DataSet) else ct, dtype=np.float32)
-    values = values.ravel()
+    values = values.ravel(order="K")  # no copy whatever the memory order
     if values.size > 2_000_000:
         values = values[:: values.size // 1_000_000]
     reference = {"air": -1000.0, "soft": 40.0, "skin": SKIN_THRESHOLD,
@@ -240,6 +245,7 @@ def segment(
     if intracranial is None:
         log.warning("segment: found no volume enclosed by the skull; no INTRACRANIAL label")
         intracranial = np.zeros_like(hard)
+    teeth = _teeth_off_the_brain(teeth, intracranial, spacing, factor)
     bar.step()
 
     soft = head & ~hard & ~intracranial
@@ -255,8 +261,9 @@ def segment(
     out = _write(ct, vol.shape, box, soft, hard, teeth, metal, intracranial)
     out.field_data["thresholds"] = np.array([thr[k] for k in ("skin", "bone", "teeth", "metal")])
     out.field_data["warnings"] = np.array(warnings if warnings else [""], dtype=str)
-    volumes = tissue_volumes(out)
-    say("segment: volumes (mL) %s", ", ".join(f"{k} {v:.1f}" for k, v in volumes.items()))
+    if log.isEnabledFor(logging.INFO if progress_bar else logging.DEBUG):
+        volumes = tissue_volumes(out)
+        say("segment: volumes (mL) %s", ", ".join(f"{k} {v:.1f}" for k, v in volumes.items()))
     bar.step()
     bar.close()
     return out
@@ -276,7 +283,11 @@ def tissue_volumes(labels):
     {'fat': 8.0}
     """
     tissue = np.asarray(arrays.require_array(labels, arrays.TISSUE, "point", dtype="u"))
-    counts = np.bincount(tissue, minlength=256)
+    counts = np.zeros(256, dtype=np.int64)  # the known labels without a cast to int64
+    for label in arrays.TISSUE_LABELS.values():
+        counts[label] = np.count_nonzero(tissue == label)
+    if counts.sum() != tissue.size:  # other values: count them all
+        counts = np.bincount(tissue, minlength=256)
     voxel = float(np.prod(labels.spacing)) / 1000.0
     names = {v: k for k, v in arrays.TISSUE_LABELS.items()}
     return {names.get(i, f"label_{i}"): float(counts[i] * voxel)
@@ -315,7 +326,7 @@ def _thresholds(vol, skin, bone, teeth, metal):
     return thr
 
 
-# --------------------------------------------------------------------------- helpers
+# --------------------------------------------------------------------------- utilities
 def _largest_component(mask, structure):
     lab, n = ndimage.label(mask, structure=structure)
     if n == 0:
@@ -358,6 +369,19 @@ def _closing(mask, spacing, radius):
     return closed[tuple(slice(a, -b) for a, b in pad)]
 
 
+def _dilate_ball(mask, spacing, radius):
+    """Dilation by a ball of ``radius`` mm: the voxels within ``radius`` of ``mask`` (a
+    distance transform, far cheaper than ``binary_dilation`` with a large ball)."""
+    return ndimage.distance_transform_edt(~mask, sampling=spacing) <= radius + 1e-6
+
+
+def _open_ball(mask, spacing, radius):
+    """Opening by a ball of ``radius`` mm (outside the array counts as background)."""
+    pad = np.pad(mask, 1)
+    core = ndimage.distance_transform_edt(pad, sampling=spacing) > radius + 1e-6
+    return _dilate_ball(core, spacing, radius)[1:-1, 1:-1, 1:-1] & mask
+
+
 def _box(mask, margin):
     idx = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != ax)))
            for ax in range(3)]
@@ -367,6 +391,8 @@ def _box(mask, margin):
 
 def _down(mask, factor, how="any"):
     """Block-reduce a boolean volume by integer ``factor`` per axis (``any`` or ``mean``)."""
+    if mask.strides[0] < mask.strides[-1]:  # Fortran-like memory: reduce in memory order
+        return _down(mask.T, tuple(factor)[::-1], how).T
     f = tuple(int(v) for v in factor)
     shape = tuple(-(-n // k) * k for n, k in zip(mask.shape, f))
     pad = np.zeros(shape, dtype=bool)
@@ -374,7 +400,8 @@ def _down(mask, factor, how="any"):
     blocks = pad.reshape(shape[0] // f[0], f[0], shape[1] // f[1], f[1], shape[2] // f[2], f[2])
     if how == "any":
         return blocks.any(axis=(1, 3, 5))
-    return blocks.mean(axis=(1, 3, 5), dtype=np.float32) >= 0.5
+    count = blocks.sum(axis=(1, 3, 5), dtype=np.uint16)
+    return 2 * count >= int(np.prod(f))
 
 
 def _up(mask, factor, shape):
@@ -394,20 +421,37 @@ def _head(vol, skin, spacing, factor, radius):
     cspace = spacing * factor
     coarse = _down(above, factor, "mean")
     if radius > 0 and coarse.any():
-        ball = _ball(cspace, radius, minimum=1.0)
-        core = _largest_component(ndimage.binary_opening(coarse, ball), _FACES)
-        if core is None:  # everything thinner than the ball: keep the plain mask
-            core = coarse
-        grow = _ball(cspace, radius + float(np.max(cspace)), minimum=1.0)
-        region = _up(ndimage.binary_dilation(core, grow), factor, vol.shape)
-        box = _box(region, 0)
-        above_box = above[box] & region[box]
+        box, region = _head_region(coarse, cspace, factor, radius, vol.shape)
+        above_box = above[box] & region
     else:
         box = tuple(slice(0, n) for n in vol.shape)
         above_box = above
     head = np.zeros(vol.shape, dtype=bool)
     head[box] = _largest_component(above_box, _FACES)
     return head
+
+
+def _head_region(coarse, cspace, factor, radius, shape):
+    """Index box (full resolution) and mask of the region the head may occupy: the largest
+    part of the coarse mask that survives an opening by a ball of ``radius`` mm, grown by
+    the ball and one coarse voxel. Only the boxes around the masks are transformed."""
+    r = max(radius, float(np.max(cspace)))  # at least one coarse voxel
+    grow = r + float(np.max(cspace))
+    cb = _box(coarse, 0)
+    core = _largest_component(_open_ball(coarse[cb], cspace, r), _FACES)
+    if core is None:  # everything thinner than the ball: keep the plain mask
+        core = coarse[cb]
+    kb = _box(core, 0)
+    pad = np.ceil(grow / cspace).astype(int) + 1
+    grown = _dilate_ball(np.pad(core[kb], [(int(k), int(k)) for k in pad]), cspace, grow)
+    lo = [c.start + k.start - int(m) for c, k, m in zip(cb, kb, pad)]  # coarse index of [0]
+    trim = tuple(slice(max(-a, 0), min(n - a, g)) for a, n, g in
+                 zip(lo, coarse.shape, grown.shape))
+    grown = grown[trim]
+    start = [(a + t.start) * int(f) for a, t, f in zip(lo, trim, factor)]
+    box = tuple(slice(b, min(b + g * int(f), n)) for b, g, f, n in
+                zip(start, grown.shape, factor, shape))
+    return box, _up(grown, factor, tuple(b.stop - b.start for b in box))
 
 
 def _fill_small_holes(head, spacing, min_cavity, say):
@@ -424,7 +468,7 @@ def _fill_small_holes(head, spacing, min_cavity, say):
 
 
 def _write(ct, shape, box, soft, hard, teeth, metal, intracranial):
-    tissue = np.zeros(shape, dtype=np.uint8)  # AIR
+    tissue = np.zeros(shape, dtype=np.uint8, order="F")  # AIR; F order: a flat view
     sub = np.zeros(soft.shape, dtype=np.uint8)
     sub[soft] = arrays.FAT
     sub[hard] = arrays.BONE_TISSUE
@@ -432,12 +476,45 @@ def _write(ct, shape, box, soft, hard, teeth, metal, intracranial):
     sub[metal] = arrays.METAL
     sub[intracranial] = arrays.INTRACRANIAL
     tissue[box] = sub
-    bone = np.zeros(shape, dtype=np.uint8)
-    bone[box] = np.where(hard, arrays.CRANIUM, arrays.BONE_NONE)
+    bone = np.zeros(shape, dtype=np.uint8, order="F")
+    bone[box][hard] = arrays.CRANIUM
     out = ct.copy(deep=True)
     out.point_data[arrays.TISSUE] = tissue.ravel(order="F")
     out.point_data[arrays.BONE] = bone.ravel(order="F")
     out.point_data.active_scalars_name = arrays.TISSUE
+    return out
+
+
+def _teeth_off_the_brain(teeth, intracranial, spacing, factor, reach=TEETH_BRAIN_MM):
+    """Teeth without the tooth-dense bone of the skull base: components of ``teeth`` that
+    come within ``reach`` mm of the intracranial volume (distance on the coarse grid) are
+    bone."""
+    if not teeth.any() or not intracranial.any():
+        return teeth
+    # only the teeth's box matters: the coarse distance map of it, ``reach`` wider
+    cspace = spacing * factor
+    f = [int(v) for v in factor]
+    grow = np.ceil(reach / cspace).astype(int) + 1
+    tbox = _box(teeth, 0)
+    start = [max(b.start // k - g, 0) * k for b, k, g in zip(tbox, f, grow)]  # block-aligned
+    wide = tuple(slice(a, min(b.stop + (g + 1) * k, n))
+                 for a, b, k, g, n in zip(start, tbox, f, grow, teeth.shape))
+    ic = _down(intracranial[wide], f, "any")
+    if not ic.any():
+        return teeth
+    dist = ndimage.distance_transform_edt(~ic, sampling=cspace)
+    sub = teeth[tbox]
+    comp, n = ndimage.label(sub, structure=np.ones((3, 3, 3), dtype=bool))
+    idx = np.nonzero(sub)
+    coarse_idx = tuple((i + b.start - a) // k for i, b, a, k in zip(idx, tbox, start, f))
+    near = np.full(n + 1, np.inf)
+    np.minimum.at(near, comp[idx], dist[coarse_idx])
+    drop = near < reach
+    if drop[1:].any():
+        log.debug("segment: %d dense bone component(s) within %.0f mm of the brain are not "
+                  "teeth", int(drop[1:].sum()), reach)
+    out = teeth.copy()
+    out[tbox] &= ~drop[comp]
     return out
 
 
