@@ -1,0 +1,97 @@
+"""Binary morphology on label volumes for :func:`pvcmf.filters.segment`: largest component,
+hole filling, balls of a physical radius, closing/dilation/opening by a ball, bounding boxes
+and block down/up-sampling of masks. Delegates to :mod:`scipy.ndimage`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+#: smallest ball radius in voxels (a radius below it would be a single voxel)
+MIN_BALL_VOXELS = 1.5
+
+
+def _largest_component(mask, structure):
+    lab, n = ndimage.label(mask, structure=structure)
+    if n == 0:
+        return None
+    sizes = np.bincount(lab.ravel())
+    sizes[0] = 0
+    return lab == int(np.argmax(sizes))
+
+
+def _fill(mask, structure, z_open=False):
+    """Fill holes: background not connected to the array border (through ``structure``).
+
+    With ``z_open`` the first and last slices do not count as border (for a slice-wise fill
+    with an in-slice structure, every slice is then filled on its own).
+    """
+    lab, _ = ndimage.label(~mask, structure=structure)
+    faces = [lab[0], lab[-1], lab[:, 0], lab[:, -1]]
+    if not z_open:
+        faces += [lab[:, :, 0], lab[:, :, -1]]
+    outside = np.unique(np.concatenate([f.ravel() for f in faces]))
+    keep = np.ones(lab.max() + 1, dtype=bool)
+    keep[outside] = False
+    keep[0] = False
+    return mask | keep[lab]
+
+
+def _ball(spacing, radius, minimum=MIN_BALL_VOXELS):
+    """Ellipsoidal structuring element: the ball of ``radius`` mm (>= ``minimum`` voxels)."""
+    r_vox = np.maximum(radius / np.maximum(np.asarray(spacing, float), 1e-12), minimum)
+    half = np.floor(r_vox).astype(int)
+    grid = np.meshgrid(*(np.arange(-h, h + 1) for h in half), indexing="ij")
+    return sum((g / r) ** 2 for g, r in zip(grid, r_vox)) <= 1.0 + 1e-9
+
+
+def _closing(mask, spacing, radius):
+    """Binary closing with a ball of ``radius`` mm, padded so the border does not erode."""
+    ball = _ball(spacing, radius)
+    pad = [(h + 1, h + 1) for h in np.array(ball.shape) // 2]
+    closed = ndimage.binary_closing(np.pad(mask, pad), structure=ball)
+    return closed[tuple(slice(a, -b) for a, b in pad)]
+
+
+def _dilate_ball(mask, spacing, radius):
+    """Dilation by a ball of ``radius`` mm: the voxels within ``radius`` of ``mask`` (a
+    distance transform, far cheaper than ``binary_dilation`` with a large ball)."""
+    return ndimage.distance_transform_edt(~mask, sampling=spacing) <= radius + 1e-6
+
+
+def _open_ball(mask, spacing, radius):
+    """Opening by a ball of ``radius`` mm (outside the array counts as background)."""
+    pad = np.pad(mask, 1)
+    core = ndimage.distance_transform_edt(pad, sampling=spacing) > radius + 1e-6
+    return _dilate_ball(core, spacing, radius)[1:-1, 1:-1, 1:-1] & mask
+
+
+def _box(mask, margin):
+    idx = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != ax)))
+           for ax in range(3)]
+    return tuple(slice(max(int(i[0]) - margin, 0), min(int(i[-1]) + margin + 1, n))
+                 for i, n in zip(idx, mask.shape))
+
+
+def _down(mask, factor, how="any"):
+    """Block-reduce a boolean volume by integer ``factor`` per axis (``any`` or ``mean``)."""
+    if mask.strides[0] < mask.strides[-1]:  # Fortran-like memory: reduce in memory order
+        return _down(mask.T, tuple(factor)[::-1], how).T
+    f = tuple(int(v) for v in factor)
+    shape = tuple(-(-n // k) * k for n, k in zip(mask.shape, f))
+    pad = np.zeros(shape, dtype=bool)
+    pad[tuple(slice(0, n) for n in mask.shape)] = mask
+    blocks = pad.reshape(shape[0] // f[0], f[0], shape[1] // f[1], f[1], shape[2] // f[2], f[2])
+    if how == "any":
+        return blocks.any(axis=(1, 3, 5))
+    count = blocks.sum(axis=(1, 3, 5), dtype=np.uint16)
+    return 2 * count >= int(np.prod(f))
+
+
+def _up(mask, factor, shape):
+    """Nearest upsampling of a block-reduced volume back to ``shape``."""
+    out = mask
+    for ax, k in enumerate(factor):
+        out = np.repeat(out, int(k), axis=ax)
+    return out[tuple(slice(0, n) for n in shape)]
