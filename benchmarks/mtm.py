@@ -40,6 +40,8 @@ VARIANTS = {
     "default": {},
     "pardiso double, 1 thread": {"backend": "pardiso", "threads": 1},
     "pardiso mixed": {"backend": "pardiso", "precision": "mixed"},
+    "pardiso double, 2 threads": {"backend": "pardiso", "threads": 2},
+    "pardiso mixed, 2 threads": {"backend": "pardiso", "precision": "mixed", "threads": 2},
     "superlu": {"backend": "superlu"},
 }
 
@@ -97,6 +99,8 @@ def shell_mesh(n_tets, seed=0):
 
 
 def measure(size, repeat, kw):
+    # the sweep's update_materials(refactor=...): see --sweep
+    REFACTOR = os.environ.get("PVCMF_BENCH_SWEEP", "refactor") == "refactor"
     """Timings of one solver configuration in this process (printed as one JSON line)."""
     import pvcmf
 
@@ -113,7 +117,7 @@ def measure(size, repeat, kw):
     solver = pvcmf.mtm.Solver(grid, nu=nus[0], **kw)
     solver.solve()
     for nu in nus[1:]:
-        solver.update_materials(nu=nu)
+        solver.update_materials(nu=nu, refactor=REFACTOR)
         solver.solve()
     sweep = time.perf_counter() - t
     info = solver.info
@@ -191,9 +195,14 @@ def main(argv=None):
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--write", metavar="PAGE", help="write the tables to this Markdown page")
+    p.add_argument("--sweep", choices=("refactor", "reuse"), default="refactor",
+                   help="the sweep's update_materials: a numeric refactorisation at every value "
+                        "(refactor=True) or the factor kept where it still converges "
+                        "(refactor=False, what pvcmf.sweep does)")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--kw", default="{}", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    os.environ["PVCMF_BENCH_SWEEP"] = args.sweep  # the children read it
     if args.child:
         print(json.dumps(measure(args.sizes[0], args.repeat, json.loads(args.kw))))
         return 0

@@ -97,16 +97,24 @@ class SymmetricFromTriangle(spla.LinearOperator):
         return (self.upper + self.lower).toarray() - np.diag(self._diag)
 
 
+_CONTROLLER = []
+
+
 def blas_threads(threads):
-    """Context limiting the BLAS thread pools to ``threads`` (threadpoolctl); None: no limit."""
+    """Context limiting the BLAS thread pools to ``threads`` (threadpoolctl); None: no limit.
+
+    The thread-pool controller (a scan of the loaded libraries, milliseconds) is made once
+    per process and reused."""
     if threads is None:
         return contextlib.nullcontext()
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import ThreadpoolController
     except ImportError:
         log.debug("threads=%s: threadpoolctl is not installed, BLAS keeps its threads", threads)
         return contextlib.nullcontext()
-    return threadpool_limits(limits=int(threads), user_api="blas")
+    if not _CONTROLLER:
+        _CONTROLLER.append(ThreadpoolController())
+    return _CONTROLLER[0].limit(limits=int(threads), user_api="blas")
 
 
 def solution_grid(grid, u, info):

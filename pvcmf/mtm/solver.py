@@ -137,10 +137,8 @@ class Solver:
         ``info['precision']`` is ``'mixed'``, ``'double'`` or ``'double (mixed stalled)'``.
     threads : int, optional
         Threads of the factorisation and solves (PARDISO: MKL threads of every phase; other
-        methods: a BLAS limit through threadpoolctl). Default 1: a facial model (10^4-10^5
-        unknowns) is factorised in well under a second on one core, and a second thread
-        gains little there while it loses much when another job holds that core (see the
-        benchmark page); ``None`` leaves the libraries' own defaults.
+        methods: a BLAS limit through threadpoolctl). Default None: the libraries' own
+        default (MKL: one per core). Pass 1 where another job shares the cores.
     maxiter : int, optional
         Iteration cap (default 2000 for cg, 5000 for gpu, 20000 sweeps for relaxation).
     preconditioner : {'amg', 'jacobi'}, optional
@@ -181,7 +179,7 @@ class Solver:
     """
 
     def __init__(self, grid, method="direct", *, tol=1e-10, backend="auto", precision="double",
-                 threads=1, maxiter=None, preconditioner=None, omega=1.0,
+                 threads=None, maxiter=None, preconditioner=None, omega=1.0,
                  warn_lost_digits=8.0, progress_bar=False, ordering="auto", E_fiber=None,
                  E_cross=None, nu=None, fiber=None):
         method, tol, backend, precision = _check_options(
