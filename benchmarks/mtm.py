@@ -23,6 +23,7 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import statistics
 import subprocess
 import sys
@@ -181,8 +182,7 @@ def table(rows, base):
 
 def machine():
     return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-            f"Python {platform.python_version()}, {platform.system()}; load average at the end "
-            f"{os.getloadavg()[0]:.1f}")
+            f"Python {platform.python_version()}, {platform.system()}")
 
 
 def main(argv=None):
@@ -214,7 +214,7 @@ def main(argv=None):
         runs.append(("before default", tree, {}))
     runs += [(f"this tree {name}" if args.against else name, ROOT, VARIANTS[name])
              for name in names]
-    command = "python benchmarks/mtm.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = "python benchmarks/mtm.py " + shlex.join(argv if argv is not None else sys.argv[1:])
     out = []
     for size in args.sizes:
         rows = compare(runs, args.rounds, size, args.repeat)

@@ -6,7 +6,7 @@ extra). Builds the truth's planned grid for one virtual patient (true labels, co
 mesh, materials, plan boundary conditions), then solves it with each load-step predictor
 and prints whole numbers: dofs, Newton iterations, factorisations, wall and CPU
 milliseconds (medians of ``--repeat``), the largest displacement difference between the
-predictors in micrometres, the 1-minute load average, and the CPU ratio measured in the
+predictors in micrometres and the CPU ratio measured in the
 same run. Also times one assembly and one factorisation of the P2 Hessian per NGSolve
 direct solver (``--solvers``).
 """
@@ -70,7 +70,7 @@ def main():
     case = phantom(patient=args.patient, spacing=args.spacing)
     _, grid = reference._truth_grid(case, args.tets, 0.5, False)
     print(f"patient {args.patient}, spacing {args.spacing} mm, {grid.n_cells} tetrahedra, "
-          f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+          f"{os.cpu_count()} cores")
     if args.solvers:
         t = factor_times(grid, args.solvers.split(","))
         print("one P2 Hessian, CPU ms: " + ", ".join(f"{k} {1000 * v:.0f}" for k, v in t.items()))
@@ -95,7 +95,6 @@ def main():
         diff = np.abs(disp[a] - disp[b]).max()
         print(f"CPU {b} / {a}: {cb / ca:.1f}x; largest displacement difference "
               f"{1000 * diff:.0f} um")
-    print(f"load {os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

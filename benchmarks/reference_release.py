@@ -10,8 +10,8 @@ model 2), those that the prescribed displacements alone invert or crush (volume 
 inverts, its nodes' bc codes, distances and prescribed displacements, and the nodes
 ``solve_reference`` releases. Then solves it with the release off (``release_below=None``:
 every fixed/joint vertex prescribed, nothing released) and on (the default),
-printing the load reached or the Newton iterations, wall and CPU seconds, and the 1-minute
-load average.
+printing the load reached or the Newton iterations, wall and CPU seconds.
+
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ def main():
     case = phantom(patient=args.patient, spacing=args.spacing)
     _, grid = reference._truth_grid(case, args.tets, 0.5, False)
     print(f"patient {args.patient}, spacing {args.spacing} mm, {grid.n_cells} tetrahedra, "
-          f"{grid.n_points} nodes, load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+          f"{grid.n_points} nodes, {os.cpu_count()} cores")
     diagnose(grid)
     if args.no_solve:
         return
@@ -95,7 +95,7 @@ def main():
             result = f"failed: {err}"
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         print(f"order {args.order}, release_below={release}: {result}; wall {wall:.1f} s, "
-              f"CPU {cpu:.1f} s, load {os.getloadavg()[0]:.1f}")
+              f"CPU {cpu:.1f} s")
 
 
 if __name__ == "__main__":

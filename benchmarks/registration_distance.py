@@ -2,7 +2,7 @@
 
 Run: ``python benchmarks/registration_distance.py [--quick] [--repeat N]`` (not run by CI).
 Prints whole numbers (ms, micrometres, millidegrees) as medians of ``--repeat`` runs,
-ratios measured in the same run, and the load average (the machine is shared).
+ratios measured in the same run.
 
 1. ICP on a 50k-point face-like skin against a cropped (40k points), noisy (0.2 mm) copy
    moved by a known pose: pvcmf's point-to-plane ``register`` (nearest-vertex pairs, the
@@ -75,8 +75,6 @@ def pose_error(matrix, truth, centre):
     return float(np.linalg.norm(e[:3, :3] @ centre + e[:3, 3] - centre)), float(angle)
 
 
-def load():
-    return " / ".join(f"{v:.1f}" for v in os.getloadavg())
 
 
 def bench_icp(repeat):
@@ -93,7 +91,7 @@ def bench_icp(repeat):
     target = target.compute_normals(cell_normals=False, split_vertices=False)
     centre = np.asarray(target.center)
     print(f"ICP: target {target.n_points} points, source {source.n_points} points "
-          f"(cropped, 0.2 mm noise), pose (3, -2, 4) deg, (4, -3, 2) mm; load {load()}")
+          f"(cropped, 0.2 mm noise), pose (3, -2, 4) deg, (4, -3, 2) mm")
     rows = []
     for name, kw in (("pvcmf point-to-plane (default)", {}),
                      ("pvcmf point-to-plane, surface end", {"closest": "surface"})):
@@ -119,8 +117,7 @@ def bench_distance(repeat, n_tri):
     spacing = np.sqrt(3.06e5 / n_tri)  # flying edges gives ~3.06e5 triangles at 1 mm
     truth = implicit_skin(spacing)
     pred = implicit_skin(spacing / np.sqrt(2), wave=2.5)  # about n_tri points
-    print(f"\nsigned distance: {pred.n_points} points to {truth.n_cells} triangles; "
-          f"load {load()}")
+    print(f"\nsigned distance: {pred.n_points} points to {truth.n_cells} triangles")
     t_igl, out = timed(lambda: pred.cmf.distance_to(truth, method="igl"), repeat)
     d_igl = np.asarray(out[arrays.DISTANCE])
     t_vtk, out = timed(lambda: pred.cmf.distance_to(truth, method="vtk"), repeat)
@@ -162,7 +159,7 @@ def bench_postop(repeat, spacing):
     shift, ang = pose_error(m, pose, np.asarray(pre.center))
     face = table.set_index("region").loc["face"]
     print(f"\nvirtual post-op CT, patient 1 at {spacing:g} mm ({ct.n_points} voxels), zero plan, "
-          f"random pose, 18 HU noise; load {load()}")
+          f"random pose, 18 HU noise")
     print(f"postop_ct {t_ct * 1e3:.0f} ms; validate_from_ct {t_val * 1e3:.0f} ms; pose error "
           f"{shift * 1e3:.0f} um / {ang * 1e3:.0f} mdeg (converged {ok}); |d| p50 "
           f"{face['p50'] * 1e3:.0f} um, p90 {face['p90'] * 1e3:.0f} um")
