@@ -20,7 +20,6 @@ ratios measured in the same run.
 from __future__ import annotations
 
 import argparse
-import os
 import time
 
 import numpy as np
