@@ -287,3 +287,25 @@ def test_cli_takes_landmarks_export_and_transform_plans(tmp_path, capsys):
     assert cli.main(["simulate", "--ct", "x", "--plan", str(good), "--landmarks", str(empty),
                      "--out", str(tmp_path / "o")]) == 2
     assert "no landmark points" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["euler", "affine", "composite"])
+def test_hdf5_transform_written_by_simpleitk(tmp_path, kind):
+    """An ITK HDF5 transform written by SimpleITK (ITK's own writer) reads as the same matrix
+    as the ITK text file SimpleITK writes for it."""
+    pytest.importorskip("h5py", reason="the ITK HDF5 reader needs h5py (test extra)")
+    sitk = pytest.importorskip("SimpleITK")
+    euler = sitk.Euler3DTransform((1.0, -2.0, 3.0), 0.1, -0.2, 0.3, (4.0, 5.0, -6.0))
+    if kind == "euler":
+        t = euler
+    elif kind == "affine":
+        t = sitk.AffineTransform(euler.GetMatrix(), euler.GetTranslation(), euler.GetCenter())
+    else:
+        t = sitk.CompositeTransform([euler, sitk.TranslationTransform(3, (0.5, 0.0, -1.5))])
+    sitk.WriteTransform(t, str(tmp_path / "t.h5"))
+    sitk.WriteTransform(t, str(tmp_path / "t.tfm"))
+    from_h5 = read_itk_transform(tmp_path / "t.h5")
+    np.testing.assert_allclose(from_h5, read_itk_transform(tmp_path / "t.tfm"), atol=1e-9)
+    point = np.array([10.0, -20.0, 30.0])  # ITK maps fixed -> moving points
+    np.testing.assert_allclose(from_h5[:3, :3] @ point + from_h5[:3, 3],
+                               t.TransformPoint(point.tolist()), atol=1e-9)
