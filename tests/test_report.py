@@ -154,3 +154,12 @@ def test_write_report_of_a_written_result(tmp_path):
     assert page.name == "report.html" and "<table id=\"plan\">" in text
     with disabled():
         assert write_report(tmp_path / "a", result=result) is None
+
+
+def test_skin_with_lines_is_packed_and_decimated():
+    """A skin that also holds line cells (a contour's open edges) packs its triangles, and a
+    large one is decimated with its scalars carried over."""
+    skin = pv.Sphere(theta_resolution=60, phi_resolution=60).merge(pv.Line((0, 0, 0), (1, 1, 1)))
+    assert skin.n_lines == 1
+    packed = pack_skin(skin, {"z": np.asarray(skin.points)[:, 2]}, max_points=500)
+    assert 0 < packed["n_points"] <= 600 and packed["n_triangles"] > 0

@@ -64,6 +64,8 @@ def _b64gz(array):
 
 def _triangles(skin):
     tri = skin if skin.is_all_triangles else skin.triangulate()
+    if tri.n_verts or tri.n_lines or tri.n_strips:  # the view shows the triangles only
+        tri = pv.PolyData(np.asarray(tri.points), faces=tri.faces)
     return tri, np.asarray(tri.regular_faces if tri.n_cells else np.empty((0, 3)), np.uint32)
 
 
