@@ -57,7 +57,9 @@ def make_predictor(mesh, labels, skin, bc_options=None):
         Dense rest skin the displacement is wanted on.
     bc_options : dict, optional
         Options of :func:`pvcmf.filters.apply_plan` (default
-        :data:`pvcmf.pipeline.DEFAULT_BC_OPTIONS`), full pipeline only.
+        :data:`pvcmf.pipeline.DEFAULT_BC_OPTIONS`). One operator serves every plan, so its
+        boundary types may not depend on the plan: ``release_margin="auto"`` (twice the
+        plan's largest move) becomes no release; give a number (mm) to release a margin.
 
     Returns
     -------
@@ -65,12 +67,14 @@ def make_predictor(mesh, labels, skin, bc_options=None):
         The predictor and its kind: ``"response"`` or ``"solve"``.
     """
     bc_options = dict(DEFAULT_BC_OPTIONS if bc_options is None else bc_options)
+    if bc_options.get("release_margin") == "auto":
+        bc_options["release_margin"] = None
     try:
         response = importlib.import_module("pvcmf.mtm.response")
     except ImportError:
         response = None
     if response is not None and hasattr(response, "plan_response"):
-        operator = response.plan_response(mesh, labels, skin=skin)
+        operator = response.plan_response(mesh, labels, skin=skin, bc_options=bc_options)
 
         def predict(plan):
             return np.asarray(operator.predict(plan)[arrays.DISPLACEMENT], dtype=np.float64)
