@@ -339,7 +339,7 @@ def flip_axes(image, axes):
 # --------------------------------------------------------------------------- main entry
 def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              n_tets=DEFAULT_N_TETS, segment_options=None, mesh_options=None,
-             material_options=None, bc_options=None, solve_options=None, classify=True,
+             material_options=None, bc_options=None, solve_options=None, classify=False,
              muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
              progress_bar=False, units=None, orient=None):
@@ -385,11 +385,13 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         :attr:`Result.skin_pre` are made, but no solve, no predicted skin, no skeleton and
         no outputs. This is what a parameter sweep needs once per mesh
         (:class:`pvcmf.sweeps.PipelineEvaluation` then solves per parameter set).
-    classify : bool, default True
+    classify : bool, default False
         Label the segmented soft tissue fat or muscle from the CT values
         (:func:`pvcmf.filters.classify_tissue`, paper 001): the muscle the atlas does not
         name (tongue, temporalis, neck) becomes muscle tissue. Off: soft tissue that no
-        atlas muscle covers is fat. Not run when ``labels`` are given.
+        atlas muscle covers is fat (paper 000's model, which the virtual-patient study
+        judges). ``pvcmf simulate`` and ``pvcmf demo`` turn it on (``--no-classify``).
+        Not run when ``labels`` are given.
     muscles : bool, default True
         Embed the facial muscles (``embed_muscles``); without, the soft tissue is
         homogeneous. A muscle fit that fails (e.g. bad landmarks) is logged as a warning,
