@@ -92,9 +92,10 @@ def _common(parser):
                         help=f"requested number of tetrahedra (default {DEMO_N_TETS})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--no-figures", action="store_true", help="do not render PNGs")
-    parser.add_argument("--no-classify", action="store_true",
-                        help="no fat/muscle classification of the soft tissue from the CT "
-                             "values (only the atlas muscles are muscle)")
+    parser.add_argument("--classify", action="store_true",
+                        help="fat/muscle classification of the soft tissue from the CT values "
+                             "(paper 001): the muscle the atlas does not name (tongue, "
+                             "temporalis, neck) becomes muscle tissue")
     parser.add_argument("--no-muscles", action="store_true",
                         help="homogeneous soft tissue: skip the muscle atlas (faster)")
     parser.add_argument("--no-predict", action="store_true",
@@ -201,7 +202,7 @@ def _demo(args):
     result = simulate(case.ct, case.plan, args.out, bones=case.truth,
                       landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
                       predict=not args.no_predict, muscles=not args.no_muscles,
-                      classify=not args.no_classify,
+                      classify=args.classify,
                       figures=not args.no_figures, progress_bar=not args.no_progress)
     result.timings = {"phantom": seconds, **result.timings}
     return _finish(result, args)
@@ -245,7 +246,7 @@ def _simulate(args):
             raise ValueError(f"--units must be 'auto', 'hu' or a number, got {units!r}") from None
     result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
                       predict=not args.no_predict, muscles=not args.no_muscles,
-                      classify=not args.no_classify,
+                      classify=args.classify,
                       figures=not args.no_figures, progress_bar=not args.no_progress,
                       units=units, orient=args.orient)
     result.timings = {"read": seconds, **result.timings}

@@ -390,7 +390,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         (:func:`pvcmf.filters.classify_tissue`, paper 001): the muscle the atlas does not
         name (tongue, temporalis, neck) becomes muscle tissue. Off: soft tissue that no
         atlas muscle covers is fat (paper 000's model, which the virtual-patient study
-        judges). ``pvcmf simulate`` and ``pvcmf demo`` turn it on (``--no-classify``).
+        judges). ``--classify`` on the command line.
         Not run when ``labels`` are given.
     muscles : bool, default True
         Embed the facial muscles (``embed_muscles``); without, the soft tissue is
