@@ -49,8 +49,8 @@ def cache_root(sub=None, cache_dir=None):
     Examples
     --------
     >>> from pvcmf.cache import cache_root
-    >>> cache_root("x", cache_dir="/tmp/c").as_posix()
-    '/tmp/c'
+    >>> cache_root("x", cache_dir="my_cache").as_posix()
+    'my_cache'
     """
     if cache_dir is not None:
         return Path(cache_dir)

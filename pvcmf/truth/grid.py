@@ -18,7 +18,7 @@ import numpy as np
 
 from .. import arrays, filters
 from ..cache import cache_root, code_hash
-from ..cache import cached as _cached
+from ..cache import cached  # the one cache: truths are pyvista files, its default I/O
 from ..filters.model_region import drop_floating_parts, face_box
 from . import solver
 from .solver import solve_reference
@@ -30,27 +30,6 @@ __all__ = ["MODEL_VERSION", "cached", "grid_hash", "postop_skin", "solver_code_h
 
 #: bumped when the model changes, so cached truths are recomputed
 MODEL_VERSION = "2"
-
-
-def cached(path, compute, *, cache=True, stale_after=7200.0, poll=0.5):
-    """A truth read from ``path``, or computed once across processes and cached there.
-
-    :func:`pvcmf.cache.cached` with pyvista's readers and writers: the first caller takes
-    the lock file ``<path>.lock``, computes and writes the entry atomically; concurrent
-    callers wait and read it; a stale lock (dead holder on this host, or older than
-    ``stale_after`` s) is broken; a failed computation leaves neither entry nor lock.
-
-    Examples
-    --------
-    >>> import tempfile
-    >>> from pathlib import Path
-    >>> import pyvista as pv
-    >>> from pvcmf.truth import cached
-    >>> path = Path(tempfile.mkdtemp()) / "sphere.vtp"
-    >>> cached(path, pv.Sphere).n_points == cached(path, lambda: None).n_points
-    True
-    """
-    return _cached(path, compute, cache=cache, stale_after=stale_after, poll=poll)
 
 
 #: the solver's code, hashed (docstrings and comments left out) into the truth's cache key
