@@ -4,6 +4,7 @@
 For every skin point, the Poisson ratio that minimises the local 90 % error percentile
 (over its 16 nearest skin points), and the standard deviation of that percentile across
 the ratios (0-0.3 mm colour scale, as in the paper), drawn on the whole skin of the patient
+seen from the front (the patient's right on the viewer's left)
 (the gaps between the face regions bridged from their nearest points, grey beyond them). The paper finds high ratios (~0.47) on
 the cheeks and low ones (~0.1) on the lips and nose tip for its patient 2. The sweep keeps
 each prediction's per-point signed distance map and the skin it lives on.

@@ -156,3 +156,27 @@ def test_carry_to_skin_bridges_gaps_between_regions():
     assert np.isnan(v[x > 36.0]).all()
     kept = (np.abs(x) > 3.0) & (x < 30.0)
     assert np.allclose(v[kept], x[kept], atol=1e-6)
+
+
+def test_fig5_optimal_poisson_shows_patient_left_on_viewer_right():
+    """Paper 001 Fig. 5 in the photographic convention: a region on the patient's left cheek
+    (+x) whose optimal ratio is high (yellow on viridis) appears on the viewer's right of
+    each panel."""
+    import pandas as pd
+
+    from pvcmf.figures.parameter_studies import fig5_optimal_poisson
+
+    head, _ = _head()
+    x = np.asarray(head.points)
+    left_cheek = (x[:, 0] > 30.0) & (x[:, 1] > 40.0)
+    low = np.where(left_cheek, 0.1, 1.0)  # small error at nu = 0.4 on the left cheek only
+    df = pd.DataFrame({"case": ["P"] * 2, "nu": [0.1, 0.4],
+                       "distance": [1.0 - low + 0.05, low]})
+    pl = fig5_optimal_poisson(df, head, neighbours=1, window_size=(600, 300))
+    img = pl.screenshot(return_img=True)
+    pl.close()
+    panel = img[:, : img.shape[1] // 2, :3].astype(int)
+    yellow = (panel[..., 0] > 120) & (panel[..., 1] > 120) & (panel[..., 2] < 0.5 * panel[..., 1])
+    cols = np.nonzero(yellow[: int(0.8 * panel.shape[0])])[1]  # above the colour bar
+    assert cols.size > 20, "the left-cheek region is not in the image"
+    assert cols.mean() > 0.6 * panel.shape[1]

@@ -30,7 +30,7 @@ from ..study.evaluation import synthetic_evaluate
 from ..study.pipeline_evaluation import STUDY_SPACING, PipelineEvaluation
 from ..study.tables import save_table
 from ..truth.grid import postop_skin
-from .face_views import carry_to_skin
+from .face_views import add_patient_mesh, carry_to_skin, set_view, to_display
 
 log = logging.getLogger(__name__)
 
@@ -554,8 +554,9 @@ def fig5_optimal_poisson(df, skin, *, case=None, neighbours=16, spread_max=0.3,
     Returns
     -------
     pyvista.Plotter
-        Off-screen plotter, two views of the face seen from the front: (a) ``nu_opt``,
-        (b) ``p90_spread``.
+        Off-screen plotter, two views of the face seen from the front in the photographic
+        convention (the patient's right on the viewer's left, as
+        :func:`pvcmf.figures.face_views.set_view`): (a) ``nu_opt``, (b) ``p90_spread``.
 
     Examples
     --------
@@ -580,21 +581,11 @@ def fig5_optimal_poisson(df, skin, *, case=None, neighbours=16, spread_max=0.3,
     ]):
         pl.subplot(0, col)
         pl.add_text(label, position="upper_edge", font_size=9, color="black")
-        pl.add_mesh(face, scalars=name, clim=clim, cmap=cmap, copy_mesh=True, smooth_shading=True,
-                    nan_color="lightgray",
+        add_patient_mesh(pl, face, scalars=name, clim=clim, cmap=cmap, nan_color="lightgray",
                     scalar_bar_args={"title": unit, "vertical": False, "position_x": 0.15,
                                      "position_y": 0.04, "width": 0.7, "height": 0.08,
                                      "title_font_size": 14, "label_font_size": 12, "fmt": "%.2f",
                                      "color": "black"})
-        pl.camera_position = "xz"
-        pl.camera.azimuth = 180.0 if _faces_minus_y(face) else 0.0
-        pl.reset_camera(bounds=patch.bounds)
-        pl.camera.zoom(1.05)
+        set_view(pl, to_display(patch).bounds, "frontal", zoom=0.75)  # room for title, bar
     pl.set_background("white")
     return pl
-
-
-def _faces_minus_y(face):
-    """True when the camera from 'xz' (looking along +y) would see the back of the face."""
-    centre = np.asarray(face.center)
-    return float(np.mean(np.asarray(face.points)[:, 1] - centre[1])) > 0
