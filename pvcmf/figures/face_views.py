@@ -23,6 +23,9 @@ Delegates to PyVista (off-screen :class:`pyvista.Plotter`, ``slice``), VTK's
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+
 import numpy as np
 import pyvista as pv
 from matplotlib.figure import Figure
@@ -30,7 +33,7 @@ from vtkmodules.vtkRenderingCore import vtkSelectVisiblePoints
 
 from .. import arrays
 
-__all__ = ["VIEWS", "to_display", "set_view", "add_patient_mesh", "visible_points",
+__all__ = ["VIEWS", "to_display", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
            "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
            "prediction_summary", "carry_to_skin",
            "displacement_views"]
@@ -96,10 +99,92 @@ def set_view(plotter, bounds, view, zoom=1.0):
     plotter.reset_camera_clipping_range()
 
 
+#: display-frame surfaces with their normals, by geometry (see :func:`shaded_display`)
+_SHADED = OrderedDict()
+_SHADED_MAX = 4
+
+
+def _geometry_key(surface):
+    """The points in full and every 61st connectivity entry (a changed mesh with the same
+    points and cell count but other cells is not a case the figures meet)."""
+    digest = hashlib.blake2b(digest_size=16)
+    digest.update(np.ascontiguousarray(surface.points).tobytes())
+    digest.update(np.ascontiguousarray(surface.faces[::61]).tobytes())
+    return surface.n_points, surface.n_cells, digest.hexdigest()
+
+
+def _closed_outward(shown):
+    """Whether a triangle surface is closed and edge-manifold (every edge in exactly two
+    triangles), and whether its triangles wind inward (negative enclosed volume)."""
+    if not shown.n_cells or not shown.is_all_triangles:
+        return False, False
+    tri = shown.faces.reshape(-1, 4)[:, 1:]
+    e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    _, count = np.unique(e[:, 0] * np.int64(shown.n_points) + e[:, 1], return_counts=True)
+    if not np.all(count == 2):
+        return False, False
+    x = np.asarray(shown.points, dtype=np.float64)
+    volume = np.einsum("ij,ij->i", x[tri[:, 0]], np.cross(x[tri[:, 1]], x[tri[:, 2]])).sum()
+    return True, bool(volume < 0)
+
+
+def shaded_display(mesh):
+    """``mesh`` (patient frame) in the display frame with point normals for smooth
+    shading, computed once per geometry, and whether it is a closed manifold.
+
+    The normals are VTK's (``compute_normals``, as PyVista's ``smooth_shading`` computes
+    them), oriented outward when the surface is closed; the last few geometries are kept,
+    so the views of one skin share them. Point and cell arrays are those of ``mesh``.
+
+    Returns
+    -------
+    (pyvista.PolyData, bool)
+        A fresh shallow copy (safe to add arrays to) and ``closed``.
+    """
+    surface = mesh if isinstance(mesh, pv.PolyData) else mesh.extract_surface(algorithm=None)
+    key = _geometry_key(surface)
+    if key in _SHADED:
+        _SHADED.move_to_end(key)
+        base, closed = _SHADED[key]
+    else:
+        shown = pv.PolyData(np.asarray(surface.points, dtype=np.float64) * [-1.0, 1.0, 1.0],
+                            faces=surface.faces)
+        base = shown.compute_normals(cell_normals=False, split_vertices=False)
+        closed, inward = _closed_outward(base)  # windings made consistent by VTK
+        if inward:  # outward, so that the culled back faces are the hidden ones
+            normals = -np.asarray(base.point_data[arrays.NORMALS])
+            base = pv.PolyData(base.points, faces=base.faces.reshape(-1, 4)[:, [0, 1, 3, 2]].ravel())
+            base.point_data[arrays.NORMALS] = normals
+        _SHADED[key] = (base, closed)
+        while len(_SHADED) > _SHADED_MAX:
+            _SHADED.popitem(last=False)
+    out = base.copy(deep=False)
+    for name in surface.point_data.keys():
+        if name != arrays.NORMALS:
+            out.point_data[name] = surface.point_data[name]
+    for name in surface.cell_data.keys():
+        out.cell_data[name] = surface.cell_data[name]
+    if surface.point_data.active_scalars_name in out.point_data:
+        out.point_data.active_scalars_name = surface.point_data.active_scalars_name
+    out.point_data.active_normals_name = arrays.NORMALS
+    return out, closed
+
+
 def add_patient_mesh(plotter, mesh, **kwargs):
-    """``plotter.add_mesh`` of ``mesh`` (patient frame) reflected to the display frame."""
+    """``plotter.add_mesh`` of ``mesh`` (patient frame) reflected to the display frame.
+
+    Smooth shading by default, with normals computed once per geometry
+    (:func:`shaded_display`); an opaque closed surface has its back faces culled (they
+    are hidden behind its front faces), which halves the rasterised triangles.
+    """
     kwargs.setdefault("smooth_shading", True)
-    return plotter.add_mesh(to_display(mesh), **kwargs)
+    if not kwargs["smooth_shading"] or not isinstance(mesh, (pv.PolyData, pv.UnstructuredGrid)):
+        return plotter.add_mesh(to_display(mesh), **kwargs)
+    shown, closed = shaded_display(mesh)
+    actor = plotter.add_mesh(shown, **kwargs)
+    if closed and kwargs.get("opacity", 1.0) == 1.0 and not kwargs.get("style"):
+        actor.prop.culling = "back"
+    return actor
 
 
 def visible_points(surface, view, window_size=(400, 400), tolerance=1.0):
