@@ -204,12 +204,13 @@ def visible_points(surface, view, window_size=(400, 400), tolerance=1.0):
     (True, False)
     """
     _check_view(view)
-    shown = to_display(surface.extract_surface(algorithm=None) if not isinstance(surface, pv.PolyData)
-                       else surface)
+    shown, closed = shaded_display(surface)  # the display frame, wound outward if closed
     shown.point_data[_ID] = np.arange(shown.n_points)
     p = pv.Plotter(off_screen=True, window_size=list(window_size))
     try:
-        p.add_mesh(shown, color="white", lighting=False)
+        actor = p.add_mesh(shown, color="white", lighting=False)
+        if closed:  # back faces lie behind front faces: the same z-buffer, half the work
+            actor.prop.culling = "back"
         set_view(p, shown.bounds, view)
         p.ren_win.Render()  # VTK's render: fills the z-buffer, no pyvista show hooks
         sel = vtkSelectVisiblePoints()
@@ -432,8 +433,10 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     for v in views:
         _check_view(v)
     values = signed_displacement(skin, component)
-    if limit is None:
-        m = displacement_limit(skin, component, views, percentile, visible=visible)
+    if limit is None:  # displacement_limit, without computing the values twice
+        if visible is None:
+            visible = visible_in_views(skin, views)
+        m = symmetric_limit(values, visible, percentile)
     else:
         m = float(limit)
     clim = (0.0, m) if component == "magnitude" else (-m, m)
