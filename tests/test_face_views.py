@@ -180,3 +180,33 @@ def test_fig5_optimal_poisson_shows_patient_left_on_viewer_right():
     cols = np.nonzero(yellow[: int(0.8 * panel.shape[0])])[1]  # above the colour bar
     assert cols.size > 20, "the left-cheek region is not in the image"
     assert cols.mean() > 0.6 * panel.shape[1]
+
+
+def test_shaded_display_once_per_geometry_and_culling_keeps_the_picture():
+    """Normals are computed once per geometry; a closed skin wound inward is turned
+    outward and drawn with its back faces culled, giving the picture drawn without culling;
+    an open surface is not culled."""
+    head, _ = _head()
+    inward = head.copy()
+    inward.faces = head.faces.reshape(-1, 4)[:, [0, 1, 3, 2]].ravel()  # every face flipped
+    first, closed = fv.shaded_display(inward)
+    again, _ = fv.shaded_display(inward.copy())
+    assert closed and np.shares_memory(first.points, again.points)
+    tri = first.faces.reshape(-1, 4)[:, 1:]
+    x = np.asarray(first.points)
+    assert np.einsum("ij,ij->i", x[tri[:, 0]], np.cross(x[tri[:, 1]], x[tri[:, 2]])).sum() > 0
+    images = []
+    for cull in (True, False):
+        p = pv.Plotter(off_screen=True, window_size=[240, 240])
+        actor = fv.add_patient_mesh(p, inward, color="peachpuff")
+        assert actor.prop.culling == "back"
+        if not cull:
+            actor.prop.culling = "none"
+        fv.set_view(p, fv.to_display(head).bounds, "three_quarter")
+        images.append(p.screenshot(return_img=True).astype(int))
+        p.close()
+    assert (np.abs(images[0] - images[1]).max(axis=-1) > 40).sum() < 20
+    opened = head.clip(normal=(0.0, 0.0, 1.0), origin=(0.0, 0.0, 50.0))
+    p = pv.Plotter(off_screen=True, window_size=[100, 100])
+    assert fv.add_patient_mesh(p, opened.extract_surface(algorithm=None), color="red").prop.culling != "back"
+    p.close()
