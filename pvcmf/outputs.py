@@ -175,7 +175,7 @@ def _plot_surface(surface, scalars=None, cmap=None, clim=None, title=None, color
         face_views.add_patient_mesh(p, surface, color=color, **kwargs)
     if title:
         p.add_text(title, font_size=11, color="black")
-    _front_camera(p, face_views.to_display(surface).bounds, zoom=0.9)
+    _front_camera(p, face_views.display_bounds(surface), zoom=0.9)
     return p
 
 
@@ -225,7 +225,7 @@ def _row(skin, views, label):
     """One skin in several views, side by side."""
     p = pv.Plotter(off_screen=True, shape=(1, len(views)), window_size=[400 * len(views), 480],
                    border=False)
-    bounds = face_views.to_display(skin).bounds
+    bounds = face_views.display_bounds(skin)
     for col, view in enumerate(views):
         p.subplot(0, col)
         p.set_background("white", all_renderers=False)

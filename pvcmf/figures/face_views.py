@@ -33,7 +33,7 @@ from vtkmodules.vtkRenderingCore import vtkSelectVisiblePoints
 
 from .. import arrays
 
-__all__ = ["VIEWS", "to_display", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
+__all__ = ["VIEWS", "to_display", "display_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
            "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
            "prediction_summary", "carry_to_skin",
            "displacement_views"]
@@ -70,6 +70,20 @@ def to_display(mesh):
     if arrays.NORMALS in out.point_data:
         del out.point_data[arrays.NORMALS]
     return out
+
+
+def display_bounds(mesh):
+    """Bounds of ``mesh`` (patient frame) in the display frame: ``to_display(mesh).bounds``
+    without copying the mesh.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> display_bounds(pv.PolyData([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]))
+    (-4.0, -1.0, 2.0, 5.0, 3.0, 6.0)
+    """
+    b = [float(v) for v in mesh.bounds]
+    return (-b[1], -b[0], b[2], b[3], b[4], b[5])
 
 
 def _check_view(view):
@@ -292,8 +306,8 @@ def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
     window_size = window_size or (880, 500 * len(views))
     p = pv.Plotter(off_screen=True, shape=(len(views), 2), window_size=list(window_size),
                    border=False)
-    bounds = np.asarray(to_display(pre).bounds).reshape(3, 2)
-    post_b = np.asarray(to_display(post).bounds).reshape(3, 2)
+    bounds = np.asarray(display_bounds(pre)).reshape(3, 2)
+    post_b = np.asarray(display_bounds(post)).reshape(3, 2)
     bounds = np.c_[np.minimum(bounds[:, 0], post_b[:, 0]), np.maximum(bounds[:, 1], post_b[:, 1])]
     for row, view in enumerate(views):
         for col, (skin, label) in enumerate(((pre, PRE_LABEL), (post, POST_LABEL))):
@@ -455,7 +469,7 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
         p.set_background("white", all_renderers=False)
         actor = add_patient_mesh(p, shown, scalars=title, cmap=cmap, clim=clim,
                                  show_scalar_bar=False, specular=0.1)
-        set_view(p, to_display(skin).bounds, view)
+        set_view(p, display_bounds(skin), view)
         p.add_text(VIEW_TITLES[view], font_size=10, color="black")
     p.subplot(1, 0)
     p.set_background("white", all_renderers=False)

@@ -19,7 +19,7 @@ import pyvista as pv
 from .. import arrays
 from ..filters.osteotomy import move_bones
 from ..filters.skin import extract_skin
-from .face_views import add_patient_mesh, set_view, to_display
+from .face_views import add_patient_mesh, display_bounds, set_view
 
 __all__ = ["osteotomy_panel", "draw_osteotomy", "figure_5", "plan_lines"]
 
@@ -119,7 +119,7 @@ def _draw_patient(p, first, labels, plan, skin, skeleton, title=""):
     row, col = first
     if skin is None:
         skin = extract_skin(labels)
-    bounds = to_display(skin).bounds
+    bounds = display_bounds(skin)
     p.subplot(row, col)
     p.set_background("white", all_renderers=False)
     add_patient_mesh(p, skin, color=SKIN_COLOR, specular=0.2)
