@@ -235,3 +235,28 @@ def test_results_are_independent(block):
     third = resp.predict(plan)
     assert np.array_equal(third.faces, reference[2]) and third.n_cells == skin.n_cells
     assert skin == before  # the input is untouched
+
+
+def test_point_location_equals_brute_force():
+    """The transfer's containing tetrahedra (binned boxes) equal a brute-force search over
+    every tetrahedron: same inside/outside split, and the chosen tetrahedron's barycentric
+    coordinates reproduce the point."""
+    from pvcmf.filters.transfer_locate import INSIDE_TOL, Located, tet_gradients, tetra
+
+    grid = pv.ImageData(dimensions=(6, 5, 4), spacing=(1.0, 1.3, 0.8)).triangulate()
+    grid.points = grid.points + np.random.default_rng(10).normal(0, 0.1, (grid.n_points, 3))
+    pts, tets = tetra(grid)
+    rng = np.random.default_rng(11)
+    p = np.vstack([rng.uniform(-0.5, 5.5, (400, 3)), pts[tets[:50]].mean(axis=1),
+                   0.5 * (pts[tets[:40, 0]] + pts[tets[:40, 1]])])  # centroids, edge midpoints
+    loc = Located(grid, p)
+    inv, _ = tet_gradients(pts, tets)
+    lam = np.einsum("tia,nti->nta", inv, p[:, None, :] - pts[tets[:, 0]][None])
+    b = np.concatenate([1 - lam.sum(axis=2, keepdims=True), lam], axis=2)  # (n, m, 4)
+    inside = b.min(axis=2).max(axis=1) >= -INSIDE_TOL
+    assert inside.sum() > 100 and (~inside).sum() > 50
+    assert np.array_equal(loc.inside, inside)
+    ins = np.flatnonzero(inside)
+    assert np.all(loc.bary[ins].min(axis=1) >= -INSIDE_TOL)
+    back = np.einsum("na,nai->ni", loc.bary[ins], pts[tets[loc.cell[ins]]])
+    assert np.abs(back - p[ins]).max() < 1e-12

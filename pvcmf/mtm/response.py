@@ -32,8 +32,11 @@ up to :data:`FLOAT32_SHIFT` mm, is compared with :data:`FLOAT32_TOLERANCE`. On a
 (rotation columns of the size of the face, shifts of 20 mm) the bound is far above 1e-6 mm
 and float64 is kept (docs/benchmarks/plan_response.md gives the bound of the demo's
 operator); float32 is taken where the bound allows it (small models or motion ranges).
-Delegates to :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS) and
-threadpoolctl (one BLAS thread for the products).
+The skin transfer (:class:`pvcmf.filters.surface_mapping.Transfer`) is built on a second
+thread while the boundary conditions, the factorisation and the solves run (on two cores
+the build costs little more than the factorisation and solves).
+Delegates to :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS),
+:mod:`concurrent.futures` and threadpoolctl (one BLAS thread for the products).
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ from .. import arrays
 from ..filters.boundary_conditions import apply_plan
 from ..filters.osteotomy import cut_bones
 from ..filters.surface_mapping import Transfer, transfer_operator
+from ..filters.transfer_locate import tetra
 from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
 from ..progress import Progress
 from ._common import blas_threads
@@ -111,6 +115,28 @@ def float32_bound(R, n_segments, rotation=FLOAT32_ROTATION, shift=FLOAT32_SHIFT)
     for b in range(0, len(R), 65536):  # blocks: no full-size |R| temporary
         peak = max(peak, float((np.abs(R[b:b + 65536]) @ s).max(initial=0.0)))
     return g * peak
+
+
+def _transfer_in_background(mesh, skin):
+    """Start :class:`Transfer` of ``skin`` on a second thread, to overlap with the
+    factorisation and solves; it works on its own copies of the mesh's points and
+    tetrahedra and of the skin points (no VTK object is shared between the threads).
+    Returns a future of ``(transfer, seconds)``."""
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    points, tets = tetra(mesh)
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
+    x = np.array(skin.points, dtype=float)
+
+    def build():
+        t = time.perf_counter()
+        return Transfer(grid, x), time.perf_counter() - t
+
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pvcmf-transfer")
+    future = pool.submit(build)
+    pool.shutdown(wait=False)
+    return future
 
 
 class PlanResponseWarning(UserWarning):
@@ -197,7 +223,10 @@ class PlanResponse:
         (:data:`FLOAT32_ROTATION`, :data:`FLOAT32_SHIFT`); float32 is kept when it is at
         most :data:`FLOAT32_TOLERANCE`.
     timings : dict
-        Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer``.
+        Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
+        solves: waiting for the skin transfer, folding it in) and ``transfer build (second
+        thread)`` (the skin transfer's own build, which runs on a second thread during the
+        others).
     """
 
     def __init__(self, mesh, labels, *, skin, plan, dtype, bc_options, solver_options,
@@ -212,6 +241,7 @@ class PlanResponse:
         self.threads = solver_options.get("threads", 1)  # BLAS threads of the products
         self.float32_error = None
         with Progress(total=4, desc="plan_response", enabled=progress_bar, logger=log) as bar:
+            pending = None if skin is None else _transfer_in_background(mesh, skin)
             t = time.perf_counter()
             cut = cut_bones(labels, plan)
             self.centroids = {s: np.asarray(m, float) for s, m in self._pivots(cut, plan).items()}
@@ -233,8 +263,8 @@ class PlanResponse:
             t = time.perf_counter()
             self.surface_ids = boundary_points(mesh)
             self._op, self.reached, self.modelled = None, None, None
-            if skin is not None:
-                transfer = Transfer(mesh, skin)
+            if pending is not None:
+                transfer, self.timings["transfer build (second thread)"] = pending.result()
                 T = transfer.W
                 self.modelled = transfer.modelled
                 self.reached = np.flatnonzero(np.diff(T.indptr) > 0)
