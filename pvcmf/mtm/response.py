@@ -282,9 +282,6 @@ class PlanResponse:
         self._op = np.ascontiguousarray(op)
         self._op2 = self._op.reshape(-1, self._op.shape[2])
         n = len(self.modelled)
-        unreached = np.ones(n, dtype=bool)
-        unreached[self.reached] = False
-        self._unreached = np.flatnonzero(unreached)
         self._flat = (3 * self.reached[:, None] + np.arange(3)).ravel()  # scatter targets
         self._modelled_rows = None  # the modelled points' operator, made on first use
         self._pos = np.full(n, -1, dtype=np.int64)
@@ -403,7 +400,7 @@ class PlanResponse:
                 raise ValueError(f"out must be a C-contiguous float64 array of shape ({n}, 3), "
                                  f"got {getattr(out, 'dtype', type(out).__name__)} "
                                  f"{getattr(out, 'shape', '')}")
-            np.asarray(out)[self._unreached] = 0.0
+            np.asarray(out).fill(0.0)  # a full fill is cheaper than a scattered one
         dest = np.asarray(out).reshape(-1)  # plain flat view: no VTK bookkeeping per write
         a = self.parameters(plan)
         if a is None:
