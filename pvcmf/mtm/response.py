@@ -13,28 +13,20 @@ transfer_operator`). :func:`plan_response` builds ``R`` with one factorisation
 whose boundary-condition types differ (another set of moved segments when unmoved bone is
 free, other cut planes) is predicted by a full ``apply_plan`` + solve, with a warning.
 
-Coordinates are centred on each segment's pivot centroid, so the columns have the size of
-the face. Only the skin points the transfer reaches (inside the mesh or within twice its
-band) are stored, point-major and C-contiguous (``(n_reached, 3, 12 k)``), so a plan costs
-one matrix-vector product on one BLAS thread and a scatter (precomputed flat indices) into
-the dense output; many plans are one blocked matrix product per chunk, reduced to
-statistics block by block without forming per-plan surfaces. A predicted surface shares
-its cell connectivity with the operator's own copy of the skin (never with the input
-skin): its points and data arrays are its own, and pyvista never writes into a
-connectivity array in place (``faces`` is exported read-only, ``inplace=True`` filters
-replace it), so results of one operator cannot change each other.
+Coordinates are centred on each segment's pivot centroid. Only the skin points the
+transfer reaches (inside the mesh or within twice its band) are stored, point-major
+(``(n_reached, 3, 12 k)``): a plan costs one matrix-vector product on one BLAS thread and a
+scatter into the dense output; many plans are blocked products reduced to statistics block
+by block. A predicted surface has its own points and data arrays and shares only the cell
+connectivity of the operator's own copy of the skin (pyvista never writes into it in
+place), so results cannot change each other or the input skin.
 
-``float32`` storage halves the memory the product reads. ``dtype='auto'`` decides from the
-operator itself: the rounding bound of a float32 product, ``(K + 2) u |R| |a|`` per row
-(``K`` terms, ``u`` the unit roundoff, one rounding of storage and one of the parameters),
-over every plan with rotation entries up to :data:`FLOAT32_ROTATION` and centroid shifts
-up to :data:`FLOAT32_SHIFT` mm, is compared with :data:`FLOAT32_TOLERANCE`. On a face
-(rotation columns of the size of the face, shifts of 20 mm) the bound is far above 1e-6 mm
-and float64 is kept (docs/benchmarks/plan_response.md gives the bound of the demo's
-operator); float32 is taken where the bound allows it (small models or motion ranges).
-The skin transfer (:class:`pvcmf.filters.surface_mapping.Transfer`) is built on a second
-thread while the boundary conditions, the factorisation and the solves run (on two cores
-the build costs little more than the factorisation and solves).
+``float32`` storage halves the memory the product reads; ``dtype='auto'`` takes it when the
+rounding bound of the float32 product, ``(K + 2) u |R| |a|`` per row (:func:`float32_bound`),
+over plans with rotation entries up to :data:`FLOAT32_ROTATION` and centroid shifts up to
+:data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a face the bound is far
+above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md gives the demo's).
+The skin transfer is built on a second thread during the factorisation and solves.
 Delegates to :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS),
 :mod:`concurrent.futures` and threadpoolctl (one BLAS thread for the products).
 """
