@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 
 import numpy as np
 import pytest
@@ -83,6 +82,11 @@ def test_float32_storage_keeps_a_micrometre(block):
     exact = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts)
     assert auto.float32_error is not None
     assert (auto.skin_response.dtype == np.float32) == (auto.float32_error <= 1e-6)
+    # the decision follows the operator's bound: (K + 2) u max_rows |R| s, computed here
+    R = exact.skin_response.reshape(-1, exact.skin_response.shape[2])
+    s = np.tile([0.5, 0.5, 0.5, 20.0], 6)
+    u = np.finfo(np.float32).eps / 2
+    assert np.isclose(auto.float32_error, 26 * u * (np.abs(R) @ s).max(), rtol=1e-6)
     rng = np.random.default_rng(5)
     plans = [_random_plan(rng) for _ in range(6)]
     worst = max(np.abs(auto.predict_displacement(p) - exact.predict_displacement(p)).max()
@@ -172,3 +176,86 @@ def test_float32_error_within_the_rounding_bound(block):
     for row, plan in zip(stats, plans):
         mag = np.linalg.norm(exact.predict_displacement(plan), axis=1)
         assert np.allclose(row, [mag.max(), mag.mean(), np.sqrt((mag ** 2).mean())], rtol=1e-12)
+
+
+def test_auto_dtype_follows_the_bound(block, monkeypatch):
+    """``dtype='auto'`` takes float32 exactly when the measured bound is within the
+    tolerance (a larger tolerance switches the same operator to float32), and the float32
+    error of random plans in the range stays within the bound."""
+    from pvcmf.mtm import response
+
+    grid, img, skin = block
+    opts = {"fix_unmoved_bone": True}
+    plan = Plan((Osteotomy("mandible"),))
+    exact = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts, plan=plan)
+    bound = response.float32_bound(exact._op2, 1)
+    assert bound > 1e-6  # the block's operator at 20 mm shifts: float64
+    assert plan_response(grid, img, skin=skin, bc_options=opts, plan=plan).skin_response.dtype == np.float64
+    monkeypatch.setattr(response, "FLOAT32_TOLERANCE", 1.01 * bound)
+    auto = plan_response(grid, img, skin=skin, bc_options=opts, plan=plan)
+    assert auto.skin_response.dtype == np.float32 and np.isclose(auto.float32_error, bound)
+    rng = np.random.default_rng(8)
+    for _ in range(5):  # within 30 degrees and 20 mm of centroid shift
+        p = Plan((Osteotomy("mandible", tuple(rng.uniform(-10, 10, 3)), tuple(rng.uniform(-20, 20, 3))),))
+        err = np.abs(auto.predict_displacement(p) - exact.predict_displacement(p)).max()
+        assert 0 < err <= bound
+
+
+def test_results_are_independent(block):
+    """A predicted surface owns its points and data arrays: editing one result (points,
+    displacement, the skin's own arrays, faces, in-place filters) changes neither the next
+    result nor the input skin, and no result shares memory with the input skin."""
+    grid, img, skin = block
+    skin = skin.copy()
+    skin.point_data["tag"] = np.arange(skin.n_points, dtype=float)
+    skin.cell_data["cell_tag"] = np.arange(skin.n_cells, dtype=float)
+    before = skin.copy(deep=True)
+    resp = plan_response(grid, img, skin=skin, dtype="float64",
+                         bc_options={"fix_unmoved_bone": True})
+    plan = _random_plan(np.random.default_rng(9))
+    first = resp.predict(plan)
+    reference = (first.points.copy(), first[arrays.DISPLACEMENT].copy(), first.faces.copy())
+    for name in ("tag", arrays.DISPLACEMENT):
+        assert not np.shares_memory(first.point_data[name], skin.point_data["tag"])
+    assert not np.shares_memory(first.points, skin.points)
+    first.points[:] += 5.0
+    first[arrays.DISPLACEMENT][:] = 9.0
+    first.point_data["tag"][:] = -1.0
+    first.cell_data["cell_tag"][:] = -1.0
+    first.flip_faces(inplace=True)
+    first.translate((1.0, 2.0, 3.0), inplace=True)
+    second = resp.predict(plan)
+    assert np.array_equal(second.points, reference[0])
+    assert np.array_equal(second[arrays.DISPLACEMENT], reference[1])
+    assert np.array_equal(second.faces, reference[2])
+    assert np.array_equal(second.point_data["tag"], before.point_data["tag"])
+    assert np.array_equal(second.cell_data["cell_tag"], before.cell_data["cell_tag"])
+    first.faces = np.zeros(4, dtype=int) + [3, 0, 1, 2]  # a new connectivity of its own
+    third = resp.predict(plan)
+    assert np.array_equal(third.faces, reference[2]) and third.n_cells == skin.n_cells
+    assert skin == before  # the input is untouched
+
+
+def test_point_location_equals_brute_force():
+    """The transfer's containing tetrahedra (binned boxes) equal a brute-force search over
+    every tetrahedron: same inside/outside split, and the chosen tetrahedron's barycentric
+    coordinates reproduce the point."""
+    from pvcmf.filters.transfer_locate import INSIDE_TOL, Located, tet_gradients, tetra
+
+    grid = pv.ImageData(dimensions=(6, 5, 4), spacing=(1.0, 1.3, 0.8)).triangulate()
+    grid.points = grid.points + np.random.default_rng(10).normal(0, 0.1, (grid.n_points, 3))
+    pts, tets = tetra(grid)
+    rng = np.random.default_rng(11)
+    p = np.vstack([rng.uniform(-0.5, 5.5, (400, 3)), pts[tets[:50]].mean(axis=1),
+                   0.5 * (pts[tets[:40, 0]] + pts[tets[:40, 1]])])  # centroids, edge midpoints
+    loc = Located(grid, p)
+    inv, _ = tet_gradients(pts, tets)
+    lam = np.einsum("tia,nti->nta", inv, p[:, None, :] - pts[tets[:, 0]][None])
+    b = np.concatenate([1 - lam.sum(axis=2, keepdims=True), lam], axis=2)  # (n, m, 4)
+    inside = b.min(axis=2).max(axis=1) >= -INSIDE_TOL
+    assert inside.sum() > 100 and (~inside).sum() > 50
+    assert np.array_equal(loc.inside, inside)
+    ins = np.flatnonzero(inside)
+    assert np.all(loc.bary[ins].min(axis=1) >= -INSIDE_TOL)
+    back = np.einsum("na,nai->ni", loc.bary[ins], pts[tets[loc.cell[ins]]])
+    assert np.abs(back - p[ins]).max() < 1e-12

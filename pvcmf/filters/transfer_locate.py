@@ -2,11 +2,12 @@
 
 The geometric half of :func:`pvcmf.filters.surface_mapping.transfer_operator` (which turns
 :class:`Located` into the sparse operator) and of its crumple metric. Every step is one
-vectorised call over all points: VTK's probe filter (:meth:`pyvista.DataSet.sample`) finds
-the tetrahedron holding a point, precomputed inverse edge matrices give the barycentric
-coordinates, :class:`scipy.spatial.cKDTree` gives candidate tetrahedra, boundary triangles
-and boundary nodes, and the closest points on the candidate triangles are computed for all
-(point, triangle) pairs at once (Ericson's region test, vectorised).
+vectorised call over all points: :class:`scipy.spatial.cKDTree` ball queries give the
+candidate tetrahedra of a point (those whose bounding sphere holds it), precomputed
+inverse edge matrices give the barycentric coordinates of all candidates at once,
+cKDTree nearest-neighbour queries give boundary triangles and boundary nodes, and the
+closest points on the candidate triangles are computed for all (point, triangle) pairs at
+once (Ericson's region test, vectorised).
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ import numpy as np
 import pyvista as pv
 from scipy.spatial import cKDTree
 
-from .. import arrays
 from .skin import _boundary_faces
 
 __all__ = ["Located", "closest_on_triangles", "tetra", "tet_gradients"]
@@ -141,47 +141,50 @@ class Located:
             self.face_bary, self.face = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
             self.near, self.near_w = np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
 
-    def _find_cells(self, src):
-        """Containing tetrahedra. Points farther from every tetrahedron's centroid than the
-        largest centroid-vertex distance lie in none; the others go to VTK's probe, then
-        to the tetrahedra with the nearest centroids for the points it misses (on shared
-        faces, within round-off)."""
+    def _find_cells(self, src=None):
+        """Containing tetrahedra. A point whose barycentric coordinates are all above
+        ``-INSIDE_TOL`` lies in the tetrahedron's bounding box widened by ``8 INSIDE_TOL``
+        times its largest centroid-corner distance, so binning the boxes on a uniform grid
+        (spacing: half the median box size) lists every candidate of a point (the tetrahedra
+        whose boxes share its bin); the barycentric coordinates of all candidate pairs
+        (vectorised, in chunks) pick, per point, the tetrahedron whose smallest coordinate
+        is largest (the one that holds it; on a shared face, either)."""
         p, pts, tets = self.p, self.points, self.tets
         n = len(p)
-        corners = pts[tets]
-        centre = corners.mean(axis=1)
-        r_max = float(np.linalg.norm(corners - centre[:, None, :], axis=2).max())
         inv, vol = tet_gradients(pts, tets)
-        flat = vol <= 1e-300 / 6.0  # degenerate: holds no point
-        kc = min(8, len(tets))
-        cdist, cand = cKDTree(centre).query(p, k=kc, distance_upper_bound=r_max * (1 + 1e-9))
-        cdist, cand = cdist.reshape(n, kc), cand.reshape(n, kc)
-        near = np.flatnonzero(cdist[:, 0] < np.inf)
+        usable = np.flatnonzero(vol > 1e-300 / 6.0)  # a degenerate tetrahedron holds no point
+        corners = pts[tets[usable]]
+        radius = np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1)
+        pad = (radius * 8 * INSIDE_TOL + 1e-9 * float(radius.max(initial=1.0)))[:, None]
+        lo, hi = corners.min(axis=1) - pad, corners.max(axis=1) + pad
         cell = np.full(n, -1, dtype=np.int64)
-        bary = np.full((n, 4), -np.inf)
-        if near.size:
-            src.cell_data[arrays.SCRATCH_CELL_ID] = np.arange(len(tets), dtype=np.int64)
-            probe = pv.PolyData(p[near]).sample(src, pass_point_data=False, progress_bar=False)
-            cell[near] = np.where(np.asarray(probe[arrays.VALID_POINT_MASK]).astype(bool),
-                                  np.asarray(probe[arrays.SCRATCH_CELL_ID]).astype(np.int64), -1)
-
-        def barycentric(idx, cells):
-            lam = np.einsum("nia,ni->na", inv[cells], p[idx] - pts[tets[cells, 0]])
-            b = np.column_stack([1 - lam.sum(axis=1), lam])
-            b[flat[cells]] = -np.inf
-            return b
-
-        hit = np.flatnonzero(cell >= 0)
-        bary[hit] = barycentric(hit, cell[hit])
-        miss = near[bary[near].min(axis=1) < -INSIDE_TOL]
-        for j in range(kc):
-            valid = miss[cand[miss, j] < len(tets)]
-            if not valid.size:
-                break
-            b = barycentric(valid, cand[valid, j])
-            better = b.min(axis=1) > bary[valid].min(axis=1)
-            bary[valid[better]], cell[valid[better]] = b[better], cand[valid[better], j]
-        self.inside = bary.min(axis=1) >= -INSIDE_TOL
+        bary = np.zeros((n, 4))
+        score = np.full(n, -np.inf)
+        if usable.size:
+            tet_of, start, stop, pkey = _bin_boxes(lo, hi, p)
+            count = stop - start
+            bounds = np.searchsorted(np.cumsum(count), np.arange(0, count.sum(), 1 << 20))
+            for a, b in zip(bounds, np.r_[bounds[1:], n]):  # ~1M pairs per chunk
+                c = count[a:b]
+                if not c.sum():
+                    continue
+                idx = np.repeat(np.arange(a, b), c)  # pairs grouped by point
+                first = np.cumsum(c) - c
+                pos = np.arange(c.sum()) - np.repeat(first, c) + np.repeat(start[a:b], c)
+                box = tet_of[pos]
+                keep = ((p[idx] >= lo[box]) & (p[idx] <= hi[box])).all(axis=1)
+                idx, t = idx[keep], usable[box[keep]]
+                c = np.bincount(idx - a, minlength=b - a)
+                first = np.cumsum(c) - c
+                lam = np.einsum("nia,ni->na", inv[t], p[idx] - pts[tets[t, 0]])
+                bb = np.column_stack([1 - lam.sum(axis=1), lam])
+                s = bb.min(axis=1)
+                has = np.flatnonzero(c)
+                best = np.maximum.reduceat(s, first[has])
+                sel = np.flatnonzero(s == np.repeat(best, c[has]))
+                sel = sel[np.unique(idx[sel], return_index=True)[1]]  # first best per point
+                score[idx[sel]], cell[idx[sel]], bary[idx[sel]] = s[sel], t[sel], bb[sel]
+        self.inside = score >= -INSIDE_TOL
         self.cell = np.where(self.inside, cell, -1)
         self.bary = np.where(self.inside[:, None], bary, 0.0)
 
@@ -233,3 +236,31 @@ class Located:
         q_all = np.concatenate([f[0] for f in found])
         b_all = np.concatenate([f[1] for f in found])
         return out[r], q_all[pair], b_all[pair], tri[cand[r, j]]
+
+
+def _bin_boxes(lo, hi, p):
+    """Boxes ``[lo, hi]`` binned on a uniform grid (spacing: half the median box size): the box
+    ids sorted by bin, and per point the range ``[start, stop)`` of the boxes sharing its
+    bin (empty outside the grid), and the point's bin."""
+    h = 0.5 * float(np.median((hi - lo).max(axis=1)))
+    h = h if h > 0 else 1.0
+    origin = lo.min(axis=0)
+    i0 = np.floor((lo - origin) / h).astype(np.int64)
+    i1 = np.floor((hi - origin) / h).astype(np.int64)
+    dims = i1.max(axis=0) + 1
+    span = i1 - i0 + 1
+    count = span.prod(axis=1)
+    box = np.repeat(np.arange(len(lo)), count)
+    local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    sx, sy = span[box, 0], span[box, 1]
+    ijk = i0[box] + np.column_stack([local % sx, (local // sx) % sy, local // (sx * sy)])
+    key = (ijk[:, 2] * dims[1] + ijk[:, 1]) * dims[0] + ijk[:, 0]
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    ip = np.floor((p - origin) / h)
+    valid = ((ip >= 0) & (ip < dims)).all(axis=1)
+    ip = np.where(valid[:, None], ip, 0).astype(np.int64)
+    pkey = np.where(valid, (ip[:, 2] * dims[1] + ip[:, 1]) * dims[0] + ip[:, 0], -1)
+    start = np.searchsorted(key, pkey, side="left")
+    stop = np.where(valid, np.searchsorted(key, pkey, side="right"), start)
+    return box[order], start, stop, pkey

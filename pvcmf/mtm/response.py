@@ -13,17 +13,22 @@ transfer_operator`). :func:`plan_response` builds ``R`` with one factorisation
 whose boundary-condition types differ (another set of moved segments when unmoved bone is
 free, other cut planes) is predicted by a full ``apply_plan`` + solve, with a warning.
 
-Coordinates are centred on each segment's pivot centroid, so the columns have the size of
-the face. Only the skin points the transfer reaches (inside the mesh or within twice its
-band) are stored, point-major and C-contiguous (``(n_reached, 3, 12 k)``), so a plan costs
-one matrix-vector product on one BLAS thread and a scatter into the dense output; many
-plans are one blocked matrix product per chunk, reduced to statistics block by block
-without forming per-plan surfaces. ``float32`` storage halves the memory the product reads,
-but single precision alone rounds a 20 mm displacement by about 1e-6 mm and sums 24 terms
-of the face's size, so ``dtype='auto'`` keeps it only where its measured error is within
-:data:`FLOAT32_TOLERANCE`.
-Delegates to :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS) and
-threadpoolctl (one BLAS thread for the products).
+Coordinates are centred on each segment's pivot centroid. Only the skin points the
+transfer reaches (inside the mesh or within twice its band) are stored, point-major
+(``(n_reached, 3, 12 k)``): a plan costs one matrix-vector product on one BLAS thread and a
+scatter into the dense output; many plans are blocked products reduced to statistics block
+by block. A predicted surface has its own points and data arrays and shares only the cell
+connectivity of the operator's own copy of the skin (pyvista never writes into it in
+place), so results cannot change each other or the input skin.
+
+``float32`` storage halves the memory the product reads; ``dtype='auto'`` takes it when the
+rounding bound of the float32 product, ``(K + 2) u |R| |a|`` per row (:func:`float32_bound`),
+over plans with rotation entries up to :data:`FLOAT32_ROTATION` and centroid shifts up to
+:data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a face the bound is far
+above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md gives the demo's).
+The skin transfer is built on a second thread during the factorisation and solves.
+Delegates to :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS),
+:mod:`concurrent.futures` and threadpoolctl (one BLAS thread for the products).
 """
 
 from __future__ import annotations
@@ -39,18 +44,24 @@ from .. import arrays
 from ..filters.boundary_conditions import apply_plan
 from ..filters.osteotomy import cut_bones
 from ..filters.surface_mapping import Transfer, transfer_operator
+from ..filters.transfer_locate import tetra
 from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
 from ..progress import Progress
 from ._common import blas_threads
+from .constraints import SolutionWarning
 from .solver import Solver
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PlanResponse", "plan_response", "plan_grid", "PlanResponseWarning"]
+__all__ = ["PlanResponse", "plan_response", "plan_grid", "PlanResponseWarning", "float32_bound"]
 
 
-#: largest float32 rounding (mm) of the skin operator's product that keeps float32 storage
+#: largest float32 rounding bound (mm) of the skin operator's product that keeps float32
 FLOAT32_TOLERANCE = 1e-6
+#: plan range of the float32 bound: largest ``|M - I|`` entry of a rotation (30 degrees)
+FLOAT32_ROTATION = 0.5
+#: plan range of the float32 bound: largest centroid shift component (mm)
+FLOAT32_SHIFT = 20.0
 #: skin points per block of the many-plan products (the block's product stays in cache)
 _BLOCK = 256
 
@@ -70,6 +81,54 @@ def _one_thread(threads):
     if _controller is None:
         _controller = ThreadpoolController()
     return _controller.limit(limits=int(threads), user_api="blas")
+
+
+def float32_bound(R, n_segments, rotation=FLOAT32_ROTATION, shift=FLOAT32_SHIFT):
+    """Rounding bound (mm) of the float32 product ``R a`` against the exact one, over every
+    parameter vector ``a`` with rotation entries up to ``rotation`` and centroid shifts up
+    to ``shift`` mm: ``max_rows g |R| s``, ``g = (K + 2) u / (1 - (K + 2) u)`` (``K`` terms,
+    one rounding of the stored ``R`` and one of ``a``), ``s`` the largest ``|a|``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> R = np.ones((5, 12))
+    >>> b = float32_bound(R, 1, rotation=0.5, shift=20.0)
+    >>> bool(np.isclose(b, 14 * 2.0**-24 / (1 - 14 * 2.0**-24) * (9 * 0.5 + 3 * 20.0)))
+    True
+    """
+    K = R.shape[-1]
+    if K != 12 * n_segments:
+        raise ValueError(f"R must have 12 columns per segment ({12 * n_segments}), got {K}")
+    u = np.finfo(np.float32).eps / 2
+    g = (K + 2) * u / (1 - (K + 2) * u)
+    s = np.tile(np.r_[rotation, rotation, rotation, shift], 3 * n_segments)
+    peak = 0.0
+    for b in range(0, len(R), 65536):  # blocks: no full-size |R| temporary
+        peak = max(peak, float((np.abs(R[b:b + 65536]) @ s).max(initial=0.0)))
+    return g * peak
+
+
+def _transfer_in_background(mesh, skin):
+    """Start :class:`Transfer` of ``skin`` on a second thread, to overlap with the
+    factorisation and solves; it works on its own copies of the mesh's points and
+    tetrahedra and of the skin points (no VTK object is shared between the threads).
+    Returns a future of ``(transfer, seconds)``."""
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    points, tets = tetra(mesh)
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
+    x = np.array(skin.points, dtype=float)
+
+    def build():
+        t = time.perf_counter()
+        return Transfer(grid, x), time.perf_counter() - t
+
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pvcmf-transfer")
+    future = pool.submit(build)
+    pool.shutdown(wait=False)
+    return future
 
 
 class PlanResponseWarning(UserWarning):
@@ -108,9 +167,10 @@ def plan_response(mesh, labels, *, skin=None, plan=None, dtype="auto", bc_option
         Segments and cut planes of the plans to come (its motions are ignored). Default:
         every movable segment the ``bone`` label holds, without cut planes.
     dtype : {'auto', 'float32', 'float64'}
-        Storage of the skin operator; ``'auto'`` keeps float32 when its product stays
-        within 1e-6 mm of the float64 one (measured on random plans with rotations up to
-        30 degrees and 20 mm translations).
+        Storage of the skin operator; ``'auto'`` keeps float32 when the rounding bound of
+        its product (:attr:`PlanResponse.float32_error`) is within
+        :data:`FLOAT32_TOLERANCE` (1e-6 mm) for every plan with rotations up to 30 degrees
+        and centroid shifts up to 20 mm.
     bc_options : dict, optional
         Keyword arguments of :func:`pvcmf.filters.apply_plan` (e.g. ``fix_unmoved_bone``).
     solver_options : dict, optional
@@ -150,11 +210,15 @@ class PlanResponse:
     modelled : ndarray of bool or None
         Skin points the mesh models (within the transfer's band, :data:`arrays.SKIN_MODELLED`).
     float32_error : float or None
-        ``dtype='auto'``: largest measured difference (mm) of the float32 skin product from
-        the float64 one over random plans; float32 is kept when it is at most
-        :data:`FLOAT32_TOLERANCE`.
+        ``dtype='auto'``: rounding bound (mm) of the float32 skin product against the
+        float64 one, ``max_rows (K + 2) u |R| s`` with ``s`` the plan range
+        (:data:`FLOAT32_ROTATION`, :data:`FLOAT32_SHIFT`); float32 is kept when it is at
+        most :data:`FLOAT32_TOLERANCE`.
     timings : dict
-        Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer``.
+        Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
+        solves: waiting for the skin transfer, folding it in) and ``transfer build (second
+        thread)`` (the skin transfer's own build, which runs on a second thread during the
+        others).
     """
 
     def __init__(self, mesh, labels, *, skin, plan, dtype, bc_options, solver_options,
@@ -169,6 +233,7 @@ class PlanResponse:
         self.threads = solver_options.get("threads", 1)  # BLAS threads of the products
         self.float32_error = None
         with Progress(total=4, desc="plan_response", enabled=progress_bar, logger=log) as bar:
+            pending = None if skin is None else _transfer_in_background(mesh, skin)
             t = time.perf_counter()
             cut = cut_bones(labels, plan)
             self.centroids = {s: np.asarray(m, float) for s, m in self._pivots(cut, plan).items()}
@@ -190,14 +255,15 @@ class PlanResponse:
             t = time.perf_counter()
             self.surface_ids = boundary_points(mesh)
             self._op, self.reached, self.modelled = None, None, None
-            if skin is not None:
-                transfer = Transfer(mesh, skin)
+            if pending is not None:
+                transfer, self.timings["transfer build (second thread)"] = pending.result()
                 T = transfer.W
                 self.modelled = transfer.modelled
                 self.reached = np.flatnonzero(np.diff(T.indptr) > 0)
-                Tr = T[self.reached]
-                R = np.stack([np.asarray(Tr @ self.nodal[c]) for c in range(3)], axis=1)
-                self._set_operator(np.ascontiguousarray(R.astype(self._dtype(R, dtype))))
+                K = self.nodal.shape[2]  # one sparse product gives the point-major operator
+                point_major = self.nodal.transpose(1, 0, 2).reshape(mesh.n_points, 3 * K)
+                R = np.asarray(T[self.reached] @ point_major).reshape(-1, 3, K)
+                self._set_operator(R.astype(self._dtype(R, dtype), copy=False))
             self._surface = np.ascontiguousarray(self.nodal[:, self.surface_ids])
             self.timings["transfer"] = time.perf_counter() - t
             bar.step("transfer folded in")
@@ -206,11 +272,18 @@ class PlanResponse:
     def _set_operator(self, op):
         """Store the reached rows' operator ``(n_reached, 3, 12 k)`` and its indexing."""
         self._op = np.ascontiguousarray(op)
+        self._op2 = self._op.reshape(-1, self._op.shape[2])
         n = len(self.modelled)
-        self._unreached = np.setdiff1d(np.arange(n), self.reached)
-        self._modelled_op = np.ascontiguousarray(self._op[self.modelled[self.reached]])
+        self._flat = (3 * self.reached[:, None] + np.arange(3)).ravel()  # scatter targets
+        self._modelled_rows = None  # the modelled points' operator, made on first use
         self._pos = np.full(n, -1, dtype=np.int64)
         self._pos[self.reached] = np.arange(len(self.reached))
+
+    @property
+    def _modelled_op(self):
+        if self._modelled_rows is None:
+            self._modelled_rows = np.ascontiguousarray(self._op[self.modelled[self.reached]])
+        return self._modelled_rows
 
     @property
     def skin_response(self):
@@ -244,6 +317,13 @@ class PlanResponse:
         carried = (code == arrays.BC_JOINT) | (code == arrays.BC_SLIDING)
         n, k = len(pts), len(self.segments)
         out = np.zeros((3, n, 12 * k))
+        with warnings.catch_warnings():  # unit basis fields, not motions: no solution checks
+            warnings.simplefilter("ignore", SolutionWarning)
+            self._basis_solves(pts, carried, disp, solver, out)
+        return out
+
+    def _basis_solves(self, pts, carried, disp, solver, out):
+        n = len(pts)
         for s, sid in enumerate(self.segments):
             shift = self._probe.osteotomies[s].matrix()[:3, 3]
             mine = carried & np.isclose(disp, shift).all(axis=1)  # the probe's shift
@@ -254,22 +334,12 @@ class PlanResponse:
                     d = np.zeros((n, 3))
                     d[mine, i] = basis[:, j]
                     out[:, :, 12 * s + 4 * i + j] = solver.solve(d).T
-        return out
 
-    def _dtype(self, R, dtype, probes=16):
+    def _dtype(self, R, dtype):
         if dtype != "auto":
             return np.dtype(dtype)
-        # measured: random parameters up to 0.5 in the rotation part (30 deg) and 20 mm in
-        # the centroid shift, the float32 product against the float64 one
-        rng = np.random.default_rng(0)
-        scale = np.tile(np.r_[0.5, 0.5, 0.5, 20.0], 3 * len(self.segments))
-        A = rng.uniform(-1, 1, (R.shape[-1], probes)) * scale[:, None]
-        R2 = R.reshape(-1, R.shape[-1])
-        exact = R2 @ A
-        single = (R2.astype(np.float32) @ A.astype(np.float32)).astype(float)
-        err = float(np.abs(single - exact).max())
-        self.float32_error = err
-        return np.dtype(np.float32 if err <= FLOAT32_TOLERANCE else np.float64)
+        self.float32_error = float32_bound(R.reshape(-1, R.shape[-1]), len(self.segments))
+        return np.dtype(np.float32 if self.float32_error <= FLOAT32_TOLERANCE else np.float64)
 
     # ------------------------------------------------------------------ parameters
     def parameters(self, plan):
@@ -322,18 +392,16 @@ class PlanResponse:
                 raise ValueError(f"out must be a C-contiguous float64 array of shape ({n}, 3), "
                                  f"got {getattr(out, 'dtype', type(out).__name__)} "
                                  f"{getattr(out, 'shape', '')}")
-        dest = np.asarray(out)  # plain view: no per-write bookkeeping of VTK-backed arrays
-        dest[self._unreached] = 0.0
+            np.asarray(out).fill(0.0)  # a full fill is cheaper than a scattered one
+        dest = np.asarray(out).reshape(-1)  # plain flat view: no VTK bookkeeping per write
         a = self.parameters(plan)
         if a is None:
             u = self._full(plan, self.skin)
-            dest[:] = transfer_operator(self.mesh, self.skin) @ u
+            dest[:] = (transfer_operator(self.mesh, self.skin) @ u).ravel()
             return out
-        op = self._op.reshape(-1, self._op.shape[2])
-        v = np.empty(len(op), dtype=op.dtype)
         with _one_thread(self.threads):
-            np.dot(op, a.astype(op.dtype), out=v)
-        dest[self.reached] = v.reshape(-1, 3)
+            v = np.dot(self._op2, a.astype(self._op2.dtype))
+        dest[self._flat] = v
         return out
 
     def predict(self, plan, out=None):
@@ -341,13 +409,14 @@ class PlanResponse:
         ``displacement`` (mm).
 
         ``out``: a surface returned by an earlier ``predict`` of this operator, updated
-        in place (points and ``displacement``) and returned instead of a new copy."""
+        in place (points and ``displacement``) and returned instead of a new copy.
+
+        A new surface has its own points and data arrays and shares only the cell
+        connectivity of the operator's own copy of ``skin`` (not the input): pyvista never
+        writes into a connectivity array in place, so one result cannot change another;
+        editing cells through VTK's low-level calls (``ReplaceCellAtId``) would."""
         if out is None:
-            u = self.predict_displacement(plan)
-            result = self.skin.copy()
-            result.point_data[arrays.DISPLACEMENT] = u
-            result.points = np.asarray(self.skin.points, dtype=float) + u
-            return result
+            return self._new_surface(self.predict_displacement(plan))
         if not isinstance(out, pv.DataSet) or out.n_points != self.skin.n_points:
             raise ValueError(f"out must be a surface of {self.skin.n_points} points returned by "
                              f"predict, got {type(out).__name__}")
@@ -365,6 +434,27 @@ class PlanResponse:
         out.GetPointData().GetArray(arrays.DISPLACEMENT).Modified()
         out.Modified()
         return out
+
+    def _new_surface(self, u):
+        """The skin moved by ``u``: own points, own copies of the skin's data arrays,
+        connectivity shared with the operator's copy of the skin."""
+        tpl = getattr(self, "_template_surface", None)
+        if tpl is None:
+            tpl = self._template_surface = self.skin.copy(deep=True)
+        if not hasattr(tpl, "SetPoints"):  # implicit points (image data): a full copy
+            result = tpl.copy(deep=True)
+            result.point_data[arrays.DISPLACEMENT] = u
+            return result
+        result = type(tpl)()
+        result.ShallowCopy(tpl)
+        for own, src in ((result.GetPointData(), tpl.GetPointData()),
+                         (result.GetCellData(), tpl.GetCellData()),
+                         (result.GetFieldData(), tpl.GetFieldData())):
+            if src.GetNumberOfArrays():
+                own.DeepCopy(src)
+        result.SetPoints(pv.vtk_points(self._skin_points + u, deep=False))
+        result.point_data[arrays.DISPLACEMENT] = u
+        return result
 
     @property
     def _skin_points(self):
