@@ -38,7 +38,8 @@ and skin:
     paper's figures; the clamp can tear a step at the edge of the mesh.
 
 Delegates the geometry (containing tetrahedra, feet on the boundary, nearest boundary
-nodes: VTK's probe filter, :class:`scipy.spatial.cKDTree`, vectorised closest points) to
+nodes: tetrahedron bounding boxes binned on a grid with vectorised barycentric checks,
+:class:`scipy.spatial.cKDTree`, vectorised closest points) to
 :mod:`pvcmf.filters.transfer_locate`, the gradients to batched :func:`numpy.linalg.inv` and
 the operators to :mod:`scipy.sparse`.
 """
