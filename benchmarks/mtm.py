@@ -39,10 +39,11 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 #: variants of this tree's solver: label -> Solver keyword arguments
 VARIANTS = {
     "default": {},
-    "pardiso double, 1 thread": {"backend": "pardiso", "threads": 1},
     "pardiso mixed": {"backend": "pardiso", "precision": "mixed"},
-    "pardiso double, 2 threads": {"backend": "pardiso", "threads": 2},
+    "pardiso double, 1 thread": {"backend": "pardiso", "precision": "double", "threads": 1},
     "pardiso mixed, 2 threads": {"backend": "pardiso", "precision": "mixed", "threads": 2},
+    "pardiso double, 2 threads": {"backend": "pardiso", "precision": "double", "threads": 2},
+    "pardiso mixed, MKL threads": {"backend": "pardiso", "precision": "mixed", "threads": None},
     "superlu": {"backend": "superlu"},
 }
 

@@ -26,7 +26,7 @@ import time
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from .._common import EPS, EPS32, ConvergenceError, norm, warn_lost_digits
+from .._common import EPS, EPS32, ConvergenceError, dot, norm, warn_lost_digits
 from . import factorisation
 
 log = logging.getLogger(__name__)
@@ -153,12 +153,12 @@ class Direct:
                      "from: refactoring in double", err32)
             return None, err32
         target = min(s.tol, MIXED_TARGET)
-        p, rz = z, float(np.dot(r, z))
+        p, rz = z, dot(r, z)
         res = norm(r) / nb
         steps = 0
         while res > target and steps < self.max_mixed_iterations and np.isfinite(res):
             Kp = K @ p
-            alpha = rz / float(np.dot(p, Kp))
+            alpha = rz / dot(p, Kp)
             y = y + alpha * p
             r = r - alpha * Kp
             steps += 1
@@ -166,7 +166,7 @@ class Direct:
             if res <= s.tol and res > 0.5 * previous:
                 break  # converged to tol and stagnating near round-off
             z = solve32(r)
-            rz, rz_old = float(np.dot(r, z)), rz
+            rz, rz_old = dot(r, z), rz
             p = z + (rz / rz_old) * p
         res = s._residual(y, b, nb)  # the true residual, not the recurrence
         if not (np.isfinite(res) and res <= s.tol):
