@@ -49,8 +49,8 @@ from .backends import direct_backends, gpu_available, resolve
 from .backends.cg import CG
 from .backends.cholmod import ORDERINGS, node_order
 from .backends.direct import Direct
-from .backends.pardiso import node_order as pardiso_node_order
 from .backends.gpu import GPU
+from .backends.pardiso import node_order as pardiso_node_order
 from .backends.relaxation import Relaxation
 from .constraints import Constraints, SolutionWarning, solution_checks
 from .materials import check_positive_definite, elastic_coefficients
@@ -143,12 +143,11 @@ class Solver:
         ``'mixed'`` with the PARDISO backend, ``'double'`` with the others.
     threads : int or None
         Threads of the factorisation and solves (PARDISO: MKL threads of every phase; other
-        methods: a BLAS limit through threadpoolctl). Default 1: on a machine whose cores
-        other jobs share, a thread that has to wait for its core slows every
-        synchronisation of a parallel factorisation down, which costs more than a free
-        core left unused (see the MTM benchmark page, ``docs/benchmarks/mtm.md``). On a
-        machine of your own pass the number of free cores, or None for the libraries'
-        defaults (MKL: one thread per core).
+        methods: a BLAS limit through threadpoolctl). Default 1: where other jobs share the
+        cores, a thread waiting for its core stalls every synchronisation of a parallel
+        factorisation, which costs more than a free core left unused
+        (``docs/benchmarks/mtm.md``). On a machine of your own pass the number of free
+        cores, or None for the libraries' defaults (MKL: one thread per core).
     maxiter : int, optional
         Iteration cap (default 2000 for cg, 5000 for gpu, 20000 sweeps for relaxation).
     preconditioner : {'amg', 'jacobi'}, optional
@@ -251,10 +250,8 @@ class Solver:
         nodes = None
         if self._triangular:  # CHOLMOD, PARDISO
             found = node_order(asm.indptr, asm.indices, cons.free, self.ordering)
-            if (found is None and self.backend_name == "pardiso"
-                    and self.ordering in ("auto", "metis")):  # no scikit-sparse: PARDISO's METIS
-                found = pardiso_node_order(asm.indptr, asm.indices, cons.free,
-                                           threads=self.threads or 1)
+            if found is None and self.backend_name == "pardiso" and self.ordering in ("auto", "metis"):
+                found = pardiso_node_order(asm.indptr, asm.indices, cons.free, self.threads or 1)
             if found is not None:  # the unknowns numbered in elimination order
                 nodes, self.node_ordering = found
                 self._natural_order = True
@@ -462,7 +459,6 @@ class Solver:
                   time.perf_counter() - t)
         return {"label": label, "rep": rep, "ani": ani, "fiber": np.array(fiber),
                 "group": np.array(group), "kind": np.array(kind), "basis": basis}
-
 
     # ------------------------------------------------------------------ solve
     def solve(self, bc_displacement=None, *, x0=None):

@@ -98,8 +98,11 @@ def node_order(indptr, indices, free, threads=1):
     rank[active] = np.arange(m)
     rows = np.repeat(np.arange(n), np.diff(indptr))
     r, c = rank[rows], rank[np.asarray(indices)]
-    keep = (r >= 0) & (c >= r)  # upper triangle of the active nodes, diagonal included
-    graph = sp.csr_matrix((np.ones(int(keep.sum())), (r[keep], c[keep])), shape=(m, m))
+    keep = (r >= 0) & (c >= r)  # upper triangle of the active nodes
+    diag = np.arange(m)  # PARDISO needs every diagonal entry
+    graph = sp.csr_matrix((np.ones(int(keep.sum()) + m), (np.concatenate([r[keep], diag]),
+                                                          np.concatenate([c[keep], diag]))),
+                          shape=(m, m))
     graph.sum_duplicates()  # sorted column indices, one entry each
     ip = np.zeros(64, dtype=np.int32)
     ip[0], ip[1], ip[4], ip[34] = 1, 2, 2, 1  # METIS, return the permutation, zero-based
