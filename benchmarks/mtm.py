@@ -230,7 +230,9 @@ def main(argv=None):
         cells = rows[0]["last"]["cells"]
         text = (f"{cells} tetrahedra, {rows[0]['last']['unknowns']} unknowns; wall times, "
                 f"median of {args.rounds} alternating rounds (assemble+solve: median of "
-                f"{args.repeat} per round); ratios per round, then the median.\n\n"
+                f"{args.repeat} per round); ratios per round, then the median. Wall times "
+                f"depend on what else runs on the machine; the ratios compare runs that "
+                f"alternate in one run of the script.\n\n"
                 + table(rows, runs[0][0]))
         print(text, flush=True)
         out.append(text)

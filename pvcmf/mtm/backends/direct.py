@@ -4,12 +4,16 @@ One factorisation backend (:mod:`.pardiso`, :mod:`.cholmod`, :mod:`.superlu`) is
 per :class:`~pvcmf.mtm.Solver` and refactored numerically for new materials. Every solve takes
 one step of iterative refinement, whose size estimates the forward error of the first solve
 (an :class:`~pvcmf.mtm.IllConditionedWarning` says how many digits were lost when that is
-large). Two explicit options trade a factorisation for iterations:
+large). Two options trade a factorisation for iterations:
 
-* ``precision='mixed'`` (PARDISO only): a single-precision numeric factor, refined in double
-  by conjugate gradient preconditioned with it, to the accuracy of a double factor; a double
-  factor replaces it when the refinement stalls or the single-precision error is too large
-  to estimate the lost digits from.
+* ``precision='mixed'`` (PARDISO only, and its default through ``precision='auto'``): a
+  single-precision numeric factor, refined in double by conjugate gradient preconditioned
+  with it, to the accuracy of a double factor; a double factor replaces it when the
+  refinement stalls or the single-precision error is too large to estimate the lost digits
+  from (``info['precision']`` then says ``'double (mixed stalled)'``). Each solve costs two
+  single-precision triangular solve pairs plus one per refinement iteration, against two
+  double ones: for many solves per factorisation (many bone moves on one material)
+  ``precision='double'`` is cheaper.
 * ``update_materials(refactor=False)``: the previous factor preconditions a conjugate
   gradient on the new matrix when a bound on the condition number (from the materials only)
   predicts at most :attr:`Direct.max_reuse_iterations` iterations; else, or when the
