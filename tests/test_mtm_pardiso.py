@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from mtm_helpers import jittered_box, set_bc
 
 from pvcmf import arrays
@@ -114,11 +115,89 @@ def test_precision_validation(box):
         Solver(box, threads=0)
 
 
-def test_default_is_double_precision(box):
+def test_default_precision_follows_the_backend_and_threads_are_one(box):
     s = Solver(box)
     s.solve()
-    assert s.precision == "double" and s.info["precision"] == "double"
-    assert Solver(box, precision="auto").precision == "double"
+    expected = "mixed" if s.backend_name == "pardiso" else "double"
+    assert s.precision == expected and s.info["precision"] == expected
+    assert Solver(box, precision="auto").precision == expected
+    assert Solver(box, backend="superlu").precision == "double"
+    assert s.threads == 1 and s.info["threads"] == 1
+
+
+class _PhaseSpy:
+    """Counts the PARDISO phases every :class:`Pardiso` of the test calls."""
+
+    def __init__(self, monkeypatch):
+        self.calls = []
+        call = backends.pardiso.Pardiso._call
+
+        def spy(factor, phase, b=None):
+            self.calls.append((id(factor), phase))
+            return call(factor, phase, b)
+
+        monkeypatch.setattr(backends.pardiso.Pardiso, "_call", spy)
+
+    def phases(self, factor):
+        return [phase for key, phase in self.calls if key == id(factor)]
+
+
+@needs_pardiso
+@pytest.mark.parametrize("precision", ["mixed", "double"])
+def test_update_with_the_same_pattern_is_a_numeric_factorisation_only(box, monkeypatch,
+                                                                        precision):
+    spy = _PhaseSpy(monkeypatch)
+    s = Solver(box, backend="pardiso", precision=precision)
+    s.solve()
+    factor = s._backend
+    assert spy.phases(factor).count(11) == 1 and spy.phases(factor).count(22) == 1
+    for k, nu in enumerate((0.0, 0.3, 0.49), start=2):
+        s.update_materials(nu=nu)
+        u = s.solve()
+        # the same factor object, no new analysis (phase 11) and no release (-1): one
+        # numeric factorisation (phase 22) per update
+        phases = spy.phases(factor)
+        assert s._backend is factor
+        assert phases.count(11) == 1 and -1 not in phases and phases.count(22) == k
+        assert s.info["precision"] == precision and s.info["residual"] <= 1e-12
+        ref = _reference(box, nu=nu)
+        assert np.abs(u - ref).max() <= 1e-10 * np.abs(ref).max(), nu
+
+
+@needs_pardiso
+def test_pardiso_node_order_numbers_the_unknowns_and_saves_fill(box):
+    s = Solver(box, backend="pardiso")
+    asm, free = s.assembler, s.constraints.free
+    nodes, name = backends.pardiso.node_order(asm.indptr, asm.indices, free)
+    active = np.flatnonzero(free.reshape(-1, 3).any(axis=1))
+    assert name == "pardiso-metis"
+    np.testing.assert_array_equal(np.sort(nodes), active)
+    if "cholmod" not in BACKENDS:  # the solver numbers its unknowns node by node in that order
+        assert s.node_ordering == "pardiso-metis" and s._natural_order
+        node_of = s.F // 3
+        first = np.sort(np.unique(node_of, return_index=True)[1])
+        np.testing.assert_array_equal(node_of[first], nodes)
+        assert s._backend._iparm[4] == 1  # analysed with that order: no METIS on the dofs
+    # the order leaves less fill than a random one (PARDISO reports the factor's entries)
+    upper = s.K_ff.upper
+    full = (upper + s.K_ff.lower).tocsr()
+    shuffle = np.random.default_rng(3).permutation(upper.shape[0])
+    shuffled = sp.triu(full[shuffle][:, shuffle], format="csr")
+    shuffled.sort_indices()
+    ordered = backends.pardiso.Pardiso(upper, threads=1, natural=True)
+    random = backends.pardiso.Pardiso(shuffled, threads=1, natural=True)
+    assert 0 < ordered.factor_entries < 0.5 * random.factor_entries
+
+
+@needs_pardiso
+def test_pardiso_orderings_agree_with_superlu(box):
+    ref = _reference(box)
+    for ordering in ("auto", "amd"):  # the node-graph METIS order, or PARDISO's own METIS
+        for precision in ("mixed", "double"):
+            s = Solver(box, backend="pardiso", ordering=ordering, precision=precision)
+            u = s.solve()
+            assert np.abs(u - ref).max() <= 1e-10 * np.abs(ref).max(), (ordering, precision)
+            assert s.info["residual"] <= 1e-12
 
 
 def test_auto_backend_follows_the_installed_packages_only(box, monkeypatch):

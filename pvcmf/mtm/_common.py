@@ -48,6 +48,16 @@ def norm(x):
     return float(np.sqrt(np.einsum("i,i->", x, x)))
 
 
+def dot(x, y):
+    """Inner product without BLAS (einsum), as :func:`norm`.
+
+    OpenBLAS splits a ``ddot`` of more than 10 000 entries over its threads, which then
+    keep spinning on the cores that MKL PARDISO's threads need for the next triangular
+    solve.
+    """
+    return float(np.einsum("i,i->", np.asarray(x), np.asarray(y)))
+
+
 def not_positive_definite(err):
     """The error raised when a factorisation finds a non-positive pivot."""
     return np.linalg.LinAlgError(

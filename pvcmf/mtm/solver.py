@@ -10,9 +10,10 @@ Methods (``method=``)
     A sparse factorisation by the ``backend`` the caller names (:mod:`pvcmf.mtm.backends`):
     ``'pardiso'`` (MKL PARDISO, ``pip install pypardiso``), ``'cholmod'`` (scikit-sparse),
     ``'superlu'``/``'splu'`` (scipy), or ``'auto'`` (default): the first installed of
-    PARDISO, CHOLMOD, SuperLU. The backend, the ``precision`` (``'double'``, default, or
-    ``'mixed'``: a single-precision PARDISO factor refined in double) and the ``threads`` are
-    fixed for the solver's life. One refinement step estimates the forward error
+    PARDISO, CHOLMOD, SuperLU. The backend, the ``precision`` (``'mixed'``: a
+    single-precision PARDISO factor refined in double, the default with PARDISO;
+    ``'double'``, the default with the others) and the ``threads`` (default one) are fixed
+    for the solver's life. One refinement step estimates the forward error
     (:class:`IllConditionedWarning` when many digits are lost).
 ``cg``
     Conjugate gradient preconditioned by algebraic multigrid (pyamg) or block Jacobi.
@@ -49,6 +50,7 @@ from .backends.cg import CG
 from .backends.cholmod import ORDERINGS, node_order
 from .backends.direct import Direct
 from .backends.gpu import GPU
+from .backends.pardiso import node_order as pardiso_node_order
 from .backends.relaxation import Relaxation
 from .constraints import Constraints, SolutionWarning, solution_checks
 from .materials import check_positive_definite, elastic_coefficients
@@ -64,8 +66,8 @@ __all__ = [
 ]
 
 METHODS = ("direct", "cg", "relaxation", "gpu", "auto")
-#: numeric factor precisions of :class:`Solver` (``'auto'`` is ``'double'``; ``'mixed'``
-#: needs the PARDISO backend)
+#: numeric factor precisions of :class:`Solver` (``'auto'``: ``'mixed'`` with the PARDISO
+#: backend, ``'double'`` with the others; ``'mixed'`` needs the PARDISO backend)
 PRECISIONS = ("auto", "double", "mixed")
 #: ``method="auto"`` uses ``direct`` up to this many points, else ``cg`` (the memory of a
 #: sparse factor of a 3D mesh grows faster than linearly)
@@ -94,7 +96,8 @@ def _check_options(grid, method, tol, backend, precision, ordering, precondition
         raise ValueError(f"backend applies to method='direct' only, got method={method!r}")
     else:
         backend = None
-    precision = "double" if precision == "auto" else precision
+    if precision == "auto":
+        precision = "mixed" if backend == "pardiso" else "double"
     if precision == "mixed" and backend != "pardiso":
         raise ValueError(
             f"precision='mixed' needs method='direct' with backend='pardiso' (a single-"
@@ -130,15 +133,21 @@ class Solver:
         Direct backend. ``'auto'`` (or None): the first installed of PARDISO (pypardiso),
         CHOLMOD (scikit-sparse), SuperLU (scipy); see :func:`direct_backends`. A backend that
         is not installed raises :class:`BackendUnavailableError` naming it.
-    precision : {'double', 'mixed', 'auto'}
-        Numeric factor: ``'double'`` (default; ``'auto'`` means the same) or ``'mixed'``
-        (PARDISO only: a single-precision factor refined in double to the accuracy of a
-        double one, falling back to a double factor when that stalls).
-        ``info['precision']`` is ``'mixed'``, ``'double'`` or ``'double (mixed stalled)'``.
-    threads : int, optional
+    precision : {'auto', 'mixed', 'double'}
+        Numeric factor. ``'mixed'`` (PARDISO only): a single-precision factor (about half
+        the work of a double one) refined in double by conjugate gradient to a relative
+        residual of about 1e-14, the accuracy of a double factor; when the refinement
+        stalls or the single-precision error is too large to estimate the lost digits from,
+        the solver factors in double from then on and ``info['precision']`` says
+        ``'double (mixed stalled)'``. ``'double'``: a double factor. ``'auto'`` (default):
+        ``'mixed'`` with the PARDISO backend, ``'double'`` with the others.
+    threads : int or None
         Threads of the factorisation and solves (PARDISO: MKL threads of every phase; other
-        methods: a BLAS limit through threadpoolctl). Default None: the libraries' own
-        default (MKL: one per core). Pass 1 where another job shares the cores.
+        methods: a BLAS limit through threadpoolctl). Default 1: where other jobs share the
+        cores, a thread waiting for its core stalls every synchronisation of a parallel
+        factorisation, which costs more than a free core left unused
+        (``docs/benchmarks/mtm.md``). On a machine of your own pass the number of free
+        cores, or None for the libraries' defaults (MKL: one thread per core).
     maxiter : int, optional
         Iteration cap (default 2000 for cg, 5000 for gpu, 20000 sweeps for relaxation).
     preconditioner : {'amg', 'jacobi'}, optional
@@ -152,8 +161,11 @@ class Solver:
         Show progress of the iterative methods (:class:`pvcmf.progress.Progress`).
     ordering : {'auto', 'amd', 'metis', 'nesdis'}
         Node-graph ordering of the unknowns for CHOLMOD and PARDISO when scikit-sparse is
-        installed (``'auto'``: AMD below 30k nodes with unknowns, METIS above); without it
-        PARDISO orders with its own METIS. :attr:`node_ordering` is the one used.
+        installed (``'auto'``: AMD below 30k nodes with unknowns, METIS above). Without it,
+        ``'auto'`` and ``'metis'`` number PARDISO's unknowns by the METIS order of the node
+        graph from a PARDISO analysis of that graph (``'pardiso-metis'``), and the other
+        orderings leave PARDISO to run METIS on the dof graph. :attr:`node_ordering` is the
+        node-graph ordering used (None: none).
     E_fiber, E_cross, nu, fiber : optional
         Override the grid's materials (scalars or per-cell arrays).
 
@@ -178,8 +190,8 @@ class Solver:
     True
     """
 
-    def __init__(self, grid, method="direct", *, tol=1e-10, backend="auto", precision="double",
-                 threads=None, maxiter=None, preconditioner=None, omega=1.0,
+    def __init__(self, grid, method="direct", *, tol=1e-10, backend="auto", precision="auto",
+                 threads=1, maxiter=None, preconditioner=None, omega=1.0,
                  warn_lost_digits=8.0, progress_bar=False, ordering="auto", E_fiber=None,
                  E_cross=None, nu=None, fiber=None):
         method, tol, backend, precision = _check_options(
@@ -225,8 +237,9 @@ class Solver:
         """Where each entry of ``K_ff``, ``K_fp`` (and the factored triangle) sits in the blocks.
 
         The unknowns are numbered node by node in elimination order (with scikit-sparse:
-        the node-graph ordering of :func:`~pvcmf.mtm.backends.cholmod.node_order`; otherwise
-        the natural order). The block pattern is permuted to that node
+        the node-graph ordering of :func:`~pvcmf.mtm.backends.cholmod.node_order`; without
+        it, for PARDISO, the METIS order of the node graph from
+        :func:`~pvcmf.mtm.backends.pardiso.node_order`; otherwise the natural order). The block pattern is permuted to that node
         order once (a sort of the blocks, 9x fewer than the entries); every dof row then lists
         its blocks' entries already sorted, so the dof-level maps are built with no sort.
         """
@@ -237,6 +250,8 @@ class Solver:
         nodes = None
         if self._triangular:  # CHOLMOD, PARDISO
             found = node_order(asm.indptr, asm.indices, cons.free, self.ordering)
+            if found is None and self.backend_name == "pardiso" and self.ordering in ("auto", "metis"):
+                found = pardiso_node_order(asm.indptr, asm.indices, cons.free, self.threads or 1)
             if found is not None:  # the unknowns numbered in elimination order
                 nodes, self.node_ordering = found
                 self._natural_order = True
@@ -444,7 +459,6 @@ class Solver:
                   time.perf_counter() - t)
         return {"label": label, "rep": rep, "ani": ani, "fiber": np.array(fiber),
                 "group": np.array(group), "kind": np.array(kind), "basis": basis}
-
 
     # ------------------------------------------------------------------ solve
     def solve(self, bc_displacement=None, *, x0=None):

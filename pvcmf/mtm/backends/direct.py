@@ -4,12 +4,16 @@ One factorisation backend (:mod:`.pardiso`, :mod:`.cholmod`, :mod:`.superlu`) is
 per :class:`~pvcmf.mtm.Solver` and refactored numerically for new materials. Every solve takes
 one step of iterative refinement, whose size estimates the forward error of the first solve
 (an :class:`~pvcmf.mtm.IllConditionedWarning` says how many digits were lost when that is
-large). Two explicit options trade a factorisation for iterations:
+large). Two options trade a factorisation for iterations:
 
-* ``precision='mixed'`` (PARDISO only): a single-precision numeric factor, refined in double
-  by conjugate gradient preconditioned with it, to the accuracy of a double factor; a double
-  factor replaces it when the refinement stalls or the single-precision error is too large
-  to estimate the lost digits from.
+* ``precision='mixed'`` (PARDISO only, and its default through ``precision='auto'``): a
+  single-precision numeric factor, refined in double by conjugate gradient preconditioned
+  with it, to the accuracy of a double factor; a double factor replaces it when the
+  refinement stalls or the single-precision error is too large to estimate the lost digits
+  from (``info['precision']`` then says ``'double (mixed stalled)'``). Each solve costs two
+  single-precision triangular solve pairs plus one per refinement iteration, against two
+  double ones: for many solves per factorisation (many bone moves on one material)
+  ``precision='double'`` is cheaper.
 * ``update_materials(refactor=False)``: the previous factor preconditions a conjugate
   gradient on the new matrix when a bound on the condition number (from the materials only)
   predicts at most :attr:`Direct.max_reuse_iterations` iterations; else, or when the
@@ -26,7 +30,7 @@ import time
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from .._common import EPS, EPS32, ConvergenceError, norm, warn_lost_digits
+from .._common import EPS, EPS32, ConvergenceError, dot, norm, warn_lost_digits
 from . import factorisation
 
 log = logging.getLogger(__name__)
@@ -153,12 +157,12 @@ class Direct:
                      "from: refactoring in double", err32)
             return None, err32
         target = min(s.tol, MIXED_TARGET)
-        p, rz = z, float(np.dot(r, z))
+        p, rz = z, dot(r, z)
         res = norm(r) / nb
         steps = 0
         while res > target and steps < self.max_mixed_iterations and np.isfinite(res):
             Kp = K @ p
-            alpha = rz / float(np.dot(p, Kp))
+            alpha = rz / dot(p, Kp)
             y = y + alpha * p
             r = r - alpha * Kp
             steps += 1
@@ -166,7 +170,7 @@ class Direct:
             if res <= s.tol and res > 0.5 * previous:
                 break  # converged to tol and stagnating near round-off
             z = solve32(r)
-            rz, rz_old = float(np.dot(r, z)), rz
+            rz, rz_old = dot(r, z), rz
             p = z + (rz / rz_old) * p
         res = s._residual(y, b, nb)  # the true residual, not the recurrence
         if not (np.isfinite(res) and res <= s.tol):

@@ -5,9 +5,14 @@ every ``factorize`` (phase 12), passes float64 only and converts the indices to 
 every call. Here the analysis (phase 11) is done once per pattern and every new material is a
 numeric factorisation only (phase 22), which is what a Poisson sweep repeats; the upper
 triangle (CSR, zero-based indices through ``iparm[34]``) is passed as it is stored. The thread
-count is the caller's (default: MKL's own default) and is used by every phase (MKL expects the
+count is the caller's (None: MKL's own default) and is used by every phase (MKL expects the
 analysis's count in the later phases). ``precision='single'`` makes a float32 numeric factor
 (``iparm[27]``) whose answers the caller refines against the double matrix.
+
+Without scikit-sparse, :func:`node_order` takes the METIS order of the node graph from a
+PARDISO analysis of that (nine times smaller) graph; the solver numbers the unknowns node by
+node in that order and :class:`Pardiso` analyses the dof matrix with it as the user
+permutation (``natural=True``, ``iparm[4] = 1``) instead of running METIS on the dof graph.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from __future__ import annotations
 import ctypes
 
 import numpy as np
+import scipy.sparse as sp
 
 from .._common import not_positive_definite
 
@@ -49,6 +55,72 @@ def _mkl():
     return _MKL[0]
 
 
+#: :attr:`pvcmf.mtm.Solver.node_ordering` of the node-graph order from :func:`node_order`
+NODE_ORDERING = "pardiso-metis"
+
+
+def _pardiso(lib, pt, phase, n, a, ia, ja, perm, iparm, b, x, threads, mtype=2):
+    """One PARDISO call with ``threads`` MKL threads on this thread; returns the error code."""
+    P = ctypes.c_void_p
+
+    def i32(v):
+        return ctypes.byref(ctypes.c_int32(v))
+
+    err = ctypes.c_int32(0)
+    previous = lib.MKL_Set_Num_Threads_Local(int(threads))  # this thread only
+    try:
+        lib.pardiso(pt.ctypes.data_as(P), i32(1), i32(1), i32(mtype), i32(phase), i32(n),
+                    a.ctypes.data_as(P), ia.ctypes.data_as(P), ja.ctypes.data_as(P),
+                    perm.ctypes.data_as(P), i32(1), iparm.ctypes.data_as(P), i32(0),
+                    b.ctypes.data_as(P), x.ctypes.data_as(P), ctypes.byref(err))
+    finally:
+        lib.MKL_Set_Num_Threads_Local(previous)
+    return err.value
+
+
+def node_order(indptr, indices, free, threads=1):
+    """METIS order of the node graph of the unknowns, by PARDISO's own analysis.
+
+    ``indptr, indices`` is the node adjacency (block pattern, CSR, both triangles), ``free``
+    the (3 n,) mask of unknown dofs. PARDISO analyses the upper triangle of the graph of the
+    nodes with an unknown (a ninth of the entries of the dof matrix) and returns its METIS
+    permutation (``iparm[4] = 2``). Numbered node by node in that order, the dof matrix is
+    analysed with that order as a user permutation (no METIS on the dof graph), which costs
+    less than METIS on the dof graph for no more fill. Returns ``(nodes, NODE_ORDERING)``:
+    the nodes with an unknown in elimination order, or None when there are fewer than two.
+    """
+    n = len(indptr) - 1
+    active = np.flatnonzero(np.asarray(free).reshape(n, 3).any(axis=1))
+    m = active.size
+    if m < 2:
+        return None
+    rank = np.full(n, -1, dtype=np.int64)
+    rank[active] = np.arange(m)
+    rows = np.repeat(np.arange(n), np.diff(indptr))
+    r, c = rank[rows], rank[np.asarray(indices)]
+    keep = (r >= 0) & (c >= r)  # upper triangle of the active nodes
+    diag = np.arange(m)  # PARDISO needs every diagonal entry
+    graph = sp.csr_matrix((np.ones(int(keep.sum()) + m), (np.concatenate([r[keep], diag]),
+                                                          np.concatenate([c[keep], diag]))),
+                          shape=(m, m))
+    graph.sum_duplicates()  # sorted column indices, one entry each
+    ip = np.zeros(64, dtype=np.int32)
+    ip[0], ip[1], ip[4], ip[34] = 1, 2, 2, 1  # METIS, return the permutation, zero-based
+    pt = np.zeros(64, dtype=np.int64)
+    perm = np.zeros(m, dtype=np.int32)
+    ia = np.ascontiguousarray(graph.indptr, dtype=np.int32)
+    ja = np.ascontiguousarray(graph.indices, dtype=np.int32)
+    a = np.ascontiguousarray(graph.data, dtype=np.float64)
+    work = np.zeros(m)
+    lib = _mkl()
+    err = _pardiso(lib, pt, 11, m, a, ia, ja, perm, ip, work, work, threads)
+    _pardiso(lib, pt, -1, m, a, ia, ja, perm, ip, work, work, threads)
+    if err != 0:
+        raise RuntimeError(f"PARDISO analysis of the node graph failed with error {err}")
+    # perm[k]: the (active) node eliminated k-th
+    return active[perm], NODE_ORDERING
+
+
 class Pardiso:
     """MKL PARDISO, real symmetric positive definite (``mtype=2``), upper triangle in CSR.
 
@@ -59,7 +131,7 @@ class Pardiso:
     precision : {'double', 'single'}
         Precision of the numeric factor.
     threads : int, optional
-        MKL threads of every phase; default MKL's default (``MKL_Get_Max_Threads``).
+        MKL threads of every phase; None: MKL's default (``MKL_Get_Max_Threads``).
     natural : bool
         The unknowns are already numbered in a fill-reducing order (skip PARDISO's METIS).
     """
@@ -82,6 +154,7 @@ class Pardiso:
         ip[0] = 1  # iparm set here, zeros are defaults
         ip[1] = 2  # METIS nested dissection (unless a permutation is given)
         ip[4] = 1 if natural else 0  # perm holds the user's fill-reducing permutation
+        ip[17] = -1  # report the factor's entries (factor_entries)
         ip[27] = 1 if precision == "single" else 0
         ip[34] = 1  # zero-based ia, ja
         self._ia = np.ascontiguousarray(upper.indptr, dtype=np.int32)
@@ -92,33 +165,24 @@ class Pardiso:
         self._call(11)
         self._analysed = True
 
+    @property
+    def factor_entries(self):
+        """Entries of the factor that the analysis planned (PARDISO's ``iparm[17]``)."""
+        return int(self._iparm[17])
+
     def _call(self, phase, b=None):
-        P = ctypes.c_void_p
-
-        def i32(v):
-            return ctypes.byref(ctypes.c_int32(v))
-
         if b is None:
             b = x = np.zeros(self.n, dtype=self._dtype)
         else:
             b = np.ascontiguousarray(b, dtype=self._dtype)
             x = np.empty_like(b)
-        err = ctypes.c_int32(0)
-        lib = self._lib
-        previous = lib.MKL_Set_Num_Threads_Local(self.threads)  # this thread only
-        try:
-            lib.pardiso(self._pt.ctypes.data_as(P), i32(1), i32(1), i32(2), i32(phase),
-                        i32(self.n), self._a.ctypes.data_as(P), self._ia.ctypes.data_as(P),
-                        self._ja.ctypes.data_as(P), self._perm.ctypes.data_as(P), i32(1),
-                        self._iparm.ctypes.data_as(P), i32(0), b.ctypes.data_as(P),
-                        x.ctypes.data_as(P), ctypes.byref(err))
-        finally:
-            lib.MKL_Set_Num_Threads_Local(previous)
-        if err.value == -4:
+        err = _pardiso(self._lib, self._pt, phase, self.n, self._a, self._ia, self._ja,
+                       self._perm, self._iparm, b, x, self.threads)
+        if err == -4:
             raise not_positive_definite(f"PARDISO error -4, zero or negative pivot "
                                         f"({self.precision})")
-        if err.value != 0:
-            raise RuntimeError(f"PARDISO phase {phase} failed with error {err.value}")
+        if err != 0:
+            raise RuntimeError(f"PARDISO phase {phase} failed with error {err}")
         return x
 
     def factor(self, upper):
