@@ -156,6 +156,47 @@ def test_other_labels_untouched_and_input_unchanged():
     np.testing.assert_array_equal(out[arrays.CT], img[arrays.CT])
 
 
+def rim_image(seed=0):
+    """Bone (x < 10, 1200 HU) beside soft tissue; the two voxel layers next to it read half
+    and a quarter bone (partial volume and blur, ~550 and ~230 HU) whatever they are. Below y = 20 fat lies on the bone (muscle
+    from x = 25), above muscle does. Returns the image and the true muscle map."""
+    rng = np.random.default_rng(seed)
+    dims = (40, 40, 4)
+    x, y = np.meshgrid(np.arange(dims[0]), np.arange(dims[1]), indexing="ij")
+    x, y = np.repeat(x[..., None], dims[2], 2), np.repeat(y[..., None], dims[2], 2)
+    muscle = (x >= 10) & ((x >= 25) | (y >= 20))
+    hu = np.where(muscle, rng.normal(40.0, 12.0, dims), rng.normal(-100.0, 15.0, dims))
+    hu = np.where(x < 10, 1200.0, hu)
+    hu = np.where(x == 10, 0.5 * (hu + 1200.0), hu)  # the partial-volume rim
+    hu = np.where(x == 11, 0.75 * hu + 0.25 * 1200.0, hu)
+    img = pv.ImageData(dimensions=dims)
+    img[arrays.CT] = hu.astype(np.float32).ravel(order="F")
+    img[arrays.TISSUE] = np.where(x < 10, arrays.BONE_TISSUE, arrays.FAT).astype(
+        np.uint8).ravel(order="F")
+    return img, muscle
+
+
+def test_soft_tissue_touching_bone_takes_the_class_around_it():
+    """The partial-volume rim on the bone reads above the threshold: by its value it would
+    be a muscle shell around the skeleton; it takes the class of the soft tissue beside it
+    instead (fat on fat, muscle on muscle)."""
+    img, muscle = rim_image()
+    rows = np.r_[3:17, 23:37]  # away from the fat/muscle border at y = 20
+    for hard_rim, expect_fat_rim in ((1, True), (0, False)):
+        out = pvcmf.filters.classify_tissue(img, hard_rim=hard_rim)
+        got = (np.asarray(out[arrays.TISSUE]) == arrays.MUSCLE_TISSUE).reshape(
+            muscle.shape, order="F")
+        if expect_fat_rim:
+            np.testing.assert_array_equal(got[10:12][:, rows], muscle[10:12][:, rows])
+        else:  # by their values alone (and the median) the rim voxels on fat are muscle
+            assert got[10:12][:, 3:17].all()
+        # the rest is classified as before, and the bone is left alone
+        np.testing.assert_array_equal(got[12:][:, rows], muscle[12:][:, rows])
+        assert not got[:10].any()
+    with pytest.raises(ValueError, match="hard_rim must be an integer >= 0"):
+        pvcmf.filters.classify_tissue(img, hard_rim=-1)
+
+
 def test_fat_only_slice_uses_pooled_threshold():
     img, vol, truth = mixture_image(seed=11)
     rng = np.random.default_rng(0)
