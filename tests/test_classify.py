@@ -176,14 +176,15 @@ def rim_image(seed=0):
     return img, muscle
 
 
-def test_soft_tissue_touching_bone_takes_the_class_around_it():
+def test_soft_tissue_on_a_border_takes_the_class_around_it():
     """The partial-volume rim on the bone reads above the threshold: by its value it would
     be a muscle shell around the skeleton; it takes the class of the soft tissue beside it
-    instead (fat on fat, muscle on muscle)."""
+    instead (fat on fat, muscle on muscle). The same for muscle beside air, which reads as
+    fat by its value."""
     img, muscle = rim_image()
     rows = np.r_[3:17, 23:37]  # away from the fat/muscle border at y = 20
-    for hard_rim, expect_fat_rim in ((1, True), (0, False)):
-        out = pvcmf.filters.classify_tissue(img, hard_rim=hard_rim)
+    for border, expect_fat_rim in ((1, True), (0, False)):
+        out = pvcmf.filters.classify_tissue(img, border=border)
         got = (np.asarray(out[arrays.TISSUE]) == arrays.MUSCLE_TISSUE).reshape(
             muscle.shape, order="F")
         if expect_fat_rim:
@@ -193,8 +194,23 @@ def test_soft_tissue_touching_bone_takes_the_class_around_it():
         # the rest is classified as before, and the bone is left alone
         np.testing.assert_array_equal(got[12:][:, rows], muscle[12:][:, rows])
         assert not got[:10].any()
-    with pytest.raises(ValueError, match="hard_rim must be an integer >= 0"):
-        pvcmf.filters.classify_tissue(img, hard_rim=-1)
+    # the same at an air border: muscle beside air reads half and a quarter air (~-480 and
+    # ~-220 HU), fat by its value
+    air = rim_image(seed=1)[0]
+    hu = np.asarray(air[arrays.CT]).reshape(muscle.shape, order="F")
+    hu = np.where(hu > 900, -1000.0, hu)
+    hu[10] = 0.5 * (hu[12] - 1000.0)
+    hu[11] = 0.75 * hu[13] - 250.0
+    air[arrays.CT] = hu.astype(np.float32).ravel(order="F")
+    tissue = np.asarray(air[arrays.TISSUE]).reshape(muscle.shape, order="F").copy()
+    tissue[tissue == arrays.BONE_TISSUE] = arrays.AIR
+    air[arrays.TISSUE] = tissue.ravel(order="F")
+    for border in (1, 0):
+        got = (np.asarray(pvcmf.filters.classify_tissue(air, border=border)[arrays.TISSUE])
+               == arrays.MUSCLE_TISSUE).reshape(muscle.shape, order="F")
+        assert got[10:12][:, 23:37].all() == bool(border)
+    with pytest.raises(ValueError, match="border must be an integer >= 0"):
+        pvcmf.filters.classify_tissue(img, border=-1)
 
 
 def test_fat_only_slice_uses_pooled_threshold():
