@@ -17,8 +17,8 @@ The whole chain on a real scan, the Visible Human female head (NLM; 1 mm DICOM s
    resolution of ``pvcmf demo``): pre-operative and predicted face, frontal and profile,
    and the midsagittal profiles overlaid.
 
-The cadaver was scanned with its mouth closed. The script takes a few minutes on two cores,
-so the documentation shows its code without running it. Without the data it does nothing.
+The script takes a few minutes on two cores, so the documentation shows its code without
+running it. Without the data it does nothing.
 """
 
 import os
@@ -33,9 +33,10 @@ from PIL import Image
 
 import pvcmf
 from pvcmf import arrays
-from pvcmf.figures.face_views import prediction_summary
+from pvcmf.figures.face_views import (VIEW_TITLES, add_patient_mesh, prediction_summary,
+                                     set_view, to_display)
 from pvcmf.io.orientation import standardize
-from pvcmf.pipeline import simulate
+from pvcmf.pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
 from pvcmf.plan import Osteotomy, Plan
 
 pv.OFF_SCREEN = True
@@ -48,7 +49,7 @@ COLORS = {arrays.AIR: (0, 0, 0, 0), arrays.FAT: (1.0, 0.8, 0.3, 0.45),
           arrays.MUSCLE_TISSUE: (0.85, 0.15, 0.15, 0.55), arrays.BONE_TISSUE: (0.3, 0.55, 1.0, 0.6),
           arrays.TEETH: (1.0, 1.0, 1.0, 0.9), arrays.INTRACRANIAL: (0.6, 0.3, 0.8, 0.35),
           arrays.METAL: (0.2, 1.0, 0.2, 0.9)}
-NAMES = {arrays.FAT: "soft tissue / fat", arrays.MUSCLE_TISSUE: "muscle",
+NAMES = {arrays.FAT: "fat", arrays.MUSCLE_TISSUE: "muscle",
          arrays.BONE_TISSUE: "bone", arrays.TEETH: "teeth", arrays.INTRACRANIAL: "intracranial",
          arrays.METAL: "metal"}
 
@@ -68,17 +69,21 @@ def downsample(image, step=2):
     return out
 
 
-def label_slices(labels, ct, cut, classes, title):
+def label_slices(labels, ct, cut, classes, title, names=None):
     """Axial, coronal and sagittal slices through voxel ``cut``: CT in grey, labels over it."""
     cmap = ListedColormap([COLORS[k] for k in range(max(COLORS) + 1)])
     hu, tissue = volume(ct, arrays.CT), volume(labels, arrays.TISSUE)
+    # the head's box (10 voxels wider): the scan's air around it is left out
+    box = tuple(slice(max(int(a.min()) - 10, 0), int(a.max()) + 11)
+                for a in np.nonzero(tissue != arrays.AIR))
+    hu, tissue = hu[box], tissue[box]
     sx, sy, sz = ct.spacing
-    i, j, k = cut
+    i, j, k = (int(c) - b.start for c, b in zip(cut, box))
     views = (("axial", hu[:, :, k].T, tissue[:, :, k].T, sy / sx, "x (left +)", "y (anterior +)"),
              ("coronal", hu[:, j, :].T, tissue[:, j, :].T, sz / sx, "x (left +)", "z (superior +)"),
              ("sagittal", hu[i, :, :].T, tissue[i, :, :].T, sz / sy, "y (anterior +)",
               "z (superior +)"))
-    fig = Figure(figsize=(15, 5.6))
+    fig = Figure(figsize=(14, 6.0))
     axes = fig.subplots(1, 3)
     for ax, (name, grey, lab, aspect, xl, yl) in zip(axes, views):
         ax.imshow(np.clip(grey, -400, 1500), cmap="gray", origin="lower", aspect=aspect,
@@ -90,7 +95,9 @@ def label_slices(labels, ct, cut, classes, title):
         ax.set_ylabel(yl)
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.legend(handles=[Patch(color=COLORS[c][:3], label=NAMES[c]) for c in classes],
+    names = {**NAMES, **(names or {})}
+    fig.legend(handles=[Patch(facecolor=COLORS[c][:3], edgecolor="k", label=names[c])
+                        for c in classes],
                loc="lower center", ncol=len(classes), frameon=False)
     fig.suptitle(title)
     fig.subplots_adjust(left=0.03, right=0.99, top=0.9, bottom=0.12, wspace=0.12)
@@ -119,7 +126,8 @@ if FOLDER.is_dir():
     j = int(rows.max() - 12 / ct.spacing[1]) if rows.size else tissue.shape[1] // 2
     fig = label_slices(labels, ct, (i, j, k), (arrays.FAT, arrays.BONE_TISSUE, arrays.TEETH,
                                                arrays.INTRACRANIAL),
-                       "pvcmf.filters.segment on the Visible Human female (1 mm)")
+                       "pvcmf.filters.segment on the Visible Human female (1 mm)",
+                       names={arrays.FAT: "soft tissue"})
     fig.savefig(OUT / "female_segmentation.png", dpi=90)
 
 # %%
@@ -130,28 +138,31 @@ if FOLDER.is_dir():
     print("bone segment volumes (mL):", pvcmf.filters.bone_segments.segment_volumes(jaws))
     coarse = downsample(jaws, 2)
     bone = volume(coarse, arrays.BONE)
-    pl = pv.Plotter(window_size=(1100, 650), shape=(1, 2), border=False)
-    colours = {arrays.CRANIUM: ("ivory", 0.35), arrays.MAXILLA: ("tomato", 1.0),
+    colours = {arrays.CRANIUM: ("wheat", 0.3), arrays.MAXILLA: ("tomato", 1.0),
                arrays.MANDIBLE: ("royalblue", 1.0)}
-    for col, view in enumerate(("frontal", "profile")):
-        pl.subplot(0, col)
-        for seg, (colour, opacity) in colours.items():
-            mask = pv.ImageData(dimensions=coarse.dimensions, spacing=coarse.spacing,
-                                origin=coarse.origin)
-            mask["m"] = (bone == seg).astype(np.float32).ravel(order="F")
-            if not np.any(mask["m"]):
-                continue
-            surf = mask.contour([0.5], scalars="m").smooth(n_iter=20)
-            pl.add_mesh(surf, color=colour, opacity=opacity, smooth_shading=True,
-                        label=arrays.BONE_NAMES[seg])
-        if view == "frontal":
-            pl.view_vector((0, 1, 0), viewup=(0, 0, 1))
-            pl.add_legend(bcolor=None, face=None, size=(0.25, 0.15))
-        else:
-            pl.view_vector((-1, 0, 0), viewup=(0, 0, 1))
-        pl.add_text(view, font_size=10)
-    pl.screenshot(OUT / "female_jaws.png")
-    pl.close()
+    surfaces = {}
+    for seg in colours:
+        mask = pv.ImageData(dimensions=coarse.dimensions, spacing=coarse.spacing,
+                            origin=coarse.origin)
+        mask["m"] = (bone == seg).astype(np.float32).ravel(order="F")
+        if np.any(mask["m"]):
+            surfaces[seg] = mask.contour([0.5], scalars="m").smooth(n_iter=20)
+    bounds = to_display(surfaces[arrays.CRANIUM]).bounds if arrays.CRANIUM in surfaces else None
+    shots = []
+    for view in ("frontal", "profile"):
+        pl = pv.Plotter(window_size=(600, 640))
+        for seg, surf in surfaces.items():
+            colour, opacity = colours[seg]
+            add_patient_mesh(pl, surf, color=colour, opacity=opacity, label=arrays.BONE_NAMES[seg])
+        if bounds is not None:
+            set_view(pl, bounds, view)
+        pl.add_text(VIEW_TITLES[view], font_size=11, color="black")
+        if view == "profile":
+            pl.add_legend(bcolor=(0.35, 0.35, 0.35), face="rectangle", size=(0.3, 0.16),
+                          loc="upper right")
+        shots.append(pl.screenshot(return_img=True))
+        pl.close()
+    Image.fromarray(np.hstack(shots)).save(OUT / "female_jaws.png")
 
 # %%
 # Fat and muscle (paper 001's classification)
@@ -173,5 +184,13 @@ if FOLDER.is_dir():
     plan = Plan((Osteotomy("maxilla", translation=(0.0, 0.0, 3.0)),), name="maxilla 3 mm forward")
     result = simulate(downsample(ct, 2), plan, units="hu", orient="none", figures=False)
     print(result.summary())
-    image = prediction_summary(result.skin_pre, result.skin_post)
+    # the face: the skin in front of the modelled region's posterior plane (the whole head's
+    # skin would frame the back of the head in profile) and above the scan's lowest 20 mm
+    # (the shoulder the field of view cuts, which would move the midsagittal plane)
+    y0 = face_box(result.labels, DEFAULT_FACE_FRACTION)[2]
+    points = np.asarray(result.skin_pre.points)
+    behind = (points[:, 1] < y0) | (points[:, 2] < ct.bounds[4] + 20.0)
+    pre, post = (skin.extract_points(~behind, adjacent_cells=False).extract_surface(
+        algorithm="dataset_surface") for skin in (result.skin_pre, result.skin_post))
+    image = prediction_summary(pre, post)
     Image.fromarray(image).save(OUT / "female_prediction.png")

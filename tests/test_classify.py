@@ -251,12 +251,12 @@ def test_phantom_fat_muscle_hu(phantom_fits, patient):
     assert abs(mix.pooled_means[0] - HU["fat"]) <= 15.0
     assert abs(mix.pooled_means[1] - HU["muscle"]) <= 15.0
     # the labels follow. Floors, not targets: at 2 mm the muscles are 1-3 voxels thick, so
-    # many of their voxels mix with fat, and fat voxels next to bone are brightened by it
-    # (measured recall: fat ~0.91, muscle ~0.6-0.7)
+    # many of their voxels mix with fat. Fat voxels next to bone are brightened by it: by
+    # their values alone (border=0) fat recall stays below 0.92; the border rule lifts it
     t, c = case.truth[arrays.TISSUE], labelled[arrays.TISSUE]
     soft = np.isin(t, arrays.SOFT_LABELS) & np.isin(c, arrays.SOFT_LABELS)
-    assert np.mean(c[soft & (t == arrays.FAT)] == arrays.FAT) > 0.85
-    assert np.mean(c[soft & (t == arrays.MUSCLE_TISSUE)] == arrays.MUSCLE_TISSUE) > 0.5
+    assert np.mean(c[soft & (t == arrays.FAT)] == arrays.FAT) > 0.94
+    assert np.mean(c[soft & (t == arrays.MUSCLE_TISSUE)] == arrays.MUSCLE_TISSUE) > 0.9
 
 
 def test_fig1_gmm_chart(phantom_fits, verify_chart):
