@@ -147,19 +147,21 @@ if FOLDER.is_dir():
         mask["m"] = (bone == seg).astype(np.float32).ravel(order="F")
         if np.any(mask["m"]):
             surfaces[seg] = mask.contour([0.5], scalars="m").smooth(n_iter=20)
-    bounds = to_display(surfaces[arrays.CRANIUM]).bounds if arrays.CRANIUM in surfaces else None
+    # framed on the skull (its largest piece: stray bone voxels far from the head would
+    # move the frame)
+    skull = surfaces.get(arrays.CRANIUM, surfaces.get(arrays.MANDIBLE))
+    bounds = to_display(skull.connectivity("largest")).bounds
     shots = []
     for view in ("frontal", "profile"):
         pl = pv.Plotter(window_size=(600, 640))
         for seg, surf in surfaces.items():
             colour, opacity = colours[seg]
             add_patient_mesh(pl, surf, color=colour, opacity=opacity, label=arrays.BONE_NAMES[seg])
-        if bounds is not None:
-            set_view(pl, bounds, view)
+        set_view(pl, bounds, view)
         pl.add_text(VIEW_TITLES[view], font_size=11, color="black")
-        if view == "profile":
+        if view == "frontal":
             pl.add_legend(bcolor=(0.35, 0.35, 0.35), face="rectangle", size=(0.3, 0.16),
-                          loc="upper right")
+                          loc="lower right")
         shots.append(pl.screenshot(return_img=True))
         pl.close()
     Image.fromarray(np.hstack(shots)).save(OUT / "female_jaws.png")
@@ -185,11 +187,12 @@ if FOLDER.is_dir():
     result = simulate(downsample(ct, 2), plan, units="hu", orient="none", figures=False)
     print(result.summary())
     # the face: the skin in front of the modelled region's posterior plane (the whole head's
-    # skin would frame the back of the head in profile) and above the scan's lowest 20 mm
-    # (the shoulder the field of view cuts, which would move the midsagittal plane)
+    # skin would frame the back of the head in profile) and within 15 mm of the skull's
+    # width (the shoulder the field of view cuts would move the midsagittal plane)
     y0 = face_box(result.labels, DEFAULT_FACE_FRACTION)[2]
+    x0, x1 = skull.connectivity("largest").bounds[:2]
     points = np.asarray(result.skin_pre.points)
-    behind = (points[:, 1] < y0) | (points[:, 2] < ct.bounds[4] + 20.0)
+    behind = (points[:, 1] < y0) | (points[:, 0] < x0 - 15.0) | (points[:, 0] > x1 + 15.0)
     pre, post = (skin.extract_points(~behind, adjacent_cells=False).extract_surface(
         algorithm="dataset_surface") for skin in (result.skin_pre, result.skin_post))
     image = prediction_summary(pre, post)

@@ -158,8 +158,9 @@ def test_other_labels_untouched_and_input_unchanged():
 
 def rim_image(seed=0):
     """Bone (x < 10, 1200 HU) beside soft tissue; the two voxel layers next to it read half
-    and a quarter bone (partial volume and blur, ~550 and ~230 HU) whatever they are. Below y = 20 fat lies on the bone (muscle
-    from x = 25), above muscle does. Returns the image and the true muscle map."""
+    and a quarter bone (partial volume and blur, ~550 and ~230 HU) whatever they are. Below
+    y = 20 fat lies on the bone (muscle from x = 25), above muscle does. Returns the image
+    and the true muscle map."""
     rng = np.random.default_rng(seed)
     dims = (40, 40, 4)
     x, y = np.meshgrid(np.arange(dims[0]), np.arange(dims[1]), indexing="ij")
