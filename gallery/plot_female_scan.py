@@ -160,8 +160,8 @@ if FOLDER.is_dir():
         set_view(pl, bounds, view)
         pl.add_text(VIEW_TITLES[view], font_size=11, color="black")
         if view == "frontal":
-            pl.add_legend(bcolor=(0.35, 0.35, 0.35), face="rectangle", size=(0.3, 0.16),
-                          loc="lower right")
+            pl.add_legend(bcolor=(0.35, 0.35, 0.35), face="rectangle", size=(0.28, 0.14),
+                          loc="lower left")
         shots.append(pl.screenshot(return_img=True))
         pl.close()
     Image.fromarray(np.hstack(shots)).save(OUT / "female_jaws.png")

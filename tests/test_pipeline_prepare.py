@@ -55,7 +55,7 @@ def test_simulate_classifies_fat_and_muscle_by_default(tmp_path):
     import pvcmf
     from pvcmf.pipeline import simulate
 
-    case = pvcmf.datasets.phantom(patient=1, spacing=4.0)
+    case = pvcmf.datasets.phantom(patient=1, spacing=3.0)
     truth = np.asarray(case.truth[arrays.TISSUE])
     runs = {}
     for name, options in (("default", {}), ("off", {"classify": False})):
