@@ -92,10 +92,14 @@ def _common(parser):
                         help=f"requested number of tetrahedra (default {DEMO_N_TETS})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--no-figures", action="store_true", help="do not render PNGs")
-    parser.add_argument("--classify", action="store_true",
-                        help="fat/muscle classification of the soft tissue from the CT values "
-                             "(paper 001): the muscle the atlas does not name (tongue, "
-                             "temporalis, neck) becomes muscle tissue")
+    parser.add_argument("--no-classify", dest="classify", action="store_false", default=True,
+                        help="no fat/muscle classification of the soft tissue from the CT "
+                             "values (paper 001; on by default: the muscle the atlas does not "
+                             "name, e.g. tongue, temporalis, lips, neck, becomes muscle tissue): "
+                             "soft tissue outside the atlas muscles is fat, as in paper 000")
+    parser.add_argument("--classify", dest="classify", action="store_true",
+                        help="classify fat/muscle (the default; accepted so that command "
+                             "lines naming it keep working)")
     parser.add_argument("--no-muscles", action="store_true",
                         help="homogeneous soft tissue: skip the muscle atlas (faster)")
     parser.add_argument("--no-predict", action="store_true",

@@ -279,16 +279,20 @@ _SKIN_SUMMARY = (arrays.SKIN_MODELLED_POINTS, arrays.CRUMPLE_EDGES, arrays.CRUMP
 
 
 def _write_outputs(result, out, images=None):
-    """:func:`write_outputs`, plus the transfer's crumple metric in ``summary.json``."""
+    """:func:`write_outputs`, plus in ``summary.json`` whether the soft tissue was
+    classified fat / muscle (``"classified"``) and the transfer's crumple metric."""
     files = write_outputs(result, out, images)
+    if "summary" not in files:
+        return files
+    path = Path(files["summary"])
+    summary = json.loads(path.read_text(encoding="utf-8"))
+    summary["classified"] = "classify" in result.timings
     skin = result.skin_post
     if skin is not None and arrays.CRUMPLE_VIOLATIONS in skin.field_data:
-        path = Path(files["summary"])
-        summary = json.loads(path.read_text(encoding="utf-8"))
         for name in _SKIN_SUMMARY:
             if name in skin.field_data:
                 summary[name] = skin.field_data[name][0].item()
-        write_text(path, json.dumps(summary, indent=2) + "\n")
+    write_text(path, json.dumps(summary, indent=2) + "\n")
     return files
 
 
@@ -339,7 +343,7 @@ def flip_axes(image, axes):
 # --------------------------------------------------------------------------- main entry
 def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              n_tets=DEFAULT_N_TETS, segment_options=None, mesh_options=None,
-             material_options=None, bc_options=None, solve_options=None, classify=False,
+             material_options=None, bc_options=None, solve_options=None, classify=True,
              muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
              progress_bar=False, units=None, orient=None):
@@ -385,13 +389,15 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         :attr:`Result.skin_pre` are made, but no solve, no predicted skin, no skeleton and
         no outputs. This is what a parameter sweep needs once per mesh
         (:class:`pvcmf.sweeps.PipelineEvaluation` then solves per parameter set).
-    classify : bool, default False
+    classify : bool, default True
         Label the segmented soft tissue fat or muscle from the CT values
         (:func:`pvcmf.filters.classify_tissue`, paper 001): the muscle the atlas does not
-        name (tongue, temporalis, neck) becomes muscle tissue. Off: soft tissue that no
-        atlas muscle covers is fat (paper 000's model, which the virtual-patient study
-        judges). ``--classify`` on the command line.
-        Not run when ``labels`` are given.
+        name (tongue, temporalis, lips, neck) becomes (isotropic) muscle tissue. ``False``:
+        soft tissue that no atlas muscle covers is fat (paper 000's model; the
+        virtual-patient study, :func:`pvcmf.study.validation.study_predictor`, judges that
+        model and passes ``classify=False``). ``--no-classify`` on the command line. Whether
+        it ran is in :attr:`Result.timings` / :attr:`Result.skipped` (step ``"classify"``)
+        and in ``summary.json`` (``"classified"``). Not run when ``labels`` are given.
     muscles : bool, default True
         Embed the facial muscles (``embed_muscles``); without, the soft tissue is
         homogeneous. A muscle fit that fails (e.g. bad landmarks) is logged as a warning,

@@ -112,6 +112,28 @@ def _run(argv, capsys):
     return code, capsys.readouterr().out
 
 
+def test_classification_is_on_unless_no_classify(tmp_path, capsys, monkeypatch):
+    """``demo`` and ``simulate`` classify fat/muscle by default; ``--no-classify`` turns it
+    off; ``--classify`` (the default) is accepted. summary.json says which ran."""
+    from pvcmf.cli import build_parser
+
+    parser = build_parser()
+    for command in (["demo"], ["simulate", "--ct", "c", "--plan", "p.toml"]):
+        base = command + ["--out", "o"]
+        assert parser.parse_args(base).classify is True
+        assert parser.parse_args(base + ["--classify"]).classify is True
+        assert parser.parse_args(base + ["--no-classify"]).classify is False
+    for flags, classified in (([], True), (["--no-classify"], False)):
+        out = tmp_path / ("on" if classified else "off")
+        code, text = _run(["demo", "--out", str(out), "--spacing", "4", "--no-predict",
+                           "--no-progress", "--no-figures", "--no-report"] + flags, capsys)
+        assert code == 0, text
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["classified"] is classified
+        assert ("classify" in summary["seconds"]) is classified
+        assert ("classify" in summary["skipped"]) is not classified
+
+
 @pytest.mark.slow
 def test_demo_runs_end_to_end(tmp_path, capsys):
     # muscles off: the atlas fit is tested in test_muscles.py and costs ~30 s here

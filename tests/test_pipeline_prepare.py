@@ -44,3 +44,32 @@ def test_simulate_without_solve_prepares_the_mesh_only():
                                np.asarray(res.mesh[arrays.BC_DISPLACEMENT])[
                                    moved & (np.asarray(res.mesh[arrays.BC]) == arrays.BC_FIXED)],
                                atol=1e-9)
+
+
+def test_simulate_classifies_fat_and_muscle_by_default(tmp_path):
+    """The default run labels the soft tissue fat or muscle from the CT (paper 001), in
+    agreement with the virtual patient's true tissue, and says so in summary.json;
+    ``classify=False`` leaves every soft-tissue voxel the atlas does not cover fat."""
+    import json
+
+    import pvcmf
+    from pvcmf.pipeline import simulate
+
+    case = pvcmf.datasets.phantom(patient=1, spacing=3.0)
+    truth = np.asarray(case.truth[arrays.TISSUE])
+    runs = {}
+    for name, options in (("default", {}), ("off", {"classify": False})):
+        runs[name] = simulate(case.ct, case.plan, tmp_path / name, bones=case.truth,
+                              predict=False, figures=False, **options)
+    on, off = runs["default"], runs["off"]
+    assert "classify" in on.timings and "classify" not in on.skipped
+    assert "classify" in off.skipped and "classify" not in off.timings
+    assert json.loads((tmp_path / "default" / "summary.json").read_text())["classified"] is True
+    assert json.loads((tmp_path / "off" / "summary.json").read_text())["classified"] is False
+    t_on, t_off = np.asarray(on.labels[arrays.TISSUE]), np.asarray(off.labels[arrays.TISSUE])
+    assert not np.any(t_off == arrays.MUSCLE_TISSUE)
+    soft = np.isin(t_on, (arrays.FAT, arrays.MUSCLE_TISSUE)) & np.isin(
+        truth, (arrays.FAT, arrays.MUSCLE_TISSUE))
+    muscle = t_on[soft] == arrays.MUSCLE_TISSUE
+    assert 0.1 < muscle.mean() < 0.6
+    assert np.mean(muscle == (truth[soft] == arrays.MUSCLE_TISSUE)) > 0.9

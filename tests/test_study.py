@@ -93,6 +93,36 @@ def test_inference_finds_no_difference_between_identical_methods(synthetic_runs)
     assert row["difference"] == 0.0 and row["n"] > 1000
 
 
+def test_study_methods_run_paper_000s_model_without_classification(monkeypatch):
+    """Every model of the study runs without fat/muscle classification (paper 000 had none;
+    simulate classifies by default), so the "no_muscles" control has no muscle at all:
+    with classification the classifier would find that muscle again."""
+    from types import SimpleNamespace
+
+    from pvcmf.study import validation
+
+    class Stop(Exception):
+        pass
+
+    calls = {}
+
+    def fake_simulate(*args, **kwargs):
+        calls[kwargs.pop("_method")] = kwargs
+        raise Stop
+
+    case = SimpleNamespace(ct=None, plan=None, truth=None, landmarks=None)
+    monkeypatch.setattr(validation, "_scan", lambda *args: (None, None, None, None))
+    predict = study_predictor(**SMALL, truth=lambda c: None, cases={1: case})
+    for method in ("proposed", "state_of_the_art", "no_muscles", "wrong_nu",
+                   "proposed_auto", "state_of_the_art_auto"):
+        monkeypatch.setattr(validation, "simulate",
+                            lambda *a, _m=method, **k: fake_simulate(*a, _method=_m, **k))
+        with pytest.raises(Stop):
+            predict(1, method)
+    assert {m: k["classify"] for m, k in calls.items()} == dict.fromkeys(calls, False)
+    assert [m for m, k in calls.items() if not k["muscles"]] == ["no_muscles"]
+
+
 def test_study_predictor_bad_input():
     with pytest.raises(ValueError, match="spacing must be > 0 mm, got -1"):
         study_predictor(spacing=-1)

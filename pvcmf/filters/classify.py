@@ -18,6 +18,10 @@ classified but left out of the fit. Initialisation is deterministic: the
 ``n_components`` most prominent peaks of each smoothed histogram. A uniform background
 component over ``hu_range`` absorbs partial-volume voxels.
 
+Borders: a soft-tissue voxel touching air, bone, teeth or metal is a partial-volume mixture
+whose value says little about its tissue (``border``); it takes the majority class of the
+soft tissue around it in its slice.
+
 Robustness: a slice whose histogram is not clearly bimodal (too few voxels, the two-Gaussian
 fit not better than one Gaussian by BIC, Ashman's D < 2, or a component weight below
 ``min_weight``) uses the threshold fitted on all slices pooled; ``SliceMixtures.fallback``
@@ -191,6 +195,7 @@ def classify_tissue(
     background=True,
     partial_volume=True,
     interior=True,
+    border=1,
     min_voxels=200,
     min_weight=0.02,
     max_iter=200,
@@ -227,6 +232,14 @@ def classify_tissue(
         the voxels at the borders with air and bone are partial-volume mixtures that form
         their own histogram peaks (e.g. ~-250 HU at the skin) and would be taken for fat or
         muscle. Every soft-tissue voxel is still classified.
+    border : int
+        Soft-tissue voxels within this many voxels (26-neighbourhood) of air, bone, teeth or
+        metal are not classified by their own value: partial volume lowers it toward air
+        or raises it toward bone whatever the tissue (fat on bone reads as muscle, a stiff
+        shell around the skeleton; muscle at the lips' closed slit reads as fat, a soft seam
+        between two muscles). They take the majority class of the other soft-tissue voxels
+        in their ``max(median_size, 5)`` in-slice window (fat where there are none) and do
+        not vote in the median filter. 0 classifies them by their value like any voxel.
     background : bool
         Fit a uniform background component over ``hu_range`` too: it absorbs the
         partial-volume voxels at the skin/air and soft-tissue/bone borders, which otherwise
@@ -272,7 +285,7 @@ def classify_tissue(
     """
     say = log.info if progress_bar else log.debug
     vol, lab, soft, (lo, hi) = _check(image, median_size, n_components, hu_range, bin_width,
-                                      min_weight)
+                                      min_weight, border)
     dims = lab.shape
     box = _soft_box(soft)  # in-slice box of the soft tissue: every slice is kept
     vol, lab, soft = vol[box], lab[box], soft[box]
@@ -293,8 +306,12 @@ def classify_tissue(
     say("classify_tissue: thresholds (%d of %d slices use the pooled one), %dx%d median",
         int(fallback[n_voxels > 0].sum()), int((n_voxels > 0).sum()), median_size, median_size)
     is_muscle = soft & (vol >= slice_thr[None, None, :].astype(vol.dtype))
-    if median_size > 1:
-        is_muscle = _majority(is_muscle, soft, median_size)
+    rim = _border(lab, soft, border)
+    if median_size > 1:  # the border does not vote
+        is_muscle = _majority(is_muscle, soft & ~rim, median_size) | (is_muscle & rim)
+    if rim.any():  # partial volume with air or hard tissue: the class of the soft tissue around
+        vote = _vote(is_muscle, soft & ~rim, max(median_size, 5))
+        is_muscle = np.where(rim, vote > 0, is_muscle)
     full = np.asarray(image.point_data[arrays.TISSUE]).reshape(dims, order="F").copy()
     sub = full[box]
     sub[soft] = arrays.FAT
@@ -308,7 +325,7 @@ def classify_tissue(
     return out, _mixtures(fit, edges, hist, n_voxels, slice_thr, fallback, pooled_thr, hi - lo)
 
 
-def _check(image, median_size, n_components, hu_range, bin_width, min_weight):
+def _check(image, median_size, n_components, hu_range, bin_width, min_weight, border=0):
     """Validated inputs: the ct and tissue volumes, the soft-tissue mask and the HU window."""
     if not isinstance(image, pv.ImageData):
         raise TypeError(f"image must be a pyvista.ImageData, got {type(image).__name__}")
@@ -328,6 +345,9 @@ def _check(image, median_size, n_components, hu_range, bin_width, min_weight):
         raise ValueError(f"hu_range must be two finite increasing HU values, got {hu_range!r}")
     if not (math.isfinite(bin_width) and 0 < bin_width <= (hi - lo) / 4):
         raise ValueError(f"bin_width must be in (0, {(hi - lo) / 4}] HU, got {bin_width!r}")
+    if not (isinstance(border, (int, np.integer)) and not isinstance(border, bool)
+            and border >= 0):
+        raise ValueError(f"border must be an integer >= 0 (voxels), got {border!r}")
     if not 0 <= min_weight < 0.5:
         raise ValueError(f"min_weight must be in [0, 0.5), got {min_weight!r}")
     vol = np.asarray(ct).reshape(dims, order="F")
@@ -474,14 +494,31 @@ def _mixtures(fit, edges, hist, n_voxels, slice_thr, fallback, pooled_thr, span)
     )
 
 
+def _border(lab, soft, width):
+    """The soft-tissue voxels within ``width`` voxels (26-neighbourhood) of air or hard
+    tissue."""
+    if width == 0:
+        return np.zeros_like(soft)
+    hard = np.isin(lab, (arrays.AIR, *arrays.HARD_LABELS))
+    near = ndimage.binary_dilation(hard, structure=np.ones((3, 3, 3), bool), iterations=width)
+    return soft & near
+
+
 # --------------------------------------------------------------------------- EM
-def _majority(is_muscle, soft, size):
-    """Per-slice ``size`` x ``size`` median of the fat/muscle map over soft-tissue voxels:
-    window counts by two separable running sums (in-slice axes 0 and 1)."""
+def _vote(is_muscle, voters, size):
+    """Per-slice ``size`` x ``size`` window vote over the voxels ``voters``: muscle minus fat
+    voters (> 0: muscle majority, < 0: fat, 0: tie or no voter), by two separable running
+    sums (in-slice axes 0 and 1)."""
     def count(mask):
         c = ndimage.uniform_filter1d(mask.astype(np.float32), size, axis=0, mode="constant")
         c = ndimage.uniform_filter1d(c, size, axis=1, mode="constant")
         return np.rint(c * (size * size)).astype(np.int16)
 
-    vote = 2 * count(is_muscle) - count(soft)  # > 0: muscle majority, < 0: fat, 0: tie (keep)
+    return 2 * count(is_muscle & voters) - count(voters)
+
+
+def _majority(is_muscle, soft, size):
+    """Per-slice ``size`` x ``size`` median of the fat/muscle map over soft-tissue voxels
+    (a tie keeps the voxel's class)."""
+    vote = _vote(is_muscle, soft, size)
     return soft & ((vote > 0) | ((vote == 0) & is_muscle))

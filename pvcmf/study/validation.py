@@ -91,7 +91,8 @@ def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the
 #: methods of :func:`study_predictor`: the two models of paper 000 and the truth itself
 STUDY_METHODS = ("proposed", "state_of_the_art", "truth")
 #: deliberately degraded controls of :func:`study_predictor` (the inference must rank them
-#: worse): "no_muscles" is "proposed" without the muscles (all soft tissue fat),
+#: worse): "no_muscles" is "proposed" without the muscles: no atlas muscles and no fat/muscle
+#: classification (every method of the study runs without it), so all soft tissue is fat;
 #: "wrong_nu" is "proposed" with every Poisson ratio set to 0.3 (Table I: 0.43-0.46)
 CONTROL_METHODS = ("no_muscles", "wrong_nu")
 #: the two models with what a real pipeline has (no oracle inputs): the CT and the plan
@@ -122,6 +123,8 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
        face (forehead, orbits, nose bridge) -> exact signed distance of the prediction to
        the registered post-operative skin -> face regions.
 
+    Every method runs paper 000's model: ``simulate(..., classify=False)``, the atlas
+    muscles in fat without paper 001's fat/muscle classification.
     ``method`` "proposed" simulates with the muscle-embedded conforming mesh,
     "state_of_the_art" with the homogeneous mesh and random-point sampling of the muscle
     share (``sample_muscle_fraction``); both MTM predictions are mapped by paper 001's
@@ -252,10 +255,14 @@ def _prediction(case, method, grid, pre_skin, n_tets, sigma):
         return cut_bones(case.truth, case.plan), pred
     oracle = method not in AUTO_METHODS  # true bone labels and landmarks given
     conforming = method not in ("state_of_the_art", "state_of_the_art_auto")
+    # paper 000's models: the atlas muscles in fat, no fat/muscle classification (paper 001's
+    # step, on by default in simulate). Off for every method, so the "no_muscles" control
+    # loses all its muscle: with classification on, the classifier would find that muscle
+    # again and the control would no longer be degraded.
     res = simulate(case.ct, case.plan, bones=case.truth if oracle else None,
                    landmarks=case.landmarks if oracle else None, n_tets=n_tets,
                    mesh_options={"conforming": conforming}, figures=False,
-                   muscles=method != "no_muscles")
+                   muscles=method != "no_muscles", classify=False)
     post = res.post
     if method == "wrong_nu":  # control: the proposed mesh with a wrong Poisson ratio
         g = res.mesh.copy()
