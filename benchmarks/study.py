@@ -105,7 +105,18 @@ def refinement(patients, counts, spacing, cache=True):
             "with the maxilla and the lower lip stays with the mandible (the steepest "
             "gradient of the displacement on the skin, resolved by a few elements only at "
             "these sizes).\n\n")
-    return "## Refinement of the independent truth\n\n" + text + head + "\n" + "\n".join(body)
+    fits = []
+    for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
+        r = [x for x in rows if x["patient"] == p]
+        if len(r) > 1:
+            k, c = np.polyfit(np.log([x["tets"] for x in r]), np.log([x["seconds"] for x in r]), 1)
+            fits.append(f"patient {p}: solve s ~ tetrahedra^{k:.2f}; projected "
+                        f"{np.exp(c) * 30_000 ** k / 60:.0f} min at 30k and "
+                        f"{np.exp(c) * 60_000 ** k / 60:.0f} min at 60k tetrahedra "
+                        "(extrapolated from the rows above, not measured)")
+    tail = "\n\nCost scaling:\n\n" + "\n".join(f"- {f}" for f in fits) if fits else ""
+    return ("## Refinement of the independent truth\n\n" + text + head + "\n"
+            + "\n".join(body) + tail)
 
 
 def change_picture(points, change, path):
