@@ -100,11 +100,8 @@ def refinement(patients, counts, spacing, cache=True):
             "the osteotomy: a displacement that jumps across a line of the tied surface "
             "has no finite-energy solution); the posterior plane is held except within "
             "``CLEARANCE_MM`` of a moved bone; lattice pieces that hang on the body by an "
-            "edge or a vertex are dropped. Where the change remains largest: along the "
-            "lip junction and at the level of the occlusion, where the upper lip moves "
-            "with the maxilla and the lower lip stays with the mandible (the steepest "
-            "gradient of the displacement on the skin, resolved by a few elements only at "
-            "these sizes).\n\n")
+            "edge or a vertex are dropped. Edge mm: the median edge of the lattice "
+            "(its spacing times about 1.4, the face diagonals included).\n\n")
     fits = []
     for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
         r = [x for x in rows if x["patient"] == p]

@@ -10,15 +10,20 @@ the labels, nor the boundary model:
 * mesher: a Freudenthal lattice (six tetrahedra per cube, spacing
   from ``n_tets``) whose boundary nodes are snapped onto the exact surfaces by Newton
   projection (a snap that would flatten an element below a tenth of its volume is
-  undone), not :func:`pvcmf.filters.tetrahedralize`;
+  undone), not :func:`pvcmf.filters.tetrahedralize`; pieces of the lattice that hang on
+  the body by an edge or a vertex are dropped (they would hinge freely);
 * materials: every tetrahedron whose centroid lies in a muscle (the twelve facial
   muscles, tongue, temporalis, neck muscles; the eyes excluded) is muscle, the rest fat;
   Table I values, muscle isotropic (the truth's fibre term vanishes for Table I);
 * boundary model, no :func:`pvcmf.filters.apply_plan`: soft tissue is tied to the bone
   surfaces it touches (periosteum): a node on a bone surface follows its bone segment's
   rigid move of the plan (``segment_transforms`` of the plan's cut bones; the segment of a
-  node is that of the nearest bone voxel), unmoved bone holds it; nodes on the posterior
-  plane are held. Tooth surfaces and air cavities (mouth, airway, sinuses) are free
+  node is that of the nearest bone voxel), unmoved bone holds it, except within
+  :data:`DETACH_MM` of a bone that moves differently, where the tissue is detached (free:
+  a displacement that jumps across a line of the tied surface has no finite-energy
+  solution, and its discrete answer changes with every mesh); nodes on the posterior
+  plane are held, except within :data:`CLEARANCE_MM` of a moved bone. Both bands are in
+  millimetres, so the boundary model is the same on every lattice. Tooth surfaces and air cavities (mouth, airway, sinuses) are free
   surfaces: **no contact is modelled** (lips and cheeks neither slide on nor are pushed
   by the teeth; a lip that would enter a moved tooth is not stopped);
 * law and solver: :func:`pvcmf.truth.solver.solve_reference` (compressible neo-Hookean,
@@ -26,7 +31,8 @@ the labels, nor the boundary model:
 
 The study uses it with ``study_predictor(truth="independent")``; its default truth is
 still :func:`pvcmf.truth.grid.truth_grid` (until the refinement study of
-``benchmarks/study.py --refinement`` has shown this one converged on every patient).
+``benchmarks/study.py --refinement``, measured on the exact skin by
+:mod:`pvcmf.truth.refinement`, shows this one converged on every patient).
 """
 
 from __future__ import annotations
