@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import logging
 import os
 import time
 import platform
@@ -110,7 +111,9 @@ def refinement(patients, counts, spacing, cache=True):
             fits.append(f"patient {p}: solve s ~ tetrahedra^{k:.2f}; projected "
                         f"{np.exp(c) * 30_000 ** k / 60:.0f} min at 30k and "
                         f"{np.exp(c) * 60_000 ** k / 60:.0f} min at 60k tetrahedra "
-                        "(extrapolated from the rows above, not measured)")
+                        "(extrapolated from the rows above, not measured; wall seconds on a "
+                        "2-core machine shared with other jobs, so the exponent varies with "
+                        "the load)")
     tail = "\n\nCost scaling:\n\n" + "\n".join(f"- {f}" for f in fits) if fits else ""
     return ("## Refinement of the independent truth\n\n" + text + head + "\n"
             + "\n".join(body) + tail)
@@ -246,7 +249,10 @@ def main(argv=None):
                     help="solve every truth again (default: reuse the on-disk cache)")
     ap.add_argument("--n-tets", type=int, default=30_000)
     ap.add_argument("--truth-tets", type=int, default=30_000)
+    ap.add_argument("-v", "--verbose", action="store_true", help="log the steps")
     args = ap.parse_args(argv)
+    if args.verbose:
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     parts = ["# Validation study: the truth's convergence and the paired inference", "",
              f"Command: `python benchmarks/study.py {' '.join(sys.argv[1:] if argv is None else argv)}`  ",
              f"Machine: {platform.machine()}, Python {sys.version.split()[0]}, "
