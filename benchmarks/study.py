@@ -147,9 +147,17 @@ def compare(patients, truth, spacing, n_tets, truth_tets):
     for other in methods[1:]:
         table = compare_methods(skins, "proposed", other)
         out.append(f"proposed vs {other}:\n")
-        out.append(table.round(3).to_markdown(index=False))
+        out.append(_markdown(table.round(3)))
         out.append("")
     return "\n".join(out)
+
+
+def _markdown(df):
+    """A pandas table as a markdown table (no ``tabulate`` needed)."""
+    head = "| " + " | ".join(map(str, df.columns)) + " |"
+    rule = "|" + "---|" * len(df.columns)
+    rows = ["| " + " | ".join(str(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join([head, rule, *rows])
 
 
 COHORT_PAGE = PAGE.parent / "cohort.md"
@@ -213,19 +221,19 @@ def cohort_page(args, table, claims, cost, command):
         "plan alone (automatic segmentation, bone segments, atlas fit). |error| in mm on "
         "the judged anterior face.", "",
         "## Errors per patient and method", "",
-        table[keep].round(3).to_markdown(index=False), "",
+        _markdown(table[keep].round(3)), "",
         "## Paper 000's claims, paired over the patients", "",
         "Wilcoxon signed-rank test of the per-patient statistic, Hodges-Lehmann "
         "difference (a - b) with its 95 % bootstrap interval, effect size "
         "(``pvcmf.study.inference.claims_table``). With fewer than 6 patients no "
         "two-sided p-value can fall below 0.05: this run shows the path end to end, not "
         "a verdict.", "",
-        claims.round(4).to_markdown(index=False), "",
+        _markdown(claims.round(4)), "",
         "## Cost", "",
         "Wall seconds per patient (all four methods, the truth and the post-operative CT "
         "included); cold: empty caches (the truth is solved), warm: the same patients "
         "again in the same process (truth read from the on-disk cache, patients built).",
-        "", cost.round(1).to_markdown(index=False), "",
+        "", _markdown(cost.round(1)), "",
         f"Mean per patient: cold {per_cold:.0f} s, warm {per_warm:.0f} s. Projected for "
         f"16 patients at these sizes on this machine: cold {16 * per_cold / 60:.0f} min "
         f"(target 90 min: {'met' if 16 * per_cold <= 5400 else 'not met'}), warm "
@@ -267,6 +275,8 @@ def main(argv=None):
         command = "python benchmarks/study.py " + " ".join(sys.argv[1:] if argv is None else argv)
         table, claims, cost = cohort_study(args.cohort, args.seed, args.spacing, args.n_tets,
                                            args.truth_tets, args.truth)
+        for name, df in (("table", table), ("claims", claims), ("cost", cost)):
+            df.to_csv(COHORT_PAGE.with_name(f"cohort_{name}.csv"), index=False)
         COHORT_PAGE.write_text(cohort_page(args, table, claims, cost, command))
         print(COHORT_PAGE.read_text())
         if not (args.refinement or args.compare):
