@@ -115,6 +115,10 @@ def refinement(patients, counts, spacing, cache=True):
                         "2-core machine shared with other jobs, so the exponent varies with "
                         "the load)")
     tail = "\n\nCost scaling:\n\n" + "\n".join(f"- {f}" for f in fits) if fits else ""
+    if len(counts) > 1:
+        tail += "\n\n" + "\n\n".join(
+            f"![skin change between the two finest truths, patient {p}]"
+            f"(truth_refinement_{p}.png)" for p in patients)
     return ("## Refinement of the independent truth\n\n" + text + head + "\n"
             + "\n".join(body) + tail)
 
