@@ -32,6 +32,7 @@ import argparse
 import datetime
 import logging
 import os
+import tempfile
 import time
 import platform
 import sys
@@ -209,7 +210,7 @@ def cohort_page(args, table, claims, cost, command):
     cold = cost[cost.run == "cold"].seconds
     warm = cost[cost.run == "warm"].seconds
     per_cold, per_warm = float(cold.mean()), float(warm.mean())
-    keep = [c for c in ("patient", "method", "points", "median", "p90", "p95",
+    keep = [c for c in ("patient", "method", "n", "median", "p90", "p95",
                         "within_1mm", "within_2mm") if c in table.columns]
     lines = [
         "# Cohort study: both input modes on seeded virtual patients", "",
@@ -223,7 +224,12 @@ def cohort_page(args, table, claims, cost, command):
         "``proposed`` / ``state_of_the_art`` with oracle inputs (true bone labels and "
         "landmarks) and ``proposed_auto`` / ``state_of_the_art_auto`` from the CT and the "
         "plan alone (automatic segmentation, bone segments, atlas fit). |error| in mm on "
-        "the judged anterior face.", "",
+        "the judged anterior face (signed error statistics of "
+        "``pvcmf.study.statistics.error_statistics``; n: judged skin points).", "",
+        "The truth of this run is the independent truth at the requested size; at such "
+        "sizes it has not converged (``truth_refinement.md``: its skin still changes by "
+        "about 1-2.5 mm p90 between lattices), so these errors show that the path runs "
+        "end to end, not how accurate the models are.", "",
         "## Errors per patient and method", "",
         _markdown(table[keep].round(3)), "",
         "## Paper 000's claims, paired over the patients", "",
@@ -242,7 +248,9 @@ def cohort_page(args, table, claims, cost, command):
         f"16 patients at these sizes on this machine: cold {16 * per_cold / 60:.0f} min "
         f"(target 90 min: {'met' if 16 * per_cold <= 5400 else 'not met'}), warm "
         f"{16 * per_warm / 60:.0f} min (target 5 min: "
-        f"{'met' if 16 * per_warm <= 300 else 'not met'}).", ""]
+        f"{'met' if 16 * per_warm <= 300 else 'not met'}). A warm run reads the truth from "
+        "the cache but runs every MTM pipeline again (the predictions are not cached), "
+        "so it costs about as much as the pipelines themselves.", ""]
     return "\n".join(lines)
 
 
@@ -280,7 +288,7 @@ def main(argv=None):
         table, claims, cost = cohort_study(args.cohort, args.seed, args.spacing, args.n_tets,
                                            args.truth_tets, args.truth)
         for name, df in (("table", table), ("claims", claims), ("cost", cost)):
-            df.to_csv(COHORT_PAGE.with_name(f"cohort_{name}.csv"), index=False)
+            df.to_csv(Path(tempfile.gettempdir()) / f"pvcmf_cohort_{name}.csv", index=False)
         COHORT_PAGE.write_text(cohort_page(args, table, claims, cost, command))
         print(COHORT_PAGE.read_text())
         if not (args.refinement or args.compare):
