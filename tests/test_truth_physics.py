@@ -186,13 +186,63 @@ def test_independent_truth_ties_soft_tissue_to_the_moved_bones(independent_mesh)
     kind = np.asarray(grid["boundary"])
     bc, g, x = np.asarray(grid[arrays.BC]), np.asarray(grid[arrays.BC_DISPLACEMENT]), grid.points
     on_bone = kind == 1 + _BOUNDARY.index("bone")
-    assert np.all(bc[on_bone] == arrays.BC_JOINT)
-    assert np.all(bc[kind == len(_BOUNDARY) + 1] == arrays.BC_FIXED)
-    assert np.all(bc[~on_bone & (kind <= len(_BOUNDARY))] == arrays.BC_FREE)  # no contact
-    moves = segment_transforms(cut_bones(case.truth, case.plan), case.plan)
+    # tied, except in the detached band along the cuts (a few per cent of the bone nodes)
+    assert np.all(np.isin(bc[on_bone], (arrays.BC_JOINT, arrays.BC_FREE)))
+    assert 0 < np.mean(bc[on_bone] == arrays.BC_FREE) < 0.1
+    plane = kind == len(_BOUNDARY) + 1  # held, except near a moved bone
+    assert np.all(np.isin(bc[plane], (arrays.BC_FIXED, arrays.BC_FREE)))
+    assert 0.5 < np.mean(bc[plane] == arrays.BC_FIXED) < 1
+    assert np.all(bc[~on_bone & ~plane] == arrays.BC_FREE)  # no contact
+    labels = cut_bones(case.truth, case.plan)
+    moves = segment_transforms(labels, case.plan)
     rigid = np.zeros(on_bone.sum(), dtype=bool)
     for m in moves.values():  # each tied node moves rigidly with one segment, or not at all
         p = x[on_bone]
         rigid |= np.linalg.norm(p @ m[:3, :3].T + m[:3, 3] - p - g[on_bone], axis=1) < 1e-9
     rigid |= np.linalg.norm(g[on_bone], axis=1) == 0
     assert rigid.all() and (np.linalg.norm(g[on_bone], axis=1) > 1.0).sum() > 20
+
+
+def test_independent_truth_detaches_the_tissue_along_the_cuts(independent_mesh):
+    """Mesh-independent boundary model: no tied node within DETACH_MM of a bone that moves
+    differently, no held plane node within CLEARANCE_MM of a moved bone (distances to the
+    cut labels' voxels, computed here by brute force)."""
+    from pvcmf.filters.osteotomy import cut_bones, segment_transforms, voxel_points
+    from pvcmf.truth.independent import CLEARANCE_MM, DETACH_MM
+
+    case, grid = independent_mesh
+    labels = cut_bones(case.truth, case.plan)
+    moved = set(segment_transforms(labels, case.plan))
+    bone = np.asarray(labels[arrays.BONE])
+    bc, x = np.asarray(grid[arrays.BC]), np.asarray(grid.points)
+    moving = voxel_points(labels, np.flatnonzero(np.isin(bone, list(moved))))
+    still = voxel_points(labels, np.flatnonzero((bone > 0) & ~np.isin(bone, list(moved))))
+
+    def dist(p, q):  # brute force, in chunks of 64 points
+        return np.concatenate([np.sqrt(((c[:, None, :] - q[None, :, :]) ** 2).sum(-1)).min(1)
+                               for c in np.array_split(p, max(1, len(p) // 64))])
+
+    g = np.linalg.norm(grid[arrays.BC_DISPLACEMENT], axis=1)
+    tied = bc == arrays.BC_JOINT
+    # a tied node that moves is at least DETACH_MM from the unmoved bone, and vice versa
+    assert dist(x[tied & (g > 0)], still).min() >= DETACH_MM
+    assert dist(x[tied & (g == 0)], moving).min() >= DETACH_MM
+    assert dist(x[bc == arrays.BC_FIXED], moving).min() >= CLEARANCE_MM
+
+
+def test_independent_truth_mesh_is_one_face_connected_solid(independent_mesh):
+    """No piece hangs on the body by an edge or a vertex (it would hinge freely)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    _, grid = independent_mesh
+    tets = grid.cells_dict[pv.CellType.TETRA]
+    faces = {}
+    for i, t in enumerate(tets):  # brute force over a few thousand cells, test only
+        for f in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)):
+            faces.setdefault(tuple(sorted(t[list(f)])), []).append(i)
+    pairs = np.array([v for v in faces.values() if len(v) == 2])
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
+                       shape=(len(tets), len(tets)))
+    _, part = connected_components(graph, directed=False)
+    assert np.bincount(part).min() >= 0.02 * len(tets)

@@ -31,7 +31,9 @@ Modules:
   accuracy against it (``interface_distance``, ``muscle_volume_errors``);
 * :mod:`pvcmf.truth.independent` - ``independent_truth_grid``: a truth on its own mesh
   of the exact anatomy with its own boundary model (``study_predictor(truth=
-  "independent")``; the study's default truth is still :func:`truth_grid`).
+  "independent")``; the study's default truth is still :func:`truth_grid`);
+* :mod:`pvcmf.truth.refinement` - the independent truth's refinement measured on the
+  exact skin (``exact_skin_samples``, ``skin_displacement``, ``refinement_change``).
 
 The truth is built from the filters directly, never through the pipeline it judges.
 """

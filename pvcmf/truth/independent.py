@@ -10,15 +10,20 @@ the labels, nor the boundary model:
 * mesher: a Freudenthal lattice (six tetrahedra per cube, spacing
   from ``n_tets``) whose boundary nodes are snapped onto the exact surfaces by Newton
   projection (a snap that would flatten an element below a tenth of its volume is
-  undone), not :func:`pvcmf.filters.tetrahedralize`;
+  undone), not :func:`pvcmf.filters.tetrahedralize`; pieces of the lattice that hang on
+  the body by an edge or a vertex are dropped (they would hinge freely);
 * materials: every tetrahedron whose centroid lies in a muscle (the twelve facial
   muscles, tongue, temporalis, neck muscles; the eyes excluded) is muscle, the rest fat;
   Table I values, muscle isotropic (the truth's fibre term vanishes for Table I);
 * boundary model, no :func:`pvcmf.filters.apply_plan`: soft tissue is tied to the bone
   surfaces it touches (periosteum): a node on a bone surface follows its bone segment's
   rigid move of the plan (``segment_transforms`` of the plan's cut bones; the segment of a
-  node is that of the nearest bone voxel), unmoved bone holds it; nodes on the posterior
-  plane are held. Tooth surfaces and air cavities (mouth, airway, sinuses) are free
+  node is that of the nearest bone voxel), unmoved bone holds it, except within
+  :data:`DETACH_MM` of a bone that moves differently, where the tissue is detached (free:
+  a displacement that jumps across a line of the tied surface has no finite-energy
+  solution, and its discrete answer changes with every mesh); nodes on the posterior
+  plane are held, except within :data:`CLEARANCE_MM` of a moved bone. Both bands are in
+  millimetres, so the boundary model is the same on every lattice. Tooth surfaces and air cavities (mouth, airway, sinuses) are free
   surfaces: **no contact is modelled** (lips and cheeks neither slide on nor are pushed
   by the teeth; a lip that would enter a moved tooth is not stopped);
 * law and solver: :func:`pvcmf.truth.solver.solve_reference` (compressible neo-Hookean,
@@ -26,7 +31,8 @@ the labels, nor the boundary model:
 
 The study uses it with ``study_predictor(truth="independent")``; its default truth is
 still :func:`pvcmf.truth.grid.truth_grid` (until the refinement study of
-``benchmarks/study.py --refinement`` has shown this one converged on every patient).
+``benchmarks/study.py --refinement``, measured on the exact skin by
+:mod:`pvcmf.truth.refinement`, shows this one converged on every patient).
 """
 
 from __future__ import annotations
@@ -35,6 +41,8 @@ import logging
 
 import numpy as np
 import pyvista as pv
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .. import arrays, filters
@@ -59,6 +67,12 @@ __all__ = ["independent_truth_grid", "soft_tissue_mesh"]
 #: boundary components of the soft tissue: (name, sign): the region is where every
 #: ``sign * f < 0``
 _BOUNDARY = ("skin", "bone", "teeth", "air", "brain")
+
+#: width (mm) of the band along an osteotomy where the soft tissue is detached from the
+#: bone (free): the tied bone surface ends at the same place on every mesh
+DETACH_MM = 6.0
+#: distance (mm) from a moved bone segment within which the posterior plane is free
+CLEARANCE_MM = 20.0
 
 
 def _fields(warp, x):
@@ -107,23 +121,50 @@ def _lattice(box, h):
     return grid, tets
 
 
+def _main_parts(tets, share=0.02):
+    """The tetrahedra of the face-connected parts that hold at least ``share`` of them.
+
+    The lattice leaves small pieces hanging on the body by an edge or a vertex (a thin
+    part of the anatomy coarser than the lattice); such a piece hinges freely (a
+    near-singular Newton system) and which pieces there are changes with every lattice:
+    they go, so every mesh is one solid (or a few large ones)."""
+    faces = np.sort(np.concatenate([tets[:, [0, 1, 2]], tets[:, [0, 1, 3]],
+                                    tets[:, [0, 2, 3]], tets[:, [1, 2, 3]]]), axis=1)
+    owner = np.tile(np.arange(len(tets)), 4)
+    _, inv = np.unique(faces, axis=0, return_inverse=True)
+    order = np.argsort(inv.ravel(), kind="stable")
+    same = np.flatnonzero(np.diff(inv.ravel()[order]) == 0)  # interior faces: two owners
+    a, b = owner[order][same], owner[order][same + 1]
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(len(tets), len(tets)))
+    _, part = connected_components(graph, directed=False)
+    size = np.bincount(part)
+    return tets[size[part] >= share * len(tets)]
+
+
 def _volumes(x, tets):
     q = x[tets]
     return np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]),
                      q[:, 3] - q[:, 0]) / 6
 
 
-def _snap(warp, x, tets, nodes, h, steps=3, dh=0.2):
-    """Newton projection of boundary ``nodes`` onto their active surface (at most ``h/2``
-    each); snaps that flatten an element below a tenth of its volume are undone."""
-    y = x.copy()
-    p = x[nodes].copy()
-    for _ in range(steps):  # a few Newton steps, each vectorised over the nodes
+def _project(warp, p, steps=3, dh=0.2):
+    """Newton projection of points ``p`` (n, 3) onto the zero set of the soft tissue's
+    region function (gradient by central differences of ``dh`` mm)."""
+    p = np.array(p, dtype=float)
+    for _ in range(steps):  # a few Newton steps, each vectorised over the points
         r, _ = _region(_fields(warp, p))
         grad = np.column_stack([(_region(_fields(warp, p + dh * e))[0]
                                  - _region(_fields(warp, p - dh * e))[0]) / (2 * dh)
                                 for e in np.eye(3)])
         p = p - (r / np.maximum(np.einsum("ij,ij->i", grad, grad), 1e-12))[:, None] * grad
+    return p
+
+
+def _snap(warp, x, tets, nodes, h, steps=3, dh=0.2):
+    """Newton projection of boundary ``nodes`` onto their active surface (at most ``h/2``
+    each); snaps that flatten an element below a tenth of its volume are undone."""
+    y = x.copy()
+    p = _project(warp, x[nodes], steps, dh)
     ok = np.linalg.norm(p - x[nodes], axis=1) <= 0.5 * h
     y[nodes[ok]] = p[ok]
     v0 = _volumes(x, tets)
@@ -167,7 +208,7 @@ def soft_tissue_mesh(case, *, n_tets=30_000, face_fraction=0.5, progress_bar=Fal
     x, tets = _lattice((lo[0], hi[0], box[2], hi[1], lo[2], hi[2]), h)
     r, _ = _region(_fields(warp, x))
     keep = r[tets].mean(axis=1) < 0
-    tets = tets[keep]
+    tets = _main_parts(tets[keep])
     used = np.unique(tets)
     remap = np.full(len(x), -1)
     remap[used] = np.arange(len(used))
@@ -207,30 +248,60 @@ def _materials(grid, warp):
     grid.cell_data[arrays.MUSCLE] = muscle
 
 
-def _boundary_conditions(case, grid):
-    """Point arrays bc / bc_displacement of the truth's own boundary model (module doc)."""
+def _boundary_conditions(case, grid, detach=DETACH_MM, clearance=CLEARANCE_MM):
+    """Point arrays bc / bc_displacement of the truth's own boundary model (module doc).
+
+    A node on a bone surface follows the rigid move of its segment (that of the nearest
+    bone voxel of the cut labels; unmoved bone holds it), unless it lies within
+    ``detach`` mm of a bone voxel of a segment that moves differently: there the
+    periosteum is detached along the osteotomy and the node is free. The band is set in
+    millimetres, not elements, so the tied surface is the same on every mesh (a
+    displacement that jumps across a line of the tied surface has no finite-energy
+    solution, and its discrete answer would change with every refinement). Nodes of the
+    posterior plane are held, except within ``clearance`` mm of a moved bone segment,
+    where they are free (the back cut is artificial: held next to a moving bone it would
+    shear the tissue between them by the whole bone move)."""
     labels = cut_bones(case.truth, case.plan)
     moves = segment_transforms(labels, case.plan)
     bone_ids = np.asarray(labels[arrays.BONE])
     ids = np.flatnonzero(bone_ids > 0)
-    tree = cKDTree(voxel_points(labels, ids))
     kind = np.asarray(grid.point_data["boundary"])
     x = np.asarray(grid.points, dtype=float)
     bc = np.full(len(x), arrays.BC_FREE, dtype=np.int8)
     disp = np.zeros((len(x), 3))
-    on_bone = kind == 1 + _BOUNDARY.index("bone")
-    _, near = tree.query(x[on_bone])
-    seg = bone_ids[ids[near]]
-    bc[on_bone] = arrays.BC_JOINT
-    sub = np.zeros((int(on_bone.sum()), 3))
-    for segment, m in moves.items():  # a few bone segments
-        sel = seg == segment
-        p = x[on_bone][sel]
-        sub[sel] = p @ m[:3, :3].T + m[:3, 3] - p
-    disp[on_bone] = sub
-    bc[kind == len(_BOUNDARY) + 1] = arrays.BC_FIXED
+    on_bone = np.flatnonzero(kind == 1 + _BOUNDARY.index("bone"))
+    p = x[on_bone]
+    segments = np.unique(bone_ids[ids])
+    # distance of each tied node to every segment's voxels (a few segments)
+    dist = np.column_stack([cKDTree(voxel_points(labels, ids[bone_ids[ids] == s])).query(p)[0]
+                            for s in segments])
+    seg = segments[np.argmin(dist, axis=1)]
+    eye = np.eye(4)
+    moved = {s: p @ moves.get(s, eye)[:3, :3].T + moves.get(s, eye)[:3, 3] - p
+             for s in segments}
+    sub = np.zeros((len(p), 3))
+    detached = np.zeros(len(p), dtype=bool)
+    for j, s in enumerate(segments):  # a few bone segments
+        sel = seg == s
+        sub[sel] = moved[s][sel]
+        for k, other in enumerate(segments):
+            if other != s and not np.allclose(moves.get(s, eye), moves.get(other, eye)):
+                detached |= sel & (dist[:, k] < detach)
+    tied = on_bone[~detached]
+    bc[tied] = arrays.BC_JOINT
+    disp[tied] = sub[~detached]
+    plane = np.flatnonzero(kind == len(_BOUNDARY) + 1)
+    mobile = [s for s in segments if not np.allclose(moves.get(s, eye), eye)]
+    near = np.zeros(len(plane), dtype=bool)
+    for s in mobile:  # the artificial back cut is left free near a moved bone
+        tree = cKDTree(voxel_points(labels, ids[bone_ids[ids] == s]))
+        near |= tree.query(x[plane])[0] < clearance
+    bc[plane[~near]] = arrays.BC_FIXED
     grid.point_data[arrays.BC] = bc
     grid.point_data[arrays.BC_DISPLACEMENT] = disp
+    log.info("independent truth: %d bone nodes tied, %d detached within %.1f mm of a cut, "
+             "%d of %d plane nodes free near a moved bone", len(tied), int(detached.sum()),
+             detach, int(near.sum()), len(plane))
     return grid
 
 
