@@ -25,9 +25,8 @@ place), so results cannot change each other or the input skin.
 rounding bound of the float32 product, ``(K + 2) u |R| |a|`` per row (:func:`float32_bound`),
 over plans with rotation entries up to :data:`FLOAT32_ROTATION` and centroid shifts up to
 :data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a face the bound is far
-above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md gives the demo's).
-The skin transfer is built on a second thread during the factorisation and solves.
-Delegates to :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS),
+above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md gives the demo's). The
+skin transfer is built on a second thread during the factorisation and solves. Delegates to :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS),
 :mod:`concurrent.futures` and threadpoolctl (one BLAS thread for the products).
 """
 
@@ -35,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import time
 import warnings
 
 import numpy as np
@@ -114,7 +114,6 @@ def _transfer_in_background(mesh, skin):
     factorisation and solves; it works on its own copies of the mesh's points and
     tetrahedra and of the skin points (no VTK object is shared between the threads).
     Returns a future of ``(transfer, seconds)``."""
-    import time
     from concurrent.futures import ThreadPoolExecutor
 
     points, tets = tetra(mesh)
@@ -174,9 +173,8 @@ def plan_response(mesh, labels, *, skin=None, plan=None, dtype="auto", bc_option
     bc_options : dict, optional
         Keyword arguments of :func:`pvcmf.filters.apply_plan` (e.g. ``fix_unmoved_bone``).
     solver_options : dict, optional
-        Keyword arguments of :class:`pvcmf.mtm.Solver`; ``precision`` defaults to
-        ``'double'`` here (one factorisation serves 12 solves per segment, and a double
-        factor's solves need no refinement).
+        Keyword arguments of :class:`pvcmf.mtm.Solver` (``precision='double'`` unless given:
+        its solves need no refinement).
     progress_bar : bool, default False
         Show the steps (:class:`pvcmf.progress.Progress`).
 
@@ -226,7 +224,6 @@ class PlanResponse:
 
     def __init__(self, mesh, labels, *, skin, plan, dtype, bc_options, solver_options,
                  progress_bar):
-        import time
 
         from ..filters.boundary_conditions import boundary_points
 
