@@ -210,7 +210,11 @@ def _arches(teeth, hard, spacing):
 
 
 def _mandible(hard, upper, lower, z_occ, spacing):
-    """Hard tissue connected to the lower teeth once freed from the skull (see module)."""
+    """Hard tissue connected to the lower teeth once freed from the skull (see module);
+    none without lower teeth (a scan cut above them)."""
+    if not lower.any():
+        log.warning("find_jaws: no lower tooth: no mandible found")
+        return np.zeros_like(hard)
     # split the tooth contacts: the occlusal slab inside the arch footprint
     foot = ndimage.binary_dilation((upper | lower).any(axis=2),
                                    iterations=max(1, int(round(3.0 / spacing[0]))))
