@@ -14,13 +14,16 @@ import argparse
 import os
 import platform
 import statistics
+import sys
 import time
 from pathlib import Path
 
-import pvcmf
-from pvcmf.filters.bone_segments import segment_volumes
-from pvcmf.filters.segmentation import tissue_volumes
-from pvcmf.io.orientation import standardize
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's pvcmf
+
+import pvcmf  # noqa: E402
+from pvcmf.filters.bone_segments import segment_volumes  # noqa: E402
+from pvcmf.filters.segmentation import tissue_volumes  # noqa: E402
+from pvcmf.io.orientation import standardize  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = ("read", "standardize", "segment", "find_jaws", "classify")

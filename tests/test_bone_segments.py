@@ -52,3 +52,16 @@ def test_no_teeth_is_an_error(patient1):
     noteeth[arrays.TISSUE] = t
     with pytest.raises(ValueError, match="cut planes"):
         find_jaws(noteeth)
+
+
+@pytest.mark.parametrize("patient", [1, 2, 3, 4])
+def test_jaws_of_every_virtual_patient(segmented_patients, patient):
+    """The mandible and the Le Fort I maxilla found from the anatomy against each virtual
+    patient's true segments (2 mm): the maxilla reaches back to the end of the hard palate
+    and up to its Le Fort I level."""
+    case, lab = segmented_patients[patient]
+    bone = np.asarray(find_jaws(lab)[arrays.BONE])
+    truth = np.asarray(case.truth[arrays.BONE])
+    for segment in (arrays.MANDIBLE, arrays.MAXILLA):
+        score = dice(bone == segment, truth == segment)
+        assert score >= 0.95, f"{arrays.BONE_NAMES[segment]} Dice {score:.3f}"

@@ -83,7 +83,7 @@ def test_not_a_ct_refused():
 
 def test_a_limb_is_not_a_head():
     """A cylinder of soft tissue with a bone rod (a knee or an arm) passes the units check
-    but is refused by the orientation check."""
+    but is refused by the orientation check, and by standardize as no head at all."""
     g = np.indices((50, 50, 60)).astype(float)
     rr = np.hypot(g[0] - 24.5, g[1] - 24.5)
     limb = np.where(rr < 20, 40.0, -1000.0)
@@ -94,7 +94,7 @@ def test_a_limb_is_not_a_head():
     assert report["units"] == "hu"
     with pytest.raises(ValueError, match="cannot tell the head's orientation"):
         orient_head(hu)
-    with pytest.raises(ValueError, match="orient='none'"):
+    with pytest.raises(ValueError, match="not a head CT: no cranial cavity"):
         standardize(img)
 
 

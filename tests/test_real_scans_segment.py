@@ -20,6 +20,7 @@ from scipy import ndimage
 import pvcmf
 from pvcmf import arrays
 from pvcmf.filters.metal import streak_zone
+from pvcmf.plan import Osteotomy, Plan
 
 
 def _read(name):
@@ -152,3 +153,69 @@ def test_female_jaws(female_jaws):
     maxilla = bone == arrays.MAXILLA
     assert 2.0 < np.count_nonzero(maxilla) * vox < 30.0
     assert np.all(i[2].min() < np.nonzero(maxilla)[2].min())
+
+
+def _tongue(lab, jaws):
+    """The tongue from the anatomy: soft tissue inside the dental arch (the convex hull of
+    the teeth seen from above, 5 mm inside it), from 10 mm below the teeth's lowest voxel (the
+    floor of the mouth lies below the roots) to the middle of the teeth's height, farther
+    than 5 mm from the skeleton and the dentition (the hard components of at least 0.5 mL)."""
+    from scipy.spatial import Delaunay
+
+    t = _vol(lab)
+    sp = np.asarray(lab.spacing)
+    teeth = np.isin(t, (arrays.TEETH, arrays.METAL))
+    ij = np.argwhere(teeth.any(axis=2))
+    hull = Delaunay(ij)
+    grid = np.indices(teeth.shape[:2]).reshape(2, -1).T
+    inside = (hull.find_simplex(grid) >= 0).reshape(teeth.shape[:2])
+    inside = ndimage.distance_transform_edt(inside, sampling=sp[:2]) > 5.0
+    z = np.flatnonzero(teeth.any(axis=(0, 1)))
+    z0 = max(int(z[0] - 10.0 / sp[2]), 0)
+    z1 = int(0.5 * (z[0] + z[-1]))
+    region = np.zeros(t.shape, dtype=bool)
+    region[:, :, z0:z1 + 1] = inside[:, :, None]
+    hard = np.isin(t, arrays.HARD_LABELS)
+    comp, _ = ndimage.label(hard, np.ones((3, 3, 3), bool))
+    big = (np.bincount(comp.ravel()) * np.prod(sp) >= 500.0)[comp] & hard
+    return region & (ndimage.distance_transform_edt(~big, sampling=sp) > 5.0)
+
+
+def _soft_tissue_grid(lab, step):
+    """Hexahedral grid of the soft-tissue voxels of ``lab`` taken every ``step`` voxels
+    (cells centred on the voxel centres), with the matching label image."""
+    sub = tuple(slice(0, None, step) for _ in range(3))
+    t = _vol(lab)[sub]
+    bone = _vol(lab, arrays.BONE)[sub]
+    sp = np.asarray(lab.spacing) * step
+    labels = pv.ImageData(dimensions=t.shape, spacing=sp, origin=lab.origin)
+    labels[arrays.TISSUE] = t.ravel(order="F")
+    labels[arrays.BONE] = bone.ravel(order="F")
+    cells = pv.ImageData(dimensions=np.array(t.shape) + 1, spacing=sp,
+                         origin=np.asarray(lab.origin) - 0.5 * sp)
+    cells.cell_data["soft"] = np.isin(t, arrays.SOFT_LABELS).ravel(order="F").astype(np.uint8)
+    return cells.threshold(0.5, scalars="soft"), labels
+
+
+def test_male_no_bone_and_no_joint_node_in_the_tongue(male):
+    """Metal streaks in the tongue must not become bone: no hard label in the tongue, and
+    with the mandible moved, no soft-tissue node there is glued to a moving bone."""
+    _, lab = male
+    t = _vol(lab)
+    teeth = np.isin(t, (arrays.TEETH, arrays.METAL))
+    ij = np.argwhere(teeth)
+    lo = np.maximum(ij.min(axis=0) - [25, 40, 40], 0)
+    hi = np.minimum(ij.max(axis=0) + [26, 11, 31], t.shape)
+    jaw = lab.extract_subset((lo[0], hi[0] - 1, lo[1], hi[1] - 1, lo[2], hi[2] - 1))
+    jaw = pvcmf.filters.find_jaws(jaw)
+    tongue = _tongue(jaw, jaw)
+    assert tongue.sum() * np.prod(jaw.spacing) > 5000.0  # mm^3: a tongue's body is 40-60 mL
+    assert not np.any(np.isin(_vol(jaw)[tongue], arrays.HARD_LABELS))
+    grid, labels = _soft_tissue_grid(jaw, 2)
+    plan = Plan((Osteotomy("mandible", (0.0, 4.0, 0.0)),))
+    bc = pvcmf.filters.apply_plan(grid, plan, labels, fixed_posterior=False)
+    joint = np.asarray(bc.points)[np.asarray(bc[arrays.BC]) == arrays.BC_JOINT]
+    assert len(joint) > 100
+    idx = np.rint((joint - np.asarray(jaw.origin)) / np.asarray(jaw.spacing)).astype(int)
+    idx = np.clip(idx, 0, np.array(tongue.shape) - 1)
+    assert not np.any(tongue[tuple(idx.T)])

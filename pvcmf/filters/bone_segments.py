@@ -13,7 +13,9 @@
   ``LEFORT_ABOVE_FLOOR`` mm above the nasal floor (the lowest air inside the head above the
   upper teeth: the cut runs through the lateral nasal walls and the maxillary sinuses, the
   palate and the tooth roots stay below it), in front of the pterygoid region (a margin
-  behind the last upper tooth) and joined to the upper teeth; every upper tooth is in it.
+  behind the last upper tooth, or the back end of the hard palate, the posterior nasal
+  spine, where it lies farther back: the segment holds the whole palate) and joined to the
+  upper teeth; every upper tooth is in it.
   An edentulous maxilla (one dental arch, the lower one) is seeded by its alveolar ridge over
   the lower arch and ends behind at the posterior nasal spine.
 
@@ -56,6 +58,9 @@ ALVEOLAR_MM = 15.0
 PALATE_MM2 = 50.0
 #: thickness (mm) of the nasal mucosa between the palate's bone and the nasal air
 MUCOSA_MM = 4.0
+#: half width (mm) of the nasal floor about the midline, medial to the maxillary sinuses (the
+#: nasal cavity is 25-35 mm wide at its floor)
+NASAL_HALF_WIDTH = 8.0
 #: height (mm) of an edentulous alveolar ridge taken as the maxilla's seed
 RIDGE_MM = 5.0
 #: most erosion steps tried to free the mandible from the skull
@@ -210,7 +215,11 @@ def _arches(teeth, hard, spacing):
 
 
 def _mandible(hard, upper, lower, z_occ, spacing):
-    """Hard tissue connected to the lower teeth once freed from the skull (see module)."""
+    """Hard tissue connected to the lower teeth once freed from the skull (see module);
+    none without lower teeth (a scan cut above them)."""
+    if not lower.any():
+        log.warning("find_jaws: no lower tooth: no mandible found")
+        return np.zeros_like(hard)
     # split the tooth contacts: the occlusal slab inside the arch footprint
     foot = ndimage.binary_dilation((upper | lower).any(axis=2),
                                    iterations=max(1, int(round(3.0 / spacing[0]))))
@@ -275,7 +284,8 @@ def _maxilla(rest, upper, lower, air, z_occ, spacing):
     z_floor = _nasal_floor(rest, air, foot, z_top, spacing)
     z_cut = max(z_floor + int(round(LEFORT_ABOVE_FLOOR / spacing[2])), z_top + 1)
     if upper.any():
-        y_back = int(np.nonzero(upper)[1].min()) - int(round(POSTERIOR_MARGIN / spacing[1]))
+        y_back = min(int(np.nonzero(upper)[1].min()) - int(round(POSTERIOR_MARGIN / spacing[1])),
+                     _palate_end(rest, air, foot, z_occ, spacing))
     else:
         y_back = _posterior_nasal_spine(rest, foot, z_floor, spacing)
     region = rest.copy()
@@ -315,6 +325,21 @@ def _nasal_floor(rest, air, foot, z_top, spacing):
     log.warning("find_jaws: no nasal floor found above the teeth; the Le Fort I level is "
                 "15 mm above them")
     return z_top + int(round(15.0 / spacing[2]))
+
+
+def _palate_end(rest, air, foot, z_occ, spacing):
+    """y index of the back end of the hard palate under the nasal cavity (the posterior nasal
+    spine) of a dentate maxilla: the nasal floor is sought above the occlusal level in the
+    midline +-``NASAL_HALF_WIDTH`` mm (the maxillary sinuses beside it may reach lower than
+    the nasal floor, the roots higher), and the palate followed back in its top
+    ``MUCOSA_MM``, just under the nasal air."""
+    band = np.zeros_like(foot)
+    xs = np.flatnonzero(foot.any(axis=1))
+    xc, half = 0.5 * (xs[0] + xs[-1]), NASAL_HALF_WIDTH / spacing[0]
+    band[int(np.ceil(xc - half)):int(xc + half) + 1] = True
+    z_floor = _nasal_floor(rest, air, foot & band, z_occ, spacing)
+    return _posterior_nasal_spine(rest, foot, z_floor + int(round(MUCOSA_MM / spacing[2])),
+                                  spacing)
 
 
 def _posterior_nasal_spine(rest, foot, z_floor, spacing):

@@ -75,18 +75,28 @@ def _box(mask, margin):
 
 
 def _down(mask, factor, how="any"):
-    """Block-reduce a boolean volume by integer ``factor`` per axis (``any`` or ``mean``)."""
-    if mask.strides[0] < mask.strides[-1]:  # Fortran-like memory: reduce in memory order
-        return _down(mask.T, tuple(factor)[::-1], how).T
-    f = tuple(int(v) for v in factor)
-    shape = tuple(-(-n // k) * k for n, k in zip(mask.shape, f))
-    pad = np.zeros(shape, dtype=bool)
-    pad[tuple(slice(0, n) for n in mask.shape)] = mask
-    blocks = pad.reshape(shape[0] // f[0], f[0], shape[1] // f[1], f[1], shape[2] // f[2], f[2])
+    """Block-reduce a boolean volume by integer ``factor`` per axis (``any`` or ``mean``):
+    one axis at a time, in-place ORs or sums of strided views (a partial block at the end
+    counts its missing voxels as False)."""
+    f = [int(v) for v in factor]
+    a = mask if how == "any" else mask.view(np.uint8)
+    for axis, k in enumerate(f):
+        if k == 1:
+            continue
+        index = [slice(None)] * 3
+        index[axis] = slice(0, None, k)
+        out = a[tuple(index)].astype(bool if how == "any" else np.uint16)
+        for offset in range(1, k):
+            index[axis] = slice(offset, None, k)
+            part = a[tuple(index)]
+            target = [slice(None)] * 3
+            target[axis] = slice(0, part.shape[axis])
+            view = out[tuple(target)]
+            (np.logical_or if how == "any" else np.add)(view, part, out=view)
+        a = out
     if how == "any":
-        return blocks.any(axis=(1, 3, 5))
-    count = blocks.sum(axis=(1, 3, 5), dtype=np.uint16)
-    return 2 * count >= int(np.prod(f))
+        return a if a is not mask else a.copy()
+    return 2 * a.astype(np.uint32) >= int(np.prod(f))
 
 
 def _up(mask, factor, shape):

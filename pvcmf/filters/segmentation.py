@@ -349,13 +349,16 @@ def _head(vol, skin, spacing, factor, radius):
 def _head_region(coarse, cspace, factor, radius, shape):
     """Index box (full resolution) and mask of the region the head may occupy: the largest
     part of the coarse mask that survives an opening by a ball of ``radius`` mm, grown by
-    the ball and one coarse voxel. Only the boxes around the masks are transformed."""
+    the ball and one coarse voxel. The opening's dilation and the growth are one dilation
+    (balls add their radii) of the largest component of the erosion; only the boxes around
+    the masks are transformed."""
     r = max(radius, float(np.max(cspace)))  # at least one coarse voxel
-    grow = r + float(np.max(cspace))
+    grow = 2.0 * r + float(np.max(cspace))
     cb = _box(coarse, 0)
-    core = _largest_component(_open_ball(coarse[cb], cspace, r), _FACES)
-    if core is None:  # everything thinner than the ball: keep the plain mask
-        core = coarse[cb]
+    eroded = ndimage.distance_transform_edt(np.pad(coarse[cb], 1), sampling=cspace) > r + 1e-6
+    core = _largest_component(eroded[1:-1, 1:-1, 1:-1], _FACES)
+    if core is None:  # everything thinner than the ball: keep the plain mask, grown by it
+        core, grow = coarse[cb], r + float(np.max(cspace))
     kb = _box(core, 0)
     pad = np.ceil(grow / cspace).astype(int) + 1
     grown = _dilate_ball(np.pad(core[kb], [(int(k), int(k)) for k in pad]), cspace, grow)
@@ -454,9 +457,9 @@ def _intracranial(hard, head, spacing, factor, radius):
         log.warning("segment: SimpleITK is not installed; the intracranial volume is the "
                     "axial slice-wise fill of the skull (leaks where orbits open the ring)")
         brain = _largest_component(enclosed, _FACES)
-    # closed-skull voxels that are not bone at full resolution: nearest label
-    _, idx = ndimage.distance_transform_edt(skull, sampling=cspace, return_indices=True)
-    brain = brain[tuple(idx)]
+        # closed-skull voxels that are not bone at full resolution: nearest label
+        _, idx = ndimage.distance_transform_edt(skull, sampling=cspace, return_indices=True)
+        brain = brain[tuple(idx)]
     return _up(brain, factor, hard.shape) & head & ~hard
 
 
@@ -471,7 +474,9 @@ def _watershed(dist, skull, markers):
     ws = sitk.MorphologicalWatershedFromMarkers(img, mark, markWatershedLine=False,
                                                 fullyConnected=False)
     lab = sitk.GetArrayFromImage(ws).transpose(2, 1, 0)
-    return (lab == 1) & ~skull
+    # the skull, one plateau above every basin, is flooded last from both sides: its voxels
+    # take the label of the nearer basin (those of bone at full resolution are removed later)
+    return lab == 1
 
 
 # --------------------------------------------------------------------------- clipped face

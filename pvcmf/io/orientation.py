@@ -51,10 +51,11 @@ import pyvista as pv
 from scipy import ndimage as ndi
 
 from .. import arrays
+from .head_check import TEETH_STEPS, _teeth_ml, check_head  # noqa: F401 (re-export)
 
 log = logging.getLogger(__name__)
 
-__all__ = ["check_units", "orient_head", "reorient", "standardize", "HU_OFFSETS"]
+__all__ = ["check_head", "check_units", "orient_head", "reorient", "standardize", "HU_OFFSETS"]
 
 #: offsets (HU = value + offset) of the usual CT storage conventions
 HU_OFFSETS = (0.0, -1000.0, -1024.0, -32768.0)
@@ -62,7 +63,6 @@ HU_OFFSETS = (0.0, -1000.0, -1024.0, -32768.0)
 AIR_HU, SOFT_HU = -1000.0, 40.0
 #: voxel size (mm) of the pooled copy the orientation is decided on
 DECISION_VOXEL = 3.0
-
 _LETTERS = {"L": (0, 1), "R": (0, -1), "A": (1, 1), "P": (1, -1), "S": (2, 1), "I": (2, -1)}
 _NAMES = {(0, 1): "L", (0, -1): "R", (1, 1): "A", (1, -1): "P", (2, 1): "S", (2, -1): "I"}
 
@@ -250,25 +250,42 @@ def reorient(image, code):
     return _with_volume(image, out, spacing=np.asarray(image.spacing)[order])
 
 
-def _pool(vol, spacing, body_level, bone_level):
+def _pool(vol, spacing, body_level, bone_level, dense_levels=None):
     """Body and bone masks of ``vol`` pooled to about DECISION_VOXEL mm voxels.
 
     Body: the voxel at each block's corner above ``body_level``; bone: any voxel of the block
-    above ``bone_level`` (thin skull survives the pooling).
+    above ``bone_level`` (thin skull survives the pooling). With ``dense_levels`` (lo, hi),
+    also the blocks whose maximum lies in [lo, hi) (tooth-dense, not metal).
     """
     f = [min(max(1, int(round(DECISION_VOXEL / s))), n) for s, n in zip(spacing, vol.shape)]
     shape = [n // k * k for n, k in zip(vol.shape, f)]
     v = vol[: shape[0], : shape[1], : shape[2]]
     body = v[:: f[0], :: f[1], :: f[2]] > body_level
-    bone = v > bone_level
-    for axis, k in enumerate(f):  # block "any", one axis at a time (strided ORs)
-        index = [slice(None)] * 3
-        parts = []
-        for offset in range(k):
-            index[axis] = slice(offset, None, k)
-            parts.append(bone[tuple(index)])
-        bone = np.logical_or.reduce(parts) if k > 1 else bone
-    return body, bone, np.asarray(spacing) * f
+    # one byte per voxel: 1 bone, 2 tooth-dense, 3 metal; then the block maximum
+    code = (v > bone_level).view(np.uint8)
+    if dense_levels is not None:
+        code = code + (v >= dense_levels[0]).view(np.uint8) + (v >= dense_levels[1]).view(
+            np.uint8)
+    top = _block_max(code, f)
+    ds = np.asarray(spacing) * f
+    if dense_levels is None:
+        return body, top > 0, ds
+    return body, top > 0, ds, top == 2
+
+
+def _block_max(a, f):
+    """Maximum over blocks of ``f`` voxels (``a``'s shape a multiple of ``f``): one axis at
+    a time, in-place maxima of strided views."""
+    for axis, k in enumerate(f):
+        if k > 1:
+            index = [slice(None)] * 3
+            index[axis] = slice(0, None, k)
+            out = a[tuple(index)].copy()
+            for offset in range(1, k):
+                index[axis] = slice(offset, None, k)
+                np.maximum(out, a[tuple(index)], out=out)
+            a = out
+    return a
 
 
 def _largest(mask):
@@ -314,17 +331,23 @@ def _mirror_overlap(mask, axis):
 
 def _cues(vol, spacing, air, soft):
     """Anatomical measurements on the pooled copy (see the module notes)."""
-    body, bone, ds = _pool(vol, spacing, 0.5 * (air + soft), soft + 0.35 * (soft - air))
+    step = soft - air
+    body, bone, ds, dense = _pool(vol, spacing, 0.5 * (air + soft), soft + 0.35 * step,
+                                  (soft + TEETH_STEPS[0] * step, soft + TEETH_STEPS[1] * step))
     if body.any():  # crop to the body plus a margin; faces the body touches stay faces
         nz = np.nonzero(body)
         box = tuple(slice(max(int(i.min()) - 3, 0), int(i.max()) + 4) for i in nz)
-        body, bone = body[box], bone[box]
+        body, bone, dense = body[box], bone[box], dense[box]
     body = _largest(ndi.binary_opening(body, iterations=2))
     head = body | _enclosed(body)
     bone &= head
     voxel_ml = float(np.prod(ds)) / 1e3
     cues = {"voxel_mm": [round(float(d), 2) for d in ds], "body_ml": round(head.sum() * voxel_ml)}
+    cues["teeth_ml"] = round(_teeth_ml(dense & head, ds), 2)
+    votes = sum(_enclosed(body, a).astype(np.uint8) for a in range(3))
+    cues["inner_air_ml"] = round(float(np.count_nonzero((votes >= 1) & ~body)) * voxel_ml)
     if bone.sum() < 10 or head.sum() < 100:
+        cues["cavity_ml"] = 0
         return cues, None
     votes = sum(_enclosed(ndi.binary_closing(bone), a).astype(np.uint8) for a in range(3))
     cavity = _largest((votes >= 2) & head & ~bone)
@@ -437,8 +460,9 @@ def orient_head(image, orient="auto", *, air=None, soft=None):
     return reorient(image, code), report
 
 
-def _orientation(image, orient, air, soft):
-    """Where the image axes point (a code) and the report of :func:`orient_head`."""
+def _orientation(image, orient, air, soft, cues=None):
+    """Where the image axes point (a code) and the report of :func:`orient_head`; ``cues``
+    measured already (:func:`standardize`) are not measured again."""
     vol = _volume(image)
     lr_note = ("left/right taken from the file: a head's two sides cannot be told apart "
                "from the image")
@@ -457,7 +481,10 @@ def _orientation(image, orient, air, soft):
         if found is None:
             raise ValueError("orient_head: no air and tissue peaks: not a CT")
         air, soft = found[0], found[1]
-    cues, ok = _cues(vol, np.asarray(image.spacing, dtype=float), float(air), float(soft))
+    if cues is None:
+        cues, ok = _cues(vol, np.asarray(image.spacing, dtype=float), float(air), float(soft))
+    else:
+        cues, ok = cues
     code, why = _decide(cues) if ok else (None, "no body with bone found")
     if code is None:
         raise ValueError(
@@ -497,12 +524,17 @@ def standardize(image, *, units="auto", orient="auto"):
     Raises
     ------
     ValueError
-        If the image is not a head CT, or its orientation cannot be told (see above).
+        If the image is not a CT (:func:`check_units`), shows no head (neither a cranial
+        cavity nor teeth, :func:`check_head`: a chest, a limb), or its orientation cannot be
+        told (see above).
     """
     out, units_report = check_units(image, units)
     offset = units_report["offset"]
-    code, orient_report = _orientation(out, orient, units_report["air_peak"] + offset,
-                                       units_report["soft_peak"] + offset)
+    air, soft = units_report["air_peak"] + offset, units_report["soft_peak"] + offset
+    cues = _cues(_volume(out), np.asarray(out.spacing, dtype=float), air, soft)
+    check_head(cues[0])
+    code, orient_report = _orientation(out, orient, air, soft, cues)
+    orient_report.setdefault("cues", cues[0])
     if code != "LAS":  # ``out`` is already a new image: no second copy when nothing turns
         out = reorient(out, code)
     return out, _plain({"units": units_report, "orientation": orient_report})
