@@ -294,7 +294,7 @@ def test_face_shape_is_invertible():
     np.testing.assert_array_equal(FaceShape(0.0).forward(pts), pts)
     # the face moves: lips forward, neck longer
     moved = FaceShape(1.0).forward([[0.0, 104.6, -52.0], [0.0, 0.0, -145.0]])
-    assert moved[0, 1] > 108.0 and moved[1, 2] < -170.0
+    assert moved[0, 1] > 108.0 and moved[1, 2] < -165.0
 
 
 def test_soft_tissue_covers_skeleton(cases):

@@ -64,7 +64,7 @@ _LATERAL = [
     ((28.0, 92.0, 31.0), (13.0, 6.0, 5.0), (0.0, 2.5, 0.5)),      # brow ridge
     ((14.0, 109.0, -31.0), (5.0, 6.0, 5.0), (1.5, -1.0, 0.0)),    # alar flare
     ((62.0, 10.0, 70.0), (30.0, 60.0, 35.0), (9.0, 0.0, 0.0)),    # parietal breadth
-    ((55.0, 5.0, -150.0), (18.0, 40.0, 40.0), (-6.0, 0.0, 0.0)),  # narrower neck below the jaw
+    ((55.0, 0.0, -185.0), (20.0, 60.0, 22.0), (5.0, 0.0, 0.0)),   # neck widens toward the shoulders
 ]
 
 
@@ -78,7 +78,7 @@ def _kernels():
 
 #: the neck stretch: below ``NECK_TOP`` (mm, atlas z) the neck is longer by 1 / NECK_SLOPE
 NECK_TOP = -118.0
-NECK_SLOPE = 0.45
+NECK_SLOPE = 0.5
 _NECK_W = 5.0
 
 
