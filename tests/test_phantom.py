@@ -279,7 +279,8 @@ def test_face_proportions_match_real_face(cases):
 
     atlas = dataclasses.replace(template.patient_parameters(1), face=0.0)
     plain = face_proportions(virtual_patient(atlas, cases[1].plan, spacing=SPACING))
-    assert {"upper_lip", "lower_lip", "neck"} <= set(outside_real(plain)), plain
+    assert {"upper_lip", "lower_lip"} <= set(outside_real(plain)), plain
+    assert plain["neck"] < face_proportions(cases[1])["neck"] - 10.0
 
 
 def test_face_shape_is_invertible():
@@ -294,7 +295,7 @@ def test_face_shape_is_invertible():
     np.testing.assert_array_equal(FaceShape(0.0).forward(pts), pts)
     # the face moves: lips forward, neck longer
     moved = FaceShape(1.0).forward([[0.0, 104.6, -52.0], [0.0, 0.0, -145.0]])
-    assert moved[0, 1] > 108.0 and moved[1, 2] < -165.0
+    assert moved[0, 1] > 108.0 and moved[1, 2] < -160.0
 
 
 def test_soft_tissue_covers_skeleton(cases):

@@ -33,8 +33,8 @@ from ...atlas.shapes import F32
 #: ahead of subnasale (ArtiSynth 30 mm); ``upper_lip``: labrale superius ahead of subnasale
 #: (12 mm); ``lower_lip``: labrale inferius ahead of the soft pogonion (6 mm); ``forehead``:
 #: soft glabella ahead of the skin 20 mm above it (4 mm: a steep forehead); ``neck``: head
-#: below the soft menton within a head CT (Visible Human female: the neck continues to the
-#: shoulders); ``height_width``: soft nasion-menton height over the soft bizygomatic width
+#: below the soft menton within a head CT (one that reaches the third cervical vertebra;
+#: the Visible Human female's continues to the shoulders); ``height_width``: soft nasion-menton height over the soft bizygomatic width
 #: (0.92); ``lower_face``: subnasale-menton over nasion-subnasale height (1.18);
 #: ``vault_width``: head breadth 60 mm above the tragion over the soft bizygomatic width
 #: (Visible Human female 1.1: the vault is as broad as the face, not pointed).
@@ -43,7 +43,7 @@ REAL_FACE = {
     "upper_lip": (4.0, 14.0),
     "lower_lip": (1.0, 10.0),
     "forehead": (0.0, 8.0),
-    "neck": (40.0, 100.0),
+    "neck": (35.0, 100.0),
     "height_width": (0.85, 1.10),
     "lower_face": (1.0, 1.4),
     "vault_width": (1.0, 1.2),
@@ -64,7 +64,6 @@ _LATERAL = [
     ((28.0, 92.0, 31.0), (13.0, 6.0, 5.0), (0.0, 2.5, 0.5)),      # brow ridge
     ((14.0, 109.0, -31.0), (5.0, 6.0, 5.0), (1.5, -1.0, 0.0)),    # alar flare
     ((62.0, 10.0, 70.0), (30.0, 60.0, 35.0), (9.0, 0.0, 0.0)),    # parietal breadth
-    ((55.0, 0.0, -185.0), (20.0, 60.0, 22.0), (5.0, 0.0, 0.0)),   # neck widens toward the shoulders
 ]
 
 
@@ -78,7 +77,7 @@ def _kernels():
 
 #: the neck stretch: below ``NECK_TOP`` (mm, atlas z) the neck is longer by 1 / NECK_SLOPE
 NECK_TOP = -118.0
-NECK_SLOPE = 0.5
+NECK_SLOPE = 0.6
 _NECK_W = 5.0
 
 
