@@ -283,6 +283,56 @@ def test_face_proportions_match_real_face(cases):
     assert plain["neck"] < face_proportions(cases[1])["neck"] - 10.0
 
 
+def _artisynth_face_profile(folder):
+    """Outer midline profile (z -> most anterior y, patient frame, mm, 3 mm bins) of the
+    ArtiSynth face mesh (hexahedra in metres, face toward -x)."""
+    nodes = {}
+    for line in (folder / "face.node").read_text().splitlines():
+        try:
+            nodes[int(line[0:8])] = [float(line[a:a + 20]) for a in (8, 28, 48)]
+        except ValueError:
+            continue
+    ids = np.array(list(nodes))
+    xyz = np.array(list(nodes.values())) * 1000.0
+    index = {k: i for i, k in enumerate(ids)}
+    hexes = []
+    for line in (folder / "face.elem").read_text().splitlines():
+        try:
+            hexes.append([index[int(line[6 * i:6 * i + 6])] for i in range(8)])
+        except (ValueError, KeyError):
+            continue
+    points = np.column_stack([xyz[:, 1], -xyz[:, 0], xyz[:, 2]])
+    grid = pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: np.array(hexes)}, points)
+    cut = grid.extract_surface(algorithm="dataset_surface").slice(normal="x",
+                                                                  origin=(0.7, 0, 0)).points
+    z = np.round(cut[:, 2] / 3.0) * 3.0
+    return {float(v): float(cut[z == v, 1].max()) for v in np.unique(z)}
+
+
+def test_real_face_ranges_hold_the_artisynth_face(data_dir):
+    """The nose and upper-lip ranges of ``REAL_FACE`` hold the real (ArtiSynth) face's
+    values measured on its mesh: pronasale ahead of subnasale, labrale superius ahead of
+    subnasale."""
+    from pvcmf.datasets.phantom_face import REAL_FACE
+
+    folder = data_dir / "artisynth_badinface"
+    if not (folder / "face.node").exists():
+        pytest.skip("artisynth_badinface not in the data folder")
+    profile = _artisynth_face_profile(folder)
+    z = np.array(list(profile))
+    y = np.array(list(profile.values()))
+    tip = int(np.argmax(y))
+    below = (z <= z[tip] - 15.0) & (z >= z[tip] - 40.0)
+    subnasale = float(y[below].min())
+    lip = (z <= z[tip] - 30.0) & (z >= z[tip] - 45.0)
+    nose, upper_lip = float(y[tip]) - subnasale, float(y[lip].max()) - subnasale
+    assert REAL_FACE["nose"][0] <= nose <= REAL_FACE["nose"][1], nose
+    assert REAL_FACE["upper_lip"][0] <= upper_lip <= REAL_FACE["upper_lip"][1], upper_lip
+    # the atlas head's upper lip barely projects: outside the real range
+    atlas = template.landmarks()
+    assert atlas["labrale_superius"][1] - atlas["subnasale"][1] < REAL_FACE["upper_lip"][0]
+
+
 def test_face_shape_is_invertible():
     from pvcmf.datasets.template.face import FaceShape
 
