@@ -1,4 +1,4 @@
-"""Face shaping: a smooth, invertible deformation that gives the atlas head a real face's proportions.
+"""Face shaping: a smooth invertible deformation giving the atlas head real face proportions.
 
 The analytic atlas head (:mod:`pvcmf.atlas`) has the right tissues in the right order but the
 outline of an egg on a short cylinder. :class:`FaceShape` deforms the whole head (skin, fat,
@@ -34,7 +34,8 @@ from ...atlas.shapes import F32
 #: (12 mm); ``lower_lip``: labrale inferius ahead of the soft pogonion (6 mm); ``forehead``:
 #: soft glabella ahead of the skin 20 mm above it (4 mm: a steep forehead); ``neck``: head
 #: below the soft menton within a head CT (one that reaches the third cervical vertebra;
-#: the Visible Human female's continues to the shoulders); ``height_width``: soft nasion-menton height over the soft bizygomatic width
+#: the Visible Human female's continues to the shoulders); ``height_width``: soft
+#: nasion-menton height over the soft bizygomatic width
 #: (0.92); ``lower_face``: subnasale-menton over nasion-subnasale height (1.18);
 #: ``vault_width``: head breadth 60 mm above the tragion over the soft bizygomatic width
 #: (Visible Human female 1.1: the vault is as broad as the face, not pointed).
@@ -57,7 +58,7 @@ _MIDLINE = [
     ((0.0, 105.0, -46.0), (2.6, 4.0, 4.5), (0.0, -1.5, 0.0)),     # philtrum groove
     ((0.0, 103.0, -70.0), (13.0, 8.0, 5.5), (0.0, 6.0, -1.0)),    # lower lip
     ((0.0, 100.0, -83.0), (14.0, 7.0, 5.0), (0.0, -2.0, 0.0)),    # mentolabial sulcus
-    ((0.0, 60.0, -122.0), (30.0, 22.0, 12.0), (0.0, -6.0, -3.0)),  # submental: a neck under the chin
+    ((0.0, 60.0, -122.0), (30.0, 22.0, 12.0), (0.0, -6.0, -3.0)),  # submental
 ]
 _LATERAL = [
     ((33.0, 92.0, 12.0), (9.0, 8.0, 8.0), (0.0, -4.5, 0.0)),      # eye socket
