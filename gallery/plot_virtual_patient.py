@@ -4,7 +4,8 @@
 The embedded default data set of pvcmf is a virtual patient built from an analytic template
 head (:mod:`pvcmf.datasets.template`): a cranium with orbits and nasal aperture, the Le Fort I
 maxilla with the upper teeth, the mandible with the lower teeth, soft tissue of realistic
-thickness with nose and lips, and the six muscles of paper 000 Fig. 2a on both sides
+thickness shaped to a real face's proportions (forehead, brow ridges, eye sockets, nose,
+lips with a philtrum, chin, a neck that continues; :mod:`pvcmf.datasets.template.face`), and the six muscles of paper 000 Fig. 2a on both sides
 (orbicularis oculi red, levator labii superioris alaeque nasi purple, levator labii
 superioris orange, zygomaticus major pink and minor olive, masseter brown). Bone segments:
 cranium ivory, maxilla blue, mandible green; the skin is translucent. Patients 1-4 differ

@@ -8,6 +8,7 @@ from numbers the code printed.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 
 import numpy as np
@@ -154,8 +155,9 @@ def test_patients_differ_in_size_thickness_and_jaw_relation(cases):
     assert overjet[2] < 0.0 and overjet[4] < 0.0, overjet
 
 
+# real adult ranges; the upper lip (vermilion to incisor) is 11-17 mm, up to 18 in a large face
 @pytest.mark.parametrize("site, lo, hi", [("forehead", 3.0, 8.0), ("cheek", 15.0, 25.0),
-                                          ("lips", 9.0, 16.0), ("chin", 8.0, 15.0)])
+                                          ("lips", 9.0, 18.0), ("chin", 8.0, 15.0)])
 def test_soft_tissue_thickness(cases, site, lo, hi):
     for p, case in cases.items():
         mm = _thickness(case, *_sites(case)[site])
@@ -261,6 +263,108 @@ def test_warp_round_trip():
         np.testing.assert_allclose(warp.inverse(warp.forward(pts)), pts, atol=1e-3)
         assert not np.allclose(warp.forward(pts), pts, atol=1.0)
     np.testing.assert_allclose(template.identity_warp().forward(pts), pts, atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- face shape
+def test_face_proportions_match_real_face(cases):
+    """Nose, lips, forehead, neck, face height/width, lower face and vault breadth of every
+    patient lie within the real face's ranges (``REAL_FACE``); the atlas head's do not."""
+    from pvcmf.datasets.phantom_face import REAL_FACE, face_proportions, outside_real
+
+    assert set(REAL_FACE) == {"nose", "upper_lip", "lower_lip", "forehead", "neck",
+                              "height_width", "lower_face", "vault_width"}
+    for p, case in cases.items():
+        assert outside_real(face_proportions(case)) == {}, p
+    from pvcmf.study.cohort import virtual_patient
+
+    atlas = dataclasses.replace(template.patient_parameters(1), face=0.0)
+    plain = face_proportions(virtual_patient(atlas, cases[1].plan, spacing=SPACING))
+    assert {"upper_lip", "lower_lip"} <= set(outside_real(plain)), plain
+    assert plain["neck"] < face_proportions(cases[1])["neck"] - 10.0
+
+
+def _artisynth_face_profile(folder):
+    """Outer midline profile (z -> most anterior y, patient frame, mm, 3 mm bins) of the
+    ArtiSynth face mesh (hexahedra in metres, face toward -x)."""
+    nodes = {}
+    for line in (folder / "face.node").read_text().splitlines():
+        try:
+            nodes[int(line[0:8])] = [float(line[a:a + 20]) for a in (8, 28, 48)]
+        except ValueError:
+            continue
+    ids = np.array(list(nodes))
+    xyz = np.array(list(nodes.values())) * 1000.0
+    index = {k: i for i, k in enumerate(ids)}
+    hexes = []
+    for line in (folder / "face.elem").read_text().splitlines():
+        try:
+            hexes.append([index[int(line[6 * i:6 * i + 6])] for i in range(8)])
+        except (ValueError, KeyError):
+            continue
+    points = np.column_stack([xyz[:, 1], -xyz[:, 0], xyz[:, 2]])
+    grid = pv.UnstructuredGrid({pv.CellType.HEXAHEDRON: np.array(hexes)}, points)
+    cut = grid.extract_surface(algorithm="dataset_surface").slice(normal="x",
+                                                                  origin=(0.7, 0, 0)).points
+    z = np.round(cut[:, 2] / 3.0) * 3.0
+    return {float(v): float(cut[z == v, 1].max()) for v in np.unique(z)}
+
+
+def test_real_face_ranges_hold_the_artisynth_face(data_dir):
+    """The nose and upper-lip ranges of ``REAL_FACE`` hold the real (ArtiSynth) face's
+    values measured on its mesh: pronasale ahead of subnasale, labrale superius ahead of
+    subnasale."""
+    from pvcmf.datasets.phantom_face import REAL_FACE
+
+    folder = data_dir / "artisynth_badinface"
+    if not (folder / "face.node").exists():
+        pytest.skip("artisynth_badinface not in the data folder")
+    profile = _artisynth_face_profile(folder)
+    z = np.array(list(profile))
+    y = np.array(list(profile.values()))
+    tip = int(np.argmax(y))
+    below = (z <= z[tip] - 15.0) & (z >= z[tip] - 40.0)
+    subnasale = float(y[below].min())
+    lip = (z <= z[tip] - 30.0) & (z >= z[tip] - 45.0)
+    nose, upper_lip = float(y[tip]) - subnasale, float(y[lip].max()) - subnasale
+    assert REAL_FACE["nose"][0] <= nose <= REAL_FACE["nose"][1], nose
+    assert REAL_FACE["upper_lip"][0] <= upper_lip <= REAL_FACE["upper_lip"][1], upper_lip
+    # the atlas head's upper lip barely projects: outside the real range
+    atlas = template.landmarks()
+    assert atlas["labrale_superius"][1] - atlas["subnasale"][1] < REAL_FACE["upper_lip"][0]
+
+
+def test_face_shape_is_invertible():
+    from pvcmf.datasets.template.face import FaceShape
+
+    rng = np.random.default_rng(1)
+    pts = rng.uniform((-110, -120, -200), (110, 150, 140), size=(50_000, 3))
+    for nose in (0.85, 1.0, 1.15):
+        shape = FaceShape(1.0, nose)
+        assert shape.jacobian_determinant(pts).min() > 0.25
+        np.testing.assert_allclose(shape.inverse(shape.forward(pts)), pts, atol=1e-4)
+    np.testing.assert_array_equal(FaceShape(0.0).forward(pts), pts)
+    # the face moves: lips forward, neck longer
+    moved = FaceShape(1.0).forward([[0.0, 104.6, -52.0], [0.0, 0.0, -145.0]])
+    assert moved[0, 1] > 108.0 and moved[1, 2] < -160.0
+
+
+def test_soft_tissue_covers_skeleton(cases):
+    """Positive soft-tissue thickness everywhere: no bone or tooth voxel within a voxel of
+    the air outside the head."""
+    for p, case in cases.items():
+        tissue = _volume(case.truth, arrays.TISSUE)
+        lab, _ = ndimage.label(tissue == arrays.AIR)
+        outside = lab == lab[0, 0, 0]
+        depth = ndimage.distance_transform_edt(~outside, sampling=SPACING)
+        assert depth[np.isin(tissue, HARD)].min() >= SPACING, p
+
+
+def test_cohort_faces_vary_with_the_seed():
+    from pvcmf.study.cohort import cohort_parameters
+
+    noses = {round(template.PatientWarp(p).shape.nose, 6) for p, _ in cohort_parameters(6, 2)}
+    assert len(noses) == 6 and all(0.85 <= v <= 1.15 for v in noses)
+    assert template.identity_warp().shape.strength == 0.0
 
 
 # ----------------------------------------------------------------------------- template

@@ -3,7 +3,8 @@
 The anatomy (signed distance functions of bones, teeth, soft tissue and the twelve facial
 muscles, the landmarks and the rasteriser) is library data owned by :mod:`pvcmf.atlas`;
 this package gathers it under one name with the perturbations that make each virtual
-patient (:mod:`pvcmf.datasets.template.warp`). Virtual patients are built from the atlas,
+patient (:mod:`pvcmf.datasets.template.warp`) and the face shaping that gives the head a real
+face's proportions (:mod:`pvcmf.datasets.template.face`). Virtual patients are built from the atlas,
 never the reverse.
 
 Frame: x = patient's left +, y = anterior +, z = superior +, mm; the origin lies between
@@ -22,11 +23,13 @@ from ...atlas.skull import (CRANIUM_CENTER, CRANIUM_INNER, CRANIUM_OUTER, Z_LEFO
                             orbits_sdf, spine_sdf, upper_teeth_sdf)
 from ...atlas.soft_tissue import (airway_sdf, eyes_sdf, neck_muscles_sdf, oral_air_sdf, skin_sdf,
                                   temporalis_sdf, thickness_field, tongue_sdf)
+from .face import REAL_FACE, FaceShape
 from .warp import (CENTER, INNER_AXES, PatientParameters, PatientWarp, _check_patient,
                    identity_warp, patient_parameters, patient_warp)
 
 __all__ = [
-    "CENTER", "CRANIUM_CENTER", "CRANIUM_INNER", "CRANIUM_OUTER", "F32", "INNER_AXES",
+    "CENTER", "CRANIUM_CENTER", "CRANIUM_INNER", "CRANIUM_OUTER", "F32", "FaceShape",
+    "INNER_AXES", "REAL_FACE",
     "PatientParameters", "PatientWarp", "Z_LEFORT", "Z_LOWER_EDGE", "Z_UPPER_EDGE",
     "_Grid", "_check_patient", "airway_sdf", "braincase_sdf", "cranium_vault_sdf",
     "eyes_sdf", "face_bone_sdf", "face_cavities_sdf", "head_grid", "head_points",

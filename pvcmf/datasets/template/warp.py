@@ -1,7 +1,8 @@
 """Patient warps: the smooth invertible maps that make virtual patients from the atlas head.
 
 A virtual patient is the atlas head (:mod:`pvcmf.atlas`) through a :class:`PatientWarp`: a
-global affine scaling with a mild non-linear part, a radial stretch of the soft-tissue
+global affine scaling with a mild non-linear part, the face shaping of
+:mod:`pvcmf.datasets.template.face` (real face proportions), a radial stretch of the soft-tissue
 layer outside the bony envelope (soft-tissue thickness) and a sagittal displacement of the
 Le Fort I segment or the mandibular body (jaw relation, class II / III) that the lips and
 chin follow. Each patient's jaw displacement is undone by its plan
@@ -17,6 +18,7 @@ import numpy as np
 from ...atlas.shapes import F32, _smoothstep
 from ...atlas.skull import Z_LEFORT
 from ...plan import TABLE_II
+from .face import FaceShape
 
 #: centre of the radial soft-tissue map
 CENTER = np.array([0.0, 20.0, -25.0])
@@ -40,6 +42,12 @@ class PatientParameters:
         Amplitude (mm) of the smooth non-linear part of the warp.
     seed : int
         Seed of the non-linear part and of the CT noise.
+    face : float
+        Strength of the face shaping (:class:`pvcmf.datasets.template.face.FaceShape`):
+        1 gives the proportions of a real face, 0 the atlas head's.
+    nose : float or None
+        Factor on the nose and lip kernels of the face shaping; None: drawn from ``seed``
+        (0.85-1.15), so a seeded cohort varies in face shape too.
     """
 
     scale: tuple = (1.0, 1.0, 1.0)
@@ -48,6 +56,8 @@ class PatientParameters:
     mandible: float = 0.0
     wave: float = 0.0
     seed: int = 0
+    face: float = 1.0
+    nose: float = None
 
 
 def _jaw_shift(patient):
@@ -72,10 +82,10 @@ def patient_parameters(patient):
     _check_patient(patient)
     maxilla, mandible = _jaw_shift(patient)
     base = {
-        1: dict(scale=(1.00, 1.02, 1.03), thickness=1.0, wave=1.5),
-        2: dict(scale=(0.95, 0.96, 0.95), thickness=0.85, wave=2.0),
-        3: dict(scale=(1.04, 1.04, 1.05), thickness=1.12, wave=2.0),
-        4: dict(scale=(0.98, 1.01, 0.99), thickness=1.06, wave=1.5),
+        1: dict(scale=(1.00, 1.02, 1.03), thickness=1.0, wave=1.5, nose=1.0),
+        2: dict(scale=(0.95, 0.96, 0.95), thickness=0.85, wave=2.0, nose=0.9),
+        3: dict(scale=(1.04, 1.04, 1.05), thickness=1.12, wave=2.0, nose=1.1),
+        4: dict(scale=(0.98, 1.01, 0.99), thickness=1.06, wave=1.5, nose=1.15),
     }[patient]
     return PatientParameters(maxilla=maxilla, mandible=mandible, seed=1000 + patient, **base)
 
@@ -128,8 +138,10 @@ class PatientWarp:
 
     ``forward`` maps template points to the patient, ``inverse`` patient points to the
     template. The map is the one the soft tissue (skin, fat, muscles) follows:
-    ``W(T(J(p)))`` with J the displacement of the lips and chin with the jaws, T the
-    radial stretch of the soft-tissue layer and W the affine + smooth non-linear warp.
+    ``W(F(T(J(p))))`` with J the displacement of the lips and chin with the jaws, T the
+    radial stretch of the soft-tissue layer, F the face shaping
+    (:class:`pvcmf.datasets.template.face.FaceShape`) and W the affine + smooth non-linear
+    warp.
     Bone segments follow the same map with their own jaw displacement (see
     :meth:`forward_bone`).
 
@@ -152,6 +164,10 @@ class PatientWarp:
         e = rng.normal(size=(3, 3))
         self.e = params.wave * e / np.linalg.norm(e, axis=1, keepdims=True)
         self.phase = rng.uniform(0, 2 * np.pi, 3)
+        nose = params.nose
+        if nose is None:
+            nose = float(np.random.default_rng(params.seed + 7).uniform(0.85, 1.15))
+        self.shape = FaceShape(params.face, nose)
 
     # ---- W: affine + waves, defined by its inverse
     def _g(self, Y):
@@ -210,10 +226,10 @@ class PatientWarp:
     # ---- J and the bone segments: sagittal displacements, defined by their inverse
     def base_inverse(self, X):
         """Patient -> template before the jaw displacements (tuple of arrays)."""
-        return self._t_inverse(self._w_inverse(X))
+        return self._t_inverse(self.shape.inverse_tuple(self._w_inverse(X)))
 
     def base_forward(self, S):
-        return self._w_forward(self._t_forward(S))
+        return self._w_forward(self.shape.forward_tuple(self._t_forward(S)))
 
     def soft(self, S):
         """Template coordinates of the soft tissue at base coordinates ``S``."""
@@ -283,4 +299,4 @@ def patient_warp(patient):
 
 def identity_warp():
     """The template's own (identity) map."""
-    return PatientWarp(PatientParameters())
+    return PatientWarp(PatientParameters(face=0.0))
