@@ -153,6 +153,18 @@ def test_female_jaws(female_jaws):
     maxilla = bone == arrays.MAXILLA
     assert 2.0 < np.count_nonzero(maxilla) * vox < 30.0
     assert np.all(i[2].min() < np.nonzero(maxilla)[2].min())
+    # a Le Fort I piece without teeth: one piece (up to crumbs of the thin sinus walls) with
+    # the alveolar ridge on both sides, the hard palate back to its end and the walls above
+    # it up to the cut over the nasal floor
+    comp, _ = ndimage.label(maxilla, np.ones((3, 3, 3), bool))
+    sizes = np.bincount(comp.ravel())[1:]
+    assert sizes.max() > 0.95 * sizes.sum()
+    extent = np.ptp(np.argwhere(maxilla), axis=0) * lab.spacing
+    assert extent[0] > 45.0  # mm across: the ridge's both sides
+    assert extent[1] > 40.0  # mm front to back: the palate to the posterior nasal spine
+    # mm: the ridge of this resorbed maxilla lies about 10 mm under the nasal floor and the
+    # Le Fort I cut 6 mm over it: the piece is 10-22 mm high (not up the sinus walls)
+    assert 10.0 < extent[2] < 22.0
 
 
 def _tongue(lab, jaws):

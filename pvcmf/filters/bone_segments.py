@@ -57,6 +57,11 @@ SKULL_BASE_MM = 15.0
 ALVEOLAR_MM = 15.0
 #: smallest area (mm^2) of nasal floor seen on the palate in one slice
 PALATE_MM2 = 50.0
+#: least area (mm^2) of nasal floor seen on the palate in one slice of a narrow nasal cavity
+PALATE_MIN_MM2 = 10.0
+#: height (mm) above the teeth or ridge searched for the nasal floor of a narrow nasal
+#: cavity (the palate lies 10-20 mm above the alveolar crest)
+NASAL_SEARCH_MM = 25.0
 #: thickness (mm) of the nasal mucosa between the palate's bone and the nasal air
 MUCOSA_MM = 4.0
 #: half width (mm) of the nasal floor about the midline, medial to the maxillary sinuses (the
@@ -74,6 +79,15 @@ MIN_ARCH_SHARE = 0.15
 OCCLUSAL_TRIM = 2.0
 #: fewest columns with a contact gap that fit an occlusal surface
 MIN_SAMPLES = 20
+#: half width (mm) of an edentulous maxilla about the lower arch's midline (the maxillary
+#: arch is 55-65 mm wide over its tuberosities)
+MAXILLA_HALF_WIDTH = 30.0
+#: reach (mm) of an edentulous maxilla in front of the lower teeth's front (an open mouth
+#: swings them back under the upper alveolar ridge)
+MAXILLA_AHEAD = 20.0
+#: depth (mm) of an edentulous maxilla behind the lower teeth's front (the hard palate is
+#: 45-50 mm long, from the incisive papilla to the posterior nasal spine)
+MAXILLA_DEPTH = 60.0
 #: most erosion steps tried to free the mandible from the skull
 MAX_EROSION = 4
 
@@ -381,25 +395,27 @@ def _maxilla(rest, upper, lower, air, z_occ, spacing):
     teeth = upper if upper.any() else lower
     if not teeth.any():
         return np.zeros_like(rest)
-    foot = ndimage.binary_dilation(teeth.any(axis=2),
-                                   iterations=max(1, int(round(5.0 / spacing[0]))))
-    if not upper.any():  # edentulous maxilla: over the lower arch, to its molars
-        foot = ndimage.binary_dilation(foot, iterations=max(1, int(round(10.0 / spacing[0]))))
     if upper.any():
+        foot = ndimage.binary_dilation(teeth.any(axis=2),
+                                       iterations=max(1, int(round(5.0 / spacing[0]))))
         z_top = int(np.nonzero(upper)[2].max())
-    else:  # the alveolar ridge: the lowest RIDGE_MM of non-mandible bone over the arch
+        z_floor = _nasal_floor(rest, air, foot, z_top, spacing)
+    else:  # edentulous: the alveolar ridge, the lowest RIDGE_MM of bone over the maxilla's area
+        foot = _edentulous_area(lower, spacing)
         z_bone = np.flatnonzero((rest & foot[:, :, None])[:, :, z_occ + 1:].any(axis=(0, 1)))
         if not len(z_bone):
             log.warning("find_jaws: no upper tooth and no bone over the lower arch; no maxilla")
             return np.zeros_like(rest)
-        z_top = z_occ + 1 + int(z_bone[0]) + int(round(RIDGE_MM / spacing[2]))
-    z_floor = _nasal_floor(rest, air, foot, z_top, spacing)
+        z_ridge = z_occ + 1 + int(z_bone[0])
+        z_top = z_ridge + int(round(RIDGE_MM / spacing[2]))
+        z_floor = _nasal_floor(rest, air, foot & _midline_band(foot, spacing), z_ridge, spacing)
     z_cut = max(z_floor + int(round(LEFORT_ABOVE_FLOOR / spacing[2])), z_top + 1)
     if upper.any():
         y_back = min(int(np.nonzero(upper)[1].min()) - int(round(POSTERIOR_MARGIN / spacing[1])),
                      _palate_end(rest, air, foot, z_occ, spacing))
     else:
-        y_back = _posterior_nasal_spine(rest, foot, z_floor, spacing)
+        y_back = _posterior_nasal_spine(rest, foot, z_floor + int(round(MUCOSA_MM / spacing[2])),
+                                        spacing)
     region = rest.copy()
     region[:, :, z_cut:] = False
     region[:, :, :max(z_occ - int(round(5.0 / spacing[2])), 0)] = False
@@ -423,7 +439,9 @@ def _maxilla(rest, upper, lower, air, z_occ, spacing):
 def _nasal_floor(rest, air, foot, z_top, spacing):
     """Slice of the nasal floor: the lowest slice above ``z_top`` where the palate (non-mandible
     bone over the arch's footprint) has air at most ``MUCOSA_MM`` above it over at least
-    ``PALATE_MM2``; 15 mm above the teeth where no such slice exists."""
+    ``PALATE_MM2``; else the lowest slice with half the largest such area within
+    ``NASAL_SEARCH_MM`` above ``z_top`` (at least ``PALATE_MIN_MM2``); 15 mm above the
+    teeth where neither exists."""
     reach = max(1, int(round(MUCOSA_MM / spacing[2])))
     air_above = np.zeros_like(air)
     for k in range(1, reach + 1):  # a few shifts along z
@@ -434,9 +452,43 @@ def _nasal_floor(rest, air, foot, z_top, spacing):
     z = np.flatnonzero(area >= PALATE_MM2)
     if len(z):
         return int(z[0])
+    # a narrow nasal cavity (swollen mucosa, turbinates): the lowest slice with half the
+    # largest such area within NASAL_SEARCH_MM above the teeth
+    near = area[:z_top + 1 + int(round(NASAL_SEARCH_MM / spacing[2]))]
+    if near.max() >= PALATE_MIN_MM2:
+        z = int(np.flatnonzero(near >= 0.5 * near.max())[0])
+        log.info("find_jaws: nasal floor at slice %d, where the palate has %.0f mm^2 of nasal "
+                 "air within %.0f mm above it", z, area[z], MUCOSA_MM)
+        return z
     log.warning("find_jaws: no nasal floor found above the teeth; the Le Fort I level is "
                 "15 mm above them")
     return z_top + int(round(15.0 / spacing[2]))
+
+
+def _edentulous_area(lower, spacing):
+    """Where an edentulous maxilla lies, seen from above: ``MAXILLA_HALF_WIDTH`` mm either
+    side of the lower arch's midline, from ``MAXILLA_AHEAD`` mm in front of the lower
+    teeth's front (an open mouth swings them down and back) to ``MAXILLA_DEPTH`` mm behind
+    it (the hard palate to the posterior nasal spine)."""
+    ij = np.argwhere(lower.any(axis=2))
+    xc = 0.5 * (ij[:, 0].min() + ij[:, 0].max())
+    front = int(ij[:, 1].max())
+    half = MAXILLA_HALF_WIDTH / spacing[0]
+    area = np.zeros(lower.shape[:2], dtype=bool)
+    area[max(int(np.ceil(xc - half)), 0):int(xc + half) + 1,
+         max(front - int(round(MAXILLA_DEPTH / spacing[1])), 0):
+         front + int(round(MAXILLA_AHEAD / spacing[1])) + 1] = True
+    return area
+
+
+def _midline_band(foot, spacing):
+    """The columns within ``NASAL_HALF_WIDTH`` mm of the footprint's midline (the nasal
+    floor, medial to the maxillary sinuses that may reach lower)."""
+    band = np.zeros_like(foot)
+    xs = np.flatnonzero(foot.any(axis=1))
+    xc, half = 0.5 * (xs[0] + xs[-1]), NASAL_HALF_WIDTH / spacing[0]
+    band[int(np.ceil(xc - half)):int(xc + half) + 1] = True
+    return band
 
 
 def _palate_end(rest, air, foot, z_occ, spacing):
@@ -445,11 +497,7 @@ def _palate_end(rest, air, foot, z_occ, spacing):
     midline +-``NASAL_HALF_WIDTH`` mm (the maxillary sinuses beside it may reach lower than
     the nasal floor, the roots higher), and the palate followed back in its top
     ``MUCOSA_MM``, just under the nasal air."""
-    band = np.zeros_like(foot)
-    xs = np.flatnonzero(foot.any(axis=1))
-    xc, half = 0.5 * (xs[0] + xs[-1]), NASAL_HALF_WIDTH / spacing[0]
-    band[int(np.ceil(xc - half)):int(xc + half) + 1] = True
-    z_floor = _nasal_floor(rest, air, foot & band, z_occ, spacing)
+    z_floor = _nasal_floor(rest, air, foot & _midline_band(foot, spacing), z_occ, spacing)
     return _posterior_nasal_spine(rest, foot, z_floor + int(round(MUCOSA_MM / spacing[2])),
                                   spacing)
 
