@@ -3,7 +3,11 @@
 :func:`find_jaws` labels, in a segmented head (``tissue`` with hard tissue, teeth and metal):
 
 * the **occlusal level**: the axial plane of fewest tooth voxels between the upper and the
-  lower dental arch (the two largest peaks of the tooth voxels' height profile);
+  lower dental arch (the two largest peaks of the tooth voxels' height profile). Teeth in
+  occlusion (one run of teeth with the alveolar bone of both jaws beside it) are split by
+  the **occlusal surface** instead: a quadratic surface fitted to the contact gaps of the
+  columns that hold both crowns; the hard tissue along it, over the arch and in front of
+  it, is cut;
 * the **mandible**: the hard tissue, split at the occlusal level inside the dental arch's
   footprint (where the upper and lower teeth touch), is eroded one voxel at a time until the
   part holding the lower teeth no longer holds the upper teeth or the skull's top (the
@@ -16,8 +20,10 @@
   behind the last upper tooth, or the back end of the hard palate, the posterior nasal
   spine, where it lies farther back: the segment holds the whole palate) and joined to the
   upper teeth; every upper tooth is in it.
-  An edentulous maxilla (one dental arch, the lower one) is seeded by its alveolar ridge over
-  the lower arch and ends behind at the posterior nasal spine.
+  An edentulous maxilla (one dental arch, the lower one) is seeded by its alveolar ridge
+  (the lowest non-mandible bone over the maxilla's area, found from the lower arch's midline
+  and front), cut ``LEFORT_ABOVE_FLOOR`` mm above the nasal floor found over the palate,
+  and ends behind at the posterior nasal spine.
 
 Everything else is ``CRANIUM``. Delegates to :mod:`scipy.ndimage` (labelling, erosion,
 distance transforms); no loop over voxels.
