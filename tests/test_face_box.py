@@ -94,3 +94,19 @@ def test_face_box_under_the_mandible_of_a_rotated_image():
 def test_face_box_rejects_bad_margin(margin):
     with pytest.raises(ValueError, match="below_mandible"):
         face_box(_labels(), 0.5, below_mandible=margin)
+
+
+def test_face_box_finds_the_mandible_from_the_teeth():
+    """Labels without the mandible (segment's output: every hard voxel cranium) but with
+    teeth: the mandible comes from the anatomy and the box stops under it, as with the
+    virtual patient's true mandible."""
+    import pvcmf
+
+    case = pvcmf.datasets.phantom(patient=2, spacing=2.0)
+    lab = pvcmf.filters.segment(case.ct)
+    assert not np.any(np.asarray(lab[arrays.BONE]) == arrays.MANDIBLE)
+    truth = lab.copy()
+    truth[arrays.BONE] = np.asarray(case.truth[arrays.BONE])
+    z_true = face_box(truth, 0.5)[4]
+    assert face_box(lab, 0.5)[4] == pytest.approx(z_true, abs=2 * lab.spacing[2])
+    assert z_true > face_box(lab, 0.5, below_mandible=None)[4] + 5.0  # the neck is cut

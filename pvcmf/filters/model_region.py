@@ -18,6 +18,7 @@ import numbers
 import numpy as np
 
 from .. import arrays
+from .bone_segments import find_jaws
 
 log = logging.getLogger("pvcmf.pipeline")
 
@@ -34,9 +35,9 @@ def face_box(labels, face_fraction, below_mandible=BELOW_MANDIBLE_MM):
 
     The model is the face in front of a coronal plane, as in paper 000 where the most
     posterior plane of the soft-tissue model is fixed (Fig. 4c), and above an axial plane
-    ``below_mandible`` mm under the mandible's lowest point where ``labels`` has a ``bone``
-    array with the mandible (:func:`pvcmf.filters.find_jaws`, or the plan's segments): the
-    neck under the chin, not the shoulders.
+    ``below_mandible`` mm under the mandible's lowest point: the neck under the chin, not the
+    shoulders. The mandible is the ``bone`` array's where it has one (the plan's segments),
+    else found from the anatomy (:func:`pvcmf.filters.find_jaws`) where there are teeth.
 
     Parameters
     ----------
@@ -72,8 +73,8 @@ def face_box(labels, face_fraction, below_mandible=BELOW_MANDIBLE_MM):
     pad = np.asarray(labels.spacing)
     y0 = hi[1] - face_fraction * (hi[1] - lo[1])
     z0 = lo[2] - pad[2]
-    if below_mandible is not None and arrays.BONE in labels.point_data:
-        mandible = np.asarray(labels[arrays.BONE]) == arrays.MANDIBLE
+    mandible = _mandible(labels) if below_mandible is not None else None
+    if mandible is not None:
         if mandible.any():
             z_jaw = _extent(labels, mandible)[0][2]
             if z_jaw - below_mandible > z0:
@@ -82,6 +83,26 @@ def face_box(labels, face_fraction, below_mandible=BELOW_MANDIBLE_MM):
                          z_jaw - below_mandible)
             z0 = max(z0, z_jaw - below_mandible)
     return (lo[0] - pad[0], hi[0] + pad[0], y0, hi[1] + pad[1], z0, hi[2] + pad[2])
+
+
+def _mandible(labels):
+    """Point mask of the mandible: the labels' ``bone`` array, else found from the anatomy
+    (:func:`pvcmf.filters.bone_segments.find_jaws`) where the tissue holds teeth; None where
+    there is none."""
+    if arrays.BONE in labels.point_data:
+        mandible = np.asarray(labels[arrays.BONE]) == arrays.MANDIBLE
+        if mandible.any():
+            return mandible
+    tissue = np.asarray(labels[arrays.TISSUE])
+    if not np.any(tissue == arrays.TEETH) or not hasattr(labels, "dimensions"):
+        return None
+    try:
+        found = find_jaws(labels)
+    except ValueError as err:
+        log.info("face box: no mandible found (%s); the box keeps the whole height", err)
+        return None
+    mandible = np.asarray(found[arrays.BONE]) == arrays.MANDIBLE
+    return mandible if mandible.any() else None
 
 
 def _extent(labels, mask):
