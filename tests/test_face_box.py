@@ -5,6 +5,7 @@ import pytest
 import pyvista as pv
 
 from pvcmf import arrays
+from pvcmf.filters.model_region import BELOW_MANDIBLE_MM
 from pvcmf.pipeline import face_box
 
 
@@ -54,3 +55,58 @@ def test_face_box_rejects_all_air():
     img[arrays.TISSUE] = np.zeros(img.n_points, dtype=np.uint8)
     with pytest.raises(ValueError, match="all air"):
         face_box(img, 0.5)
+
+
+def _with_mandible(z_slices):
+    img = _labels()
+    bone = np.zeros(img.dimensions[::-1], dtype=np.uint8)  # (z, y, x)
+    bone[z_slices, 10:20, 5:10] = arrays.MANDIBLE
+    img[arrays.BONE] = bone.ravel()
+    return img
+
+
+def test_face_box_stops_under_the_mandible():
+    """The box's floor lies ``below_mandible`` mm under the mandible's lowest voxel (here z
+    index 14 of a 1.5 mm grid starting at 7 mm: z 28 mm), never under the tissue's."""
+    img = _with_mandible(slice(14, 18))
+    z_jaw = 7.0 + 1.5 * 14
+    assert face_box(img, 0.5, below_mandible=10.0)[4] == pytest.approx(z_jaw - 10.0)
+    assert face_box(img, 0.5)[4] == pytest.approx(max(z_jaw - BELOW_MANDIBLE_MM, 7.0 + 1.5 * 3))
+    # no cut without the margin, none deeper than the tissue, none without a mandible
+    whole = _brute(img, 0.5)[4]
+    assert face_box(img, 0.5, below_mandible=None)[4] == pytest.approx(whole)
+    assert face_box(img, 0.5, below_mandible=100.0)[4] == pytest.approx(whole)
+    np.testing.assert_allclose(face_box(_labels(), 0.5, below_mandible=1.0), _brute(_labels(), 0.5))
+    # the other five bounds do not change
+    np.testing.assert_allclose(np.delete(face_box(img, 0.5, below_mandible=10.0), 4),
+                               np.delete(_brute(img, 0.5), 4))
+
+
+def test_face_box_under_the_mandible_of_a_rotated_image():
+    c, s = np.cos(0.3), np.sin(0.3)
+    img = _with_mandible(slice(14, 18))
+    img.direction_matrix = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    z_jaw = np.asarray(img.points)[np.asarray(img[arrays.BONE]) == arrays.MANDIBLE, 2].min()
+    assert face_box(img, 0.5, below_mandible=10.0)[4] == pytest.approx(z_jaw - 10.0)
+
+
+@pytest.mark.parametrize("margin", [-1.0, "deep"])
+def test_face_box_rejects_bad_margin(margin):
+    with pytest.raises(ValueError, match="below_mandible"):
+        face_box(_labels(), 0.5, below_mandible=margin)
+
+
+def test_face_box_finds_the_mandible_from_the_teeth():
+    """Labels without the mandible (segment's output: every hard voxel cranium) but with
+    teeth: the mandible comes from the anatomy and the box stops under it, as with the
+    virtual patient's true mandible."""
+    import pvcmf
+
+    case = pvcmf.datasets.phantom(patient=2, spacing=2.0)
+    lab = pvcmf.filters.segment(case.ct)
+    assert not np.any(np.asarray(lab[arrays.BONE]) == arrays.MANDIBLE)
+    truth = lab.copy()
+    truth[arrays.BONE] = np.asarray(case.truth[arrays.BONE])
+    z_true = face_box(truth, 0.5)[4]
+    assert face_box(lab, 0.5)[4] == pytest.approx(z_true, abs=2 * lab.spacing[2])
+    assert z_true > face_box(lab, 0.5, below_mandible=None)[4] + 5.0  # the neck is cut

@@ -153,6 +153,18 @@ def test_female_jaws(female_jaws):
     maxilla = bone == arrays.MAXILLA
     assert 2.0 < np.count_nonzero(maxilla) * vox < 30.0
     assert np.all(i[2].min() < np.nonzero(maxilla)[2].min())
+    # a Le Fort I piece without teeth: one piece (up to crumbs of the thin sinus walls) with
+    # the alveolar ridge on both sides, the hard palate back to its end and the walls above
+    # it up to the cut over the nasal floor
+    comp, _ = ndimage.label(maxilla, np.ones((3, 3, 3), bool))
+    sizes = np.bincount(comp.ravel())[1:]
+    assert sizes.max() > 0.95 * sizes.sum()
+    extent = np.ptp(np.argwhere(maxilla), axis=0) * lab.spacing
+    assert extent[0] > 45.0  # mm across: the ridge's both sides
+    assert extent[1] > 40.0  # mm front to back: the palate to the posterior nasal spine
+    # mm: the ridge of this resorbed maxilla lies about 10 mm under the nasal floor and the
+    # Le Fort I cut 6 mm over it: the piece is 10-22 mm high (not up the sinus walls)
+    assert 10.0 < extent[2] < 22.0
 
 
 def _tongue(lab, jaws):
@@ -219,3 +231,45 @@ def test_male_no_bone_and_no_joint_node_in_the_tongue(male):
     idx = np.rint((joint - np.asarray(jaw.origin)) / np.asarray(jaw.spacing)).astype(int)
     idx = np.clip(idx, 0, np.array(tongue.shape) - 1)
     assert not np.any(tongue[tuple(idx.T)])
+
+
+def _condyles_reached(mand, teeth, spacing, height=40.0):
+    """Whether the mandible rises ``height`` mm above the teeth's top on both sides of the
+    dentition's midline (20 mm lateral to it): both rami up to the condyles."""
+    i = np.nonzero(mand)
+    xc = np.median(np.nonzero(teeth)[0])
+    z_teeth = np.nonzero(teeth)[2].max()
+    return all(len(i[2][side]) and (i[2][side].max() - z_teeth) * spacing[2] > height
+               for side in (i[0] < xc - 20.0 / spacing[0], i[0] > xc + 20.0 / spacing[0]))
+
+
+def test_male_jaws_in_occlusion(male):
+    """The male's teeth are in occlusion (no slice free of teeth between the arches): the
+    upper teeth go to a Le Fort I maxilla, the lower ones to a mandible that is one piece
+    with both condyles. In every column through the dentition the maxilla's tooth voxels
+    lie above the mandible's; both arches are dentate, so each holds a good share of the
+    tooth voxels."""
+    _, lab = male
+    bone = _vol(pvcmf.filters.find_jaws(lab), arrays.BONE)
+    t = _vol(lab)
+    teeth = np.isin(t, (arrays.TEETH, arrays.METAL))
+    mand, maxilla = bone == arrays.MANDIBLE, bone == arrays.MAXILLA
+    vox = np.prod(lab.spacing) / 1000.0
+    _, n = ndimage.label(mand, np.ones((3, 3, 3), bool))
+    assert n == 1
+    assert _condyles_reached(mand, teeth & mand, lab.spacing, height=30.0)
+    assert 25.0 < np.count_nonzero(mand) * vox < 70.0  # mL: an adult mandible
+    assert 10.0 < np.count_nonzero(maxilla) * vox < 40.0  # mL: Le Fort I bone and teeth
+    up, low = teeth & maxilla, teeth & mand
+    assert np.count_nonzero(up | low) > 0.98 * np.count_nonzero(teeth)
+    for part in (up, low):
+        assert np.count_nonzero(part) > 0.3 * np.count_nonzero(teeth)
+    z = np.arange(t.shape[2])[None, None, :]
+    up_low = np.where(up, z, t.shape[2]).min(axis=2)  # lowest maxillary tooth voxel
+    low_top = np.where(low, z, -1).max(axis=2)  # highest mandibular tooth voxel
+    both = up.any(axis=2) & low.any(axis=2)
+    assert both.sum() > 50
+    assert np.all(up_low[both] > low_top[both])
+    # the maxilla holds the hard palate: it reaches 30 mm behind the front of the upper teeth
+    yi = np.nonzero(maxilla)[1]
+    assert (np.nonzero(up)[1].max() - yi.min()) * lab.spacing[1] > 30.0

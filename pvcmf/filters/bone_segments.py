@@ -3,7 +3,11 @@
 :func:`find_jaws` labels, in a segmented head (``tissue`` with hard tissue, teeth and metal):
 
 * the **occlusal level**: the axial plane of fewest tooth voxels between the upper and the
-  lower dental arch (the two largest peaks of the tooth voxels' height profile);
+  lower dental arch (the two largest peaks of the tooth voxels' height profile). Teeth in
+  occlusion (one run of teeth with the alveolar bone of both jaws beside it) are split by
+  the **occlusal surface** instead: a quadratic surface fitted to the contact gaps of the
+  columns that hold both crowns; the hard tissue along it, over the arch and in front of
+  it, is cut;
 * the **mandible**: the hard tissue, split at the occlusal level inside the dental arch's
   footprint (where the upper and lower teeth touch), is eroded one voxel at a time until the
   part holding the lower teeth no longer holds the upper teeth or the skull's top (the
@@ -16,8 +20,10 @@
   behind the last upper tooth, or the back end of the hard palate, the posterior nasal
   spine, where it lies farther back: the segment holds the whole palate) and joined to the
   upper teeth; every upper tooth is in it.
-  An edentulous maxilla (one dental arch, the lower one) is seeded by its alveolar ridge over
-  the lower arch and ends behind at the posterior nasal spine.
+  An edentulous maxilla (one dental arch, the lower one) is seeded by its alveolar ridge
+  (the lowest non-mandible bone over the maxilla's area, found from the lower arch's midline
+  and front), cut ``LEFORT_ABOVE_FLOOR`` mm above the nasal floor found over the palate,
+  and ends behind at the posterior nasal spine.
 
 Everything else is ``CRANIUM``. Delegates to :mod:`scipy.ndimage` (labelling, erosion,
 distance transforms); no loop over voxels.
@@ -30,6 +36,7 @@ import logging
 import numpy as np
 import pyvista as pv
 from scipy import ndimage
+from scipy.spatial import Delaunay, QhullError
 
 from .. import arrays
 
@@ -56,6 +63,11 @@ SKULL_BASE_MM = 15.0
 ALVEOLAR_MM = 15.0
 #: smallest area (mm^2) of nasal floor seen on the palate in one slice
 PALATE_MM2 = 50.0
+#: least area (mm^2) of nasal floor seen on the palate in one slice of a narrow nasal cavity
+PALATE_MIN_MM2 = 10.0
+#: height (mm) above the teeth or ridge searched for the nasal floor of a narrow nasal
+#: cavity (the palate lies 10-20 mm above the alveolar crest)
+NASAL_SEARCH_MM = 25.0
 #: thickness (mm) of the nasal mucosa between the palate's bone and the nasal air
 MUCOSA_MM = 4.0
 #: half width (mm) of the nasal floor about the midline, medial to the maxillary sinuses (the
@@ -63,6 +75,25 @@ MUCOSA_MM = 4.0
 NASAL_HALF_WIDTH = 8.0
 #: height (mm) of an edentulous alveolar ridge taken as the maxilla's seed
 RIDGE_MM = 5.0
+#: bone next to a lone run of teeth on its other side, as a share of the bone on its
+#: busier side, that tells two arches in occlusion (a lone arch has soft tissue or air
+#: beyond its crowns)
+OCCLUSION_BONE = 0.25
+#: least share of the teeth on each side of an occlusion split (else one arch)
+MIN_ARCH_SHARE = 0.15
+#: samples (mm) farther than this from the fitted occlusal surface are left out of the fit
+OCCLUSAL_TRIM = 2.0
+#: fewest columns with a contact gap that fit an occlusal surface
+MIN_SAMPLES = 20
+#: half width (mm) of an edentulous maxilla about the lower arch's midline (the maxillary
+#: arch is 55-65 mm wide over its tuberosities)
+MAXILLA_HALF_WIDTH = 30.0
+#: reach (mm) of an edentulous maxilla in front of the lower teeth's front (an open mouth
+#: swings them back under the upper alveolar ridge)
+MAXILLA_AHEAD = 20.0
+#: depth (mm) of an edentulous maxilla behind the lower teeth's front (the hard palate is
+#: 45-50 mm long, from the incisive papilla to the posterior nasal spine)
+MAXILLA_DEPTH = 60.0
 #: most erosion steps tried to free the mandible from the skull
 MAX_EROSION = 4
 
@@ -133,10 +164,10 @@ def find_jaws(labels, *, progress_bar=False):
     if teeth.sum() < 10:
         raise ValueError("find_jaws: fewer than 10 tooth voxels: cannot find the jaws from the "
                          "anatomy; give the plan's osteotomies cut planes")
-    z_occ, upper, lower = _arches(teeth, hard, spacing)
+    z_occ, upper, lower, contact = _arches(teeth, hard, spacing)
     say("find_jaws: occlusal level at slice %d of the bone box (%d upper, %d lower tooth "
         "voxels)", z_occ, int(upper.sum()), int(lower.sum()))
-    mandible = _mandible(hard, upper, lower, z_occ, spacing)
+    mandible = _mandible(hard, upper, lower, z_occ, spacing, contact)
     maxilla = _maxilla(hard & ~mandible, upper, lower, tissue[box] == arrays.AIR, z_occ, spacing)
     bone = np.zeros(dims, dtype=np.uint8, order="F")
     sub = np.where(hard, arrays.CRANIUM, arrays.BONE_NONE).astype(np.uint8)
@@ -175,7 +206,8 @@ def _far_from(mask, spacing, distance):
 
 
 def _arches(teeth, hard, spacing):
-    """Occlusal slice and the upper and lower tooth voxels.
+    """Occlusal slice, the upper and lower tooth voxels and the hard voxels of their contact
+    (None where the arches are apart: the occlusal slice separates them).
 
     Two arches: the slice of fewest tooth voxels between the two largest peaks of the teeth's
     height profile. One arch (an edentulous jaw, or an open mouth whose arches share no
@@ -199,24 +231,121 @@ def _arches(teeth, hard, spacing):
             z_occ = int(a + np.argmin(smooth[a:b + 1]))
             upper = teeth.copy()
             upper[:, :, :z_occ + 1] = False
-            return z_occ, upper, teeth & ~upper
+            return z_occ, upper, teeth & ~upper, None
     foot = ndimage.binary_dilation(teeth.any(axis=2),
                                    iterations=max(1, int(round(3.0 / spacing[0]))))
     bone = (hard & ~teeth)[foot].sum(axis=0)
     below, above = bone[max(lo - gap, 0):lo].sum(), bone[hi + 1:hi + 1 + gap].sum()
     none = np.zeros_like(teeth)
+    if min(below, above) >= OCCLUSION_BONE * max(below, above):
+        # bone of both jaws' alveolar processes next to one run of teeth: the arches touch
+        split = _occlusion(teeth, hard, spacing, lo, hi)
+        if split is not None:
+            return split
     if below >= above:
         log.info("find_jaws: one dental arch, the lower one (bone below it %d, above %d "
                  "voxels); no upper tooth", below, above)
-        return hi, none, teeth.copy()
+        return hi, none, teeth.copy(), None
     log.info("find_jaws: one dental arch, the upper one (bone below it %d, above %d voxels); "
              "no lower tooth", below, above)
-    return lo - 1, teeth.copy(), none
+    return lo - 1, teeth.copy(), none, None
 
 
-def _mandible(hard, upper, lower, z_occ, spacing):
+def _occlusion(teeth, hard, spacing, lo, hi):
+    """Upper and lower teeth of two arches in occlusion, split by the occlusal surface.
+
+    Where the crowns of both arches stand in one column (x, y), the column's tooth voxels
+    have a gap at the contact (the enamel of the cusps meets over less than a voxel, its
+    partial volume falls below the teeth's threshold): the centre of each column's largest
+    inner gap is a sample of the occlusal surface. A quadratic surface z(x, y) (the curves of
+    Spee and Wilson: the occlusal surface lies close to a sphere, Monson) is fitted to the
+    samples by least squares, twice trimmed of samples more than ``OCCLUSAL_TRIM`` mm off
+    it. Tooth voxels above it are upper, below it lower. Returns (z of the surface's lowest
+    point, upper, lower, the hard voxels on the surface inside the arch's footprint), or
+    None where the samples are too few or fewer than ``MIN_ARCH_SHARE`` of the teeth fall
+    on one side (one arch after all).
+    """
+    sub = teeth[:, :, lo:hi + 1]
+    k = np.arange(lo, hi + 1, dtype=float)
+    # per column: the largest run of non-tooth slices between two tooth voxels
+    above = np.maximum.accumulate(np.where(sub, k, -np.inf), axis=2)  # last tooth at or below
+    below = np.minimum.accumulate(np.where(sub, k, np.inf)[:, :, ::-1], axis=2)[:, :, ::-1]
+    gap = np.where(~sub & np.isfinite(above) & np.isfinite(below), below - above, 0.0)
+    size = gap.max(axis=2)
+    cols = size >= 2  # at least one empty slice between two tooth voxels
+    if cols.sum() < MIN_SAMPLES:
+        return None
+    arg = np.argmax(gap, axis=2)
+    xi, yi = np.nonzero(cols)
+    lower_top = above[xi, yi, arg[xi, yi]]
+    zs = lower_top + 0.5 * size[xi, yi]
+    pts = np.column_stack([xi * spacing[0], yi * spacing[1]])
+    keep = np.ones(len(zs), dtype=bool)
+    for _ in range(3):
+        coef = _fit_quadric(pts[keep], zs[keep] * spacing[2])
+        off = np.abs(_quadric(pts, coef) - zs * spacing[2])
+        keep = off <= OCCLUSAL_TRIM
+        if keep.sum() < MIN_SAMPLES:
+            return None
+    nx, ny, nz = teeth.shape
+    gx, gy = np.meshgrid(np.arange(nx) * spacing[0], np.arange(ny) * spacing[1], indexing="ij")
+    surf = _quadric(np.column_stack([gx.ravel(), gy.ravel()]), coef).reshape(nx, ny)
+    surf = surf / spacing[2]  # slice index of the surface per column
+    zz = np.arange(nz)[None, None, :]
+    upper = teeth & (zz > surf[:, :, None])
+    lower = teeth & ~upper
+    n_up, n_low = int(upper.sum()), int(lower.sum())
+    log.debug("find_jaws: occlusal surface from %d of %d columns, %d upper, %d lower tooth "
+              "voxels", int(keep.sum()), len(zs), n_up, n_low)
+    if min(n_up, n_low) < MIN_ARCH_SHARE * (n_up + n_low):
+        return None
+    foot = _arch_area(teeth.any(axis=2), spacing)
+    contact = hard & (np.abs(zz - surf[:, :, None]) < 1.0) & foot[:, :, None]
+    log.info("find_jaws: the dental arches touch (occlusion): %d upper and %d lower tooth "
+             "voxels either side of the occlusal surface", n_up, n_low)
+    z_low = int(np.floor(surf[foot].min())) if foot.any() else lo
+    return max(z_low, 0), upper, lower, contact
+
+
+def _arch_area(foot, spacing):
+    """Where the arches meet, seen from above: the convex hull of the teeth's footprint
+    (:class:`scipy.spatial.Delaunay`), 3 mm wider, and everything in front of it (incisors
+    and canines below the tooth threshold stand in front of the hull's chord)."""
+    ij = np.argwhere(foot)
+    inside = np.zeros_like(foot)
+    try:
+        hull = Delaunay(ij)
+    except (QhullError, ValueError):  # collinear footprint
+        inside = foot.copy()
+    else:
+        lo, hi = ij.min(axis=0), ij.max(axis=0) + 1
+        grid = np.indices(hi - lo).reshape(2, -1).T + lo
+        inside[lo[0]:hi[0], lo[1]:hi[1]] = (hull.find_simplex(grid) >= 0).reshape(hi - lo)
+    inside = ndimage.binary_dilation(inside, iterations=max(1, int(round(3.0 / spacing[0]))))
+    return np.maximum.accumulate(inside, axis=1)  # and in front of it (+y)
+
+
+def _quadric_terms(pts):
+    x, y = pts[:, 0], pts[:, 1]
+    return np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+
+
+def _fit_quadric(pts, z):
+    """Least-squares quadratic surface z(x, y) (coordinates centred for conditioning)."""
+    c = pts.mean(axis=0)
+    coef, *_ = np.linalg.lstsq(_quadric_terms(pts - c), z, rcond=None)
+    return c, coef
+
+
+def _quadric(pts, fit):
+    c, coef = fit
+    return _quadric_terms(pts - c) @ coef
+
+
+def _mandible(hard, upper, lower, z_occ, spacing, contact=None):
     """Hard tissue connected to the lower teeth once freed from the skull (see module);
-    none without lower teeth (a scan cut above them)."""
+    none without lower teeth (a scan cut above them). ``contact``: the upper side of the
+    arches' contact surface, for arches in occlusion (cut instead of the occlusal slice)."""
     if not lower.any():
         log.warning("find_jaws: no lower tooth: no mandible found")
         return np.zeros_like(hard)
@@ -224,7 +353,9 @@ def _mandible(hard, upper, lower, z_occ, spacing):
     foot = ndimage.binary_dilation((upper | lower).any(axis=2),
                                    iterations=max(1, int(round(3.0 / spacing[0]))))
     cut = hard.copy()
-    if upper.any():
+    if contact is not None:
+        cut &= ~contact
+    elif upper.any():
         cut[:, :, z_occ][foot] = False
     top = np.zeros_like(hard)
     top[:, :, -max(1, int(round(5.0 / spacing[2]))):] = True
@@ -239,7 +370,8 @@ def _mandible(hard, upper, lower, z_occ, spacing):
         jaw = int(np.argmax(ids))
         if not np.any(lab[anchor & work] == jaw):
             log.debug("find_jaws: mandible free after %d erosion(s)", step)
-            return _regrow(lab == jaw, work, hard, step, spacing)
+            jaw = _regrow(lab == jaw, work, hard, step, spacing)
+            return jaw & ~upper
         work = ndimage.binary_erosion(work, _FACES)
     log.warning("find_jaws: the mandible stays joined to the skull after %d erosions; it is "
                 "the lower teeth's part below the occlusal level", MAX_EROSION)
@@ -269,25 +401,27 @@ def _maxilla(rest, upper, lower, air, z_occ, spacing):
     teeth = upper if upper.any() else lower
     if not teeth.any():
         return np.zeros_like(rest)
-    foot = ndimage.binary_dilation(teeth.any(axis=2),
-                                   iterations=max(1, int(round(5.0 / spacing[0]))))
-    if not upper.any():  # edentulous maxilla: over the lower arch, to its molars
-        foot = ndimage.binary_dilation(foot, iterations=max(1, int(round(10.0 / spacing[0]))))
     if upper.any():
+        foot = ndimage.binary_dilation(teeth.any(axis=2),
+                                       iterations=max(1, int(round(5.0 / spacing[0]))))
         z_top = int(np.nonzero(upper)[2].max())
-    else:  # the alveolar ridge: the lowest RIDGE_MM of non-mandible bone over the arch
+        z_floor = _nasal_floor(rest, air, foot, z_top, spacing)
+    else:  # edentulous: the alveolar ridge, the lowest RIDGE_MM of bone over the maxilla's area
+        foot = _edentulous_area(lower, spacing)
         z_bone = np.flatnonzero((rest & foot[:, :, None])[:, :, z_occ + 1:].any(axis=(0, 1)))
         if not len(z_bone):
             log.warning("find_jaws: no upper tooth and no bone over the lower arch; no maxilla")
             return np.zeros_like(rest)
-        z_top = z_occ + 1 + int(z_bone[0]) + int(round(RIDGE_MM / spacing[2]))
-    z_floor = _nasal_floor(rest, air, foot, z_top, spacing)
+        z_ridge = z_occ + 1 + int(z_bone[0])
+        z_top = z_ridge + int(round(RIDGE_MM / spacing[2]))
+        z_floor = _nasal_floor(rest, air, foot & _midline_band(foot, spacing), z_ridge, spacing)
     z_cut = max(z_floor + int(round(LEFORT_ABOVE_FLOOR / spacing[2])), z_top + 1)
     if upper.any():
         y_back = min(int(np.nonzero(upper)[1].min()) - int(round(POSTERIOR_MARGIN / spacing[1])),
                      _palate_end(rest, air, foot, z_occ, spacing))
     else:
-        y_back = _posterior_nasal_spine(rest, foot, z_floor, spacing)
+        y_back = _posterior_nasal_spine(rest, foot, z_floor + int(round(MUCOSA_MM / spacing[2])),
+                                        spacing)
     region = rest.copy()
     region[:, :, z_cut:] = False
     region[:, :, :max(z_occ - int(round(5.0 / spacing[2])), 0)] = False
@@ -311,7 +445,9 @@ def _maxilla(rest, upper, lower, air, z_occ, spacing):
 def _nasal_floor(rest, air, foot, z_top, spacing):
     """Slice of the nasal floor: the lowest slice above ``z_top`` where the palate (non-mandible
     bone over the arch's footprint) has air at most ``MUCOSA_MM`` above it over at least
-    ``PALATE_MM2``; 15 mm above the teeth where no such slice exists."""
+    ``PALATE_MM2``; else the lowest slice with half the largest such area within
+    ``NASAL_SEARCH_MM`` above ``z_top`` (at least ``PALATE_MIN_MM2``); 15 mm above the
+    teeth where neither exists."""
     reach = max(1, int(round(MUCOSA_MM / spacing[2])))
     air_above = np.zeros_like(air)
     for k in range(1, reach + 1):  # a few shifts along z
@@ -322,9 +458,43 @@ def _nasal_floor(rest, air, foot, z_top, spacing):
     z = np.flatnonzero(area >= PALATE_MM2)
     if len(z):
         return int(z[0])
+    # a narrow nasal cavity (swollen mucosa, turbinates): the lowest slice with half the
+    # largest such area within NASAL_SEARCH_MM above the teeth
+    near = area[:z_top + 1 + int(round(NASAL_SEARCH_MM / spacing[2]))]
+    if near.max() >= PALATE_MIN_MM2:
+        z = int(np.flatnonzero(near >= 0.5 * near.max())[0])
+        log.info("find_jaws: nasal floor at slice %d, where the palate has %.0f mm^2 of nasal "
+                 "air within %.0f mm above it", z, area[z], MUCOSA_MM)
+        return z
     log.warning("find_jaws: no nasal floor found above the teeth; the Le Fort I level is "
                 "15 mm above them")
     return z_top + int(round(15.0 / spacing[2]))
+
+
+def _edentulous_area(lower, spacing):
+    """Where an edentulous maxilla lies, seen from above: ``MAXILLA_HALF_WIDTH`` mm either
+    side of the lower arch's midline, from ``MAXILLA_AHEAD`` mm in front of the lower
+    teeth's front (an open mouth swings them down and back) to ``MAXILLA_DEPTH`` mm behind
+    it (the hard palate to the posterior nasal spine)."""
+    ij = np.argwhere(lower.any(axis=2))
+    xc = 0.5 * (ij[:, 0].min() + ij[:, 0].max())
+    front = int(ij[:, 1].max())
+    half = MAXILLA_HALF_WIDTH / spacing[0]
+    area = np.zeros(lower.shape[:2], dtype=bool)
+    area[max(int(np.ceil(xc - half)), 0):int(xc + half) + 1,
+         max(front - int(round(MAXILLA_DEPTH / spacing[1])), 0):
+         front + int(round(MAXILLA_AHEAD / spacing[1])) + 1] = True
+    return area
+
+
+def _midline_band(foot, spacing):
+    """The columns within ``NASAL_HALF_WIDTH`` mm of the footprint's midline (the nasal
+    floor, medial to the maxillary sinuses that may reach lower)."""
+    band = np.zeros_like(foot)
+    xs = np.flatnonzero(foot.any(axis=1))
+    xc, half = 0.5 * (xs[0] + xs[-1]), NASAL_HALF_WIDTH / spacing[0]
+    band[int(np.ceil(xc - half)):int(xc + half) + 1] = True
+    return band
 
 
 def _palate_end(rest, air, foot, z_occ, spacing):
@@ -333,11 +503,7 @@ def _palate_end(rest, air, foot, z_occ, spacing):
     midline +-``NASAL_HALF_WIDTH`` mm (the maxillary sinuses beside it may reach lower than
     the nasal floor, the roots higher), and the palate followed back in its top
     ``MUCOSA_MM``, just under the nasal air."""
-    band = np.zeros_like(foot)
-    xs = np.flatnonzero(foot.any(axis=1))
-    xc, half = 0.5 * (xs[0] + xs[-1]), NASAL_HALF_WIDTH / spacing[0]
-    band[int(np.ceil(xc - half)):int(xc + half) + 1] = True
-    z_floor = _nasal_floor(rest, air, foot & band, z_occ, spacing)
+    z_floor = _nasal_floor(rest, air, foot & _midline_band(foot, spacing), z_occ, spacing)
     return _posterior_nasal_spine(rest, foot, z_floor + int(round(MUCOSA_MM / spacing[2])),
                                   spacing)
 

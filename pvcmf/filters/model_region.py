@@ -1,7 +1,8 @@
 """The part of the head the soft-tissue model covers, and the parts a plan holds.
 
 * :func:`face_box` - the box of the head's anterior share that is meshed (the model is
-  the face in front of a coronal plane, paper 000 Fig. 4c);
+  the face in front of a coronal plane, paper 000 Fig. 4c, and above an axial plane
+  ``BELOW_MANDIBLE_MM`` under the mandible: no shoulders);
 * :func:`drop_floating_parts` - remove mesh parts the boundary conditions do not hold
   (connected components by :func:`scipy.sparse.csgraph.connected_components`).
 
@@ -17,42 +18,111 @@ import numbers
 import numpy as np
 
 from .. import arrays
+from .bone_segments import find_jaws
 
 log = logging.getLogger("pvcmf.pipeline")
 
-__all__ = ["drop_floating_parts", "face_box"]
+__all__ = ["BELOW_MANDIBLE_MM", "drop_floating_parts", "face_box"]
+
+#: depth (mm) of the neck kept in the model under the mandible's lowest point: the submental
+#: and submandibular soft tissue that follows the chin, down past the hyoid (15-20 mm under
+#: the mandible's lower border); the shoulders lie lower and are left out
+BELOW_MANDIBLE_MM = 30.0
 
 
-def face_box(labels, face_fraction):
+def face_box(labels, face_fraction, below_mandible=BELOW_MANDIBLE_MM):
     """Box (xmin, xmax, ymin, ymax, zmin, zmax) of the head's anterior ``face_fraction``.
 
     The model is the face in front of a coronal plane, as in paper 000 where the most
-    posterior plane of the soft-tissue model is fixed (Fig. 4c).
+    posterior plane of the soft-tissue model is fixed (Fig. 4c), and above an axial plane
+    ``below_mandible`` mm under the mandible's lowest point: the neck under the chin, not the
+    shoulders. The mandible is the ``bone`` array's where it has one (the plan's segments),
+    else found from the anatomy (:func:`pvcmf.filters.find_jaws`) where there are teeth.
+
+    Parameters
+    ----------
+    labels : pyvista.ImageData
+        Label image (point array ``tissue``; ``bone`` optional).
+    face_fraction : float
+        Share (0, 1] of the head's anterior-posterior extent kept, from the front.
+    below_mandible : float or None, default ``BELOW_MANDIBLE_MM``
+        Depth (mm) kept under the mandible; None keeps the whole height.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> img = pv.ImageData(dimensions=(4, 4, 100))
+    >>> img[arrays.TISSUE] = np.full(img.n_points, arrays.FAT, dtype=np.uint8)
+    >>> bone = np.zeros((100, 4, 4), dtype=np.uint8)
+    >>> bone[60:70] = arrays.MANDIBLE
+    >>> img[arrays.BONE] = bone.ravel()
+    >>> [float(z) for z in face_box(img, 1.0)[4:]]  # 30 mm under the mandible (z 60)
+    [30.0, 100.0]
     """
     if not (isinstance(face_fraction, numbers.Real) and 0 < face_fraction <= 1):
         raise ValueError(f"face_fraction must be a number in (0, 1], got {face_fraction!r}")
+    if below_mandible is not None and not (isinstance(below_mandible, numbers.Real)
+                                           and below_mandible >= 0):
+        raise ValueError(f"below_mandible must be a number >= 0 (mm) or None, got "
+                         f"{below_mandible!r}")
     head = np.asarray(labels[arrays.TISSUE]) != arrays.AIR
     if not head.any():
         raise ValueError("labels has no tissue: the 'tissue' array is all air")
+    lo, hi = _extent(labels, head)
+    pad = np.asarray(labels.spacing)
+    y0 = hi[1] - face_fraction * (hi[1] - lo[1])
+    z0 = lo[2] - pad[2]
+    mandible = _mandible(labels) if below_mandible is not None else None
+    if mandible is not None:
+        if mandible.any():
+            z_jaw = _extent(labels, mandible)[0][2]
+            if z_jaw - below_mandible > z0:
+                log.info("face box: %.0f mm under the mandible's lowest point (z %.1f mm): "
+                         "the tissue below z %.1f mm is left out", below_mandible, z_jaw,
+                         z_jaw - below_mandible)
+            z0 = max(z0, z_jaw - below_mandible)
+    return (lo[0] - pad[0], hi[0] + pad[0], y0, hi[1] + pad[1], z0, hi[2] + pad[2])
+
+
+def _mandible(labels):
+    """Point mask of the mandible: the labels' ``bone`` array, else found from the anatomy
+    (:func:`pvcmf.filters.bone_segments.find_jaws`) where the tissue holds teeth; None where
+    there is none."""
+    if arrays.BONE in labels.point_data:
+        mandible = np.asarray(labels[arrays.BONE]) == arrays.MANDIBLE
+        if mandible.any():
+            return mandible
+    tissue = np.asarray(labels[arrays.TISSUE])
+    if not np.any(tissue == arrays.TEETH) or not hasattr(labels, "dimensions"):
+        return None
+    try:
+        found = find_jaws(labels)
+    except ValueError as err:
+        log.info("face box: no mandible found (%s); the box keeps the whole height", err)
+        return None
+    mandible = np.asarray(found[arrays.BONE]) == arrays.MANDIBLE
+    return mandible if mandible.any() else None
+
+
+def _extent(labels, mask):
+    """Lowest and highest physical coordinates (x, y, z) of the non-empty point ``mask``."""
     direction = getattr(labels, "direction_matrix", None)
     if direction is None or np.allclose(direction, np.eye(3)):
-        # index bounds of the head from the mask's projections (no (n, 3) point array:
-        # a 1 mm head image has ~30M voxels)
-        mask = head.reshape(labels.dimensions[::-1])  # (z, y, x)
+        # index bounds from the mask's projections (no (n, 3) point array: a 1 mm head
+        # image has ~30M voxels)
+        grid = mask.reshape(labels.dimensions[::-1])  # (z, y, x)
         lo_idx, hi_idx = [], []
         for axis in (2, 1, 0):  # x, y, z
             other = tuple(a for a in range(3) if a != axis)
-            hit = np.flatnonzero(mask.any(axis=other))
+            hit = np.flatnonzero(grid.any(axis=other))
             lo_idx.append(hit[0])
             hi_idx.append(hit[-1])
         origin, spacing = np.asarray(labels.origin), np.asarray(labels.spacing)
-        lo, hi = origin + spacing * lo_idx, origin + spacing * hi_idx
-    else:
-        pts = np.asarray(labels.points)[head]
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-    pad = np.asarray(labels.spacing)
-    y0 = hi[1] - face_fraction * (hi[1] - lo[1])
-    return (lo[0] - pad[0], hi[0] + pad[0], y0, hi[1] + pad[1], lo[2] - pad[2], hi[2] + pad[2])
+        return origin + spacing * lo_idx, origin + spacing * hi_idx
+    pts = np.asarray(labels.points)[mask]
+    return pts.min(axis=0), pts.max(axis=0)
+
 
 def drop_floating_parts(grid, min_constrained=3, collinear_tol=0.05):
     """Remove connected parts of a mesh that the boundary conditions do not hold.
