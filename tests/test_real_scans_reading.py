@@ -9,34 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import pyvista as pv
 
 import pvcmf
 from pvcmf import arrays
 from pvcmf.filters.orientation import standardize
 
+from ct_helpers import image_of, stored_as, volume
+
 TURNS = ["LPI", "SLA", "IRA"]  # proper rotations: left/right cannot be told from anatomy
-
-
-def _volume(image):
-    return np.asarray(image[arrays.CT]).reshape(image.dimensions, order="F")
-
-
-def _image(vol, spacing):
-    img = pv.ImageData(dimensions=vol.shape, spacing=spacing)
-    img[arrays.CT] = np.asarray(vol, dtype=np.float32).ravel(order="F")
-    return img
-
-
-def _stored_as(image, code, add):
-    letters = {"L": (0, 1), "R": (0, -1), "A": (1, 1), "P": (1, -1), "S": (2, 1), "I": (2, -1)}
-    picks = [letters[c] for c in code]
-    order = [p[0] for p in picks]
-    vol = np.transpose(_volume(image), order)
-    for i, (_, sign) in enumerate(picks):
-        if sign < 0:
-            vol = np.flip(vol, i)
-    return _image(vol + add, np.asarray(image.spacing)[order])
 
 
 def _scan(data_dir, name, step):
@@ -44,8 +24,8 @@ def _scan(data_dir, name, step):
     if not path.exists():
         pytest.skip(f"{path} not in the data folder")
     ct = pvcmf.read_ct(path)
-    vol = _volume(ct)[::step, ::step, ::step]
-    return _image(vol, np.asarray(ct.spacing) * step)
+    vol = volume(ct)[::step, ::step, ::step]
+    return image_of(vol, np.asarray(ct.spacing) * step)
 
 
 @pytest.fixture(scope="module", params=["vhp_female_head", "vhp_male_head"])
@@ -68,7 +48,7 @@ def test_vhp_read_in_hu_and_patient_frame(vhp):
 
 @pytest.mark.parametrize("code", TURNS)
 def test_vhp_scanner_units_and_turned_axes_come_back(vhp, code):
-    out, report = standardize(_stored_as(vhp, code, 1000.0))
+    out, report = standardize(stored_as(vhp, code, 1000.0))
     assert report["orientation"]["code"] == code and report["units"]["offset"] == -1000.0
     assert out.dimensions == vhp.dimensions
     np.testing.assert_array_equal(out[arrays.CT], vhp[arrays.CT])
@@ -79,9 +59,9 @@ def test_headsq_needs_no_hand_offset_or_flip(headsq_raw):
     ref, report = standardize(headsq_raw)
     assert report["units"]["units"] == "scanner" and report["orientation"]["code"] == "LPI"
     np.testing.assert_array_equal(
-        _volume(ref), _volume(headsq_raw)[:, ::-1, ::-1] + report["units"]["offset"])
+        volume(ref), volume(headsq_raw)[:, ::-1, ::-1] + report["units"]["offset"])
     for code in TURNS:
-        out, rep = standardize(_stored_as(ref, code, 1024.0))
+        out, rep = standardize(stored_as(ref, code, 1024.0))
         assert rep["orientation"]["code"] == code, code
         np.testing.assert_array_equal(out[arrays.CT], ref[arrays.CT])
 
@@ -90,7 +70,7 @@ def test_vhp_written_as_coronal_nifti_in_scanner_units(vhp, tmp_path):
     """A file written by nibabel (coronal slices, RAS affine, scanner units) is read into the
     patient frame by the header and into HU by the histogram."""
     nib = pytest.importorskip("nibabel")
-    vol = _volume(vhp)[:, :, ::2]  # a lighter copy
+    vol = volume(vhp)[:, :, ::2]  # a lighter copy
     s = np.asarray(vhp.spacing) * [1, 1, 2]
     # file axes: i -> patient right (-x), j -> superior, k -> posterior (-y)
     data = np.transpose(vol, (0, 2, 1))[::-1, :, ::-1] + 1024
@@ -101,7 +81,7 @@ def test_vhp_written_as_coronal_nifti_in_scanner_units(vhp, tmp_path):
     read = pvcmf.read_ct(tmp_path / "coronal.nii.gz")
     out, report = standardize(read)
     assert report["orientation"]["code"] == "LAS" and report["units"]["offset"] == -1024.0
-    np.testing.assert_array_equal(_volume(out), vol)
+    np.testing.assert_array_equal(volume(out), vol)
 
 
 def test_cli_simulate_finds_units_and_axes(data_dir, tmp_path, capsys):
