@@ -204,15 +204,15 @@ class Located:
         cdist, cand = cdist.reshape(len(out), kt), cand.reshape(len(out), kt)
         e = corners[:, [0, 1, 2]] - corners[:, [1, 2, 0]]
         h = float(np.median(np.linalg.norm(e, axis=2)))
+        frames = _Triangles(corners)
         n = len(out)
         d = np.full((n, kt), np.inf)
         slot = np.full((n, kt), -1, dtype=np.int64)  # (point, candidate) -> measured pair
         found = []
 
         def measure(r, j):  # (point, candidate) pairs, one vectorised call
-            t = cand[r, j]
-            q, b = closest_on_triangles(p[r], corners[t, 0], corners[t, 1], corners[t, 2])
-            d[r, j] = np.linalg.norm(q - p[r], axis=1)
+            q, b, dist = frames.closest(p, r, cand[r, j])
+            d[r, j] = dist
             slot[r, j] = sum(len(f[0]) for f in found) + np.arange(len(r))
             found.append((q, b))
 
@@ -236,6 +236,70 @@ class Located:
         q_all = np.concatenate([f[0] for f in found])
         b_all = np.concatenate([f[1] for f in found])
         return out[r], q_all[pair], b_all[pair], tri[cand[r, j]]
+
+
+class _Triangles:
+    """Triangles ``(a, ab, ac)`` with their Gram entries, for closest points of many
+    (point, triangle) pairs: Ericson's region test with ``d3 .. d6`` from ``d1, d2`` and
+    the Gram matrix (two dot products per pair), in cache-sized chunks."""
+
+    #: pairs per chunk (the temporaries of a chunk stay in cache)
+    CHUNK = 1 << 14
+
+    def __init__(self, corners):
+        a = corners[:, 0]
+        ab, ac = corners[:, 1] - a, corners[:, 2] - a
+        gram = np.column_stack([np.einsum("ij,ij->i", ab, ab), np.einsum("ij,ij->i", ac, ac),
+                                np.einsum("ij,ij->i", ab, ac)])
+        self.rows = np.ascontiguousarray(np.hstack([a, ab, ac, gram]))  # one gather per chunk
+
+    def closest(self, p, rows, tris):
+        """Closest points ``(n, 3)``, barycentric coordinates ``(n, 3)`` and distances of
+        the pairs ``(p[rows], triangle tris)``."""
+        n = len(rows)
+        q, bary, dist = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+        for s in range(0, n, self.CHUNK):
+            e = min(s + self.CHUNK, n)
+            x, f = np.take(p, rows[s:e], axis=0), np.take(self.rows, tris[s:e], axis=0)
+            a, ab, ac = f[:, 0:3], f[:, 3:6], f[:, 6:9]
+            ap = x - a
+            d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+            b = _regions(d1, d2, d1 - f[:, 9], d2 - f[:, 11], d1 - f[:, 11], d2 - f[:, 10])
+            qq = a + b[:, 1:2] * ab + b[:, 2:] * ac
+            q[s:e], bary[s:e] = qq, b
+            ap = qq - x
+            dist[s:e] = np.sqrt(np.einsum("ij,ij->i", ap, ap))
+        return q, bary, dist
+
+
+def _regions(d1, d2, d3, d4, d5, d6):
+    """Barycentric coordinates of the closest point from Ericson's dot products
+    (``d1 = ab.ap, d2 = ac.ap, d3 = ab.bp, d4 = ac.bp, d5 = ab.cp, d6 = ac.cp``)."""
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        v, w = vb / denom, vc / denom
+        bary = np.stack([1 - v - w, v, w], axis=1)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        t_ac = d2 / (d2 - d6)
+        t_ab = d1 / (d1 - d3)
+    cases = [  # lowest priority first: the first true test of Ericson's order wins
+        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), lambda m: [0 * t_bc[m], 1 - t_bc[m], t_bc[m]]),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), lambda m: [1 - t_ac[m], 0 * t_ac[m], t_ac[m]]),
+        ((d6 >= 0) & (d5 <= d6), lambda m: [0.0, 0.0, 1.0]),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), lambda m: [1 - t_ab[m], t_ab[m], 0 * t_ab[m]]),
+        ((d3 >= 0) & (d4 <= d3), lambda m: [0.0, 1.0, 0.0]),
+        ((d1 <= 0) & (d2 <= 0), lambda m: [1.0, 0.0, 0.0]),
+    ]
+    for mask, value in cases:
+        m = np.flatnonzero(mask)
+        if m.size:
+            v = value(m)
+            for col in range(3):
+                bary[m, col] = v[col]
+    if not np.isfinite(bary).all():  # degenerate triangles
+        bary = np.nan_to_num(bary, nan=1.0 / 3.0)
+    return bary
 
 
 def _bin_boxes(lo, hi, p):

@@ -333,7 +333,7 @@ class PlanResponse:
                 for j in range(4):
                     d = np.zeros((n, 3))
                     d[mine, i] = basis[:, j]
-                    out[:, :, 12 * s + 4 * i + j] = solver.solve(d).T
+                    out[:, :, 12 * s + 4 * i + j] = solver.solve(d, checks=False).T
 
     def _dtype(self, R, dtype):
         if dtype != "auto":

@@ -461,7 +461,7 @@ class Solver:
                 "group": np.array(group), "kind": np.array(kind), "basis": basis}
 
     # ------------------------------------------------------------------ solve
-    def solve(self, bc_displacement=None, *, x0=None):
+    def solve(self, bc_displacement=None, *, x0=None, checks=True):
         """Solve for the displacement of every point, shape ``(n, 3)``.
 
         Parameters
@@ -470,6 +470,10 @@ class Solver:
             New prescribed displacements (same ``bc`` codes and normals); no refactorisation.
         x0 : (n, 3) array, optional
             Initial guess for ``cg``, ``gpu`` and ``relaxation`` (warm start).
+        checks : bool, default True
+            Count inverted tetrahedra and the free-to-prescribed ratio (and warn,
+            :func:`~pvcmf.mtm.constraints.solution_checks`); False skips them (NaN in
+            :attr:`info`), e.g. for unit basis fields that are not motions.
 
         Returns
         -------
@@ -506,7 +510,8 @@ class Solver:
         full[self.F] = y
         u = cons.to_global(full)
         info["inverted"], info["free_ratio"] = solution_checks(
-            self.points, self._cells, u, cons.bc, cons.to_global(cons.prescribed))
+            self.points, self._cells, u, cons.bc, cons.to_global(cons.prescribed)) \
+            if checks else (np.nan, np.nan)
         self.timings["solve"] = time.perf_counter() - t0
         info["assembly_time"] = self.timings["assembly"]
         info["factor_time"] = self.timings["factor"]
