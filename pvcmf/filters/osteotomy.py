@@ -130,8 +130,9 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
                  len(o.cut))
     out[arrays.BONE] = new
     plan.check_segments(out)
-    log.info("cut_bones: segments (mL) %s", ", ".join(
-        f"{k} {v:.1f}" for k, v in segment_volumes(out).items()))
+    if log.isEnabledFor(logging.INFO):  # the volumes take a pass over the image each
+        log.info("cut_bones: segments (mL) %s", ", ".join(
+            f"{k} {v:.1f}" for k, v in segment_volumes(out).items()))
     return out
 
 

@@ -162,6 +162,7 @@ class Located:
         score = np.full(n, -np.inf)
         if usable.size:
             tet_of, start, stop, pkey = _bin_boxes(lo, hi, p)
+            axes, lo_t, hi_t = (np.ascontiguousarray(v.T) for v in (p, lo, hi))
             count = stop - start
             bounds = np.searchsorted(np.cumsum(count), np.arange(0, count.sum(), 1 << 20))
             for a, b in zip(bounds, np.r_[bounds[1:], n]):  # ~1M pairs per chunk
@@ -172,8 +173,11 @@ class Located:
                 first = np.cumsum(c) - c
                 pos = np.arange(c.sum()) - np.repeat(first, c) + np.repeat(start[a:b], c)
                 box = tet_of[pos]
-                keep = ((p[idx] >= lo[box]) & (p[idx] <= hi[box])).all(axis=1)
-                idx, t = idx[keep], usable[box[keep]]
+                for ax in range(3):  # one axis at a time: each test sees the survivors only
+                    x = axes[ax][idx]
+                    keep = (x >= lo_t[ax][box]) & (x <= hi_t[ax][box])
+                    idx, box = idx[keep], box[keep]
+                t = usable[box]
                 c = np.bincount(idx - a, minlength=b - a)
                 first = np.cumsum(c) - c
                 lam = np.einsum("nia,ni->na", inv[t], p[idx] - pts[tets[t, 0]])
@@ -314,17 +318,26 @@ def _bin_boxes(lo, hi, p):
     dims = i1.max(axis=0) + 1
     span = i1 - i0 + 1
     count = span.prod(axis=1)
-    box = np.repeat(np.arange(len(lo)), count)
-    local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    sx, sy = span[box, 0], span[box, 1]
-    ijk = i0[box] + np.column_stack([local % sx, (local // sx) % sy, local // (sx * sy)])
-    key = (ijk[:, 2] * dims[1] + ijk[:, 1]) * dims[0] + ijk[:, 0]
-    order = np.argsort(key, kind="stable")
-    key = key[order]
+    m = len(lo)
+    box = np.repeat(np.arange(m), count)
+    small = np.int32 if count.max(initial=0) < 2**31 else np.int64
+    local = (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)).astype(small)
+    dz, rem = np.divmod(local, (span[:, 0] * span[:, 1]).astype(small)[box])
+    dy, dx = np.divmod(rem, span[:, 0].astype(small)[box])
+    base = ((i0[:, 2] * dims[1] + i0[:, 1]) * dims[0] + i0[:, 0])[box]
+    key = base + (dz * dims[1] + dy) * dims[0] + dx
+    if float(np.prod(dims.astype(float))) * m < 2.0**62:
+        # one sort of (bin, box) pairs as a single integer: boxes by bin, then by id
+        pair = np.sort(key * m + box)
+        key = pair // m
+        box = pair - key * m
+    else:
+        order = np.lexsort((box, key))
+        key, box = key[order], box[order]
     ip = np.floor((p - origin) / h)
     valid = ((ip >= 0) & (ip < dims)).all(axis=1)
     ip = np.where(valid[:, None], ip, 0).astype(np.int64)
     pkey = np.where(valid, (ip[:, 2] * dims[1] + ip[:, 1]) * dims[0] + ip[:, 0], -1)
     start = np.searchsorted(key, pkey, side="left")
     stop = np.where(valid, np.searchsorted(key, pkey, side="right"), start)
-    return box[order], start, stop, pkey
+    return box, start, stop, pkey

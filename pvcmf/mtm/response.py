@@ -49,6 +49,7 @@ from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
 from ..progress import Progress
 from ._common import blas_threads
 from .constraints import SolutionWarning
+from .plan_sweep import plan_grid  # noqa: F401  (re-exported: pvcmf.mtm.response.plan_grid)
 from .solver import Solver
 
 log = logging.getLogger(__name__)
@@ -113,7 +114,7 @@ def _transfer_in_background(mesh, skin):
     """Start :class:`Transfer` of ``skin`` on a second thread, to overlap with the
     factorisation and solves; it works on its own copies of the mesh's points and
     tetrahedra and of the skin points (no VTK object is shared between the threads).
-    Returns a future of ``(transfer, seconds)``."""
+    Returns a future of ``(transfer, seconds, CPU seconds of its thread)``."""
     from concurrent.futures import ThreadPoolExecutor
 
     points, tets = tetra(mesh)
@@ -121,13 +122,25 @@ def _transfer_in_background(mesh, skin):
     x = np.array(skin.points, dtype=float)
 
     def build():
-        t = time.perf_counter()
-        return Transfer(grid, x), time.perf_counter() - t
+        t, c = time.perf_counter(), time.thread_time()
+        return Transfer(grid, x), time.perf_counter() - t, time.thread_time() - c
 
     pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pvcmf-transfer")
     future = pool.submit(build)
     pool.shutdown(wait=False)
     return future
+
+
+def _segmented(labels, plan):
+    """``labels`` whose ``bone`` array holds every segment of ``plan``: the image itself when
+    the plan has no cut planes and labels all its segments (:func:`cut_bones` would return
+    a copy with the same ``bone``), else :func:`cut_bones`'s result."""
+    if (isinstance(labels, pv.ImageData) and arrays.BONE in labels.point_data
+            and not any(o.cut for o in plan.osteotomies)):
+        bone = np.asarray(labels.point_data[arrays.BONE])
+        if all(np.any(bone == o.segment_id) for o in plan.osteotomies):
+            return labels
+    return cut_bones(labels, plan)
 
 
 class PlanResponseWarning(UserWarning):
@@ -219,7 +232,7 @@ class PlanResponse:
         Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
         solves: waiting for the skin transfer, folding it in) and ``transfer build (second
         thread)`` (the skin transfer's own build, which runs on a second thread during the
-        others).
+        others) and its CPU time; ``main thread CPU`` the CPU time of the calling thread.
     """
 
     def __init__(self, mesh, labels, *, skin, plan, dtype, bc_options, solver_options,
@@ -232,10 +245,11 @@ class PlanResponse:
         self.timings = {}
         self.threads = solver_options.get("threads", 1)  # BLAS threads of the products
         self.float32_error = None
+        cpu0 = time.thread_time()
         with Progress(total=4, desc="plan_response", enabled=progress_bar, logger=log) as bar:
             pending = None if skin is None else _transfer_in_background(mesh, skin)
             t = time.perf_counter()
-            cut = cut_bones(labels, plan)
+            cut = _segmented(labels, plan)
             self.centroids = {s: np.asarray(m, float) for s, m in self._pivots(cut, plan).items()}
             probe = Plan(tuple(Osteotomy(o.segment, translation=tuple(np.eye(3)[i]), cut=o.cut)
                                for i, o in enumerate(plan.osteotomies)))
@@ -256,7 +270,9 @@ class PlanResponse:
             self.surface_ids = boundary_points(mesh)
             self._op, self.reached, self.modelled = None, None, None
             if pending is not None:
-                transfer, self.timings["transfer build (second thread)"] = pending.result()
+                transfer, wall, cpu = pending.result()
+                self.timings["transfer build (second thread)"] = wall
+                self.timings["transfer build, CPU time (second thread)"] = cpu
                 T = transfer.W
                 self.modelled = transfer.modelled
                 self.reached = np.flatnonzero(np.diff(T.indptr) > 0)
@@ -266,6 +282,7 @@ class PlanResponse:
                 self._set_operator(R.astype(self._dtype(R, dtype), copy=False))
             self._surface = np.ascontiguousarray(self.nodal[:, self.surface_ids])
             self.timings["transfer"] = time.perf_counter() - t
+            self.timings["main thread CPU"] = time.thread_time() - cpu0
             bar.step("transfer folded in")
         self._bc_types = np.asarray(ref[arrays.BC]).copy()
 
@@ -550,51 +567,3 @@ class PlanResponse:
             if a is None:
                 out[i] = self.predict_displacement(plans[i])[ids]
         return out
-
-
-def plan_grid(segment, *, translations=None, rotations=None, base=None):
-    """Plans that vary one segment's motion over given values (a plan sweep).
-
-    Parameters
-    ----------
-    segment : str
-        The moved segment (e.g. ``"maxilla"``).
-    translations, rotations : array_like, shape (m, 3), optional
-        Per plan: translation (mm) and rotation (degrees) in the plan's (horizontal,
-        vertical, anterior-posterior) convention; a missing one is zero (or ``base``'s).
-    base : pvcmf.Plan, optional
-        The other segments' motions, kept in every plan; its ``segment`` entry (if any)
-        gives the cut planes and pivot.
-
-    Returns
-    -------
-    list of pvcmf.Plan
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from pvcmf.mtm.response import plan_grid
-    >>> plans = plan_grid("maxilla", translations=[[0, 0, a] for a in np.arange(0, 9, 2.0)])
-    >>> len(plans), plans[-1].osteotomies[0].translation
-    (5, (0.0, 0.0, 8.0))
-    """
-    if translations is None and rotations is None:
-        raise ValueError("plan_grid needs translations= or rotations=")
-    t = None if translations is None else np.asarray(translations, dtype=float)
-    r = None if rotations is None else np.asarray(rotations, dtype=float)
-    for name, v in (("translations", t), ("rotations", r)):
-        if v is not None and (v.ndim != 2 or v.shape[1] != 3):
-            raise ValueError(f"{name} must have shape (m, 3), got {v.shape}")
-    m = len(t) if t is not None else len(r)
-    if t is not None and r is not None and len(r) != m:
-        raise ValueError(f"translations and rotations must have the same length, got {m} and {len(r)}")
-    others = tuple(o for o in base.osteotomies if o.segment != segment) if base is not None else ()
-    mine = [o for o in base.osteotomies if o.segment == segment] if base is not None else []
-    ref = mine[0] if mine else Osteotomy(segment)
-    plans = []
-    for i in range(m):
-        tr = tuple(t[i].tolist()) if t is not None else tuple(ref.translation)
-        ro = tuple(r[i].tolist()) if r is not None else tuple(ref.rotation)
-        o = Osteotomy(segment, translation=tr, rotation=ro, pivot=ref.pivot, cut=ref.cut)
-        plans.append(Plan(others + (o,), name=base.name if base is not None else ""))
-    return plans

@@ -471,9 +471,7 @@ class Solver:
         x0 : (n, 3) array, optional
             Initial guess for ``cg``, ``gpu`` and ``relaxation`` (warm start).
         checks : bool, default True
-            Count inverted tetrahedra and the free-to-prescribed ratio (and warn,
-            :func:`~pvcmf.mtm.constraints.solution_checks`); False skips them (NaN in
-            :attr:`info`), e.g. for unit basis fields that are not motions.
+            False skips :func:`~pvcmf.mtm.constraints.solution_checks` (NaN in :attr:`info`).
 
         Returns
         -------
@@ -509,14 +507,11 @@ class Solver:
         full = cons.prescribed.copy()
         full[self.F] = y
         u = cons.to_global(full)
-        info["inverted"], info["free_ratio"] = solution_checks(
-            self.points, self._cells, u, cons.bc, cons.to_global(cons.prescribed)) \
-            if checks else (np.nan, np.nan)
+        info["inverted"], info["free_ratio"] = (np.nan, np.nan) if not checks else solution_checks(
+            self.points, self._cells, u, cons.bc, cons.to_global(cons.prescribed))
         self.timings["solve"] = time.perf_counter() - t0
-        info["assembly_time"] = self.timings["assembly"]
-        info["factor_time"] = self.timings["factor"]
-        info["solve_time"] = self.timings["solve"]
-        info["time"] = info["assembly_time"] + info["factor_time"] + info["solve_time"]
+        times = {f"{k}_time": self.timings[k] for k in ("assembly", "factor", "solve")}
+        info.update(times, time=sum(times.values()))
         self.info = info
         return u
 
