@@ -211,14 +211,11 @@ class Located:
         frames = _Triangles(corners)
         n = len(out)
         d = np.full((n, kt), np.inf)
-        slot = np.full((n, kt), -1, dtype=np.int64)  # (point, candidate) -> measured pair
-        found = []
+        q_all, b_all = np.empty((n * kt, 3)), np.empty((n * kt, 3))  # per (point, candidate)
 
         def measure(r, j):  # (point, candidate) pairs, one vectorised call
-            q, b, dist = frames.closest(p, r, cand[r, j])
-            d[r, j] = dist
-            slot[r, j] = sum(len(f[0]) for f in found) + np.arange(len(r))
-            found.append((q, b))
+            flat = r * kt + j
+            d.reshape(-1)[flat] = frames.closest(p, r, cand.reshape(-1)[flat], q_all, b_all, flat)
 
         ex = min(exact, kt)
         measure(np.repeat(np.arange(n), ex), np.tile(np.arange(ex), n))
@@ -234,12 +231,9 @@ class Located:
             s = np.where(window > 0, (d - d1) / window, np.where(d > d1, np.inf, 0.0))
         w = np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
         w /= w.sum(axis=1, keepdims=True)
-        r, j = np.nonzero(w > 0)
-        self.pair_w = w[r, j]
-        pair = slot[r, j]
-        q_all = np.concatenate([f[0] for f in found])
-        b_all = np.concatenate([f[1] for f in found])
-        return out[r], q_all[pair], b_all[pair], tri[cand[r, j]]
+        pair = np.flatnonzero(w > 0)  # (point, candidate) pairs in row-major order
+        self.pair_w = w.reshape(-1)[pair]
+        return out[pair // kt], q_all[pair], b_all[pair], tri[cand.reshape(-1)[pair]]
 
 
 class _Triangles:
@@ -257,11 +251,11 @@ class _Triangles:
                                 np.einsum("ij,ij->i", ab, ac)])
         self.rows = np.ascontiguousarray(np.hstack([a, ab, ac, gram]))  # one gather per chunk
 
-    def closest(self, p, rows, tris):
-        """Closest points ``(n, 3)``, barycentric coordinates ``(n, 3)`` and distances of
-        the pairs ``(p[rows], triangle tris)``."""
+    def closest(self, p, rows, tris, q, bary, at):
+        """Distances of the pairs ``(p[rows], triangle tris)``; their closest points and
+        barycentric coordinates go to rows ``at`` of ``q`` and ``bary`` (``(m, 3)``)."""
         n = len(rows)
-        q, bary, dist = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+        dist = np.empty(n)
         for s in range(0, n, self.CHUNK):
             e = min(s + self.CHUNK, n)
             x, f = np.take(p, rows[s:e], axis=0), np.take(self.rows, tris[s:e], axis=0)
@@ -270,10 +264,10 @@ class _Triangles:
             d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
             b = _regions(d1, d2, d1 - f[:, 9], d2 - f[:, 11], d1 - f[:, 11], d2 - f[:, 10])
             qq = a + b[:, 1:2] * ab + b[:, 2:] * ac
-            q[s:e], bary[s:e] = qq, b
+            q[at[s:e]], bary[at[s:e]] = qq, b
             ap = qq - x
             dist[s:e] = np.sqrt(np.einsum("ij,ij->i", ap, ap))
-        return q, bary, dist
+        return dist
 
 
 def _regions(d1, d2, d3, d4, d5, d6):
