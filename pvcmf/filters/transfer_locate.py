@@ -231,9 +231,11 @@ class Located:
             s = np.where(window > 0, (d - d1) / window, np.where(d > d1, np.inf, 0.0))
         w = np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
         w /= w.sum(axis=1, keepdims=True)
-        pair = np.flatnonzero(w > 0)  # (point, candidate) pairs in row-major order
-        self.pair_w = w.reshape(-1)[pair]
-        return out[pair // kt], q_all[pair], b_all[pair], tri[cand.reshape(-1)[pair]]
+        r, j = np.nonzero(w > 0)
+        pair = r * kt + j
+        self.pair_w = w[r, j]
+        return (out[r], np.take(q_all, pair, axis=0), np.take(b_all, pair, axis=0),
+                np.take(tri, cand[r, j], axis=0))
 
 
 class _Triangles:
