@@ -8,7 +8,7 @@ import pytest
 import pyvista as pv
 
 from pvcmf import arrays
-from pvcmf.filters import apply_plan
+from pvcmf.filters import apply_plan, cut_bones
 from pvcmf.filters.surface_mapping import transfer_operator
 from pvcmf.mtm import solve
 from pvcmf.mtm.response import PlanResponseWarning, plan_response
@@ -259,3 +259,79 @@ def test_point_location_equals_brute_force():
     assert np.all(loc.bary[ins].min(axis=1) >= -INSIDE_TOL)
     back = np.einsum("na,nai->ni", loc.bary[ins], pts[tets[loc.cell[ins]]])
     assert np.abs(back - p[ins]).max() < 1e-12
+
+
+def test_feet_equal_the_region_test():
+    """The feet measured from each triangle's Gram entries (chunked) equal Ericson's region
+    test on the corners, and each foot is the closest point of its triangle: no point of a
+    dense sample of the triangle is closer; degenerate triangles give finite feet."""
+    from pvcmf.filters.transfer_locate import _Triangles, closest_on_triangles
+
+    rng = np.random.default_rng(12)
+    corners = rng.normal(0, 1, (60, 3, 3))
+    corners[0, 2] = corners[0, 1]  # two corners coincide
+    corners[1, 2] = 0.5 * (corners[1, 0] + corners[1, 1])  # collinear
+    p = rng.normal(0, 2, (200, 3))
+    rows, tris = np.repeat(np.arange(200), 60), np.tile(np.arange(60), 200)
+    frames = _Triangles(corners)
+    frames.CHUNK = 1000  # several chunks
+    q, b = np.full((len(rows) + 5, 3), np.nan), np.full((len(rows) + 5, 3), np.nan)
+    at = np.arange(len(rows)) + 5
+    d = frames.closest(p, rows, tris, q, b, at)
+    q0, b0 = closest_on_triangles(p[rows], *(corners[tris, i] for i in range(3)))
+    assert np.isfinite(q[at]).all() and np.isnan(q[:5]).all()
+    assert np.abs(q[at] - q0).max() < 1e-12 and np.abs(b[at] - b0).max() < 1e-12
+    assert np.allclose(d, np.linalg.norm(q0 - p[rows], axis=1), rtol=0, atol=1e-12)
+    s = rng.dirichlet(np.ones(3), 400)  # samples of every triangle
+    sample = np.einsum("sk,tkc->tsc", s, corners)
+    brute = np.linalg.norm(sample[tris] - p[rows][:, None], axis=2).min(axis=1)
+    assert np.all(d <= brute + 1e-12)
+
+
+def test_basis_solves_skip_only_the_checks(block):
+    """``Solver.solve(checks=False)`` (the operator's basis solves) returns the same
+    displacement, with the checks' fields NaN and no SolutionWarning."""
+    import warnings
+
+    from pvcmf.mtm import Solver
+
+    grid, img, _ = block
+    ref = apply_plan(grid, _random_plan(np.random.default_rng(13)), img, fix_unmoved_bone=True)
+    solver = Solver(ref, precision="double")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the plan may invert a few tetrahedra: checked
+        u = solver.solve()
+    assert np.isfinite(solver.info["inverted"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        v = solver.solve(np.asarray(ref[arrays.BC_DISPLACEMENT]) * 50.0, checks=False)
+    assert np.isnan(solver.info["inverted"]) and np.isnan(solver.info["free_ratio"])
+    assert np.abs(v - 50.0 * u).max() < 1e-9 * np.abs(v).max()
+
+
+def test_cut_planes_and_labelled_segments(block):
+    """The operator cuts the label image only when the template has cut planes: a labelled
+    template uses the image as it is (not modified), a cut template the cut segments, and
+    both predict what apply_plan + solve + transfer give."""
+    from pvcmf.mtm.response import _segmented
+
+    grid, img, skin = block
+    before = img.copy(deep=True)
+    labelled = Plan((Osteotomy("mandible"),))
+    assert _segmented(img, labelled) is img
+    cut = (((0.0, 0.0, 1.5), (0.0, 0.0, 1.0)),)  # the upper part of the maxilla block
+    template = Plan((Osteotomy("maxilla", cut=cut),))
+    segmented = _segmented(img, template)
+    assert segmented is not img
+    assert np.array_equal(segmented[arrays.BONE], cut_bones(img, template)[arrays.BONE])
+    opts = {"fix_unmoved_bone": True}
+    resp = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts, plan=template)
+    rng = np.random.default_rng(14)
+    plan = Plan((Osteotomy("maxilla", tuple(rng.uniform(-2, 2, 3)), tuple(rng.uniform(-10, 10, 3)),
+                           cut=cut),))
+    full = solve(apply_plan(grid, plan, img, **opts))
+    u = np.asarray(full[arrays.DISPLACEMENT])
+    assert np.abs(u).max() > 0.3
+    T = transfer_operator(grid, skin)
+    assert np.abs(resp.predict_displacement(plan) - T @ u).max() < 1e-9
+    assert img == before
