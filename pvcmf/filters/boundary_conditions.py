@@ -327,10 +327,12 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
     hard = (bone > 0) | np.isin(tissue, arrays.HARD_LABELS)
     dims = tuple(bones.dimensions)
     vol = hard.reshape(dims, order="F")
-    surface = vol & ~ndimage.binary_erosion(vol, border_value=0)
-    surf_ids = np.flatnonzero(surface.ravel(order="F"))
-    if len(surf_ids) == 0:
+    if not vol.any():
         raise ValueError("bones has no bone or teeth voxels ('bone' > 0 or hard 'tissue')")
+    box = _box(vol, np.zeros(3, dtype=int))  # erosion on the hard tissue's box only
+    surface = np.zeros_like(vol)
+    surface[box] = vol[box] & ~ndimage.binary_erosion(vol[box], border_value=0)
+    surf_ids = np.flatnonzero(surface.ravel(order="F"))
     vox = voxel_points(labels, surf_ids)
     points = np.asarray(grid.points, dtype=np.float64)
     nodes = boundary_points(grid)
@@ -343,16 +345,25 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
         # distance to the teeth on a crop around them (the margin is a few voxels)
         spacing = np.asarray(bones.spacing, dtype=float)
         vol_teeth = teeth.reshape(dims, order="F")
-        idx = np.argwhere(vol_teeth)
-        pad = np.ceil(teeth_margin / spacing).astype(int) + 1
-        lo = np.maximum(idx.min(axis=0) - pad, 0)
-        hi = np.minimum(idx.max(axis=0) + pad + 1, dims)
-        box = tuple(slice(a, b) for a, b in zip(lo, hi))
+        box = _box(vol_teeth, np.ceil(teeth_margin / spacing).astype(int) + 1)
         near_teeth = np.zeros(dims, dtype=bool)
         near_teeth[box] = ndimage.distance_transform_edt(
             ~vol_teeth[box], sampling=spacing) <= teeth_margin * (1 + 1e-9)
-        teeth = hard & near_teeth.ravel(order="F")
+        # the nearest voxels are hard (surface voxels): within the margin is all to ask
+        return hard, vox, nodes, near, bone[near_ids], near_teeth[
+            np.unravel_index(near_ids, dims, order="F")]
     return hard, vox, nodes, near, bone[near_ids], teeth[near_ids]
+
+
+def _box(mask, pad):
+    """Slices of the smallest box holding the True voxels of ``mask`` (3-D, not empty),
+    widened by ``pad`` voxels per axis within the array."""
+    box = []
+    for ax in range(3):
+        hit = np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != ax)))
+        box.append(slice(max(int(hit[0]) - int(pad[ax]), 0),
+                         min(int(hit[-1]) + 1 + int(pad[ax]), mask.shape[ax])))
+    return tuple(box)
 
 
 def _release_near_moves(code, disp, points, margin):
