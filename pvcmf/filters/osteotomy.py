@@ -129,7 +129,8 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
         log.info("cut_bones: %s = %d voxels inside %d plane(s)", o.segment, int(inside.sum()),
                  len(o.cut))
     out[arrays.BONE] = new
-    plan.check_segments(out)
+    if missing or any(o.cut for o in plan.osteotomies):  # else every segment is labelled
+        plan.check_segments(out)
     if log.isEnabledFor(logging.INFO):  # the volumes take a pass over the image each
         log.info("cut_bones: segments (mL) %s", ", ".join(
             f"{k} {v:.1f}" for k, v in segment_volumes(out).items()))
@@ -154,12 +155,14 @@ def segment_transforms(labels, plan):
     [3]
     """
     bone = _check_inputs(labels, plan, "segment_transforms")
-    plan.check_segments(labels)
+    ids = {o.segment_id: np.flatnonzero(bone == o.segment_id) for o in plan.osteotomies}
+    if any(o.cut for o in plan.osteotomies) or not all(v.size for v in ids.values()):
+        plan.check_segments(labels)  # (a plan without cut planes needs its segments only)
     out = {}
     for o in plan.osteotomies:
         centroid = None
         if o.pivot is None:
-            centroid = voxel_points(labels, np.flatnonzero(bone == o.segment_id)).mean(axis=0)
+            centroid = voxel_points(labels, ids[o.segment_id]).mean(axis=0)
         out[o.segment_id] = o.matrix(centroid)
     return out
 
