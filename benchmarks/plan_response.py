@@ -10,7 +10,9 @@ and measures, for a two-segment template (maxilla and mandible):
 * ``build``: :func:`pvcmf.mtm.response.plan_response` (boundary conditions, one
   factorisation, twelve solves per segment, the transfer built on a second thread and
   folded in), and its ratio to a factorisation plus the same solves timed on their own
-  in the same run (nothing else running in the process);
+  in the same run (nothing else running in the process; the build's double factor, with
+  and without the per-solve solution checks, which the build skips), in wall-clock and
+  CPU time (the process's: both threads);
 * ``predict``: one plan's dense-skin displacement (new array, or written into a kept one),
   its breakdown (parameters, the product on one BLAS thread, the scatter into the dense
   output, the new surface), its CPU time (the calling thread's, insensitive to other
@@ -243,7 +245,10 @@ def main(argv=None):
                 "Times are medians of wall-clock time unless marked CPU time (the calling "
                 "thread's own time, which other processes sharing the cores do not inflate). "
                 "The build's ratio divides by a factorisation plus the same solves timed on "
-                "their own; the skin transfer is built on a second thread during the build. "
+                "their own (the build's double factor; with the solution checks that "
+                "`Solver.solve` runs by default, and without them as the build solves); "
+                "the skin transfer is built on a second thread during the build, and the "
+                "build's CPU time is the process's (both threads). "
                 "The float32 rounding bound is what ``dtype='auto'`` compares with 1e-6 mm.\n\n"
                 f"Command: `{command}`\n\nMachine: {machine()}\n\n{text}\n")
         with open(args.write, "w", encoding="utf-8") as fh:

@@ -7,7 +7,8 @@ candidate tetrahedra of a point (those whose bounding sphere holds it), precompu
 inverse edge matrices give the barycentric coordinates of all candidates at once,
 cKDTree nearest-neighbour queries give boundary triangles and boundary nodes, and the
 closest points on the candidate triangles are computed for all (point, triangle) pairs at
-once (Ericson's region test, vectorised).
+once (Ericson's region test, vectorised: two dot products per pair with each triangle's
+Gram entries, in cache-sized chunks).
 """
 
 from __future__ import annotations

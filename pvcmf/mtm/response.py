@@ -26,7 +26,9 @@ rounding bound of the float32 product, ``(K + 2) u |R| |a|`` per row (:func:`flo
 over plans with rotation entries up to :data:`FLOAT32_ROTATION` and centroid shifts up to
 :data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a face the bound is far
 above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md gives the demo's). The
-skin transfer is built on a second thread during the factorisation and solves. Delegates to :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS),
+skin transfer is built on a second thread during the factorisation and solves; the basis
+solves skip the solution checks (unit fields, not motions). Delegates to
+:func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS),
 :mod:`concurrent.futures` and threadpoolctl (one BLAS thread for the products).
 """
 
