@@ -2,10 +2,11 @@
 
 The geometric half of :func:`pvcmf.filters.surface_mapping.transfer_operator` (which turns
 :class:`Located` into the sparse operator) and of its crumple metric. Every step is one
-vectorised call over all points: :class:`scipy.spatial.cKDTree` ball queries give the
-candidate tetrahedra of a point (those whose bounding sphere holds it), precomputed
-inverse edge matrices give the barycentric coordinates of all candidates at once,
-cKDTree nearest-neighbour queries give boundary triangles and boundary nodes, and the
+vectorised call over all points: the tetrahedra's bounding boxes binned on a uniform grid
+(one integer sort) give the candidate tetrahedra of a point (those whose box holds it, tested
+one axis at a time), precomputed inverse edge matrices give the barycentric coordinates of
+all candidates at once, :class:`scipy.spatial.cKDTree` nearest-neighbour queries give
+boundary triangles and boundary nodes, and the
 closest points on the candidate triangles are computed for all (point, triangle) pairs at
 once (Ericson's region test, vectorised: two dot products per pair with each triangle's
 Gram entries, in cache-sized chunks).
