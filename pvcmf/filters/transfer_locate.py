@@ -57,30 +57,7 @@ def closest_on_triangles(p, a, b, c):
     (vectorised form of Ericson's region test)."""
     ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
     dot = lambda x, y: np.einsum("ij,ij->i", x, y)  # noqa: E731
-    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        denom = va + vb + vc
-        v, w = vb / denom, vc / denom
-        bary = np.stack([1 - v - w, v, w], axis=1)
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        t_ac = d2 / (d2 - d6)
-        t_ab = d1 / (d1 - d3)
-    cases = [  # lowest priority first: the first true test of Ericson's order wins
-        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), lambda m: [0 * t_bc[m], 1 - t_bc[m], t_bc[m]]),
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), lambda m: [1 - t_ac[m], 0 * t_ac[m], t_ac[m]]),
-        ((d6 >= 0) & (d5 <= d6), lambda m: [0.0, 0.0, 1.0]),
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), lambda m: [1 - t_ab[m], t_ab[m], 0 * t_ab[m]]),
-        ((d3 >= 0) & (d4 <= d3), lambda m: [0.0, 1.0, 0.0]),
-        ((d1 <= 0) & (d2 <= 0), lambda m: [1.0, 0.0, 0.0]),
-    ]
-    for mask, value in cases:
-        m = np.flatnonzero(mask)
-        if m.size:
-            v = value(m)
-            for col in range(3):
-                bary[m, col] = v[col]
-    bary = np.nan_to_num(bary, nan=1.0 / 3.0)
+    bary = _regions(dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp))
     q = bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c
     return q, bary
 
