@@ -96,13 +96,15 @@ def refinement(patients, counts, spacing, cache=True):
             "the cost of the run that made them). The pictures colour the exact skin by "
             "the change between the two finest truths of each patient "
             "(``truth_refinement_<patient>.png``).\n\n"
-            "Boundary model (``pvcmf.truth.independent``), set in millimetres so that it is "
-            "the same on every mesh: soft tissue on a bone follows the bone's segment, "
-            "except within ``DETACH_MM`` of a bone that moves differently (detached along "
-            "the osteotomy: a displacement that jumps across a line of the tied surface "
-            "has no finite-energy solution); the posterior plane is held except within "
-            "``CLEARANCE_MM`` of a moved bone; lattice pieces that hang on the body by an "
-            "edge or a vertex are dropped. Edge mm: the median edge of the lattice "
+            "Model (``pvcmf.truth.independent``), defined on the exact anatomy so that it "
+            "is the same problem on every mesh: every node on a bone surface is tied, its "
+            "data the segments' rigid moves blended by smooth weights of the position "
+            "(``BLEND_MM``); the posterior plane is held except within ``CLEARANCE_MM`` of "
+            "a moved bone; the tongue is not meshed (free, as the oral air); each "
+            "tetrahedron mixes fat and muscle by its sampled muscle fraction; lattice "
+            "edges across a gap thinner than the lattice are not meshed, boundary nodes "
+            "are snapped onto the exact surfaces (flattened caps dropped). Edge mm: the "
+            "median edge of the mesh "
             "(its spacing times about 1.4, the face diagonals included).\n\n")
     fits = []
     for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
