@@ -51,6 +51,35 @@ from pvcmf.truth.refinement import exact_skin_samples, refinement_change
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "truth_refinement.md"
 
 
+def _row(p, grid):
+    """A truth's mesh and solve cost, as a table row."""
+    dofs, newton, factors, seconds = grid.field_data[arrays.REFERENCE_SOLVER]
+    edges = grid.extract_all_edges().compute_cell_sizes(length=True, area=False,
+                                                        volume=False)["Length"]
+    return {"patient": p, "tets": grid.n_cells, "h": float(np.median(edges)),
+            "dofs": int(dofs), "newton": int(newton), "factorisations": int(factors),
+            "seconds": float(seconds), "share": np.nan, "p50": np.nan, "p90": np.nan,
+            "max": np.nan, "released": len(grid.field_data[arrays.REFERENCE_RELEASED])}
+
+
+def fine_truth_cost(patient, counts, fine, spacing, cache=True):
+    """One finer truth of ``patient`` (``fine`` tetrahedra asked): its cost and the change
+    of its skin from the finest truth of the table (``counts[-1]``)."""
+    case = pvcmf.datasets.phantom(patient, spacing=spacing)
+    points = exact_skin_samples(case)
+    coarse = independent_truth_grid(case, n_tets=counts[-1], cache=cache)
+    grid = independent_truth_grid(case, n_tets=fine, cache=cache)
+    r = _row(patient, grid)
+    change = refinement_change(coarse, grid, points)
+    print(r, {k: change[k] for k in ("p50", "p90", "max", "compared")}, flush=True)
+    return (f"\n\nA finer truth, patient {patient} (``--fine {fine}``): {r['tets']} tetrahedra "
+            f"(edge {r['h']:.1f} mm), {r['dofs']} dofs, {r['newton']} Newton iterations, "
+            f"{r['factorisations']} factorisations, solve {r['seconds']:.0f} s (measured); "
+            f"skin change from the {counts[-1]} truth above over {100 * change['compared']:.0f} "
+            f"% of the skin: p50 {change['p50']:.3f} mm, p90 {change['p90']:.3f} mm, "
+            f"max {change['max']:.3f} mm.")
+
+
 def refinement(patients, counts, spacing, cache=True):
     rows = []
     for p in patients:
@@ -59,14 +88,7 @@ def refinement(patients, counts, spacing, cache=True):
         prev = None
         for n in counts:
             grid = independent_truth_grid(case, n_tets=n, cache=cache)
-            dofs, newton, factors, seconds = grid.field_data[arrays.REFERENCE_SOLVER]
-            edges = grid.extract_all_edges().compute_cell_sizes(
-                length=True, area=False, volume=False)["Length"]
-            row = {"patient": p, "tets": grid.n_cells, "h": float(np.median(edges)),
-                   "dofs": int(dofs), "newton": int(newton), "factorisations": int(factors),
-                   "seconds": float(seconds), "share": np.nan, "p50": np.nan,
-                   "p90": np.nan, "max": np.nan, "released":
-                   len(grid.field_data[arrays.REFERENCE_RELEASED])}
+            row = _row(p, grid)
             if prev is not None:
                 change = refinement_change(prev, grid, points)
                 row.update({k: v for k, v in change.items() if k in ("p50", "p90", "max")})
@@ -267,6 +289,9 @@ def main(argv=None):
     ap.add_argument("--patients", type=int, nargs="+", default=[1])
     ap.add_argument("--counts", type=int, nargs="+", default=[8000, 16000, 32000])
     ap.add_argument("--spacing", type=float, default=2.0)
+    ap.add_argument("--fine", type=int, default=0, metavar="N",
+                    help="with --refinement: also solve one truth of N tetrahedra for the "
+                         "first patient, its cost and its change from the finest count")
     ap.add_argument("--no-cache", action="store_true",
                     help="solve every truth again (default: reuse the on-disk cache)")
     ap.add_argument("--n-tets", type=int, default=30_000)
@@ -282,6 +307,9 @@ def main(argv=None):
     if args.refinement:
         parts.append(refinement(args.patients, args.counts, args.spacing,
                                 cache=not args.no_cache))
+        if args.fine:
+            parts[-1] += fine_truth_cost(args.patients[0], args.counts, args.fine,
+                                         args.spacing, cache=not args.no_cache)
     if args.compare:
         parts.append(compare(args.patients, args.truth, args.spacing, args.n_tets,
                              args.truth_tets))
