@@ -22,6 +22,8 @@ and machine.
 Run::
 
     python benchmarks/study.py --refinement --patients 1 --counts 8000 16000 32000
+    python benchmarks/study.py --refinement --patients 1 2 3 4 --spacing 3 \
+        --counts 4000 8000 16000 --order-check --fine 40000
     python benchmarks/study.py --compare --truth independent --patients 1 2 3 4
     python benchmarks/study.py --cohort 2 --spacing 3 --n-tets 8000 --truth-tets 4000
 """
@@ -51,6 +53,58 @@ from pvcmf.truth.refinement import exact_skin_samples, refinement_change
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "truth_refinement.md"
 
 
+def _row(p, grid):
+    """A truth's mesh and solve cost, as a table row."""
+    dofs, newton, factors, seconds = grid.field_data[arrays.REFERENCE_SOLVER]
+    edges = grid.extract_all_edges().compute_cell_sizes(length=True, area=False,
+                                                        volume=False)["Length"]
+    return {"patient": p, "tets": grid.n_cells, "h": float(np.median(edges)),
+            "dofs": int(dofs), "newton": int(newton), "factorisations": int(factors),
+            "seconds": float(seconds), "share": np.nan, "p50": np.nan, "p90": np.nan,
+            "max": np.nan, "released": len(grid.field_data[arrays.REFERENCE_RELEASED])}
+
+
+def fine_truth_cost(patient, counts, fine, spacing, cache=True):
+    """One finer truth of ``patient`` (``fine`` tetrahedra asked): its cost and the change
+    of its skin from the finest truth of the table (``counts[-1]``)."""
+    case = pvcmf.datasets.phantom(patient, spacing=spacing)
+    points = exact_skin_samples(case)
+    coarse = independent_truth_grid(case, n_tets=counts[-1], cache=cache)
+    grid = independent_truth_grid(case, n_tets=fine, cache=cache)
+    r = _row(patient, grid)
+    change = refinement_change(coarse, grid, points)
+    print(r, {k: change[k] for k in ("p50", "p90", "max", "compared")}, flush=True)
+    return (f"\n\nA finer truth, patient {patient} (``--fine {fine}``): {r['tets']} tetrahedra "
+            f"(edge {r['h']:.1f} mm), {r['dofs']} dofs, {r['newton']} Newton iterations, "
+            f"{r['factorisations']} factorisations, solve {r['seconds']:.0f} s (measured); "
+            f"skin change from the {counts[-1]} truth above over {100 * change['compared']:.0f} "
+            f"% of the skin: p50 {change['p50']:.3f} mm, p90 {change['p90']:.3f} mm, "
+            f"max {change['max']:.3f} mm.")
+
+
+def order_check(patient, count, spacing):
+    """The P2 discretisation error on one mesh of the truth: the small-strain control law
+    solved with P2 and with P3 elements on the same mesh (so the same geometry, materials
+    and boundary data), compared on the exact skin."""
+    from pvcmf.truth.independent import _boundary_conditions, soft_tissue_mesh
+    from pvcmf.truth.solver import solve_reference
+
+    case = pvcmf.datasets.phantom(patient, spacing=spacing)
+    points = exact_skin_samples(case)
+    grid = _boundary_conditions(case, soft_tissue_mesh(case, n_tets=count))
+    grid = filters.assign_materials(grid, default_fiber=(0.0, 0.0, 1.0))
+    p2, p3 = (solve_reference(grid, order=k, law="linear", steps=1) for k in (2, 3))
+    change = refinement_change(p2, p3, points)
+    print("order check", {k: change[k] for k in ("p50", "p90", "max", "compared")}, flush=True)
+    return (f"\n\nDiscretisation error of P2 on one mesh (``--order-check``): patient "
+            f"{patient}, the {count} mesh ({grid.n_cells} tetrahedra), the small-strain control "
+            f"law solved with P2 and with P3 elements on that same mesh (same geometry, "
+            f"materials and boundary data): skin difference p50 {change['p50']:.3f} mm, p90 "
+            f"{change['p90']:.3f} mm, max {change['max']:.3f} mm. The part of the change "
+            "between two meshes above this is the problem itself resolved differently by "
+            "the two meshes (the thin tissue, the muscle sheets, the surfaces).")
+
+
 def refinement(patients, counts, spacing, cache=True):
     rows = []
     for p in patients:
@@ -59,14 +113,7 @@ def refinement(patients, counts, spacing, cache=True):
         prev = None
         for n in counts:
             grid = independent_truth_grid(case, n_tets=n, cache=cache)
-            dofs, newton, factors, seconds = grid.field_data[arrays.REFERENCE_SOLVER]
-            edges = grid.extract_all_edges().compute_cell_sizes(
-                length=True, area=False, volume=False)["Length"]
-            row = {"patient": p, "tets": grid.n_cells, "h": float(np.median(edges)),
-                   "dofs": int(dofs), "newton": int(newton), "factorisations": int(factors),
-                   "seconds": float(seconds), "share": np.nan, "p50": np.nan,
-                   "p90": np.nan, "max": np.nan, "released":
-                   len(grid.field_data[arrays.REFERENCE_RELEASED])}
+            row = _row(p, grid)
             if prev is not None:
                 change = refinement_change(prev, grid, points)
                 row.update({k: v for k, v in change.items() if k in ("p50", "p90", "max")})
@@ -96,13 +143,15 @@ def refinement(patients, counts, spacing, cache=True):
             "the cost of the run that made them). The pictures colour the exact skin by "
             "the change between the two finest truths of each patient "
             "(``truth_refinement_<patient>.png``).\n\n"
-            "Boundary model (``pvcmf.truth.independent``), set in millimetres so that it is "
-            "the same on every mesh: soft tissue on a bone follows the bone's segment, "
-            "except within ``DETACH_MM`` of a bone that moves differently (detached along "
-            "the osteotomy: a displacement that jumps across a line of the tied surface "
-            "has no finite-energy solution); the posterior plane is held except within "
-            "``CLEARANCE_MM`` of a moved bone; lattice pieces that hang on the body by an "
-            "edge or a vertex are dropped. Edge mm: the median edge of the lattice "
+            "Model (``pvcmf.truth.independent``), defined on the exact anatomy so that it "
+            "is the same problem on every mesh: every node on a bone surface is tied, its "
+            "data the segments' rigid moves blended by smooth weights of the position "
+            "(``BLEND_MM``); the posterior plane is held except within ``CLEARANCE_MM`` of "
+            "a moved bone; the tongue is not meshed (free, as the oral air); each "
+            "tetrahedron mixes fat and muscle by its sampled muscle fraction; lattice "
+            "edges across a gap thinner than the lattice are not meshed, boundary nodes "
+            "are snapped onto the exact surfaces (flattened caps dropped). Edge mm: the "
+            "median edge of the mesh "
             "(its spacing times about 1.4, the face diagonals included).\n\n")
     fits = []
     for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
@@ -265,6 +314,12 @@ def main(argv=None):
     ap.add_argument("--patients", type=int, nargs="+", default=[1])
     ap.add_argument("--counts", type=int, nargs="+", default=[8000, 16000, 32000])
     ap.add_argument("--spacing", type=float, default=2.0)
+    ap.add_argument("--order-check", action="store_true",
+                    help="with --refinement: P3 against P2 on the finest mesh of the first "
+                         "patient (small-strain control law)")
+    ap.add_argument("--fine", type=int, default=0, metavar="N",
+                    help="with --refinement: also solve one truth of N tetrahedra for the "
+                         "first patient, its cost and its change from the finest count")
     ap.add_argument("--no-cache", action="store_true",
                     help="solve every truth again (default: reuse the on-disk cache)")
     ap.add_argument("--n-tets", type=int, default=30_000)
@@ -280,6 +335,11 @@ def main(argv=None):
     if args.refinement:
         parts.append(refinement(args.patients, args.counts, args.spacing,
                                 cache=not args.no_cache))
+        if args.order_check:
+            parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing)
+        if args.fine:
+            parts[-1] += fine_truth_cost(args.patients[0], args.counts, args.fine,
+                                         args.spacing, cache=not args.no_cache)
     if args.compare:
         parts.append(compare(args.patients, args.truth, args.spacing, args.n_tets,
                              args.truth_tets))

@@ -6,9 +6,13 @@
 * convergence: the truth's mesher and boundary model on virtual patient 1 at three lattice
   sizes, solved with the small-strain control law on linear elements (seconds, where the
   P2 neo-Hookean truth takes minutes; the mesher and the boundary model are the same):
-  the skin's change between successive refinements shrinks at a positive rate. A boundary
-  model that moves with the lattice (which nodes are tied, which pieces hang on) keeps the
-  change from shrinking.
+  the skin's change between successive refinements shrinks at a positive rate, in the
+  median and in the 90th percentile. A model that moves with the lattice (tied nodes
+  switched free node by node along a cut, muscle by the centroid of each element, a
+  tongue hanging on bridges of tissue between the teeth, boundary nodes left off the
+  surface) keeps the 90th percentile from shrinking. The target of the benchmark, a 90th
+  percentile change of at most 0.1 mm, is a strict xfail: these lattices are far too coarse
+  for it (``docs/benchmarks/truth_refinement.md`` measures the P2 truth).
 """
 
 from __future__ import annotations
@@ -92,9 +96,15 @@ def test_truth_skin_median_converges_under_refinement(changes):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="the skin's 90th percentile change does not yet fall "
-                   "between 2k, 4k and 8k tetrahedra (docs/benchmarks/truth_refinement.md)")
 def test_truth_skin_p90_converges_under_refinement(changes):
     first, second, h = changes
     rate = np.log(first["p90"] / second["p90"]) / np.log(h[1] / h[2])
-    assert rate > 0.5, (first["p90"], second["p90"], rate)
+    assert rate > 1.0, (first["p90"], second["p90"], rate)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="the skin's 90th percentile change between the two "
+                   "finest truths is still above 0.1 mm (docs/benchmarks/truth_refinement.md)")
+def test_truth_skin_p90_change_is_within_a_tenth_of_a_millimetre(changes):
+    _, second, _ = changes
+    assert second["p90"] <= 0.1, second["p90"]

@@ -5,27 +5,31 @@ the labels, nor the boundary model:
 
 * geometry: the exact level sets of the patient (:mod:`pvcmf.truth.anatomy`; atlas signed
   distances through the patient warp), never the voxel labels. The meshed soft tissue is
-  inside the skin, outside every bone, tooth, air cavity and the brain case, in front of
-  the coronal plane of the face box (``face_fraction``);
-* mesher: a Freudenthal lattice (six tetrahedra per cube, spacing
-  from ``n_tets``) whose boundary nodes are snapped onto the exact surfaces by Newton
-  projection (a snap that would flatten an element below a tenth of its volume is
-  undone), not :func:`pvcmf.filters.tetrahedralize`; pieces of the lattice that hang on
-  the body by an edge or a vertex are dropped (they would hinge freely);
-* materials: every tetrahedron whose centroid lies in a muscle (the twelve facial
-  muscles, tongue, temporalis, neck muscles; the eyes excluded) is muscle, the rest fat;
-  Table I values, muscle isotropic (the truth's fibre term vanishes for Table I);
+  inside the skin, outside every bone, tooth, air cavity, the tongue (with the oral air it
+  is the oral cavity, a free surface: a tongue joined to the lips by thin bridges of
+  tissue between the teeth would hang on bridges that every lattice resolves differently)
+  and the brain case, in front of the coronal plane of the face box (``face_fraction``);
+* mesher: a Freudenthal lattice (six tetrahedra per cube, spacing from ``n_tets``), not
+  :func:`pvcmf.filters.tetrahedralize`. Tetrahedra with an edge across a gap of the
+  anatomy thinner than the lattice are not meshed (:data:`GAP_RATIO`); boundary nodes are
+  snapped onto the exact surfaces by Newton projection; elements that the snap flattens
+  with all four nodes on one surface (caps) are dropped, interior nodes next to other
+  flattened elements are smoothed, and the snaps still flattening an element are undone;
+  pieces of the lattice that hang on the body by an edge or a vertex are dropped (they
+  would hinge freely);
+* materials: the muscle fraction of each tetrahedron (the twelve facial muscles,
+  temporalis, neck muscles; the eyes excluded), sampled at points inside it, mixes Table I
+  fat and muscle (rule of mixtures), so a muscle sheet thinner than the elements keeps its
+  stiffness on every mesh; muscle isotropic (the truth's fibre term vanishes for Table I);
 * boundary model, no :func:`pvcmf.filters.apply_plan`: soft tissue is tied to the bone
-  surfaces it touches (periosteum): a node on a bone surface follows its bone segment's
-  rigid move of the plan (``segment_transforms`` of the plan's cut bones; the segment of a
-  node is that of the nearest bone voxel), unmoved bone holds it, except within
-  :data:`DETACH_MM` of a bone that moves differently, where the tissue is detached (free:
-  a displacement that jumps across a line of the tied surface has no finite-energy
-  solution, and its discrete answer changes with every mesh); nodes on the posterior
-  plane are held, except within :data:`CLEARANCE_MM` of a moved bone. Both bands are in
-  millimetres, so the boundary model is the same on every lattice. Tooth surfaces and air cavities (mouth, airway, sinuses) are free
-  surfaces: **no contact is modelled** (lips and cheeks neither slide on nor are pushed
-  by the teeth; a lip that would enter a moved tooth is not stopped);
+  surfaces it touches (periosteum): a node on a bone surface moves by the plan's rigid
+  moves of the segments (``segment_transforms`` of the cut bones; unmoved bone: none)
+  blended by smooth weights of the position (:data:`BLEND_MM`; a displacement that jumps
+  across a line of the tied surface has no finite-energy solution, and a band left free
+  node by node moves with the mesh); nodes on the posterior plane are held, except within
+  :data:`CLEARANCE_MM` of a moved bone. Tooth surfaces and air cavities (mouth, airway,
+  sinuses) are free surfaces: **no contact is modelled** (lips and cheeks neither slide on
+  nor are pushed by the teeth; a lip that would enter a moved tooth is not stopped);
 * law and solver: :func:`pvcmf.truth.solver.solve_reference` (compressible neo-Hookean,
   P2, load stepping, damped Newton).
 
@@ -41,6 +45,7 @@ import logging
 
 import numpy as np
 import pyvista as pv
+from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -68,11 +73,15 @@ __all__ = ["independent_truth_grid", "soft_tissue_mesh"]
 #: ``sign * f < 0``
 _BOUNDARY = ("skin", "bone", "teeth", "air", "brain")
 
-#: width (mm) of the band along an osteotomy where the soft tissue is detached from the
-#: bone (free): the tied bone surface ends at the same place on every mesh
-DETACH_MM = 6.0
+#: width (mm, Gaussian sigma) over which the tied bone surface's data blends from one
+#: segment's rigid move to the next across an osteotomy (a field of the position, the same
+#: on every mesh)
+BLEND_MM = 4.0
 #: distance (mm) from a moved bone segment within which the posterior plane is free
 CLEARANCE_MM = 20.0
+#: a lattice edge whose midpoint bulges out of the soft tissue by more than this share of
+#: the spacing crosses a gap of the anatomy: its tetrahedra are not meshed
+GAP_RATIO = 0.25
 
 
 def _fields(warp, x):
@@ -88,8 +97,9 @@ def _fields(warp, x):
     bone = np.minimum.reduce([f(cranium_vault_sdf, base), f(spine_sdf, base),
                               f(face_bone_sdf, face), f(mandible_sdf, mand)])
     teeth = np.minimum(f(upper_teeth_sdf, face), f(lower_teeth_sdf, mand))
+    # the tongue is not meshed: with the oral air it is the oral cavity, a free surface
     air = np.minimum.reduce([f(face_cavities_sdf, face), f(oral_air_sdf, face),
-                             f(airway_sdf, soft)])
+                             f(airway_sdf, soft), f(tongue_sdf, soft)])
     return {"skin": f(skin_sdf, soft), "bone": bone, "teeth": teeth, "air": air,
             "brain": f(braincase_sdf, base)}
 
@@ -141,6 +151,20 @@ def _main_parts(tets, share=0.02):
     return tets[size[part] >= share * len(tets)]
 
 
+def _bridges(warp, x, r, tets, h, ratio=GAP_RATIO):
+    """Tetrahedra with an edge that crosses a gap of the anatomy (boolean mask).
+
+    An edge whose midpoint lies outside the soft tissue by more than ``ratio * h`` beyond
+    the mean of its ends' region values spans something thinner than the lattice (the
+    oral air between tongue and palate, a thin bone wall, a tooth, a skin fold): kept, it
+    would glue the tissue on both sides together on one lattice and not on the next."""
+    pairs = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+    a, b = tets[:, pairs[:, 0]], tets[:, pairs[:, 1]]
+    mid, _ = _region(_fields(warp, ((x[a] + x[b]) / 2).reshape(-1, 3)))
+    mid = mid.reshape(a.shape)
+    return ((mid > 0) & (mid - (r[a] + r[b]) / 2 > ratio * h)).any(axis=1)
+
+
 def _volumes(x, tets):
     q = x[tets]
     return np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]),
@@ -160,21 +184,46 @@ def _project(warp, p, steps=3, dh=0.2):
     return p
 
 
-def _snap(warp, x, tets, nodes, h, steps=3, dh=0.2):
-    """Newton projection of boundary ``nodes`` onto their active surface (at most ``h/2``
-    each); snaps that flatten an element below a tenth of its volume are undone."""
+def _snap(warp, x, tets, nodes, boundary, h, steps=4, dh=0.2, rounds=10):
+    """Boundary ``nodes`` projected onto their active surface (Newton, at most ``h`` each).
+
+    Returns the moved points and a mask of the tetrahedra to keep. A snap flattens an
+    element below a tenth of its volume where all four of its nodes are on the boundary
+    and land on one surface (a cap over the surface; no mesh of the exact anatomy holds
+    it): such elements are dropped. Elsewhere the interior nodes next to a flattened element
+    move to the mean of their neighbours (Laplacian smoothing, a few rounds), and the snaps
+    of the elements still flattened after that are undone. ``boundary`` lists every
+    boundary node (never smoothed)."""
     y = x.copy()
     p = _project(warp, x[nodes], steps, dh)
-    ok = np.linalg.norm(p - x[nodes], axis=1) <= 0.5 * h
+    ok = np.linalg.norm(p - x[nodes], axis=1) <= h
     y[nodes[ok]] = p[ok]
     v0 = _volumes(x, tets)
-    for _ in range(10):  # a few rounds, each vectorised over the elements
-        bad = _volumes(y, tets) < 0.1 * v0
+    n = len(x)
+    movable = np.ones(n, dtype=bool)
+    movable[boundary] = False
+    keep = ~((_volumes(y, tets) < 0.1 * v0) & ~movable[tets].any(axis=1))
+    t = tets[keep]
+    a, b = t[:, [0, 0, 0, 1, 1, 2]].ravel(), t[:, [1, 2, 3, 2, 3, 3]].ravel()
+    adj = coo_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
+    adj.data[:] = 1.0
+    deg = np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1.0)
+    for _ in range(rounds):  # smoothing rounds, each vectorised over the nodes
+        bad = _volumes(y, t) < 0.1 * v0[keep]
+        if not bad.any():
+            return y, keep
+        near = np.zeros(n, dtype=bool)
+        near[t[bad]] = True
+        near |= adj @ near.astype(float) > 0
+        sel = near & movable
+        y[sel] = (adj @ y)[sel] / deg[sel, None]
+    for _ in range(100):  # undo what smoothing could not save, each round vectorised
+        bad = _volumes(y, t) < 0.1 * v0[keep]
         if not bad.any():
             break
-        back = np.unique(tets[bad])
+        back = np.unique(t[bad])
         y[back] = x[back]
-    return y
+    return y, keep
 
 
 def soft_tissue_mesh(case, *, n_tets=30_000, face_fraction=0.5, progress_bar=False):
@@ -207,19 +256,26 @@ def soft_tissue_mesh(case, *, n_tets=30_000, face_fraction=0.5, progress_bar=Fal
     lo, hi = pts[pts[:, 1] >= box[2]].min(axis=0) - h, pts.max(axis=0) + h
     x, tets = _lattice((lo[0], hi[0], box[2], hi[1], lo[2], hi[2]), h)
     r, _ = _region(_fields(warp, x))
-    keep = r[tets].mean(axis=1) < 0
-    tets = _main_parts(tets[keep])
+    tets = tets[r[tets].mean(axis=1) < 0]
+    tets = _main_parts(tets[~_bridges(warp, x, r, tets, h)])
     used = np.unique(tets)
     remap = np.full(len(x), -1)
     remap[used] = np.arange(len(used))
     x, tets, r = x[used], remap[tets], r[used]
     surf = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, x).extract_surface(
         pass_pointid=True, algorithm="dataset_surface")
-    boundary = np.zeros(len(x), dtype=np.uint8)
     on = np.unique(np.asarray(surf.point_data[arrays.ORIGINAL_POINT_IDS]))
     plane = on[np.isclose(x[on, 1], box[2])]
     free = np.setdiff1d(on, plane)
-    x = _snap(warp, x, tets, free, h)
+    x, keep = _snap(warp, x, tets, free, on, h)
+    tets = _main_parts(tets[keep])
+    used = np.unique(tets)
+    remap = np.full(len(x), -1)
+    remap[used] = np.arange(len(used))
+    x, tets, free, plane = x[used], remap[tets], remap[free], remap[plane]
+    free, plane = free[free >= 0], plane[plane >= 0]
+    on = np.union1d(free, plane)
+    boundary = np.zeros(len(x), dtype=np.uint8)
     _, active = _region(_fields(warp, x[free]))
     boundary[free] = active + 1
     boundary[plane] = len(_BOUNDARY) + 1
@@ -231,9 +287,22 @@ def soft_tissue_mesh(case, *, n_tets=30_000, face_fraction=0.5, progress_bar=Fal
     return grid
 
 
-def _materials(grid, warp):
-    """Cell arrays tissue / muscle from the exact muscle level sets at the centroids."""
-    c = np.asarray(grid.cell_centers().points, dtype=float)
+def _materials(grid, warp, n=3):
+    """Cell arrays tissue / muscle / muscle_fraction from the exact muscle level sets.
+
+    ``muscle_fraction``: the share of ``(n + 1)(n + 2)(n + 3) / 6`` sample points of each
+    tetrahedron (a barycentric lattice, shrunk towards the centroid) inside a muscle; the
+    materials mix by it (:func:`pvcmf.filters.assign_materials`, rule of mixtures), so a
+    muscle sheet thinner than the elements keeps its share of the stiffness on every mesh
+    instead of being all or nothing by where a centroid falls. ``muscle``: the facial
+    muscle at the centroid (0 elsewhere); ``tissue``: muscle where the fraction is at least
+    one half."""
+    x = np.asarray(grid.points, dtype=float)
+    tets = np.asarray(grid.cells_dict[pv.CellType.TETRA])
+    bary = np.array([(i, j, k, n - i - j - k) for i in range(n + 1) for j in range(n + 1 - i)
+                     for k in range(n + 1 - i - j)], dtype=float) / n
+    bary = np.vstack([np.full(4, 0.25), 0.7 * bary + 0.3 * 0.25])  # centroid first
+    c = np.einsum("qv,evd->eqd", bary, x[tets]).reshape(-1, 3)
     X = tuple(c[:, i].astype(F32) for i in range(3))
     s = warp.soft(warp.base_inverse(X))
     muscle = np.zeros(len(c), dtype=np.uint8)
@@ -243,24 +312,47 @@ def _materials(grid, warp):
                                  for fn in (tongue_sdf, temporalis_sdf, neck_muscles_sdf)])
     eye = np.asarray(eyes_sdf(s), float) < 0
     muscle[eye] = 0
-    tissue = np.where(((muscle > 0) | (generic < 0)) & ~eye, arrays.MUSCLE_TISSUE, arrays.FAT)
-    grid.cell_data[arrays.TISSUE] = tissue.astype(np.uint8)
-    grid.cell_data[arrays.MUSCLE] = muscle
+    inside = (((muscle > 0) | (generic < 0)) & ~eye).reshape(len(tets), -1)
+    fraction = inside[:, 1:].mean(axis=1)
+    grid.cell_data[arrays.TISSUE] = np.where(fraction >= 0.5, arrays.MUSCLE_TISSUE,
+                                             arrays.FAT).astype(np.uint8)
+    grid.cell_data[arrays.MUSCLE] = muscle.reshape(len(tets), -1)[:, 0]
+    grid.cell_data[arrays.MUSCLE_FRACTION] = fraction
 
 
-def _boundary_conditions(case, grid, detach=DETACH_MM, clearance=CLEARANCE_MM):
+def _segment_weights(labels, segments, x, sigma=BLEND_MM):
+    """Smooth partition of unity over the bone segments at points ``x`` (n, 3): (n, k).
+
+    Every voxel of the cut labels takes the segment of its nearest bone voxel (exact
+    Euclidean distance transform), each segment's indicator is smoothed by a Gaussian of
+    ``sigma`` mm and interpolated trilinearly at the points: a field of the position alone,
+    one minus the others' weight inside a segment farther than about ``3 sigma`` from the
+    next, blending across an osteotomy over about ``+-2 sigma``."""
+    spacing = np.asarray(labels.spacing, dtype=float)
+    bone = np.asarray(labels[arrays.BONE]).reshape(labels.dimensions, order="F")
+    idx = ndimage.distance_transform_edt(bone == 0, sampling=spacing, return_distances=False,
+                                         return_indices=True)
+    nearest = bone[tuple(idx)]
+    ijk = ((np.asarray(x, dtype=float) - np.asarray(labels.origin, dtype=float)) / spacing).T
+    w = np.column_stack([ndimage.map_coordinates(
+        ndimage.gaussian_filter((nearest == s).astype(np.float32), sigma / spacing,
+                                mode="nearest"), ijk, order=1, mode="nearest")
+        for s in segments])  # a few segments
+    return w / np.maximum(w.sum(axis=1, keepdims=True), np.finfo(np.float32).tiny)
+
+
+def _boundary_conditions(case, grid, blend=BLEND_MM, clearance=CLEARANCE_MM):
     """Point arrays bc / bc_displacement of the truth's own boundary model (module doc).
 
-    A node on a bone surface follows the rigid move of its segment (that of the nearest
-    bone voxel of the cut labels; unmoved bone holds it), unless it lies within
-    ``detach`` mm of a bone voxel of a segment that moves differently: there the
-    periosteum is detached along the osteotomy and the node is free. The band is set in
-    millimetres, not elements, so the tied surface is the same on every mesh (a
-    displacement that jumps across a line of the tied surface has no finite-energy
-    solution, and its discrete answer would change with every refinement). Nodes of the
-    posterior plane are held, except within ``clearance`` mm of a moved bone segment,
-    where they are free (the back cut is artificial: held next to a moving bone it would
-    shear the tissue between them by the whole bone move)."""
+    Every node on a bone surface is tied (periosteum): its displacement is the blend
+    ``sum_s w_s(x) (T_s x - x)`` of the segments' rigid moves of the plan (unmoved bone:
+    the identity) with the smooth weights of :func:`_segment_weights` (Gaussian ``blend``
+    mm). The data is a smooth field of the position, so every mesh interpolates the same
+    boundary data (a displacement that jumps across a line of the tied surface has no
+    finite-energy solution, and a band switched free node by node moves with the mesh).
+    Nodes of the posterior plane are held, except within ``clearance`` mm of a moved bone
+    segment, where they are free (the back cut is artificial: held next to a moving bone it
+    would shear the tissue between them by the whole bone move)."""
     labels = cut_bones(case.truth, case.plan)
     moves = segment_transforms(labels, case.plan)
     bone_ids = np.asarray(labels[arrays.BONE])
@@ -272,24 +364,12 @@ def _boundary_conditions(case, grid, detach=DETACH_MM, clearance=CLEARANCE_MM):
     on_bone = np.flatnonzero(kind == 1 + _BOUNDARY.index("bone"))
     p = x[on_bone]
     segments = np.unique(bone_ids[ids])
-    # distance of each tied node to every segment's voxels (a few segments)
-    dist = np.column_stack([cKDTree(voxel_points(labels, ids[bone_ids[ids] == s])).query(p)[0]
-                            for s in segments])
-    seg = segments[np.argmin(dist, axis=1)]
+    w = _segment_weights(labels, segments, p, blend)
     eye = np.eye(4)
-    moved = {s: p @ moves.get(s, eye)[:3, :3].T + moves.get(s, eye)[:3, 3] - p
-             for s in segments}
-    sub = np.zeros((len(p), 3))
-    detached = np.zeros(len(p), dtype=bool)
     for j, s in enumerate(segments):  # a few bone segments
-        sel = seg == s
-        sub[sel] = moved[s][sel]
-        for k, other in enumerate(segments):
-            if other != s and not np.allclose(moves.get(s, eye), moves.get(other, eye)):
-                detached |= sel & (dist[:, k] < detach)
-    tied = on_bone[~detached]
-    bc[tied] = arrays.BC_JOINT
-    disp[tied] = sub[~detached]
+        m = moves.get(s, eye)
+        disp[on_bone] += w[:, j:j + 1] * (p @ m[:3, :3].T + m[:3, 3] - p)
+    bc[on_bone] = arrays.BC_JOINT
     plane = np.flatnonzero(kind == len(_BOUNDARY) + 1)
     mobile = [s for s in segments if not np.allclose(moves.get(s, eye), eye)]
     near = np.zeros(len(plane), dtype=bool)
@@ -299,9 +379,9 @@ def _boundary_conditions(case, grid, detach=DETACH_MM, clearance=CLEARANCE_MM):
     bc[plane[~near]] = arrays.BC_FIXED
     grid.point_data[arrays.BC] = bc
     grid.point_data[arrays.BC_DISPLACEMENT] = disp
-    log.info("independent truth: %d bone nodes tied, %d detached within %.1f mm of a cut, "
-             "%d of %d plane nodes free near a moved bone", len(tied), int(detached.sum()),
-             detach, int(near.sum()), len(plane))
+    log.info("independent truth: %d bone nodes tied (segment moves blended over %.1f mm), "
+             "%d of %d plane nodes free near a moved bone", len(on_bone), blend,
+             int(near.sum()), len(plane))
     return grid
 
 
