@@ -277,7 +277,8 @@ def cohort_page(args, table, claims, cost, command):
         f"{'met' if 16 * per_warm <= 300 else 'not met'}). A warm run runs no truth "
         "solve and no MTM pipeline: what is left is building each patient, its "
         "post-operative CT, the segmentation and registration of both CTs and the "
-        "distances.", ""]
+        "distances (a rerun in a new process also hashes the prediction code once, "
+        "``pvcmf.study.predictions.prediction_code_hash``: seconds).", ""]
     return "\n".join(lines)
 
 
