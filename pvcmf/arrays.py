@@ -307,3 +307,7 @@ MTM_FREE_RATIO = "mtm_free_over_prescribed"
 #: point (judged skin), int64, index of the point in the skin every method was mapped to
 #: (pairs the skin points of two methods: :mod:`pvcmf.study.inference`)
 SKIN_POINT_ID = "skin_point_id"
+#: field (judged skin), int64 (1,): points of the judged face left out because the
+#: post-operative CT shows no skin where the truth puts it
+#: (:data:`pvcmf.study.validation.JUDGE_LIMIT`)
+STUDY_EXCLUDED = "study_excluded"

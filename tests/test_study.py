@@ -111,7 +111,8 @@ def test_study_methods_run_paper_000s_model_without_classification(monkeypatch):
         raise Stop
 
     case = SimpleNamespace(ct=None, plan=None, truth=None, landmarks=None)
-    monkeypatch.setattr(validation, "_scan", lambda *args: (None, None, None, None))
+    monkeypatch.setattr(validation, "_scan",
+                        lambda *args: (None, None, SimpleNamespace(n_points=1), None))
     predict = study_predictor(**SMALL, truth=lambda c: None, cases={1: case})
     for method in ("proposed", "state_of_the_art", "no_muscles", "wrong_nu",
                    "proposed_auto", "state_of_the_art_auto"):

@@ -3,7 +3,8 @@
 * :mod:`pvcmf.study.statistics` - error statistics and face regions;
 * :mod:`pvcmf.study.from_ct` - judging a prediction against a post-operative CT;
 * :mod:`pvcmf.study.validation` - paper 000's study (:func:`run_study`,
-  :func:`study_predictor`);
+  :func:`study_predictor`); :mod:`pvcmf.study.predictions` - its predictions' on-disk
+  cache;
 * :mod:`pvcmf.study.parameters`, :mod:`pvcmf.study.evaluation`,
   :mod:`pvcmf.study.pipeline_evaluation`, :mod:`pvcmf.study.engine`,
   :mod:`pvcmf.study.tables`, :mod:`pvcmf.study.cli` - parameter sweeps (paper 001) on

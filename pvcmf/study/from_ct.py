@@ -24,7 +24,8 @@ from .statistics import error_statistics, label_face_regions
 
 log = logging.getLogger("pvcmf.postop")
 
-__all__ = ["refine_skin", "skin_from_ct", "upper_face_region", "validate_from_ct"]
+__all__ = ["judge_skin", "refine_skin", "register_postop_skin", "skin_from_ct",
+           "upper_face_region", "validate_from_ct"]
 
 
 def upper_face_region(landmarks=None, *, below_nasion=15.0):
@@ -251,28 +252,71 @@ def validate_from_ct(pre_case, postop_ct, predicted_skin, *, region=None, pre_sk
                         f"{type(predicted_skin).__name__}")
     if predicted_skin.n_points == 0:
         raise ValueError("predicted_skin must have points, got an empty dataset")
-    opts = dict(refine=refine, segment_options=segment_options, skin_options=skin_options)
     with Progress(total=4, desc="validate_from_ct", enabled=progress_bar, logger=log) as bar:
-        post_skin = skin_from_ct(postop_ct, name="postop_ct", **opts)
-        if pre_skin is None:
-            pre_skin = skin_from_ct(pre_case.ct, name="pre_case.ct", **opts)
-        bar.step("skins")
+        registered = register_postop_skin(
+            pre_case, postop_ct, region=region, pre_skin=pre_skin, landmarks=landmarks,
+            segment_options=segment_options, skin_options=skin_options,
+            icp_options=icp_options, refine=refine)
+        bar.step("skins, registered")
         landmarks = getattr(pre_case, "landmarks", None) if landmarks is None else landmarks
-        if region is None:
-            region = upper_face_region(landmarks)
-        icp = {"tol": 5e-3, "closest": "auto", **(icp_options or {})}
-        registered = filters.register(post_skin, pre_skin, region=region, **icp)
-        matrix, rms, converged = registration_result(registered)
-        log.info("validate_from_ct: ICP RMS %.3f mm, converged %s", rms, converged)
-        bar.step("registered")
-        target = pv.PolyData(registered.points, faces=registered.faces)
-        out = filters.distance_to(predicted_skin, target, max_distance=max_distance)
-        out = label_face_regions(out, landmarks=landmarks)
-        for key in registered.field_data.keys():
-            out.field_data[key] = registered.field_data[key]
-        if ICP_MATRIX not in out.field_data.keys():
-            raise RuntimeError("register() returned no ICP matrix")
+        out = judge_skin(predicted_skin, registered, landmarks=landmarks,
+                         max_distance=max_distance)
         bar.step("distances")
         table = error_statistics(out, regions=regions)
         bar.step("statistics")
     return out, table
+
+
+def register_postop_skin(pre_case, postop_ct, *, region=None, pre_skin=None, landmarks=None,
+                         segment_options=None, skin_options=None, icp_options=None,
+                         refine=True):
+    """The post-operative CT's skin, registered onto the pre-operative skin (ICP).
+
+    The first half of :func:`validate_from_ct` (same parameters): segment -> skin ->
+    point-to-plane ICP on ``region``. It does not depend on the prediction, so several
+    predictions of one patient are judged against one registration (:func:`judge_skin`).
+
+    Returns
+    -------
+    pyvista.PolyData
+        The registered post-operative skin (triangles), the ICP result in its field
+        data.
+    """
+    _check_case(pre_case, "pre_case")
+    opts = dict(refine=refine, segment_options=segment_options, skin_options=skin_options)
+    post_skin = skin_from_ct(postop_ct, name="postop_ct", **opts)
+    if pre_skin is None:
+        pre_skin = skin_from_ct(pre_case.ct, name="pre_case.ct", **opts)
+    landmarks = getattr(pre_case, "landmarks", None) if landmarks is None else landmarks
+    if region is None:
+        region = upper_face_region(landmarks)
+    icp = {"tol": 5e-3, "closest": "auto", **(icp_options or {})}
+    registered = filters.register(post_skin, pre_skin, region=region, **icp)
+    matrix, rms, converged = registration_result(registered)
+    log.info("validate_from_ct: ICP RMS %.3f mm, converged %s", rms, converged)
+    target = pv.PolyData(registered.points, faces=registered.faces)
+    for key in registered.field_data.keys():
+        target.field_data[key] = registered.field_data[key]
+    if ICP_MATRIX not in target.field_data.keys():
+        raise RuntimeError("register() returned no ICP matrix")
+    return target
+
+
+def judge_skin(predicted_skin, registered, *, landmarks=None, max_distance=10.0):
+    """Signed distances of a prediction to a registered post-operative skin, face regions.
+
+    The second half of :func:`validate_from_ct`: ``registered`` comes from
+    :func:`register_postop_skin`, ``landmarks`` (the pre-operative patient's) label the
+    face regions; returns the copy of ``predicted_skin`` with point arrays
+    ``arrays.DISTANCE`` and ``arrays.REGION`` and the ICP result in its field data.
+    """
+    if not isinstance(predicted_skin, pv.DataSet):
+        raise TypeError(f"predicted_skin must be a pyvista dataset, got "
+                        f"{type(predicted_skin).__name__}")
+    if predicted_skin.n_points == 0:
+        raise ValueError("predicted_skin must have points, got an empty dataset")
+    out = filters.distance_to(predicted_skin, registered, max_distance=max_distance)
+    out = label_face_regions(out, landmarks=landmarks)
+    for key in registered.field_data.keys():
+        out.field_data[key] = registered.field_data[key]
+    return out

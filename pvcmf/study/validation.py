@@ -24,12 +24,14 @@ from ..pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
 from ..truth.grid import _skin_of, truth_grid
 from ..truth.independent import independent_truth_grid
 from ..truth.postop import postop_ct
-from .from_ct import skin_from_ct, validate_from_ct
+from .from_ct import judge_skin, register_postop_skin, skin_from_ct
+from .predictions import cached_prediction
 from .statistics import _distances, error_statistics
 
 log = logging.getLogger("pvcmf.validation")
 
-__all__ = ["AUTO_METHODS", "CONTROL_METHODS", "STUDY_METHODS", "TRUTH_REACH", "run_study", "study_predictor"]
+__all__ = ["AUTO_METHODS", "CONTROL_METHODS", "JUDGE_LIMIT", "STUDY_METHODS", "TRUTH_REACH",
+           "run_study", "study_predictor"]
 
 
 def run_study(predict, patients=(1, 2, 3, 4), methods=("proposed", "state_of_the_art"), *,
@@ -102,11 +104,18 @@ AUTO_METHODS = ("proposed_auto", "state_of_the_art_auto")
 #: how far (mm) outside its grid the study's truth reaches (``postop_ct``'s ``extrapolate``:
 #: tissue there moves with the nearest truth node); skin beyond it is not judged
 TRUTH_REACH = 10.0
+#: how far (mm) the post-operative CT's registered skin may lie from the truth's own skin
+#: (the pre-operative skin moved by the truth) for a point to be judged. Beyond it the CT
+#: does not show the skin where the truth puts it (e.g. an internal air passage that one CT
+#: connects to the outside air and the other does not: its wall is skin in one scan only),
+#: so no method can be judged there; such points are excluded from every method, counted
+#: in the judged skin's field data ``arrays.STUDY_EXCLUDED`` and logged
+JUDGE_LIMIT = 3.0
 
 
 def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                     truth_cache=True, cache_dir=None, truth=None, noise_hu=18.0,
-                    ct_spacing=None, cases=None):
+                    ct_spacing=None, cases=None, prediction_cache=False):
     """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
 
     The study runs the path of a real post-operative scan. For virtual patient ``patient``
@@ -121,7 +130,8 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     3. :func:`pvcmf.study.from_ct.validate_from_ct`: segment that CT -> skin (refined onto its
        -500 HU edge) -> point-to-plane ICP onto the pre-operative CT's skin on the upper
        face (forehead, orbits, nose bridge) -> exact signed distance of the prediction to
-       the registered post-operative skin -> face regions.
+       the registered post-operative skin -> face regions (the CT is segmented and
+       registered once per patient: :func:`pvcmf.study.from_ct.register_postop_skin`).
 
     Every method runs paper 000's model: ``simulate(..., classify=False)``, the atlas
     muscles in fat without paper 001's fat/muscle classification.
@@ -134,7 +144,9 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     judged on the meshed anterior face (``mapping_support > 0``, in front of the face
     box) where the truth is defined (inside its grid or within :data:`TRUTH_REACH` mm of
     a node; further out ``postop_ct`` fades the displacement away, so neither model can
-    be judged there). "truth" judges that same skin moved by the truth grid (its displacement probed
+    be judged there) and where the post-operative CT shows the skin within
+    :data:`JUDGE_LIMIT` mm of where the truth puts it (elsewhere the scan cannot judge any
+    method: the points are left out of every method and logged). "truth" judges that same skin moved by the truth grid (its displacement probed
     inside the grid, the nearest node's outside) on the anterior face through the same
     path: what the CT path itself adds (warping, noise, voxels, segmentation, ICP), the
     floor against which the differences between the methods are to be read. The controls
@@ -175,12 +187,20 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     cases : mapping, optional
         ``patient -> pvcmf.datasets.Case`` (e.g. :func:`pvcmf.study.cohort.cohort`'s
         patients by number) instead of ``datasets.phantom(patient, spacing=spacing)``.
+    prediction_cache : bool, default False
+        Read / write each model's prediction (the MTM pipeline and the mapping onto the
+        pre-operative skin) in the on-disk cache (``cache_dir``'s ``predictions`` folder,
+        :mod:`pvcmf.study.predictions`: keyed by the patient, the plan, the method, the
+        sizes and the code that computes it), so a second run of a study runs no
+        pipeline. The judging (post-operative CT, registration, distances) always runs.
 
     Returns
     -------
     callable
         ``predict(patient, method) -> PolyData`` with point arrays ``arrays.DISTANCE`` and
-        ``arrays.REGION`` and the ICP result in its field data, for :func:`run_study`.
+        ``arrays.REGION``, the ICP result and ``arrays.STUDY_EXCLUDED`` (face points not
+        judged: the post-operative CT shows no skin within :data:`JUDGE_LIMIT` mm of the
+        truth's) in its field data, for :func:`run_study`.
 
     Examples
     --------
@@ -219,9 +239,13 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         c = case(patient)
         if patient not in scans:
             scans[patient] = _scan(c, patient, truth, noise_hu, ct_spacing)
-        grid, ct, pre_skin, covered = scans[patient]
-        labels, pred = _prediction(c, method, grid, pre_skin, n_tets, sigma)
-        return _judge(c, ct, pred, pre_skin, labels, covered)
+        grid, registered, pre_skin, judged = scans[patient]
+        y0, pred = cached_prediction(
+            lambda: _prediction(c, method, grid, pre_skin, n_tets, sigma), c, method,
+            {"n_tets": int(n_tets), "sigma": float(sigma)},
+            cache=prediction_cache and method != "truth", cache_dir=cache_dir,
+            n_points=pre_skin.n_points)
+        return _judge(c, registered, pred, y0, judged)
 
     return predict
 
@@ -231,28 +255,47 @@ def _reference_truth(case, *, truth_tets, cache, cache_dir):
 
 
 def _scan(case, patient, truth, noise_hu, ct_spacing):
-    """The truth grid, the posed noisy post-operative CT, the pre-operative skin and the
-    mask of the skin points the truth covers."""
+    """The truth grid, the registered skin of the posed noisy post-operative CT, the
+    pre-operative skin and the masks (covered, apart) of :func:`_judgeable`."""
     grid = truth(case)
     ct, _ = postop_ct(case, grid, noise_hu=noise_hu, pose="random", seed=patient,
                       spacing=ct_spacing, extrapolate=TRUTH_REACH, extension="nearest")
     pre_skin = skin_from_ct(case.ct, name="pre-operative CT")
-    # the truth is defined inside its grid and, by postop_ct's full extrapolation of the
-    # nearest node (as the truth's own skin, pvcmf.truth.grid's _skin_of, moves),
-    # up to TRUTH_REACH mm outside it: only that skin is judged
+    registered = register_postop_skin(case, ct, pre_skin=pre_skin, landmarks=case.landmarks)
+    return grid, registered, pre_skin, _judgeable(case, patient, grid, registered, pre_skin)
+
+
+def _judgeable(case, patient, grid, registered, pre_skin):
+    """Masks of the pre-operative skin points the truth covers and of those of them that
+    cannot be judged (logged when there are some).
+
+    The truth is defined inside its grid and, by postop_ct's extrapolation of the nearest
+    node (as the truth's own skin, pvcmf.truth.grid's _skin_of, moves), up to TRUTH_REACH
+    mm outside it; of that skin, only the points where the post-operative CT shows the skin
+    where the truth puts it (within JUDGE_LIMIT mm) are judged."""
     covered = np.asarray(pre_skin.sample(grid, progress_bar=False)[
         arrays.VALID_POINT_MASK], dtype=bool)
     near, _ = cKDTree(grid.points).query(pre_skin.points[~covered])
     covered[~covered] = near <= TRUTH_REACH
-    return grid, ct, pre_skin, covered
+    own = judge_skin(_skin_of(pre_skin, grid), registered, landmarks=case.landmarks)
+    apart = covered & ~(np.abs(np.asarray(own[arrays.DISTANCE])) <= JUDGE_LIMIT)
+    if apart.any():
+        log.warning("patient %s: %d of %d skin points the truth covers (%.1f %%) are not "
+                    "judged: the post-operative CT shows no skin within %.1f mm of where the "
+                    "truth puts it (largest gap %.1f mm; e.g. an air passage whose wall is "
+                    "skin in one CT only)", patient, int(apart.sum()), int(covered.sum()),
+                    100.0 * apart.sum() / max(int(covered.sum()), 1), JUDGE_LIMIT,
+                    float(np.nanmax(np.abs(own[arrays.DISTANCE][apart]))))
+    return covered, apart
 
 
 def _prediction(case, method, grid, pre_skin, n_tets, sigma):
-    """(cut labels, predicted skin on the points of ``pre_skin``) of one method."""
+    """(front of the face box, predicted skin on the points of ``pre_skin``) of one
+    method; the face box is that of the method's own cut labels."""
     if method == "truth":  # the truth's own skin through the CT path: its floor
         pred = _skin_of(pre_skin, grid)
         pred.point_data[arrays.MAPPING_SUPPORT] = np.ones(pred.n_points)
-        return cut_bones(case.truth, case.plan), pred
+        return _face_y0(cut_bones(case.truth, case.plan)), pred
     oracle = method not in AUTO_METHODS  # true bone labels and landmarks given
     conforming = method not in ("state_of_the_art", "state_of_the_art_auto")
     # paper 000's models: the atlas muscles in fat, no fat/muscle classification (paper 001's
@@ -277,20 +320,27 @@ def _prediction(case, method, grid, pre_skin, n_tets, sigma):
                                                         volume=False)
     width = max(sigma, 0.5 * float(np.median(edges["Length"])))
     # the skin of the pre-operative CT, as the truth is measured
-    return res.labels, post.cmf.map_to_surface(pre_skin, method="gaussian", sigma=width)
+    return _face_y0(res.labels), post.cmf.map_to_surface(pre_skin, method="gaussian",
+                                                         sigma=width)
 
 
-def _judge(case, ct, pred, pre_skin, labels, covered):
-    """Distances of ``pred`` to the CT's skin, on the judged anterior face only."""
-    out, _ = validate_from_ct(case, ct, pred, pre_skin=pre_skin, landmarks=case.landmarks,
-                              regions=False)
-    # only the face the model simulates (the meshed, anterior part) is judged
-    y0 = face_box(labels, DEFAULT_FACE_FRACTION)[2]
+def _face_y0(labels):
+    """Front of the face box of cut labels (mm): only the skin in front of it is judged."""
+    return float(face_box(labels, DEFAULT_FACE_FRACTION)[2])
+
+
+def _judge(case, registered, pred, y0, masks):
+    """Distances of ``pred`` to the registered post-operative skin, on the judged anterior
+    face only (the meshed part, in front of ``y0``, where the truth is judgeable)."""
+    out = judge_skin(pred, registered, landmarks=case.landmarks)
     # (every prediction is a copy of pre_skin, point for point: its ids pair the methods)
     out.point_data[arrays.SKIN_POINT_ID] = np.arange(out.n_points, dtype=np.int64)
-    face = (out[arrays.MAPPING_SUPPORT] > 0) & covered & (out.points[:, 1] >= y0)
+    covered, apart = masks
+    front = (out[arrays.MAPPING_SUPPORT] > 0) & (out.points[:, 1] >= y0) & covered
+    face = front & ~apart
     judged = out.extract_points(face, adjacent_cells=False).extract_surface(
         algorithm="dataset_surface")
     for key in out.field_data.keys():  # the ICP result
         judged.field_data[key] = out.field_data[key]
+    judged.field_data[arrays.STUDY_EXCLUDED] = np.array([int((front & apart).sum())])
     return judged
