@@ -48,6 +48,7 @@ from .morphology import (MIN_BALL_VOXELS, _box, _closing, _dilate_ball, _down, _
                          _largest_component, _open_ball, _up)
 from ..progress import Progress
 from . import metal as _metal
+from .surface_objects import DENSE_STEPS, drop_surface_objects
 
 log = logging.getLogger(__name__)
 
@@ -221,6 +222,11 @@ def segment(
     head = _head(vol, thr["skin"], spacing, factor, object_opening)
     box = _box(head, 2)
     head, sub = head[box], vol[box]
+    if object_opening > 0:
+        head, removed = drop_surface_objects(head, sub, spacing, factor, thr["dense"],
+                                             object_opening)
+        if removed > 0:
+            say("segment: removed %.2f mL of dense objects lying on the skin", removed)
     if fill_holes:
         head = _fill_small_holes(head, spacing, min_cavity, say)
     bar.step()
@@ -317,6 +323,10 @@ def _thresholds(vol, skin, bone, teeth, metal):
             raise ValueError(f"{name}_threshold must be a finite number or None, got {value!r}")
     thr = dict(calibrate(vol)) if any(v is None for v in given.values()) else {}
     thr.update({k: float(v) for k, v in given.items() if v is not None})
+    if "soft" in thr:  # denser than any soft tissue (objects on the skin), below bone
+        thr["dense"] = min(thr["soft"] + DENSE_STEPS * (thr["soft"] - thr["air"]), thr["bone"])
+    else:  # thresholds all given: from the skin level (half-way from air to soft tissue)
+        thr["dense"] = thr["bone"]
     if not thr["skin"] < thr["bone"] < thr["teeth"] <= thr["metal"]:
         raise ValueError(
             "thresholds must increase: skin_threshold < bone_threshold < teeth_threshold <= "
