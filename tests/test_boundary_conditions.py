@@ -145,8 +145,9 @@ def test_options_switch_each_bc_off(head):
 
 
 def test_teeth_rim_labelled_bone_still_slides(head):
-    """A CT segmentation labels the teeth's partial-volume rim as bone: the lips on that rim
-    slide with the default teeth_margin (one voxel) and are joint with teeth_margin=0."""
+    """A CT segmentation labels the teeth's partial-volume rim as bone: the lips on the
+    moving jaw's rim slide with the default teeth_margin (one voxel) and are joint with
+    teeth_margin=0; on the jaw that stays the rim is its bone."""
     labels, grid = head
     rim = labels.copy()
     tissue = rim[arrays.TISSUE].copy()
@@ -157,10 +158,12 @@ def test_teeth_rim_labelled_bone_still_slides(head):
     lips = (np.abs(grid.points[:, 1] - 8.0) < 1e-9) & (np.abs(grid.points[:, 0]) < 6) \
         & (np.abs(grid.points[:, 2]) >= 2) & (np.abs(grid.points[:, 2]) <= 6)
     assert lips.sum() > 10
-    assert np.all(apply_plan(grid, plan, rim)[arrays.BC][lips] == arrays.BC_SLIDING)
+    lower = grid.points[lips, 2] < 0
+    default = apply_plan(grid, plan, rim)[arrays.BC][lips]
+    assert np.all(default[lower] == arrays.BC_SLIDING)  # on the moving mandible's rim
+    assert not np.any(default[~lower] == arrays.BC_SLIDING)  # the maxilla stays: its bone
     strict = apply_plan(grid, plan, rim, teeth_margin=0)[arrays.BC][lips]
     assert not np.any(strict == arrays.BC_SLIDING)
-    lower = grid.points[lips, 2] < 0
     assert np.all(strict[lower] == arrays.BC_JOINT)  # on the moving mandible's "bone"
 
 
@@ -313,3 +316,62 @@ def test_warns_when_almost_nothing_is_fixed(head):
         warnings.simplefilter("error")
         apply_plan(thin, plan, labels, fix_unmoved_bone=True)  # held by the cranium: quiet
         apply_plan(grid, plan, labels)  # the toy's posterior plane is a real plane: quiet
+
+
+def _rim_labelled_bone(labels):
+    """The labels with the teeth's front layer (y = 8) labelled bone, as a CT segmentation
+    labels the partial-volume rim of the enamel."""
+    rim = labels.copy()
+    tissue = rim[arrays.TISSUE].copy()
+    tissue[(np.abs(rim.points[:, 1] - 8.0) < 1e-9) & (tissue == arrays.TEETH)] = \
+        arrays.BONE_TISSUE
+    rim[arrays.TISSUE] = tissue
+    return rim
+
+
+def test_teeth_margin_of_a_jaw_that_stays_is_its_bone(head):
+    """The teeth margin slides on the moving jaw only: on the jaw that stays, the nodes on
+    its rim (bone within a voxel of its teeth) are that jaw's bone (fixed with
+    fix_unmoved_bone), those on its TEETH voxels still slide."""
+    labels, grid = head
+    rim = _rim_labelled_bone(labels)
+    plan = Plan((Osteotomy("maxilla", (0, 0, 2.0)),))
+    bc = apply_plan(grid, plan, rim, fix_unmoved_bone=True)[arrays.BC]
+    p = grid.points
+    front = np.abs(p[:, 0]) < 6
+    lower_rim = front & (np.abs(p[:, 1] - 8.0) < 1e-9) & (p[:, 2] <= -2) & (p[:, 2] >= -6)
+    upper_rim = front & (np.abs(p[:, 1] - 8.0) < 1e-9) & (p[:, 2] >= 2) & (p[:, 2] <= 6)
+    assert lower_rim.sum() > 10 and upper_rim.sum() > 10
+    assert np.all(bc[upper_rim] == arrays.BC_SLIDING)  # rim of the moving maxilla
+    assert np.all(bc[lower_rim] == arrays.BC_FIXED)  # rim of the mandible, which stays
+    exact = apply_plan(grid, plan, labels, fix_unmoved_bone=True)[arrays.BC]
+    assert np.all(exact[lower_rim] == arrays.BC_SLIDING)  # on the mandible's TEETH voxels
+
+
+def _volume_ratios(post):
+    cells = post.cells_dict[pv.CellType.TETRA]
+
+    def volumes(p):
+        a = p[cells[:, 0]]
+        return np.einsum("ij,ij->i", np.cross(p[cells[:, 1]] - a, p[cells[:, 2]] - a),
+                         p[cells[:, 3]] - a)
+
+    p = np.asarray(post.points)
+    return volumes(p + np.asarray(post[arrays.DISPLACEMENT])) / volumes(p)
+
+
+@pytest.mark.parametrize("rim", [False, True])
+def test_maxilla_moved_up_and_back_inverts_no_tetrahedron(small_head, rim):
+    """The maxilla 4 mm up and 4 mm back over 2 mm of tissue, the pipeline's boundary
+    options: no tetrahedron turns inside out (the lower teeth's margin pinned as sliding
+    held the tissue beside the moving jaw and inverted 14 of them)."""
+    solve = _solver()
+    labels, grid = small_head
+    labels = _rim_labelled_bone(labels) if rim else labels
+    plan = Plan((Osteotomy("maxilla", (0, 4.0, -4.0)),))
+    bc = apply_plan(_materials(grid), plan, labels, fix_unmoved_bone=True,
+                    release_margin="auto")
+    post = solve(bc)
+    ratios = _volume_ratios(post)
+    assert ratios.min() > 0.1, f"volume ratio {ratios.min():.3f}"
+    assert int(post.field_data[arrays.MTM_INVERTED][0]) == 0

@@ -156,9 +156,13 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         within this distance (mm). Default: the largest voxel spacing of ``bones``.
     teeth_margin : float, optional
         Hard-tissue voxels within this distance (mm) of a tooth voxel count as tooth
-        surface: a CT segmentation labels the partial-volume rim of the teeth as bone, so
-        the lips touch that rim, not the enamel. Default: the largest voxel spacing; 0
-        uses the ``TEETH`` label alone.
+        surface of a moving segment: a CT segmentation labels the partial-volume rim of the
+        teeth as bone, so the lips touch that rim, not the enamel. On a segment that does
+        not move, only the ``TEETH`` voxels are tooth surface: the margin there is the
+        alveolar bone round the roots as much as the rim, and a node pinned to it (sliding
+        with no normal move) where a fixed one would be freed (``release_margin``) holds
+        the tissue that the moving jaw beside it shears, turning tetrahedra inside out.
+        Default: the largest voxel spacing; 0 uses the ``TEETH`` label alone.
     normal_sigma : float, default 1.0
         Gaussian sigma (voxels) smoothing the hard-tissue indicator whose gradient gives
         the sliding normals.
@@ -226,6 +230,9 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
             grid, labels, bones, bone, tissue, contact, teeth_margin)
         bar.step(f"{len(nodes)} boundary nodes touch hard tissue")
         moved = np.isin(seg, list(transforms))
+        # the teeth margin slides on a moving jaw only: on a jaw that stays it is that
+        # jaw's bone (the alveolar bone round the roots), fixed or freed like the rest
+        is_teeth &= moved | (tissue[_nearest_ids(labels, vox[near])] == arrays.TEETH)
 
         def rigid(idx, segs):
             out = np.zeros((len(idx), 3))
@@ -353,6 +360,14 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
             ~vol_teeth[box], sampling=spacing) <= teeth_margin * (1 + 1e-9)
         teeth = hard & near_teeth.ravel(order="F")
     return hard, vox, nodes, near, bone[near_ids], teeth[near_ids]
+
+
+def _nearest_ids(labels, points):
+    """Point ids of the voxel centres ``points`` of ``labels``."""
+    ijk = np.rint((points - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(
+        np.int64)
+    dims = np.asarray(labels.dimensions, dtype=np.int64)
+    return ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2])
 
 
 def _release_near_moves(code, disp, points, margin):
