@@ -145,9 +145,8 @@ def test_options_switch_each_bc_off(head):
 
 
 def test_teeth_rim_labelled_bone_still_slides(head):
-    """A CT segmentation labels the teeth's partial-volume rim as bone: the lips on the
-    moving jaw's rim slide with the default teeth_margin (one voxel) and are joint with
-    teeth_margin=0; on the jaw that stays the rim is its bone."""
+    """A CT segmentation labels the teeth's partial-volume rim as bone: the lips on that rim
+    slide with the default teeth_margin (one voxel) and are joint with teeth_margin=0."""
     labels, grid = head
     rim = labels.copy()
     tissue = rim[arrays.TISSUE].copy()
@@ -158,12 +157,10 @@ def test_teeth_rim_labelled_bone_still_slides(head):
     lips = (np.abs(grid.points[:, 1] - 8.0) < 1e-9) & (np.abs(grid.points[:, 0]) < 6) \
         & (np.abs(grid.points[:, 2]) >= 2) & (np.abs(grid.points[:, 2]) <= 6)
     assert lips.sum() > 10
-    lower = grid.points[lips, 2] < 0
-    default = apply_plan(grid, plan, rim)[arrays.BC][lips]
-    assert np.all(default[lower] == arrays.BC_SLIDING)  # on the moving mandible's rim
-    assert not np.any(default[~lower] == arrays.BC_SLIDING)  # the maxilla stays: its bone
+    assert np.all(apply_plan(grid, plan, rim)[arrays.BC][lips] == arrays.BC_SLIDING)
     strict = apply_plan(grid, plan, rim, teeth_margin=0)[arrays.BC][lips]
     assert not np.any(strict == arrays.BC_SLIDING)
+    lower = grid.points[lips, 2] < 0
     assert np.all(strict[lower] == arrays.BC_JOINT)  # on the moving mandible's "bone"
 
 
@@ -329,23 +326,27 @@ def _rim_labelled_bone(labels):
     return rim
 
 
-def test_teeth_margin_of_a_jaw_that_stays_is_its_bone(head):
-    """The teeth margin slides on the moving jaw only: on the jaw that stays, the nodes on
-    its rim (bone within a voxel of its teeth) are that jaw's bone (fixed with
-    fix_unmoved_bone), those on its TEETH voxels still slide."""
+def test_teeth_margin_of_a_jaw_that_stays_is_freed_near_a_move(head):
+    """The nodes on the teeth margin of a jaw that stays (bone within a voxel of its teeth:
+    the crown's rim, the alveolar bone) are freed near the moving jaw like its fixed nodes;
+    those on its TEETH voxels, and all of them without release_margin, still slide."""
     labels, grid = head
     rim = _rim_labelled_bone(labels)
-    plan = Plan((Osteotomy("maxilla", (0, 0, 2.0)),))
-    bc = apply_plan(grid, plan, rim, fix_unmoved_bone=True)[arrays.BC]
+    plan = Plan((Osteotomy("maxilla", (0, 0, 4.0)),))
     p = grid.points
-    front = np.abs(p[:, 0]) < 6
-    lower_rim = front & (np.abs(p[:, 1] - 8.0) < 1e-9) & (p[:, 2] <= -2) & (p[:, 2] >= -6)
-    upper_rim = front & (np.abs(p[:, 1] - 8.0) < 1e-9) & (p[:, 2] >= 2) & (p[:, 2] <= 6)
-    assert lower_rim.sum() > 10 and upper_rim.sum() > 10
-    assert np.all(bc[upper_rim] == arrays.BC_SLIDING)  # rim of the moving maxilla
-    assert np.all(bc[lower_rim] == arrays.BC_FIXED)  # rim of the mandible, which stays
-    exact = apply_plan(grid, plan, labels, fix_unmoved_bone=True)[arrays.BC]
-    assert np.all(exact[lower_rim] == arrays.BC_SLIDING)  # on the mandible's TEETH voxels
+    front = (np.abs(p[:, 0]) < 6) & (np.abs(p[:, 1] - 8.0) < 1e-9)
+    lower = front & (p[:, 2] <= -2) & (p[:, 2] >= -6)
+    upper = front & (p[:, 2] >= 2) & (p[:, 2] <= 6)
+    assert lower.sum() > 10 and upper.sum() > 10
+    out = apply_plan(grid, plan, rim, fix_unmoved_bone=True, release_margin="auto")
+    bc = out[arrays.BC]
+    assert np.all(bc[upper] == arrays.BC_SLIDING)  # rim of the moving maxilla
+    assert np.all(bc[lower] == arrays.BC_FREE)  # rim of the mandible, which stays
+    assert np.all(out[arrays.BC_NORMAL][lower] == 0)
+    kept = apply_plan(grid, plan, rim, fix_unmoved_bone=True)[arrays.BC]
+    assert np.all(kept[lower] == arrays.BC_SLIDING)  # no release_margin: pinned
+    exact = apply_plan(grid, plan, labels, fix_unmoved_bone=True, release_margin="auto")
+    assert np.all(exact[arrays.BC][lower] == arrays.BC_SLIDING)  # on TEETH voxels
 
 
 def _volume_ratios(post):
