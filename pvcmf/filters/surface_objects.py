@@ -90,7 +90,9 @@ def drop_surface_objects(head, vol, spacing, factor, dense, depth, radius=RIM_MM
     # not an object: a piece with a part deeper than ``depth`` (coarse distance to the air)
     cspace = spacing * np.asarray(factor)
     inside = _fill(_down(head, factor, "any"), _FACES)
-    deep = ndimage.distance_transform_edt(np.pad(inside, 1), sampling=cspace)[1:-1, 1:-1, 1:-1]
+    # (the image's end is no air: the padding repeats the last slices of a head cut there)
+    deep = ndimage.distance_transform_edt(np.pad(inside, 1, mode="edge"),
+                                          sampling=cspace)[1:-1, 1:-1, 1:-1]
     deep = _up(deep > depth + float(np.max(cspace)), factor, head.shape)
     keep[np.unique(lab[deep & objects])] = True
     # ... or one that does not reach the head's surface (a vessel under the skin)
@@ -111,9 +113,9 @@ def drop_surface_objects(head, vol, spacing, factor, dense, depth, radius=RIM_MM
             box = tuple(slice(max(s.start - m, 0), min(s.stop + m, k))
                         for s, m, k in zip(part, margin, head.shape))
             obj = lab[box] == i
+            inner = tuple(slice(p.start - b.start, p.stop - b.start) for p, b in zip(part, box))
             seed = np.zeros_like(obj)
-            seed[tuple(slice(p.start - b.start, p.stop - b.start) for p, b in zip(part, box))] = \
-                obj[tuple(slice(p.start - b.start, p.stop - b.start) for p, b in zip(part, box))]
+            seed[inner] = obj[inner]  # this stretch; the rest of the object is no tissue
             out[box] &= ~(seed | _rim(head[box] & ~obj, seed, spacing, r))
     largest = _largest_component(out, _FACES)
     if largest is None:  # everything was an object: keep the mask as it was
