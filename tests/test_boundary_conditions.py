@@ -313,3 +313,66 @@ def test_warns_when_almost_nothing_is_fixed(head):
         warnings.simplefilter("error")
         apply_plan(thin, plan, labels, fix_unmoved_bone=True)  # held by the cranium: quiet
         apply_plan(grid, plan, labels)  # the toy's posterior plane is a real plane: quiet
+
+
+def _rim_labelled_bone(labels):
+    """The labels with the teeth's front layer (y = 8) labelled bone, as a CT segmentation
+    labels the partial-volume rim of the enamel."""
+    rim = labels.copy()
+    tissue = rim[arrays.TISSUE].copy()
+    tissue[(np.abs(rim.points[:, 1] - 8.0) < 1e-9) & (tissue == arrays.TEETH)] = \
+        arrays.BONE_TISSUE
+    rim[arrays.TISSUE] = tissue
+    return rim
+
+
+def test_teeth_margin_of_a_jaw_that_stays_is_freed_near_a_move(head):
+    """The nodes on the teeth margin of a jaw that stays (bone within a voxel of its teeth:
+    the crown's rim, the alveolar bone) are freed near the moving jaw like its fixed nodes;
+    those on its TEETH voxels, and all of them without release_margin, still slide."""
+    labels, grid = head
+    rim = _rim_labelled_bone(labels)
+    plan = Plan((Osteotomy("maxilla", (0, 0, 4.0)),))
+    p = grid.points
+    front = (np.abs(p[:, 0]) < 6) & (np.abs(p[:, 1] - 8.0) < 1e-9)
+    lower = front & (p[:, 2] <= -2) & (p[:, 2] >= -6)
+    upper = front & (p[:, 2] >= 2) & (p[:, 2] <= 6)
+    assert lower.sum() > 10 and upper.sum() > 10
+    out = apply_plan(grid, plan, rim, fix_unmoved_bone=True, release_margin="auto")
+    bc = out[arrays.BC]
+    assert np.all(bc[upper] == arrays.BC_SLIDING)  # rim of the moving maxilla
+    assert np.all(bc[lower] == arrays.BC_FREE)  # rim of the mandible, which stays
+    assert np.all(out[arrays.BC_NORMAL][lower] == 0)
+    kept = apply_plan(grid, plan, rim, fix_unmoved_bone=True)[arrays.BC]
+    assert np.all(kept[lower] == arrays.BC_SLIDING)  # no release_margin: pinned
+    exact = apply_plan(grid, plan, labels, fix_unmoved_bone=True, release_margin="auto")
+    assert np.all(exact[arrays.BC][lower] == arrays.BC_SLIDING)  # on TEETH voxels
+
+
+def _volume_ratios(post):
+    cells = post.cells_dict[pv.CellType.TETRA]
+
+    def volumes(p):
+        a = p[cells[:, 0]]
+        return np.einsum("ij,ij->i", np.cross(p[cells[:, 1]] - a, p[cells[:, 2]] - a),
+                         p[cells[:, 3]] - a)
+
+    p = np.asarray(post.points)
+    return volumes(p + np.asarray(post[arrays.DISPLACEMENT])) / volumes(p)
+
+
+@pytest.mark.parametrize("rim", [False, True])
+def test_maxilla_moved_up_and_back_inverts_no_tetrahedron(small_head, rim):
+    """The maxilla 4 mm up and 4 mm back over 2 mm of tissue, the pipeline's boundary
+    options: no tetrahedron turns inside out (the lower teeth's margin pinned as sliding
+    held the tissue beside the moving jaw and inverted 14 of them)."""
+    solve = _solver()
+    labels, grid = small_head
+    labels = _rim_labelled_bone(labels) if rim else labels
+    plan = Plan((Osteotomy("maxilla", (0, 4.0, -4.0)),))
+    bc = apply_plan(_materials(grid), plan, labels, fix_unmoved_bone=True,
+                    release_margin="auto")
+    post = solve(bc)
+    ratios = _volume_ratios(post)
+    assert ratios.min() > 0.1, f"volume ratio {ratios.min():.3f}"
+    assert int(post.field_data[arrays.MTM_INVERTED][0]) == 0

@@ -111,3 +111,27 @@ def test_a_head_cut_between_the_arches_has_no_mandible(patient1_labels):
     assert not np.any(bone == arrays.MANDIBLE)
     with pytest.raises(ValueError, match="moves segment 'mandible'"):
         pvcmf.filters.cut_bones(cut, Plan((Osteotomy("mandible", (0.0, 0.0, 2.0)),)))
+
+
+# --------------------------------------------------------------------------- segment
+@pytest.mark.parametrize("body_part, lungs", [(chest, True), (knee, False)])
+def test_segment_refuses_a_body_part_naming_what_it_measured(body_part, lungs):
+    """segment runs standardize's head check itself: a chest or a knee handed straight to
+    it is refused with the cavity, teeth and inner air measured, and check=False is named."""
+    ct = body_part()
+    with pytest.raises(ValueError, match=r"segment: not a head CT: no cranial cavity.*no "
+                                         r"teeth \(0\.0 mL.*mL of air inside the body.*"
+                                         r"check=False") as err:
+        pvcmf.filters.segment(ct)
+    assert ("lungs" in str(err.value)) == lungs
+    assert ct.array_names == [arrays.CT]  # nothing written on the input
+
+
+def test_segment_check_false_labels_a_body_part():
+    lab = pvcmf.filters.segment(knee(), check=False)
+    assert np.count_nonzero(np.asarray(lab[arrays.TISSUE]) == arrays.BONE_TISSUE) > 0
+
+
+def test_segment_check_head_is_the_filters_orientation_check():
+    from pvcmf.filters.orientation import check_head as filters_check_head
+    assert filters_check_head is check_head

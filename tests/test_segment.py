@@ -83,11 +83,11 @@ def test_fill_holes_small_pocket():
     img[arrays.CT] = ct.astype(np.float32)
     img2 = img.copy()
     img2[arrays.CT] = np.where(big, -1000.0, ct).astype(np.float32)
-    filled = pvcmf.filters.segment(img)[arrays.TISSUE]
-    kept = pvcmf.filters.segment(img, fill_holes=False)[arrays.TISSUE]
+    filled = pvcmf.filters.segment(img, check=False)[arrays.TISSUE]
+    kept = pvcmf.filters.segment(img, fill_holes=False, check=False)[arrays.TISSUE]
     assert filled[idx] == arrays.FAT and kept[idx] == arrays.AIR
     # the big cavity inside the brain volume stays air
-    assert np.all(pvcmf.filters.segment(img2)[arrays.TISSUE][big] == arrays.AIR)
+    assert np.all(pvcmf.filters.segment(img2, check=False)[arrays.TISSUE][big] == arrays.AIR)
 
 
 # --------------------------------------------------------------------------- bad input
@@ -128,17 +128,17 @@ def test_empty_results_are_errors():
     air = _ball()
     air[arrays.CT] = np.full(air.n_points, -1000.0, dtype=np.float32)
     with pytest.raises(ValueError, match="no voxel is >= skin_threshold.*HU"):
-        pvcmf.filters.segment(air)
+        pvcmf.filters.segment(air, check=False)
     soft = _ball()
     soft[arrays.CT] = np.minimum(soft[arrays.CT], 40.0)
     with pytest.raises(ValueError, match="bone_threshold"):
-        pvcmf.filters.segment(soft)
+        pvcmf.filters.segment(soft, check=False)
     bone_only = _ball()
     bone_only[arrays.CT] = np.where(bone_only[arrays.CT] > -1000.0, 1200.0, -1000.0).astype(
         np.float32
     )
     with pytest.raises(ValueError, match="no extra-cranial soft tissue"):
-        pvcmf.filters.segment(bone_only)
+        pvcmf.filters.segment(bone_only, check=False)
 
 
 def test_defaults_are_hu():
@@ -190,7 +190,7 @@ def test_progress_bar_logs_stages(caplog):
     import logging
 
     with caplog.at_level(logging.INFO, logger="pvcmf.filters"):
-        seg = pvcmf.filters.segment(_ball(), progress_bar=True)
+        seg = pvcmf.filters.segment(_ball(), progress_bar=True, check=False)
         pvcmf.filters.classify_tissue(seg, progress_bar=True)
     text = caplog.text
     assert "segment: head mask" in text and "segment: intracranial" in text

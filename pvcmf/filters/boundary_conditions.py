@@ -157,13 +157,18 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
     teeth_margin : float, optional
         Hard-tissue voxels within this distance (mm) of a tooth voxel count as tooth
         surface: a CT segmentation labels the partial-volume rim of the teeth as bone, so
-        the lips touch that rim, not the enamel. Default: the largest voxel spacing; 0
-        uses the ``TEETH`` label alone.
+        the lips touch that rim, not the enamel. The margin holds the alveolar bone round
+        the roots too: on a segment that does not move, its nodes are freed near a move
+        like the fixed ones (``release_margin``); pinned there (sliding with no normal
+        move) they held the tissue that the moving jaw beside them shears and turned
+        tetrahedra inside out. Default: the largest voxel spacing; 0 uses the ``TEETH``
+        label alone.
     normal_sigma : float, default 1.0
         Gaussian sigma (voxels) smoothing the hard-tissue indicator whose gradient gives
         the sliding normals.
     release_margin : float or 'auto' or None, default None
-        Fixed nodes (posterior plane, unmoved bone) closer than this (mm) to a node that
+        Fixed nodes (posterior plane, unmoved bone), and sliding nodes of an unmoved
+        segment's teeth margin (see ``teeth_margin``), closer than this (mm) to a node that
         the plan moves are left free. A fixed node one element away from a node moving
         ``d`` mm tears the tissue between them (strain ``d / h``, unbounded as the mesh is
         refined; the linear model then inverts tetrahedra): near the osteotomy line the
@@ -226,6 +231,10 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
             grid, labels, bones, bone, tissue, contact, teeth_margin)
         bar.step(f"{len(nodes)} boundary nodes touch hard tissue")
         moved = np.isin(seg, list(transforms))
+        # nodes on the teeth margin only (bone next to the teeth: the crown's partial-volume
+        # rim, the alveolar bone round the roots): on a jaw that stays, freed near a move
+        rim = np.zeros(n, dtype=bool)
+        rim[nodes] = is_teeth & (tissue[_nearest_ids(labels, vox[near])] != arrays.TEETH)
 
         def rigid(idx, segs):
             out = np.zeros((len(idx), 3))
@@ -261,7 +270,9 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
                         f"contact_distance={contact:g} mm of it: is the mesh in the same frame "
                         f"as bones, or should contact_distance be larger?"
                     )
-        _release_near_moves(code, disp, points, release_margin)
+        released = _release_near_moves(code, disp, points, release_margin,
+                                       rim & (code == arrays.BC_SLIDING))
+        normal[released] = 0.0
         if fixed_posterior and not fix_unmoved_bone:
             _warn_few_fixed(code, posterior_depth)
         counts = {k: int(np.sum(code == v)) for k, v in arrays.BC_CODES.items()}
@@ -366,21 +377,34 @@ def _box(mask, pad):
     return tuple(box)
 
 
-def _release_near_moves(code, disp, points, margin):
-    """In place: free the fixed nodes within ``margin`` mm of a node the plan moves."""
+def _nearest_ids(labels, points):
+    """Point ids of the voxel centres ``points`` of ``labels``."""
+    ijk = np.rint((points - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(
+        np.int64)
+    dims = np.asarray(labels.dimensions, dtype=np.int64)
+    return ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2])
+
+
+def _release_near_moves(code, disp, points, margin, also=None):
+    """In place: free the fixed nodes (and the ``also`` nodes that do not move) within
+    ``margin`` mm of a node the plan moves; return the indices freed."""
     moving = ((code == arrays.BC_JOINT) | (code == arrays.BC_SLIDING)) & (
         np.linalg.norm(disp, axis=1) > 0)
     if isinstance(margin, str) and margin == "auto":
         margin = 2.0 * float(np.linalg.norm(disp[moving], axis=1).max(initial=0.0))
     margin = 0.0 if margin is None else float(margin)
-    fixed = np.flatnonzero(code == arrays.BC_FIXED)
+    held = code == arrays.BC_FIXED
+    if also is not None:
+        held |= also & ~moving
+    fixed = np.flatnonzero(held)
     if margin <= 0 or not moving.any() or not fixed.size:
-        return
+        return np.zeros(0, dtype=np.int64)
     dist, _ = cKDTree(points[moving]).query(points[fixed], distance_upper_bound=margin)
     near = fixed[np.isfinite(dist)]
     code[near] = arrays.BC_FREE
     log.info("apply_plan: %d of %d fixed nodes within %.3g mm of a moving node left free",
              len(near), len(fixed), margin)
+    return near
 
 
 def _warn_few_fixed(code, posterior_depth):

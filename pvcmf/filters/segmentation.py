@@ -29,6 +29,10 @@ voxels), the costly decisions on a copy downsampled to about ``coarse`` mm:
 5. **soft tissue** = head minus hard tissue minus intracranial volume minus air cavities,
    labelled ``FAT`` (see :func:`pvcmf.filters.classify_tissue` for fat/muscle).
 
+An image that shows no head (neither a cranial cavity nor teeth: a chest, a limb) is
+refused first, on the measurements of :func:`pvcmf.io.orientation.standardize`
+(:func:`pvcmf.io.head_check.check_head`; ``check=False`` skips it).
+
 A head cut flat by the field of view (nose, forehead, vertex) is reported by a warning that
 names the side and the extent (:func:`clipped_sides`). Index axis 2 is the axial axis; the
 patient frame (x left, y anterior, z superior) is assumed for the side names.
@@ -44,10 +48,13 @@ import pyvista as pv
 from scipy import ndimage
 
 from .. import arrays
+from ..io.head_check import check_head
+from ..io.orientation import _cues as _head_cues  # the measurements check_head judges
 from .morphology import (MIN_BALL_VOXELS, _box, _closing, _dilate_ball, _down, _fill,  # noqa: F401
                          _largest_component, _open_ball, _up)
 from ..progress import Progress
 from . import metal as _metal
+from .surface_objects import DENSE_STEPS, drop_surface_objects
 
 log = logging.getLogger(__name__)
 
@@ -150,6 +157,7 @@ def segment(
     skull_closing=3.0,
     object_opening=5.0,
     coarse=2.0,
+    check=True,
     progress_bar=False,
 ):
     """Label a CT volume into air, soft tissue, bone, teeth, metal and intracranial volume.
@@ -175,6 +183,11 @@ def segment(
         (table, headrest, sheets, tubes) from the head; 0 keeps everything connected.
     coarse : float
         Voxel size (mm) of the downsampled copy the head and intracranial decisions use.
+    check : bool
+        Refuse an image that shows no head (neither a cranial cavity nor teeth: a chest, a
+        limb), with :func:`pvcmf.io.head_check.check_head` on the measurements
+        :func:`pvcmf.io.orientation.standardize` makes. ``False`` labels any CT (a crop of
+        a head without skull vault nor teeth, a test object).
     progress_bar : bool
         Show the stages (:class:`pvcmf.progress.Progress`) and log them at INFO level.
 
@@ -192,7 +205,9 @@ def segment(
         If ``ct`` is not an ImageData.
     ValueError
         If the ``ct`` array is missing, not float or has NaN/inf values, the image is not
-        3-D, the thresholds are not finite and increasing, or a tissue class comes out empty.
+        3-D, the thresholds are not finite and increasing, a tissue class comes out empty,
+        or (``check``) the image is not a head CT (the message names the cranial cavity,
+        teeth and inner air measured).
 
     Examples
     --------
@@ -200,7 +215,7 @@ def segment(
     >>> img = pv.ImageData(dimensions=(40, 40, 40), spacing=(2.0, 2.0, 2.0))
     >>> r = np.linalg.norm(img.points - img.center, axis=1)
     >>> img["ct"] = np.select([r < 20, r < 26, r < 34], [30.0, 1200.0, -100.0], -1000.0).astype(np.float32)
-    >>> lab = img.cmf.segment()
+    >>> lab = img.cmf.segment(check=False)  # a ball, not a head: no check
     >>> np.unique(lab["tissue"]).tolist()  # air, fat, bone, intracranial
     [0, 1, 3, 5]
     """
@@ -212,6 +227,8 @@ def segment(
     if not (isinstance(coarse, (int, float)) and math.isfinite(coarse) and coarse > 0):
         raise ValueError(f"coarse must be a finite number > 0 (mm), got {coarse!r}")
     thr = _thresholds(vol, skin_threshold, bone_threshold, teeth_threshold, metal_threshold)
+    if check:
+        _refuse_non_head(vol, spacing, thr)
     bar = Progress(5, "segment", enabled=progress_bar)
     say = log.info if progress_bar else log.debug
     factor = np.maximum(1, np.round(coarse / spacing)).astype(int)
@@ -221,6 +238,11 @@ def segment(
     head = _head(vol, thr["skin"], spacing, factor, object_opening)
     box = _box(head, 2)
     head, sub = head[box], vol[box]
+    if object_opening > 0:
+        head, removed = drop_surface_objects(head, sub, spacing, factor, thr["dense"],
+                                             object_opening)
+        if removed > 0:
+            say("segment: removed %.2f mL of dense objects lying on the skin", removed)
     if fill_holes:
         head = _fill_small_holes(head, spacing, min_cavity, say)
     bar.step()
@@ -317,6 +339,10 @@ def _thresholds(vol, skin, bone, teeth, metal):
             raise ValueError(f"{name}_threshold must be a finite number or None, got {value!r}")
     thr = dict(calibrate(vol)) if any(v is None for v in given.values()) else {}
     thr.update({k: float(v) for k, v in given.items() if v is not None})
+    if "soft" in thr:  # denser than any soft tissue (objects on the skin), below bone
+        thr["dense"] = min(thr["soft"] + DENSE_STEPS * (thr["soft"] - thr["air"]), thr["bone"])
+    else:  # thresholds all given: from the skin level (half-way from air to soft tissue)
+        thr["dense"] = thr["bone"]
     if not thr["skin"] < thr["bone"] < thr["teeth"] <= thr["metal"]:
         raise ValueError(
             "thresholds must increase: skin_threshold < bone_threshold < teeth_threshold <= "
@@ -324,6 +350,18 @@ def _thresholds(vol, skin, bone, teeth, metal):
             f"{thr['metal']:.0f}")
     log.debug("segment: thresholds %s", {k: round(v) for k, v in thr.items()})
     return thr
+
+
+def _refuse_non_head(vol, spacing, thr):
+    """:func:`check_head` on the measurements of :func:`pvcmf.io.orientation.standardize`,
+    with the image's own air and soft-tissue peaks."""
+    peaks = thr if "air" in thr else calibrate(vol)
+    cues, _ = _head_cues(vol, spacing, peaks["air"], peaks["soft"])
+    try:
+        check_head(cues)
+    except ValueError as err:
+        raise ValueError(f"segment: {err} (segment(..., check=False) labels it anyway)") \
+            from None
 
 
 # --------------------------------------------------------------------------- utilities
