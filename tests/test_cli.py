@@ -219,6 +219,28 @@ def test_drop_floating_parts():
     assert drop_floating_parts(out) is out  # nothing to drop: the same mesh
 
 
+def test_drop_floating_parts_drops_a_tetrahedron_hinged_on_an_edge():
+    """A tetrahedron sharing only an edge (or a vertex) with the held mesh turns about it:
+    its own part, dropped, where a node graph would count it as held."""
+    from pvcmf.pipeline import drop_floating_parts
+
+    held = pv.ImageData(dimensions=(3, 3, 3)).triangulate()
+    pts = np.asarray(held.points)
+    a = int(np.flatnonzero((pts == [2, 2, 2]).all(axis=1))[0])
+    b = int(np.flatnonzero((pts == [2, 2, 1]).all(axis=1))[0])
+    new = np.vstack([pts, [[3.0, 2.0, 2.0], [3.0, 3.0, 1.5]]])
+    cells = np.hstack([np.asarray(held.cells), [4, a, b, len(pts), len(pts) + 1]])
+    types = np.full(held.n_cells + 1, pv.CellType.TETRA, dtype=np.uint8)
+    grid = pv.UnstructuredGrid(cells, types, new)
+    bc = np.zeros(grid.n_points, dtype=np.int8)
+    bc[grid.points[:, 0] < 0.5] = arrays.BC_FIXED
+    bc[[a, b]] = arrays.BC_FIXED  # the hinge itself held: still a line, the tet turns
+    grid.point_data[arrays.BC] = bc
+    out = drop_floating_parts(grid)
+    assert out.n_cells == held.n_cells and out.n_points == held.n_points
+    assert out.points[:, 0].max() <= 2.0
+
+
 def test_flip_axes_is_a_rotation_for_two_axes():
     from pvcmf.pipeline import flip_axes
 

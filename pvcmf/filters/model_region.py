@@ -4,7 +4,9 @@
   the face in front of a coronal plane, paper 000 Fig. 4c, and above an axial plane
   ``BELOW_MANDIBLE_MM`` under the mandible: no shoulders);
 * :func:`drop_floating_parts` - remove mesh parts the boundary conditions do not hold
-  (connected components by :func:`scipy.sparse.csgraph.connected_components`).
+  (tetrahedra joined through shared faces, by
+  :func:`scipy.sparse.csgraph.connected_components`: a part hinged to the rest by an edge
+  or a vertex only is a part of its own, since it can turn about that hinge).
 
 Shared by the pipeline (:mod:`pvcmf.pipeline`) and the virtual post-operative truth
 (:mod:`pvcmf.truth`), which must build its model without the pipeline it judges.
@@ -147,45 +149,62 @@ def drop_floating_parts(grid, min_constrained=3, collinear_tol=0.05):
     pyvista.UnstructuredGrid
         The mesh itself when every part is held, else a new mesh without the others.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     bc = np.asarray(arrays.require_array(grid, arrays.BC, "point", producer="apply_plan"))
-
-    # parts = connected components of the cells' node graph (scipy; the MTM checks the
-    # same graph). VTK's connectivity filter reorders points, so it is not used here.
     conn_ids = np.asarray(grid.cell_connectivity, dtype=np.int64)
     offsets = np.asarray(grid.cell_offsets, dtype=np.int64)
-    sizes_ = np.diff(offsets)
-    first = np.repeat(conn_ids[offsets[:-1]], sizes_)
-    n = grid.n_points
-    graph = coo_matrix((np.ones(first.size, dtype=np.int8), (first, conn_ids)), shape=(n, n))
-    _, region = connected_components(graph, directed=False)
-    used = np.zeros(n, dtype=bool)
-    used[conn_ids] = True
-    cell_region = region[conn_ids[offsets[:-1]]]
-    n_regions = int(region.max()) + 1
-    constrained = used & (bc != arrays.BC_FREE)
-    counts = np.bincount(region[constrained], minlength=n_regions)
-    held = counts >= min_constrained
-    held &= np.bincount(cell_region, minlength=n_regions) > 0  # unused points are no part
+    cell_region = _cell_parts(grid.n_points, conn_ids, offsets)
+    n_regions = int(cell_region.max(initial=-1)) + 1
+    # (part, node) pairs: a hinge node belongs to every part it touches
+    pair = np.unique(np.repeat(cell_region, np.diff(offsets)) * np.int64(grid.n_points) + conn_ids)
+    pair_part, pair_node = pair // grid.n_points, pair % grid.n_points
+    constrained = bc[pair_node] != arrays.BC_FREE
+    held = np.bincount(pair_part[constrained], minlength=n_regions) >= min_constrained
     # constrained nodes (nearly) on one line leave the rotation about it free (slivers cut
-    # off on the fixed posterior plane): such a part is not held either
+    # off on the fixed posterior plane, a tetrahedron hinged on a fixed edge): not held
     pts = np.asarray(grid.points, float)
     for part in np.flatnonzero(held):  # a loop over the few parts, not over points
-        c = pts[(region == part) & constrained]
+        c = pts[pair_node[constrained & (pair_part == part)]]
         sv = np.linalg.svd(c - c.mean(axis=0), compute_uv=False)
         held[part] = sv[1] > collinear_tol * sv[0]
     keep_cells = held[cell_region]
     if keep_cells.all():
         return grid
     dropped = np.unique(cell_region[~keep_cells])
-    n_dropped = int(np.isin(region[used], dropped).sum())
     log.warning("dropping %d mesh part(s) held by fewer than %d non-collinear constrained "
-                "nodes (%d points in all)", len(dropped), min_constrained, n_dropped)
+                "nodes (%d cells in all)", len(dropped), min_constrained,
+                int((~keep_cells).sum()))
     out = grid.extract_cells(np.flatnonzero(keep_cells))
     for name in (arrays.ORIGINAL_POINT_IDS, "vtkOriginalCellIds"):
         for data in (out.point_data, out.cell_data):
             if name in data:
                 data.remove(name)
     return out
+
+
+_TET_FACES = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])
+
+
+def _cell_parts(n_points, conn_ids, offsets):
+    """Part index of every cell: tetrahedra sharing a face are one part (a mesh of other
+    cells: cells sharing a node)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    sizes = np.diff(offsets)
+    n_cells = len(sizes)
+    if n_cells and np.all(sizes == 4):
+        tets = conn_ids.reshape(-1, 4)
+        faces = np.sort(tets[:, _TET_FACES].reshape(-1, 3), axis=1)
+        n = np.int64(n_points)
+        key = (faces[:, 0] * n + faces[:, 1]) * n + faces[:, 2]
+        owner = np.repeat(np.arange(n_cells), 4)
+        order = np.argsort(key, kind="stable")
+        key, owner = key[order], owner[order]
+        same = key[1:] == key[:-1]  # an inner face: its two tetrahedra
+        graph = coo_matrix((np.ones(int(same.sum()), dtype=np.int8),
+                            (owner[:-1][same], owner[1:][same])), shape=(n_cells, n_cells))
+        return connected_components(graph, directed=False)[1]
+    first = np.repeat(conn_ids[offsets[:-1]], sizes)
+    graph = coo_matrix((np.ones(first.size, dtype=np.int8), (first, conn_ids)),
+                       shape=(n_points, n_points))
+    return connected_components(graph, directed=False)[1][conn_ids[offsets[:-1]]]
