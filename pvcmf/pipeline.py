@@ -47,8 +47,8 @@ log = logging.getLogger(__name__)
 __all__ = ["Result", "simulate", "STEPS", "write_outputs"]
 
 #: the steps of :func:`simulate`, in order, as named in the timing summary
-STEPS = ("read", "segment", "classify", "bone segments", "muscles", "mesh", "fibres", "materials",
-         "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
+STEPS = ("read", "segment", "classify", "bone segments", "muscles", "mesh", "skin fit", "fibres",
+         "materials", "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
 
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
 DEFAULT_N_TETS = 25_000
@@ -57,6 +57,9 @@ DEFAULT_N_TETS = 25_000
 DEFAULT_BC_OPTIONS = {"fix_unmoved_bone": True, "release_margin": "auto"}
 #: default anterior share of the head that is meshed (the face model of paper 000)
 DEFAULT_FACE_FRACTION = 0.5
+#: voxels of the label image kept around the face box when its dense skin is extracted (the
+#: contour's smoothing reaches about three voxels; the skin is then clipped to the box)
+SKIN_CROP_PAD = 6
 
 
 class StepUnavailable(RuntimeError):
@@ -95,6 +98,9 @@ class Result:
         when the CT was not checked.
     skipped : dict
         Step name -> why it did not run.
+    skin_fit : dict
+        What :func:`pvcmf.filters.meshing.fit_to_skin` did to the mesh (the names of
+        ``arrays.SKIN_FIT_FIELDS`` -> value); empty when the mesh was not fitted.
     files : dict
         Output name -> written path.
     """
@@ -111,6 +117,7 @@ class Result:
     segment_volumes: dict = field(default_factory=dict)
     ct_report: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
+    skin_fit: dict = field(default_factory=dict)
     files: dict = field(default_factory=dict)
 
     @property
@@ -213,16 +220,90 @@ def _muscles(labels, landmarks):
                               f"{type(err).__name__}: {str(err)[:300]}") from None
 
 
-def _mesh(labels, n_tets, options, progress_bar, face_fraction):
+def _model_box(labels, options, face_fraction):
+    """The box (xmin, xmax, ymin, ymax, zmin, zmax) the model covers: the ``roi`` of the
+    mesh options when it is a box, else :func:`face_box` of ``face_fraction``; None for
+    the whole head (or a ``roi`` that is not a box)."""
+    roi = options.get("roi")
+    if roi is not None:
+        arr = np.asarray(roi) if not callable(roi) else None
+        if arr is not None and arr.shape == (6,) and arr.dtype.kind in "iuf":
+            return tuple(float(v) for v in arr)
+        return None
+    return None if face_fraction is None else face_box(labels, face_fraction)
+
+
+def _mesh(labels, n_tets, options, progress_bar, box):
     options = dict(options)
-    if face_fraction is not None and "roi" not in options:
-        options["roi"] = face_box(labels, face_fraction)
+    if box is not None and "roi" not in options:
+        options["roi"] = box
     handler = signal.getsignal(signal.SIGTERM)
     try:
         return filters.tetrahedralize(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
     finally:  # gmsh's initialisation resets SIGTERM to the default: restore the caller's
         if handler is not None and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGTERM, handler)
+
+
+def _dense_skin(labels, box):
+    """The dense skin (:func:`pvcmf.filters.extract_skin` of the label image), within
+    ``box`` when one is given.
+
+    The image is cropped to the box plus :data:`SKIN_CROP_PAD` voxels (air the whole head
+    encloses, e.g. a sinus the crop cuts open, is filled first, so the crop shows no inner
+    wall as skin), contoured, and the triangles with a corner outside the box are dropped:
+    the skin the model covers, without the shoulders or the back of the head.
+    """
+    if box is None:
+        skin = filters.extract_skin(labels)
+    else:
+        skin = _clip_to_box(filters.extract_skin(_crop_filled(labels, box)), box)
+    skin = skin.copy()
+    skin.clear_data()
+    return skin
+
+
+def _crop_filled(labels, box):
+    """``labels`` (``tissue`` only) cropped to ``box`` plus :data:`SKIN_CROP_PAD` voxels,
+    with the air the whole head encloses labelled as soft tissue."""
+    dims = np.asarray(labels.dimensions)
+    origin, spacing = np.asarray(labels.origin, float), np.asarray(labels.spacing, float)
+    lo = np.floor((np.asarray(box[0::2]) - origin) / spacing).astype(int) - SKIN_CROP_PAD
+    hi = np.ceil((np.asarray(box[1::2]) - origin) / spacing).astype(int) + SKIN_CROP_PAD
+    lo, hi = np.clip(lo, 0, dims - 1), np.clip(hi, 0, dims - 1)
+    tissue = np.asarray(labels[arrays.TISSUE]).reshape(tuple(dims[::-1]))  # (z, y, x)
+    head = tissue != arrays.AIR
+    enclosed = ndimage.binary_fill_holes(head) & ~head
+    cut = tuple(slice(a, b + 1) for a, b in zip(lo[::-1], hi[::-1]))
+    sub = np.where(enclosed[cut], arrays.FAT, tissue[cut]).astype(tissue.dtype)
+    out = pv.ImageData(dimensions=tuple(int(v) for v in hi - lo + 1), spacing=tuple(spacing),
+                       origin=tuple(origin + lo * spacing))
+    out.point_data[arrays.TISSUE] = sub.ravel()
+    return out
+
+
+def _clip_to_box(skin, box):
+    """The triangles of ``skin`` whose three corners lie in ``box``."""
+    p = np.asarray(skin.points)
+    b = np.asarray(box, dtype=float)
+    inside = ((p >= b[0::2]) & (p <= b[1::2])).all(axis=1)
+    tri = skin.faces.reshape(-1, 4)[:, 1:]
+    tri = tri[inside[tri].all(axis=1)]
+    if not len(tri):
+        raise ValueError(f"the skin has no triangle within the model's box {tuple(b)}")
+    ids, local = np.unique(tri, return_inverse=True)
+    faces = np.column_stack([np.full(len(tri), 3), local.reshape(-1, 3)]).ravel()
+    return pv.PolyData(p[ids], faces)
+
+
+def _fit_skin(grid, labels, box, options):
+    """Step "skin fit": the dense skin within the model's box (:func:`_dense_skin`) and the
+    mesh's skin nodes pushed out around it (:func:`pvcmf.filters.meshing.fit_to_skin`;
+    ``options`` None: not fitted)."""
+    skin = _dense_skin(labels, box)
+    if options is None:
+        return grid, skin
+    return filters.fit_to_skin(grid, skin, labels=labels, box=box, **options), skin
 
 
 def _fibres(grid):
@@ -242,20 +323,20 @@ def _apply_plan(grid, plan, labels, options):
     return drop_floating_parts(filters.apply_plan(grid, plan, labels, **options))
 
 
-def _skin(labels, post):
+def _skin(labels, post, pre=None, box=None):
     """Pre-operative skin and, with a solved mesh, the predicted skin.
 
-    The skin comes from :func:`pvcmf.filters.extract_skin` of the label image. The mesh
+    The skin is ``pre`` (the dense skin the mesh was fitted to) or else
+    :func:`_dense_skin` of the label image within the model's ``box``. The mesh
     displacement is carried onto it by :func:`pvcmf.filters.surface_mapping.transfer_operator`
     (finite-element interpolation inside the tetrahedra, an exact-for-affine extension of
-    the boundary gradients outside). Skin farther than the transfer's band from the mesh
-    (behind the face model's posterior cut) is not modelled: point array
+    the boundary gradients outside; a mesh fitted to the skin holds nearly all of it).
+    Skin farther than the transfer's band from the mesh is not modelled: point array
     ``arrays.SKIN_MODELLED`` marks the predicted points, and the crumple metric of the
     transfer (:func:`~pvcmf.filters.surface_mapping.crumple_metric`, over the modelled skin)
     is kept in the predicted skin's field data.
     """
-    pre = filters.extract_skin(labels).copy()
-    pre.clear_data()
+    pre = _dense_skin(labels, box) if pre is None else pre.copy()
     if post is None:
         return pre, None
     u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
@@ -280,13 +361,16 @@ _SKIN_SUMMARY = (arrays.SKIN_MODELLED_POINTS, arrays.CRUMPLE_EDGES, arrays.CRUMP
 
 def _write_outputs(result, out, images=None):
     """:func:`write_outputs`, plus in ``summary.json`` whether the soft tissue was
-    classified fat / muscle (``"classified"``) and the transfer's crumple metric."""
+    classified fat / muscle (``"classified"``), what the fit of the mesh to the skin did
+    (``arrays.SKIN_FIT_FIELDS``) and the transfer's crumple metric."""
     files = write_outputs(result, out, images)
     if "summary" not in files:
         return files
     path = Path(files["summary"])
     summary = json.loads(path.read_text(encoding="utf-8"))
     summary["classified"] = "classify" in result.timings
+    for name, value in result.skin_fit.items():
+        summary[name] = value
     skin = result.skin_post
     if skin is not None and arrays.CRUMPLE_VIOLATIONS in skin.field_data:
         for name in _SKIN_SUMMARY:
@@ -346,7 +430,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              material_options=None, bc_options=None, solve_options=None, classify=True,
              muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
-             progress_bar=False, units=None, orient=None):
+             fit_skin=True, progress_bar=False, units=None, orient=None):
     """Predict the post-operative face from a CT and a surgical plan.
 
     Parameters
@@ -404,6 +488,13 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         recorded in :attr:`Result.skipped`, and the prediction goes on without muscles.
     figures : bool, default True
         Render the PNGs when ``out`` is given.
+    fit_skin : bool or dict, default True
+        Step "skin fit", right after meshing: the dense skin (within the model's box) is
+        extracted there and the mesh's skin nodes are pushed out until the mesh contains
+        it (:func:`pvcmf.filters.meshing.fit_to_skin`; the bone interface and the box's
+        cut planes stay), so that the predicted skin is the finite-element interpolation
+        itself. A dict passes options to ``fit_to_skin``; ``False`` keeps the mesh as
+        meshed. What it did goes to :attr:`Result.skin_fit` and ``summary.json``.
     progress_bar : bool, default False
         Show a progress bar over the steps (:class:`pvcmf.progress.Progress`).
     units, orient : str, optional
@@ -432,6 +523,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     plan, opts = _check_inputs(plan, n_tets, face_fraction, bones, segment_options=segment_options,
                                mesh_options=mesh_options, material_options=material_options,
                                bc_options=bc_options, solve_options=solve_options)
+    opts["fit_options"] = _check_fit(fit_skin)
     out = None if out is None else check_output_dir(out)  # before any work
     result = Result(plan=plan)
     with run_lock(out), Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
@@ -447,9 +539,10 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         result.tissue_volumes = tissue_volumes(labels)
         if arrays.BONE in labels.point_data:
             result.segment_volumes = segment_volumes(labels)
-        _model_steps(run, labels, plan, opts, n_tets=n_tets, face_fraction=face_fraction,
-                     predict=predict, solve=solve, progress_bar=progress_bar)
-        _output_steps(run, out, solve=solve, figures=figures)
+        box = _model_box(labels, opts["mesh_options"], face_fraction)
+        _model_steps(run, labels, plan, opts, n_tets=n_tets, box=box, predict=predict,
+                     solve=solve, progress_bar=progress_bar)
+        _output_steps(run, out, solve=solve, figures=figures, box=box)
     log.info("simulate finished:\n%s", result.summary())
     return result
 
@@ -474,6 +567,16 @@ def _check_inputs(plan, n_tets, face_fraction, bones, **options):
     if bones is not None and not isinstance(bones, pv.ImageData):
         raise TypeError(f"bones must be a pyvista.ImageData or None, got {type(bones).__name__}")
     return plan, opts
+
+
+def _check_fit(fit_skin):
+    """``fit_skin`` as the options of ``fit_to_skin`` (None: no fit)."""
+    if isinstance(fit_skin, bool):
+        return {} if fit_skin else None
+    if isinstance(fit_skin, dict):
+        return dict(fit_skin)
+    raise TypeError(f"fit_skin must be a bool or a dict of fit_to_skin options, got "
+                    f"{type(fit_skin).__name__}")
 
 
 def _read_step(run, ct, units, orient):
@@ -513,21 +616,26 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
     return cut_bones(labels, plan)
 
 
-def _model_steps(run, labels, plan, opts, *, n_tets, face_fraction, predict, solve,
-                 progress_bar):
-    """Steps "mesh", "fibres", "materials", "boundary conditions" and "solve"."""
+def _model_steps(run, labels, plan, opts, *, n_tets, box, predict, solve, progress_bar):
+    """Steps "mesh", "skin fit", "fibres", "materials", "boundary conditions" and "solve"."""
     result = run.result
     grid = None
     if predict:
-        grid = run.run("mesh", _mesh, labels, n_tets, opts["mesh_options"], progress_bar,
-                       face_fraction)
+        grid = run.run("mesh", _mesh, labels, n_tets, opts["mesh_options"], progress_bar, box)
     else:
         run.skip("mesh", "predict=False")
     if grid is None:
-        for step in ("fibres", "materials", "boundary conditions", "solve"):
-            run.skip(step, "no mesh" if step in ("fibres", "materials")
+        for step in ("skin fit", "fibres", "materials", "boundary conditions", "solve"):
+            run.skip(step, "no mesh" if step in ("skin fit", "fibres", "materials")
                      else "no mesh with materials")
         return
+    if opts["fit_options"] is None:
+        run.skip("skin fit", "fit_skin=False")
+    else:
+        grid, result.skin_pre = run.run("skin fit", _fit_skin, grid, labels, box,
+                                        opts["fit_options"])
+        result.skin_fit = {name: grid.field_data[name][0].item()
+                           for name in arrays.SKIN_FIT_FIELDS}
     grid = run.run("fibres", _fibres, grid) or grid
     grid = run.run("materials", _materials, grid, opts["material_options"])
     if grid is None:  # no materials: the MTM cannot run
@@ -547,10 +655,10 @@ def _solve(grid, options):
     return mtm.solve(grid, **options)
 
 
-def _output_steps(run, out, *, solve, figures):
+def _output_steps(run, out, *, solve, figures, box=None):
     """Steps "skin" (map to skin), "skeleton", "figures" and "write"."""
     result = run.result
-    skins = run.run("skin", _skin, result.labels, result.post)
+    skins = run.run("skin", _skin, result.labels, result.post, result.skin_pre, box)
     if skins is not None:
         result.skin_pre, result.skin_post = skins
     if not solve:
