@@ -296,14 +296,34 @@ def _clip_to_box(skin, box):
     return pv.PolyData(p[ids], faces)
 
 
+def _on_hard_tissue(points, labels):
+    """Skin points on bare hard tissue (teeth or bone that air touches, e.g. in an open
+    mouth): hard tissue and no soft tissue among the 27 image points around them. The soft
+    tissue model does not predict them."""
+    dims = np.asarray(labels.dimensions)
+    tissue = np.asarray(labels[arrays.TISSUE])
+    ijk = np.rint((np.asarray(points) - np.asarray(labels.origin)) / np.asarray(labels.spacing))
+    ijk = ijk.astype(np.int64)
+    hard = np.zeros(len(ijk), dtype=bool)
+    soft = np.zeros(len(ijk), dtype=bool)
+    for off in np.ndindex(3, 3, 3):
+        q = ijk + np.asarray(off) - 1
+        ok = np.flatnonzero(((q >= 0) & (q < dims)).all(axis=1))
+        t = tissue[q[ok, 0] + dims[0] * (q[ok, 1] + dims[1] * q[ok, 2])]
+        hard[ok[np.isin(t, arrays.HARD_LABELS)]] = True
+        soft[ok[np.isin(t, arrays.SOFT_LABELS)]] = True
+    return hard & ~soft
+
+
 def _fit_skin(grid, labels, box, options):
     """Step "skin fit": the dense skin within the model's box (:func:`_dense_skin`) and the
     mesh's skin nodes pushed out around it (:func:`pvcmf.filters.meshing.fit_to_skin`;
-    ``options`` None: not fitted)."""
+    ``options`` None: not fitted); skin on bare hard tissue is not fitted."""
     skin = _dense_skin(labels, box)
     if options is None:
         return grid, skin
-    return filters.fit_to_skin(grid, skin, labels=labels, box=box, **options), skin
+    points = np.asarray(skin.points)[~_on_hard_tissue(skin.points, labels)]
+    return filters.fit_to_skin(grid, points, labels=labels, box=box, **options), skin
 
 
 def _fibres(grid):
@@ -331,7 +351,8 @@ def _skin(labels, post, pre=None, box=None):
     displacement is carried onto it by :func:`pvcmf.filters.surface_mapping.transfer_operator`
     (finite-element interpolation inside the tetrahedra, an exact-for-affine extension of
     the boundary gradients outside; a mesh fitted to the skin holds nearly all of it).
-    Skin farther than the transfer's band from the mesh is not modelled: point array
+    Skin farther than the transfer's band from the mesh, and skin on bare hard tissue
+    (teeth or bone that air touches, :func:`_on_hard_tissue`), is not modelled: point array
     ``arrays.SKIN_MODELLED`` marks the predicted points, and the crumple metric of the
     transfer (:func:`~pvcmf.filters.surface_mapping.crumple_metric`, over the modelled skin)
     is kept in the predicted skin's field data.
@@ -342,12 +363,13 @@ def _skin(labels, post, pre=None, box=None):
     u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
     transfer = Transfer(post, pre)
     disp = transfer(u_nodes)
-    metric = crumple_metric(pre, disp, post, u_nodes, transfer=transfer)
+    modelled = transfer.modelled & ~_on_hard_tissue(pre.points, labels)
+    metric = crumple_metric(pre, disp, post, u_nodes, transfer=transfer, modelled=modelled)
     log.info("skin: %d points (%d modelled), %d edges stretched beyond the mesh's gradients "
              "(max ratio %.3g)", pre.n_points, metric[arrays.SKIN_MODELLED_POINTS],
              metric[arrays.CRUMPLE_VIOLATIONS], metric[arrays.CRUMPLE_MAX_RATIO])
     pre.point_data[arrays.DISPLACEMENT] = disp
-    pre.point_data[arrays.SKIN_MODELLED] = transfer.modelled.astype(np.uint8)
+    pre.point_data[arrays.SKIN_MODELLED] = modelled.astype(np.uint8)
     moved = pre.copy()
     moved.points = np.asarray(pre.points) + disp
     for name in _SKIN_SUMMARY:

@@ -133,9 +133,11 @@ def test_labels_keep_the_bone_interface_and_box_keeps_the_cut(shell):
     img[arrays.TISSUE] = np.select([r < 4.0, r < 10.0], [arrays.BONE_TISSUE, arrays.FAT],
                                    arrays.AIR).astype(np.uint8)
     skin = pv.Sphere(radius=10.4, theta_resolution=60, phi_resolution=40)
-    skin = skin.extract_points(skin.points[:, 1] > 1.0, adjacent_cells=False).extract_surface()
+    skin = skin.extract_points(skin.points[:, 1] > 1.0, adjacent_cells=False)
     box = (-12.0, 12.0, 0.0, 12.0, -12.0, 12.0)
-    fitted = fit_to_skin(half, skin, labels=img, box=box)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # slivers along the cut may limit it
+        fitted = fit_to_skin(half, skin, labels=img, box=box)
     p = half.points
     on_bone = np.linalg.norm(p, axis=1) < 4.3
     on_cut = np.abs(p[:, 1] - box[2]) <= 0.5

@@ -360,7 +360,7 @@ def _edges(surface):
 
 
 def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT_BAND,
-                   slack=0.1, floor=DEFAULT_FLOOR, transfer=None):
+                   slack=0.1, floor=DEFAULT_FLOOR, transfer=None, modelled=None):
     """Check that a skin displacement stretches no skin edge beyond the mesh's gradients.
 
     Only the modelled skin is checked: edges whose two points lie inside the mesh or within
@@ -395,6 +395,9 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
     transfer : Transfer, optional
         The :class:`Transfer` of ``grid`` onto ``skin_pre``'s points, reused instead of
         locating the points again (its ``k`` and ``band`` apply).
+    modelled : array_like of bool, optional
+        The skin points the model predicts (default: within ``band`` of the mesh, the
+        transfer's ``modelled``); only edges between two of them are checked.
 
     Returns
     -------
@@ -441,8 +444,14 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
     if len(loc.pair_row):
         np.maximum.at(bound, loc.pair_row, node_max[loc.face].max(axis=1))
         np.maximum.at(bound, loc.outside, node_max[loc.boundary[loc.near]].max(axis=1))
+    if modelled is None:
+        modelled = transfer.modelled
+    modelled = np.asarray(modelled, dtype=bool)
+    if modelled.shape != (skin_pre.n_points,):
+        raise ValueError(f"modelled must be a mask of shape ({skin_pre.n_points},), got "
+                         f"{modelled.shape}")
     e = _edges(skin_pre)
-    e = e[transfer.modelled[e].all(axis=1)]
+    e = e[modelled[e].all(axis=1)]
     x = np.asarray(skin_pre.points, dtype=float)
     length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
     stretch = np.linalg.norm(u_skin[e[:, 0]] - u_skin[e[:, 1]], axis=1) / np.maximum(length, 1e-300)
@@ -450,8 +459,8 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
     tiny = 1e-9 * max(float(gnorm.max(initial=0.0)), 1e-12)
     ratio = np.where(limit > tiny, stretch / np.maximum(limit, tiny), np.where(stretch > tiny, np.inf, 0.0))
     ratio = np.where(stretch > floor, ratio, 0.0)
-    return {"ratio": ratio, "edges": e, "modelled": transfer.modelled.copy(),
-            arrays.SKIN_MODELLED_POINTS: int(transfer.modelled.sum()),
+    return {"ratio": ratio, "edges": e, "modelled": modelled.copy(),
+            arrays.SKIN_MODELLED_POINTS: int(modelled.sum()),
             arrays.CRUMPLE_EDGES: int(len(e)),
             arrays.CRUMPLE_VIOLATIONS: int(np.sum(ratio > 1.0 + slack)),
             arrays.CRUMPLE_MAX_RATIO: float(ratio.max(initial=0.0))}

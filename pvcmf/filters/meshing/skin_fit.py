@@ -13,7 +13,7 @@ skin point interpolates inside a tetrahedron:
    hard tissue or of the intracranial volume within a voxel spacing, the contact rule of
    :func:`pvcmf.filters.apply_plan`, in the label image; or, for a
    grid with boundary conditions, every node that is not free), those on the planes of
-   the region of interest's ``box`` (the cut planes) and those listed in ``fixed``;
+   the region of interest's ``box`` that cut the head and those listed in ``fixed``;
 2. the dense skin points outside the mesh within ``reach`` are located
    (:class:`pvcmf.filters.transfer_locate.Located`): each asks the nodes of its closest
    boundary triangle for a push of its distance plus ``margin`` along their outward
@@ -96,8 +96,9 @@ def fit_to_skin(grid, skin, *, labels=None, box=None, fixed=None, box_tolerance=
         Without it, a grid with a ``bc`` array keeps its nodes that are not free.
     box : tuple of 6 floats, optional
         The region of interest the mesh was cut to (``roi`` of
-        :func:`~pvcmf.filters.tetrahedralize`): nodes within ``box_tolerance`` of its
-        planes (the cut planes, the fixed posterior plane) stay.
+        :func:`~pvcmf.filters.tetrahedralize`): nodes within ``box_tolerance`` of a plane
+        that cuts the head (the fixed posterior plane, the plane under the chin: with
+        ``labels``, tissue lies beyond it) stay.
     fixed : array_like of bool or int, optional
         Further nodes that must not move (a mask over the grid's points, or indices).
     box_tolerance : float, optional
@@ -236,8 +237,7 @@ def _skin_nodes(grid, pts, tets, labels, fixed, box, box_tolerance):
         tol = box_tolerance
         if tol is None:
             tol = float(max(labels.spacing)) if labels is not None else 1.0
-        near = (np.abs(pts - b[0::2]) <= tol) | (np.abs(pts - b[1::2]) <= tol)
-        pinned |= movable & near.any(axis=1)
+        pinned |= movable & _on_cut(pts, b, tol, labels)
     if fixed is not None:
         fixed = np.asarray(fixed)
         if fixed.dtype == bool:
@@ -265,6 +265,40 @@ def _skin_nodes(grid, pts, tets, labels, fixed, box, box_tolerance):
         return np.where(length > 0, acc / np.where(length > 0, length, 1.0), 0.0)
 
     return movable, tri, normals_of, pinned
+
+
+def _on_cut(points, box, tol, labels):
+    """Points within ``tol`` of a plane of ``box`` that cuts the head: with ``labels``, a
+    plane beyond which (one and a half voxels, within the box's other extents) the image
+    holds tissue; a plane at the edge of the head or of the field of view cuts nothing.
+    Without ``labels``, every plane."""
+    out = np.zeros(len(points), dtype=bool)
+    for axis in range(3):
+        for side, plane in ((-1.0, box[2 * axis]), (1.0, box[2 * axis + 1])):
+            if labels is None or _cuts_tissue(labels, box, axis, plane + side * 1.5 * float(
+                    labels.spacing[axis])):
+                out |= np.abs(points[:, axis] - plane) <= tol
+    return out
+
+
+def _cuts_tissue(labels, box, axis, at):
+    """Whether the image's slice ``axis = at`` holds tissue within the box's other
+    extents (False outside the image)."""
+    dims = np.asarray(labels.dimensions)
+    origin, spacing = np.asarray(labels.origin, float), np.asarray(labels.spacing, float)
+    k = int(np.rint((at - origin[axis]) / spacing[axis]))
+    if not 0 <= k < dims[axis]:
+        return False
+    index = []
+    for a in range(3):
+        if a == axis:
+            index.append(slice(k, k + 1))
+            continue
+        lo = int(np.clip(np.ceil((box[2 * a] - origin[a]) / spacing[a]), 0, dims[a]))
+        hi = int(np.clip(np.floor((box[2 * a + 1] - origin[a]) / spacing[a]) + 1, 0, dims[a]))
+        index.append(slice(lo, hi))
+    vol = np.asarray(labels[arrays.TISSUE]).reshape(tuple(dims[::-1]))  # (z, y, x)
+    return bool(np.any(vol[tuple(index[::-1])] != arrays.AIR))
 
 
 def _touches_hard(points, labels):
