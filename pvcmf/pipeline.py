@@ -32,10 +32,11 @@ from scipy.spatial import cKDTree
 from . import arrays, filters, mtm
 from ._atomic import write_text
 from .filters.bone_segments import segment_volumes
-from .filters.surface_mapping import Transfer, crumple_metric
 from .filters.osteotomy import cut_bones, move_bones
 from .filters.segmentation import tissue_volumes
 from .io import read_ct
+from .filters.meshing.skin_fit import dense_skin, on_hard_tissue
+from .filters.surface_mapping import Transfer, crumple_metric
 from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
@@ -57,10 +58,6 @@ DEFAULT_N_TETS = 25_000
 DEFAULT_BC_OPTIONS = {"fix_unmoved_bone": True, "release_margin": "auto"}
 #: default anterior share of the head that is meshed (the face model of paper 000)
 DEFAULT_FACE_FRACTION = 0.5
-#: voxels of the label image kept around the face box when its dense skin is extracted (the
-#: contour's smoothing reaches about three voxels; the skin is then clipped to the box)
-SKIN_CROP_PAD = 6
-
 
 class StepUnavailable(RuntimeError):
     """A step declined and the pipeline goes on without it (recorded in ``Result.skipped``).
@@ -99,8 +96,8 @@ class Result:
     skipped : dict
         Step name -> why it did not run.
     skin_fit : dict
-        What :func:`pvcmf.filters.meshing.fit_to_skin` did to the mesh (the names of
-        ``arrays.SKIN_FIT_FIELDS`` -> value); empty when the mesh was not fitted.
+        ``arrays.SKIN_FIT_FIELDS`` -> value: what :func:`pvcmf.filters.meshing.fit_to_skin`
+        did to the mesh; empty when it was not fitted.
     files : dict
         Output name -> written path.
     """
@@ -221,16 +218,14 @@ def _muscles(labels, landmarks):
 
 
 def _model_box(labels, options, face_fraction):
-    """The box (xmin, xmax, ymin, ymax, zmin, zmax) the model covers: the ``roi`` of the
-    mesh options when it is a box, else :func:`face_box` of ``face_fraction``; None for
-    the whole head (or a ``roi`` that is not a box)."""
+    """The model's box: a box ``roi`` of the mesh options, else :func:`face_box`; None for
+    the whole head or another kind of ``roi``."""
     roi = options.get("roi")
-    if roi is not None:
-        arr = np.asarray(roi) if not callable(roi) else None
-        if arr is not None and arr.shape == (6,) and arr.dtype.kind in "iuf":
-            return tuple(float(v) for v in arr)
-        return None
-    return None if face_fraction is None else face_box(labels, face_fraction)
+    if roi is None:
+        return None if face_fraction is None else face_box(labels, face_fraction)
+    arr = None if callable(roi) else np.asarray(roi)
+    ok = arr is not None and arr.shape == (6,) and arr.dtype.kind in "iuf"
+    return tuple(float(v) for v in arr) if ok else None
 
 
 def _mesh(labels, n_tets, options, progress_bar, box):
@@ -245,84 +240,10 @@ def _mesh(labels, n_tets, options, progress_bar, box):
             signal.signal(signal.SIGTERM, handler)
 
 
-def _dense_skin(labels, box):
-    """The dense skin (:func:`pvcmf.filters.extract_skin` of the label image), within
-    ``box`` when one is given.
-
-    The image is cropped to the box plus :data:`SKIN_CROP_PAD` voxels (air the whole head
-    encloses, e.g. a sinus the crop cuts open, is filled first, so the crop shows no inner
-    wall as skin), contoured, and the triangles with a corner outside the box are dropped:
-    the skin the model covers, without the shoulders or the back of the head.
-    """
-    if box is None:
-        skin = filters.extract_skin(labels)
-    else:
-        skin = _clip_to_box(filters.extract_skin(_crop_filled(labels, box)), box)
-    skin = skin.copy()
-    skin.clear_data()
-    return skin
-
-
-def _crop_filled(labels, box):
-    """``labels`` (``tissue`` only) cropped to ``box`` plus :data:`SKIN_CROP_PAD` voxels,
-    with the air the whole head encloses labelled as soft tissue."""
-    dims = np.asarray(labels.dimensions)
-    origin, spacing = np.asarray(labels.origin, float), np.asarray(labels.spacing, float)
-    lo = np.floor((np.asarray(box[0::2]) - origin) / spacing).astype(int) - SKIN_CROP_PAD
-    hi = np.ceil((np.asarray(box[1::2]) - origin) / spacing).astype(int) + SKIN_CROP_PAD
-    lo, hi = np.clip(lo, 0, dims - 1), np.clip(hi, 0, dims - 1)
-    tissue = np.asarray(labels[arrays.TISSUE]).reshape(tuple(dims[::-1]))  # (z, y, x)
-    head = tissue != arrays.AIR
-    enclosed = ndimage.binary_fill_holes(head) & ~head
-    cut = tuple(slice(a, b + 1) for a, b in zip(lo[::-1], hi[::-1]))
-    sub = np.where(enclosed[cut], arrays.FAT, tissue[cut]).astype(tissue.dtype)
-    out = pv.ImageData(dimensions=tuple(int(v) for v in hi - lo + 1), spacing=tuple(spacing),
-                       origin=tuple(origin + lo * spacing))
-    out.point_data[arrays.TISSUE] = sub.ravel()
-    return out
-
-
-def _clip_to_box(skin, box):
-    """The triangles of ``skin`` whose three corners lie in ``box``."""
-    p = np.asarray(skin.points)
-    b = np.asarray(box, dtype=float)
-    inside = ((p >= b[0::2]) & (p <= b[1::2])).all(axis=1)
-    tri = skin.faces.reshape(-1, 4)[:, 1:]
-    tri = tri[inside[tri].all(axis=1)]
-    if not len(tri):
-        raise ValueError(f"the skin has no triangle within the model's box {tuple(b)}")
-    ids, local = np.unique(tri, return_inverse=True)
-    faces = np.column_stack([np.full(len(tri), 3), local.reshape(-1, 3)]).ravel()
-    return pv.PolyData(p[ids], faces)
-
-
-def _on_hard_tissue(points, labels):
-    """Skin points on bare hard tissue (teeth or bone that air touches, e.g. in an open
-    mouth): hard tissue and no soft tissue among the 27 image points around them. The soft
-    tissue model does not predict them."""
-    dims = np.asarray(labels.dimensions)
-    tissue = np.asarray(labels[arrays.TISSUE])
-    ijk = np.rint((np.asarray(points) - np.asarray(labels.origin)) / np.asarray(labels.spacing))
-    ijk = ijk.astype(np.int64)
-    hard = np.zeros(len(ijk), dtype=bool)
-    soft = np.zeros(len(ijk), dtype=bool)
-    for off in np.ndindex(3, 3, 3):
-        q = ijk + np.asarray(off) - 1
-        ok = np.flatnonzero(((q >= 0) & (q < dims)).all(axis=1))
-        t = tissue[q[ok, 0] + dims[0] * (q[ok, 1] + dims[1] * q[ok, 2])]
-        hard[ok[np.isin(t, arrays.HARD_LABELS)]] = True
-        soft[ok[np.isin(t, arrays.SOFT_LABELS)]] = True
-    return hard & ~soft
-
-
 def _fit_skin(grid, labels, box, options):
-    """Step "skin fit": the dense skin within the model's box (:func:`_dense_skin`) and the
-    mesh's skin nodes pushed out around it (:func:`pvcmf.filters.meshing.fit_to_skin`;
-    ``options`` None: not fitted); skin on bare hard tissue is not fitted."""
-    skin = _dense_skin(labels, box)
-    if options is None:
-        return grid, skin
-    points = np.asarray(skin.points)[~_on_hard_tissue(skin.points, labels)]
+    """Step "skin fit": the dense skin in the box, the mesh fitted to it (not to bare bone)."""
+    skin = dense_skin(labels, box)
+    points = np.asarray(skin.points)[~on_hard_tissue(skin.points, labels)]
     return filters.fit_to_skin(grid, points, labels=labels, box=box, **options), skin
 
 
@@ -344,26 +265,18 @@ def _apply_plan(grid, plan, labels, options):
 
 
 def _skin(labels, post, pre=None, box=None):
-    """Pre-operative skin and, with a solved mesh, the predicted skin.
-
-    The skin is ``pre`` (the dense skin the mesh was fitted to) or else
-    :func:`_dense_skin` of the label image within the model's ``box``. The mesh
-    displacement is carried onto it by :func:`pvcmf.filters.surface_mapping.transfer_operator`
-    (finite-element interpolation inside the tetrahedra, an exact-for-affine extension of
-    the boundary gradients outside; a mesh fitted to the skin holds nearly all of it).
-    Skin farther than the transfer's band from the mesh, and skin on bare hard tissue
-    (teeth or bone that air touches, :func:`_on_hard_tissue`), is not modelled: point array
-    ``arrays.SKIN_MODELLED`` marks the predicted points, and the crumple metric of the
-    transfer (:func:`~pvcmf.filters.surface_mapping.crumple_metric`, over the modelled skin)
-    is kept in the predicted skin's field data.
-    """
-    pre = _dense_skin(labels, box) if pre is None else pre.copy()
+    """Pre-operative skin (``pre`` or the dense skin in ``box``) and, with a solved mesh,
+    the predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
+    displacement. Skin beyond the transfer's band or on bare teeth or bone is not modelled
+    (``arrays.SKIN_MODELLED``); the crumple metric over the modelled skin goes to the
+    predicted skin's field data."""
+    pre = dense_skin(labels, box) if pre is None else pre.copy()
     if post is None:
         return pre, None
     u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
     transfer = Transfer(post, pre)
     disp = transfer(u_nodes)
-    modelled = transfer.modelled & ~_on_hard_tissue(pre.points, labels)
+    modelled = transfer.modelled & ~on_hard_tissue(pre.points, labels)
     metric = crumple_metric(pre, disp, post, u_nodes, transfer=transfer, modelled=modelled)
     log.info("skin: %d points (%d modelled), %d edges stretched beyond the mesh's gradients "
              "(max ratio %.3g)", pre.n_points, metric[arrays.SKIN_MODELLED_POINTS],
@@ -382,9 +295,8 @@ _SKIN_SUMMARY = (arrays.SKIN_MODELLED_POINTS, arrays.CRUMPLE_EDGES, arrays.CRUMP
 
 
 def _write_outputs(result, out, images=None):
-    """:func:`write_outputs`, plus in ``summary.json`` whether the soft tissue was
-    classified fat / muscle (``"classified"``), what the fit of the mesh to the skin did
-    (``arrays.SKIN_FIT_FIELDS``) and the transfer's crumple metric."""
+    """:func:`write_outputs`, plus in ``summary.json`` ``"classified"`` (fat / muscle), the
+    skin fit (``arrays.SKIN_FIT_FIELDS``) and the transfer's crumple metric."""
     files = write_outputs(result, out, images)
     if "summary" not in files:
         return files
@@ -511,12 +423,10 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     figures : bool, default True
         Render the PNGs when ``out`` is given.
     fit_skin : bool or dict, default True
-        Step "skin fit", right after meshing: the dense skin (within the model's box) is
-        extracted there and the mesh's skin nodes are pushed out until the mesh contains
-        it (:func:`pvcmf.filters.meshing.fit_to_skin`; the bone interface and the box's
-        cut planes stay), so that the predicted skin is the finite-element interpolation
-        itself. A dict passes options to ``fit_to_skin``; ``False`` keeps the mesh as
-        meshed. What it did goes to :attr:`Result.skin_fit` and ``summary.json``.
+        Step "skin fit", after meshing: the dense skin of the model's box is extracted and
+        the mesh's skin nodes pushed out until the mesh holds it
+        (:func:`pvcmf.filters.meshing.fit_to_skin`, options in a dict); ``False`` keeps the
+        mesh as meshed. What it did: :attr:`Result.skin_fit` and ``summary.json``.
     progress_bar : bool, default False
         Show a progress bar over the steps (:class:`pvcmf.progress.Progress`).
     units, orient : str, optional
@@ -545,7 +455,9 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     plan, opts = _check_inputs(plan, n_tets, face_fraction, bones, segment_options=segment_options,
                                mesh_options=mesh_options, material_options=material_options,
                                bc_options=bc_options, solve_options=solve_options)
-    opts["fit_options"] = _check_fit(fit_skin)
+    if not isinstance(fit_skin, (bool, dict)):  # options of fit_to_skin, or whether to fit
+        raise TypeError(f"fit_skin must be a bool or a dict, got {type(fit_skin).__name__}")
+    opts["fit_options"] = dict(fit_skin) if isinstance(fit_skin, dict) else ({} if fit_skin else None)
     out = None if out is None else check_output_dir(out)  # before any work
     result = Result(plan=plan)
     with run_lock(out), Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
@@ -589,16 +501,6 @@ def _check_inputs(plan, n_tets, face_fraction, bones, **options):
     if bones is not None and not isinstance(bones, pv.ImageData):
         raise TypeError(f"bones must be a pyvista.ImageData or None, got {type(bones).__name__}")
     return plan, opts
-
-
-def _check_fit(fit_skin):
-    """``fit_skin`` as the options of ``fit_to_skin`` (None: no fit)."""
-    if isinstance(fit_skin, bool):
-        return {} if fit_skin else None
-    if isinstance(fit_skin, dict):
-        return dict(fit_skin)
-    raise TypeError(f"fit_skin must be a bool or a dict of fit_to_skin options, got "
-                    f"{type(fit_skin).__name__}")
 
 
 def _read_step(run, ct, units, orient):
@@ -653,11 +555,10 @@ def _model_steps(run, labels, plan, opts, *, n_tets, box, predict, solve, progre
         return
     if opts["fit_options"] is None:
         run.skip("skin fit", "fit_skin=False")
-    else:
+    else:  # the dense skin is extracted here, the mesh fitted to it
         grid, result.skin_pre = run.run("skin fit", _fit_skin, grid, labels, box,
                                         opts["fit_options"])
-        result.skin_fit = {name: grid.field_data[name][0].item()
-                           for name in arrays.SKIN_FIT_FIELDS}
+        result.skin_fit = {k: grid.field_data[k][0].item() for k in arrays.SKIN_FIT_FIELDS}
     grid = run.run("fibres", _fibres, grid) or grid
     grid = run.run("materials", _materials, grid, opts["material_options"])
     if grid is None:  # no materials: the MTM cannot run

@@ -11,7 +11,7 @@ import pyvista as pv
 from pvcmf import arrays
 from pvcmf.filters.meshing import fit_to_skin, tet_quality
 from pvcmf.filters.surface_mapping import Transfer, crumple_metric
-from pvcmf.pipeline import _dense_skin
+from pvcmf.filters.meshing.skin_fit import dense_skin
 
 
 def _sphere_points(r, n):
@@ -176,10 +176,10 @@ def test_dense_skin_within_the_box_only():
     cavity = np.linalg.norm(img.points - np.array([0.0, 0.0, 0.0]), axis=1) < 5.0
     img[arrays.TISSUE] = np.where((r < 15.0) & ~cavity, arrays.FAT, arrays.AIR).astype(np.uint8)
     box = (-20.0, 20.0, 2.0, 20.0, -20.0, 20.0)  # cuts the cavity open
-    skin = _dense_skin(img, box)
+    skin = dense_skin(img, box)
     p = np.asarray(skin.points)
     assert p[:, 1].min() >= box[2]
     radius = np.linalg.norm(p, axis=1)
     assert np.abs(radius - 15.0).max() < 1.0  # the outer skin only: no cavity wall (r 5)
-    whole = _dense_skin(img, None)
+    whole = dense_skin(img, None)
     assert whole.n_points > 1.5 * skin.n_points

@@ -31,6 +31,12 @@ skin point interpolates inside a tetrahedron:
    stay outside; points the fit pushes into the mesh there interpolate inside a
    tetrahedron, which the transfer needs).
 
+:func:`dense_skin` gives the dense skin within a box (the model's face box): the image
+cropped to it, the air the whole head encloses filled first (a cavity the crop cuts open
+shows no wall), :func:`pvcmf.filters.extract_skin`, the triangles outside the box dropped.
+:func:`on_hard_tissue` tells the skin points on bare teeth or bone (an open mouth), which
+the soft tissue model neither holds nor predicts.
+
 Delegates the geometry to :mod:`pvcmf.filters.transfer_locate`, the element quality to
 :func:`pvcmf.filters.meshing.tet_quality`, the outward boundary faces to
 :mod:`pvcmf.filters.skin` (``vtkDataSetSurfaceFilter``) and the solves to :mod:`scipy.sparse`.
@@ -45,17 +51,19 @@ import warnings
 import numpy as np
 import pyvista as pv
 import scipy.sparse as sp
+from scipy import ndimage
 from scipy.sparse.linalg import splu
 
 from ... import arrays
 from ...progress import Progress
-from ..skin import _boundary_faces
+from ..skin import _boundary_faces, extract_skin
 from ..transfer_locate import Located, tetra
 from .quality import tet_quality
 
 log = logging.getLogger(__name__)
 
-__all__ = ["fit_to_skin", "DEFAULT_MARGIN", "DEFAULT_REACH"]
+__all__ = ["fit_to_skin", "dense_skin", "on_hard_tissue", "DEFAULT_MARGIN", "DEFAULT_REACH",
+           "SKIN_CROP_PAD"]
 
 #: default depth (mm) at which a dense skin point ends inside the fitted mesh
 DEFAULT_MARGIN = 0.1
@@ -69,6 +77,9 @@ DEFAULT_ITERATIONS = 4
 #: an element whose radius ratio falls below this and below half its value before the
 #: fit counts as degraded (as an inverted one)
 DEFAULT_MIN_QUALITY = 0.05
+#: voxels of the label image kept around a box when its dense skin is extracted (the
+#: contour's smoothing reaches about three voxels; the skin is then clipped to the box)
+SKIN_CROP_PAD = 6
 #: halvings of a push that inverts or degrades an element before it is dropped
 MAX_HALVINGS = 6
 #: rings of nodes around such an element whose push is halved with its own
@@ -195,6 +206,89 @@ def fit_to_skin(grid, skin, *, labels=None, box=None, fixed=None, box_tolerance=
              "within %.3g mm: %d before, %d after (%.1f s)", values[arrays.SKIN_FIT_NODES],
              values[arrays.SKIN_FIT_MAX_PUSH], reach, before, after, seconds)
     return out
+
+
+def dense_skin(labels, box=None):
+    """The dense skin (:func:`pvcmf.filters.extract_skin` of the label image), within
+    ``box`` when one is given.
+
+    Parameters
+    ----------
+    labels : pyvista.ImageData
+        Label image (point array ``tissue``).
+    box : tuple of 6 floats, optional
+        (xmin, xmax, ymin, ymax, zmin, zmax), e.g. the model's face box
+        (:func:`pvcmf.filters.model_region.face_box`).
+
+    Returns
+    -------
+    pyvista.PolyData
+        Triangle surface without point arrays.
+
+    The image is cropped to the box plus :data:`SKIN_CROP_PAD` voxels (air the whole head
+    encloses, e.g. a sinus the crop cuts open, is filled first, so the crop shows no inner
+    wall as skin), contoured, and the triangles with a corner outside the box are dropped:
+    the skin the model covers, without the shoulders or the back of the head.
+    """
+    if box is None:
+        skin = extract_skin(labels)
+    else:
+        skin = _clip_to_box(extract_skin(_crop_filled(labels, box)), box)
+    skin = skin.copy()
+    skin.clear_data()
+    return skin
+
+
+def _crop_filled(labels, box):
+    """``labels`` (``tissue`` only) cropped to ``box`` plus :data:`SKIN_CROP_PAD` voxels,
+    with the air the whole head encloses labelled as soft tissue."""
+    dims = np.asarray(labels.dimensions)
+    origin, spacing = np.asarray(labels.origin, float), np.asarray(labels.spacing, float)
+    lo = np.floor((np.asarray(box[0::2]) - origin) / spacing).astype(int) - SKIN_CROP_PAD
+    hi = np.ceil((np.asarray(box[1::2]) - origin) / spacing).astype(int) + SKIN_CROP_PAD
+    lo, hi = np.clip(lo, 0, dims - 1), np.clip(hi, 0, dims - 1)
+    tissue = np.asarray(labels[arrays.TISSUE]).reshape(tuple(dims[::-1]))  # (z, y, x)
+    head = tissue != arrays.AIR
+    enclosed = ndimage.binary_fill_holes(head) & ~head
+    cut = tuple(slice(a, b + 1) for a, b in zip(lo[::-1], hi[::-1]))
+    sub = np.where(enclosed[cut], arrays.FAT, tissue[cut]).astype(tissue.dtype)
+    out = pv.ImageData(dimensions=tuple(int(v) for v in hi - lo + 1), spacing=tuple(spacing),
+                       origin=tuple(origin + lo * spacing))
+    out.point_data[arrays.TISSUE] = sub.ravel()
+    return out
+
+
+def _clip_to_box(skin, box):
+    """The triangles of ``skin`` whose three corners lie in ``box``."""
+    p = np.asarray(skin.points)
+    b = np.asarray(box, dtype=float)
+    inside = ((p >= b[0::2]) & (p <= b[1::2])).all(axis=1)
+    tri = skin.faces.reshape(-1, 4)[:, 1:]
+    tri = tri[inside[tri].all(axis=1)]
+    if not len(tri):
+        raise ValueError(f"the skin has no triangle within the model's box {tuple(b)}")
+    ids, local = np.unique(tri, return_inverse=True)
+    faces = np.column_stack([np.full(len(tri), 3), local.reshape(-1, 3)]).ravel()
+    return pv.PolyData(p[ids], faces)
+
+
+def on_hard_tissue(points, labels):
+    """Skin points on bare hard tissue (teeth or bone that air touches, e.g. in an open
+    mouth): hard tissue and no soft tissue among the 27 image points around them. The soft
+    tissue model does not predict them."""
+    dims = np.asarray(labels.dimensions)
+    tissue = np.asarray(labels[arrays.TISSUE])
+    ijk = np.rint((np.asarray(points) - np.asarray(labels.origin)) / np.asarray(labels.spacing))
+    ijk = ijk.astype(np.int64)
+    hard = np.zeros(len(ijk), dtype=bool)
+    soft = np.zeros(len(ijk), dtype=bool)
+    for off in np.ndindex(3, 3, 3):
+        q = ijk + np.asarray(off) - 1
+        ok = np.flatnonzero(((q >= 0) & (q < dims)).all(axis=1))
+        t = tissue[q[ok, 0] + dims[0] * (q[ok, 1] + dims[1] * q[ok, 2])]
+        hard[ok[np.isin(t, arrays.HARD_LABELS)]] = True
+        soft[ok[np.isin(t, arrays.SOFT_LABELS)]] = True
+    return hard & ~soft
 
 
 def _check(skin, margin, reach, spread, iterations, min_quality):
