@@ -24,12 +24,14 @@ skin point interpolates inside a tetrahedron:
    push on the skin nodes, zero on every other boundary node; one sparse solve,
    :func:`scipy.sparse.linalg.splu`);
 4. no element may invert or lose more than half its radius ratio (below
-   ``min_quality``): the push of the nodes of such an element and of their neighbours is
-   halved until none does (after ``MAX_HALVINGS`` they keep no push, with a warning);
+   ``min_quality``): the push of the nodes of such an element is halved until none does
+   (after ``MAX_HALVINGS`` they keep no push, with a warning); no node moves more than
+   ``reach`` in all;
 5. steps 2-4 repeat (``iterations``) on the moved mesh; the points still outside are
-   counted (fine features of the dense skin narrower than the mesh, e.g. a thin slit, may
-   stay outside; points the fit pushes into the mesh there interpolate inside a
-   tetrahedron, which the transfer needs).
+   counted. Skin over a part of the head the mesh lacks (thin tissue the mesher lost,
+   leaving a crater or a crack down to the bone) cannot be reached by moving skin nodes
+   and stays outside; where the fit narrows such a gap, points in it end inside the
+   mesh, which the transfer needs.
 
 :func:`dense_skin` gives the dense skin within a box (the model's face box): the image
 cropped to it, the air the whole head encloses filled first (a cavity the crop cuts open
