@@ -229,9 +229,7 @@ def _model_box(labels, options, face_fraction):
 
 
 def _mesh(labels, n_tets, options, progress_bar, box):
-    options = dict(options)
-    if box is not None and "roi" not in options:
-        options["roi"] = box
+    options = dict(options) if box is None else {"roi": box, **options}
     handler = signal.getsignal(signal.SIGTERM)
     try:
         return filters.tetrahedralize(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
@@ -243,8 +241,8 @@ def _mesh(labels, n_tets, options, progress_bar, box):
 def _fit_skin(grid, labels, box, options):
     """Step "skin fit": the dense skin in the box, the mesh fitted to it (not to bare bone)."""
     skin = dense_skin(labels, box)
-    points = np.asarray(skin.points)[~on_hard_tissue(skin.points, labels)]
-    return filters.fit_to_skin(grid, points, labels=labels, box=box, **options), skin
+    cloud = skin.extract_points(~on_hard_tissue(skin.points, labels), adjacent_cells=False)
+    return filters.fit_to_skin(grid, cloud, labels=labels, box=box, **options), skin
 
 
 def _fibres(grid):
@@ -271,6 +269,7 @@ def _skin(labels, post, pre=None, box=None):
     (``arrays.SKIN_MODELLED``); the crumple metric over the modelled skin goes to the
     predicted skin's field data."""
     pre = dense_skin(labels, box) if pre is None else pre.copy()
+    pre.point_data.pop(arrays.NORMALS, None)
     if post is None:
         return pre, None
     u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)

@@ -88,6 +88,24 @@ def test_sphere_mesh_inside_a_larger_skin(shell):
     assert r.max() < 11.0
 
 
+def test_skin_normals_gate_the_push(shell):
+    """With the skin's normals, only skin facing the way its closest mesh face does pushes
+    (skin over a crack of the mesh faces the crack's walls sideways)."""
+    grid, bone = shell
+    skin = pv.Sphere(radius=10.4, theta_resolution=40, phi_resolution=30)
+    skin = skin.compute_normals(point_normals=True, cell_normals=False, split_vertices=False,
+                                auto_orient_normals=True)
+    normals = np.asarray(skin.point_data[arrays.NORMALS])
+    assert np.einsum("ij,ij->i", normals, skin.points).min() > 0  # outward
+    facing = fit_to_skin(grid, skin, fixed=bone)
+    assert facing.field_data[arrays.SKIN_FIT_OUTSIDE_AFTER][0] == 0
+    sideways = skin.copy()
+    sideways.point_data[arrays.NORMALS] = np.cross(normals, [0.0, 0.0, 1.0]) + 1e-9
+    held = fit_to_skin(grid, sideways, fixed=bone)
+    assert held.field_data[arrays.SKIN_FIT_NODES][0] == 0
+    assert held.field_data[arrays.SKIN_FIT_OUTSIDE_AFTER][0] == skin.n_points
+
+
 def test_concave_skin_and_the_crumple_metric(shell):
     """A mesh whose dimple is deeper than the skin's: the skin's points in the dimple lie
     outside the mesh and the outside extension stretches edges beyond the mesh's gradients;

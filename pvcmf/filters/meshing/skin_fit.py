@@ -17,7 +17,8 @@ skin point interpolates inside a tetrahedron:
 2. the dense skin points outside the mesh within ``reach`` are located
    (:class:`pvcmf.filters.transfer_locate.Located`): each asks the nodes of its closest
    boundary triangle for a push of its distance plus ``margin`` along their outward
-   normals (the largest request per node);
+   normals (the largest request per node); given the skin's normals, only where the
+   skin faces the way the triangle does;
 3. the push is spread over the skin by a few rounds of ``s <- max(s_0, mean of the
    neighbours)`` (a bump instead of a spike) and carried into the interior by a
    harmonic extension (graph Laplacian of the mesh edges, the boundary prescribed: the
@@ -100,7 +101,11 @@ def fit_to_skin(grid, skin, *, labels=None, box=None, fixed=None, box_tolerance=
         All-tetrahedral soft-tissue mesh (mm), e.g. from
         :func:`pvcmf.filters.tetrahedralize`.
     skin : pyvista.DataSet or array_like
-        The dense skin (its points, ``(n, 3)``), in the grid's frame.
+        The dense skin (its points, ``(n, 3)``), in the grid's frame. With outward unit
+        point normals (``arrays.NORMALS``, as :func:`pvcmf.filters.extract_skin` and
+        :func:`dense_skin` give them) only the points whose normal agrees with the outward
+        normal of their closest boundary triangle (cosine 0.5 or more) push: the skin
+        over a crack of the mesh (tissue the mesher lost) does not push the crack's walls.
     labels : pyvista.ImageData, optional
         The label image the mesh was made from (point array ``tissue``): a boundary node
         within the largest voxel spacing of the centre of a voxel of neither soft tissue
@@ -158,6 +163,12 @@ def fit_to_skin(grid, skin, *, labels=None, box=None, fixed=None, box_tolerance=
     start = time.perf_counter()
     pts, tets = tetra(grid)
     skin_pts = _check(skin, margin, reach, spread, iterations, min_quality)
+    skin_normals = None
+    if isinstance(skin, pv.DataSet) and arrays.NORMALS in skin.point_data:
+        skin_normals = np.asarray(skin.point_data[arrays.NORMALS], dtype=float)
+        if skin_normals.shape != skin_pts.shape:
+            raise ValueError(f"skin's point array {arrays.NORMALS!r} must have shape "
+                             f"{skin_pts.shape}, got {skin_normals.shape}")
     movable, tri, normals_of, pinned = _skin_nodes(grid, pts, tets, labels, fixed, box,
                                                    box_tolerance)
     graph = _edge_graph(tets, len(pts))
@@ -173,7 +184,8 @@ def fit_to_skin(grid, skin, *, labels=None, box=None, fixed=None, box_tolerance=
                   logger=log) as bar:
         cand = np.arange(len(skin_pts))
         for it in range(iterations):
-            need, outside = _demand(current, tets, skin_pts, cand, movable, reach, margin)
+            need, outside = _demand(current, tets, skin_pts, cand, movable, reach, margin,
+                                    skin_normals)
             if it == 0:
                 before = len(outside)
             cand = outside
@@ -225,7 +237,7 @@ def dense_skin(labels, box=None):
     Returns
     -------
     pyvista.PolyData
-        Triangle surface without point arrays.
+        Triangle surface with its outward unit point normals (``arrays.NORMALS``) only.
 
     The image is cropped to the box plus :data:`SKIN_CROP_PAD` voxels (air the whole head
     encloses, e.g. a sinus the crop cuts open, is filled first, so the crop shows no inner
@@ -236,8 +248,11 @@ def dense_skin(labels, box=None):
         skin = extract_skin(labels)
     else:
         skin = _clip_to_box(extract_skin(_crop_filled(labels, box)), box)
+    normals = skin.point_data.get(arrays.NORMALS)
     skin = skin.copy()
     skin.clear_data()
+    if normals is not None:
+        skin.point_data[arrays.NORMALS] = np.asarray(normals, dtype=float)
     return skin
 
 
@@ -271,7 +286,10 @@ def _clip_to_box(skin, box):
         raise ValueError(f"the skin has no triangle within the model's box {tuple(b)}")
     ids, local = np.unique(tri, return_inverse=True)
     faces = np.column_stack([np.full(len(tri), 3), local.reshape(-1, 3)]).ravel()
-    return pv.PolyData(p[ids], faces)
+    out = pv.PolyData(p[ids], faces)
+    if arrays.NORMALS in skin.point_data:
+        out.point_data[arrays.NORMALS] = np.asarray(skin.point_data[arrays.NORMALS])[ids]
+    return out
 
 
 def on_hard_tissue(points, labels):
@@ -427,9 +445,13 @@ def _edge_graph(tets, n):
     return g
 
 
-def _demand(points, tets, skin_pts, cand, movable, reach, margin):
+def _demand(points, tets, skin_pts, cand, movable, reach, margin, skin_normals=None,
+            min_cos=0.5):
     """Push (mm, per node) that the dense skin points ``cand`` outside the mesh ask of the
-    movable nodes of their closest boundary triangle, and those points."""
+    movable nodes of their closest boundary triangle, and those points. With the skin's
+    normals, only a point whose normal and the triangle's outward normal agree (cosine of
+    at least ``min_cos``) asks: the skin over a crack of the mesh faces the crack's walls
+    sideways, and pushing the walls would only sharpen the crack."""
     need = np.zeros(len(points))
     if not len(cand):
         return need, cand
@@ -444,6 +466,12 @@ def _demand(points, tets, skin_pts, cand, movable, reach, margin):
     first = first[loc.dist[loc.pair_row[first]] <= reach]
     face, bary = loc.face[first], loc.face_bary[first]
     rows = loc.pair_row[first]
+    if skin_normals is not None:
+        a, b, c = (points[face[:, i]] for i in range(3))
+        fn = np.cross(b - a, c - a)
+        fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+        keep = np.einsum("ij,ij->i", fn, skin_normals[cand[rows]]) >= min_cos
+        face, bary, rows = face[keep], bary[keep], rows[keep]
     ask = loc.dist[rows] + margin
     can = movable[face]
     share = np.where(can, bary, 0.0).sum(axis=1)
