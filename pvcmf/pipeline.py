@@ -363,7 +363,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              material_options=None, bc_options=None, solve_options=None, classify=True,
              muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
-             fit_skin=True, progress_bar=False, units=None, orient=None):
+             fit_skin=False, progress_bar=False, units=None, orient=None):
     """Predict the post-operative face from a CT and a surgical plan.
 
     Parameters
@@ -421,11 +421,12 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         recorded in :attr:`Result.skipped`, and the prediction goes on without muscles.
     figures : bool, default True
         Render the PNGs when ``out`` is given.
-    fit_skin : bool or dict, default True
+    fit_skin : bool or dict, default False
         Step "skin fit", after meshing: the dense skin of the model's box is extracted and
         the mesh's skin nodes pushed out until the mesh holds it
-        (:func:`pvcmf.filters.meshing.fit_to_skin`, options in a dict); ``False`` keeps the
-        mesh as meshed. What it did: :attr:`Result.skin_fit` and ``summary.json``.
+        (:func:`pvcmf.filters.meshing.fit_to_skin`, options in a dict). Off by default: where
+        the mesh lacks tissue (cracks) it sharpens the gaps, and a thin part it pushes
+        moves more. What it did: :attr:`Result.skin_fit` and ``summary.json``.
     progress_bar : bool, default False
         Show a progress bar over the steps (:class:`pvcmf.progress.Progress`).
     units, orient : str, optional

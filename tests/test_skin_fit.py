@@ -201,3 +201,27 @@ def test_dense_skin_within_the_box_only():
     assert np.abs(radius - 15.0).max() < 1.0  # the outer skin only: no cavity wall (r 5)
     whole = dense_skin(img, None)
     assert whole.n_points > 1.5 * skin.n_points
+
+
+def test_simulate_fits_the_mesh_on_request(tmp_path):
+    """``simulate(fit_skin=True)``: the fit runs after meshing and is recorded; the skin is
+    the skin of the face box."""
+    import json
+
+    from pvcmf import datasets
+    from pvcmf.pipeline import face_box, simulate
+
+    case = datasets.phantom(patient=3, spacing=3.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = simulate(case.ct, case.plan, tmp_path / "run", bones=case.truth, n_tets=4000,
+                       muscles=False, classify=False, figures=False, fit_skin={"iterations": 2})
+    assert "skin fit" in res.timings
+    assert set(res.skin_fit) == set(arrays.SKIN_FIT_FIELDS)
+    assert res.skin_fit[arrays.SKIN_FIT_OUTSIDE_AFTER] < res.skin_fit[arrays.SKIN_FIT_OUTSIDE_BEFORE]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary[arrays.SKIN_FIT_NODES] == res.skin_fit[arrays.SKIN_FIT_NODES] > 0
+    assert arrays.SKIN_FIT_PUSH in res.mesh.point_data
+    box = face_box(res.labels, 0.5)
+    assert res.skin_pre.points[:, 1].min() >= box[2]
+    assert arrays.NORMALS not in res.skin_post.point_data
