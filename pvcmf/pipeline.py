@@ -36,7 +36,7 @@ from .filters.osteotomy import cut_bones, move_bones
 from .filters.segmentation import tissue_volumes
 from .io import read_ct
 from .filters.meshing.skin_fit import dense_skin, on_hard_tissue
-from .filters.surface_mapping import Transfer, crumple_metric
+from .filters.surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
 from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
@@ -240,7 +240,7 @@ def _mesh(labels, n_tets, options, progress_bar, box):
 
 def _fit_skin(grid, labels, box, options):
     """Step "skin fit": the dense skin in the box, the mesh fitted to it (not to bare bone)."""
-    skin = dense_skin(labels, box)
+    skin = dense_skin(labels, box, grow=2 * DEFAULT_BAND)  # all the transfer reaches
     cloud = skin.extract_points(~on_hard_tissue(skin.points, labels), adjacent_cells=False)
     return filters.fit_to_skin(grid, cloud, labels=labels, box=box, **options), skin
 
@@ -268,7 +268,7 @@ def _skin(labels, post, pre=None, box=None):
     displacement. Skin beyond the transfer's band or on bare teeth or bone is not modelled
     (``arrays.SKIN_MODELLED``); the crumple metric over the modelled skin goes to the
     predicted skin's field data."""
-    pre = dense_skin(labels, box) if pre is None else pre.copy()
+    pre = dense_skin(labels, box, grow=2 * DEFAULT_BAND) if pre is None else pre.copy()
     pre.point_data.pop(arrays.NORMALS, None)
     if post is None:
         return pre, None

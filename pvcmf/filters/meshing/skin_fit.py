@@ -34,9 +34,9 @@ skin point interpolates inside a tetrahedron:
    and stays outside; where the fit narrows such a gap, points in it end inside the
    mesh, which the transfer needs.
 
-:func:`dense_skin` gives the dense skin within a box (the model's face box): the image
-cropped to it, the air the whole head encloses filled first (a cavity the crop cuts open
-shows no wall), :func:`pvcmf.filters.extract_skin`, the triangles outside the box dropped.
+:func:`dense_skin` gives the dense skin within a box (the model's face box):
+:func:`pvcmf.filters.extract_skin` of the whole label image (so that the skin in the box
+is the same as the whole head's), less the triangles with a corner outside the box.
 :func:`on_hard_tissue` tells the skin points on bare teeth or bone (an open mouth), which
 the soft tissue model neither holds nor predicts.
 
@@ -54,7 +54,6 @@ import warnings
 import numpy as np
 import pyvista as pv
 import scipy.sparse as sp
-from scipy import ndimage
 from scipy.sparse.linalg import splu
 
 from ... import arrays
@@ -65,8 +64,7 @@ from .quality import tet_quality
 
 log = logging.getLogger(__name__)
 
-__all__ = ["fit_to_skin", "dense_skin", "on_hard_tissue", "DEFAULT_MARGIN", "DEFAULT_REACH",
-           "SKIN_CROP_PAD"]
+__all__ = ["fit_to_skin", "dense_skin", "on_hard_tissue", "DEFAULT_MARGIN", "DEFAULT_REACH"]
 
 #: default depth (mm) at which a dense skin point ends inside the fitted mesh
 DEFAULT_MARGIN = 0.1
@@ -80,9 +78,6 @@ DEFAULT_ITERATIONS = 4
 #: an element whose radius ratio falls below this and below half its value before the
 #: fit counts as degraded (as an inverted one)
 DEFAULT_MIN_QUALITY = 0.05
-#: voxels of the label image kept around a box when its dense skin is extracted (the
-#: contour's smoothing reaches about three voxels; the skin is then clipped to the box)
-SKIN_CROP_PAD = 6
 #: halvings of a push that inverts or degrades an element before it is dropped
 MAX_HALVINGS = 6
 #: rings of nodes around such an element whose push is halved with its own
@@ -222,7 +217,7 @@ def fit_to_skin(grid, skin, *, labels=None, box=None, fixed=None, box_tolerance=
     return out
 
 
-def dense_skin(labels, box=None):
+def dense_skin(labels, box=None, grow=0.0):
     """The dense skin (:func:`pvcmf.filters.extract_skin` of the label image), within
     ``box`` when one is given.
 
@@ -233,46 +228,29 @@ def dense_skin(labels, box=None):
     box : tuple of 6 floats, optional
         (xmin, xmax, ymin, ymax, zmin, zmax), e.g. the model's face box
         (:func:`pvcmf.filters.model_region.face_box`).
+    grow : float, default 0.0
+        Keep the skin within this distance (mm) beyond the box as well (e.g. the reach of
+        the mesh -> skin transfer, so that the skin does not end on the model's cut).
 
     Returns
     -------
     pyvista.PolyData
         Triangle surface with its outward unit point normals (``arrays.NORMALS``) only.
 
-    The image is cropped to the box plus :data:`SKIN_CROP_PAD` voxels (air the whole head
-    encloses, e.g. a sinus the crop cuts open, is filled first, so the crop shows no inner
-    wall as skin), contoured, and the triangles with a corner outside the box are dropped:
-    the skin the model covers, without the shoulders or the back of the head.
+    The whole image is contoured (the skin in the box is the whole head's, enclosed
+    cavities filled) and the triangles with a corner outside the box are dropped: the skin
+    the model covers, without the shoulders below it or the back of the head.
     """
-    if box is None:
-        skin = extract_skin(labels)
-    else:
-        skin = _clip_to_box(extract_skin(_crop_filled(labels, box)), box)
+    skin = extract_skin(labels)
+    if box is not None:
+        b = np.asarray(box, dtype=float)
+        skin = _clip_to_box(skin, b + float(grow) * np.tile([-1.0, 1.0], 3))
     normals = skin.point_data.get(arrays.NORMALS)
     skin = skin.copy()
     skin.clear_data()
     if normals is not None:
         skin.point_data[arrays.NORMALS] = np.asarray(normals, dtype=float)
     return skin
-
-
-def _crop_filled(labels, box):
-    """``labels`` (``tissue`` only) cropped to ``box`` plus :data:`SKIN_CROP_PAD` voxels,
-    with the air the whole head encloses labelled as soft tissue."""
-    dims = np.asarray(labels.dimensions)
-    origin, spacing = np.asarray(labels.origin, float), np.asarray(labels.spacing, float)
-    lo = np.floor((np.asarray(box[0::2]) - origin) / spacing).astype(int) - SKIN_CROP_PAD
-    hi = np.ceil((np.asarray(box[1::2]) - origin) / spacing).astype(int) + SKIN_CROP_PAD
-    lo, hi = np.clip(lo, 0, dims - 1), np.clip(hi, 0, dims - 1)
-    tissue = np.asarray(labels[arrays.TISSUE]).reshape(tuple(dims[::-1]))  # (z, y, x)
-    head = tissue != arrays.AIR
-    enclosed = ndimage.binary_fill_holes(head) & ~head
-    cut = tuple(slice(a, b + 1) for a, b in zip(lo[::-1], hi[::-1]))
-    sub = np.where(enclosed[cut], arrays.FAT, tissue[cut]).astype(tissue.dtype)
-    out = pv.ImageData(dimensions=tuple(int(v) for v in hi - lo + 1), spacing=tuple(spacing),
-                       origin=tuple(origin + lo * spacing))
-    out.point_data[arrays.TISSUE] = sub.ravel()
-    return out
 
 
 def _clip_to_box(skin, box):
