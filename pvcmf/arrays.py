@@ -311,3 +311,18 @@ SKIN_POINT_ID = "skin_point_id"
 #: post-operative CT shows no skin where the truth puts it
 #: (:data:`pvcmf.study.validation.JUDGE_LIMIT`)
 STUDY_EXCLUDED = "study_excluded"
+
+
+# --------------------------------------------------------------------------- mesh fitted to the dense skin
+# pvcmf.filters.meshing.fit_to_skin: the mesh's skin nodes pushed out around the dense skin
+SKIN_FIT_PUSH = "skin_fit_push"  #: point (grid), float64 (n, 3), mm each node was moved
+SKIN_FIT_MAX_PUSH = "skin_fit_max_push_mm"  #: field / summary, float, largest node move (mm)
+SKIN_FIT_NODES = "skin_fit_nodes_moved"  #: field / summary, int, nodes moved
+#: field / summary, int, dense skin points outside the mesh (within the fit's reach) before
+SKIN_FIT_OUTSIDE_BEFORE = "skin_fit_outside_before"
+#: field / summary, int, dense skin points outside the mesh (within the fit's reach) after
+SKIN_FIT_OUTSIDE_AFTER = "skin_fit_outside_after"
+SKIN_FIT_SECONDS = "skin_fit_seconds"  #: field / summary, float, seconds the fit took
+#: the field data of fit_to_skin, in the order summary.json lists them
+SKIN_FIT_FIELDS = (SKIN_FIT_MAX_PUSH, SKIN_FIT_NODES, SKIN_FIT_OUTSIDE_BEFORE,
+                   SKIN_FIT_OUTSIDE_AFTER, SKIN_FIT_SECONDS)

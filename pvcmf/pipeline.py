@@ -32,10 +32,11 @@ from scipy.spatial import cKDTree
 from . import arrays, filters, mtm
 from ._atomic import write_text
 from .filters.bone_segments import segment_volumes
-from .filters.surface_mapping import Transfer, crumple_metric
 from .filters.osteotomy import cut_bones, move_bones
 from .filters.segmentation import tissue_volumes
 from .io import read_ct
+from .filters.meshing.skin_fit import dense_skin, on_hard_tissue
+from .filters.surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
 from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
@@ -47,8 +48,8 @@ log = logging.getLogger(__name__)
 __all__ = ["Result", "simulate", "STEPS", "write_outputs"]
 
 #: the steps of :func:`simulate`, in order, as named in the timing summary
-STEPS = ("read", "segment", "classify", "bone segments", "muscles", "mesh", "fibres", "materials",
-         "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
+STEPS = ("read", "segment", "classify", "bone segments", "muscles", "mesh", "skin fit", "fibres",
+         "materials", "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
 
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
 DEFAULT_N_TETS = 25_000
@@ -57,7 +58,6 @@ DEFAULT_N_TETS = 25_000
 DEFAULT_BC_OPTIONS = {"fix_unmoved_bone": True, "release_margin": "auto"}
 #: default anterior share of the head that is meshed (the face model of paper 000)
 DEFAULT_FACE_FRACTION = 0.5
-
 
 class StepUnavailable(RuntimeError):
     """A step declined and the pipeline goes on without it (recorded in ``Result.skipped``).
@@ -95,6 +95,9 @@ class Result:
         when the CT was not checked.
     skipped : dict
         Step name -> why it did not run.
+    skin_fit : dict
+        ``arrays.SKIN_FIT_FIELDS`` -> value: what :func:`pvcmf.filters.meshing.fit_to_skin`
+        did to the mesh; empty when it was not fitted.
     files : dict
         Output name -> written path.
     """
@@ -111,6 +114,7 @@ class Result:
     segment_volumes: dict = field(default_factory=dict)
     ct_report: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
+    skin_fit: dict = field(default_factory=dict)
     files: dict = field(default_factory=dict)
 
     @property
@@ -213,16 +217,32 @@ def _muscles(labels, landmarks):
                               f"{type(err).__name__}: {str(err)[:300]}") from None
 
 
-def _mesh(labels, n_tets, options, progress_bar, face_fraction):
-    options = dict(options)
-    if face_fraction is not None and "roi" not in options:
-        options["roi"] = face_box(labels, face_fraction)
+def _model_box(labels, options, face_fraction):
+    """The model's box: a box ``roi`` of the mesh options, else :func:`face_box`; None for
+    the whole head or another kind of ``roi``."""
+    roi = options.get("roi")
+    if roi is None:
+        return None if face_fraction is None else face_box(labels, face_fraction)
+    arr = None if callable(roi) else np.asarray(roi)
+    ok = arr is not None and arr.shape == (6,) and arr.dtype.kind in "iuf"
+    return tuple(float(v) for v in arr) if ok else None
+
+
+def _mesh(labels, n_tets, options, progress_bar, box):
+    options = dict(options) if box is None else {"roi": box, **options}
     handler = signal.getsignal(signal.SIGTERM)
     try:
         return filters.tetrahedralize(labels, n_tets=n_tets, progress_bar=progress_bar, **options)
     finally:  # gmsh's initialisation resets SIGTERM to the default: restore the caller's
         if handler is not None and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGTERM, handler)
+
+
+def _fit_skin(grid, labels, box, options):
+    """Step "skin fit": the dense skin in the box, the mesh fitted to it (not to bare bone)."""
+    skin = dense_skin(labels, box, grow=2 * DEFAULT_BAND)  # all the transfer reaches
+    cloud = skin.extract_points(~on_hard_tissue(skin.points, labels), adjacent_cells=False)
+    return filters.fit_to_skin(grid, cloud, labels=labels, box=box, **options), skin
 
 
 def _fibres(grid):
@@ -242,31 +262,26 @@ def _apply_plan(grid, plan, labels, options):
     return drop_floating_parts(filters.apply_plan(grid, plan, labels, **options))
 
 
-def _skin(labels, post):
-    """Pre-operative skin and, with a solved mesh, the predicted skin.
-
-    The skin comes from :func:`pvcmf.filters.extract_skin` of the label image. The mesh
-    displacement is carried onto it by :func:`pvcmf.filters.surface_mapping.transfer_operator`
-    (finite-element interpolation inside the tetrahedra, an exact-for-affine extension of
-    the boundary gradients outside). Skin farther than the transfer's band from the mesh
-    (behind the face model's posterior cut) is not modelled: point array
-    ``arrays.SKIN_MODELLED`` marks the predicted points, and the crumple metric of the
-    transfer (:func:`~pvcmf.filters.surface_mapping.crumple_metric`, over the modelled skin)
-    is kept in the predicted skin's field data.
-    """
-    pre = filters.extract_skin(labels).copy()
-    pre.clear_data()
+def _skin(labels, post, pre=None, box=None):
+    """Pre-operative skin (``pre`` or the dense skin in ``box``) and, with a solved mesh,
+    the predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
+    displacement. Skin beyond the transfer's band or on bare teeth or bone is not modelled
+    (``arrays.SKIN_MODELLED``); the crumple metric over the modelled skin goes to the
+    predicted skin's field data."""
+    pre = dense_skin(labels, box, grow=2 * DEFAULT_BAND) if pre is None else pre.copy()
+    pre.point_data.pop(arrays.NORMALS, None)
     if post is None:
         return pre, None
     u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
     transfer = Transfer(post, pre)
     disp = transfer(u_nodes)
-    metric = crumple_metric(pre, disp, post, u_nodes, transfer=transfer)
+    modelled = transfer.modelled & ~on_hard_tissue(pre.points, labels)
+    metric = crumple_metric(pre, disp, post, u_nodes, transfer=transfer, modelled=modelled)
     log.info("skin: %d points (%d modelled), %d edges stretched beyond the mesh's gradients "
              "(max ratio %.3g)", pre.n_points, metric[arrays.SKIN_MODELLED_POINTS],
              metric[arrays.CRUMPLE_VIOLATIONS], metric[arrays.CRUMPLE_MAX_RATIO])
     pre.point_data[arrays.DISPLACEMENT] = disp
-    pre.point_data[arrays.SKIN_MODELLED] = transfer.modelled.astype(np.uint8)
+    pre.point_data[arrays.SKIN_MODELLED] = modelled.astype(np.uint8)
     moved = pre.copy()
     moved.points = np.asarray(pre.points) + disp
     for name in _SKIN_SUMMARY:
@@ -279,14 +294,16 @@ _SKIN_SUMMARY = (arrays.SKIN_MODELLED_POINTS, arrays.CRUMPLE_EDGES, arrays.CRUMP
 
 
 def _write_outputs(result, out, images=None):
-    """:func:`write_outputs`, plus in ``summary.json`` whether the soft tissue was
-    classified fat / muscle (``"classified"``) and the transfer's crumple metric."""
+    """:func:`write_outputs`, plus in ``summary.json`` ``"classified"`` (fat / muscle), the
+    skin fit (``arrays.SKIN_FIT_FIELDS``) and the transfer's crumple metric."""
     files = write_outputs(result, out, images)
     if "summary" not in files:
         return files
     path = Path(files["summary"])
     summary = json.loads(path.read_text(encoding="utf-8"))
     summary["classified"] = "classify" in result.timings
+    for name, value in result.skin_fit.items():
+        summary[name] = value
     skin = result.skin_post
     if skin is not None and arrays.CRUMPLE_VIOLATIONS in skin.field_data:
         for name in _SKIN_SUMMARY:
@@ -346,7 +363,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              material_options=None, bc_options=None, solve_options=None, classify=True,
              muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
-             progress_bar=False, units=None, orient=None):
+             fit_skin=False, progress_bar=False, units=None, orient=None):
     """Predict the post-operative face from a CT and a surgical plan.
 
     Parameters
@@ -404,6 +421,12 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         recorded in :attr:`Result.skipped`, and the prediction goes on without muscles.
     figures : bool, default True
         Render the PNGs when ``out`` is given.
+    fit_skin : bool or dict, default False
+        Step "skin fit", after meshing: the dense skin of the model's box is extracted and
+        the mesh's skin nodes pushed out until the mesh holds it
+        (:func:`pvcmf.filters.meshing.fit_to_skin`, options in a dict). Off by default: where
+        the mesh lacks tissue (cracks) it sharpens the gaps, and a thin part it pushes
+        moves more. What it did: :attr:`Result.skin_fit` and ``summary.json``.
     progress_bar : bool, default False
         Show a progress bar over the steps (:class:`pvcmf.progress.Progress`).
     units, orient : str, optional
@@ -432,6 +455,9 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     plan, opts = _check_inputs(plan, n_tets, face_fraction, bones, segment_options=segment_options,
                                mesh_options=mesh_options, material_options=material_options,
                                bc_options=bc_options, solve_options=solve_options)
+    if not isinstance(fit_skin, (bool, dict)):  # options of fit_to_skin, or whether to fit
+        raise TypeError(f"fit_skin must be a bool or a dict, got {type(fit_skin).__name__}")
+    opts["fit_options"] = dict(fit_skin) if isinstance(fit_skin, dict) else ({} if fit_skin else None)
     out = None if out is None else check_output_dir(out)  # before any work
     result = Result(plan=plan)
     with run_lock(out), Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
@@ -447,9 +473,10 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         result.tissue_volumes = tissue_volumes(labels)
         if arrays.BONE in labels.point_data:
             result.segment_volumes = segment_volumes(labels)
-        _model_steps(run, labels, plan, opts, n_tets=n_tets, face_fraction=face_fraction,
-                     predict=predict, solve=solve, progress_bar=progress_bar)
-        _output_steps(run, out, solve=solve, figures=figures)
+        box = _model_box(labels, opts["mesh_options"], face_fraction)
+        _model_steps(run, labels, plan, opts, n_tets=n_tets, box=box, predict=predict,
+                     solve=solve, progress_bar=progress_bar)
+        _output_steps(run, out, solve=solve, figures=figures, box=box)
     log.info("simulate finished:\n%s", result.summary())
     return result
 
@@ -513,21 +540,25 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
     return cut_bones(labels, plan)
 
 
-def _model_steps(run, labels, plan, opts, *, n_tets, face_fraction, predict, solve,
-                 progress_bar):
-    """Steps "mesh", "fibres", "materials", "boundary conditions" and "solve"."""
+def _model_steps(run, labels, plan, opts, *, n_tets, box, predict, solve, progress_bar):
+    """Steps "mesh", "skin fit", "fibres", "materials", "boundary conditions" and "solve"."""
     result = run.result
     grid = None
     if predict:
-        grid = run.run("mesh", _mesh, labels, n_tets, opts["mesh_options"], progress_bar,
-                       face_fraction)
+        grid = run.run("mesh", _mesh, labels, n_tets, opts["mesh_options"], progress_bar, box)
     else:
         run.skip("mesh", "predict=False")
     if grid is None:
-        for step in ("fibres", "materials", "boundary conditions", "solve"):
-            run.skip(step, "no mesh" if step in ("fibres", "materials")
+        for step in ("skin fit", "fibres", "materials", "boundary conditions", "solve"):
+            run.skip(step, "no mesh" if step in ("skin fit", "fibres", "materials")
                      else "no mesh with materials")
         return
+    if opts["fit_options"] is None:
+        run.skip("skin fit", "fit_skin=False")
+    else:  # the dense skin is extracted here, the mesh fitted to it
+        grid, result.skin_pre = run.run("skin fit", _fit_skin, grid, labels, box,
+                                        opts["fit_options"])
+        result.skin_fit = {k: grid.field_data[k][0].item() for k in arrays.SKIN_FIT_FIELDS}
     grid = run.run("fibres", _fibres, grid) or grid
     grid = run.run("materials", _materials, grid, opts["material_options"])
     if grid is None:  # no materials: the MTM cannot run
@@ -547,10 +578,10 @@ def _solve(grid, options):
     return mtm.solve(grid, **options)
 
 
-def _output_steps(run, out, *, solve, figures):
+def _output_steps(run, out, *, solve, figures, box=None):
     """Steps "skin" (map to skin), "skeleton", "figures" and "write"."""
     result = run.result
-    skins = run.run("skin", _skin, result.labels, result.post)
+    skins = run.run("skin", _skin, result.labels, result.post, result.skin_pre, box)
     if skins is not None:
         result.skin_pre, result.skin_post = skins
     if not solve:

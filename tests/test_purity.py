@@ -70,6 +70,8 @@ def chain():
     lo, hi = jaw.min(axis=0) - 20.0, jaw.max(axis=0) + 20.0
     roi = (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
     grid = _pure("tetrahedralize", f.tetrahedralize, labels, n_tets=6000, roi=roi)
+    out["fitted"] = _pure("fit_to_skin", f.fit_to_skin, grid, f.extract_skin(labels),
+                          labels=labels, box=roi)
     homog = _pure("tetrahedralize", f.tetrahedralize, case.truth, n_tets=4000, roi=roi,
                   conforming=False)
     out["sampled"] = _pure("sample_muscle_fraction", f.sample_muscle_fraction, homog,

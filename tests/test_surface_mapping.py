@@ -84,6 +84,21 @@ def test_crumple_metric_flags_nearest_copy(ball):
     assert bad[arrays.CRUMPLE_VIOLATIONS] > 0
 
 
+def test_crumple_metric_floor(ball):
+    """A skin jump far beyond a vanishing mesh gradient counts unless it is below the
+    floor (round-off of a region that does not move)."""
+    grid, skin = ball
+    u = np.zeros((grid.n_points, 3))
+    u[:, 0] = 1e-7 * grid.points[:, 0]  # the mesh's gradient: 1e-7
+    rng = np.random.default_rng(4)
+    for scale, counted in ((1e-8, False), (1e-2, True)):  # jumps of ~scale mm
+        noisy = transfer_operator(grid, skin) @ u + scale * rng.normal(size=(skin.n_points, 3))
+        m = crumple_metric(skin, noisy, grid, u)
+        assert (m[arrays.CRUMPLE_VIOLATIONS] > 0) == counted
+        assert (m[arrays.CRUMPLE_MAX_RATIO] > 1.1) == counted
+    assert crumple_metric(skin, noisy, grid, u, floor=1e3)[arrays.CRUMPLE_VIOLATIONS] == 0
+
+
 def test_map_to_surface_methods(ball):
     grid, skin = ball
     g = grid.copy()

@@ -10,6 +10,7 @@ classify_tissue           ``classify``                001 Fig. 1: per-slice GMM 
 embed_muscles             ``muscles``                 000 sec. II: atlas + TPS, Fig. 2b
 fiber_directions          ``fibers``                  000 Fig. 3: OBB fibre directions
 tetrahedralize            ``meshing``                 000 Fig. 2c: labelled tetrahedral mesh
+fit_to_skin               ``meshing.skin_fit``        mesh skin pushed out around the dense skin
 sample_muscle_fraction    ``fractions``               000 Fig. 1: random-point sampling
 average_voxels            ``fractions``               001: per-tetrahedron voxel average
 assign_materials          ``materials``               000 Table I / 001 materials
@@ -38,6 +39,7 @@ _REGISTRY = {
     "fiber_directions": "fibers",
     "oriented_bounding_box": "fibers",
     "tetrahedralize": "meshing",  # not "tetrahedralize": same shadowing as segment
+    "fit_to_skin": "meshing",
     "sample_muscle_fraction": "fractions",
     "average_voxels": "fractions",
     "assign_materials": "materials",

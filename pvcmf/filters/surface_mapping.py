@@ -72,6 +72,10 @@ DEFAULT_K = 8
 #: default distance (mm) from the mesh within which the extension is exactly affine (the
 #: modelled skin); beyond it the extension falls smoothly to zero at twice this
 DEFAULT_BAND = 4.0
+#: default stretch (displacement jump over edge length) below which a skin edge never
+#: counts as crumpled: 1e-4 is a tenth of a micrometre per millimetre, where both the
+#: stretch and the mesh's gradients are round-off of a region that does not move
+DEFAULT_FLOOR = 1e-4
 
 
 def _gradient_operators(points, tets, rows):
@@ -356,7 +360,7 @@ def _edges(surface):
 
 
 def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT_BAND,
-                   slack=0.1, transfer=None):
+                   slack=0.1, floor=DEFAULT_FLOOR, transfer=None, modelled=None):
     """Check that a skin displacement stretches no skin edge beyond the mesh's gradients.
 
     Only the modelled skin is checked: edges whose two points lie inside the mesh or within
@@ -385,14 +389,21 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
         Modelled skin: within this distance (mm) of the mesh (as :func:`transfer_operator`).
     slack : float, default 0.1
         An edge violates the bound when its stretch exceeds ``(1 + slack)`` times it.
+    floor : float, default 1e-4
+        ... and exceeds ``floor`` (a stretch below it is no visible crumple: in a region
+        that does not move, both the stretch and the bound are round-off).
     transfer : Transfer, optional
         The :class:`Transfer` of ``grid`` onto ``skin_pre``'s points, reused instead of
         locating the points again (its ``k`` and ``band`` apply).
+    modelled : array_like of bool, optional
+        The skin points the model predicts (default: within ``band`` of the mesh, the
+        transfer's ``modelled``); only edges between two of them are checked.
 
     Returns
     -------
     dict
-        ``ratio`` (per modelled edge: stretch / bound, 0 where both vanish), ``edges``
+        ``ratio`` (per modelled edge: stretch / bound, 0 where both vanish or the stretch
+        is at most ``floor``), ``edges``
         ((e, 2), the modelled edges), ``modelled`` (per point, bool), and the summary
         values under ``arrays.CRUMPLE_EDGES``, ``arrays.CRUMPLE_VIOLATIONS``
         and ``arrays.CRUMPLE_MAX_RATIO``.
@@ -433,16 +444,23 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
     if len(loc.pair_row):
         np.maximum.at(bound, loc.pair_row, node_max[loc.face].max(axis=1))
         np.maximum.at(bound, loc.outside, node_max[loc.boundary[loc.near]].max(axis=1))
+    if modelled is None:
+        modelled = transfer.modelled
+    modelled = np.asarray(modelled, dtype=bool)
+    if modelled.shape != (skin_pre.n_points,):
+        raise ValueError(f"modelled must be a mask of shape ({skin_pre.n_points},), got "
+                         f"{modelled.shape}")
     e = _edges(skin_pre)
-    e = e[transfer.modelled[e].all(axis=1)]
+    e = e[modelled[e].all(axis=1)]
     x = np.asarray(skin_pre.points, dtype=float)
     length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
     stretch = np.linalg.norm(u_skin[e[:, 0]] - u_skin[e[:, 1]], axis=1) / np.maximum(length, 1e-300)
     limit = np.maximum(bound[e[:, 0]], bound[e[:, 1]])
     tiny = 1e-9 * max(float(gnorm.max(initial=0.0)), 1e-12)
     ratio = np.where(limit > tiny, stretch / np.maximum(limit, tiny), np.where(stretch > tiny, np.inf, 0.0))
-    return {"ratio": ratio, "edges": e, "modelled": transfer.modelled.copy(),
-            arrays.SKIN_MODELLED_POINTS: int(transfer.modelled.sum()),
+    ratio = np.where(stretch > floor, ratio, 0.0)
+    return {"ratio": ratio, "edges": e, "modelled": modelled.copy(),
+            arrays.SKIN_MODELLED_POINTS: int(modelled.sum()),
             arrays.CRUMPLE_EDGES: int(len(e)),
             arrays.CRUMPLE_VIOLATIONS: int(np.sum(ratio > 1.0 + slack)),
             arrays.CRUMPLE_MAX_RATIO: float(ratio.max(initial=0.0))}

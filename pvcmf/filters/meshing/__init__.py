@@ -19,6 +19,7 @@ module                    what it does
 ``quality``               element quality, sliver-node relocation, field-data names
 ``mesher``                :func:`tetrahedralize`: calibration, fallbacks, output grid
 ``shell``                 :func:`shell_labels`, an analytic label image for examples
+``skin_fit``              :func:`fit_to_skin`: the skin nodes pushed out around a dense skin
 ========================  ==============================================================
 
 The steps:
@@ -70,6 +71,7 @@ from .quality import (
     tet_quality,
 )
 from .shell import shell_labels
+from .skin_fit import fit_to_skin
 
 __all__ = [
     "GRADING",
@@ -86,6 +88,7 @@ __all__ = [
     "TIME_SURFACE",
     "TIME_TOTAL",
     "TIME_VOLUME",
+    "fit_to_skin",
     "shell_labels",
     "tet_quality",
     "tetrahedralize",
