@@ -43,6 +43,8 @@ METHODS = {
     "distance_to": ("pvcmf.filters", "distance_to"),
     "map_to_surface": ("pvcmf.filters", "map_to_surface"),
     "transfer_operator": ("pvcmf.filters", "transfer_operator"),
+    "fit_to_skin": ("pvcmf.filters", "fit_to_skin"),
+    "dense_skin": ("pvcmf.filters.meshing.skin_fit", "dense_skin"),
     "plan_response": ("pvcmf.mtm.response", "plan_response"),
     "solve": ("pvcmf.mtm", "solve"),
     "stiffness": ("pvcmf.mtm", "stiffness"),

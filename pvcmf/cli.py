@@ -100,6 +100,9 @@ def _common(parser):
     parser.add_argument("--classify", dest="classify", action="store_true",
                         help="classify fat/muscle (the default; accepted so that command "
                              "lines naming it keep working)")
+    parser.add_argument("--fit-skin", action="store_true",
+                        help="push the mesh's skin nodes out around the dense skin before "
+                             "solving (pvcmf.filters.meshing.fit_to_skin; off by default)")
     parser.add_argument("--no-muscles", action="store_true",
                         help="homogeneous soft tissue: skip the muscle atlas (faster)")
     parser.add_argument("--no-predict", action="store_true",
@@ -206,7 +209,7 @@ def _demo(args):
     result = simulate(case.ct, case.plan, args.out, bones=case.truth,
                       landmarks=getattr(case, "landmarks", None), n_tets=args.n_tets,
                       predict=not args.no_predict, muscles=not args.no_muscles,
-                      classify=args.classify,
+                      classify=args.classify, fit_skin=args.fit_skin,
                       figures=not args.no_figures, progress_bar=not args.no_progress)
     result.timings = {"phantom": seconds, **result.timings}
     return _finish(result, args)
@@ -250,7 +253,7 @@ def _simulate(args):
             raise ValueError(f"--units must be 'auto', 'hu' or a number, got {units!r}") from None
     result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
                       predict=not args.no_predict, muscles=not args.no_muscles,
-                      classify=args.classify,
+                      classify=args.classify, fit_skin=args.fit_skin,
                       figures=not args.no_figures, progress_bar=not args.no_progress,
                       units=units, orient=args.orient)
     result.timings = {"read": seconds, **result.timings}

@@ -6,8 +6,7 @@ skin), times every step, and, given an output folder, writes the predicted skin 
 the deformed mesh (VTU) and offscreen PNGs, each atomically (temporary file in the same
 folder + ``os.replace``: an interrupted run leaves no half-written file).
 
-Each stage is a named function (read, segment, classify and cut, muscles, mesh, materials, boundary
-conditions from the plan, solve, map to skin, write) calling the filter of that name in
+Each stage (:data:`STEPS`) is a named function calling the filter of that name in
 :mod:`pvcmf.filters`; steps the caller turns off (muscles, prediction) or that decline on
 purpose (a failed muscle fit leaves homogeneous tissue) are recorded in
 :attr:`Result.skipped`; any other failure raises. Progress goes through
@@ -32,11 +31,11 @@ from scipy.spatial import cKDTree
 from . import arrays, filters, mtm
 from ._atomic import write_text
 from .filters.bone_segments import segment_volumes
+from .filters.meshing.skin_fit import dense_skin, on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
 from .filters.segmentation import tissue_volumes
-from .io import read_ct
-from .filters.meshing.skin_fit import dense_skin, on_hard_tissue
 from .filters.surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
+from .io import read_ct
 from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
@@ -53,8 +52,7 @@ STEPS = ("read", "segment", "classify", "bone segments", "muscles", "mesh", "ski
 
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
 DEFAULT_N_TETS = 25_000
-#: boundary-condition options of the pipeline (see :func:`pvcmf.filters.apply_plan`)
-#: (fixed nodes near a moving one are left free: no tissue torn along the osteotomy line)
+#: boundary-condition options (:func:`pvcmf.filters.apply_plan`; fixed nodes near a moving one free)
 DEFAULT_BC_OPTIONS = {"fix_unmoved_bone": True, "release_margin": "auto"}
 #: default anterior share of the head that is meshed (the face model of paper 000)
 DEFAULT_FACE_FRACTION = 0.5
@@ -525,7 +523,9 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
         if not isinstance(ct, pv.ImageData):
             raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
         arrays.require_array(ct, arrays.CT, "point", dtype="f", producer="pvcmf.read_ct")
-        labels = run.run("segment", _segment, ct, opts["segment_options"])
+        seg = opts["segment_options"]  # a head already checked by standardize: not again
+        seg = {"check": False, **seg} if run.result.ct_report else seg
+        labels = run.run("segment", _segment, ct, seg)
         if classify:
             labels = run.run("classify", _classify, labels)
         else:
