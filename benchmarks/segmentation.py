@@ -42,7 +42,7 @@ def one_run(folder):
 
     ct = step("read", pvcmf.read_ct, folder)
     ct, _ = step("standardize", standardize, ct)
-    labels = step("segment", pvcmf.filters.segment, ct)
+    labels = step("segment", lambda c: pvcmf.filters.segment(c, check=False), ct)  # standardize checked it
     jaws = step("find_jaws", pvcmf.filters.find_jaws, labels)
     classified = step("classify", pvcmf.filters.classify_tissue, labels)
     return seconds, classified, jaws, ct
