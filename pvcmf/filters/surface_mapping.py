@@ -163,29 +163,33 @@ def _decay(d, band):
 
 
 def _assemble(loc, band=DEFAULT_BAND):
+    """The operator from :class:`Located`, built row-sorted as CSR where the rows come
+    sorted (inside points; feet, grouped by point; the outside points' gradient terms)."""
     n, m = len(loc.p), len(loc.points)
     ins = np.flatnonzero(loc.inside)
-    T = sp.csr_matrix((loc.bary[ins].ravel(), (np.repeat(ins, 4), loc.tets[loc.cell[ins]].ravel())),
-                      shape=(n, m))
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    ptr[1:] = np.cumsum(loc.inside * 4)
+    T = sp.csr_matrix((loc.bary[ins].ravel(), loc.tets[loc.cell[ins]].ravel(), ptr), shape=(n, m))
     npair = len(loc.pair_row)
     if npair:  # blended feet's u_h(q_f) + G(q) (p - q), q their blend, times the decay
         decay = _decay(loc.dist, band)
         scale = loc.pair_w * decay[loc.pair_row]
-        face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(),
-                              (np.repeat(loc.pair_row, 3), loc.face.ravel())), shape=(n, m))
-        used, inverse = np.unique(loc.near, return_inverse=True)
-        inverse = inverse.reshape(loc.near.shape)
-        kk = loc.near.shape[1]
+        ptr = np.zeros(n + 1, dtype=np.int64)  # pair rows are sorted: CSR directly
+        ptr[1:] = np.cumsum(np.bincount(loc.pair_row, minlength=n) * 3)
+        face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(), loc.face.ravel(), ptr),
+                             shape=(n, m))
+        nb, kk = len(loc.boundary), loc.near.shape[1]
         out = loc.outside
         offset = (loc.p[out] - loc.qbar) * decay[out][:, None]
-        vals, cols = [], []
-        for c in range(3):  # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix
-            vals.append((offset[:, c][:, None] * loc.near_w).ravel())
-            cols.append(inverse.ravel() + c * len(used))
-        BW = sp.csr_matrix((np.concatenate(vals), (np.tile(np.repeat(out, kk), 3),
-                                                   np.concatenate(cols))),
-                           shape=(n, 3 * len(used)))
-        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary[used])).tocsr()
+        # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix, 3 kk entries per outside row
+        ptr = np.zeros(n + 1, dtype=np.int64)
+        counts = np.zeros(n, dtype=np.int64)
+        counts[out] = 3 * kk
+        ptr[1:] = np.cumsum(counts)
+        BW = sp.csr_matrix(((offset[:, :, None] * loc.near_w[:, None, :]).ravel(),
+                            (loc.near[:, None, :] + nb * np.arange(3)[None, :, None]).ravel(),
+                            ptr), shape=(n, 3 * nb))
+        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary), format="csr")
         T = T + face + BW @ D
     T = T.tocsr()
     T.sum_duplicates()
