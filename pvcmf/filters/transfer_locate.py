@@ -190,11 +190,15 @@ class Located:
         frames = _Triangles(corners)
         n = len(out)
         d = np.full((n, kt), np.inf)
-        q_all, b_all = np.empty((n * kt, 3)), np.empty((n * kt, 3))  # per (point, candidate)
+        slot = np.full(n * kt, -1, dtype=np.int64)  # (point, candidate) -> measured pair
+        found = []  # closest points and barycentric coordinates of the measured pairs
 
         def measure(r, j):  # (point, candidate) pairs, one vectorised call
             flat = r * kt + j
-            d.reshape(-1)[flat] = frames.closest(p, r, cand.reshape(-1)[flat], q_all, b_all, flat)
+            slot[flat] = np.arange(len(flat)) + sum(len(f[0]) for f in found)
+            dist, qq, bb = frames.closest(p, r, cand.reshape(-1)[flat])
+            d.reshape(-1)[flat] = dist
+            found.append((qq, bb))
 
         ex = min(exact, kt)
         measure(np.repeat(np.arange(n), ex), np.tile(np.arange(ex), n))
@@ -211,8 +215,9 @@ class Located:
         w = np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
         w /= w.sum(axis=1, keepdims=True)
         r, j = np.nonzero(w > 0)
-        pair = r * kt + j
+        pair = slot[r * kt + j]
         self.pair_w = w[r, j]
+        q_all, b_all = (np.concatenate(v) if len(v) > 1 else v[0] for v in zip(*found))
         return (out[r], np.take(q_all, pair, axis=0), np.take(b_all, pair, axis=0),
                 np.take(tri, cand[r, j], axis=0))
 
@@ -232,11 +237,11 @@ class _Triangles:
                                 np.einsum("ij,ij->i", ab, ac)])
         self.rows = np.ascontiguousarray(np.hstack([a, ab, ac, gram]))  # one gather per chunk
 
-    def closest(self, p, rows, tris, q, bary, at):
-        """Distances of the pairs ``(p[rows], triangle tris)``; their closest points and
-        barycentric coordinates go to rows ``at`` of ``q`` and ``bary`` (``(m, 3)``)."""
+    def closest(self, p, rows, tris):
+        """Distances, closest points and barycentric coordinates (``(m,)``, ``(m, 3)``,
+        ``(m, 3)``) of the pairs ``(p[rows], triangle tris)``."""
         n = len(rows)
-        dist = np.empty(n)
+        dist, q, bary = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
         for s in range(0, n, self.CHUNK):
             e = min(s + self.CHUNK, n)
             x, f = np.take(p, rows[s:e], axis=0), np.take(self.rows, tris[s:e], axis=0)
@@ -245,10 +250,10 @@ class _Triangles:
             d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
             b = _regions(d1, d2, d1 - f[:, 9], d2 - f[:, 11], d1 - f[:, 11], d2 - f[:, 10])
             qq = a + b[:, 1:2] * ab + b[:, 2:] * ac
-            q[at[s:e]], bary[at[s:e]] = qq, b
+            q[s:e], bary[s:e] = qq, b
             ap = qq - x
             dist[s:e] = np.sqrt(np.einsum("ij,ij->i", ap, ap))
-        return dist
+        return dist, q, bary
 
 
 def _regions(d1, d2, d3, d4, d5, d6):
