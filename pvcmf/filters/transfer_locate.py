@@ -235,24 +235,27 @@ class _Triangles:
         ab, ac = corners[:, 1] - a, corners[:, 2] - a
         gram = np.column_stack([np.einsum("ij,ij->i", ab, ab), np.einsum("ij,ij->i", ac, ac),
                                 np.einsum("ij,ij->i", ab, ac)])
-        self.rows = np.ascontiguousarray(np.hstack([a, ab, ac, gram]))  # one gather per chunk
+        # one row per entry (a, ab, ac, Gram), one gather per chunk
+        self.cols = np.ascontiguousarray(np.hstack([a, ab, ac, gram]).T)
 
     def closest(self, p, rows, tris):
         """Distances, closest points and barycentric coordinates (``(m,)``, ``(m, 3)``,
         ``(m, 3)``) of the pairs ``(p[rows], triangle tris)``."""
         n = len(rows)
         dist, q, bary = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
-        for s in range(0, n, self.CHUNK):
+        px = np.ascontiguousarray(np.asarray(p, dtype=float).T)
+        for s in range(0, n, self.CHUNK):  # coordinates as rows: contiguous 1-d arithmetic
             e = min(s + self.CHUNK, n)
-            x, f = np.take(p, rows[s:e], axis=0), np.take(self.rows, tris[s:e], axis=0)
-            a, ab, ac = f[:, 0:3], f[:, 3:6], f[:, 6:9]
+            x, f = np.take(px, rows[s:e], axis=1), np.take(self.cols, tris[s:e], axis=1)
+            a, ab, ac = f[0:3], f[3:6], f[6:9]
             ap = x - a
-            d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-            b = _regions(d1, d2, d1 - f[:, 9], d2 - f[:, 11], d1 - f[:, 11], d2 - f[:, 10])
-            qq = a + b[:, 1:2] * ab + b[:, 2:] * ac
-            q[s:e], bary[s:e] = qq, b
+            d1 = ab[0] * ap[0] + ab[1] * ap[1] + ab[2] * ap[2]
+            d2 = ac[0] * ap[0] + ac[1] * ap[1] + ac[2] * ap[2]
+            b = _regions(d1, d2, d1 - f[9], d2 - f[11], d1 - f[11], d2 - f[10])
+            qq = a + b[:, 1] * ab + b[:, 2] * ac
+            q[s:e], bary[s:e] = qq.T, b
             ap = qq - x
-            dist[s:e] = np.sqrt(np.einsum("ij,ij->i", ap, ap))
+            dist[s:e] = np.sqrt(ap[0] * ap[0] + ap[1] * ap[1] + ap[2] * ap[2])
         return dist, q, bary
 
 
