@@ -191,14 +191,17 @@ class Located:
         n = len(out)
         d = np.full((n, kt), np.inf)
         slot = np.full(n * kt, -1, dtype=np.int64)  # (point, candidate) -> measured pair
-        found = []  # closest points and barycentric coordinates of the measured pairs
+        # closest points and barycentric coordinates in measured order (pages are touched
+        # only as far as they are written)
+        q_all, b_all, used = np.empty((n * kt, 3)), np.empty((n * kt, 3)), [0]
 
         def measure(r, j):  # (point, candidate) pairs, one vectorised call
             flat = r * kt + j
-            slot[flat] = np.arange(len(flat)) + sum(len(f[0]) for f in found)
-            dist, qq, bb = frames.closest(p, r, cand.reshape(-1)[flat])
-            d.reshape(-1)[flat] = dist
-            found.append((qq, bb))
+            at = slice(used[0], used[0] + len(flat))
+            slot[flat] = np.arange(at.start, at.stop)
+            d.reshape(-1)[flat] = frames.closest(p, r, cand.reshape(-1)[flat],
+                                                 out=(q_all[at], b_all[at]))[0]
+            used[0] = at.stop
 
         ex = min(exact, kt)
         measure(np.repeat(np.arange(n), ex), np.tile(np.arange(ex), n))
@@ -217,7 +220,6 @@ class Located:
         r, j = np.nonzero(w > 0)
         pair = slot[r * kt + j]
         self.pair_w = w[r, j]
-        q_all, b_all = (np.concatenate(v) if len(v) > 1 else v[0] for v in zip(*found))
         return (out[r], np.take(q_all, pair, axis=0), np.take(b_all, pair, axis=0),
                 np.take(tri, cand[r, j], axis=0))
 
@@ -238,11 +240,13 @@ class _Triangles:
         # one row per entry (a, ab, ac, Gram), one gather per chunk
         self.cols = np.ascontiguousarray(np.hstack([a, ab, ac, gram]).T)
 
-    def closest(self, p, rows, tris):
+    def closest(self, p, rows, tris, out=None):
         """Distances, closest points and barycentric coordinates (``(m,)``, ``(m, 3)``,
-        ``(m, 3)``) of the pairs ``(p[rows], triangle tris)``."""
+        ``(m, 3)``) of the pairs ``(p[rows], triangle tris)``; ``out``: the ``(m, 3)``
+        arrays to write the closest points and coordinates into."""
         n = len(rows)
-        dist, q, bary = np.empty(n), np.empty((n, 3)), np.empty((n, 3))
+        dist = np.empty(n)
+        q, bary = (np.empty((n, 3)), np.empty((n, 3))) if out is None else out
         px = np.ascontiguousarray(np.asarray(p, dtype=float).T)
         for s in range(0, n, self.CHUNK):  # coordinates as rows: contiguous 1-d arithmetic
             e = min(s + self.CHUNK, n)
