@@ -78,11 +78,12 @@ DEFAULT_BAND = 4.0
 DEFAULT_FLOOR = 1e-4
 
 
-def _gradient_operators(points, tets, rows):
+def _gradient_operators(points, tets, rows, gradients=None):
     """Sparse ``(len(rows), n)`` operators ``D_c`` (c = x, y, z): the volume-weighted mean
-    of the displacement gradients of the tetrahedra around each node ``rows``."""
+    of the displacement gradients of the tetrahedra around each node ``rows``
+    (``gradients``: :func:`~pvcmf.filters.transfer_locate.tet_gradients` if known)."""
     n, m = len(points), len(tets)
-    inv, vol = _gradients(points, tets)
+    inv, vol = _gradients(points, tets) if gradients is None else gradients
     coef = np.empty((m, 3, 4))  # d/dx_c of the linear interpolant: coefficient of node a
     coef[:, :, 1:] = inv
     coef[:, :, 0] = -inv.sum(axis=2)
@@ -189,7 +190,8 @@ def _assemble(loc, band=DEFAULT_BAND):
         BW = sp.csr_matrix(((offset[:, :, None] * loc.near_w[:, None, :]).ravel(),
                             (loc.near[:, None, :] + nb * np.arange(3)[None, :, None]).ravel(),
                             ptr), shape=(n, 3 * nb))
-        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary), format="csr")
+        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary,
+                                           loc.gradients), format="csr")
         T = T + face + BW @ D
     T = T.tocsr()
     T.sum_duplicates()
@@ -436,7 +438,7 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
         raise ValueError(f"transfer maps {len(transfer.inside)} points, skin_pre has "
                          f"{skin_pre.n_points}")
     loc = transfer._loc
-    inv, _ = _gradients(loc.points, loc.tets)
+    inv, _ = loc.gradients
     du = u_nodes[loc.tets[:, 1:]] - u_nodes[loc.tets[:, :1]]  # (m, 3 edges, 3 comps)
     grad = np.einsum("tca,tai->tic", inv, du)  # d u_i / d x_c
     gnorm = np.linalg.norm(grad, ord=2, axis=(1, 2))

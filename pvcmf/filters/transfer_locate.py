@@ -75,6 +75,7 @@ class Located:
     shrinks to the closest point as the point nears the boundary. The ``k`` boundary nodes
     nearest to ``q`` and their smooth weights give the gradient ``G(q)``. ``dist`` is the
     distance to the mesh (0 inside, ``inf`` beyond ``reach``: such points get no feet).
+    ``gradients`` holds the tetrahedra's :func:`tet_gradients` (for the operator).
     """
 
     def __init__(self, grid, points, k=8, n_triangles=24, reach=np.inf):
@@ -130,7 +131,7 @@ class Located:
         is largest (the one that holds it; on a shared face, either)."""
         p, pts, tets = self.p, self.points, self.tets
         n = len(p)
-        inv, vol = tet_gradients(pts, tets)
+        self.gradients = inv, vol = tet_gradients(pts, tets)  # reused by the operator
         usable = np.flatnonzero(vol > 1e-300 / 6.0)  # a degenerate tetrahedron holds no point
         corners = pts[tets[usable]]
         radius = np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1)
