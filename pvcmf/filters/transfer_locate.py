@@ -271,15 +271,23 @@ def _regions(d1, d2, d3, d4, d5, d6):
     with np.errstate(divide="ignore", invalid="ignore"):
         denom = va + vb + vc
         v, w = vb / denom, vc / denom
-        bary = np.stack([1 - v - w, v, w], axis=1)
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        t_ac = d2 / (d2 - d6)
-        t_ab = d1 / (d1 - d3)
+    bary = np.stack([1 - v - w, v, w], axis=1)
+    e43, e56 = d4 - d3, d5 - d6
+
+    def on_edge(x, y, sign, cols):  # the point t = x / (x + sign y) along an edge
+        def value(m):  # (on the pairs m only)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = x[m] / (x[m] + sign * y[m])
+            out = [0 * t, 0 * t, 0 * t]
+            out[cols[0]], out[cols[1]] = 1 - t, t
+            return out
+        return value
+
     cases = [  # lowest priority first: the first true test of Ericson's order wins
-        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), lambda m: [0 * t_bc[m], 1 - t_bc[m], t_bc[m]]),
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), lambda m: [1 - t_ac[m], 0 * t_ac[m], t_ac[m]]),
+        ((va <= 0) & (e43 >= 0) & (e56 >= 0), on_edge(e43, e56, 1.0, (1, 2))),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), on_edge(d2, d6, -1.0, (0, 2))),
         ((d6 >= 0) & (d5 <= d6), lambda m: [0.0, 0.0, 1.0]),
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), lambda m: [1 - t_ab[m], t_ab[m], 0 * t_ab[m]]),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), on_edge(d1, d3, -1.0, (0, 1))),
         ((d3 >= 0) & (d4 <= d3), lambda m: [0.0, 1.0, 0.0]),
         ((d1 <= 0) & (d2 <= 0), lambda m: [1.0, 0.0, 0.0]),
     ]
