@@ -419,11 +419,16 @@ class Plan:
         """
         labels = np.asarray(arrays.require_array(bones, arrays.BONE, "point", dtype="iu",
                                                  producer="segment"))
-        present = {arrays.BONE_NAMES.get(int(v), int(v)) for v in np.unique(labels)} - {"none"}
+        ids = labels.ravel()
+        if ids.size and (ids.dtype.kind == "u" or ids.min() >= 0):
+            values = np.flatnonzero(np.bincount(ids))  # one pass, no sort
+        else:
+            values = np.unique(ids)
         points = None
         for o in self.osteotomies:
             if not o.cut:
-                if o.segment_id not in labels:
+                if o.segment_id not in values:
+                    present = {arrays.BONE_NAMES.get(int(v), int(v)) for v in values} - {"none"}
                     raise ValueError(
                         f"plan {self.name!r} moves segment {o.segment!r} but the bone label "
                         f"image has only {sorted(map(str, present))}; give cut planes for "

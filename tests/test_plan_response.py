@@ -275,12 +275,11 @@ def test_feet_equal_the_region_test():
     rows, tris = np.repeat(np.arange(200), 60), np.tile(np.arange(60), 200)
     frames = _Triangles(corners)
     frames.CHUNK = 1000  # several chunks
-    q, b = np.full((len(rows) + 5, 3), np.nan), np.full((len(rows) + 5, 3), np.nan)
-    at = np.arange(len(rows)) + 5
-    d = frames.closest(p, rows, tris, q, b, at)
+    d, q, b = frames.closest(p, rows, tris)
     q0, b0 = closest_on_triangles(p[rows], *(corners[tris, i] for i in range(3)))
-    assert np.isfinite(q[at]).all() and np.isnan(q[:5]).all()
-    assert np.abs(q[at] - q0).max() < 1e-12 and np.abs(b[at] - b0).max() < 1e-12
+    assert d.shape == (len(rows),) and q.shape == b.shape == (len(rows), 3)
+    assert np.isfinite(q).all() and np.isfinite(b).all()
+    assert np.abs(q - q0).max() < 1e-12 and np.abs(b - b0).max() < 1e-12
     assert np.allclose(d, np.linalg.norm(q0 - p[rows], axis=1), rtol=0, atol=1e-12)
     s = rng.dirichlet(np.ones(3), 400)  # samples of every triangle
     sample = np.einsum("sk,tkc->tsc", s, corners)

@@ -78,11 +78,12 @@ DEFAULT_BAND = 4.0
 DEFAULT_FLOOR = 1e-4
 
 
-def _gradient_operators(points, tets, rows):
+def _gradient_operators(points, tets, rows, gradients=None):
     """Sparse ``(len(rows), n)`` operators ``D_c`` (c = x, y, z): the volume-weighted mean
-    of the displacement gradients of the tetrahedra around each node ``rows``."""
+    of the displacement gradients of the tetrahedra around each node ``rows``
+    (``gradients``: :func:`~pvcmf.filters.transfer_locate.tet_gradients` if known)."""
     n, m = len(points), len(tets)
-    inv, vol = _gradients(points, tets)
+    inv, vol = _gradients(points, tets) if gradients is None else gradients
     coef = np.empty((m, 3, 4))  # d/dx_c of the linear interpolant: coefficient of node a
     coef[:, :, 1:] = inv
     coef[:, :, 0] = -inv.sum(axis=2)
@@ -163,29 +164,34 @@ def _decay(d, band):
 
 
 def _assemble(loc, band=DEFAULT_BAND):
+    """The operator from :class:`Located`, built row-sorted as CSR where the rows come
+    sorted (inside points; feet, grouped by point; the outside points' gradient terms)."""
     n, m = len(loc.p), len(loc.points)
     ins = np.flatnonzero(loc.inside)
-    T = sp.csr_matrix((loc.bary[ins].ravel(), (np.repeat(ins, 4), loc.tets[loc.cell[ins]].ravel())),
-                      shape=(n, m))
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    ptr[1:] = np.cumsum(loc.inside * 4)
+    T = sp.csr_matrix((loc.bary[ins].ravel(), loc.tets[loc.cell[ins]].ravel(), ptr), shape=(n, m))
     npair = len(loc.pair_row)
     if npair:  # blended feet's u_h(q_f) + G(q) (p - q), q their blend, times the decay
         decay = _decay(loc.dist, band)
         scale = loc.pair_w * decay[loc.pair_row]
-        face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(),
-                              (np.repeat(loc.pair_row, 3), loc.face.ravel())), shape=(n, m))
-        used, inverse = np.unique(loc.near, return_inverse=True)
-        inverse = inverse.reshape(loc.near.shape)
-        kk = loc.near.shape[1]
+        ptr = np.zeros(n + 1, dtype=np.int64)  # pair rows are sorted: CSR directly
+        ptr[1:] = np.cumsum(np.bincount(loc.pair_row, minlength=n) * 3)
+        face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(), loc.face.ravel(), ptr),
+                             shape=(n, m))
+        nb, kk = len(loc.boundary), loc.near.shape[1]
         out = loc.outside
         offset = (loc.p[out] - loc.qbar) * decay[out][:, None]
-        vals, cols = [], []
-        for c in range(3):  # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix
-            vals.append((offset[:, c][:, None] * loc.near_w).ravel())
-            cols.append(inverse.ravel() + c * len(used))
-        BW = sp.csr_matrix((np.concatenate(vals), (np.tile(np.repeat(out, kk), 3),
-                                                   np.concatenate(cols))),
-                           shape=(n, 3 * len(used)))
-        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary[used])).tocsr()
+        # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix, 3 kk entries per outside row
+        ptr = np.zeros(n + 1, dtype=np.int64)
+        counts = np.zeros(n, dtype=np.int64)
+        counts[out] = 3 * kk
+        ptr[1:] = np.cumsum(counts)
+        BW = sp.csr_matrix(((offset[:, :, None] * loc.near_w[:, None, :]).ravel(),
+                            (loc.near[:, None, :] + nb * np.arange(3)[None, :, None]).ravel(),
+                            ptr), shape=(n, 3 * nb))
+        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary,
+                                           loc.gradients), format="csr")
         T = T + face + BW @ D
     T = T.tocsr()
     T.sum_duplicates()
@@ -432,7 +438,7 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
         raise ValueError(f"transfer maps {len(transfer.inside)} points, skin_pre has "
                          f"{skin_pre.n_points}")
     loc = transfer._loc
-    inv, _ = _gradients(loc.points, loc.tets)
+    inv, _ = loc.gradients
     du = u_nodes[loc.tets[:, 1:]] - u_nodes[loc.tets[:, :1]]  # (m, 3 edges, 3 comps)
     grad = np.einsum("tca,tai->tic", inv, du)  # d u_i / d x_c
     gnorm = np.linalg.norm(grad, ord=2, axis=(1, 2))

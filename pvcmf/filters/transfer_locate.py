@@ -75,6 +75,7 @@ class Located:
     shrinks to the closest point as the point nears the boundary. The ``k`` boundary nodes
     nearest to ``q`` and their smooth weights give the gradient ``G(q)``. ``dist`` is the
     distance to the mesh (0 inside, ``inf`` beyond ``reach``: such points get no feet).
+    ``gradients`` holds the tetrahedra's :func:`tet_gradients` (for the operator).
     """
 
     def __init__(self, grid, points, k=8, n_triangles=24, reach=np.inf):
@@ -130,7 +131,7 @@ class Located:
         is largest (the one that holds it; on a shared face, either)."""
         p, pts, tets = self.p, self.points, self.tets
         n = len(p)
-        inv, vol = tet_gradients(pts, tets)
+        self.gradients = inv, vol = tet_gradients(pts, tets)  # reused by the operator
         usable = np.flatnonzero(vol > 1e-300 / 6.0)  # a degenerate tetrahedron holds no point
         corners = pts[tets[usable]]
         radius = np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1)
@@ -190,11 +191,18 @@ class Located:
         frames = _Triangles(corners)
         n = len(out)
         d = np.full((n, kt), np.inf)
-        q_all, b_all = np.empty((n * kt, 3)), np.empty((n * kt, 3))  # per (point, candidate)
+        slot = np.full(n * kt, -1, dtype=np.int64)  # (point, candidate) -> measured pair
+        # closest points and barycentric coordinates in measured order (pages are touched
+        # only as far as they are written)
+        q_all, b_all, used = np.empty((n * kt, 3)), np.empty((n * kt, 3)), [0]
 
         def measure(r, j):  # (point, candidate) pairs, one vectorised call
             flat = r * kt + j
-            d.reshape(-1)[flat] = frames.closest(p, r, cand.reshape(-1)[flat], q_all, b_all, flat)
+            at = slice(used[0], used[0] + len(flat))
+            slot[flat] = np.arange(at.start, at.stop)
+            d.reshape(-1)[flat] = frames.closest(p, r, cand.reshape(-1)[flat],
+                                                 out=(q_all[at], b_all[at]))[0]
+            used[0] = at.stop
 
         ex = min(exact, kt)
         measure(np.repeat(np.arange(n), ex), np.tile(np.arange(ex), n))
@@ -211,7 +219,7 @@ class Located:
         w = np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
         w /= w.sum(axis=1, keepdims=True)
         r, j = np.nonzero(w > 0)
-        pair = r * kt + j
+        pair = slot[r * kt + j]
         self.pair_w = w[r, j]
         return (out[r], np.take(q_all, pair, axis=0), np.take(b_all, pair, axis=0),
                 np.take(tri, cand[r, j], axis=0))
@@ -230,25 +238,30 @@ class _Triangles:
         ab, ac = corners[:, 1] - a, corners[:, 2] - a
         gram = np.column_stack([np.einsum("ij,ij->i", ab, ab), np.einsum("ij,ij->i", ac, ac),
                                 np.einsum("ij,ij->i", ab, ac)])
-        self.rows = np.ascontiguousarray(np.hstack([a, ab, ac, gram]))  # one gather per chunk
+        # one row per entry (a, ab, ac, Gram), one gather per chunk
+        self.cols = np.ascontiguousarray(np.hstack([a, ab, ac, gram]).T)
 
-    def closest(self, p, rows, tris, q, bary, at):
-        """Distances of the pairs ``(p[rows], triangle tris)``; their closest points and
-        barycentric coordinates go to rows ``at`` of ``q`` and ``bary`` (``(m, 3)``)."""
+    def closest(self, p, rows, tris, out=None):
+        """Distances, closest points and barycentric coordinates (``(m,)``, ``(m, 3)``,
+        ``(m, 3)``) of the pairs ``(p[rows], triangle tris)``; ``out``: the ``(m, 3)``
+        arrays to write the closest points and coordinates into."""
         n = len(rows)
         dist = np.empty(n)
-        for s in range(0, n, self.CHUNK):
+        q, bary = (np.empty((n, 3)), np.empty((n, 3))) if out is None else out
+        px = np.ascontiguousarray(np.asarray(p, dtype=float).T)
+        for s in range(0, n, self.CHUNK):  # coordinates as rows: contiguous 1-d arithmetic
             e = min(s + self.CHUNK, n)
-            x, f = np.take(p, rows[s:e], axis=0), np.take(self.rows, tris[s:e], axis=0)
-            a, ab, ac = f[:, 0:3], f[:, 3:6], f[:, 6:9]
+            x, f = np.take(px, rows[s:e], axis=1), np.take(self.cols, tris[s:e], axis=1)
+            a, ab, ac = f[0:3], f[3:6], f[6:9]
             ap = x - a
-            d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-            b = _regions(d1, d2, d1 - f[:, 9], d2 - f[:, 11], d1 - f[:, 11], d2 - f[:, 10])
-            qq = a + b[:, 1:2] * ab + b[:, 2:] * ac
-            q[at[s:e]], bary[at[s:e]] = qq, b
+            d1 = ab[0] * ap[0] + ab[1] * ap[1] + ab[2] * ap[2]
+            d2 = ac[0] * ap[0] + ac[1] * ap[1] + ac[2] * ap[2]
+            b = _regions(d1, d2, d1 - f[9], d2 - f[11], d1 - f[11], d2 - f[10])
+            qq = a + b[:, 1] * ab + b[:, 2] * ac
+            q[s:e], bary[s:e] = qq.T, b
             ap = qq - x
-            dist[s:e] = np.sqrt(np.einsum("ij,ij->i", ap, ap))
-        return dist
+            dist[s:e] = np.sqrt(ap[0] * ap[0] + ap[1] * ap[1] + ap[2] * ap[2])
+        return dist, q, bary
 
 
 def _regions(d1, d2, d3, d4, d5, d6):
@@ -258,15 +271,23 @@ def _regions(d1, d2, d3, d4, d5, d6):
     with np.errstate(divide="ignore", invalid="ignore"):
         denom = va + vb + vc
         v, w = vb / denom, vc / denom
-        bary = np.stack([1 - v - w, v, w], axis=1)
-        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        t_ac = d2 / (d2 - d6)
-        t_ab = d1 / (d1 - d3)
+    bary = np.stack([1 - v - w, v, w], axis=1)
+    e43, e56 = d4 - d3, d5 - d6
+
+    def on_edge(x, y, sign, cols):  # the point t = x / (x + sign y) along an edge
+        def value(m):  # (on the pairs m only)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = x[m] / (x[m] + sign * y[m])
+            out = [0 * t, 0 * t, 0 * t]
+            out[cols[0]], out[cols[1]] = 1 - t, t
+            return out
+        return value
+
     cases = [  # lowest priority first: the first true test of Ericson's order wins
-        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), lambda m: [0 * t_bc[m], 1 - t_bc[m], t_bc[m]]),
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), lambda m: [1 - t_ac[m], 0 * t_ac[m], t_ac[m]]),
+        ((va <= 0) & (e43 >= 0) & (e56 >= 0), on_edge(e43, e56, 1.0, (1, 2))),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), on_edge(d2, d6, -1.0, (0, 2))),
         ((d6 >= 0) & (d5 <= d6), lambda m: [0.0, 0.0, 1.0]),
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), lambda m: [1 - t_ab[m], t_ab[m], 0 * t_ab[m]]),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), on_edge(d1, d3, -1.0, (0, 1))),
         ((d3 >= 0) & (d4 <= d3), lambda m: [0.0, 1.0, 0.0]),
         ((d1 <= 0) & (d2 <= 0), lambda m: [1.0, 0.0, 0.0]),
     ]
