@@ -87,7 +87,7 @@ def study_case(tmp_path_factory):
     NGSolve's truth takes minutes; the CT path, the part judged here, is the same)."""
     from pvcmf import mtm, reference
     from pvcmf.datasets import phantom
-    from pvcmf.study.validation import _scan, run_study, study_predictor
+    from pvcmf.study.validation import TRUTH_REACH, _scan, postop_ct, run_study, study_predictor
 
     def truth(case):
         return mtm.solve(reference._truth_grid(case, 3000, 0.5, False)[1])
@@ -98,7 +98,9 @@ def study_case(tmp_path_factory):
         grid = truth(case)
         skins, _, table = run_study(study_predictor(spacing=3.0, truth=lambda c: grid),
                                     patients=(1,), methods=("truth",))
-        _, ct, pre_skin, _ = _scan(case, 1, lambda c: grid, 18.0, None)
+        _, _, pre_skin, _ = _scan(case, 1, lambda c: grid, 18.0, None)
+        ct, _ = postop_ct(case, grid, noise_hu=18.0, pose="random", seed=1, spacing=None,
+                          extrapolate=TRUTH_REACH, extension="nearest")  # as _scan makes it
     judged = skins[1]["truth"]
     pred = pv.PolyData(judged.points, faces=judged.faces)  # the prediction, without answers
     pred.save(folder / "predicted_skin.vtp")
