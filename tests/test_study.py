@@ -220,3 +220,19 @@ def test_claims_do_not_hold_for_identical_methods(synthetic_runs):
             for p in range(6)}
     table = claims_table(same, n_boot=100)
     assert not table["holds"].any() and (table["verdict"] == "no difference").all()
+
+
+def test_paired_comparison_ties_round_off_but_not_a_real_difference():
+    """Differences within the resolution are ties (a remeshed model differs from itself in
+    the last bits); one just above it is tested."""
+    from pvcmf.study.inference import RESOLUTION_MM, paired_comparison
+
+    a = np.linspace(1.0, 2.0, 200)
+    noise = np.random.default_rng(0).uniform(-1e-12, 1e-12, a.size)
+    same = paired_comparison(a + noise, a, n_boot=50)
+    assert same["p_value"] == 1.0 and same["verdict"] == "no difference"
+    assert paired_comparison(a + noise, a, n_boot=50, resolution=0.0)["p_value"] < 1.0
+    real = paired_comparison(a + 10 * RESOLUTION_MM, a, n_boot=50)
+    assert real["verdict"] == "b better" and real["p_value"] < 0.05
+    with pytest.raises(ValueError, match="resolution"):
+        paired_comparison(a, a, resolution=-1.0)

@@ -64,7 +64,12 @@ def _walsh_median(diff, max_pairs=2_000_000, rng=None):
     return float(np.median((diff[i] + diff[j]) / 2))
 
 
-def paired_comparison(a, b, *, alpha=0.05, n_boot=1000, seed=0):
+#: paired differences at most this large (mm) are ties: a remeshed model can differ from
+#: itself in the last bits, and the signed-rank test would rank that round-off
+RESOLUTION_MM = 1e-6
+
+
+def paired_comparison(a, b, *, alpha=0.05, n_boot=1000, seed=0, resolution=RESOLUTION_MM):
     """Paired test of two sets of absolute errors on the same points (or patients).
 
     Parameters
@@ -77,6 +82,8 @@ def paired_comparison(a, b, *, alpha=0.05, n_boot=1000, seed=0):
         Bootstrap resamples of the confidence interval of the Hodges-Lehmann difference.
     seed : int, default 0
         Seed of the bootstrap.
+    resolution : float, default :data:`RESOLUTION_MM`
+        Differences ``|a - b|`` at most this large (mm) count as zero (ties).
 
     Returns
     -------
@@ -99,8 +106,8 @@ def paired_comparison(a, b, *, alpha=0.05, n_boot=1000, seed=0):
     >>> import numpy as np
     >>> from pvcmf.study.inference import paired_comparison
     >>> a = np.linspace(1.0, 2.0, 30)
-    >>> paired_comparison(a, a)["verdict"]
-    'no difference'
+    >>> paired_comparison(a, a)["verdict"], paired_comparison(a, a + 1e-12)["p_value"]
+    ('no difference', 1.0)
     >>> r = paired_comparison(a + 0.5, a)
     >>> r["verdict"], round(r["difference"], 2), r["p_value"] < 0.05
     ('b better', 0.5, True)
@@ -114,7 +121,10 @@ def paired_comparison(a, b, *, alpha=0.05, n_boot=1000, seed=0):
         raise ValueError(f"a and b must hold at least 2 finite pairs, got {len(a)}")
     if not 0 < alpha < 1:
         raise ValueError(f"alpha must be in (0, 1), got {alpha!r}")
+    if not (np.isfinite(resolution) and resolution >= 0):
+        raise ValueError(f"resolution must be a finite number >= 0 (mm), got {resolution!r}")
     diff = a - b
+    diff[np.abs(diff) <= resolution] = 0.0  # round-off: a tie, not a difference
     out = {"n": int(len(a)), "median_a": float(np.median(a)), "median_b": float(np.median(b))}
     nonzero = diff[diff != 0]
     if len(nonzero) == 0:  # identical methods: nothing to test
@@ -178,7 +188,8 @@ def paired_errors(skin_a, skin_b):
     return da[ka][ok], db[kb][ok]
 
 
-def compare_methods(skins, method_a, method_b, *, alpha=0.05, n_boot=1000, seed=0):
+def compare_methods(skins, method_a, method_b, *, alpha=0.05, n_boot=1000, seed=0,
+                    resolution=RESOLUTION_MM):
     """Paired comparison of two methods of a study, per patient and over the patients.
 
     Parameters
@@ -188,7 +199,7 @@ def compare_methods(skins, method_a, method_b, *, alpha=0.05, n_boot=1000, seed=
         :func:`pvcmf.study.validation.run_study`).
     method_a, method_b : str
         Methods compared (a - b).
-    alpha, n_boot, seed :
+    alpha, n_boot, seed, resolution :
         See :func:`paired_comparison`.
 
     Returns
@@ -223,19 +234,21 @@ def compare_methods(skins, method_a, method_b, *, alpha=0.05, n_boot=1000, seed=
                                f"(methods {sorted(by_method)})")
         da, db = paired_errors(by_method[method_a], by_method[method_b])
         rows.append({"patient": patient, "unit": "point",
-                     **paired_comparison(da, db, alpha=alpha, n_boot=n_boot, seed=seed)})
+                     **paired_comparison(da, db, alpha=alpha, n_boot=n_boot, seed=seed,
+                                         resolution=resolution)})
         med_a.append(np.median(da))
         med_b.append(np.median(db))
     if len(med_a) >= 2:
         rows.append({"patient": "all", "unit": "patient",
                      **paired_comparison(med_a, med_b, alpha=alpha, n_boot=n_boot,
-                                         seed=seed)})
+                                         seed=seed, resolution=resolution)})
     table = pd.DataFrame(rows)
     table["method_a"], table["method_b"] = method_a, method_b
     return table
 
 
-def claims_table(skins, claims=PAPER_CLAIMS, *, alpha=0.05, n_boot=1000, seed=0):
+def claims_table(skins, claims=PAPER_CLAIMS, *, alpha=0.05, n_boot=1000, seed=0,
+                 resolution=RESOLUTION_MM):
     """Each claim tested over the patients: paired statistic per patient, Wilcoxon test,
     Hodges-Lehmann difference with its 95 % bootstrap interval, effect size.
 
@@ -246,7 +259,7 @@ def claims_table(skins, claims=PAPER_CLAIMS, *, alpha=0.05, n_boot=1000, seed=0)
     claims : sequence, default :data:`PAPER_CLAIMS`
         ``(claim, method a, method b, statistic)`` with statistic ``'median'``, ``'p90'``
         or ``'outside_2mm'`` of the patient's paired ``|d|``.
-    alpha, n_boot, seed :
+    alpha, n_boot, seed, resolution :
         See :func:`paired_comparison`.
 
     Returns
@@ -281,7 +294,8 @@ def claims_table(skins, claims=PAPER_CLAIMS, *, alpha=0.05, n_boot=1000, seed=0)
             da, db = paired_errors(by_method[a], by_method[b])
             fa.append(_STATISTICS[stat](da))
             fb.append(_STATISTICS[stat](db))
-        res = paired_comparison(fa, fb, alpha=alpha, n_boot=n_boot, seed=seed)
+        res = paired_comparison(fa, fb, alpha=alpha, n_boot=n_boot, seed=seed,
+                                resolution=resolution)
         rows.append({"claim": claim, "statistic": stat, **res,
                      "holds": res["verdict"] == "a better"})
     return pd.DataFrame(rows)
