@@ -227,14 +227,14 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         code = np.full(n, arrays.BC_FREE, dtype=np.int8)
         disp = np.zeros((n, 3))
         normal = np.zeros((n, 3))
-        hard, vox, nodes, near, seg, is_teeth = _hard_contacts(
+        hard, vox, nodes, near, seg, is_teeth, on_teeth = _hard_contacts(
             grid, labels, bones, bone, tissue, contact, teeth_margin)
         bar.step(f"{len(nodes)} boundary nodes touch hard tissue")
         moved = np.isin(seg, list(transforms))
         # nodes on the teeth margin only (bone next to the teeth: the crown's partial-volume
         # rim, the alveolar bone round the roots): on a jaw that stays, freed near a move
         rim = np.zeros(n, dtype=bool)
-        rim[nodes] = is_teeth & (tissue[_nearest_ids(labels, vox[near])] != arrays.TEETH)
+        rim[nodes] = is_teeth & ~on_teeth
 
         def rigid(idx, segs):
             out = np.zeros((len(idx), 3))
@@ -332,7 +332,8 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
 
     Returns the hard-tissue mask (bone or teeth voxels), the centres of its surface
     voxels, the touching nodes, the index of their nearest surface voxel, its bone
-    segment and whether it lies within ``teeth_margin`` of the teeth.
+    segment, whether it lies within ``teeth_margin`` of the teeth and whether it is a
+    tooth voxel itself.
     """
     # hard tissue: bone or teeth voxels; only their surface layer can be nearest to tissue
     hard = (bone > 0) | np.isin(tissue, arrays.HARD_LABELS)
@@ -362,8 +363,8 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
             ~vol_teeth[box], sampling=spacing) <= teeth_margin * (1 + 1e-9)
         # the nearest voxels are hard (surface voxels): within the margin is all to ask
         return hard, vox, nodes, near, bone[near_ids], near_teeth[
-            np.unravel_index(near_ids, dims, order="F")]
-    return hard, vox, nodes, near, bone[near_ids], teeth[near_ids]
+            np.unravel_index(near_ids, dims, order="F")], teeth[near_ids]
+    return hard, vox, nodes, near, bone[near_ids], teeth[near_ids], teeth[near_ids]
 
 
 def _box(mask, pad):
@@ -375,14 +376,6 @@ def _box(mask, pad):
         box.append(slice(max(int(hit[0]) - int(pad[ax]), 0),
                          min(int(hit[-1]) + 1 + int(pad[ax]), mask.shape[ax])))
     return tuple(box)
-
-
-def _nearest_ids(labels, points):
-    """Point ids of the voxel centres ``points`` of ``labels``."""
-    ijk = np.rint((points - np.asarray(labels.origin)) / np.asarray(labels.spacing)).astype(
-        np.int64)
-    dims = np.asarray(labels.dimensions, dtype=np.int64)
-    return ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2])
 
 
 def _release_near_moves(code, disp, points, margin, also=None):
