@@ -200,7 +200,7 @@ def test_script_without_main_guard_is_told_why(tmp_path):
         [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
     try:
         proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env,
-                              capture_output=True, text=True, timeout=28)
+                              capture_output=True, text=True, timeout=120)
     except subprocess.TimeoutExpired as err:
         pytest.fail(f"an unguarded script hangs instead of failing: {err}")
     assert proc.returncode != 0 and "ROWS" not in proc.stdout
