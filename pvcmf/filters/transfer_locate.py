@@ -88,7 +88,7 @@ class Located:
         self.boundary = np.unique(tri)
         self.dist = np.where(self.inside, 0.0, np.inf)
         out = np.flatnonzero(~self.inside)
-        btree = cKDTree(self.points[self.boundary])
+        btree = cKDTree(self.points[self.boundary], balanced_tree=False, compact_nodes=False)
         if out.size and np.isfinite(reach):  # cheap reject: far from every boundary node
             e = self.points[tri[:, [0, 1, 2]]] - self.points[tri[:, [1, 2, 0]]]
             h_max = float(np.linalg.norm(e, axis=2).max())
@@ -189,7 +189,7 @@ class Located:
         corners = pts[tri]
         centre = corners.mean(axis=1)
         radius = np.linalg.norm(corners - centre[:, None, :], axis=2).max(axis=1)
-        cdist, cand = cKDTree(centre).query(p, k=kt)
+        cdist, cand = cKDTree(centre, balanced_tree=False, compact_nodes=False).query(p, k=kt)
         cdist, cand = cdist.reshape(len(out), kt), cand.reshape(len(out), kt)
         e = corners[:, [0, 1, 2]] - corners[:, [1, 2, 0]]
         h = float(np.median(np.linalg.norm(e, axis=2)))
