@@ -522,16 +522,16 @@ class PlanResponse:
         step = 3 * _BLOCK
         for start in range(0, len(fast), chunk):
             idx = fast[start:start + chunk]
-            A = np.stack([params[i] for i in idx], axis=0).astype(R.dtype)
+            A = np.stack([params[i] for i in idx], axis=1).astype(R.dtype)
             peak, total, total_sq = (np.zeros(len(idx)) for _ in range(3))
             with _one_thread(self.threads):
                 for b in range(0, R.shape[1], step):
-                    U = (A @ R[:, b:b + step]).reshape(len(idx), -1, 3)
-                    sq = np.einsum("pnc,pnc->pn", U, U)
+                    U = (R[:, b:b + step].T @ A).reshape(-1, 3, len(idx))
+                    sq = np.einsum("ncp,ncp->np", U, U)
                     mag = np.sqrt(sq)
-                    np.maximum(peak, mag.max(axis=1), out=peak)
-                    total += mag.sum(axis=1)
-                    total_sq += sq.sum(axis=1)
+                    np.maximum(peak, mag.max(axis=0), out=peak)
+                    total += mag.sum(axis=0)
+                    total_sq += sq.sum(axis=0)
             out[idx] = np.column_stack([peak, total / count, np.sqrt(total_sq / count)])
         for i, a in enumerate(params):
             if a is None:
