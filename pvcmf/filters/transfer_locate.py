@@ -195,14 +195,18 @@ class Located:
         h = float(np.median(np.linalg.norm(e, axis=2)))
         frames = _Triangles(corners)
         n, ex = len(out), min(exact, kt)
-        d0, q0, b0 = frames.closest(p, np.repeat(np.arange(n), ex), cand[:, :ex].ravel())
-        d0 = d0.reshape(n, ex)
+        # closest points and coordinates as rows, the ex nearest first (pages are touched
+        # only as far as they are written)
+        qs, bs = np.empty((3, n * kt)), np.empty((3, n * kt))
+        d0 = frames.closest(p, np.repeat(np.arange(n), ex), cand[:, :ex].ravel(),
+                            out=(qs[:, :n * ex], bs[:, :n * ex]))[0].reshape(n, ex)
         d1 = d0.min(axis=1)
         lower = cdist[:, ex:] - radius[cand[:, ex:]]  # no farther candidate is closer
         near = np.minimum(d1, lower.min(axis=1, initial=np.inf)) <= reach
         limit = d1 + WINDOW * d1 * h / (d1 + h)
         r, j = np.nonzero((lower < limit[:, None]) & near[:, None])
-        dx, qx, bx = frames.closest(p, r, cand[r, j + ex])
+        used = slice(n * ex, n * ex + r.size)
+        dx = frames.closest(p, r, cand[r, j + ex], out=(qs[:, used], bs[:, used]))[0]
         if r.size:
             np.minimum.at(d1, r, dx)
         self.dist[out] = np.where(near, d1, np.inf)
@@ -217,6 +221,9 @@ class Located:
         w0[~near] = 0.0
         wx = weight(dx, window[r], d1[r])
         total = w0.sum(axis=1) + np.bincount(r, wx, minlength=n)
+        total[total == 0] = 1.0  # (the points beyond reach)
+        w0 /= total[:, None]
+        wx /= total[r]
         # every pair in its final place: per point its ex nearest, then its farther ones
         cnt = ex + np.bincount(r, minlength=n)
         start = np.cumsum(cnt) - cnt
@@ -225,14 +232,13 @@ class Located:
         order[(start[:, None] + np.arange(ex)).ravel()] = np.arange(n * ex)
         order[start[r] + ex + np.arange(r.size) - first[r]] = n * ex + np.arange(r.size)
         w = np.concatenate([w0.ravel(), wx])[order]
-        sel = order[w > 0]
-        self.pair_w = w[w > 0] / np.concatenate([np.repeat(total, ex), total[r]])[sel]
+        keep = w > 0
+        sel = order[keep]
+        self.pair_w = w[keep]
         row = np.concatenate([np.repeat(out, ex), out[r]])
         tri_of = np.concatenate([cand[:, :ex].ravel(), cand[r, j + ex]])
-        q = np.concatenate([q0.T, qx.T], axis=1)  # coordinate rows
-        b = np.concatenate([b0.T, bx.T], axis=1)
-        return (row[sel], np.column_stack([np.take(c, sel) for c in q]),
-                np.column_stack([np.take(c, sel) for c in b]), np.take(tri, tri_of[sel], axis=0))
+        return (row[sel], np.column_stack([np.take(c, sel) for c in qs]),
+                np.column_stack([np.take(c, sel) for c in bs]), np.take(tri, tri_of[sel], axis=0))
 
 
 class _Triangles:
@@ -251,12 +257,13 @@ class _Triangles:
         # one row per entry (a, ab, ac, Gram), one gather per chunk
         self.cols = np.ascontiguousarray(np.hstack([a, ab, ac, gram]).T)
 
-    def closest(self, p, rows, tris):
+    def closest(self, p, rows, tris, out=None):
         """Distances, closest points and barycentric coordinates (``(m,)``, ``(m, 3)``,
         ``(m, 3)``; the last two transposed views of coordinate rows) of the pairs
-        ``(p[rows], triangle tris)``."""
+        ``(p[rows], triangle tris)``; ``out``: the ``(3, m)`` rows to write them into."""
         n = len(rows)
-        dist, q, bary = np.empty(n), np.empty((3, n)), np.empty((3, n))
+        dist = np.empty(n)
+        q, bary = (np.empty((3, n)), np.empty((3, n))) if out is None else out
         px = np.ascontiguousarray(np.asarray(p, dtype=float).T)
         for s in range(0, n, self.CHUNK):  # coordinates as rows: contiguous 1-d arithmetic
             e = min(s + self.CHUNK, n)
