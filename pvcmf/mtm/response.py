@@ -307,7 +307,7 @@ class PlanResponse:
     @property
     def _modelled_op(self):
         if self._modelled_rows is None:
-            cols = np.repeat(3 * np.flatnonzero(self.modelled), 3) + np.tile(np.arange(3), int(self.modelled.sum()))
+            cols = (3 * np.flatnonzero(self.modelled)[:, None] + np.arange(3)).ravel()
             self._modelled_rows = np.ascontiguousarray(self._opT[:, cols])
         return self._modelled_rows
 
