@@ -308,7 +308,7 @@ class PlanResponse:
     def _modelled_op(self):
         if self._modelled_rows is None:
             cols = (3 * np.flatnonzero(self.modelled)[:, None] + np.arange(3)).ravel()
-            self._modelled_rows = np.ascontiguousarray(self._opT[:, cols])
+            self._modelled_rows = np.ascontiguousarray(self._opT[:, cols].T)  # point-major
         return self._modelled_rows
 
     @property
@@ -514,7 +514,7 @@ class PlanResponse:
         every skin point (the unreached ones count as zero)."""
         if self._opT is None:
             raise ValueError("plan_response was built without skin=: no skin statistics")
-        R = self._modelled_op if modelled else self._opT
+        R = self._modelled_op if modelled else self._op2  # rows (3 points, 12 k)
         count = int(self.modelled.sum()) if modelled else len(self.modelled)
         params = [self.parameters(p) for p in plans]
         out = np.zeros((len(plans), 3))
@@ -525,8 +525,8 @@ class PlanResponse:
             A = np.stack([params[i] for i in idx], axis=1).astype(R.dtype)
             peak, total, total_sq = (np.zeros(len(idx)) for _ in range(3))
             with _one_thread(self.threads):
-                for b in range(0, R.shape[1], step):
-                    U = (R[:, b:b + step].T @ A).reshape(-1, 3, len(idx))
+                for b in range(0, len(R), step):
+                    U = (R[b:b + step] @ A).reshape(-1, 3, len(idx))
                     sq = np.einsum("ncp,ncp->np", U, U)
                     mag = np.sqrt(sq)
                     np.maximum(peak, mag.max(axis=0), out=peak)
