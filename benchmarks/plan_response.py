@@ -12,9 +12,10 @@ and measures, for a two-segment template (maxilla and mandible):
   folded in), and its ratio to a factorisation plus the same solves timed on their own
   in the same run (nothing else running in the process; the build's double factor, with
   and without the per-solve solution checks, which the build skips), in wall-clock and
-  CPU time (the process's: both threads);
+  CPU time (the process's: both threads), medians of ``--repeat`` rounds that time the
+  three in turn;
 * ``predict``: one plan's dense-skin displacement (new array, or written into a kept one),
-  its breakdown (parameters, the product on one BLAS thread, the scatter into the dense
+  its breakdown (parameters, the product on one BLAS thread, which writes the whole dense
   output, the new surface), its CPU time (the calling thread's, insensitive to other
   processes taking the core), the product on two BLAS threads, the predicted surface (a
   new PolyData, or a kept one updated in place) and the mesh's surface nodes (medians over
@@ -113,23 +114,34 @@ def reference_solves(mesh, labels, template, checks=True):
     return time.perf_counter() - t, time.process_time() - c
 
 
-def build_rows(mesh, labels, skin, template, rows):
-    """Time the operator's build against a factorisation plus its solves."""
-    reference, reference_cpu = reference_solves(mesh, labels, template)
-    bare, bare_cpu = reference_solves(mesh, labels, template, checks=False)
-    t, c = time.perf_counter(), time.process_time()
-    op = plan_response(mesh, labels, skin=skin, plan=template)
-    build, build_cpu = time.perf_counter() - t, time.process_time() - c
-    rows["build (s)"] = build
+def build_rows(mesh, labels, skin, template, rows, repeat):
+    """Time the operator's build against a factorisation plus its solves (medians of
+    ``repeat`` rounds, each timing the three in turn)."""
+    times = {key: [] for key in ("ref", "ref_cpu", "bare", "bare_cpu", "build", "build_cpu")}
+    op = None
+    for _ in range(repeat):
+        for key, value in zip(("ref", "ref_cpu"), reference_solves(mesh, labels, template)):
+            times[key].append(value)
+        for key, value in zip(("bare", "bare_cpu"),
+                              reference_solves(mesh, labels, template, checks=False)):
+            times[key].append(value)
+        op = None  # free the previous operator first
+        t, c = time.perf_counter(), time.process_time()
+        op = plan_response(mesh, labels, skin=skin, plan=template)
+        times["build"].append(time.perf_counter() - t)
+        times["build_cpu"].append(time.process_time() - c)
+    med = {key: statistics.median(v) for key, v in times.items()}
+    rows["build (s)"] = med["build"]
     for key, value in op.timings.items():
         rows[f"build: {key} (s)"] = value
-    rows["factorisation + solves on their own (s)"] = reference
-    rows["build / (factorisation + solves)"] = build / reference
-    rows["build, CPU time of the process (s)"] = build_cpu
-    rows["factorisation + solves on their own, CPU time (s)"] = reference_cpu
-    rows["build / (factorisation + solves), CPU time"] = build_cpu / reference_cpu
-    rows["factorisation + solves without solution checks, CPU time (s)"] = bare_cpu
-    rows["build / (factorisation + solves without checks), CPU time"] = build_cpu / bare_cpu
+    rows["factorisation + solves on their own (s)"] = med["ref"]
+    rows["build / (factorisation + solves)"] = med["build"] / med["ref"]
+    rows["build, CPU time of the process (s)"] = med["build_cpu"]
+    rows["factorisation + solves on their own, CPU time (s)"] = med["ref_cpu"]
+    rows["build / (factorisation + solves), CPU time"] = med["build_cpu"] / med["ref_cpu"]
+    rows["factorisation + solves without solution checks, CPU time (s)"] = med["bare_cpu"]
+    rows["build / (factorisation + solves without checks), CPU time"] = (med["build_cpu"]
+                                                                         / med["bare_cpu"])
     rows["skin operator dtype ('auto')"] = str(op.skin_response.dtype)
     rows["float32 rounding bound, plans to 30 deg / 20 mm (mm)"] = op.float32_error
     rows["skin points the transfer reaches (stored rows)"] = len(op.reached)
@@ -147,29 +159,30 @@ def predict_rows(op, skin, plans, rows):
         op.predict_displacement, plans, clock=time.thread_time)
     rows["predict breakdown: parameters (ms)"] = per_plan_ms(op.parameters, plans)
     params = {id(p): op.parameters(p) for p in plans}
+    out = np.empty(3 * n)
     with _one_thread(1):
-        rows["predict breakdown: product, one BLAS thread (ms)"] = per_plan_ms(
-            lambda p: op._op2 @ params[id(p)], plans)
+        rows["predict breakdown: product into the output, one BLAS thread (ms)"] = per_plan_ms(
+            lambda p: np.dot(params[id(p)], op._opT, out=out), plans)
         rows["predict breakdown: product, CPU time (ms)"] = per_plan_ms(
-            lambda p: op._op2 @ params[id(p)], plans, clock=time.thread_time)
-    v = op._op2 @ params[id(plans[0])]
-
-    def scatter(plan):
-        out = np.zeros((n, 3))
-        out.reshape(-1)[op._flat] = v
-    rows["predict breakdown: scatter into the dense output (ms)"] = per_plan_ms(scatter, plans)
+            lambda p: np.dot(params[id(p)], op._opT, out=out), plans, clock=time.thread_time)
     with _one_thread(2):
-        rows["product, two BLAS threads (ms)"] = per_plan_ms(lambda p: op._op2 @ params[id(p)], plans)
+        rows["product, two BLAS threads (ms)"] = per_plan_ms(
+            lambda p: np.dot(params[id(p)], op._opT, out=out), plans)
     rows["predict, dense skin, float32, per plan (ms)"] = per_plan_ms(op32.predict_displacement, plans)
     buf = np.zeros((n, 3))
     rows["predict, dense skin, into a kept array, per plan (ms)"] = per_plan_ms(
         lambda p: op.predict_displacement(p, out=buf), plans)
     rows["predict, new PolyData, per plan (ms)"] = per_plan_ms(op.predict, plans)
-    rows["predict breakdown: the new surface (ms)"] = (rows["predict, new PolyData, per plan (ms)"]
-                                               - rows["predict, dense skin, per plan (ms)"])
     surf = op.predict(plans[0])
     rows["predict, kept PolyData updated in place, per plan (ms)"] = per_plan_ms(
         lambda p: op.predict(p, out=surf), plans)
+    rows["predict, kept PolyData updated in place, CPU time per plan (ms)"] = per_plan_ms(
+        lambda p: op.predict(p, out=surf), plans, clock=time.thread_time)
+    rows["predict, new PolyData, CPU time per plan (ms)"] = per_plan_ms(
+        op.predict, plans, clock=time.thread_time)
+    rows["predict breakdown: the new surface, CPU time (ms)"] = (
+        rows["predict, new PolyData, CPU time per plan (ms)"]
+        - rows["predict, dense skin, CPU time per plan (ms)"])
     rows["predict, surface nodes, per plan (ms)"] = per_plan_ms(op.predict_nodes, plans)
     return op32
 
@@ -195,7 +208,7 @@ def run(args):
         return transfer(u)
 
     rows["full solve per plan (s)"] = median_time(lambda: full(plans[0]), args.repeat)
-    op = build_rows(mesh, labels, skin, template, rows)
+    op = build_rows(mesh, labels, skin, template, rows, args.repeat)
     op32 = predict_rows(op, skin, plans[:args.plans], rows)
     rows["full / predict (dense skin)"] = (rows["full solve per plan (s)"]
                                            / (1e-3 * rows["predict, dense skin, per plan (ms)"]))
@@ -230,7 +243,8 @@ def main(argv=None):
     p.add_argument("--skin-points", type=int, default=100_000)
     p.add_argument("--plans", type=int, default=50, help="plans timed one by one")
     p.add_argument("--batch", type=int, default=1000, help="plans of the statistics batch")
-    p.add_argument("--repeat", type=int, default=3, help="repeats of the full solve")
+    p.add_argument("--repeat", type=int, default=3,
+                   help="repeats of the full solve and of the build with its reference")
     p.add_argument("--write", metavar="MD", help="write the table as a MyST page")
     args = p.parse_args(argv)
     rows = run(args)
@@ -246,7 +260,8 @@ def main(argv=None):
                 "thread's own time, which other processes sharing the cores do not inflate). "
                 "The build's ratio divides by a factorisation plus the same solves timed on "
                 "their own (the build's double factor; with the solution checks that "
-                "`Solver.solve` runs by default, and without them as the build solves); "
+                "`Solver.solve` runs by default, and without them as the build solves), "
+                "medians of rounds that time the three in turn; "
                 "the skin transfer is built on a second thread during the build, and the "
                 "build's CPU time is the process's (both threads). "
                 "The float32 rounding bound is what ``dtype='auto'`` compares with 1e-6 mm.\n\n"

@@ -88,7 +88,7 @@ class Located:
         self.boundary = np.unique(tri)
         self.dist = np.where(self.inside, 0.0, np.inf)
         out = np.flatnonzero(~self.inside)
-        btree = cKDTree(self.points[self.boundary])
+        btree = cKDTree(self.points[self.boundary], balanced_tree=False, compact_nodes=False)
         if out.size and np.isfinite(reach):  # cheap reject: far from every boundary node
             e = self.points[tri[:, [0, 1, 2]]] - self.points[tri[:, [1, 2, 0]]]
             h_max = float(np.linalg.norm(e, axis=2).max())
@@ -97,8 +97,9 @@ class Located:
         self.outside = out
         n_pairs = 0
         if out.size:
-            rows, q, bary, face = self._feet(tri, out, n_triangles)
+            rows, q, bary, face = self._feet(tri, out, n_triangles, reach=reach)
             n_pairs = len(rows)
+            out = self.outside = rows[np.r_[True, rows[1:] != rows[:-1]]] if n_pairs else out
             slot = np.full(len(p), -1)
             slot[out] = np.arange(out.size)
             qbar = np.zeros((out.size, 3))  # blended foot: sum of the feet's weights is 1
@@ -172,57 +173,72 @@ class Located:
         self.cell = np.where(self.inside, cell, -1)
         self.bary = np.where(self.inside[:, None], bary, 0.0)
 
-    def _feet(self, tri, out, n_triangles, exact=6):
+    def _feet(self, tri, out, n_triangles, exact=6, reach=np.inf):
         """Blended feet of the outside points on the boundary triangles ``tri``.
 
-        The ``exact`` nearest candidates (by centroid) are measured for every point; a
-        farther candidate only where its centroid distance less its radius could fall
-        inside the blend window of the nearest of those (elsewhere its weight is zero:
-        the window only shrinks with the nearest distance)."""
+        The candidates of a point are the ``n_triangles`` boundary triangles with the
+        nearest centroids. The ``exact`` nearest are measured for every point; a farther
+        one only where its centroid distance less its radius could fall inside the blend
+        window of the nearest of those (elsewhere its weight is zero: the window only
+        shrinks with the nearest distance). A point whose candidates all lie beyond
+        ``reach`` (by that same lower bound) gets no feet and distance ``inf``. Returns the
+        pairs' points, closest points, barycentric coordinates and triangles, grouped by
+        point, each point's candidates in order of centroid distance."""
         p, pts = self.p[out], self.points
         kt = min(n_triangles, len(tri))
         corners = pts[tri]
         centre = corners.mean(axis=1)
         radius = np.linalg.norm(corners - centre[:, None, :], axis=2).max(axis=1)
-        cdist, cand = cKDTree(centre).query(p, k=kt)
+        cdist, cand = cKDTree(centre, balanced_tree=False, compact_nodes=False).query(p, k=kt)
         cdist, cand = cdist.reshape(len(out), kt), cand.reshape(len(out), kt)
         e = corners[:, [0, 1, 2]] - corners[:, [1, 2, 0]]
         h = float(np.median(np.linalg.norm(e, axis=2)))
         frames = _Triangles(corners)
-        n = len(out)
-        d = np.full((n, kt), np.inf)
-        slot = np.full(n * kt, -1, dtype=np.int64)  # (point, candidate) -> measured pair
-        # closest points and barycentric coordinates in measured order (pages are touched
+        n, ex = len(out), min(exact, kt)
+        # closest points and coordinates as rows, the ex nearest first (pages are touched
         # only as far as they are written)
-        q_all, b_all, used = np.empty((n * kt, 3)), np.empty((n * kt, 3)), [0]
-
-        def measure(r, j):  # (point, candidate) pairs, one vectorised call
-            flat = r * kt + j
-            at = slice(used[0], used[0] + len(flat))
-            slot[flat] = np.arange(at.start, at.stop)
-            d.reshape(-1)[flat] = frames.closest(p, r, cand.reshape(-1)[flat],
-                                                 out=(q_all[at], b_all[at]))[0]
-            used[0] = at.stop
-
-        ex = min(exact, kt)
-        measure(np.repeat(np.arange(n), ex), np.tile(np.arange(ex), n))
-        d1 = d[:, :ex].min(axis=1)
-        reach = d1 + WINDOW * d1 * h / (d1 + h)
-        r, j = np.nonzero(cdist[:, ex:] - radius[cand[:, ex:]] < reach[:, None])
+        qs, bs = np.empty((3, n * kt)), np.empty((3, n * kt))
+        d0 = frames.closest(p, np.repeat(np.arange(n), ex), cand[:, :ex].ravel(),
+                            out=(qs[:, :n * ex], bs[:, :n * ex]))[0].reshape(n, ex)
+        d1 = d0.min(axis=1)
+        lower = cdist[:, ex:] - radius[cand[:, ex:]]  # no farther candidate is closer
+        near = np.minimum(d1, lower.min(axis=1, initial=np.inf)) <= reach
+        limit = d1 + WINDOW * d1 * h / (d1 + h)
+        r, j = np.nonzero((lower < limit[:, None]) & near[:, None])
+        used = slice(n * ex, n * ex + r.size)
+        dx = frames.closest(p, r, cand[r, j + ex], out=(qs[:, used], bs[:, used]))[0]
         if r.size:
-            measure(r, j + ex)
-        d1 = d.min(axis=1)[:, None]
-        self.dist[out] = d1[:, 0]
+            np.minimum.at(d1, r, dx)
+        self.dist[out] = np.where(near, d1, np.inf)
         window = WINDOW * d1 * h / (d1 + h)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = np.where(window > 0, (d - d1) / window, np.where(d > d1, np.inf, 0.0))
-        w = np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
-        w /= w.sum(axis=1, keepdims=True)
-        r, j = np.nonzero(w > 0)
-        pair = slot[r * kt + j]
-        self.pair_w = w[r, j]
-        return (out[r], np.take(q_all, pair, axis=0), np.take(b_all, pair, axis=0),
-                np.take(tri, cand[r, j], axis=0))
+
+        def weight(d, win, nearest):  # (1 - s^2)^2, s the excess over the window
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = np.where(win > 0, (d - nearest) / win, np.where(d > nearest, np.inf, 0.0))
+            return np.where(s < 1, (1 - np.minimum(s, 1) ** 2) ** 2, 0.0)
+
+        w0 = weight(d0, window[:, None], d1[:, None])
+        w0[~near] = 0.0
+        wx = weight(dx, window[r], d1[r])
+        total = w0.sum(axis=1) + np.bincount(r, wx, minlength=n)
+        total[total == 0] = 1.0  # (the points beyond reach)
+        w0 /= total[:, None]
+        wx /= total[r]
+        # every pair in its final place: per point its ex nearest, then its farther ones
+        cnt = ex + np.bincount(r, minlength=n)
+        start = np.cumsum(cnt) - cnt
+        first = np.cumsum(cnt - ex) - (cnt - ex)
+        order = np.empty(n * ex + r.size, dtype=np.int64)
+        order[(start[:, None] + np.arange(ex)).ravel()] = np.arange(n * ex)
+        order[start[r] + ex + np.arange(r.size) - first[r]] = n * ex + np.arange(r.size)
+        w = np.concatenate([w0.ravel(), wx])[order]
+        keep = w > 0
+        sel = order[keep]
+        self.pair_w = w[keep]
+        row = np.concatenate([np.repeat(out, ex), out[r]])
+        tri_of = np.concatenate([cand[:, :ex].ravel(), cand[r, j + ex]])
+        return (row[sel], np.column_stack([np.take(c, sel) for c in qs]),
+                np.column_stack([np.take(c, sel) for c in bs]), np.take(tri, tri_of[sel], axis=0))
 
 
 class _Triangles:
@@ -243,11 +259,11 @@ class _Triangles:
 
     def closest(self, p, rows, tris, out=None):
         """Distances, closest points and barycentric coordinates (``(m,)``, ``(m, 3)``,
-        ``(m, 3)``) of the pairs ``(p[rows], triangle tris)``; ``out``: the ``(m, 3)``
-        arrays to write the closest points and coordinates into."""
+        ``(m, 3)``; the last two transposed views of coordinate rows) of the pairs
+        ``(p[rows], triangle tris)``; ``out``: the ``(3, m)`` rows to write them into."""
         n = len(rows)
         dist = np.empty(n)
-        q, bary = (np.empty((n, 3)), np.empty((n, 3))) if out is None else out
+        q, bary = (np.empty((3, n)), np.empty((3, n))) if out is None else out
         px = np.ascontiguousarray(np.asarray(p, dtype=float).T)
         for s in range(0, n, self.CHUNK):  # coordinates as rows: contiguous 1-d arithmetic
             e = min(s + self.CHUNK, n)
@@ -256,12 +272,52 @@ class _Triangles:
             ap = x - a
             d1 = ab[0] * ap[0] + ab[1] * ap[1] + ab[2] * ap[2]
             d2 = ac[0] * ap[0] + ac[1] * ap[1] + ac[2] * ap[2]
-            b = _regions(d1, d2, d1 - f[9], d2 - f[11], d1 - f[11], d2 - f[10])
-            qq = a + b[:, 1] * ab + b[:, 2] * ac
-            q[s:e], bary[s:e] = qq.T, b
+            bary[0, s:e], v, w = _region_bary(d1, d2, f[9], f[10], f[11])
+            bary[1, s:e], bary[2, s:e] = v, w
+            qq = q[:, s:e]
+            np.multiply(v, ab, out=qq)
+            np.add(a, qq, out=qq)
+            qq += w * ac
             ap = qq - x
             dist[s:e] = np.sqrt(ap[0] * ap[0] + ap[1] * ap[1] + ap[2] * ap[2])
-        return dist, q, bary
+        return dist, q.T, bary.T
+
+
+def _region_bary(d1, d2, g00, g11, g01):
+    """Barycentric coordinates ``u, v, w`` of the closest point from ``d1 = ab.ap``,
+    ``d2 = ac.ap`` and the Gram entries: Ericson's region test as one pass of selections
+    over all pairs (the first true test of his order wins; degenerate triangles take
+    the centroid)."""
+    d3, d4, d5, d6 = d1 - g00, d2 - g01, d1 - g01, d2 - g11
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        v, w = vb / denom, vc / denom
+        e43, e56 = d4 - d3, d5 - d6
+        m = (va <= 0) & (e43 >= 0) & (e56 >= 0)  # edge bc
+        t = e43 / (e43 + e56)
+        v, w = np.where(m, 1 - t, v), np.where(m, t, w)
+        on_bc = m
+        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)  # edge ac
+        v, w = np.where(m, 0.0, v), np.where(m, d2 / (d2 - d6), w)
+        on_bc = on_bc & ~m
+        m = (d6 >= 0) & (d5 <= d6)  # corner c
+        v, w = np.where(m, 0.0, v), np.where(m, 1.0, w)
+        on_bc = on_bc & ~m
+        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)  # edge ab
+        v, w = np.where(m, d1 / (d1 - d3), v), np.where(m, 0.0, w)
+        on_bc = on_bc & ~m
+        m = (d3 >= 0) & (d4 <= d3)  # corner b
+        v, w = np.where(m, 1.0, v), np.where(m, 0.0, w)
+        on_bc = on_bc & ~m
+        m = (d1 <= 0) & (d2 <= 0)  # corner a
+        v, w = np.where(m, 0.0, v), np.where(m, 0.0, w)
+        on_bc = on_bc & ~m
+    u = np.where(on_bc, 0.0, 1.0 - v - w)
+    bad = ~(np.isfinite(v) & np.isfinite(w))
+    if bad.any():
+        u, v, w = (np.where(bad, 1.0 / 3.0, c) for c in (u, v, w))
+    return u, v, w
 
 
 def _regions(d1, d2, d3, d4, d5, d6):

@@ -13,13 +13,14 @@ transfer_operator`). :func:`plan_response` builds ``R`` with one factorisation
 whose boundary-condition types differ (another set of moved segments when unmoved bone is
 free, other cut planes) is predicted by a full ``apply_plan`` + solve, with a warning.
 
-Coordinates are centred on each segment's pivot centroid. Only the skin points the
-transfer reaches (inside the mesh or within twice its band) are stored, point-major
-(``(n_reached, 3, 12 k)``): a plan costs one matrix-vector product on one BLAS thread and a
-scatter into the dense output; many plans are blocked products reduced to statistics block
-by block. A predicted surface has its own points and data arrays and shares only the cell
-connectivity of the operator's own copy of the skin (pyvista never writes into it in
-place), so results cannot change each other or the input skin.
+Coordinates are centred on each segment's pivot centroid. The skin operator is stored
+parameter-major (``(12 k, 3 n_skin)``, zero columns for the skin points the transfer does
+not reach: beyond twice its band): a plan costs one vector-matrix product on one BLAS thread
+that writes the whole dense output (no fill, no scatter), and many plans are blocked
+products reduced to statistics block by block. A predicted surface has its own points
+and data arrays and shares only the cell connectivity of the operator's own copy of the
+skin (pyvista never writes into it in place), so results cannot change each other or the
+input skin.
 
 ``float32`` storage halves the memory the product reads; ``dtype='auto'`` takes it when the
 rounding bound of the float32 product, ``(K + 2) u |R| |a|`` per row (:func:`float32_bound`),
@@ -217,8 +218,8 @@ class PlanResponse:
     nodal : ndarray, shape (3, n_points, 12 * n_segments)
         Nodal response per component.
     skin_response : ndarray or None, shape (3, n_skin, 12 * n_segments)
-        The skin operator expanded to every skin point (a new array on each access; the
-        stored form holds only the reached points, :attr:`reached`).
+        The skin operator per component (a new array on each access; the stored form is
+        parameter-major, ``(12 k, 3 n_skin)``).
     reached : ndarray of int or None
         Skin points with a non-empty transfer row (the others never move).
     surface_ids : ndarray
@@ -270,7 +271,7 @@ class PlanResponse:
             bar.step(f"{self.nodal.shape[2]} solves")
             t = time.perf_counter()
             self.surface_ids = boundary_points(mesh)
-            self._op, self.reached, self.modelled = None, None, None
+            self._opT, self.reached, self.modelled = None, None, None
             if pending is not None:
                 transfer, wall, cpu = pending.result()
                 self.timings["transfer build (second thread)"] = wall
@@ -289,36 +290,42 @@ class PlanResponse:
         self._bc_types = np.asarray(ref[arrays.BC]).copy()
 
     def _set_operator(self, op):
-        """Store the reached rows' operator ``(n_reached, 3, 12 k)`` and its indexing."""
-        self._op = np.ascontiguousarray(op)
-        self._op2 = self._op.reshape(-1, self._op.shape[2])
-        n = len(self.modelled)
-        self._flat = (3 * self.reached[:, None] + np.arange(3)).ravel()  # scatter targets
+        """Store the reached rows' operator ``op`` ``(n_reached, 3, 12 k)`` parameter-major,
+        over every skin point: ``(12 k, 3 n_skin)``, zero columns where the transfer does not
+        reach (a plan's product then writes the whole output, with no scatter)."""
+        n, K = len(self.modelled), op.shape[2]
+        full = np.zeros((K, n, 3), dtype=op.dtype)
+        full[:, self.reached] = np.transpose(op, (2, 0, 1))
+        self._opT = full.reshape(K, 3 * n)
         self._modelled_rows = None  # the modelled points' operator, made on first use
-        self._pos = np.full(n, -1, dtype=np.int64)
-        self._pos[self.reached] = np.arange(len(self.reached))
+
+    @property
+    def _op2(self):
+        """The operator as ``(3 n_skin, 12 k)`` rows (a transposed view)."""
+        return None if self._opT is None else self._opT.T
 
     @property
     def _modelled_op(self):
         if self._modelled_rows is None:
-            self._modelled_rows = np.ascontiguousarray(self._op[self.modelled[self.reached]])
+            cols = (3 * np.flatnonzero(self.modelled)[:, None] + np.arange(3)).ravel()
+            self._modelled_rows = np.ascontiguousarray(self._opT[:, cols].T)  # point-major
         return self._modelled_rows
 
     @property
     def skin_response(self):
-        if self._op is None:
+        if self._opT is None:
             return None
-        R = np.zeros((3, len(self.modelled), self._op.shape[2]), dtype=self._op.dtype)
-        R[:, self.reached] = np.transpose(self._op, (1, 0, 2))
-        return R
+        K = self._opT.shape[0]
+        return np.ascontiguousarray(np.transpose(self._opT.reshape(K, -1, 3), (2, 1, 0)))
 
     def astype(self, dtype):
         """A shallow copy whose skin operator is stored as ``dtype`` (e.g. ``float32``)."""
         import copy
 
         other = copy.copy(self)
-        if self._op is not None:
-            other._set_operator(self._op.astype(dtype))
+        if self._opT is not None:
+            other._opT = self._opT.astype(dtype)
+            other._modelled_rows = None
         return other
 
     @staticmethod
@@ -400,27 +407,28 @@ class PlanResponse:
 
         ``out``: a C-contiguous float64 ``(n_skin, 3)`` array written in place (and
         returned), e.g. to predict many plans without allocating."""
-        if self._op is None:
+        if self._opT is None:
             raise ValueError("plan_response was built without skin=: no skin to predict")
         n = len(self.modelled)
         if out is None:
-            out = np.zeros((n, 3))
-        else:
-            if (not isinstance(out, np.ndarray) or out.shape != (n, 3) or out.dtype != np.float64
-                    or not out.flags.c_contiguous):
-                raise ValueError(f"out must be a C-contiguous float64 array of shape ({n}, 3), "
-                                 f"got {getattr(out, 'dtype', type(out).__name__)} "
-                                 f"{getattr(out, 'shape', '')}")
-            np.asarray(out).fill(0.0)  # a full fill is cheaper than a scattered one
+            out = np.empty((n, 3))
+        elif (not isinstance(out, np.ndarray) or out.shape != (n, 3) or out.dtype != np.float64
+                or not out.flags.c_contiguous):
+            raise ValueError(f"out must be a C-contiguous float64 array of shape ({n}, 3), "
+                             f"got {getattr(out, 'dtype', type(out).__name__)} "
+                             f"{getattr(out, 'shape', '')}")
         dest = np.asarray(out).reshape(-1)  # plain flat view: no VTK bookkeeping per write
         a = self.parameters(plan)
         if a is None:
             u = self._full(plan, self.skin)
             dest[:] = (transfer_operator(self.mesh, self.skin) @ u).ravel()
             return out
-        with _one_thread(self.threads):
-            v = np.dot(self._op2, a.astype(self._op2.dtype))
-        dest[self._flat] = v
+        op = self._opT
+        with _one_thread(self.threads):  # every output entry written: no fill, no scatter
+            if op.dtype == np.float64:
+                np.dot(a, op, out=dest)
+            else:
+                dest[:] = np.dot(a.astype(op.dtype), op)
         return out
 
     def predict(self, plan, out=None):
@@ -504,21 +512,21 @@ class PlanResponse:
         ``modelled=True`` takes the statistics over the modelled skin only (points within
         the transfer's band of the mesh, :data:`pvcmf.arrays.SKIN_MODELLED`); otherwise over
         every skin point (the unreached ones count as zero)."""
-        if self._op is None:
+        if self._opT is None:
             raise ValueError("plan_response was built without skin=: no skin statistics")
-        R = self._modelled_op if modelled else self._op
+        R = self._modelled_op if modelled else self._op2  # rows (3 points, 12 k)
         count = int(self.modelled.sum()) if modelled else len(self.modelled)
         params = [self.parameters(p) for p in plans]
         out = np.zeros((len(plans), 3))
         fast = [i for i, a in enumerate(params) if a is not None]
-        k = R.shape[2]
+        step = 3 * _BLOCK
         for start in range(0, len(fast), chunk):
             idx = fast[start:start + chunk]
             A = np.stack([params[i] for i in idx], axis=1).astype(R.dtype)
             peak, total, total_sq = (np.zeros(len(idx)) for _ in range(3))
             with _one_thread(self.threads):
-                for b in range(0, len(R), _BLOCK):
-                    U = (R[b:b + _BLOCK].reshape(-1, k) @ A).reshape(-1, 3, len(idx))
+                for b in range(0, len(R), step):
+                    U = (R[b:b + step] @ A).reshape(-1, 3, len(idx))
                     sq = np.einsum("ncp,ncp->np", U, U)
                     mag = np.sqrt(sq)
                     np.maximum(peak, mag.max(axis=0), out=peak)
@@ -546,25 +554,22 @@ class PlanResponse:
         chunk : int, default 256
             Plans per matrix product.
         """
-        if self._op is None:
+        if self._opT is None:
             raise ValueError("plan_response was built without skin=: no skin to predict")
         n = len(self.modelled)
         ids = np.arange(n) if points is None else np.asarray(points, dtype=np.int64)
         if ids.ndim != 1 or (ids.size and (ids.min() < 0 or ids.max() >= n)):
             raise ValueError(f"points must be skin point ids in [0, {n}), got {points!r}")
-        pos = self._pos[ids]
-        R = np.zeros((3, ids.size, self._op.shape[2]), dtype=self._op.dtype)
-        R[:, pos >= 0] = np.transpose(self._op[pos[pos >= 0]], (1, 0, 2))
-        Rs = R.reshape(-1, R.shape[2])
+        K = self._opT.shape[0]
+        R = self._opT.reshape(K, n, 3)[:, ids].reshape(K, -1)  # (K, 3 ids)
         params = [self.parameters(p) for p in plans]
         out = np.zeros((len(plans), ids.size, 3))
         fast = [i for i, a in enumerate(params) if a is not None]
         for start in range(0, len(fast), chunk):
             idx = fast[start:start + chunk]
-            A = np.stack([params[i] for i in idx], axis=1).astype(R.dtype)
+            A = np.stack([params[i] for i in idx], axis=0).astype(R.dtype)
             with _one_thread(self.threads):
-                U = (Rs @ A).reshape(3, ids.size, len(idx))
-            out[idx] = np.transpose(U, (2, 1, 0))
+                out[idx] = (A @ R).reshape(len(idx), ids.size, 3)
         for i, a in enumerate(params):
             if a is None:
                 out[i] = self.predict_displacement(plans[i])[ids]
