@@ -51,6 +51,7 @@ import logging
 import numpy as np
 import pyvista as pv
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components, dijkstra
 
 from .. import arrays
 from ..progress import Progress
@@ -427,9 +428,26 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
     0
     """
     u_skin = np.asarray(u_skin, dtype=float)
-    u_nodes = np.asarray(u_nodes, dtype=float)
     if u_skin.shape != (skin_pre.n_points, 3):
         raise ValueError(f"u_skin must have shape ({skin_pre.n_points}, 3), got {u_skin.shape}")
+    e, length, limit, modelled, gmax = _edge_limits(skin_pre, grid, u_nodes, k, band, transfer,
+                                                   modelled)
+    stretch = np.linalg.norm(u_skin[e[:, 0]] - u_skin[e[:, 1]], axis=1) / np.maximum(length, 1e-300)
+    tiny = 1e-9 * max(gmax, 1e-12)
+    ratio = np.where(limit > tiny, stretch / np.maximum(limit, tiny), np.where(stretch > tiny, np.inf, 0.0))
+    ratio = np.where(stretch > floor, ratio, 0.0)
+    return {"ratio": ratio, "edges": e, "modelled": modelled.copy(),
+            arrays.SKIN_MODELLED_POINTS: int(modelled.sum()),
+            arrays.CRUMPLE_EDGES: int(len(e)),
+            arrays.CRUMPLE_VIOLATIONS: int(np.sum(ratio > 1.0 + slack)),
+            arrays.CRUMPLE_MAX_RATIO: float(ratio.max(initial=0.0))}
+
+
+def _edge_limits(skin_pre, grid, u_nodes, k, band, transfer, modelled):
+    """The modelled edges of ``skin_pre``, their lengths and bounds (the steepest gradient
+    of the tetrahedra around either end, see :func:`crumple_metric`), the modelled mask
+    and the steepest gradient of the mesh."""
+    u_nodes = np.asarray(u_nodes, dtype=float)
     if u_nodes.shape != (grid.n_points, 3):
         raise ValueError(f"u_nodes must have shape ({grid.n_points}, 3), got {u_nodes.shape}")
     if transfer is None:
@@ -460,13 +478,94 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
     e = e[modelled[e].all(axis=1)]
     x = np.asarray(skin_pre.points, dtype=float)
     length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
-    stretch = np.linalg.norm(u_skin[e[:, 0]] - u_skin[e[:, 1]], axis=1) / np.maximum(length, 1e-300)
     limit = np.maximum(bound[e[:, 0]], bound[e[:, 1]])
-    tiny = 1e-9 * max(float(gnorm.max(initial=0.0)), 1e-12)
-    ratio = np.where(limit > tiny, stretch / np.maximum(limit, tiny), np.where(stretch > tiny, np.inf, 0.0))
-    ratio = np.where(stretch > floor, ratio, 0.0)
-    return {"ratio": ratio, "edges": e, "modelled": modelled.copy(),
-            arrays.SKIN_MODELLED_POINTS: int(modelled.sum()),
-            arrays.CRUMPLE_EDGES: int(len(e)),
-            arrays.CRUMPLE_VIOLATIONS: int(np.sum(ratio > 1.0 + slack)),
-            arrays.CRUMPLE_MAX_RATIO: float(ratio.max(initial=0.0))}
+    return e, length, limit, modelled, float(gnorm.max(initial=0.0))
+
+
+def unavoidable_crumples(skin_pre, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT_BAND, slack=0.1,
+                         floor=DEFAULT_FLOOR, transfer=None, modelled=None):
+    """A lower bound on the crumple violations of *any* extension of the mesh's field.
+
+    The skin points inside the mesh take the finite-element interpolation, so their values
+    are fixed; a point outside may take any value. An edge violates
+    (:func:`crumple_metric`) when its jump exceeds ``w = max((1 + slack) bound, floor)``
+    times its length. Along a path of edges ``|u_a - u_b|`` is at most the sum of the
+    ``w``: if two fixed points ``a, b`` joined through outside points only have
+    ``e . (u_b - u_a)`` above the shortest such path (for a unit vector ``e``), some edge on
+    every such path violates, whatever the outside values. Counted: edges between two
+    fixed points that violate, plus the connected patches of outside points with such a
+    pair on their rim (one violation each at least). Shortest paths:
+    :func:`scipy.sparse.csgraph.dijkstra` from a super source joined to the rim points
+    with the weight ``e . u_a`` (13 directions, both signs).
+
+    Parameters
+    ----------
+    skin_pre, grid, u_nodes, k, band, slack, floor, transfer, modelled
+        As :func:`crumple_metric` (``transfer`` fixes which points lie inside the mesh
+        and the tetrahedra around every point).
+
+    Returns
+    -------
+    dict
+        ``arrays.CRUMPLE_UNAVOIDABLE`` (the lower bound), ``"inside_edges"`` (violating
+        edges between two fixed points), ``"patches"`` (patches of outside points that
+        must hold a violation) and ``"points"`` (bool per point: in such a patch).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> from pvcmf.filters.surface_mapping import unavoidable_crumples
+    >>> grid = pv.ImageData(dimensions=(6, 6, 6)).triangulate()
+    >>> u = 0.1 * grid.points                                   # an affine field
+    >>> skin = pv.Sphere(radius=3.0, center=(2.5, 2.5, 2.5))    # partly outside
+    >>> unavoidable_crumples(skin, grid, u)[arrays.CRUMPLE_UNAVOIDABLE]
+    0
+    """
+    if transfer is None:
+        transfer = Transfer(grid, skin_pre.points, k=k, band=band)
+    e, length, limit, modelled, _ = _edge_limits(skin_pre, grid, u_nodes, k, band, transfer,
+                                                 modelled)
+    loc, n = transfer._loc, skin_pre.n_points
+    u_nodes = np.asarray(u_nodes, dtype=float)
+    fixed = loc.inside
+    val = np.zeros((n, 3))
+    ins = np.flatnonzero(fixed)
+    val[ins] = np.einsum("pa,pac->pc", loc.bary[ins], u_nodes[loc.tets[loc.cell[ins]]])
+    w = np.maximum(np.maximum((1.0 + slack) * limit, floor) * length, 1e-300)
+    both = fixed[e].all(axis=1)
+    jump = np.linalg.norm(val[e[both, 0]] - val[e[both, 1]], axis=1)
+    inside_edges = int(np.sum(jump > w[both]))
+    e, w = e[~both], w[~both]
+    free_free = ~fixed[e].any(axis=1)
+    ff = e[free_free]
+    graph = sp.coo_matrix((np.ones(len(ff)), (ff[:, 0], ff[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    rim = e[~free_free]  # (fixed a, free v) after ordering
+    flip = fixed[rim[:, 1]]
+    rim = np.where(flip[:, None], rim[:, ::-1], rim)
+    wr = w[~free_free]
+    # nodes: 0..n-1 the points (a fixed point only as a start), n..2n-1 fixed points as
+    # ends, 2n the super source
+    rows = np.concatenate([ff[:, 0], ff[:, 1], rim[:, 0], rim[:, 1]])
+    cols = np.concatenate([ff[:, 1], ff[:, 0], rim[:, 1], n + rim[:, 0]])
+    wts = np.concatenate([w[free_free], w[free_free], wr, wr])
+    starts = np.unique(rim[:, 0])
+    flagged = np.zeros(n, dtype=bool)
+    axes = np.array([v for v in np.ndindex(3, 3, 3) if v != (1, 1, 1)], dtype=float) - 1.0
+    axes = axes[: len(axes) // 2]  # 13 directions, one of each +- pair
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    scale = float(np.abs(val).max(initial=0.0)) + 1.0
+    for direction in np.concatenate([axes, -axes]) if len(starts) else []:
+        phi = val @ direction
+        base = phi[starts].min() - scale  # keeps the source's weights positive
+        g = sp.csr_matrix((np.concatenate([wts, phi[starts] - base]),
+                           (np.concatenate([rows, np.full(len(starts), 2 * n)]),
+                            np.concatenate([cols, starts]))), shape=(2 * n + 1, 2 * n + 1))
+        dist = dijkstra(g, directed=True, indices=2 * n) + base
+        conflict = phi[rim[:, 0]] > dist[rim[:, 1]] + wr + 1e-9 * scale
+        flagged[np.isin(comp, comp[rim[conflict, 1]])] = True
+    flagged &= ~fixed
+    patches = int(len(np.unique(comp[flagged])))
+    return {arrays.CRUMPLE_UNAVOIDABLE: inside_edges + patches, "inside_edges": inside_edges,
+            "patches": patches, "points": flagged}
