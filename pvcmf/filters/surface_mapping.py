@@ -73,6 +73,9 @@ DEFAULT_K = 8
 #: default distance (mm) from the mesh within which the extension is exactly affine (the
 #: modelled skin); beyond it the extension falls smoothly to zero at twice this
 DEFAULT_BAND = 4.0
+#: weight of the nodal gradients against the feet's values in the extension's affine fit
+#: (:func:`_fit_weights`): a length in units of the distance plus the mesh's edge
+FIT_STIFFNESS = 0.2
 #: default stretch (displacement jump over edge length) below which a skin edge never
 #: counts as crumpled: 1e-4 is a tenth of a micrometre per millimetre, where both the
 #: stretch and the mesh's gradients are round-off of a region that does not move
@@ -173,16 +176,17 @@ def _assemble(loc, band=DEFAULT_BAND):
     ptr[1:] = np.cumsum(loc.inside * 4)
     T = sp.csr_matrix((loc.bary[ins].ravel(), loc.tets[loc.cell[ins]].ravel(), ptr), shape=(n, m))
     npair = len(loc.pair_row)
-    if npair:  # blended feet's u_h(q_f) + G(q) (p - q), q their blend, times the decay
+    if npair:  # the feet's local affine fit (see _fit_weights), times the decay
         decay = _decay(loc.dist, band)
-        scale = loc.pair_w * decay[loc.pair_row]
+        alpha, offset = _fit_weights(loc)
+        scale = alpha * decay[loc.pair_row]
         ptr = np.zeros(n + 1, dtype=np.int64)  # pair rows are sorted: CSR directly
         ptr[1:] = np.cumsum(np.bincount(loc.pair_row, minlength=n) * 3)
         face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(), loc.face.ravel(), ptr),
                              shape=(n, m))
         nb, kk = len(loc.boundary), loc.near.shape[1]
         out = loc.outside
-        offset = (loc.p[out] - loc.qbar) * decay[out][:, None]
+        offset = offset * decay[out][:, None]
         # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix, 3 kk entries per outside row
         ptr = np.zeros(n + 1, dtype=np.int64)
         counts = np.zeros(n, dtype=np.int64)
@@ -198,6 +202,32 @@ def _assemble(loc, band=DEFAULT_BAND):
     T.sum_duplicates()
     T.eliminate_zeros()
     return T
+
+
+def _fit_weights(loc, stiffness=None):
+    """The extension at an outside point ``p`` as weights: ``c = sum_f alpha_f u_h(q_f) +
+    G(q) o``, where ``(c, A)`` minimise ``sum_f w_f |u_h(q_f) - c - A (q_f - p)|^2 +
+    lam (sum_f w_f) |A - G(q)|^2`` (the feet's weights ``w_f``, ``G(q)`` the nodal
+    gradients' blend, ``lam = (stiffness (d + h))^2``, ``d`` the distance, ``h`` the
+    median mesh edge). Returns ``alpha`` (per foot) and ``o`` (per outside point, (n, 3))."""
+    stiffness = FIT_STIFFNESS if stiffness is None else stiffness
+    out, p, w = loc.outside, loc.p, loc.pair_w
+    slot = np.full(len(p), -1)
+    slot[out] = np.arange(len(out))
+    r = slot[loc.pair_row]
+    B = np.column_stack([np.ones(len(r)), loc.q - p[loc.pair_row]])  # (pairs, 4)
+    M = np.zeros((len(out), 4, 4))
+    for a in range(4):
+        for b in range(a, 4):
+            M[:, a, b] = M[:, b, a] = np.bincount(r, w * B[:, a] * B[:, b], minlength=len(out))
+    tets = loc.tets
+    edges = loc.points[tets[:, [1, 2, 3, 2, 3, 3]]] - loc.points[tets[:, [0, 0, 0, 1, 1, 2]]]
+    h = float(np.median(np.linalg.norm(edges, axis=2)))
+    reg = (stiffness * (loc.dist[out] + h)) ** 2 * M[:, 0, 0]  # M[:, 0, 0]: sum of w_f
+    M[:, 1:, 1:] += reg[:, None, None] * np.eye(3)
+    first = np.linalg.solve(M, np.broadcast_to(np.eye(4)[0], (len(out), 4))[..., None])[..., 0]
+    alpha = w * np.einsum("pa,pa->p", B, first[r])
+    return alpha, first[:, 1:] * reg[:, None]
 
 
 class Transfer:
