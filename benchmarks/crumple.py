@@ -13,7 +13,7 @@ and reports, over the modelled skin, the number of skin edges whose displacement
 over their length exceeds the steepest displacement gradient of the tetrahedra around
 them by more than 10 % (:func:`pvcmf.filters.surface_mapping.crumple_metric`), the largest
 ratio, a lower bound on the violations of *any* transfer that interpolates inside the
-mesh (:func:`pvcmf.filters.surface_mapping.unavoidable_crumples`: what no extension
+mesh (:func:`pvcmf.filters.crumple_bound.unavoidable_crumples`: what no extension
 outside the mesh can remove), and with ``--fit`` the same with the mesh fitted to the
 dense skin (``simulate(fit_skin=True)``). ``--cases`` picks cases by the start of their
 names. ``--write`` writes ``docs/benchmarks/crumple.md``.
@@ -36,7 +36,8 @@ import numpy as np  # noqa: E402
 import pvcmf  # noqa: E402
 from pvcmf import arrays, datasets  # noqa: E402
 from pvcmf.cli import DEMO_SPACING  # noqa: E402
-from pvcmf.filters.surface_mapping import Transfer, unavoidable_crumples  # noqa: E402
+from pvcmf.filters.crumple_bound import unavoidable_crumples  # noqa: E402
+from pvcmf.filters.surface_mapping import Transfer  # noqa: E402
 from pvcmf.pipeline import simulate  # noqa: E402
 from pvcmf.plan import Osteotomy, Plan, read_plan  # noqa: E402
 

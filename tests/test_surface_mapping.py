@@ -13,8 +13,8 @@ from pvcmf.filters.surface_mapping import (
     Transfer,
     crumple_metric,
     transfer_operator,
-    unavoidable_crumples,
 )
+from pvcmf.filters.crumple_bound import unavoidable_crumples
 
 
 @pytest.fixture(scope="module")

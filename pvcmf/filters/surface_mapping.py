@@ -5,24 +5,34 @@ and skin:
 
 ``method="interpolate"`` (default, :func:`transfer_operator`, :class:`Transfer`)
     A skin point inside the tetrahedral mesh takes the finite-element (barycentric)
-    interpolation of its tetrahedron. A point outside takes
-    ``u(p) = sum_f w_f u_h(q_f) + G(q) (p - q)``: ``q_f`` are the closest points of the
-    boundary triangles that are nearly as close as the closest (weights ``w_f``, so that
-    the blend ``q = sum_f w_f q_f`` does not jump at a concave boundary), ``u_h`` the
-    linear interpolation on a boundary triangle and ``G(q)`` a
-    smooth convex combination of the nodal displacement gradients (volume-weighted means
-    of the gradients of the tetrahedra around a node) at the ``k`` boundary nodes nearest
-    to ``q``, with weights ``(1 - (d_j / d_(k+1))^2)^2`` that vanish as a node leaves the
-    ``k`` nearest (continuous in ``q``). Properties: an affine field is reproduced exactly
-    within ``band`` of the mesh, the *modelled* skin (every gradient is its gradient);
-    farther out (skin the mesh does not model, e.g. behind a face model's posterior cut)
-    the extension is multiplied by a smooth step that reaches zero, the value on the fixed
-    posterior plane, at ``2 band`` (point array ``arrays.SKIN_MODELLED`` tells the two
-    apart); the extension is continuous across the
-    mesh boundary (``p -> q``); ``|G|`` is at most the largest gradient of the tetrahedra
-    involved (a convex combination of them). No nearest-node copy, so no steps.
+    interpolation of its tetrahedron. A point ``p`` outside takes ``c``, the value at
+    ``p`` of a local affine fit ``c + A (x - p)`` to its *feet*: ``q_f``, the closest points
+    of the boundary triangles that are nearly as close as the closest (weights ``w_f``
+    that fall smoothly to zero at the edge of the window, so nothing jumps at a concave
+    boundary), with the values ``u_h(q_f)`` of the linear interpolation on their
+    triangles. ``(c, A)`` minimise ``sum_f w_f |u_h(q_f) - c - A (q_f - p)|^2 + lam
+    (sum_f w_f) |A - G(q)|^2``: the slope is pulled towards ``G(q)``, a smooth convex
+    combination of the nodal displacement gradients (volume-weighted means of the
+    gradients of the tetrahedra around a node) at the ``k`` boundary nodes nearest to the
+    blended foot ``q = sum_f w_f q_f``, with weights ``(1 - (d_j / d_(k+1))^2)^2`` that
+    vanish as a node leaves the ``k`` nearest; ``lam = (FIT_STIFFNESS (d + h))^2`` (``d``
+    the distance, ``h`` the median mesh edge). Where the feet's values follow one affine
+    field the fit returns it; where they do not (a concave boundary, whose feet sweep
+    faster than ``p`` moves), the fit follows the feet's own slope rather than adding a
+    foreign gradient to their variation. As ``lam`` grows the value tends to
+    ``sum_f w_f u_h(q_f) + G(q) (p - q)``. Properties: an affine field is reproduced
+    exactly within ``band`` of the mesh, the *modelled* skin (every foot value and every
+    gradient is the field's); farther out (skin the mesh does not model, e.g. behind a
+    face model's posterior cut) the extension is multiplied by a smooth step that reaches
+    zero, the value on the fixed posterior plane, at ``2 band`` (point array
+    ``arrays.SKIN_MODELLED`` tells the two apart); the extension is continuous across the
+    mesh boundary (the window and the offsets ``q_f - p`` shrink to zero with ``d``); the
+    operator is linear in the nodal displacements. No nearest-node copy, so no steps.
     :func:`crumple_metric` checks, per skin edge, that the mapped field stretches it no
-    more than the steepest tetrahedron around it.
+    more than the steepest tetrahedron around it (for a point outside: around its feet's
+    triangles and its ``k`` boundary nodes, the tetrahedra whose values and gradients
+    enter the fit); :func:`pvcmf.filters.crumple_bound.unavoidable_crumples` bounds
+    from below the violations that no extension outside the mesh could avoid.
 ``method="gaussian"`` (paper 001, :class:`SurfaceMapping`)
     Paper 001 maps the coarse tetrahedral deformation to a dense skin "with some kind of
     Gaussian smoothing" (its reference [3] gives no formula). pvcmf uses a
@@ -40,8 +50,8 @@ and skin:
 Delegates the geometry (containing tetrahedra, feet on the boundary, nearest boundary
 nodes: tetrahedron bounding boxes binned on a grid with vectorised barycentric checks,
 :class:`scipy.spatial.cKDTree`, vectorised closest points) to
-:mod:`pvcmf.filters.transfer_locate`, the gradients to batched :func:`numpy.linalg.inv` and
-the operators to :mod:`scipy.sparse`.
+:mod:`pvcmf.filters.transfer_locate`, the gradients to batched :func:`numpy.linalg.inv`, the fits to batched
+:func:`numpy.linalg.solve` (4 x 4 per point) and the operators to :mod:`scipy.sparse`.
 """
 
 from __future__ import annotations
@@ -51,7 +61,6 @@ import logging
 import numpy as np
 import pyvista as pv
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components, dijkstra
 
 from .. import arrays
 from ..progress import Progress
@@ -109,10 +118,10 @@ def _gradient_operators(points, tets, rows, gradients=None):
 def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
     """Sparse operator ``T`` (points x grid points) with ``u_points = T @ u_nodes``.
 
-    Inside the mesh: barycentric interpolation in the containing tetrahedron. Outside:
-    ``u_h(q) + G(q) (p - q)`` with ``q`` the closest boundary point, blended over the
-    nearly closest boundary triangles (see the module docs): exact for affine fields, continuous across the boundary, gradient bounded by
-    the tetrahedra involved.
+    Inside the mesh: barycentric interpolation in the containing tetrahedron. Outside: a
+    local affine fit to the values on the nearly closest boundary triangles, its slope
+    pulled towards the nodal gradients there (see the module docs): exact for affine
+    fields, continuous across the boundary.
 
     Parameters
     ----------
@@ -511,91 +520,3 @@ def _edge_limits(skin_pre, grid, u_nodes, k, band, transfer, modelled):
     limit = np.maximum(bound[e[:, 0]], bound[e[:, 1]])
     return e, length, limit, modelled, float(gnorm.max(initial=0.0))
 
-
-def unavoidable_crumples(skin_pre, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT_BAND, slack=0.1,
-                         floor=DEFAULT_FLOOR, transfer=None, modelled=None):
-    """A lower bound on the crumple violations of *any* extension of the mesh's field.
-
-    The skin points inside the mesh take the finite-element interpolation, so their values
-    are fixed; a point outside may take any value. An edge violates
-    (:func:`crumple_metric`) when its jump exceeds ``w = max((1 + slack) bound, floor)``
-    times its length. Along a path of edges ``|u_a - u_b|`` is at most the sum of the
-    ``w``: if two fixed points ``a, b`` joined through outside points only have
-    ``e . (u_b - u_a)`` above the shortest such path (for a unit vector ``e``), some edge on
-    every such path violates, whatever the outside values. Counted: edges between two
-    fixed points that violate, plus the connected patches of outside points with such a
-    pair on their rim (one violation each at least). Shortest paths:
-    :func:`scipy.sparse.csgraph.dijkstra` from a super source joined to the rim points
-    with the weight ``e . u_a`` (13 directions, both signs).
-
-    Parameters
-    ----------
-    skin_pre, grid, u_nodes, k, band, slack, floor, transfer, modelled
-        As :func:`crumple_metric` (``transfer`` fixes which points lie inside the mesh
-        and the tetrahedra around every point).
-
-    Returns
-    -------
-    dict
-        ``arrays.CRUMPLE_UNAVOIDABLE`` (the lower bound), ``"inside_edges"`` (violating
-        edges between two fixed points), ``"patches"`` (patches of outside points that
-        must hold a violation) and ``"points"`` (bool per point: in such a patch).
-
-    Examples
-    --------
-    >>> import numpy as np, pyvista as pv
-    >>> from pvcmf import arrays
-    >>> from pvcmf.filters.surface_mapping import unavoidable_crumples
-    >>> grid = pv.ImageData(dimensions=(6, 6, 6)).triangulate()
-    >>> u = 0.1 * grid.points                                   # an affine field
-    >>> skin = pv.Sphere(radius=3.0, center=(2.5, 2.5, 2.5))    # partly outside
-    >>> unavoidable_crumples(skin, grid, u)[arrays.CRUMPLE_UNAVOIDABLE]
-    0
-    """
-    if transfer is None:
-        transfer = Transfer(grid, skin_pre.points, k=k, band=band)
-    e, length, limit, modelled, _ = _edge_limits(skin_pre, grid, u_nodes, k, band, transfer,
-                                                 modelled)
-    loc, n = transfer._loc, skin_pre.n_points
-    u_nodes = np.asarray(u_nodes, dtype=float)
-    fixed = loc.inside
-    val = np.zeros((n, 3))
-    ins = np.flatnonzero(fixed)
-    val[ins] = np.einsum("pa,pac->pc", loc.bary[ins], u_nodes[loc.tets[loc.cell[ins]]])
-    w = np.maximum(np.maximum((1.0 + slack) * limit, floor) * length, 1e-300)
-    both = fixed[e].all(axis=1)
-    jump = np.linalg.norm(val[e[both, 0]] - val[e[both, 1]], axis=1)
-    inside_edges = int(np.sum(jump > w[both]))
-    e, w = e[~both], w[~both]
-    free_free = ~fixed[e].any(axis=1)
-    ff = e[free_free]
-    graph = sp.coo_matrix((np.ones(len(ff)), (ff[:, 0], ff[:, 1])), shape=(n, n))
-    _, comp = connected_components(graph, directed=False)
-    rim = e[~free_free]  # (fixed a, free v) after ordering
-    flip = fixed[rim[:, 1]]
-    rim = np.where(flip[:, None], rim[:, ::-1], rim)
-    wr = w[~free_free]
-    # nodes: 0..n-1 the points (a fixed point only as a start), n..2n-1 fixed points as
-    # ends, 2n the super source
-    rows = np.concatenate([ff[:, 0], ff[:, 1], rim[:, 0], rim[:, 1]])
-    cols = np.concatenate([ff[:, 1], ff[:, 0], rim[:, 1], n + rim[:, 0]])
-    wts = np.concatenate([w[free_free], w[free_free], wr, wr])
-    starts = np.unique(rim[:, 0])
-    flagged = np.zeros(n, dtype=bool)
-    axes = np.array([v for v in np.ndindex(3, 3, 3) if v != (1, 1, 1)], dtype=float) - 1.0
-    axes = axes[: len(axes) // 2]  # 13 directions, one of each +- pair
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    scale = float(np.abs(val).max(initial=0.0)) + 1.0
-    for direction in np.concatenate([axes, -axes]) if len(starts) else []:
-        phi = val @ direction
-        base = phi[starts].min() - scale  # keeps the source's weights positive
-        g = sp.csr_matrix((np.concatenate([wts, phi[starts] - base]),
-                           (np.concatenate([rows, np.full(len(starts), 2 * n)]),
-                            np.concatenate([cols, starts]))), shape=(2 * n + 1, 2 * n + 1))
-        dist = dijkstra(g, directed=True, indices=2 * n) + base
-        conflict = phi[rim[:, 0]] > dist[rim[:, 1]] + wr + 1e-9 * scale
-        flagged[np.isin(comp, comp[rim[conflict, 1]])] = True
-    flagged &= ~fixed
-    patches = int(len(np.unique(comp[flagged])))
-    return {arrays.CRUMPLE_UNAVOIDABLE: inside_edges + patches, "inside_edges": inside_edges,
-            "patches": patches, "points": flagged}
