@@ -94,7 +94,8 @@ def page(rows, command):
              "mesh, whatever it does outside (`unavoidable_crumples`: the skin points inside "
              "the mesh fix their values, and two of them joined through outside points "
              "only may differ by no more than the allowed jumps along the path); where it "
-             "is zero, every violation is the extension's. Seconds: the simulation.", "",
+             "is zero, no violation is proven to be forced by the mesh and its solution. "
+             "Seconds: the simulation.", "",
              head, "|---|---|---|---|---|---|---|---|"]
     for name, fit, r in rows:
         lines.append(f"| {name} | {'yes' if fit else 'no'} | {r['tetrahedra']} | {r['edges']} | "
