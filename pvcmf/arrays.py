@@ -326,3 +326,8 @@ SKIN_FIT_SECONDS = "skin_fit_seconds"  #: field / summary, float, seconds the fi
 #: the field data of fit_to_skin, in the order summary.json lists them
 SKIN_FIT_FIELDS = (SKIN_FIT_MAX_PUSH, SKIN_FIT_NODES, SKIN_FIT_OUTSIDE_BEFORE,
                    SKIN_FIT_OUTSIDE_AFTER, SKIN_FIT_SECONDS)
+
+# --- crumple metric (surface mapping) ---
+#: summary / field data: a lower bound on the crumple violations of any mesh -> skin
+#: transfer that interpolates inside the mesh (:func:`pvcmf.filters.surface_mapping.unavoidable_crumples`)
+CRUMPLE_UNAVOIDABLE = "crumple_unavoidable"

@@ -7,9 +7,11 @@ import warnings
 import numpy as np
 import pytest
 import pyvista as pv
+from scipy.spatial import cKDTree
 
 from pvcmf import arrays
 from pvcmf.filters.meshing import fit_to_skin, tet_quality
+from pvcmf.filters import surface_mapping
 from pvcmf.filters.surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
 from pvcmf.filters.meshing.skin_fit import dense_skin
 
@@ -106,10 +108,12 @@ def test_skin_normals_gate_the_push(shell):
     assert held.field_data[arrays.SKIN_FIT_OUTSIDE_AFTER][0] == skin.n_points
 
 
-def test_concave_skin_and_the_crumple_metric(shell):
+def test_concave_skin_and_the_crumple_metric(shell, monkeypatch):
     """A mesh whose dimple is deeper than the skin's: the skin's points in the dimple lie
-    outside the mesh and the outside extension stretches edges beyond the mesh's gradients;
-    after the fit they interpolate inside and no edge violates."""
+    outside the mesh. Blending the feet's values with the nodal gradient (the fit's limit
+    of a stiff slope) stretches edges there beyond the mesh's gradients, and so does a
+    nearest-node copy; the affine fit to the feet does not; after the skin fit the points
+    interpolate inside and no edge violates."""
     grid, bone = shell
     mesh = grid.copy()
     mesh.points = _dimple(grid.points, 3.0)
@@ -119,7 +123,14 @@ def test_concave_skin_and_the_crumple_metric(shell):
     u = _field(mesh.points)
     transfer = Transfer(mesh, skin)
     loose = crumple_metric(skin, transfer(u), mesh, u, transfer=transfer)
-    assert loose[arrays.CRUMPLE_VIOLATIONS] > 0
+    assert loose[arrays.CRUMPLE_VIOLATIONS] == 0
+    near = cKDTree(mesh.points).query(skin.points)[1]
+    assert crumple_metric(skin, u[near], mesh, u, transfer=transfer)[arrays.CRUMPLE_VIOLATIONS] > 0
+    monkeypatch.setattr(surface_mapping, "FIT_STIFFNESS", 1e6)
+    stiff = Transfer(mesh, skin)
+    blended = crumple_metric(skin, stiff(u), mesh, u, transfer=stiff)
+    assert blended[arrays.CRUMPLE_VIOLATIONS] > 0
+    monkeypatch.undo()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # a few slivers of the input may limit it
         fitted = fit_to_skin(mesh, skin, fixed=bone)

@@ -14,6 +14,7 @@ from pvcmf.filters.surface_mapping import (
     crumple_metric,
     transfer_operator,
 )
+from pvcmf.filters.crumple_bound import unavoidable_crumples
 
 
 @pytest.fixture(scope="module")
@@ -165,3 +166,25 @@ def test_pruned_feet_equal_every_candidate_measured(ball):
     assert np.allclose(q, pruned.q, rtol=0, atol=1e-12)
     assert np.allclose(full.pair_w, pruned.pair_w, rtol=0, atol=1e-12)
     assert np.array_equal(full.dist, pruned.dist)
+
+
+def test_unavoidable_crumples_across_a_gap():
+    """Two blocks 2 mm apart, each moved rigidly (no gradient), their 1 mm apart moves
+    bridged by a skin plate across the gap: every transfer must stretch an edge there, so
+    the lower bound counts the patch in the gap; moved together there is nothing to
+    bridge and the bound is zero (as for any field the transfer already passes)."""
+    src = pv.ImageData(dimensions=(9, 9, 5), origin=(-4.0, -4.0, 0.0)).triangulate()
+    centres = src.cell_centers().points
+    grid = src.extract_cells(np.flatnonzero(np.abs(centres[:, 0]) > 1.0)).clean()
+    grid.clear_data()
+    plate = pv.Plane(center=(0, 0, 2.0), direction=(0, 0, 1), i_size=7, j_size=7,
+                     i_resolution=28, j_resolution=28).triangulate()
+    x = np.asarray(grid.points)
+    for shift, forced in ((1.0, True), (0.0, False)):
+        u = np.zeros((grid.n_points, 3))
+        u[x[:, 0] > 0, 2] = shift
+        c = unavoidable_crumples(plate, grid, u)
+        assert (c[arrays.CRUMPLE_UNAVOIDABLE] >= 1) == forced
+        assert c["points"].any() == forced
+        m = crumple_metric(plate, transfer_operator(grid, plate) @ u, grid, u)
+        assert m[arrays.CRUMPLE_VIOLATIONS] >= c[arrays.CRUMPLE_UNAVOIDABLE]

@@ -5,24 +5,34 @@ and skin:
 
 ``method="interpolate"`` (default, :func:`transfer_operator`, :class:`Transfer`)
     A skin point inside the tetrahedral mesh takes the finite-element (barycentric)
-    interpolation of its tetrahedron. A point outside takes
-    ``u(p) = sum_f w_f u_h(q_f) + G(q) (p - q)``: ``q_f`` are the closest points of the
-    boundary triangles that are nearly as close as the closest (weights ``w_f``, so that
-    the blend ``q = sum_f w_f q_f`` does not jump at a concave boundary), ``u_h`` the
-    linear interpolation on a boundary triangle and ``G(q)`` a
-    smooth convex combination of the nodal displacement gradients (volume-weighted means
-    of the gradients of the tetrahedra around a node) at the ``k`` boundary nodes nearest
-    to ``q``, with weights ``(1 - (d_j / d_(k+1))^2)^2`` that vanish as a node leaves the
-    ``k`` nearest (continuous in ``q``). Properties: an affine field is reproduced exactly
-    within ``band`` of the mesh, the *modelled* skin (every gradient is its gradient);
-    farther out (skin the mesh does not model, e.g. behind a face model's posterior cut)
-    the extension is multiplied by a smooth step that reaches zero, the value on the fixed
-    posterior plane, at ``2 band`` (point array ``arrays.SKIN_MODELLED`` tells the two
-    apart); the extension is continuous across the
-    mesh boundary (``p -> q``); ``|G|`` is at most the largest gradient of the tetrahedra
-    involved (a convex combination of them). No nearest-node copy, so no steps.
+    interpolation of its tetrahedron. A point ``p`` outside takes ``c``, the value at
+    ``p`` of a local affine fit ``c + A (x - p)`` to its *feet*: ``q_f``, the closest points
+    of the boundary triangles that are nearly as close as the closest (weights ``w_f``
+    that fall smoothly to zero at the edge of the window, so nothing jumps at a concave
+    boundary), with the values ``u_h(q_f)`` of the linear interpolation on their
+    triangles. ``(c, A)`` minimise ``sum_f w_f |u_h(q_f) - c - A (q_f - p)|^2 + lam
+    (sum_f w_f) |A - G(q)|^2``: the slope is pulled towards ``G(q)``, a smooth convex
+    combination of the nodal displacement gradients (volume-weighted means of the
+    gradients of the tetrahedra around a node) at the ``k`` boundary nodes nearest to the
+    blended foot ``q = sum_f w_f q_f``, with weights ``(1 - (d_j / d_(k+1))^2)^2`` that
+    vanish as a node leaves the ``k`` nearest; ``lam = (FIT_STIFFNESS (d + h))^2`` (``d``
+    the distance, ``h`` the median mesh edge). Where the feet's values follow one affine
+    field the fit returns it; where they do not (a concave boundary, whose feet sweep
+    faster than ``p`` moves), the fit follows the feet's own slope rather than adding a
+    foreign gradient to their variation. As ``lam`` grows the value tends to
+    ``sum_f w_f u_h(q_f) + G(q) (p - q)``. Properties: an affine field is reproduced
+    exactly within ``band`` of the mesh, the *modelled* skin (every foot value and every
+    gradient is the field's); farther out (skin the mesh does not model, e.g. behind a
+    face model's posterior cut) the extension is multiplied by a smooth step that reaches
+    zero, the value on the fixed posterior plane, at ``2 band`` (point array
+    ``arrays.SKIN_MODELLED`` tells the two apart); the extension is continuous across the
+    mesh boundary (the window and the offsets ``q_f - p`` shrink to zero with ``d``); the
+    operator is linear in the nodal displacements. No nearest-node copy, so no steps.
     :func:`crumple_metric` checks, per skin edge, that the mapped field stretches it no
-    more than the steepest tetrahedron around it.
+    more than the steepest tetrahedron around it (for a point outside: around its feet's
+    triangles and its ``k`` boundary nodes, the tetrahedra whose values and gradients
+    enter the fit); :func:`pvcmf.filters.crumple_bound.unavoidable_crumples` bounds
+    from below the violations that no extension outside the mesh could avoid.
 ``method="gaussian"`` (paper 001, :class:`SurfaceMapping`)
     Paper 001 maps the coarse tetrahedral deformation to a dense skin "with some kind of
     Gaussian smoothing" (its reference [3] gives no formula). pvcmf uses a
@@ -40,8 +50,8 @@ and skin:
 Delegates the geometry (containing tetrahedra, feet on the boundary, nearest boundary
 nodes: tetrahedron bounding boxes binned on a grid with vectorised barycentric checks,
 :class:`scipy.spatial.cKDTree`, vectorised closest points) to
-:mod:`pvcmf.filters.transfer_locate`, the gradients to batched :func:`numpy.linalg.inv` and
-the operators to :mod:`scipy.sparse`.
+:mod:`pvcmf.filters.transfer_locate`, the gradients to batched :func:`numpy.linalg.inv`, the fits to batched
+:func:`numpy.linalg.solve` (4 x 4 per point) and the operators to :mod:`scipy.sparse`.
 """
 
 from __future__ import annotations
@@ -72,6 +82,9 @@ DEFAULT_K = 8
 #: default distance (mm) from the mesh within which the extension is exactly affine (the
 #: modelled skin); beyond it the extension falls smoothly to zero at twice this
 DEFAULT_BAND = 4.0
+#: weight of the nodal gradients against the feet's values in the extension's affine fit
+#: (:func:`_fit_weights`): a length in units of the distance plus the mesh's edge
+FIT_STIFFNESS = 0.2
 #: default stretch (displacement jump over edge length) below which a skin edge never
 #: counts as crumpled: 1e-4 is a tenth of a micrometre per millimetre, where both the
 #: stretch and the mesh's gradients are round-off of a region that does not move
@@ -105,10 +118,10 @@ def _gradient_operators(points, tets, rows, gradients=None):
 def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
     """Sparse operator ``T`` (points x grid points) with ``u_points = T @ u_nodes``.
 
-    Inside the mesh: barycentric interpolation in the containing tetrahedron. Outside:
-    ``u_h(q) + G(q) (p - q)`` with ``q`` the closest boundary point, blended over the
-    nearly closest boundary triangles (see the module docs): exact for affine fields, continuous across the boundary, gradient bounded by
-    the tetrahedra involved.
+    Inside the mesh: barycentric interpolation in the containing tetrahedron. Outside: a
+    local affine fit to the values on the nearly closest boundary triangles, its slope
+    pulled towards the nodal gradients there (see the module docs): exact for affine
+    fields, continuous across the boundary.
 
     Parameters
     ----------
@@ -172,16 +185,17 @@ def _assemble(loc, band=DEFAULT_BAND):
     ptr[1:] = np.cumsum(loc.inside * 4)
     T = sp.csr_matrix((loc.bary[ins].ravel(), loc.tets[loc.cell[ins]].ravel(), ptr), shape=(n, m))
     npair = len(loc.pair_row)
-    if npair:  # blended feet's u_h(q_f) + G(q) (p - q), q their blend, times the decay
+    if npair:  # the feet's local affine fit (see _fit_weights), times the decay
         decay = _decay(loc.dist, band)
-        scale = loc.pair_w * decay[loc.pair_row]
+        alpha, offset = _fit_weights(loc)
+        scale = alpha * decay[loc.pair_row]
         ptr = np.zeros(n + 1, dtype=np.int64)  # pair rows are sorted: CSR directly
         ptr[1:] = np.cumsum(np.bincount(loc.pair_row, minlength=n) * 3)
         face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(), loc.face.ravel(), ptr),
                              shape=(n, m))
         nb, kk = len(loc.boundary), loc.near.shape[1]
         out = loc.outside
-        offset = (loc.p[out] - loc.qbar) * decay[out][:, None]
+        offset = offset * decay[out][:, None]
         # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix, 3 kk entries per outside row
         ptr = np.zeros(n + 1, dtype=np.int64)
         counts = np.zeros(n, dtype=np.int64)
@@ -197,6 +211,32 @@ def _assemble(loc, band=DEFAULT_BAND):
     T.sum_duplicates()
     T.eliminate_zeros()
     return T
+
+
+def _fit_weights(loc, stiffness=None):
+    """The extension at an outside point ``p`` as weights: ``c = sum_f alpha_f u_h(q_f) +
+    G(q) o``, where ``(c, A)`` minimise ``sum_f w_f |u_h(q_f) - c - A (q_f - p)|^2 +
+    lam (sum_f w_f) |A - G(q)|^2`` (the feet's weights ``w_f``, ``G(q)`` the nodal
+    gradients' blend, ``lam = (stiffness (d + h))^2``, ``d`` the distance, ``h`` the
+    median mesh edge). Returns ``alpha`` (per foot) and ``o`` (per outside point, (n, 3))."""
+    stiffness = FIT_STIFFNESS if stiffness is None else stiffness
+    out, p, w = loc.outside, loc.p, loc.pair_w
+    slot = np.full(len(p), -1)
+    slot[out] = np.arange(len(out))
+    r = slot[loc.pair_row]
+    B = np.column_stack([np.ones(len(r)), loc.q - p[loc.pair_row]])  # (pairs, 4)
+    M = np.zeros((len(out), 4, 4))
+    for a in range(4):
+        for b in range(a, 4):
+            M[:, a, b] = M[:, b, a] = np.bincount(r, w * B[:, a] * B[:, b], minlength=len(out))
+    tets = loc.tets
+    edges = loc.points[tets[:, [1, 2, 3, 2, 3, 3]]] - loc.points[tets[:, [0, 0, 0, 1, 1, 2]]]
+    h = float(np.median(np.linalg.norm(edges, axis=2)))
+    reg = (stiffness * (loc.dist[out] + h)) ** 2 * M[:, 0, 0]  # M[:, 0, 0]: sum of w_f
+    M[:, 1:, 1:] += reg[:, None, None] * np.eye(3)
+    first = np.linalg.solve(M, np.broadcast_to(np.eye(4)[0], (len(out), 4))[..., None])[..., 0]
+    alpha = w * np.einsum("pa,pa->p", B, first[r])
+    return alpha, first[:, 1:] * reg[:, None]
 
 
 class Transfer:
@@ -427,9 +467,26 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
     0
     """
     u_skin = np.asarray(u_skin, dtype=float)
-    u_nodes = np.asarray(u_nodes, dtype=float)
     if u_skin.shape != (skin_pre.n_points, 3):
         raise ValueError(f"u_skin must have shape ({skin_pre.n_points}, 3), got {u_skin.shape}")
+    e, length, limit, modelled, gmax = _edge_limits(skin_pre, grid, u_nodes, k, band, transfer,
+                                                   modelled)
+    stretch = np.linalg.norm(u_skin[e[:, 0]] - u_skin[e[:, 1]], axis=1) / np.maximum(length, 1e-300)
+    tiny = 1e-9 * max(gmax, 1e-12)
+    ratio = np.where(limit > tiny, stretch / np.maximum(limit, tiny), np.where(stretch > tiny, np.inf, 0.0))
+    ratio = np.where(stretch > floor, ratio, 0.0)
+    return {"ratio": ratio, "edges": e, "modelled": modelled.copy(),
+            arrays.SKIN_MODELLED_POINTS: int(modelled.sum()),
+            arrays.CRUMPLE_EDGES: int(len(e)),
+            arrays.CRUMPLE_VIOLATIONS: int(np.sum(ratio > 1.0 + slack)),
+            arrays.CRUMPLE_MAX_RATIO: float(ratio.max(initial=0.0))}
+
+
+def _edge_limits(skin_pre, grid, u_nodes, k, band, transfer, modelled):
+    """The modelled edges of ``skin_pre``, their lengths and bounds (the steepest gradient
+    of the tetrahedra around either end, see :func:`crumple_metric`), the modelled mask
+    and the steepest gradient of the mesh."""
+    u_nodes = np.asarray(u_nodes, dtype=float)
     if u_nodes.shape != (grid.n_points, 3):
         raise ValueError(f"u_nodes must have shape ({grid.n_points}, 3), got {u_nodes.shape}")
     if transfer is None:
@@ -460,13 +517,6 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
     e = e[modelled[e].all(axis=1)]
     x = np.asarray(skin_pre.points, dtype=float)
     length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
-    stretch = np.linalg.norm(u_skin[e[:, 0]] - u_skin[e[:, 1]], axis=1) / np.maximum(length, 1e-300)
     limit = np.maximum(bound[e[:, 0]], bound[e[:, 1]])
-    tiny = 1e-9 * max(float(gnorm.max(initial=0.0)), 1e-12)
-    ratio = np.where(limit > tiny, stretch / np.maximum(limit, tiny), np.where(stretch > tiny, np.inf, 0.0))
-    ratio = np.where(stretch > floor, ratio, 0.0)
-    return {"ratio": ratio, "edges": e, "modelled": modelled.copy(),
-            arrays.SKIN_MODELLED_POINTS: int(modelled.sum()),
-            arrays.CRUMPLE_EDGES: int(len(e)),
-            arrays.CRUMPLE_VIOLATIONS: int(np.sum(ratio > 1.0 + slack)),
-            arrays.CRUMPLE_MAX_RATIO: float(ratio.max(initial=0.0))}
+    return e, length, limit, modelled, float(gnorm.max(initial=0.0))
+
