@@ -10,6 +10,8 @@
 * :func:`mesh_size_claims` -> a mesh size against a finer one: the paired difference of
   the error, the change of the error against paper 001's 0.05 mm, and the skin
   difference between the two meshes' predictions against :data:`CLINICAL_TOLERANCE_MM`;
+* :func:`paper001_claims` -> all of paper 001's claims: the inhomogeneous model against
+  the homogeneous one, the Poisson ratio, the mesh size;
 * :func:`region_table` -> per patient, method and face region (lips, chin, nose,
   cheeks) the median and p90 of ``|d|``.
 
@@ -28,7 +30,8 @@ from .inference import (
 from .paper001 import FINE_METHOD, PAPER_NU, method_nu
 
 __all__ = ["CLINICAL_TOLERANCE_MM", "MESH_TOLERANCE_MM", "NU_LOSS_TOLERANCE_MM",
-           "below_tolerance", "mesh_size_claims", "nu_optimum", "region_table"]
+           "below_tolerance", "mesh_size_claims", "nu_optimum", "paper001_claims",
+           "region_table"]
 
 #: the skin change a finer mesh may make and still leave the prediction clinically the
 #: same (mm): a quarter of the 2 mm within which paper 000 counts a prediction accurate
@@ -303,3 +306,42 @@ def region_table(skins, methods, groups=None):
                              "n": len(d), "p50": float(np.median(d)) if ok else np.nan,
                              "p90": float(np.percentile(d, 90)) if ok else np.nan})
     return pd.DataFrame(rows)
+
+
+def paper001_claims(skins, *, sizes=None, alpha=0.05, n_boot=1000, seed=0):
+    """Paper 001's claims over the patients of a study, as they come out.
+
+    Parameters
+    ----------
+    skins : dict
+        ``skins[patient][method]`` with ``"homogeneous"``, ``"inhomogeneous"``,
+        ``"homogeneous_fine"`` and the homogeneous model at several Poisson ratios.
+    sizes : (int, int), optional
+        Requested tetrahedra of ``"homogeneous"`` and ``"homogeneous_fine"``.
+    alpha, n_boot, seed :
+        See :func:`pvcmf.study.inference.paired_comparison`.
+
+    Returns
+    -------
+    claims : pandas.DataFrame
+        Rows of :func:`pvcmf.study.inference.claims_table`: the inhomogeneous model
+        against the homogeneous one (median and p90; paper 001 finds it not significantly
+        better: holds unless the verdict is "a better"), :func:`nu_optimum`'s and
+        :func:`mesh_size_claims`' rows.
+    nu_table, spread :
+        :func:`nu_optimum`'s per-patient table and spread.
+    """
+    import pandas as pd
+
+    from .inference import claims_table
+
+    rows = claims_table(skins, [
+        (f"the inhomogeneous model is not significantly better than the homogeneous one "
+         f"(paper 001; {s})", "inhomogeneous", "homogeneous", s) for s in ("median", "p90")],
+        alpha=alpha, n_boot=n_boot, seed=seed)
+    rows["holds"] = rows["verdict"] != "a better"
+    nu_table, spread, nu_rows = nu_optimum(skins, alpha=alpha, n_boot=max(n_boot, 2000),
+                                           seed=seed)
+    mesh_rows = mesh_size_claims(skins, sizes=sizes, alpha=alpha, n_boot=n_boot, seed=seed)
+    table = pd.concat([rows, pd.DataFrame(nu_rows + mesh_rows)], ignore_index=True)
+    return table, nu_table, spread

@@ -38,7 +38,7 @@ __all__ = ["FINE_METHOD", "NU_GRID", "PAPER001_METHODS", "PAPER_NU", "is_paper00
 PAPER_NU = 0.46
 #: the Poisson ratios of the cohort's sweep of the homogeneous model (paper 001 sweeps
 #: 0-0.495; denser near its optimum)
-NU_GRID = (0.30, 0.40, 0.43, 0.45, 0.46, 0.47, 0.48, 0.49)
+NU_GRID = (0.30, 0.40, 0.45, 0.46, 0.47, 0.49)
 #: the homogeneous model on the finer mesh (``fine_tets`` of ``study_predictor``)
 FINE_METHOD = "homogeneous_fine"
 #: the fixed methods of paper 001 (the sweep adds :func:`nu_method` names)

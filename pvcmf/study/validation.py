@@ -258,7 +258,8 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                 return _prediction(c, method, grid, pre_skin, n_tets, sigma)
             key = (patient, size)
             if key not in models:  # one pipeline per patient and size, kept for its models
-                models.clear()
+                for other in [k for k in models if k[0] != patient]:
+                    del models[other]
                 models[key] = paper001_pipeline(c, size)
             res = models[key]
             return _face_y0(res.labels), _map(paper001_solve(res, method), pre_skin, sigma)
