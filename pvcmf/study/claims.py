@@ -183,8 +183,9 @@ def nu_optimum(skins, statistic="p90", *, paper_nu=PAPER_NU, alpha=0.05, n_boot=
         loss = at_paper.loc[best["patient"]].to_numpy(float) - best[statistic].to_numpy(float)
         claims.append(below_tolerance(
             loss, NU_LOSS_TOLERANCE_MM,
-            f"nu {paper_nu:g} errs less than {NU_LOSS_TOLERANCE_MM:g} mm more than each "
-            f"patient's optimum (paper 001; {statistic} at {paper_nu:g} - at the optimum)",
+            f"nu {paper_nu:g} costs each patient less than {NU_LOSS_TOLERANCE_MM:g} mm of "
+            f"{statistic} against its own optimum (paper 001; {statistic} at {paper_nu:g} "
+            f"- at the optimum)",
             statistic, alpha=alpha, n_boot=n_boot, seed=seed))
     return table, spread, claims
 
