@@ -12,8 +12,10 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    per patient and over the patients.
 3. ``--cohort N``: N seeded patients of :func:`pvcmf.study.cohort.cohort` through both
    models with oracle inputs and CT-only (automatic segmentation, bone segments, atlas
-   fit), paper 000's claims tested over the patients
-   (:func:`pvcmf.study.inference.claims_table`), cost per patient cold and warm: writes
+   fit), paper 000's claims tested over the patients, overall and per face region
+   (:func:`pvcmf.study.inference.claims_table`), paper 001's models (homogeneous,
+   inhomogeneous, a Poisson-ratio sweep, a finer mesh) and claims
+   (:func:`pvcmf.study.claims.paper001_claims`), cost per patient cold and warm: writes
    ``docs/benchmarks/cohort.md``.
 
 Writes markdown tables to ``docs/benchmarks/truth_refinement.md`` (1, 2) with the command
@@ -45,7 +47,14 @@ import numpy as np
 import pvcmf
 from pvcmf import arrays, filters
 from pvcmf.study.cohort import cohort_parameters, virtual_patient
-from pvcmf.study.inference import PAPER_CLAIMS, claims_table, compare_methods
+from pvcmf.study.claims import (
+    CLINICAL_TOLERANCE_MM, MESH_TOLERANCE_MM, NU_LOSS_TOLERANCE_MM, paper001_claims,
+    region_table,
+)
+from pvcmf.study.inference import (
+    MIN_REGION_POINTS, PAPER_CLAIMS, REGION_GROUPS, claims_table, compare_methods,
+)
+from pvcmf.study.paper001 import FINE_METHOD, NU_GRID, PAPER_NU, nu_method
 from pvcmf.study.validation import run_study, study_predictor
 from pvcmf.truth.independent import independent_truth_grid
 from pvcmf.truth.refinement import exact_skin_samples, refinement_change
@@ -221,39 +230,64 @@ COHORT_METHODS = ("proposed", "state_of_the_art", "proposed_auto", "state_of_the
 
 
 def _claims(skins):
-    """Paper 000's claims with oracle inputs, and the same claims CT-only."""
+    """Paper 000's claims with oracle inputs, CT-only, and per face region (p90, oracle)."""
     claims = list(PAPER_CLAIMS)
     claims += [(f"{c} [CT-only]", f"{a}_auto", f"{b}_auto", st) for c, a, b, st in PAPER_CLAIMS]
-    table = claims_table(skins, claims)
+    claims += [(f"{PAPER_CLAIMS[1][0].replace(' (p90)', '')} on the {region} (p90)",
+                "proposed", "state_of_the_art", "p90", region) for region in REGION_GROUPS]
+    return _columns(claims_table(skins, claims))
+
+
+def _columns(table):
     cols = ["claim", "statistic", "n", "median_a", "median_b", "difference", "ci_low",
             "ci_high", "p_value",
             "effect_size", "verdict", "holds"]
     return table[[c for c in cols if c in table.columns]]
 
 
-def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None):
+#: the models of both papers whose errors the cohort page tabulates per face region
+REGION_METHODS = ("proposed", "state_of_the_art", "homogeneous", "inhomogeneous")
+
+
+def _cohort_results(skins, tables, timing, n_tets, fine_tets):
+    import pandas as pd
+
+    paper001, nu_table, spread = paper001_claims(skins, sizes=(n_tets, fine_tets))
+    return {"table": pd.concat(tables, ignore_index=True), "claims": _claims(skins),
+            "paper001": _columns(paper001), "nu": nu_table, "spread": spread,
+            "regions": region_table(skins, REGION_METHODS), "cost": pd.DataFrame(timing),
+            "fine_tets": fine_tets, "n_patients": len(skins)}
+
+
+def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fine_tets=None,
+                 nus=NU_GRID, checkpoint=None, every=4, warm=None):
     """Run ``n`` seeded cohort patients through both input modes, twice (cold, warm).
 
     Both runs use one cache folder (``cache_dir``, default a new temporary one, so the cold
     run starts from empty caches): the cold run solves the truths and runs every pipeline,
-    the warm run (fresh predictors, patients built again) reads both from the cache."""
-    import pandas as pd
-
+    the warm run (fresh predictors, patients built again) reads both from the cache.
+    ``checkpoint(results, status)`` is called with the results so far after every
+    ``every`` cold patients and after the cold run, so a run stopped early leaves a
+    labelled page. ``warm``: how many patients the warm run repeats (default all)."""
     tmp = None if cache_dir else tempfile.TemporaryDirectory(prefix="pvcmf_cohort_")
     cache_dir = cache_dir or tmp.name
     draw = cohort_parameters(n, seed)
+    fine_tets = fine_tets or 2 * n_tets
+    methods = COHORT_METHODS + ("homogeneous", "inhomogeneous") + tuple(
+        nu_method(nu) for nu in nus if nu_method(nu) != "homogeneous") + (FINE_METHOD,)
     timing, skins, tables = [], {}, []
     for run in ("cold", "warm"):
         for i, (params, plan) in enumerate(draw):  # a few patients, a handful of pipelines
+            if run == "warm" and warm is not None and i >= warm:
+                break
             t = time.perf_counter()
             case = virtual_patient(params, plan, spacing=spacing, number=101 + i)
             p = case.patient
             predict = study_predictor(spacing=spacing, n_tets=n_tets, truth_tets=truth_tets,
                                       truth=None if truth == "reference" else truth,
                                       cases={p: case}, cache_dir=cache_dir,
-                                      prediction_cache=True)
-            s, _, tab = run_study(predict, patients=(p,), methods=COHORT_METHODS,
-                                  regions=False)
+                                      prediction_cache=True, fine_tets=fine_tets)
+            s, _, tab = run_study(predict, patients=(p,), methods=methods, regions=False)
             timing.append({"run": run, "patient": p, "seconds": time.perf_counter() - t,
                            "p90_change_mm": np.nan})
             tab["excluded"] = [int(s[p][m].field_data[arrays.STUDY_EXCLUDED][0])
@@ -265,34 +299,84 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None):
                 cold = tables[i].set_index("method")["p90"].loc[list(tab["method"])]
                 timing[-1]["p90_change_mm"] = float(np.abs(cold.to_numpy() - tab["p90"]).max())
             print(timing[-1], flush=True)
+            done = i + 1
+            if (checkpoint is not None and run == "cold" and done >= 2
+                    and (done % every == 0 or done == len(draw))):
+                checkpoint(_cohort_results(skins, tables, timing, n_tets, fine_tets),
+                           f"partial: {done} of {len(draw)} patients, cold run only "
+                           "(the warm run not yet made)")
     if tmp is not None:
         tmp.cleanup()
-    table = pd.concat(tables, ignore_index=True)
-    cost = pd.DataFrame(timing)
-    return table, _claims(skins), cost
+    return _cohort_results(skins, tables, timing, n_tets, fine_tets)
 
 
-def cohort_page(args, table, claims, cost, command):
+def _verdict_lines(claims):
+    """One line per claim: claim, n, difference, its interval, p, verdict."""
+    out = []
+    for r in claims.itertuples(index=False):
+        if r.verdict == "not tested":
+            out.append(f"- {r.claim}: n = {r.n} patients, not tested (fewer than 2 "
+                       f"patients with {MIN_REGION_POINTS} judged points there)")
+            continue
+        out.append(f"- {r.claim}: n = {r.n}, difference {r.difference:+.3f} (95 % CI "
+                   f"{r.ci_low:+.3f} to {r.ci_high:+.3f}), p = {r.p_value:.3g}, "
+                   f"{r.verdict}; {'holds' if r.holds else 'does not hold'}")
+    return out
+
+
+def _region_pivot(regions):
+    wide = regions.pivot_table(index=["patient", "region"], columns="method",
+                               values=["p50", "p90"], sort=False)
+    wide.columns = [f"{m} {q}" for q, m in wide.columns]
+    order = [f"{m} {q}" for m in REGION_METHODS for q in ("p50", "p90")]
+    return wide[[c for c in order if c in wide.columns]].reset_index()
+
+
+def _nu_pivot(nu_table):
+    wide = nu_table.pivot(index="patient", columns="nu", values="p90")
+    best = nu_table[nu_table["optimum"]].set_index("patient")["nu"]
+    wide.columns = [f"nu {c:g}" for c in wide.columns]
+    wide = wide.round(3)
+    wide["optimum"] = best
+    return wide.reset_index()
+
+
+def cohort_page(args, res, command, status="complete"):
     from pvcmf.study.validation import JUDGE_LIMIT
 
+    table, claims, cost, paper001 = res["table"], res["claims"], res["cost"], res["paper001"]
+    spread, fine_tets = res["spread"], res["fine_tets"]
     cold = cost[cost.run == "cold"].seconds
     warm = cost[cost.run == "warm"].seconds
     per_cold, per_warm = float(cold.mean()), float(warm.mean())
     keep = [c for c in ("patient", "method", "n", "excluded", "median", "p90", "p95",
                         "within_1mm", "within_2mm") if c in table.columns]
+    main_methods = COHORT_METHODS + ("homogeneous", "inhomogeneous", FINE_METHOD)
+    errors = table[table["method"].isin(main_methods)]
+    n_pat = res["n_patients"]
+    few = n_pat < 6
     lines = [
-        "# Cohort study: both input modes on seeded virtual patients", "",
+        "# Cohort study: paper 000's and paper 001's claims on seeded virtual patients", "",
         f"Command: `{command}`  ",
         f"Date: {datetime.date.today().isoformat()}; machine: {platform.machine()}, "
         f"{os.cpu_count()} cores (shared with other jobs), Python "
-        f"{sys.version.split()[0]}, pvcmf {pvcmf.__version__}.", "",
-        f"{args.cohort} patients of ``pvcmf.study.cohort.cohort({args.cohort}, "
+        f"{sys.version.split()[0]}, pvcmf {pvcmf.__version__}. Run: {status}.", "",
+        f"{n_pat} patients of ``pvcmf.study.cohort.cohort({args.cohort}, "
         f"seed={args.seed})`` at {args.spacing} mm, MTM meshes of {args.n_tets} "
-        f"tetrahedra, truth ``{args.truth}`` of {args.truth_tets} tetrahedra. Methods: "
-        "``proposed`` / ``state_of_the_art`` with oracle inputs (true bone labels and "
-        "landmarks) and ``proposed_auto`` / ``state_of_the_art_auto`` from the CT and the "
-        "plan alone (automatic segmentation, bone segments, atlas fit). |error| in mm on "
-        "the judged anterior face (signed error statistics of "
+        f"tetrahedra (the finer mesh: {fine_tets}), truth ``{args.truth}`` of "
+        f"{args.truth_tets} tetrahedra. Paper 000's models: "
+        "``proposed`` (muscle-embedded conforming mesh) / ``state_of_the_art`` (the same "
+        "mesh without muscle surfaces, the muscles sampled onto it by random points) with "
+        "oracle inputs (true bone labels and landmarks) and ``proposed_auto`` / "
+        "``state_of_the_art_auto`` from the CT and the plan alone (automatic "
+        "segmentation, bone segments, atlas fit). Paper 001's models "
+        "(``pvcmf.study.paper001``, oracle inputs, no atlas muscles, a mesh that ignores "
+        f"the tissue classes): ``homogeneous`` (one isotropic material, nu {PAPER_NU:g}), "
+        "``inhomogeneous`` (each tetrahedron mixes fat and muscle by its share of the "
+        "per-slice Gaussian-mixture classification, nu_fat 0.485, nu_muscle 0.43, "
+        f"E_muscle / E_fat 1), ``homogeneous_nu<nu>`` (the sweep) and ``{FINE_METHOD}`` "
+        f"(the homogeneous model on {fine_tets} tetrahedra). |error| in mm on the judged "
+        "anterior face (signed error statistics of "
         "``pvcmf.study.statistics.error_statistics``; n: judged skin points; excluded: "
         "skin points of the judged face left out of every method because the "
         f"post-operative CT shows no skin within ``JUDGE_LIMIT`` ({JUDGE_LIMIT:g} mm) of "
@@ -303,36 +387,70 @@ def cohort_page(args, table, claims, cost, command):
         "the errors below bound how far the models and this truth agree, not how accurate "
         "either is; a paired difference between two models is measured against the same "
         "truth and is the better-founded number.", "",
-        "## Errors per patient and method", "",
-        _markdown(table[keep].round(3)), "",
-        "## Paper 000's claims, paired over the patients", "",
-        "Wilcoxon signed-rank test of the per-patient statistic, Hodges-Lehmann "
-        "difference (a - b) with its 95 % bootstrap interval, effect size "
-        "(``pvcmf.study.inference.claims_table``). "
+        "## Verdicts", "",
+        "Each claim tested over the patients: Wilcoxon signed-rank test of the per-patient "
+        "statistic, Hodges-Lehmann difference (a - b, mm; for a tolerance: value - "
+        "tolerance; for the Poisson ratio: optimum - paper's) with its 95 % bootstrap "
+        "interval (``pvcmf.study.inference.claims_table``, "
+        "``pvcmf.study.claims.paper001_claims``). "
         + ("With fewer than 6 patients no two-sided p-value can fall below 0.05: this run "
-           "shows the path end to end, not a verdict." if args.cohort < 6 else
+           "shows the path end to end, not a verdict." if few else
            "A verdict other than \"no difference\" needs p < 0.05; \"no difference\" is "
-           "not equivalence: read the interval (ci_low, ci_high) as the largest "
-           "difference the run leaves possible."), "",
+           "not equivalence: read the interval as the largest difference the run leaves "
+           "possible. A claim that a quantity stays below a tolerance holds only when the "
+           "test puts it below with p < 0.05."), "",
+        *_verdict_lines(claims), *_verdict_lines(paper001), "",
+        f"Optimal Poisson ratio of the homogeneous model (the p90's minimum over nu "
+        f"{', '.join(f'{g:g}' for g in spread['grid'])}), over {spread['n']} patients: "
+        f"median {spread['median']:g}, interquartile range {spread['q25']:g}-"
+        f"{spread['q75']:g}, 95 % bootstrap interval of the median {spread['ci_low']:g}-"
+        f"{spread['ci_high']:g}; paper 001's {PAPER_NU:g} "
+        f"{'lies' if spread['paper_in_ci'] else 'does not lie'} in it. "
+        f"{spread['at_grid_end']} of {spread['n']} optima lie at an end of the sweep "
+        "(there the sweep bounds the optimum, it does not find it).", "",
+        f"Tolerances: {NU_LOSS_TOLERANCE_MM:g} mm (paper 001: the p90 at nu 0.46 within "
+        f"0.1 mm of each patient's best), {MESH_TOLERANCE_MM:g} mm (paper 001: the p90 of "
+        f"30 000 tetrahedra within 0.05 mm of a very dense mesh), "
+        f"{CLINICAL_TOLERANCE_MM:g} mm (the skin difference between two meshes: a quarter "
+        "of the 2 mm within which paper 000 counts a prediction accurate). The mesh claims "
+        f"are tested at {args.n_tets} against {fine_tets} tetrahedra, not at paper 001's "
+        "30 000 against 200 000: they say what these sizes do.", "",
+        "## Errors per patient and method", "",
+        _markdown(errors[keep].round(3)), "",
+        "## Paper 000's claims, paired over the patients", "",
         _markdown(claims.round(4)), "",
+        "## Paper 001's claims, paired over the patients", "",
+        _markdown(paper001.round(4)), "",
+        "p90 |error| (mm) of the homogeneous model per Poisson ratio, and each patient's "
+        "optimum (``pvcmf.study.claims.nu_optimum``):", "",
+        _markdown(_nu_pivot(res["nu"])), "",
+        "## Errors per face region", "",
+        f"p50 and p90 of |error| (mm) per patient and face region (regions of "
+        f"``pvcmf.study.statistics.label_face_regions``: lips = upper and lower lip, cheeks "
+        f"= both cheeks; NaN: fewer than {MIN_REGION_POINTS} judged points; "
+        "``pvcmf.study.claims.region_table``). The per-region claims of paper 000 are in "
+        "its table above.", "",
+        _markdown(_region_pivot(res["regions"]).round(3)), "",
         "## Cost", "",
         "Wall seconds per patient (the patient built, its truth, post-operative CT, "
-        "registration and all four methods); cold: empty caches (a new cache folder: "
+        "registration and every method); cold: empty caches (a new cache folder: "
         "every truth is solved and every pipeline runs), warm: the same patients again in "
         "the same process with fresh predictors (patients built, CTs made and registered "
-        "again; the truths and the four predictions of each patient read from the "
+        "again; the truths and the predictions of each patient read from the "
         "on-disk cache, ``study_predictor(prediction_cache=True)``). p90_change_mm: the "
         "largest change of a method's p90 error from the cold run to the warm one.",
         "", _markdown(cost.round(1)), "",
-        f"Mean per patient: cold {per_cold:.0f} s, warm {per_warm:.0f} s. Projected for "
+        f"Mean per patient ({len(cold)} cold, {len(warm)} warm): cold {per_cold:.0f} s"
+        + (f", warm {per_warm:.0f} s" if len(warm) else "") + ". Projected for "
         f"16 patients at these sizes on this machine: cold {16 * per_cold / 60:.0f} min "
         f"(target 90 min: {'met' if 16 * per_cold <= 5400 else 'not met'}), warm "
-        f"{16 * per_warm / 60:.0f} min (target 5 min: "
-        f"{'met' if 16 * per_warm <= 300 else 'not met'}). A warm run runs no truth "
+        + (f"{16 * per_warm / 60:.0f} min (target 5 min: "
+           f"{'met' if 16 * per_warm <= 300 else 'not met'})" if len(warm) else
+           "not measured in this run") + ". A warm run runs no truth "
         "solve and no MTM pipeline: what is left is building each patient, its "
         "post-operative CT, the segmentation and registration of both CTs and the "
-        "distances (a rerun in a new process also hashes the prediction code once, "
-        "``pvcmf.study.predictions.prediction_code_hash``: seconds).", ""]
+        "distances of every method (a rerun in a new process also hashes the prediction "
+        "code once, ``pvcmf.study.predictions.prediction_code_hash``: seconds).", ""]
     return "\n".join(lines)
 
 
@@ -346,6 +464,13 @@ def main(argv=None):
     ap.add_argument("--cache-dir", default=None,
                     help="cohort: cache folder of truths and predictions (default: a new "
                          "temporary one, so the cold run is cold)")
+    ap.add_argument("--fine-tets", type=int, default=0, metavar="N",
+                    help="cohort: tetrahedra of the finer mesh of paper 001's mesh-size "
+                         "claim (default: twice --n-tets)")
+    ap.add_argument("--warm", type=int, default=None, metavar="N",
+                    help="cohort: the warm run repeats the first N patients (default all)")
+    ap.add_argument("--nu-grid", type=float, nargs="+", default=list(NU_GRID),
+                    help="cohort: Poisson ratios of the homogeneous model's sweep")
     ap.add_argument("--truth", default="independent", choices=["independent", "reference"])
     ap.add_argument("--patients", type=int, nargs="+", default=[1])
     ap.add_argument("--counts", type=int, nargs="+", default=[8000, 16000, 32000])
@@ -381,11 +506,18 @@ def main(argv=None):
                              args.truth_tets))
     if args.cohort:
         command = "python benchmarks/study.py " + " ".join(sys.argv[1:] if argv is None else argv)
-        table, claims, cost = cohort_study(args.cohort, args.seed, args.spacing, args.n_tets,
-                                           args.truth_tets, args.truth, args.cache_dir)
-        for name, df in (("table", table), ("claims", claims), ("cost", cost)):
-            df.to_csv(Path(tempfile.gettempdir()) / f"pvcmf_cohort_{name}.csv", index=False)
-        COHORT_PAGE.write_text(cohort_page(args, table, claims, cost, command))
+
+        def write(res, status="complete"):
+            for name in ("table", "claims", "paper001", "nu", "regions", "cost"):
+                res[name].to_csv(Path(tempfile.gettempdir()) / f"pvcmf_cohort_{name}.csv",
+                                 index=False)
+            COHORT_PAGE.write_text(cohort_page(args, res, command, status))
+
+        res = cohort_study(args.cohort, args.seed, args.spacing, args.n_tets,
+                           args.truth_tets, args.truth, args.cache_dir,
+                           fine_tets=args.fine_tets, nus=tuple(args.nu_grid), checkpoint=write,
+                           warm=args.warm)
+        write(res)
         print(COHORT_PAGE.read_text())
         if not (args.refinement or args.compare):
             return

@@ -39,7 +39,7 @@ _PACKAGE = Path(__file__).resolve().parents[1]
 _NOT_PREDICTION = ("truth", "figures", "report", "study")
 #: modules of those folders (and top-level modules) that do run in one
 _PREDICTION_EXTRA = ("truth/postop.py", "study/validation.py", "study/from_ct.py",
-                     "study/predictions.py")
+                     "study/predictions.py", "study/paper001.py")
 #: top-level modules above the pipeline
 _ABOVE = ("cli.py", "accessor.py", "validation.py")
 

@@ -25,6 +25,7 @@ from ..truth.grid import _skin_of, truth_grid
 from ..truth.independent import independent_truth_grid
 from ..truth.postop import postop_ct
 from .from_ct import judge_skin, register_postop_skin, skin_from_ct
+from .paper001 import FINE_METHOD, is_paper001_method, paper001_pipeline, paper001_solve
 from .predictions import cached_prediction
 from .statistics import _distances, error_statistics
 
@@ -115,7 +116,7 @@ JUDGE_LIMIT = 3.0
 
 def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                     truth_cache=True, cache_dir=None, truth=None, noise_hu=18.0,
-                    ct_spacing=None, cases=None, prediction_cache=False):
+                    ct_spacing=None, cases=None, prediction_cache=False, fine_tets=None):
     """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
 
     The study runs the path of a real post-operative scan. For virtual patient ``patient``
@@ -155,7 +156,11 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     methods apart. The methods of :data:`AUTO_METHODS` ("proposed_auto",
     "state_of_the_art_auto") predict from the CT and the plan alone, as a real pipeline
     would (automatic segmentation, bone segments and atlas fit); the others get the true
-    bone labels and landmarks. Every judged skin carries the point array
+    bone labels and landmarks. Paper 001's models (:mod:`pvcmf.study.paper001`:
+    "homogeneous", "inhomogeneous", the homogeneous model at another Poisson ratio,
+    :func:`~pvcmf.study.paper001.nu_method`, and "homogeneous_fine", on a mesh of
+    ``fine_tets``) share one pipeline run per mesh size and patient, true bone labels and
+    landmarks given. Every judged skin carries the point array
     ``arrays.SKIN_POINT_ID`` (the index of its points in the pre-operative skin), which
     pairs the points of two methods.
 
@@ -193,6 +198,8 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         :mod:`pvcmf.study.predictions`: keyed by the patient, the plan, the method, the
         sizes and the code that computes it), so a second run of a study runs no
         pipeline. The judging (post-operative CT, registration, distances) always runs.
+    fine_tets : int, optional
+        Tetrahedra of the "homogeneous_fine" method (default ``2 * n_tets``).
 
     Returns
     -------
@@ -211,7 +218,9 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     for name, value in (("spacing", spacing), ("sigma", sigma)):
         if not value > 0:
             raise ValueError(f"{name} must be > 0 mm, got {value!r}")
-    for name, value in (("n_tets", n_tets), ("truth_tets", truth_tets)):
+    fine_tets = 2 * int(n_tets) if fine_tets is None else fine_tets
+    for name, value in (("n_tets", n_tets), ("truth_tets", truth_tets),
+                        ("fine_tets", fine_tets)):
         if int(value) < 100:
             raise ValueError(f"{name} must be an integer >= 100, got {value!r}")
     if truth == "independent":
@@ -225,7 +234,7 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     if truth is None:
         truth = functools.partial(_reference_truth, truth_tets=truth_tets, cache=truth_cache,
                                   cache_dir=cache_dir)
-    built, scans = dict(cases or {}), {}
+    built, scans, models = dict(cases or {}), {}, {}
 
     def case(patient):
         if patient not in built:
@@ -233,16 +242,30 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         return built[patient]
 
     def predict(patient, method):
-        if method not in STUDY_METHODS + CONTROL_METHODS + AUTO_METHODS:
+        paper001 = is_paper001_method(method)
+        if method not in STUDY_METHODS + CONTROL_METHODS + AUTO_METHODS and not paper001:
             raise ValueError(f"method must be 'proposed', 'state_of_the_art' or 'truth' "
-                             f"(or one of {CONTROL_METHODS + AUTO_METHODS}), got {method!r}")
+                             f"(or one of {CONTROL_METHODS + AUTO_METHODS} or paper 001's "
+                             f"models), got {method!r}")
         c = case(patient)
         if patient not in scans:
             scans[patient] = _scan(c, patient, truth, noise_hu, ct_spacing)
         grid, registered, pre_skin, judged = scans[patient]
+        size = int(fine_tets) if method == FINE_METHOD else int(n_tets)
+
+        def compute():
+            if not paper001:
+                return _prediction(c, method, grid, pre_skin, n_tets, sigma)
+            key = (patient, size)
+            if key not in models:  # one pipeline per patient and size, kept for its models
+                for other in [k for k in models if k[0] != patient]:
+                    del models[other]
+                models[key] = paper001_pipeline(c, size)
+            res = models[key]
+            return _face_y0(res.labels), _map(paper001_solve(res, method), pre_skin, sigma)
+
         y0, pred = cached_prediction(
-            lambda: _prediction(c, method, grid, pre_skin, n_tets, sigma), c, method,
-            {"n_tets": int(n_tets), "sigma": float(sigma)},
+            compute, c, method, {"n_tets": size, "sigma": float(sigma)},
             cache=prediction_cache and method != "truth", cache_dir=cache_dir,
             n_points=pre_skin.n_points)
         return _judge(c, registered, pred, y0, judged)
@@ -315,13 +338,17 @@ def _prediction(case, method, grid, pre_skin, n_tets, sigma):
         g = filters.sample_muscle_fraction(res.mesh, res.labels)
         g = filters.fiber_directions(g)
         post = mtm.solve(filters.assign_materials(g))
-    # the Gaussian must span the element size, or coarse meshes leave holes
+    return _face_y0(res.labels), _map(post, pre_skin, sigma)
+
+
+def _map(post, pre_skin, sigma):
+    """A solved mesh's displacement on the pre-operative CT's skin (the skin the truth is
+    measured on), by a Gaussian at least half the median edge wide (narrower ones leave
+    holes on coarse meshes)."""
     edges = post.extract_all_edges().compute_cell_sizes(length=True, area=False,
                                                         volume=False)
     width = max(sigma, 0.5 * float(np.median(edges["Length"])))
-    # the skin of the pre-operative CT, as the truth is measured
-    return _face_y0(res.labels), post.cmf.map_to_surface(pre_skin, method="gaussian",
-                                                         sigma=width)
+    return post.cmf.map_to_surface(pre_skin, method="gaussian", sigma=width)
 
 
 def _face_y0(labels):

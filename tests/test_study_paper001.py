@@ -1,0 +1,174 @@
+"""Paper 001's models and claims in the validation study (``pvcmf.study.paper001``,
+``pvcmf.study.claims``): the homogeneous model at a wrong Poisson ratio ranks worse on
+the face with p < 0.05, the same model run twice shows no difference, the sweep's optimum
+is not the degraded ratio, and the claims' tests fail where they must (synthetic
+per-patient errors). One small virtual patient on the synthetic truth (the truth's own
+fine grid solved by the MTM: no NGSolve needed)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from pvcmf import arrays, mtm, reference
+from pvcmf.study import claims as claims_mod
+from pvcmf.study.claims import below_tolerance, mesh_size_claims, nu_optimum, region_table
+from pvcmf.study.inference import claims_table, compare_methods, paired_errors
+from pvcmf.study.paper001 import (
+    FINE_METHOD, PAPER_NU, is_paper001_method, method_nu, nu_method,
+)
+from pvcmf.study.validation import run_study, study_predictor
+
+SMALL = dict(spacing=3.0, n_tets=2000, truth_tets=4000, fine_tets=3000)
+WRONG = nu_method(0.499)
+
+
+def synthetic_truth(case):
+    """The truth's planned grid (true labels, fine conforming mesh) solved by the MTM."""
+    _, grid = reference._truth_grid(case, 3000, 0.5, False)
+    return mtm.solve(grid)
+
+
+@pytest.fixture(scope="module")
+def runs():
+    methods = ("homogeneous", WRONG, nu_method(0.4), "inhomogeneous", FINE_METHOD)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*thinner than the")
+        warnings.filterwarnings("ignore", message=".*muscle")
+        first = run_study(study_predictor(**SMALL, truth=synthetic_truth), patients=(1,),
+                          methods=methods)
+        second = run_study(study_predictor(**SMALL, truth=synthetic_truth), patients=(1,),
+                           methods=("homogeneous",))
+    return first[0], second[0]
+
+
+def test_method_names():
+    assert nu_method(PAPER_NU) == "homogeneous" and method_nu("homogeneous") == PAPER_NU
+    assert method_nu(nu_method(0.485)) == 0.485 and method_nu("proposed") is None
+    assert is_paper001_method(FINE_METHOD) and not is_paper001_method("state_of_the_art")
+    with pytest.raises(ValueError, match="nu must be in"):
+        nu_method(0.5)
+    with pytest.raises(ValueError, match="got 'sampling'"):
+        study_predictor(**SMALL)(1, "sampling")
+
+
+def test_wrong_poisson_ratio_ranks_worse(runs):
+    """nu 0.499 (near incompressible: linear tetrahedra lock) against paper 001's 0.46 on
+    the same mesh: the paired test over the face's points says the wrong ratio errs more."""
+    skins = runs[0]
+    row = compare_methods(skins, WRONG, "homogeneous", n_boot=200).iloc[0]
+    assert row["verdict"] == "b better" and row["p_value"] < 0.05
+    assert row["difference"] > 0 and row["ci_low"] > 0 and row["effect_size"] > 0
+    table, spread, _ = nu_optimum(skins)
+    assert table.loc[table["optimum"], "nu"].item() != 0.499
+    assert spread["grid"] == (0.4, 0.46, 0.499)
+
+
+def test_same_model_twice_shows_no_difference(runs):
+    first, second = runs
+    skins = {1: {"a": first[1]["homogeneous"], "b": second[1]["homogeneous"]}}
+    row = compare_methods(skins, "a", "b", n_boot=200).iloc[0]
+    assert row["verdict"] == "no difference" and row["p_value"] == 1.0
+    assert row["difference"] == 0.0 and row["n"] > 1000
+
+
+def test_models_and_meshes_differ_and_a_recomputed_one_does_not(runs):
+    """The inhomogeneous model is another model (its skin moves differently), the finer
+    mesh another mesh of the same model (at these tiny sizes their skins differ by mm: the
+    Gaussian mapping spans half an edge); the same model and mesh recomputed gives the
+    same skin."""
+    skins = runs[0][1]
+    hom, inh, fine = skins["homogeneous"], skins["inhomogeneous"], skins[FINE_METHOD]
+    assert claims_mod._skin_change(hom, inh, q=100) > 1e-3
+    change = claims_mod._skin_change(hom, fine)
+    assert 0.01 < change < 5.0
+    assert claims_mod._skin_change(hom, runs[1][1]["homogeneous"]) == 0.0
+
+
+def test_per_region_rows(runs):
+    table = region_table(runs[0], ["homogeneous", WRONG])
+    assert list(table["region"].unique()) == ["lips", "chin", "nose", "cheeks"]
+    lips = table[(table.region == "lips")].set_index("method")
+    assert (lips["n"] >= 20).all() and lips["p90"].between(0.1, 10).all()
+    assert (lips["p50"] < lips["p90"]).all()
+    assert lips.loc[WRONG, "p90"] != lips.loc["homogeneous", "p90"]
+
+
+# ---------------------------------------------------------------- the claims' tests fail
+
+
+def _skin(err, n=60, regions=None):
+    s = pv.PolyData(np.column_stack([np.zeros(n), np.zeros(n), np.arange(n, dtype=float)]))
+    s[arrays.SKIN_POINT_ID] = np.arange(n)
+    s[arrays.DISTANCE] = err * np.linspace(0.5, 1.5, n)
+    s[arrays.REGION] = (np.arange(n) % 7).astype(np.uint8) if regions is None else regions
+    return s
+
+
+def _nu_skins(optimum, n_patients=10):
+    """Per patient the error grows with the distance of nu from that patient's optimum."""
+    nus = (0.30, 0.40, 0.43, 0.45, 0.46, 0.47, 0.48, 0.49)
+    return {p: {nu_method(nu): _skin(1.0 + 2.0 * abs(nu - optimum(p))) for nu in nus}
+            for p in range(n_patients)}
+
+
+def test_nu_optimum_finds_the_paper_value_and_rejects_a_wrong_one():
+    paper = nu_optimum(_nu_skins(lambda p: (0.45, 0.46, 0.47)[p % 3]), n_boot=300)[1:]
+    assert paper[0]["median"] == 0.46 and paper[0]["paper_in_ci"]
+    assert paper[1][0]["holds"] and paper[1][1]["holds"]  # optimum 0.46; loss < 0.1 mm
+    wrong = nu_optimum(_nu_skins(lambda p: (0.30, 0.40)[p % 2]), n_boot=300)[1:]
+    spread, (optimum, loss) = wrong
+    assert not spread["paper_in_ci"] and spread["at_grid_end"] == 5
+    assert optimum["verdict"] == "a better" and optimum["p_value"] < 0.05
+    assert not optimum["holds"] and not loss["holds"]  # nu 0.46 costs 0.12-0.32 mm
+
+
+def test_mesh_claims_fail_for_a_mesh_that_changes_the_prediction():
+    same = {p: {"homogeneous": _skin(1.0), FINE_METHOD: _skin(1.0)} for p in range(8)}
+    assert [r["holds"] for r in mesh_size_claims(same, sizes=(5000, 10000))] == [True] * 3
+    worse = {}
+    for p in range(8):
+        coarse = _skin(1.3 + 0.01 * p)
+        coarse.points = coarse.points + [0.0, 0.8, 0.0]  # the skin 0.8 mm away
+        worse[p] = {"homogeneous": coarse, FINE_METHOD: _skin(1.0)}
+    rows = mesh_size_claims(worse, sizes=(5000, 10000), n_boot=200)
+    assert [r["verdict"] for r in rows] == ["b better", "b better", "b better"]
+    assert not any(r["holds"] for r in rows)
+    assert "5000 tetrahedra" in rows[0]["claim"] and rows[0]["p_value"] < 0.05
+
+
+def test_below_tolerance_is_not_shown_by_a_few_patients():
+    assert not below_tolerance([0.01, 0.02, 0.01], 0.5, "c", "x", n_boot=50)["holds"]
+    with pytest.raises(ValueError, match="tolerance"):
+        below_tolerance([0.1, 0.2], -1.0, "c", "x")
+
+
+def test_region_claim_ranks_a_degraded_region_worse():
+    """Errors worse on the lips alone: the lips' claim holds, the nose's finds nothing."""
+    regions = (np.arange(60) % 7).astype(np.uint8)
+    lips = np.isin(regions, [1, 2])
+    skins = {}
+    for p in range(8):
+        bad = _skin(1.0, regions=regions)
+        bad[arrays.DISTANCE] = np.where(lips, bad[arrays.DISTANCE] + 0.5 + 0.01 * p,
+                                        bad[arrays.DISTANCE])
+        skins[p] = {"proposed": _skin(1.0, regions=regions), "bad": bad}
+    claims = [("lips", "proposed", "bad", "p90", "lips"),
+              ("nose", "proposed", "bad", "p90", "nose")]
+    import pvcmf.study.inference as inference
+    old = inference.MIN_REGION_POINTS
+    try:
+        inference.MIN_REGION_POINTS = 5
+        table = claims_table(skins, claims, n_boot=100).set_index("claim")
+    finally:
+        inference.MIN_REGION_POINTS = old
+    assert table.loc["lips", "holds"] and table.loc["lips", "p_value"] < 0.05
+    assert table.loc["nose", "verdict"] == "no difference"
+    # too few points in a region: not tested rather than a verdict on nothing
+    few = claims_table(skins, claims[:1], n_boot=50)
+    assert few["verdict"].item() == "not tested" and few["n"].item() == 0
+    with pytest.raises(ValueError, match="region must be"):
+        paired_errors(skins[0]["proposed"], skins[0]["bad"], region=("mouth",))
