@@ -31,9 +31,10 @@ from scipy.spatial import cKDTree
 from . import arrays, filters, mtm
 from ._atomic import write_text
 from .filters.bone_segments import segment_volumes
-from .filters.meshing.skin_fit import dense_skin, on_hard_tissue
+from .filters.meshing.skin_fit import DEFAULT_REACH, on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
 from .filters.segmentation import tissue_volumes
+from .filters.skin import NECK_BELOW_BOX, head_skin, sub_surface  # noqa: F401 (public here too)
 from .filters.surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
 from .io import read_ct
 from .io.orientation import standardize
@@ -44,7 +45,7 @@ from .progress import Progress
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Result", "simulate", "STEPS", "write_outputs"]
+__all__ = ["Result", "simulate", "head_skin", "STEPS", "write_outputs"]
 
 #: the steps of :func:`simulate`, in order, as named in the timing summary
 STEPS = ("read", "segment", "classify", "bone segments", "muscles", "mesh", "skin fit", "fibres",
@@ -237,9 +238,11 @@ def _mesh(labels, n_tets, options, progress_bar, box):
 
 
 def _fit_skin(grid, labels, box, options):
-    """Step "skin fit": the dense skin in the box, the mesh fitted to it (not to bare bone)."""
-    skin = dense_skin(labels, box, grow=2 * DEFAULT_BAND)  # all the transfer reaches
-    cloud = skin.extract_points(~on_hard_tissue(skin.points, labels), adjacent_cells=False)
+    """Step "skin fit": the mesh fitted to the dense skin within the transfer's reach of the
+    box (not to bare bone); returns the fitted mesh and the head's skin (:func:`head_skin`)."""
+    skin = head_skin(labels, box)
+    near = _near(skin.points, box, 2 * DEFAULT_BAND)  # all the transfer reaches
+    cloud = skin.extract_points(near & ~on_hard_tissue(skin.points, labels), adjacent_cells=False)
     return filters.fit_to_skin(grid, cloud, labels=labels, box=box, **options), skin
 
 
@@ -260,26 +263,50 @@ def _apply_plan(grid, plan, labels, options):
     return drop_floating_parts(filters.apply_plan(grid, plan, labels, **options))
 
 
+#: mm beyond the model's box within which the skin takes the transfer; beyond it the mesh
+#: (within ``DEFAULT_REACH`` of the box) is farther than ``2 band``: zero displacement
+TRANSFER_REACH = 2 * DEFAULT_BAND + DEFAULT_REACH + 1.0
+
+
+def _near(points, box, grow):
+    """Points within ``box`` grown by ``grow`` mm (all points without a box)."""
+    p = np.asarray(points)
+    if box is None:
+        return np.ones(len(p), dtype=bool)
+    b = np.asarray(box, dtype=float) + float(grow) * np.tile([-1.0, 1.0], 3)
+    return ((p >= b[0::2]) & (p <= b[1::2])).all(axis=1)
+
+
 def _skin(labels, post, pre=None, box=None):
-    """Pre-operative skin (``pre`` or the dense skin in ``box``) and, with a solved mesh,
-    the predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
-    displacement. Skin beyond the transfer's band or on bare teeth or bone is not modelled
-    (``arrays.SKIN_MODELLED``); the crumple metric over the modelled skin goes to the
-    predicted skin's field data."""
-    pre = dense_skin(labels, box, grow=2 * DEFAULT_BAND) if pre is None else pre.copy()
+    """Pre-operative skin (``pre`` or :func:`head_skin`) and, with a solved mesh, the
+    predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
+    displacement onto the skin within :data:`TRANSFER_REACH` of the box (farther, zero
+    displacement: the transfer is zero there anyway). Skin beyond the transfer's band or on
+    bare teeth or bone is not modelled (``arrays.SKIN_MODELLED``); the crumple metric over
+    the modelled skin goes to the predicted skin's field data."""
+    pre = head_skin(labels, box) if pre is None else pre.copy()
     pre.point_data.pop(arrays.NORMALS, None)
     if post is None:
         return pre, None
+    near = _near(pre.points, box, TRANSFER_REACH)
+    tri = pre.faces.reshape(-1, 4)[:, 1:]
+    part, ids = sub_surface(pre, tri[near[tri].all(axis=1)])
     u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
-    transfer = Transfer(post, pre)
-    disp = transfer(u_nodes)
-    modelled = transfer.modelled & ~on_hard_tissue(pre.points, labels)
-    metric = crumple_metric(pre, disp, post, u_nodes, transfer=transfer, modelled=modelled)
-    log.info("skin: %d points (%d modelled), %d edges stretched beyond the mesh's gradients "
-             "(max ratio %.3g)", pre.n_points, metric[arrays.SKIN_MODELLED_POINTS],
-             metric[arrays.CRUMPLE_VIOLATIONS], metric[arrays.CRUMPLE_MAX_RATIO])
+    transfer = Transfer(post, part)
+    disp_part = transfer(u_nodes)
+    modelled_part = transfer.modelled & ~on_hard_tissue(part.points, labels)
+    metric = crumple_metric(part, disp_part, post, u_nodes, transfer=transfer,
+                            modelled=modelled_part)
+    log.info("skin: %d points (%d within reach of the model, %d modelled), %d edges stretched "
+             "beyond the mesh's gradients (max ratio %.3g)", pre.n_points, len(ids),
+             metric[arrays.SKIN_MODELLED_POINTS], metric[arrays.CRUMPLE_VIOLATIONS],
+             metric[arrays.CRUMPLE_MAX_RATIO])
+    disp = np.zeros((pre.n_points, 3))
+    disp[ids] = disp_part
+    modelled = np.zeros(pre.n_points, dtype=np.uint8)
+    modelled[ids] = modelled_part
     pre.point_data[arrays.DISPLACEMENT] = disp
-    pre.point_data[arrays.SKIN_MODELLED] = modelled.astype(np.uint8)
+    pre.point_data[arrays.SKIN_MODELLED] = modelled
     moved = pre.copy()
     moved.points = np.asarray(pre.points) + disp
     for name in _SKIN_SUMMARY:

@@ -33,8 +33,8 @@ from vtkmodules.vtkRenderingCore import vtkSelectVisiblePoints
 
 from .. import arrays
 
-__all__ = ["VIEWS", "to_display", "display_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
-           "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
+__all__ = ["VIEWS", "to_display", "display_bounds", "frame_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
+           "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "modelled_points", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
            "prediction_summary", "carry_to_skin",
            "displacement_views"]
 
@@ -84,6 +84,52 @@ def display_bounds(mesh):
     """
     b = [float(v) for v in mesh.bounds]
     return (-b[1], -b[0], b[2], b[3], b[4], b[5])
+
+
+#: height (mm) of the axial slabs in which :func:`frame_bounds` measures the head's width
+FRAME_SLAB = 5.0
+#: a slab this many times wider than the head (the upper half's widest slab) is shoulders
+FRAME_WIDEN = 1.1
+
+
+def frame_bounds(mesh):
+    """Display-frame bounds that frame the head of ``mesh`` (patient frame).
+
+    :func:`display_bounds`, with the width and depth of the head above the shoulders: the
+    skin is cut into :data:`FRAME_SLAB` mm axial slabs, the head's width (x) is the widest
+    slab of the upper half, and the slabs below the highest one wider than
+    :data:`FRAME_WIDEN` times that (a scan that ends at the shoulders) set neither the
+    width nor the depth; the height is the whole skin's (a bent head's chin may reach
+    below the shoulders' top). A head with no shoulders is framed whole. The panels then
+    show the head as a portrait, the shoulders running out of it.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> head = pv.Sphere(radius=80.0, center=(0.0, 0.0, 100.0))
+    >>> shoulders = pv.Cylinder(center=(0.0, 0.0, 0.0), direction=(0, 0, 1), radius=200.0,
+    ...                         height=20.0)
+    >>> b = frame_bounds(head.merge(shoulders))
+    >>> round(b[1] - b[0]), round(b[4])
+    (160, -10)
+    """
+    p = np.asarray(mesh.points, dtype=np.float64)
+    if len(p) == 0:
+        return display_bounds(mesh)
+    z = p[:, 2]
+    n = max(int(np.ceil((z.max() - z.min()) / FRAME_SLAB)), 2)
+    slab = np.minimum(((z - z.min()) / FRAME_SLAB).astype(np.int64), n - 1)
+    lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
+    np.minimum.at(lo, slab, p[:, 0])
+    np.maximum.at(hi, slab, p[:, 0])
+    width = np.where(hi >= lo, hi - lo, 0.0)
+    head = width[n // 2:].max()
+    wide = np.flatnonzero(width[:n // 2] > FRAME_WIDEN * head)
+    if head <= 0 or not len(wide):
+        return display_bounds(mesh)
+    keep = p[slab > wide.max()]  # the head: its width and depth; the height is all of it
+    return (-float(keep[:, 0].max()), -float(keep[:, 0].min()), float(keep[:, 1].min()),
+            float(keep[:, 1].max()), float(z.min()), float(z.max()))
 
 
 def _check_view(view):
@@ -306,8 +352,8 @@ def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
     window_size = window_size or (880, 500 * len(views))
     p = pv.Plotter(off_screen=True, shape=(len(views), 2), window_size=list(window_size),
                    border=False)
-    bounds = np.asarray(display_bounds(pre)).reshape(3, 2)
-    post_b = np.asarray(display_bounds(post)).reshape(3, 2)
+    bounds = np.asarray(frame_bounds(pre)).reshape(3, 2)
+    post_b = np.asarray(frame_bounds(post)).reshape(3, 2)
     bounds = np.c_[np.minimum(bounds[:, 0], post_b[:, 0]), np.maximum(bounds[:, 1], post_b[:, 1])]
     for row, view in enumerate(views):
         for col, (skin, label) in enumerate(((pre, PRE_LABEL), (post, POST_LABEL))):
@@ -405,16 +451,37 @@ def visible_in_views(surface, views=("frontal", "profile")):
     return seen
 
 
+def modelled_points(skin):
+    """The points of ``skin`` the model predicts: its ``arrays.SKIN_MODELLED`` array, all
+    points without it. The rest of a head's skin (the back of the head, the neck) keeps
+    zero displacement and sets no colour range.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> skin = pv.PolyData(np.zeros((3, 3)))
+    >>> modelled_points(skin).tolist()
+    [True, True, True]
+    >>> skin.point_data[arrays.SKIN_MODELLED] = np.array([1, 0, 1], np.uint8)
+    >>> modelled_points(skin).tolist()
+    [True, False, True]
+    """
+    if arrays.SKIN_MODELLED in skin.point_data:
+        return np.asarray(skin.point_data[arrays.SKIN_MODELLED]).astype(bool)
+    return np.ones(skin.n_points, dtype=bool)
+
+
 def displacement_limit(skin, component="ap", views=("frontal", "profile"), percentile=99.0,
                        visible=None):
     """Colour limit (mm) of a displacement component over the VISIBLE points.
 
-    ``percentile`` of ``|value|`` over the points of ``skin`` visible in any of ``views``
-    (:func:`visible_in_views`, :func:`symmetric_limit`), or over ``visible`` when given.
+    ``percentile`` of ``|value|`` over the modelled points of ``skin``
+    (:func:`modelled_points`) visible in any of ``views`` (:func:`visible_in_views`,
+    :func:`symmetric_limit`), or over ``visible`` when given.
     """
     values = signed_displacement(skin, component)
     if visible is None:
-        visible = visible_in_views(skin, views)
+        visible = visible_in_views(skin, views) & modelled_points(skin)
     return symmetric_limit(values, visible, percentile)
 
 
@@ -431,8 +498,8 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     views : sequence of str
         Panels, left to right.
     percentile : float
-        The range is ``[-m, m]`` with ``m`` this percentile of ``|value|`` over the points
-        visible in any of ``views`` (:func:`displacement_limit`).
+        The range is ``[-m, m]`` with ``m`` this percentile of ``|value|`` over the
+        modelled points visible in any of ``views`` (:func:`displacement_limit`).
     limit : float, optional
         Use ``[-limit, limit]`` (``[0, limit]`` for the magnitude) instead.
     visible : numpy.ndarray of bool, optional
@@ -449,7 +516,7 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     values = signed_displacement(skin, component)
     if limit is None:  # displacement_limit, without computing the values twice
         if visible is None:
-            visible = visible_in_views(skin, views)
+            visible = visible_in_views(skin, views) & modelled_points(skin)
         m = symmetric_limit(values, visible, percentile)
     else:
         m = float(limit)
@@ -469,7 +536,7 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
         p.set_background("white", all_renderers=False)
         actor = add_patient_mesh(p, shown, scalars=title, cmap=cmap, clim=clim,
                                  show_scalar_bar=False, specular=0.1)
-        set_view(p, display_bounds(skin), view)
+        set_view(p, frame_bounds(skin), view)
         p.add_text(VIEW_TITLES[view], font_size=10, color="black")
     p.subplot(1, 0)
     p.set_background("white", all_renderers=False)
