@@ -209,7 +209,7 @@ def render(result):
         skin = pre.copy()
         skin.point_data[arrays.DISPLACEMENT] = np.asarray(post[arrays.DISPLACEMENT])
         shown = ("frontal", "profile")
-        # the colour ranges: the modelled face (not the unmoved back of the head) in view
+        # colour ranges: the modelled face in view (not the unmoved back of the head)
         seen = face_views.visible_in_views(skin, shown) & face_views.modelled_points(pre)
         for component, name in (("ap", "displacement_ap.png"),
                                 ("normal", "displacement_normal.png"),

@@ -34,7 +34,8 @@ from .filters.bone_segments import segment_volumes
 from .filters.meshing.skin_fit import DEFAULT_REACH, on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
 from .filters.segmentation import tissue_volumes
-from .filters.skin import NECK_BELOW_BOX, head_skin, sub_surface  # noqa: F401 (public here too)
+from .filters.skin import (NECK_BELOW_BOX, coarsen_outside, head_skin,  # noqa: F401 (public)
+                           sub_surface)
 from .filters.surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
 from .io import read_ct
 from .io.orientation import standardize
@@ -266,6 +267,8 @@ def _apply_plan(grid, plan, labels, options):
 #: mm beyond the model's box within which the skin takes the transfer; beyond it the mesh
 #: (within ``DEFAULT_REACH`` of the box) is farther than ``2 band``: zero displacement
 TRANSFER_REACH = 2 * DEFAULT_BAND + DEFAULT_REACH + 1.0
+#: share of the skin's triangles beyond TRANSFER_REACH removed (it does not move; drawn)
+FAR_REDUCTION = 0.75
 
 
 def _near(points, box, grow):
@@ -281,11 +284,12 @@ def _skin(labels, post, pre=None, box=None):
     """Pre-operative skin (``pre`` or :func:`head_skin`) and, with a solved mesh, the
     predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
     displacement onto the skin within :data:`TRANSFER_REACH` of the box (farther, zero
-    displacement: the transfer is zero there anyway). Skin beyond the transfer's band or on
+    displacement: the transfer is zero there anyway, and the skin there keeps a quarter of
+    its triangles, :data:`FAR_REDUCTION`). Skin beyond the transfer's band or on
     bare teeth or bone is not modelled (``arrays.SKIN_MODELLED``); the crumple metric over
     the modelled skin goes to the predicted skin's field data."""
-    pre = head_skin(labels, box) if pre is None else pre.copy()
-    pre.point_data.pop(arrays.NORMALS, None)
+    pre = head_skin(labels, box) if pre is None else pre
+    pre = coarsen_outside(pre, _near(pre.points, box, TRANSFER_REACH), FAR_REDUCTION)
     if post is None:
         return pre, None
     near = _near(pre.points, box, TRANSFER_REACH)

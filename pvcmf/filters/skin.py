@@ -365,3 +365,56 @@ def sub_surface(surface, tri):
     for name in surface.point_data.keys():
         out.point_data[name] = np.asarray(surface.point_data[name])[ids]
     return out, ids
+
+
+def coarsen_outside(surface, keep, reduction):
+    """``surface`` with its triangles that have a point outside ``keep`` decimated.
+
+    The triangles whose three points are in ``keep`` stay as they are; the others are
+    decimated by ``reduction`` (VTK's ``vtkDecimatePro`` via
+    :meth:`pyvista.PolyDataFilters.decimate_pro`, topology kept and no boundary point
+    deleted: the seam between the two parts and any open end of the surface stay in
+    place, so that the parts join again without a crack). Used to draw the skin far from
+    the model (which does not move) with fewer triangles.
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        Triangle surface.
+    keep : array_like of bool
+        One value per point of ``surface``.
+    reduction : float
+        Share in [0, 1) of the outer part's triangles to remove.
+
+    Returns
+    -------
+    pyvista.PolyData
+        A new triangle surface, without point or cell arrays.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> sphere = pv.Sphere(theta_resolution=60, phi_resolution=60)
+    >>> out = coarsen_outside(sphere, np.asarray(sphere.points)[:, 1] > 0, 0.75)
+    >>> out.n_points < sphere.n_points, out.n_open_edges
+    (True, 0)
+    """
+    keep = np.asarray(keep, dtype=bool)
+    if keep.shape != (surface.n_points,):
+        raise ValueError(f"keep must have one value per point ({surface.n_points}), "
+                         f"got shape {keep.shape}")
+    if not 0.0 <= float(reduction) < 1.0:
+        raise ValueError(f"reduction must be in [0, 1), got {reduction!r}")
+    tri = surface.faces.reshape(-1, 4)[:, 1:]
+    inner = keep[tri].all(axis=1)
+    if inner.all() or float(reduction) == 0.0:
+        return pv.PolyData(np.asarray(surface.points), surface.faces)
+    outer, _ = sub_surface(surface, tri[~inner])
+    outer.clear_data()
+    outer = outer.decimate_pro(float(reduction), preserve_topology=True, splitting=False,
+                               boundary_vertex_deletion=False)
+    if not inner.any():
+        return outer
+    near, _ = sub_surface(surface, tri[inner])
+    near.clear_data()
+    return near.merge(outer, merge_points=True).extract_surface(algorithm="dataset_surface")
