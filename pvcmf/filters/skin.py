@@ -11,8 +11,8 @@
   the surface), and outward point normals are added (``vtkPolyDataNormals``).
   The image is padded with air first, so the surface is closed where the head leaves the
   field of view; with ``open_boundary=True`` it is padded with its own edge values instead
-  (the head goes on beyond the image), and the triangles beyond the image's bounds are
-  dropped: the surface is left open where the scan ends, with no cap. The outward side of
+  (the head goes on beyond the image), and the surface is clipped to the image's bounds
+  (``vtkClipPolyData``): it is left open where the scan ends, with no cap. The outward side of
   such an open surface is found from the head mask (the smoothed mask falls along the
   outward normal).
 * Tetrahedral grid: its boundary triangles (``vtkDataSetSurfaceFilter`` via
@@ -109,18 +109,25 @@ def _image_skin(image, threshold, smooth, fill_holes, sinc, open_boundary=False)
 
 
 def _within(surface, bounds, tol):
-    """The largest connected piece of the triangles of ``surface`` whose corners all lie
-    within ``bounds`` (grown by ``tol``)."""
-    p = np.asarray(surface.points)
+    """The largest connected piece of ``surface`` clipped to ``bounds`` (``vtkClipPolyData``
+    on each plane of the bounds that ``surface`` crosses by more than ``tol``): the
+    surface ends on the planes, with a straight edge."""
     b = np.asarray(bounds, dtype=float)
-    inside = ((p >= b[0::2] - tol) & (p <= b[1::2] + tol)).all(axis=1)
-    tri = surface.faces.reshape(-1, 4)[:, 1:]
-    tri = tri[inside[tri].all(axis=1)]
-    if not len(tri):
+    for axis in range(3):
+        for side, sign in ((0, -1.0), (1, 1.0)):
+            p = np.asarray(surface.points)
+            if not len(p):
+                raise ValueError("the head's contour has no triangle within the image")
+            if not np.any(sign * (p[:, axis] - b[2 * axis + side]) > tol):
+                continue
+            normal = np.zeros(3)
+            normal[axis] = sign  # the clip removes the side the normal points to
+            origin = np.zeros(3)
+            origin[axis] = b[2 * axis + side]
+            surface = surface.clip(normal=normal, origin=origin, progress_bar=False)
+    if not surface.n_cells:
         raise ValueError("the head's contour has no triangle within the image")
-    ids, local = np.unique(tri, return_inverse=True)
-    faces = np.column_stack([np.full(len(tri), 3), local.reshape(-1, 3)]).ravel()
-    return pv.PolyData(p[ids], faces).connectivity("largest").extract_surface(
+    return surface.triangulate().clean().connectivity("largest").extract_surface(
         algorithm="dataset_surface").clean()
 
 
@@ -243,8 +250,8 @@ def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labe
         terraces without shrinking the surface); 0 keeps the contour.
     open_boundary : bool, default False
         Image only: leave the surface open where the head leaves the image (the scan's
-        field of view ends across the neck, the vertex or the face): the triangles beyond
-        the image's bounds are dropped instead of closing the surface with a cap.
+        field of view ends across the neck, the vertex or the face): the surface is
+        clipped to the image's bounds instead of being closed with a cap.
     progress_bar : bool, default False
         Show the step (:class:`pvcmf.progress.Progress`).
 
@@ -302,9 +309,9 @@ def head_skin(labels, box=None, below=NECK_BELOW_BOX):
     The dense skin of the label image (:func:`extract_skin`, sub-voxel), left open where
     the scan's field of view ends (no cap over a cut neck, vertex or face:
     ``open_boundary=True``). Given the model's ``box``, the neck and shoulders more than
-    ``below`` mm under it are left out (the triangles with a corner lower; the shoulders
-    would otherwise set the figures' framing); the back of the head, outside the model, is
-    kept.
+    ``below`` mm under it are cut off (``vtkClipPolyData``, the largest piece kept; the
+    shoulders would otherwise set the figures' framing); the back of the head, outside the
+    model, is kept.
 
     Parameters
     ----------
@@ -335,12 +342,13 @@ def head_skin(labels, box=None, below=NECK_BELOW_BOX):
     if box is not None:
         if not float(below) >= 0:
             raise ValueError(f"below must be a number >= 0 (mm), got {below!r}")
-        keep = np.asarray(skin.points)[:, 2] >= float(box[4]) - float(below)
-        tri = skin.faces.reshape(-1, 4)[:, 1:]
-        tri = tri[keep[tri].all(axis=1)]
-        if not len(tri):
-            raise ValueError(f"the skin has no triangle above z = {box[4] - below} mm")
-        skin, _ = sub_surface(skin, tri)
+        cut = float(box[4]) - float(below)
+        if np.asarray(skin.points)[:, 2].min() < cut:
+            skin = skin.clip(normal=(0.0, 0.0, -1.0), origin=(0.0, 0.0, cut), progress_bar=False)
+            if not skin.n_cells:
+                raise ValueError(f"the skin has no triangle above z = {cut} mm")
+            skin = skin.triangulate().clean().connectivity("largest").extract_surface(
+                algorithm="dataset_surface")
     out = pv.PolyData(np.asarray(skin.points, dtype=float), skin.faces)
     out.point_data[arrays.NORMALS] = np.asarray(skin.point_data[arrays.NORMALS], dtype=float)
     return out
