@@ -416,7 +416,7 @@ def coarsen_outside(surface, keep, reduction):
     tri = surface.faces.reshape(-1, 4)[:, 1:]
     inner = keep[tri].all(axis=1)
     if inner.all() or float(reduction) == 0.0:
-        return pv.PolyData(np.asarray(surface.points), surface.faces)
+        return pv.PolyData(np.array(surface.points, dtype=float), np.array(surface.faces))
     outer, _ = sub_surface(surface, tri[~inner])
     outer.clear_data()
     outer = outer.decimate_pro(float(reduction), preserve_topology=True, splitting=False,
