@@ -31,12 +31,13 @@ from scipy.spatial import cKDTree
 from . import arrays, filters, mtm
 from ._atomic import write_text
 from .filters.bone_segments import segment_volumes
-from .filters.meshing.skin_fit import DEFAULT_REACH, on_hard_tissue
+from .filters.meshing.skin_fit import on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
 from .filters.segmentation import tissue_volumes
-from .filters.skin import (NECK_BELOW_BOX, coarsen_outside, head_skin,  # noqa: F401 (public)
-                           sub_surface)
-from .filters.surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
+from .filters.skin import NECK_BELOW_BOX, head_skin  # noqa: F401 (public here too)
+from .filters.skin_prediction import (FAR_REDUCTION, TRANSFER_REACH,  # noqa: F401 (public)
+                                      SKIN_SUMMARY, near_box, predict_skin)
+from .filters.surface_mapping import DEFAULT_BAND
 from .io import read_ct
 from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
@@ -242,7 +243,7 @@ def _fit_skin(grid, labels, box, options):
     """Step "skin fit": the mesh fitted to the dense skin within the transfer's reach of the
     box (not to bare bone); returns the fitted mesh and the head's skin (:func:`head_skin`)."""
     skin = head_skin(labels, box)
-    near = _near(skin.points, box, 2 * DEFAULT_BAND)  # all the transfer reaches
+    near = near_box(skin.points, box, 2 * DEFAULT_BAND)  # all the transfer reaches
     cloud = skin.extract_points(near & ~on_hard_tissue(skin.points, labels), adjacent_cells=False)
     return filters.fit_to_skin(grid, cloud, labels=labels, box=box, **options), skin
 
@@ -264,62 +265,12 @@ def _apply_plan(grid, plan, labels, options):
     return drop_floating_parts(filters.apply_plan(grid, plan, labels, **options))
 
 
-#: mm beyond the model's box within which the skin takes the transfer; beyond it the mesh
-#: (within ``DEFAULT_REACH`` of the box) is farther than ``2 band``: zero displacement
-TRANSFER_REACH = 2 * DEFAULT_BAND + DEFAULT_REACH + 1.0
-#: share of the skin's triangles beyond TRANSFER_REACH removed (it does not move; drawn)
-FAR_REDUCTION = 0.75
-
-
-def _near(points, box, grow):
-    """Points within ``box`` grown by ``grow`` mm (all points without a box)."""
-    p = np.asarray(points)
-    if box is None:
-        return np.ones(len(p), dtype=bool)
-    b = np.asarray(box, dtype=float) + float(grow) * np.tile([-1.0, 1.0], 3)
-    return ((p >= b[0::2]) & (p <= b[1::2])).all(axis=1)
-
-
 def _skin(labels, post, pre=None, box=None):
-    """Pre-operative skin (``pre`` or :func:`head_skin`) and, with a solved mesh, the
-    predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
-    displacement onto the skin within :data:`TRANSFER_REACH` of the box (farther, zero
-    displacement: the transfer is zero there anyway, and the skin there keeps a quarter of
-    its triangles, :data:`FAR_REDUCTION`). Skin beyond the transfer's band or on
-    bare teeth or bone is not modelled (``arrays.SKIN_MODELLED``); the crumple metric over
-    the modelled skin goes to the predicted skin's field data."""
-    pre = head_skin(labels, box) if pre is None else pre
-    pre = coarsen_outside(pre, _near(pre.points, box, TRANSFER_REACH), FAR_REDUCTION)
-    if post is None:
-        return pre, None
-    near = _near(pre.points, box, TRANSFER_REACH)
-    tri = pre.faces.reshape(-1, 4)[:, 1:]
-    part, ids = sub_surface(pre, tri[near[tri].all(axis=1)])
-    u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
-    transfer = Transfer(post, part)
-    disp_part = transfer(u_nodes)
-    modelled_part = transfer.modelled & ~on_hard_tissue(part.points, labels)
-    metric = crumple_metric(part, disp_part, post, u_nodes, transfer=transfer,
-                            modelled=modelled_part)
-    log.info("skin: %d points (%d within reach of the model, %d modelled), %d edges stretched "
-             "beyond the mesh's gradients (max ratio %.3g)", pre.n_points, len(ids),
-             metric[arrays.SKIN_MODELLED_POINTS], metric[arrays.CRUMPLE_VIOLATIONS],
-             metric[arrays.CRUMPLE_MAX_RATIO])
-    disp = np.zeros((pre.n_points, 3))
-    disp[ids] = disp_part
-    modelled = np.zeros(pre.n_points, dtype=np.uint8)
-    modelled[ids] = modelled_part
-    pre.point_data[arrays.DISPLACEMENT] = disp
-    pre.point_data[arrays.SKIN_MODELLED] = modelled
-    moved = pre.copy()
-    moved.points = np.asarray(pre.points) + disp
-    for name in _SKIN_SUMMARY:
-        moved.field_data[name] = np.array([metric[name]])
-    return pre, moved
+    """Step "skin": :func:`pvcmf.filters.skin_prediction.predict_skin`."""
+    return predict_skin(labels, post, pre, box)
 
 
-_SKIN_SUMMARY = (arrays.SKIN_MODELLED_POINTS, arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS,
-                 arrays.CRUMPLE_MAX_RATIO)
+_SKIN_SUMMARY = SKIN_SUMMARY
 
 
 def _write_outputs(result, out, images=None):

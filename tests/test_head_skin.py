@@ -8,8 +8,9 @@ import pytest
 import pyvista as pv
 
 from pvcmf import arrays
+from pvcmf.filters.skin_prediction import near_box
 from pvcmf.filters.surface_mapping import Transfer
-from pvcmf.pipeline import NECK_BELOW_BOX, TRANSFER_REACH, _near, _skin, head_skin
+from pvcmf.pipeline import NECK_BELOW_BOX, TRANSFER_REACH, _skin, head_skin
 
 RADII = np.array([60.0, 80.0, 90.0])
 
@@ -57,7 +58,7 @@ def test_skin_moves_as_the_transfer_over_the_whole_head(labels, post):
     whole = head_skin(labels, BOX)
     # the skin within reach of the model is the head's, point for point; farther, coarser
     tri = whole.faces.reshape(-1, 4)[:, 1:]
-    near = _near(whole.points, BOX, TRANSFER_REACH)
+    near = near_box(whole.points, BOX, TRANSFER_REACH)
     reach = np.asarray(whole.points)[np.unique(tri[near[tri].all(axis=1)])]
     pts = {tuple(x) for x in np.asarray(pre.points).round(6)}
     assert all(tuple(x) in pts for x in reach.round(6))

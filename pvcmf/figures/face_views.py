@@ -32,6 +32,7 @@ from matplotlib.figure import Figure
 from vtkmodules.vtkRenderingCore import vtkSelectVisiblePoints
 
 from .. import arrays
+from .framing import FRAME_SLAB, FRAME_WIDEN, frame_bounds  # noqa: F401 (public here too)
 
 __all__ = ["VIEWS", "to_display", "display_bounds", "frame_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
            "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "modelled_points", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
@@ -84,52 +85,6 @@ def display_bounds(mesh):
     """
     b = [float(v) for v in mesh.bounds]
     return (-b[1], -b[0], b[2], b[3], b[4], b[5])
-
-
-#: height (mm) of the axial slabs in which :func:`frame_bounds` measures the head's width
-FRAME_SLAB = 5.0
-#: a slab this many times wider than the head (the upper half's widest slab) is shoulders
-FRAME_WIDEN = 1.1
-
-
-def frame_bounds(mesh):
-    """Display-frame bounds that frame the head of ``mesh`` (patient frame).
-
-    :func:`display_bounds`, with the width and depth of the head above the shoulders: the
-    skin is cut into :data:`FRAME_SLAB` mm axial slabs, the head's width (x) is the widest
-    slab of the upper half, and the slabs below the highest one wider than
-    :data:`FRAME_WIDEN` times that (a scan that ends at the shoulders) set neither the
-    width nor the depth; the height is the whole skin's (a bent head's chin may reach
-    below the shoulders' top). A head with no shoulders is framed whole. The panels then
-    show the head as a portrait, the shoulders running out of it.
-
-    Examples
-    --------
-    >>> import pyvista as pv
-    >>> head = pv.Sphere(radius=80.0, center=(0.0, 0.0, 100.0))
-    >>> shoulders = pv.Cylinder(center=(0.0, 0.0, 0.0), direction=(0, 0, 1), radius=200.0,
-    ...                         height=20.0)
-    >>> b = frame_bounds(head.merge(shoulders))
-    >>> round(b[1] - b[0]), round(b[4])
-    (160, -10)
-    """
-    p = np.asarray(mesh.points, dtype=np.float64)
-    if len(p) == 0:
-        return display_bounds(mesh)
-    z = p[:, 2]
-    n = max(int(np.ceil((z.max() - z.min()) / FRAME_SLAB)), 2)
-    slab = np.minimum(((z - z.min()) / FRAME_SLAB).astype(np.int64), n - 1)
-    lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
-    np.minimum.at(lo, slab, p[:, 0])
-    np.maximum.at(hi, slab, p[:, 0])
-    width = np.where(hi >= lo, hi - lo, 0.0)
-    head = width[n // 2:].max()
-    wide = np.flatnonzero(width[:n // 2] > FRAME_WIDEN * head)
-    if head <= 0 or not len(wide):
-        return display_bounds(mesh)
-    keep = p[slab > wide.max()]  # the head: its width and depth; the height is all of it
-    return (-float(keep[:, 0].max()), -float(keep[:, 0].min()), float(keep[:, 1].min()),
-            float(keep[:, 1].max()), float(z.min()), float(z.max()))
 
 
 def _check_view(view):
