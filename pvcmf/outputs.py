@@ -193,7 +193,7 @@ def render(result):
     ``face_three_quarter.png``, ``face_profile.png``, the midsagittal silhouettes
     ``profile_overlay.png``, the signed displacement maps ``displacement_ap.png`` and
     ``displacement_normal.png`` and the magnitude ``displacement.png`` (colour ranges from
-    the visible face's 99th percentile). With a skeleton: ``osteotomy.png``.
+    the visible modelled face's 99th percentile). With a skeleton: ``osteotomy.png``.
     See :mod:`pvcmf.figures.face_views`.
     """
     images = {}
@@ -209,7 +209,8 @@ def render(result):
         skin = pre.copy()
         skin.point_data[arrays.DISPLACEMENT] = np.asarray(post[arrays.DISPLACEMENT])
         shown = ("frontal", "profile")
-        seen = face_views.visible_in_views(skin, shown)
+        # colour ranges: the modelled face in view (not the unmoved back of the head)
+        seen = face_views.visible_in_views(skin, shown) & face_views.modelled_points(pre)
         for component, name in (("ap", "displacement_ap.png"),
                                 ("normal", "displacement_normal.png"),
                                 ("magnitude", "displacement.png")):
@@ -225,7 +226,7 @@ def _row(skin, views, label):
     """One skin in several views, side by side."""
     p = pv.Plotter(off_screen=True, shape=(1, len(views)), window_size=[400 * len(views), 480],
                    border=False)
-    bounds = face_views.display_bounds(skin)
+    bounds = face_views.frame_bounds(skin)
     for col, view in enumerate(views):
         p.subplot(0, col)
         p.set_background("white", all_renderers=False)

@@ -31,10 +31,13 @@ from scipy.spatial import cKDTree
 from . import arrays, filters, mtm
 from ._atomic import write_text
 from .filters.bone_segments import segment_volumes
-from .filters.meshing.skin_fit import dense_skin, on_hard_tissue
+from .filters.meshing.skin_fit import on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
 from .filters.segmentation import tissue_volumes
-from .filters.surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
+from .filters.skin import NECK_BELOW_BOX, head_skin  # noqa: F401 (public here too)
+from .filters.skin_prediction import (FAR_REDUCTION, TRANSFER_REACH,  # noqa: F401 (public)
+                                      SKIN_SUMMARY, near_box, predict_skin)
+from .filters.surface_mapping import DEFAULT_BAND
 from .io import read_ct
 from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
@@ -44,7 +47,7 @@ from .progress import Progress
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Result", "simulate", "STEPS", "write_outputs"]
+__all__ = ["Result", "simulate", "head_skin", "STEPS", "write_outputs"]
 
 #: the steps of :func:`simulate`, in order, as named in the timing summary
 STEPS = ("read", "segment", "classify", "bone segments", "muscles", "mesh", "skin fit", "fibres",
@@ -237,9 +240,11 @@ def _mesh(labels, n_tets, options, progress_bar, box):
 
 
 def _fit_skin(grid, labels, box, options):
-    """Step "skin fit": the dense skin in the box, the mesh fitted to it (not to bare bone)."""
-    skin = dense_skin(labels, box, grow=2 * DEFAULT_BAND)  # all the transfer reaches
-    cloud = skin.extract_points(~on_hard_tissue(skin.points, labels), adjacent_cells=False)
+    """Step "skin fit": the mesh fitted to the dense skin within the transfer's reach of the
+    box (not to bare bone); returns the fitted mesh and the head's skin (:func:`head_skin`)."""
+    skin = head_skin(labels, box)
+    near = near_box(skin.points, box, 2 * DEFAULT_BAND)  # all the transfer reaches
+    cloud = skin.extract_points(near & ~on_hard_tissue(skin.points, labels), adjacent_cells=False)
     return filters.fit_to_skin(grid, cloud, labels=labels, box=box, **options), skin
 
 
@@ -261,34 +266,11 @@ def _apply_plan(grid, plan, labels, options):
 
 
 def _skin(labels, post, pre=None, box=None):
-    """Pre-operative skin (``pre`` or the dense skin in ``box``) and, with a solved mesh,
-    the predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
-    displacement. Skin beyond the transfer's band or on bare teeth or bone is not modelled
-    (``arrays.SKIN_MODELLED``); the crumple metric over the modelled skin goes to the
-    predicted skin's field data."""
-    pre = dense_skin(labels, box, grow=2 * DEFAULT_BAND) if pre is None else pre.copy()
-    pre.point_data.pop(arrays.NORMALS, None)
-    if post is None:
-        return pre, None
-    u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
-    transfer = Transfer(post, pre)
-    disp = transfer(u_nodes)
-    modelled = transfer.modelled & ~on_hard_tissue(pre.points, labels)
-    metric = crumple_metric(pre, disp, post, u_nodes, transfer=transfer, modelled=modelled)
-    log.info("skin: %d points (%d modelled), %d edges stretched beyond the mesh's gradients "
-             "(max ratio %.3g)", pre.n_points, metric[arrays.SKIN_MODELLED_POINTS],
-             metric[arrays.CRUMPLE_VIOLATIONS], metric[arrays.CRUMPLE_MAX_RATIO])
-    pre.point_data[arrays.DISPLACEMENT] = disp
-    pre.point_data[arrays.SKIN_MODELLED] = modelled.astype(np.uint8)
-    moved = pre.copy()
-    moved.points = np.asarray(pre.points) + disp
-    for name in _SKIN_SUMMARY:
-        moved.field_data[name] = np.array([metric[name]])
-    return pre, moved
+    """Step "skin": :func:`pvcmf.filters.skin_prediction.predict_skin`."""
+    return predict_skin(labels, post, pre, box)
 
 
-_SKIN_SUMMARY = (arrays.SKIN_MODELLED_POINTS, arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS,
-                 arrays.CRUMPLE_MAX_RATIO)
+_SKIN_SUMMARY = SKIN_SUMMARY
 
 
 def _write_outputs(result, out, images=None):

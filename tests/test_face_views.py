@@ -210,3 +210,31 @@ def test_shaded_display_once_per_geometry_and_culling_keeps_the_picture():
     p = pv.Plotter(off_screen=True, window_size=[100, 100])
     assert fv.add_patient_mesh(p, opened.extract_surface(algorithm=None), color="red").prop.culling != "back"
     p.close()
+
+
+def test_colour_range_ignores_points_the_model_does_not_cover():
+    """Skin the model does not cover (the back of a whole head, the transfer's fading
+    extension) sets no range, though a camera sees it."""
+    skin = pv.Sphere(radius=50.0, theta_resolution=40, phi_resolution=40)
+    pts = np.asarray(skin.points)
+    u = np.zeros((skin.n_points, 3))
+    face = pts[:, 1] > 0.0
+    u[face, 1] = 2.0  # the modelled face moves 2 mm forward
+    u[~face, 1] = 5.0  # not modelled: whatever it holds sets no range
+    skin.point_data[arrays.DISPLACEMENT] = u
+    assert fv.displacement_limit(skin, "ap") == pytest.approx(5.0)  # seen in the profile
+    skin.point_data[arrays.SKIN_MODELLED] = face.astype(np.uint8)
+    assert fv.displacement_limit(skin, "ap") == pytest.approx(2.0)
+    assert np.array_equal(fv.modelled_points(skin), face)
+
+
+def test_frame_bounds_frame_the_head_not_the_shoulders():
+    head = pv.ParametricEllipsoid(75.0, 95.0, 110.0).triangulate().clean()
+    shoulders = pv.Cylinder(center=(0.0, -20.0, -120.0), direction=(0.0, 0.0, 1.0),
+                            radius=220.0, height=30.0).triangulate().clean()
+    both = head.merge(shoulders)
+    b = np.asarray(fv.frame_bounds(both))
+    assert b[1] - b[0] == pytest.approx(150.0, abs=2.0)  # the head's width, not 440 mm
+    assert b[3] - b[2] == pytest.approx(190.0, abs=2.0)
+    assert b[4] == pytest.approx(-135.0, abs=0.5) and b[5] == pytest.approx(110.0, abs=1.0)
+    assert np.allclose(fv.frame_bounds(head), fv.display_bounds(head))  # no shoulders

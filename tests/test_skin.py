@@ -62,3 +62,43 @@ def test_sinc_removes_terraces_and_keeps_the_surface(head):
 def test_sinc_validated(head):
     with pytest.raises(ValueError, match="sinc"):
         extract_skin(head, sinc=-1)
+
+
+@pytest.fixture(scope="module")
+def cut_head():
+    """The ellipsoid of ``head`` with the image ending at z = -30 mm (a scan that ends
+    across the neck) and at y = 40 mm (a field of view that cuts the face)."""
+    img = pv.ImageData(dimensions=(56, 50, 40), spacing=(2.0, 2.0, 2.0), origin=(-55, -58, -30))
+    img[arrays.TISSUE] = (((img.points / RADII) ** 2).sum(axis=1) < 1).astype(np.uint8)
+    return img
+
+
+def test_open_boundary_leaves_the_scan_end_open(cut_head):
+    closed = extract_skin(cut_head)
+    skin = extract_skin(cut_head, open_boundary=True)
+    lo, hi = np.asarray(cut_head.bounds)[0::2], np.asarray(cut_head.bounds)[1::2]
+    p = np.asarray(skin.points)
+    assert ((p >= lo - 1e-3) & (p <= hi + 1e-3)).all()  # nothing beyond the image
+    # the closed skin caps the cuts with faces half a voxel beyond the image
+    assert (np.asarray(closed.points)[:, 2] < -30.5).any()
+    assert (np.asarray(closed.points)[:, 1] > 40.5).any()
+    # the open skin ends on the cuts: its boundary edges lie in the planes z = -30, y = 40
+    edges = skin.extract_feature_edges(boundary_edges=True, feature_edges=False,
+                                       manifold_edges=False, non_manifold_edges=False)
+    e = np.asarray(edges.points)
+    assert edges.n_cells > 50
+    on_cut = (np.abs(e[:, 2] + 30.0) < 1e-3) | (np.abs(e[:, 1] - 40.0) < 1e-3)
+    assert on_cut.all()
+    # a flat cap would put points inside the ellipsoid at the cut: none here
+    assert np.abs(_distance(p)).max() < 1.0
+    # outward normals, one piece
+    n = np.asarray(skin.point_data[arrays.NORMALS])
+    assert (np.einsum("ij,ij->i", n, p / RADII ** 2) > 0).mean() > 0.99
+    assert skin.connectivity().point_data["RegionId"].max() == 0
+
+
+def test_open_boundary_of_a_head_inside_the_image_is_the_closed_skin(head):
+    closed, skin = extract_skin(head), extract_skin(head, open_boundary=True)
+    assert skin.n_points == closed.n_points
+    assert np.allclose(skin.points, closed.points, atol=1e-4)
+    assert skin.n_open_edges == 0

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from pvcmf import arrays
 from pvcmf.filters.meshing import fit_to_skin, tet_quality
 from pvcmf.filters import surface_mapping
-from pvcmf.filters.surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
+from pvcmf.filters.surface_mapping import Transfer, crumple_metric
 from pvcmf.filters.meshing.skin_fit import dense_skin
 
 
@@ -216,11 +216,11 @@ def test_dense_skin_within_the_box_only():
 
 def test_simulate_fits_the_mesh_on_request(tmp_path):
     """``simulate(fit_skin=True)``: the fit runs after meshing and is recorded; the skin is
-    the skin of the face box."""
+    the whole head's, unmoved beyond what the transfer reaches from the face box."""
     import json
 
     from pvcmf import datasets
-    from pvcmf.pipeline import face_box, simulate
+    from pvcmf.pipeline import TRANSFER_REACH, face_box, simulate
 
     case = datasets.phantom(patient=3, spacing=3.0)
     with warnings.catch_warnings():
@@ -234,5 +234,6 @@ def test_simulate_fits_the_mesh_on_request(tmp_path):
     assert summary[arrays.SKIN_FIT_NODES] == res.skin_fit[arrays.SKIN_FIT_NODES] > 0
     assert arrays.SKIN_FIT_PUSH in res.mesh.point_data
     box = face_box(res.labels, 0.5)
-    assert res.skin_pre.points[:, 1].min() >= box[2] - 2 * DEFAULT_BAND  # what Transfer reaches
+    back = res.skin_pre.points[:, 1] < box[2] - TRANSFER_REACH  # beyond what Transfer reaches
+    assert back.any() and not np.asarray(res.skin_pre[arrays.DISPLACEMENT])[back].any()
     assert arrays.NORMALS not in res.skin_post.point_data

@@ -32,9 +32,10 @@ from matplotlib.figure import Figure
 from vtkmodules.vtkRenderingCore import vtkSelectVisiblePoints
 
 from .. import arrays
+from .framing import FRAME_SLAB, FRAME_WIDEN, frame_bounds  # noqa: F401 (public here too)
 
-__all__ = ["VIEWS", "to_display", "display_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
-           "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
+__all__ = ["VIEWS", "to_display", "display_bounds", "frame_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
+           "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "modelled_points", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
            "prediction_summary", "carry_to_skin",
            "displacement_views"]
 
@@ -306,8 +307,8 @@ def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
     window_size = window_size or (880, 500 * len(views))
     p = pv.Plotter(off_screen=True, shape=(len(views), 2), window_size=list(window_size),
                    border=False)
-    bounds = np.asarray(display_bounds(pre)).reshape(3, 2)
-    post_b = np.asarray(display_bounds(post)).reshape(3, 2)
+    bounds = np.asarray(frame_bounds(pre)).reshape(3, 2)
+    post_b = np.asarray(frame_bounds(post)).reshape(3, 2)
     bounds = np.c_[np.minimum(bounds[:, 0], post_b[:, 0]), np.maximum(bounds[:, 1], post_b[:, 1])]
     for row, view in enumerate(views):
         for col, (skin, label) in enumerate(((pre, PRE_LABEL), (post, POST_LABEL))):
@@ -405,16 +406,37 @@ def visible_in_views(surface, views=("frontal", "profile")):
     return seen
 
 
+def modelled_points(skin):
+    """The points of ``skin`` the model predicts: its ``arrays.SKIN_MODELLED`` array, all
+    points without it. The rest of a head's skin (the back of the head, the neck) keeps
+    zero displacement and sets no colour range.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> skin = pv.PolyData(np.zeros((3, 3)))
+    >>> modelled_points(skin).tolist()
+    [True, True, True]
+    >>> skin.point_data[arrays.SKIN_MODELLED] = np.array([1, 0, 1], np.uint8)
+    >>> modelled_points(skin).tolist()
+    [True, False, True]
+    """
+    if arrays.SKIN_MODELLED in skin.point_data:
+        return np.asarray(skin.point_data[arrays.SKIN_MODELLED]).astype(bool)
+    return np.ones(skin.n_points, dtype=bool)
+
+
 def displacement_limit(skin, component="ap", views=("frontal", "profile"), percentile=99.0,
                        visible=None):
     """Colour limit (mm) of a displacement component over the VISIBLE points.
 
-    ``percentile`` of ``|value|`` over the points of ``skin`` visible in any of ``views``
-    (:func:`visible_in_views`, :func:`symmetric_limit`), or over ``visible`` when given.
+    ``percentile`` of ``|value|`` over the modelled points of ``skin``
+    (:func:`modelled_points`) visible in any of ``views`` (:func:`visible_in_views`,
+    :func:`symmetric_limit`), or over ``visible`` when given.
     """
     values = signed_displacement(skin, component)
     if visible is None:
-        visible = visible_in_views(skin, views)
+        visible = visible_in_views(skin, views) & modelled_points(skin)
     return symmetric_limit(values, visible, percentile)
 
 
@@ -431,8 +453,8 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     views : sequence of str
         Panels, left to right.
     percentile : float
-        The range is ``[-m, m]`` with ``m`` this percentile of ``|value|`` over the points
-        visible in any of ``views`` (:func:`displacement_limit`).
+        The range is ``[-m, m]`` with ``m`` this percentile of ``|value|`` over the
+        modelled points visible in any of ``views`` (:func:`displacement_limit`).
     limit : float, optional
         Use ``[-limit, limit]`` (``[0, limit]`` for the magnitude) instead.
     visible : numpy.ndarray of bool, optional
@@ -449,7 +471,7 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     values = signed_displacement(skin, component)
     if limit is None:  # displacement_limit, without computing the values twice
         if visible is None:
-            visible = visible_in_views(skin, views)
+            visible = visible_in_views(skin, views) & modelled_points(skin)
         m = symmetric_limit(values, visible, percentile)
     else:
         m = float(limit)
@@ -469,7 +491,7 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
         p.set_background("white", all_renderers=False)
         actor = add_patient_mesh(p, shown, scalars=title, cmap=cmap, clim=clim,
                                  show_scalar_bar=False, specular=0.1)
-        set_view(p, display_bounds(skin), view)
+        set_view(p, frame_bounds(skin), view)
         p.add_text(VIEW_TITLES[view], font_size=10, color="black")
     p.subplot(1, 0)
     p.set_background("white", all_renderers=False)

@@ -10,7 +10,11 @@
   :meth:`pyvista.PolyDataFilters.smooth_taubin`: a low-pass filter that does not shrink
   the surface), and outward point normals are added (``vtkPolyDataNormals``).
   The image is padded with air first, so the surface is closed where the head leaves the
-  field of view.
+  field of view; with ``open_boundary=True`` it is padded with its own edge values instead
+  (the head goes on beyond the image), and the surface is clipped to the image's bounds
+  (``vtkClipPolyData``): it is left open where the scan ends, with no cap. The outward side of
+  such an open surface is found from the head mask (the smoothed mask falls along the
+  outward normal).
 * Tetrahedral grid: its boundary triangles (``vtkDataSetSurfaceFilter`` via
   :meth:`pyvista.DataSet.extract_surface`), oriented outward, restricted to the *skin*
   part: the faces whose three points are free (``bc == BC_FREE``) when the grid carries
@@ -33,6 +37,7 @@ import logging
 
 import numpy as np
 import pyvista as pv
+from scipy import ndimage
 
 from .. import arrays
 from ..progress import Progress
@@ -55,9 +60,7 @@ def _outward_normals(surface):
     )
 
 
-def _image_skin(image, threshold, smooth, fill_holes, sinc):
-    from scipy import ndimage
-
+def _image_skin(image, threshold, smooth, fill_holes, sinc, open_boundary=False):
     if arrays.TISSUE in image.point_data:
         lab = arrays.require_array(image, arrays.TISSUE, "point", dtype="iu", ncomp=1)
         head = lab != arrays.AIR
@@ -75,9 +78,12 @@ def _image_skin(image, threshold, smooth, fill_holes, sinc):
     vol = head.reshape(dims[::-1]).transpose(2, 1, 0)  # VTK x-fastest -> (x, y, z)
     if not vol.any():
         raise ValueError("image has no head voxels (all air): no skin to extract")
-    vol = np.pad(vol, 2, constant_values=False)
-    if fill_holes:
-        vol = ndimage.binary_fill_holes(vol)
+    if open_boundary:  # the head goes on beyond the image: no cap where it leaves it
+        vol = np.pad(ndimage.binary_fill_holes(vol) if fill_holes else vol, 2, mode="edge")
+    else:
+        vol = np.pad(vol, 2, constant_values=False)
+        if fill_holes:
+            vol = ndimage.binary_fill_holes(vol)
     field = vol.astype(np.float32)
     if smooth:
         field = ndimage.gaussian_filter(field, smooth)
@@ -96,7 +102,51 @@ def _image_skin(image, threshold, smooth, fill_holes, sinc):
     if sinc:
         surf = surf.smooth_taubin(n_iter=int(sinc), pass_band=SINC_PASS_BAND,
                                   normalize_coordinates=True, progress_bar=False)
-    return _outward_normals(surf)
+    if not open_boundary:
+        return _outward_normals(surf)
+    surf = _within(surf, np.asarray(image.bounds, dtype=float), 1e-3 * float(spacing.min()))
+    return _open_outward_normals(surf, field, origin, spacing)
+
+
+def _within(surface, bounds, tol):
+    """The largest connected piece of ``surface`` clipped to ``bounds`` (``vtkClipPolyData``
+    on each plane of the bounds that ``surface`` crosses by more than ``tol``): the
+    surface ends on the planes, with a straight edge."""
+    b = np.asarray(bounds, dtype=float)
+    for axis in range(3):
+        for side, sign in ((0, -1.0), (1, 1.0)):
+            p = np.asarray(surface.points)
+            if not len(p):
+                raise ValueError("the head's contour has no triangle within the image")
+            if not np.any(sign * (p[:, axis] - b[2 * axis + side]) > tol):
+                continue
+            normal = np.zeros(3)
+            normal[axis] = sign  # the clip removes the side the normal points to
+            origin = np.zeros(3)
+            origin[axis] = b[2 * axis + side]
+            surface = surface.clip(normal=normal, origin=origin, progress_bar=False)
+    if not surface.n_cells:
+        raise ValueError("the head's contour has no triangle within the image")
+    return surface.triangulate().clean().connectivity("largest").extract_surface(
+        algorithm="dataset_surface").clean()
+
+
+def _open_outward_normals(surface, field, origin, spacing):
+    """Point normals of an open surface, consistent, pointing to where the smoothed head
+    mask ``field`` (array (x, y, z) on the grid ``origin``, ``spacing``) falls."""
+    surf = surface.compute_normals(cell_normals=False, point_normals=True, split_vertices=False,
+                                   consistent_normals=True, auto_orient_normals=False)
+    pts = np.asarray(surf.points)
+    n = np.asarray(surf.point_data[arrays.NORMALS])
+    step = n * float(spacing.max())
+    at = [((pts + sign * step - origin) / spacing).T for sign in (1.0, -1.0)]
+    out, inn = (ndimage.map_coordinates(field, c, order=1, mode="nearest") for c in at)
+    if np.sum(out - inn) <= 0:  # the mask falls along the normals: outward already
+        return surf
+    faces = surf.faces.reshape(-1, 4)[:, [0, 1, 3, 2]].ravel()
+    flipped = pv.PolyData(surf.points, faces)
+    flipped.point_data[arrays.NORMALS] = -n
+    return flipped
 
 
 def _boundary_faces(grid):
@@ -171,7 +221,8 @@ def _faces_air(points, tri, labels, step=1.5):
 
 
 def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labels=None,
-                 warp=True, part="skin", sinc=SINC_ITERATIONS, progress_bar=False):
+                 warp=True, part="skin", sinc=SINC_ITERATIONS, open_boundary=False,
+                 progress_bar=False):
     """The outer skin surface of a label image / CT, or of a tetrahedral grid.
 
     Parameters
@@ -197,6 +248,10 @@ def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labe
     sinc : int, default 40
         Image only: windowed-sinc smoothing iterations of the contour (removes the voxel
         terraces without shrinking the surface); 0 keeps the contour.
+    open_boundary : bool, default False
+        Image only: leave the surface open where the head leaves the image (the scan's
+        field of view ends across the neck, the vertex or the face): the surface is
+        clipped to the image's bounds instead of being closed with a cap.
     progress_bar : bool, default False
         Show the step (:class:`pvcmf.progress.Progress`).
 
@@ -235,8 +290,139 @@ def extract_skin(dataset, *, threshold=-300.0, smooth=1.0, fill_holes=True, labe
         if isinstance(dataset, pv.ImageData):
             if isinstance(sinc, bool) or int(sinc) != sinc or sinc < 0:
                 raise ValueError(f"sinc must be a non-negative integer, got {sinc!r}")
-            skin = _image_skin(dataset, threshold, smooth, fill_holes, sinc)
+            skin = _image_skin(dataset, threshold, smooth, fill_holes, sinc,
+                               bool(open_boundary))
         else:
             skin = _grid_skin(dataset, labels, warp, part)
         bar.step(f"{skin.n_points} skin points")
     return skin
+
+
+#: mm of neck kept under the model's box by :func:`head_skin`: the fade of the mesh ->
+#: skin transfer (8 mm beyond a mesh the skin fit may push 4 mm out) and some unmoved neck
+NECK_BELOW_BOX = 20.0
+
+
+def head_skin(labels, box=None, below=NECK_BELOW_BOX):
+    """The skin a prediction shows: the whole head as the scan has it.
+
+    The dense skin of the label image (:func:`extract_skin`, sub-voxel), left open where
+    the scan's field of view ends (no cap over a cut neck, vertex or face:
+    ``open_boundary=True``). Given the model's ``box``, the neck and shoulders more than
+    ``below`` mm under it are cut off (``vtkClipPolyData``, the largest piece kept; the
+    shoulders would otherwise set the figures' framing); the back of the head, outside the
+    model, is kept.
+
+    Parameters
+    ----------
+    labels : pyvista.ImageData
+        Label image (point array ``tissue``).
+    box : tuple of 6 floats, optional
+        The model's box (xmin, xmax, ymin, ymax, zmin, zmax), e.g.
+        :func:`pvcmf.filters.model_region.face_box`.
+    below : float, default NECK_BELOW_BOX
+        Depth (mm) of neck kept under the box.
+
+    Returns
+    -------
+    pyvista.PolyData
+        Triangle surface with its outward unit point normals (``arrays.NORMALS``) only.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> img = pv.ImageData(dimensions=(30, 30, 20), spacing=(2.0, 2.0, 2.0), origin=(-29, -29, -9))
+    >>> img[arrays.TISSUE] = (np.linalg.norm(img.points, axis=1) < 20).astype(np.uint8)
+    >>> skin = head_skin(img)  # the ball leaves the image at z = -9: open there
+    >>> round(float(skin.bounds[4]), 1), skin.n_open_edges > 0
+    (-9.0, True)
+    """
+    skin = extract_skin(labels, open_boundary=True)
+    if box is not None:
+        if not float(below) >= 0:
+            raise ValueError(f"below must be a number >= 0 (mm), got {below!r}")
+        cut = float(box[4]) - float(below)
+        if np.asarray(skin.points)[:, 2].min() < cut:
+            skin = skin.clip(normal=(0.0, 0.0, -1.0), origin=(0.0, 0.0, cut), progress_bar=False)
+            if not skin.n_cells:
+                raise ValueError(f"the skin has no triangle above z = {cut} mm")
+            skin = skin.triangulate().clean().connectivity("largest").extract_surface(
+                algorithm="dataset_surface")
+    out = pv.PolyData(np.asarray(skin.points, dtype=float), skin.faces)
+    out.point_data[arrays.NORMALS] = np.asarray(skin.point_data[arrays.NORMALS], dtype=float)
+    return out
+
+
+def sub_surface(surface, tri):
+    """The triangles ``tri`` (point ids of ``surface``, shape (n, 3)) as a surface of their
+    points with ``surface``'s point arrays, and the ids of those points in ``surface``.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> plane = pv.Plane(i_resolution=2, j_resolution=2).triangulate()
+    >>> part, ids = sub_surface(plane, plane.faces.reshape(-1, 4)[:2, 1:])
+    >>> part.n_cells, len(ids) == part.n_points
+    (2, True)
+    """
+    tri = np.asarray(tri, dtype=np.int64).reshape(-1, 3)
+    ids, local = np.unique(tri, return_inverse=True)
+    out = pv.PolyData(np.asarray(surface.points)[ids],
+                      np.column_stack([np.full(len(tri), 3), local.reshape(-1, 3)]).ravel())
+    for name in surface.point_data.keys():
+        out.point_data[name] = np.asarray(surface.point_data[name])[ids]
+    return out, ids
+
+
+def coarsen_outside(surface, keep, reduction):
+    """``surface`` with its triangles that have a point outside ``keep`` decimated.
+
+    The triangles whose three points are in ``keep`` stay as they are; the others are
+    decimated by ``reduction`` (VTK's ``vtkDecimatePro`` via
+    :meth:`pyvista.PolyDataFilters.decimate_pro`, topology kept and no boundary point
+    deleted: the seam between the two parts and any open end of the surface stay in
+    place, so that the parts join again without a crack). Used to draw the skin far from
+    the model (which does not move) with fewer triangles.
+
+    Parameters
+    ----------
+    surface : pyvista.PolyData
+        Triangle surface.
+    keep : array_like of bool
+        One value per point of ``surface``.
+    reduction : float
+        Share in [0, 1) of the outer part's triangles to remove.
+
+    Returns
+    -------
+    pyvista.PolyData
+        A new triangle surface, without point or cell arrays.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> sphere = pv.Sphere(theta_resolution=60, phi_resolution=60)
+    >>> out = coarsen_outside(sphere, np.asarray(sphere.points)[:, 1] > 0, 0.75)
+    >>> out.n_points < sphere.n_points, out.n_open_edges
+    (True, 0)
+    """
+    keep = np.asarray(keep, dtype=bool)
+    if keep.shape != (surface.n_points,):
+        raise ValueError(f"keep must have one value per point ({surface.n_points}), "
+                         f"got shape {keep.shape}")
+    if not 0.0 <= float(reduction) < 1.0:
+        raise ValueError(f"reduction must be in [0, 1), got {reduction!r}")
+    tri = surface.faces.reshape(-1, 4)[:, 1:]
+    inner = keep[tri].all(axis=1)
+    if inner.all() or float(reduction) == 0.0:
+        return pv.PolyData(np.array(surface.points, dtype=float), np.array(surface.faces))
+    outer, _ = sub_surface(surface, tri[~inner])
+    outer.clear_data()
+    outer = outer.decimate_pro(float(reduction), preserve_topology=True, splitting=False,
+                               boundary_vertex_deletion=False)
+    if not inner.any():
+        return outer
+    near, _ = sub_surface(surface, tri[inner])
+    near.clear_data()
+    return near.merge(outer, merge_points=True).extract_surface(algorithm="dataset_surface")

@@ -1,0 +1,107 @@
+"""The skin of a prediction: the whole head, moved where the face model reaches.
+
+:func:`predict_skin` takes the head's skin (:func:`pvcmf.filters.skin.head_skin`: the
+whole head as the scan has it, open where its field of view ends), keeps a quarter of the
+triangles beyond :data:`TRANSFER_REACH` of the model's box (they do not move:
+:func:`pvcmf.filters.skin.coarsen_outside`), and carries the solved mesh's displacement
+onto the rest with :class:`pvcmf.filters.surface_mapping.Transfer` (zero farther out, as
+the transfer itself is beyond ``2 band``). Skin on bare teeth or bone is not modelled
+(:func:`pvcmf.filters.meshing.skin_fit.on_hard_tissue`); the crumple metric
+(:func:`pvcmf.filters.surface_mapping.crumple_metric`) is taken over the modelled skin.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from .. import arrays
+from .meshing.skin_fit import DEFAULT_REACH, on_hard_tissue
+from .skin import coarsen_outside, head_skin, sub_surface
+from .surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
+
+log = logging.getLogger(__name__)
+
+__all__ = ["TRANSFER_REACH", "FAR_REDUCTION", "SKIN_SUMMARY", "near_box", "predict_skin"]
+
+#: the crumple metric's fields that go to the predicted skin's field data
+SKIN_SUMMARY = (arrays.SKIN_MODELLED_POINTS, arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS,
+                arrays.CRUMPLE_MAX_RATIO)
+
+#: mm beyond the model's box within which the skin takes the transfer; beyond it the mesh
+#: (within ``DEFAULT_REACH`` of the box) is farther than ``2 band``: zero displacement
+TRANSFER_REACH = 2 * DEFAULT_BAND + DEFAULT_REACH + 1.0
+#: share of the skin's triangles beyond TRANSFER_REACH removed (it does not move; drawn)
+FAR_REDUCTION = 0.75
+
+
+def near_box(points, box, grow):
+    """Points within ``box`` grown by ``grow`` mm (all points without a box).
+
+    Examples
+    --------
+    >>> near_box([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]], (-1, 1, -1, 1, -1, 1), 2.0).tolist()
+    [True, False]
+    """
+    p = np.asarray(points)
+    if box is None:
+        return np.ones(len(p), dtype=bool)
+    b = np.asarray(box, dtype=float) + float(grow) * np.tile([-1.0, 1.0], 3)
+    return ((p >= b[0::2]) & (p <= b[1::2])).all(axis=1)
+
+
+def predict_skin(labels, post, pre=None, box=None):
+    """Pre-operative skin (``pre`` or :func:`head_skin`) and, with a solved mesh, the
+    predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
+    displacement onto the skin within :data:`TRANSFER_REACH` of the box (farther, zero
+    displacement: the transfer is zero there anyway, and the skin there keeps a quarter of
+    its triangles, :data:`FAR_REDUCTION`). Skin beyond the transfer's band or on
+    bare teeth or bone is not modelled (``arrays.SKIN_MODELLED``); the crumple metric over
+    the modelled skin goes to the predicted skin's field data (``SKIN_SUMMARY``).
+
+    Parameters
+    ----------
+    labels : pyvista.ImageData
+        Label image (point array ``tissue``).
+    post : pyvista.UnstructuredGrid or None
+        Solved mesh with point array ``displacement``; None gives the skin only.
+    pre : pyvista.PolyData, optional
+        The skin to use instead of :func:`head_skin` of ``labels`` and ``box``.
+    box : tuple of 6 floats, optional
+        The model's box (:func:`pvcmf.filters.model_region.face_box`).
+
+    Returns
+    -------
+    (pyvista.PolyData, pyvista.PolyData or None)
+        The pre-operative skin (with ``displacement`` and ``skin_modelled`` given ``post``)
+        and the predicted skin (None without ``post``).
+    """
+    pre = head_skin(labels, box) if pre is None else pre
+    pre = coarsen_outside(pre, near_box(pre.points, box, TRANSFER_REACH), FAR_REDUCTION)
+    if post is None:
+        return pre, None
+    near = near_box(pre.points, box, TRANSFER_REACH)
+    tri = pre.faces.reshape(-1, 4)[:, 1:]
+    part, ids = sub_surface(pre, tri[near[tri].all(axis=1)])
+    u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
+    transfer = Transfer(post, part)
+    disp_part = transfer(u_nodes)
+    modelled_part = transfer.modelled & ~on_hard_tissue(part.points, labels)
+    metric = crumple_metric(part, disp_part, post, u_nodes, transfer=transfer,
+                            modelled=modelled_part)
+    log.info("skin: %d points (%d within reach of the model, %d modelled), %d edges stretched "
+             "beyond the mesh's gradients (max ratio %.3g)", pre.n_points, len(ids),
+             metric[arrays.SKIN_MODELLED_POINTS], metric[arrays.CRUMPLE_VIOLATIONS],
+             metric[arrays.CRUMPLE_MAX_RATIO])
+    disp = np.zeros((pre.n_points, 3))
+    disp[ids] = disp_part
+    modelled = np.zeros(pre.n_points, dtype=np.uint8)
+    modelled[ids] = modelled_part
+    pre.point_data[arrays.DISPLACEMENT] = disp
+    pre.point_data[arrays.SKIN_MODELLED] = modelled
+    moved = pre.copy()
+    moved.points = np.asarray(pre.points) + disp
+    for name in SKIN_SUMMARY:
+        moved.field_data[name] = np.array([metric[name]])
+    return pre, moved
