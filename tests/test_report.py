@@ -88,6 +88,21 @@ def test_region_table_against_numpy(case):
         assert rows[name] == want, name
 
 
+def test_region_table_counts_only_the_modelled_skin(tmp_path):
+    """A whole-head prediction: the unmoved back of the head (``skin_modelled`` 0) is left
+    out of the table, so its zeros do not pull the percentiles down."""
+    head = _head()
+    head[arrays.SKIN_MODELLED] = (head.points[:, 1] > 0).astype(np.uint8)  # the front half
+    head.save(tmp_path / "predicted_skin.vtp")
+    rows = {r[0]: r[1:] for r in _cells(write_report(tmp_path).read_text(encoding="utf-8"),
+                                         "regions")[1:]}
+    assert "all skin" not in rows
+    u = np.linalg.norm(head[arrays.DISPLACEMENT], axis=1)[head.points[:, 1] > 0]
+    want = [str(u.size), *(f"{v:.2f}" for v in np.percentile(u, [50, 90, 95])),
+            f"{100 * np.mean(u <= 1):.2f}", f"{100 * np.mean(u <= 2):.2f}"]
+    assert rows["modelled skin"] == want
+
+
 def test_disabled_writes_nothing(tmp_path):
     _head().save(tmp_path / "predicted_skin.vtp")
     with disabled():

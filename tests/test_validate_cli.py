@@ -71,6 +71,22 @@ def test_validate_known_displacement(known, capsys):
     assert "ICP on the unchanged region" in capsys.readouterr().out
 
 
+def test_validate_judges_only_the_modelled_skin(known):
+    """Skin the model does not reach (``skin_modelled`` 0) is left out of the statistics."""
+    from pvcmf.study.validate import validate
+
+    folder, pred, delta = known
+    pred = pred.copy()
+    modelled = pred.points[:, 2] < 0.0  # the lower half, where the face moved
+    pred[arrays.SKIN_MODELLED] = modelled.astype(np.uint8)
+    v = validate(pred, pv.read(folder / "post.stl"))
+    face = v.table.set_index("region").loc["face"]
+    a = delta[modelled]
+    assert face["n"] == a.size
+    np.testing.assert_allclose(face["p90"], np.percentile(a, 90), atol=0.05)
+    assert np.isfinite(v.skin[arrays.DISTANCE]).all()  # the skin itself keeps every distance
+
+
 def test_validate_bad_input(known, tmp_path, capsys):
     folder, _, _ = known
     args = ["validate", "--pred", str(folder / "predicted_skin.vtp"), "--out", str(tmp_path)]

@@ -95,7 +95,10 @@ def _regions(summary, skins):
     pre = skins.get("pre", (None,))[0]
     where = pre if pre is not None and pre.n_points == pred.n_points else pred
     u = np.linalg.norm(np.asarray(pred[arrays.DISPLACEMENT], dtype=float), axis=1)
-    return region_rows(where, u), ("Predicted displacement |u| of the skin (no post-operative "
+    mask = None
+    if arrays.SKIN_MODELLED in pred.point_data:  # the unmoved back of the head is not counted
+        mask = np.asarray(pred.point_data[arrays.SKIN_MODELLED]).reshape(-1) > 0
+    return region_rows(where, u, mask=mask), ("Predicted displacement |u| of the skin (no post-operative "
                                    "scan given): percentiles and share of points that move "
                                    "at most 1 and 2 mm. Regions are labelled on the "
                                    "pre-operative skin.")

@@ -65,7 +65,7 @@ def _fmt(value, key):
     return f"{int(value)}" if key == "n" else f"{float(value):.2f}"
 
 
-def region_rows(skin, values, *, landmarks=None):
+def region_rows(skin, values, *, landmarks=None, mask=None):
     """Statistics of ``|values|`` for the whole face and per face region.
 
     Parameters
@@ -77,6 +77,9 @@ def region_rows(skin, values, *, landmarks=None):
         One value per point (signed distances or displacement magnitudes, mm).
     landmarks : dict, optional
         Passed to ``label_face_regions``.
+    mask : array_like of bool, optional
+        Points to count (e.g. the skin the model predicts, ``arrays.SKIN_MODELLED``); the
+        first row is then ``'modelled skin'``.
 
     Returns
     -------
@@ -98,10 +101,17 @@ def region_rows(skin, values, *, landmarks=None):
         reg = np.asarray(skin.point_data[arrays.REGION])
     else:
         reg = np.asarray(label_face_regions(skin, landmarks=landmarks)[arrays.REGION])
-    rows = [{"region": "all skin", **summary(values)}]
+    keep = np.ones(values.shape[0], dtype=bool)
+    if mask is not None:
+        keep = np.asarray(mask, dtype=bool).reshape(-1)
+        if keep.shape != values.shape[:1]:
+            raise ValueError(f"mask must have one entry per point ({values.shape[0]}), "
+                             f"got shape {keep.shape}")
+    first = "all skin" if mask is None else "modelled skin"
+    rows = [{"region": first, **summary(values[keep])}]
     for name, rid in arrays.FACE_REGIONS.items():
         if rid:
-            rows.append({"region": name, **summary(values[reg == rid])})
+            rows.append({"region": name, **summary(values[(reg == rid) & keep])})
     return rows
 
 

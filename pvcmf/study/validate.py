@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from .. import filters
+from .. import arrays, filters
 from .._atomic import atomic_path, write_text
 from ..filters.registration import ICP_ITERATIONS, registration_result
 from ..io import read_ct, read_surface
@@ -101,6 +101,25 @@ def _region(region, landmarks):
     return region
 
 
+def _modelled_only(skin, pred):
+    """``skin`` with the distances of skin the model does not predict set to NaN.
+
+    A whole-head prediction carries ``arrays.SKIN_MODELLED``: the back of the head and the
+    neck keep zero displacement because the model does not reach them, so their distances
+    say nothing about the model and would dilute the statistics.
+    """
+    if arrays.SKIN_MODELLED not in pred.point_data:
+        return skin
+    modelled = np.asarray(pred.point_data[arrays.SKIN_MODELLED]).reshape(-1) > 0
+    if modelled.all() or not modelled.any():
+        return skin
+    judged = skin.copy()
+    d = np.array(skin.point_data[arrays.DISTANCE], dtype=float)
+    d[~modelled] = np.nan
+    judged.point_data[arrays.DISTANCE] = d
+    return judged
+
+
 def validate(pred, post, *, pre=None, region=None, landmarks=None, max_distance=10.0,
              icp_options=None, progress_bar=False):
     """Judge a predicted skin against a post-operative skin or CT (paper 000, sec. V).
@@ -162,7 +181,7 @@ def validate(pred, post, *, pre=None, region=None, landmarks=None, max_distance=
         postop = pv.PolyData(registered.points, faces=registered.faces)
         skin = filters.distance_to(pred, postop, max_distance=max_distance)
         skin = label_face_regions(skin, landmarks=landmarks)
-        table = error_statistics(skin, regions=True)
+        table = error_statistics(_modelled_only(skin, pred), regions=True)
         timings["distances"] = time.perf_counter() - t
         bar.step("distances")
     reg = {"rms_mm": float(rms), "converged": bool(converged),
