@@ -64,13 +64,15 @@ def _row(p, grid):
             "max": np.nan, "released": len(grid.field_data[arrays.REFERENCE_RELEASED])}
 
 
-def fine_truth_cost(patient, counts, fine, spacing, cache=True):
+def fine_truth_cost(patient, counts, fine, spacing, cache=True, mesher="lattice"):
     """One finer truth of ``patient`` (``fine`` tetrahedra asked): its cost and the change
     of its skin from the finest truth of the table (``counts[-1]``)."""
     case = pvcmf.datasets.phantom(patient, spacing=spacing)
     points = exact_skin_samples(case)
-    coarse = independent_truth_grid(case, n_tets=counts[-1], cache=cache)
-    grid = independent_truth_grid(case, n_tets=fine, cache=cache)
+    coarse = independent_truth_grid(case, n_tets=counts[-1], cache=cache, mesher=mesher,
+                                    reuse_factor=True)
+    grid = independent_truth_grid(case, n_tets=fine, cache=cache, mesher=mesher,
+                                  reuse_factor=True)
     r = _row(patient, grid)
     change = refinement_change(coarse, grid, points)
     print(r, {k: change[k] for k in ("p50", "p90", "max", "compared")}, flush=True)
@@ -82,16 +84,18 @@ def fine_truth_cost(patient, counts, fine, spacing, cache=True):
             f"max {change['max']:.3f} mm.")
 
 
-def order_check(patient, count, spacing):
+def order_check(patient, count, spacing, mesher="lattice"):
     """The P2 discretisation error on one mesh of the truth: the small-strain control law
     solved with P2 and with P3 elements on the same mesh (so the same geometry, materials
     and boundary data), compared on the exact skin."""
+    from pvcmf.truth.conform import conforming_mesh
     from pvcmf.truth.independent import _boundary_conditions, soft_tissue_mesh
     from pvcmf.truth.solver import solve_reference
 
     case = pvcmf.datasets.phantom(patient, spacing=spacing)
     points = exact_skin_samples(case)
-    grid = _boundary_conditions(case, soft_tissue_mesh(case, n_tets=count))
+    mesh = conforming_mesh if mesher == "conforming" else soft_tissue_mesh
+    grid = _boundary_conditions(case, mesh(case, n_tets=count))
     grid = filters.assign_materials(grid, default_fiber=(0.0, 0.0, 1.0))
     p2, p3 = (solve_reference(grid, order=k, law="linear", steps=1) for k in (2, 3))
     change = refinement_change(p2, p3, points)
@@ -105,14 +109,15 @@ def order_check(patient, count, spacing):
             "the two meshes (the thin tissue, the muscle sheets, the surfaces).")
 
 
-def refinement(patients, counts, spacing, cache=True):
+def refinement(patients, counts, spacing, cache=True, mesher="lattice"):
     rows = []
     for p in patients:
         case = pvcmf.datasets.phantom(p, spacing=spacing)
         points = exact_skin_samples(case)
         prev = None
         for n in counts:
-            grid = independent_truth_grid(case, n_tets=n, cache=cache)
+            grid = independent_truth_grid(case, n_tets=n, cache=cache, mesher=mesher,
+                                          reuse_factor=True)
             row = _row(p, grid)
             if prev is not None:
                 change = refinement_change(prev, grid, points)
@@ -356,6 +361,8 @@ def main(argv=None):
     ap.add_argument("--fine", type=int, default=0, metavar="N",
                     help="with --refinement: also solve one truth of N tetrahedra for the "
                          "first patient, its cost and its change from the finest count")
+    ap.add_argument("--mesher", default="lattice", choices=["lattice", "conforming"],
+                    help="with --refinement: the independent truth's mesher")
     ap.add_argument("--no-cache", action="store_true",
                     help="solve every truth again (default: reuse the on-disk cache)")
     ap.add_argument("--n-tets", type=int, default=30_000)
@@ -370,12 +377,14 @@ def main(argv=None):
              f"pvcmf {pvcmf.__version__}.", ""]
     if args.refinement:
         parts.append(refinement(args.patients, args.counts, args.spacing,
-                                cache=not args.no_cache))
+                                cache=not args.no_cache, mesher=args.mesher))
         if args.order_check:
-            parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing)
+            parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing,
+                                     args.mesher)
         if args.fine:
             parts[-1] += fine_truth_cost(args.patients[0], args.counts, args.fine,
-                                         args.spacing, cache=not args.no_cache)
+                                         args.spacing, cache=not args.no_cache,
+                                         mesher=args.mesher)
     if args.compare:
         parts.append(compare(args.patients, args.truth, args.spacing, args.n_tets,
                              args.truth_tets))

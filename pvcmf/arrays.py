@@ -326,3 +326,11 @@ SKIN_FIT_SECONDS = "skin_fit_seconds"  #: field / summary, float, seconds the fi
 #: the field data of fit_to_skin, in the order summary.json lists them
 SKIN_FIT_FIELDS = (SKIN_FIT_MAX_PUSH, SKIN_FIT_NODES, SKIN_FIT_OUTSIDE_BEFORE,
                    SKIN_FIT_OUTSIDE_AFTER, SKIN_FIT_SECONDS)
+
+
+# --------------------------------------------------------------------------- truth's P2 field
+# pvcmf.truth.solver.solve_reference: the quadratic solution at the edge midpoints, so that
+# the truth can be evaluated as the quadratic field it is (pvcmf.truth.refinement)
+REFERENCE_EDGES = "reference_edges"  #: field, int64 (m, 2): point ids of each mesh edge
+#: field, float64 (m, 3), mm: the solution at the midpoint of each of REFERENCE_EDGES
+REFERENCE_MIDPOINT_DISPLACEMENT = "reference_midpoint_displacement"
