@@ -109,6 +109,19 @@ def order_check(patient, count, spacing, mesher="lattice"):
             "the two meshes (the thin tissue, the muscle sheets, the surfaces).")
 
 
+_LATTICE = ("Mesher ``lattice``: lattice edges across a gap thinner than the lattice are "
+            "not meshed, boundary nodes are snapped onto the exact surfaces (flattened caps "
+            "dropped). Edge mm: the median edge of the mesh (its spacing times about 1.4, "
+            "the face diagonals included).")
+_CONFORMING = ("Mesher ``conforming`` (``pvcmf.truth.conform.conforming_mesh``): the exact "
+               "soft-tissue surface sampled on a grid (spacing from the count), "
+               "triangulated (flying edges) and filled with tetrahedra by gmsh, its "
+               "boundary nodes projected onto the exact surfaces where that flattens no "
+               "element; the same meshed volume at every size. Solves use "
+               "``reuse_factor=True`` (conjugate gradients preconditioned by the last "
+               "factorisation). Edge mm: the median edge of the mesh.")
+
+
 def refinement(patients, counts, spacing, cache=True, mesher="lattice"):
     rows = []
     for p in patients:
@@ -153,11 +166,8 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice"):
             "data the segments' rigid moves blended by smooth weights of the position "
             "(``BLEND_MM``); the posterior plane is held except within ``CLEARANCE_MM`` of "
             "a moved bone; the tongue is not meshed (free, as the oral air); each "
-            "tetrahedron mixes fat and muscle by its sampled muscle fraction; lattice "
-            "edges across a gap thinner than the lattice are not meshed, boundary nodes "
-            "are snapped onto the exact surfaces (flattened caps dropped). Edge mm: the "
-            "median edge of the mesh "
-            "(its spacing times about 1.4, the face diagonals included).\n\n")
+            "tetrahedron mixes fat and muscle by its sampled muscle fraction. "
+            + (_CONFORMING if mesher == "conforming" else _LATTICE) + "\n\n")
     fits = []
     for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
         r = [x for x in rows if x["patient"] == p]

@@ -16,7 +16,10 @@ the labels, nor the boundary model:
   with all four nodes on one surface (caps) are dropped, interior nodes next to other
   flattened elements are smoothed, and the snaps still flattening an element are undone;
   pieces of the lattice that hang on the body by an edge or a vertex are dropped (they
-  would hinge freely);
+  would hinge freely). The lattice meshes less of the soft tissue the coarser it is (the
+  thin tissue of the face is about one lattice cell thick); ``mesher="conforming"``
+  (:func:`pvcmf.truth.conform.conforming_mesh`, gmsh on the exact surface) meshes the same
+  volume at every size;
 * materials: the muscle fraction of each tetrahedron (the twelve facial muscles,
   temporalis, neck muscles; the eyes excluded), sampled at points inside it, mixes Table I
   fat and muscle (rule of mixtures), so a muscle sheet thinner than the elements keeps its
