@@ -76,12 +76,33 @@ def fine_truth_cost(patient, counts, fine, spacing, cache=True, mesher="lattice"
     r = _row(patient, grid)
     change = refinement_change(coarse, grid, points)
     print(r, {k: change[k] for k in ("p50", "p90", "max", "compared")}, flush=True)
+    trend = ""
+    if len(counts) > 1:  # p90 ~ edge^k from the last two changes, projected to 0.1 mm
+        prev = independent_truth_grid(case, n_tets=counts[-2], cache=cache, mesher=mesher,
+                                      reuse_factor=True)
+        a, b, c = _row(patient, prev), _row(patient, coarse), r
+        first = refinement_change(prev, coarse, points)["p90"]
+        k = np.log(first / change["p90"]) / np.log(b["h"] / c["h"])
+        t = np.log(c["tets"] / b["tets"]) / np.log(b["h"] / c["h"])
+        cost = np.log(c["seconds"] / b["seconds"]) / np.log(c["tets"] / b["tets"])
+        if k > 0:
+            h = c["h"] * (0.1 / change["p90"]) ** (1 / k)
+            tets = c["tets"] * (c["h"] / h) ** t
+            trend = (f" Trend: p90 {first:.3f} mm ({a['h']:.1f} -> {b['h']:.1f} mm edges), "
+                     f"{change['p90']:.3f} mm ({b['h']:.1f} -> {c['h']:.1f} mm): p90 ~ "
+                     f"edge^{k:.2f}; 0.1 mm projected at an edge of {h:.1f} mm, about "
+                     f"{tets:.0f} tetrahedra, solve about {c['seconds'] * (tets / c['tets']) ** cost / 60:.0f} "
+                     "min on this machine (extrapolated, not measured).")
+        else:
+            trend = (f" Trend: p90 {first:.3f} mm ({a['h']:.1f} -> {b['h']:.1f} mm edges), "
+                     f"{change['p90']:.3f} mm ({b['h']:.1f} -> {c['h']:.1f} mm): not shrinking, "
+                     "no projection.")
     return (f"\n\nA finer truth, patient {patient} (``--fine {fine}``): {r['tets']} tetrahedra "
             f"(edge {r['h']:.1f} mm), {r['dofs']} dofs, {r['newton']} Newton iterations, "
             f"{r['factorisations']} factorisations, solve {r['seconds']:.0f} s (measured); "
             f"skin change from the {counts[-1]} truth above over {100 * change['compared']:.0f} "
             f"% of the skin: p50 {change['p50']:.3f} mm, p90 {change['p90']:.3f} mm, "
-            f"max {change['max']:.3f} mm.")
+            f"max {change['max']:.3f} mm." + trend)
 
 
 def order_check(patient, count, spacing, mesher="lattice"):
@@ -371,6 +392,8 @@ def main(argv=None):
     ap.add_argument("--fine", type=int, default=0, metavar="N",
                     help="with --refinement: also solve one truth of N tetrahedra for the "
                          "first patient, its cost and its change from the finest count")
+    ap.add_argument("--fine-patients", type=int, nargs="+", default=None,
+                    help="with --fine: the patients of the finer truth (default: the first)")
     ap.add_argument("--mesher", default="lattice", choices=["lattice", "conforming"],
                     help="with --refinement: the independent truth's mesher")
     ap.add_argument("--no-cache", action="store_true",
@@ -391,8 +414,8 @@ def main(argv=None):
         if args.order_check:
             parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing,
                                      args.mesher)
-        if args.fine:
-            parts[-1] += fine_truth_cost(args.patients[0], args.counts, args.fine,
+        for patient in (args.fine_patients or args.patients[:1]) if args.fine else ():
+            parts[-1] += fine_truth_cost(patient, args.counts, args.fine,
                                          args.spacing, cache=not args.no_cache,
                                          mesher=args.mesher)
     if args.compare:
