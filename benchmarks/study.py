@@ -73,34 +73,59 @@ def _row(p, grid):
             "max": np.nan, "released": len(grid.field_data[arrays.REFERENCE_RELEASED])}
 
 
-def fine_truth_cost(patient, counts, fine, spacing, cache=True):
+def fine_truth_cost(patient, counts, fine, spacing, cache=True, mesher="lattice"):
     """One finer truth of ``patient`` (``fine`` tetrahedra asked): its cost and the change
     of its skin from the finest truth of the table (``counts[-1]``)."""
     case = pvcmf.datasets.phantom(patient, spacing=spacing)
     points = exact_skin_samples(case)
-    coarse = independent_truth_grid(case, n_tets=counts[-1], cache=cache)
-    grid = independent_truth_grid(case, n_tets=fine, cache=cache)
+    coarse = independent_truth_grid(case, n_tets=counts[-1], cache=cache, mesher=mesher,
+                                    reuse_factor=True)
+    grid = independent_truth_grid(case, n_tets=fine, cache=cache, mesher=mesher,
+                                  reuse_factor=True)
     r = _row(patient, grid)
     change = refinement_change(coarse, grid, points)
     print(r, {k: change[k] for k in ("p50", "p90", "max", "compared")}, flush=True)
+    trend = ""
+    if len(counts) > 1:  # p90 ~ edge^k from the last two changes, projected to 0.1 mm
+        prev = independent_truth_grid(case, n_tets=counts[-2], cache=cache, mesher=mesher,
+                                      reuse_factor=True)
+        a, b, c = _row(patient, prev), _row(patient, coarse), r
+        first = refinement_change(prev, coarse, points)["p90"]
+        k = np.log(first / change["p90"]) / np.log(b["h"] / c["h"])
+        t = np.log(c["tets"] / b["tets"]) / np.log(b["h"] / c["h"])
+        cost = np.log(c["seconds"] / b["seconds"]) / np.log(c["tets"] / b["tets"])
+        if k > 0:
+            h = c["h"] * (0.1 / change["p90"]) ** (1 / k)
+            tets = c["tets"] * (c["h"] / h) ** t
+            trend = (f" Trend: p90 {first:.3f} mm ({a['h']:.1f} -> {b['h']:.1f} mm edges), "
+                     f"{change['p90']:.3f} mm ({b['h']:.1f} -> {c['h']:.1f} mm): p90 ~ "
+                     f"edge^{k:.2f}; 0.1 mm projected at an edge of {h:.1f} mm, about "
+                     f"{tets:.0f} tetrahedra, solve about {c['seconds'] * (tets / c['tets']) ** cost / 60:.0f} "
+                     "min on this machine (extrapolated, not measured).")
+        else:
+            trend = (f" Trend: p90 {first:.3f} mm ({a['h']:.1f} -> {b['h']:.1f} mm edges), "
+                     f"{change['p90']:.3f} mm ({b['h']:.1f} -> {c['h']:.1f} mm): not shrinking, "
+                     "no projection.")
     return (f"\n\nA finer truth, patient {patient} (``--fine {fine}``): {r['tets']} tetrahedra "
             f"(edge {r['h']:.1f} mm), {r['dofs']} dofs, {r['newton']} Newton iterations, "
             f"{r['factorisations']} factorisations, solve {r['seconds']:.0f} s (measured); "
             f"skin change from the {counts[-1]} truth above over {100 * change['compared']:.0f} "
             f"% of the skin: p50 {change['p50']:.3f} mm, p90 {change['p90']:.3f} mm, "
-            f"max {change['max']:.3f} mm.")
+            f"max {change['max']:.3f} mm." + trend)
 
 
-def order_check(patient, count, spacing):
+def order_check(patient, count, spacing, mesher="lattice"):
     """The P2 discretisation error on one mesh of the truth: the small-strain control law
     solved with P2 and with P3 elements on the same mesh (so the same geometry, materials
     and boundary data), compared on the exact skin."""
+    from pvcmf.truth.conform import conforming_mesh
     from pvcmf.truth.independent import _boundary_conditions, soft_tissue_mesh
     from pvcmf.truth.solver import solve_reference
 
     case = pvcmf.datasets.phantom(patient, spacing=spacing)
     points = exact_skin_samples(case)
-    grid = _boundary_conditions(case, soft_tissue_mesh(case, n_tets=count))
+    mesh = conforming_mesh if mesher == "conforming" else soft_tissue_mesh
+    grid = _boundary_conditions(case, mesh(case, n_tets=count))
     grid = filters.assign_materials(grid, default_fiber=(0.0, 0.0, 1.0))
     p2, p3 = (solve_reference(grid, order=k, law="linear", steps=1) for k in (2, 3))
     change = refinement_change(p2, p3, points)
@@ -114,14 +139,28 @@ def order_check(patient, count, spacing):
             "the two meshes (the thin tissue, the muscle sheets, the surfaces).")
 
 
-def refinement(patients, counts, spacing, cache=True):
+_LATTICE = ("Mesher ``lattice``: lattice edges across a gap thinner than the lattice are "
+            "not meshed, boundary nodes are snapped onto the exact surfaces (flattened caps "
+            "dropped). Edge mm: the median edge of the mesh (its spacing times about 1.4, "
+            "the face diagonals included).")
+_CONFORMING = ("Mesher ``conforming`` (``pvcmf.truth.conform.conforming_mesh``): the exact "
+               "soft-tissue surface sampled on a grid (spacing from the count), "
+               "triangulated (flying edges) and filled with tetrahedra by gmsh, its "
+               "boundary nodes projected onto the exact surfaces where that flattens no "
+               "element; the same meshed volume at every size. Solves use "
+               "``reuse_factor=True`` (conjugate gradients preconditioned by the last "
+               "factorisation). Edge mm: the median edge of the mesh.")
+
+
+def refinement(patients, counts, spacing, cache=True, mesher="lattice"):
     rows = []
     for p in patients:
         case = pvcmf.datasets.phantom(p, spacing=spacing)
         points = exact_skin_samples(case)
         prev = None
         for n in counts:
-            grid = independent_truth_grid(case, n_tets=n, cache=cache)
+            grid = independent_truth_grid(case, n_tets=n, cache=cache, mesher=mesher,
+                                          reuse_factor=True)
             row = _row(p, grid)
             if prev is not None:
                 change = refinement_change(prev, grid, points)
@@ -157,11 +196,8 @@ def refinement(patients, counts, spacing, cache=True):
             "data the segments' rigid moves blended by smooth weights of the position "
             "(``BLEND_MM``); the posterior plane is held except within ``CLEARANCE_MM`` of "
             "a moved bone; the tongue is not meshed (free, as the oral air); each "
-            "tetrahedron mixes fat and muscle by its sampled muscle fraction; lattice "
-            "edges across a gap thinner than the lattice are not meshed, boundary nodes "
-            "are snapped onto the exact surfaces (flattened caps dropped). Edge mm: the "
-            "median edge of the mesh "
-            "(its spacing times about 1.4, the face diagonals included).\n\n")
+            "tetrahedron mixes fat and muscle by its sampled muscle fraction. "
+            + (_CONFORMING if mesher == "conforming" else _LATTICE) + "\n\n")
     fits = []
     for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
         r = [x for x in rows if x["patient"] == p]
@@ -481,6 +517,10 @@ def main(argv=None):
     ap.add_argument("--fine", type=int, default=0, metavar="N",
                     help="with --refinement: also solve one truth of N tetrahedra for the "
                          "first patient, its cost and its change from the finest count")
+    ap.add_argument("--fine-patients", type=int, nargs="+", default=None,
+                    help="with --fine: the patients of the finer truth (default: the first)")
+    ap.add_argument("--mesher", default="lattice", choices=["lattice", "conforming"],
+                    help="with --refinement: the independent truth's mesher")
     ap.add_argument("--no-cache", action="store_true",
                     help="solve every truth again (default: reuse the on-disk cache)")
     ap.add_argument("--n-tets", type=int, default=30_000)
@@ -495,12 +535,14 @@ def main(argv=None):
              f"pvcmf {pvcmf.__version__}.", ""]
     if args.refinement:
         parts.append(refinement(args.patients, args.counts, args.spacing,
-                                cache=not args.no_cache))
+                                cache=not args.no_cache, mesher=args.mesher))
         if args.order_check:
-            parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing)
-        if args.fine:
-            parts[-1] += fine_truth_cost(args.patients[0], args.counts, args.fine,
-                                         args.spacing, cache=not args.no_cache)
+            parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing,
+                                     args.mesher)
+        for patient in (args.fine_patients or args.patients[:1]) if args.fine else ():
+            parts[-1] += fine_truth_cost(patient, args.counts, args.fine,
+                                         args.spacing, cache=not args.no_cache,
+                                         mesher=args.mesher)
     if args.compare:
         parts.append(compare(args.patients, args.truth, args.spacing, args.n_tets,
                              args.truth_tets))

@@ -329,5 +329,12 @@ SKIN_FIT_FIELDS = (SKIN_FIT_MAX_PUSH, SKIN_FIT_NODES, SKIN_FIT_OUTSIDE_BEFORE,
 
 # --- crumple metric (surface mapping) ---
 #: summary / field data: a lower bound on the crumple violations of any mesh -> skin
-#: transfer that interpolates inside the mesh (:func:`pvcmf.filters.surface_mapping.unavoidable_crumples`)
+#: transfer that interpolates inside the mesh (:func:`pvcmf.filters.crumple_bound.unavoidable_crumples`)
 CRUMPLE_UNAVOIDABLE = "crumple_unavoidable"
+
+# --------------------------------------------------------------------------- truth's P2 field
+# pvcmf.truth.solver.solve_reference: the quadratic solution at the edge midpoints, so that
+# the truth can be evaluated as the quadratic field it is (pvcmf.truth.refinement)
+REFERENCE_EDGES = "reference_edges"  #: field, int64 (m, 2): point ids of each mesh edge
+#: field, float64 (m, 3), mm: the solution at the midpoint of each of REFERENCE_EDGES
+REFERENCE_MIDPOINT_DISPLACEMENT = "reference_midpoint_displacement"

@@ -32,6 +32,10 @@ Modules:
 * :mod:`pvcmf.truth.independent` - ``independent_truth_grid``: a truth on its own mesh
   of the exact anatomy with its own boundary model (``study_predictor(truth=
   "independent")``; the study's default truth is still :func:`truth_grid`);
+* :mod:`pvcmf.truth.conform` - ``conforming_mesh``: the independent truth's soft tissue
+  meshed by gmsh on its exact surface (``independent_truth_grid(mesher="conforming")``);
+* :mod:`pvcmf.truth.exact` - the exact soft tissue's level sets, projection and muscle
+  fractions, shared by the meshers and the refinement measure;
 * :mod:`pvcmf.truth.refinement` - the independent truth's refinement measured on the
   exact skin (``exact_skin_samples``, ``skin_displacement``, ``refinement_change``).
 

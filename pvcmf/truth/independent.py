@@ -16,7 +16,10 @@ the labels, nor the boundary model:
   with all four nodes on one surface (caps) are dropped, interior nodes next to other
   flattened elements are smoothed, and the snaps still flattening an element are undone;
   pieces of the lattice that hang on the body by an edge or a vertex are dropped (they
-  would hinge freely);
+  would hinge freely). The lattice meshes less of the soft tissue the coarser it is (the
+  thin tissue of the face is about one lattice cell thick); ``mesher="conforming"``
+  (:func:`pvcmf.truth.conform.conforming_mesh`, gmsh on the exact surface) meshes the same
+  volume at every size;
 * materials: the muscle fraction of each tetrahedron (the twelve facial muscles,
   temporalis, neck muscles; the eyes excluded), sampled at points inside it, mixes Table I
   fat and muscle (rule of mixtures), so a muscle sheet thinner than the elements keeps its
@@ -51,27 +54,18 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .. import arrays, filters
-from ..atlas.muscles import _muscle_models
-from ..atlas.shapes import F32
-from ..atlas.skull import (braincase_sdf, cranium_vault_sdf, face_bone_sdf,
-                           face_cavities_sdf, lower_teeth_sdf, mandible_sdf, spine_sdf,
-                           upper_teeth_sdf)
-from ..atlas.soft_tissue import (airway_sdf, eyes_sdf, neck_muscles_sdf, oral_air_sdf,
-                                 skin_sdf, temporalis_sdf, tongue_sdf)
 from ..cache import cache_root
 from ..filters.model_region import face_box
 from ..filters.osteotomy import cut_bones, segment_transforms, voxel_points
 from .anatomy import _warp
+from .conform import conforming_mesh
+from .exact import _BOUNDARY, _fields, _materials, _project, _region, _volumes  # noqa: F401 (re-exported)
 from .grid import cached, grid_hash
 from .solver import solve_reference
 
 log = logging.getLogger("pvcmf.reference")
 
 __all__ = ["independent_truth_grid", "soft_tissue_mesh"]
-
-#: boundary components of the soft tissue: (name, sign): the region is where every
-#: ``sign * f < 0``
-_BOUNDARY = ("skin", "bone", "teeth", "air", "brain")
 
 #: width (mm, Gaussian sigma) over which the tied bone surface's data blends from one
 #: segment's rigid move to the next across an osteotomy (a field of the position, the same
@@ -82,34 +76,6 @@ CLEARANCE_MM = 20.0
 #: a lattice edge whose midpoint bulges out of the soft tissue by more than this share of
 #: the spacing crosses a gap of the anatomy: its tetrahedra are not meshed
 GAP_RATIO = 0.25
-
-
-def _fields(warp, x):
-    """The boundary level sets (mm, atlas frame; negative inside the structure) at patient
-    points ``x`` (n, 3): dict name -> (n,)."""
-    X = tuple(x[:, i].astype(F32) for i in range(3))
-    base = warp.base_inverse(X)
-    soft, face, mand = warp.soft(base), warp.face(base), warp.mandible(base)
-
-    def f(fn, s):
-        return np.asarray(fn(s), dtype=float)
-
-    bone = np.minimum.reduce([f(cranium_vault_sdf, base), f(spine_sdf, base),
-                              f(face_bone_sdf, face), f(mandible_sdf, mand)])
-    teeth = np.minimum(f(upper_teeth_sdf, face), f(lower_teeth_sdf, mand))
-    # the tongue is not meshed: with the oral air it is the oral cavity, a free surface
-    air = np.minimum.reduce([f(face_cavities_sdf, face), f(oral_air_sdf, face),
-                             f(airway_sdf, soft), f(tongue_sdf, soft)])
-    return {"skin": f(skin_sdf, soft), "bone": bone, "teeth": teeth, "air": air,
-            "brain": f(braincase_sdf, base)}
-
-
-def _region(fields):
-    """Signed region function (< 0 in the soft tissue) and the active component index."""
-    parts = np.stack([fields["skin"], -fields["bone"], -fields["teeth"], -fields["air"],
-                      -fields["brain"]])
-    return parts.max(axis=0), parts.argmax(axis=0)
-
 
 def _lattice(box, h):
     """Freudenthal lattice of ``box`` (x0, x1, y0, y1, z0, z1) at spacing ``h``: points
@@ -163,25 +129,6 @@ def _bridges(warp, x, r, tets, h, ratio=GAP_RATIO):
     mid, _ = _region(_fields(warp, ((x[a] + x[b]) / 2).reshape(-1, 3)))
     mid = mid.reshape(a.shape)
     return ((mid > 0) & (mid - (r[a] + r[b]) / 2 > ratio * h)).any(axis=1)
-
-
-def _volumes(x, tets):
-    q = x[tets]
-    return np.einsum("ij,ij->i", np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]),
-                     q[:, 3] - q[:, 0]) / 6
-
-
-def _project(warp, p, steps=3, dh=0.2):
-    """Newton projection of points ``p`` (n, 3) onto the zero set of the soft tissue's
-    region function (gradient by central differences of ``dh`` mm)."""
-    p = np.array(p, dtype=float)
-    for _ in range(steps):  # a few Newton steps, each vectorised over the points
-        r, _ = _region(_fields(warp, p))
-        grad = np.column_stack([(_region(_fields(warp, p + dh * e))[0]
-                                 - _region(_fields(warp, p - dh * e))[0]) / (2 * dh)
-                                for e in np.eye(3)])
-        p = p - (r / np.maximum(np.einsum("ij,ij->i", grad, grad), 1e-12))[:, None] * grad
-    return p
 
 
 def _snap(warp, x, tets, nodes, boundary, h, steps=4, dh=0.2, rounds=10):
@@ -287,39 +234,6 @@ def soft_tissue_mesh(case, *, n_tets=30_000, face_fraction=0.5, progress_bar=Fal
     return grid
 
 
-def _materials(grid, warp, n=3):
-    """Cell arrays tissue / muscle / muscle_fraction from the exact muscle level sets.
-
-    ``muscle_fraction``: the share of ``(n + 1)(n + 2)(n + 3) / 6`` sample points of each
-    tetrahedron (a barycentric lattice, shrunk towards the centroid) inside a muscle; the
-    materials mix by it (:func:`pvcmf.filters.assign_materials`, rule of mixtures), so a
-    muscle sheet thinner than the elements keeps its share of the stiffness on every mesh
-    instead of being all or nothing by where a centroid falls. ``muscle``: the facial
-    muscle at the centroid (0 elsewhere); ``tissue``: muscle where the fraction is at least
-    one half."""
-    x = np.asarray(grid.points, dtype=float)
-    tets = np.asarray(grid.cells_dict[pv.CellType.TETRA])
-    bary = np.array([(i, j, k, n - i - j - k) for i in range(n + 1) for j in range(n + 1 - i)
-                     for k in range(n + 1 - i - j)], dtype=float) / n
-    bary = np.vstack([np.full(4, 0.25), 0.7 * bary + 0.3 * 0.25])  # centroid first
-    c = np.einsum("qv,evd->eqd", bary, x[tets]).reshape(-1, 3)
-    X = tuple(c[:, i].astype(F32) for i in range(3))
-    s = warp.soft(warp.base_inverse(X))
-    muscle = np.zeros(len(c), dtype=np.uint8)
-    for name, model in _muscle_models().items():  # twelve muscles, vectorised inside
-        muscle[(muscle == 0) & (np.asarray(model(s)) < 0)] = arrays.MUSCLE_IDS[name]
-    generic = np.minimum.reduce([np.asarray(fn(s), float)
-                                 for fn in (tongue_sdf, temporalis_sdf, neck_muscles_sdf)])
-    eye = np.asarray(eyes_sdf(s), float) < 0
-    muscle[eye] = 0
-    inside = (((muscle > 0) | (generic < 0)) & ~eye).reshape(len(tets), -1)
-    fraction = inside[:, 1:].mean(axis=1)
-    grid.cell_data[arrays.TISSUE] = np.where(fraction >= 0.5, arrays.MUSCLE_TISSUE,
-                                             arrays.FAT).astype(np.uint8)
-    grid.cell_data[arrays.MUSCLE] = muscle.reshape(len(tets), -1)[:, 0]
-    grid.cell_data[arrays.MUSCLE_FRACTION] = fraction
-
-
 def _segment_weights(labels, segments, x, sigma=BLEND_MM):
     """Smooth partition of unity over the bone segments at points ``x`` (n, 3): (n, k).
 
@@ -386,7 +300,8 @@ def _boundary_conditions(case, grid, blend=BLEND_MM, clearance=CLEARANCE_MM):
 
 
 def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fraction=0.5,
-                           cache=True, cache_dir=None, progress_bar=False):
+                           cache=True, cache_dir=None, mesher="lattice", reuse_factor=False,
+                           progress_bar=False):
     """The solved independent truth of a virtual patient (module docstring).
 
     Parameters
@@ -404,6 +319,15 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         :func:`pvcmf.truth.grid_hash` of the planned grid and the options).
     cache_dir : path, optional
         Cache folder.
+    mesher : {'lattice', 'conforming'}, default 'lattice'
+        ``'lattice'``: :func:`soft_tissue_mesh` (the lattice-and-snap mesher);
+        ``'conforming'``: :func:`pvcmf.truth.conform.conforming_mesh` (gmsh, conforming to
+        the exact surfaces: the same meshed volume at every size; ``n_tets`` sets its
+        surface spacing). Same boundary model and materials on both.
+    reuse_factor : bool, default False
+        Passed to :func:`pvcmf.truth.solver.solve_reference` (conjugate gradients
+        preconditioned by the last factorisation between refactorisations; the same
+        converged answer, fewer factorisations on large meshes).
     progress_bar : bool, default False
         Show the solver's load steps.
 
@@ -418,7 +342,12 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
     >>> from pvcmf.truth.independent import independent_truth_grid              # doctest: +SKIP
     >>> g = independent_truth_grid(pvcmf.datasets.phantom(1, spacing=2.0))      # doctest: +SKIP
     """
-    grid = soft_tissue_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
+    if mesher == "lattice":
+        grid = soft_tissue_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
+    elif mesher == "conforming":
+        grid = conforming_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
+    else:
+        raise ValueError(f"mesher must be 'lattice' or 'conforming', got {mesher!r}")
     grid = _boundary_conditions(case, grid)
     # Table I; the fibre direction is immaterial to the truth's law for Table I (its fibre
     # term vanishes where the muscle is softer along the fibre than across)
@@ -426,4 +355,5 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
     key = grid_hash(grid, f"independent|order={order}|steps={steps}")
     path = cache_root("reference", cache_dir) / f"independent_{key}.vtu"
     return cached(path, lambda: solve_reference(grid, order=order, steps=steps,
+                                                reuse_factor=reuse_factor,
                                                 progress_bar=progress_bar), cache=cache)

@@ -9,13 +9,14 @@ where it happens to fall inside both):
   skin of the true labels, each point projected onto the exact soft-tissue boundary by
   Newton steps, kept where that boundary is the skin);
 * :func:`skin_displacement` - a solved truth's displacement at those points: the closest
-  point of the truth's boundary triangles (VTK cell locator), its displacement the linear
-  interpolation of the triangle's vertex displacements;
+  point of the truth's boundary triangles (VTK cell locator), its displacement the P2
+  field there (quadratic on the triangle: vertex and edge-midpoint values; the linear
+  interpolation of the vertex values of a truth without midpoint values);
 * :func:`refinement_change` - the per-point change of that displacement between two
   truths (p50 / p90 / max), over the points both meshes reach within a tolerance.
 
-Delegates to pyvista / VTK (closest cell), numpy, and :mod:`pvcmf.truth.independent`
-(the exact anatomy).
+Delegates to pyvista / VTK (closest cell), numpy, and :mod:`pvcmf.truth.exact` (the
+exact anatomy).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import pyvista as pv
 from .. import arrays, filters
 from ..filters.model_region import face_box
 from .anatomy import _warp
-from .independent import _BOUNDARY, _fields, _project, _region
+from .exact import _BOUNDARY, _fields, _project, _region
 
 __all__ = ["exact_skin_samples", "refinement_change", "skin_displacement"]
 
@@ -85,8 +86,10 @@ def skin_displacement(grid, points):
     Returns
     -------
     displacement : numpy.ndarray
-        ``(n, 3)``: at each query point's closest boundary point, the linear interpolation
-        of its triangle's vertex displacements.
+        ``(n, 3)``: at each query point's closest boundary point, the displacement there:
+        the quadratic field of a P2 truth (its vertex values and the edge-midpoint values of
+        the field arrays ``arrays.REFERENCE_EDGES`` / ``REFERENCE_MIDPOINT_DISPLACEMENT``),
+        else the linear interpolation of the triangle's vertex displacements.
     distance : numpy.ndarray
         ``(n,)`` distance (mm) of each query point to the grid's boundary.
 
@@ -115,9 +118,35 @@ def skin_displacement(grid, points):
     den = np.where(d00 * d11 - d01**2 == 0, np.finfo(float).tiny, d00 * d11 - d01**2)
     wb, wc = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
     u = np.asarray(grid.point_data[arrays.DISPLACEMENT], dtype=float)
-    disp = ((1 - wb - wc)[:, None] * u[tri[cell, 0]] + wb[:, None] * u[tri[cell, 1]]
-            + wc[:, None] * u[tri[cell, 2]])
+    lam = np.column_stack([1 - wb - wc, wb, wc])
+    t = tri[cell]
+    if arrays.REFERENCE_MIDPOINT_DISPLACEMENT in grid.field_data:
+        # quadratic (6-node) triangle: lam_i (2 lam_i - 1) at the vertices, 4 lam_i lam_j
+        # at the edge midpoints
+        mid = _midpoints(grid, t)
+        disp = np.einsum("ik,ikd->id", lam * (2 * lam - 1), u[t])
+        for k, (i, j) in enumerate(((0, 1), (1, 2), (0, 2))):
+            disp += (4 * lam[:, i] * lam[:, j])[:, None] * mid[:, k]
+    else:
+        disp = np.einsum("ik,ikd->id", lam, u[t])
     return disp, np.linalg.norm(points - closest, axis=1)
+
+
+def _midpoints(grid, tri):
+    """The solution at the midpoints of the edges (0 1), (1 2), (0 2) of triangles ``tri``
+    (k, 3): (k, 3, 3), from the field arrays of :func:`pvcmf.truth.solve_reference`."""
+    edges = np.asarray(grid.field_data[arrays.REFERENCE_EDGES], dtype=np.int64).reshape(-1, 2)
+    values = np.asarray(grid.field_data[arrays.REFERENCE_MIDPOINT_DISPLACEMENT],
+                        dtype=float).reshape(-1, 3)
+    n = int(grid.n_points)
+    key = edges[:, 0] * n + edges[:, 1]
+    order = np.argsort(key)
+    pairs = tri[:, [0, 1, 1, 2, 0, 2]].reshape(-1, 3, 2)
+    query = pairs.min(axis=2) * n + pairs.max(axis=2)
+    pos = order[np.clip(np.searchsorted(key[order], query), 0, len(key) - 1)]
+    if not np.array_equal(key[pos], query):
+        raise ValueError("grid's reference_edges miss an edge of its boundary triangles")
+    return values[pos]
 
 
 def refinement_change(coarse, fine, points, *, reach=None):

@@ -319,7 +319,12 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
              linear.times["assemble"], linear.times["energy"])
     stats = [3 * model["fes"].ndof, newton_its, linear.factorizations,
              time.perf_counter() - start]
-    return _result(grid, inp, disp, released, stats)
+    out = _result(grid, inp, disp, released, stats)
+    if order > 1:
+        edges, mid = _midpoint_values(model, inp)
+        out.field_data[arrays.REFERENCE_EDGES] = edges
+        out.field_data[arrays.REFERENCE_MIDPOINT_DISPLACEMENT] = mid
+    return out
 
 
 #: strain energies of :func:`solve_reference` (``law``)
@@ -509,6 +514,18 @@ def _load_steps(ngs, model, linear, *, steps, tol, max_newton, predictor, progre
             step_size = min(2 * step_size, 1.0 / steps)  # grow back after a success
             bar.step(f"load {t:.3g} converged in {its} Newton iterations")
     return newton_its
+
+
+def _midpoint_values(model, inp):
+    """The edges of the mesh (sorted point-id pairs, (m, 2)) and the solution at their
+    midpoints (m, 3): with the vertex values, the whole quadratic field (P2)."""
+    tets = inp["tets"]
+    pairs = tets[:, [0, 0, 0, 1, 1, 2, 1, 2, 3, 2, 3, 3]].reshape(-1, 2, 6)
+    edges = np.unique(np.sort(pairs.transpose(0, 2, 1).reshape(-1, 2), axis=1), axis=0)
+    mid = inp["points"][edges].mean(axis=1)
+    mesh = model["mesh"]
+    values = np.asarray(model["gfu"](mesh(mid[:, 0], mid[:, 1], mid[:, 2])), dtype=np.float64)
+    return edges.astype(np.int64), values.reshape(-1, 3)
 
 
 def _result(grid, inp, disp, released, stats):
