@@ -45,6 +45,8 @@ METHODS = {
     "transfer_operator": ("pvcmf.filters", "transfer_operator"),
     "fit_to_skin": ("pvcmf.filters", "fit_to_skin"),
     "dense_skin": ("pvcmf.filters.meshing.skin_fit", "dense_skin"),
+    "head_skin": ("pvcmf.filters.skin", "head_skin"),
+    "unavoidable_crumples": ("pvcmf.filters.crumple_bound", "unavoidable_crumples"),
     "plan_response": ("pvcmf.mtm.response", "plan_response"),
     "solve": ("pvcmf.mtm", "solve"),
     "stiffness": ("pvcmf.mtm", "stiffness"),
