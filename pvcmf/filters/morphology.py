@@ -1,6 +1,11 @@
 """Binary morphology on label volumes for :func:`pvcmf.filters.segment`: largest component,
 hole filling, balls of a physical radius, closing/dilation/opening by a ball, bounding boxes
-and block down/up-sampling of masks. Delegates to :mod:`scipy.ndimage`.
+and block down/up-sampling of masks. Delegates to :mod:`scipy.ndimage`, and the Euclidean
+distance transforms to SimpleITK's ``SignedMaurerDistanceMap`` (an exact transform, about
+twice as fast as :func:`scipy.ndimage.distance_transform_edt`, which is the fallback).
+
+The masks are C-ordered: :func:`scipy.ndimage.label` and numpy's elementwise operations run
+several times slower on Fortran-ordered or mixed-order arrays.
 """
 
 from __future__ import annotations
@@ -46,24 +51,76 @@ def _ball(spacing, radius, minimum=MIN_BALL_VOXELS):
     return sum((g / r) ** 2 for g, r in zip(grid, r_vox)) <= 1.0 + 1e-9
 
 
+def _sq_edt(mask, sampling):
+    """Squared Euclidean distance (mm^2) from every voxel of ``mask`` to the nearest voxel
+    outside it (0 outside), as :func:`scipy.ndimage.distance_transform_edt` squared.
+
+    SimpleITK's exact ``SignedMaurerDistanceMap`` (float32) where it is installed and the
+    mask has background; else scipy."""
+    mask = np.asarray(mask, dtype=bool)
+    sampling = np.broadcast_to(np.asarray(sampling, dtype=float), (mask.ndim,))
+    try:
+        import SimpleITK as sitk
+    except ImportError:  # optional at run time: scipy's transform
+        sitk = None
+    if sitk is None or mask.ndim != 3 or mask.all() or not mask.any():
+        return ndimage.distance_transform_edt(mask, sampling=sampling) ** 2
+    # the background is the object whose outside distances are wanted; no transposition:
+    # the array's last axis is the image's first, so the spacing is reversed
+    img = sitk.GetImageFromArray(np.ascontiguousarray(~mask).view(np.uint8))
+    img.SetSpacing([float(s) for s in sampling[::-1]])
+    f = sitk.SignedMaurerDistanceMapImageFilter()
+    f.SetSquaredDistance(True)
+    f.SetUseImageSpacing(True)
+    f.SetInsideIsPositive(False)
+    f.SetBackgroundValue(0)
+    out = sitk.GetArrayFromImage(f.Execute(img))
+    np.maximum(out, 0, out=out)  # the background's own (negative) values
+    return out
+
+
+def _within(mask, sampling, radius):
+    """Voxels within ``radius`` (mm) of ``mask``: ``edt(~mask) <= radius``."""
+    return _sq_edt(~np.asarray(mask, dtype=bool), sampling) <= _sq_tol(radius)
+
+
+def _beyond(mask, sampling, radius):
+    """Voxels of ``mask`` farther than ``radius`` (mm) from its outside: ``edt(mask) >
+    radius``."""
+    return _sq_edt(mask, sampling) > _sq_tol(radius)
+
+
+def _sq_tol(radius):
+    """``(radius + 1e-6)^2`` with room for the float32 round-off of the squared distance
+    (a few 1e-6 relative)."""
+    r = float(radius) + 1e-6
+    return r * r * (1.0 + 1e-5)
+
+
 def _closing(mask, spacing, radius):
-    """Binary closing with a ball of ``radius`` mm, padded so the border does not erode."""
-    ball = _ball(spacing, radius)
-    pad = [(h + 1, h + 1) for h in np.array(ball.shape) // 2]
-    closed = ndimage.binary_closing(np.pad(mask, pad), structure=ball)
+    """Binary closing with a ball of ``radius`` mm (the ellipsoid of :func:`_ball`), padded
+    so the border does not erode: a dilation and an erosion thresholding distance
+    transforms in units of the ball's radii (the same voxels as the structuring element)."""
+    r_vox = np.maximum(radius / np.maximum(np.asarray(spacing, float), 1e-12), MIN_BALL_VOXELS)
+    half = np.floor(r_vox).astype(int)
+    pad = [(int(h) + 1, int(h) + 1) for h in half]
+    unit = 1.0 / r_vox  # the ball is the unit ball in these units
+    padded = np.pad(np.asarray(mask, dtype=bool), pad)
+    dilated = _sq_edt(~padded, unit) <= 1.0 + 1e-4  # float32 round-off; no offset of a
+    closed = _sq_edt(dilated, unit) > 1.0 + 1e-4  # ball lies that close outside it
     return closed[tuple(slice(a, -b) for a, b in pad)]
 
 
 def _dilate_ball(mask, spacing, radius):
     """Dilation by a ball of ``radius`` mm: the voxels within ``radius`` of ``mask`` (a
     distance transform, far cheaper than ``binary_dilation`` with a large ball)."""
-    return ndimage.distance_transform_edt(~mask, sampling=spacing) <= radius + 1e-6
+    return _within(mask, spacing, radius)
 
 
 def _open_ball(mask, spacing, radius):
     """Opening by a ball of ``radius`` mm (outside the array counts as background)."""
     pad = np.pad(mask, 1)
-    core = ndimage.distance_transform_edt(pad, sampling=spacing) > radius + 1e-6
+    core = _beyond(pad, spacing, radius)
     return _dilate_ball(core, spacing, radius)[1:-1, 1:-1, 1:-1] & mask
 
 
