@@ -21,6 +21,8 @@ def _largest_component(mask, structure):
     lab, n = ndimage.label(mask, structure=structure)
     if n == 0:
         return None
+    if n == 1:
+        return lab.astype(bool)
     sizes = np.bincount(lab.ravel())
     sizes[0] = 0
     return lab == int(np.argmax(sizes))

@@ -323,7 +323,8 @@ def _validate(ct):
     dims = tuple(int(d) for d in ct.dimensions)
     if len(dims) != 3 or min(dims) < 2:
         raise ValueError(f"ct must be a 3-D image (every dimension >= 2), got dimensions {dims}")
-    if not np.all(np.isfinite(values)):
+    lo, hi = (float(values.min()), float(values.max())) if values.size else (0.0, 0.0)
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # NaN and inf reach the extremes
         bad = int(np.count_nonzero(~np.isfinite(values)))
         raise ValueError(f"ct array 'ct' must be finite, got {bad} NaN/inf value(s)")
     return values.reshape(dims, order="F"), np.asarray(ct.spacing, dtype=float)
@@ -573,24 +574,36 @@ def clipped_sides(head, spacing, origin=(0.0, 0.0, 0.0), vol=None, pad_fraction=
     origin = np.asarray(origin, float)
     radius = (3.0 * head.sum() * np.prod(spacing) / (4.0 * np.pi)) ** (1.0 / 3.0)
     floor = None if vol is None else float(vol.min()) + 1e-3 * float(np.ptp(vol))
+    counts = {}  # per axis: head voxels per plane, and those whose next plane is head too
     for (axis, sign), name in _SIDES.items():
-        h = np.moveaxis(head, axis, 0)[::sign]  # outward = increasing index
         other = tuple(a for a in range(3) if a != axis)
-        exposed = h.copy()
-        exposed[:-1] &= ~h[1:]
-        area = exposed.sum(axis=(1, 2)) * float(np.prod(spacing[list(other)]))
+        if axis not in counts:
+            lo, hi = [slice(None)] * 3, [slice(None)] * 3
+            lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+            counts[axis] = (np.count_nonzero(head, axis=other),
+                            np.count_nonzero(head[tuple(lo)] & head[tuple(hi)], axis=other))
+        per_plane, both = counts[axis]
+        exposed = per_plane.copy()  # head voxels whose outward neighbour is not head
+        if sign > 0:
+            exposed[:-1] -= both
+        else:
+            exposed[1:] -= both
+            exposed = exposed[::-1]  # outward = increasing index
+        area = exposed * float(np.prod(spacing[list(other)]))
         plane = int(np.argmax(area))
         if area[plane] < 2.0 * np.pi * radius * spacing[axis]:
             continue
+        index = plane if sign > 0 else head.shape[axis] - 1 - plane
+        face = np.take(head, index, axis=axis)
+        if plane < len(area) - 1:  # the head voxels of the plane with no head beyond
+            face = face & ~np.take(head, index + sign, axis=axis)
         if plane < len(area) - 1 and floor is not None:
-            beyond = np.moveaxis(vol, axis, 0)[::sign][plane + 1][exposed[plane]]
+            beyond = np.take(vol, index + sign, axis=axis)[face]
             if np.mean(beyond <= floor) < pad_fraction:
                 continue
         elif plane < len(area) - 1:
             continue
-        index = plane if sign > 0 else head.shape[axis] - 1 - plane
-        ij = np.nonzero(np.take(head, index, axis=axis) & np.take(
-            np.moveaxis(exposed[::sign], 0, axis), index, axis=axis))
+        ij = np.nonzero(face)
         ext = ", ".join(
             f"{'xyz'[a]} {origin[a] + spacing[a] * ij[k].min():.0f} to "
             f"{origin[a] + spacing[a] * ij[k].max():.0f} mm" for k, a in enumerate(other))
