@@ -39,7 +39,7 @@ from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError
 
 from .. import arrays
-from .morphology import _beyond
+from .morphology import _beyond, _c_copy
 
 log = logging.getLogger(__name__)
 
@@ -161,8 +161,8 @@ def find_jaws(labels, *, progress_bar=False):
     box = _bounds(hard_all, 0)
     # C-ordered copies of the bone's box: labelling and elementwise operations on the
     # Fortran-ordered image (or mixed orders) run several times slower
-    hard = np.ascontiguousarray(hard_all[box])
-    tissue = np.ascontiguousarray(tissue[box])
+    hard = _c_copy(hard_all[box])
+    tissue = _c_copy(tissue[box])
     teeth = (tissue == arrays.TEETH) | (tissue == arrays.METAL)
     teeth &= _far_from(tissue == arrays.INTRACRANIAL, spacing, SKULL_BASE_MM)
     if teeth.sum() < 10:

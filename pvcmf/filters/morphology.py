@@ -108,9 +108,27 @@ def _closing(mask, spacing, radius):
     pad = [(int(h) + 1, int(h) + 1) for h in half]
     unit = 1.0 / r_vox  # the ball is the unit ball in these units
     padded = np.pad(np.asarray(mask, dtype=bool), pad)
+    if np.all(half <= 1):  # a ball within 3x3x3 voxels: ORs and ANDs of shifted copies
+        ball = _ball(spacing, radius)
+        closed = _shifted(_shifted(padded, ball, np.logical_or), ball, np.logical_and)
+        return closed[tuple(slice(a, -b) for a, b in pad)]
     dilated = _sq_edt(~padded, unit) <= 1.0 + 1e-4  # float32 round-off; no offset of a
     closed = _sq_edt(dilated, unit) > 1.0 + 1e-4  # ball lies that close outside it
     return closed[tuple(slice(a, -b) for a, b in pad)]
+
+
+def _shifted(a, ball, op):
+    """Dilation (``op`` OR) or erosion (AND) of ``a`` by a symmetric 3x3x3 ``ball``, on the
+    voxels one away from the array's border; the border keeps its values (the callers pad
+    by two empty layers: the dilation cannot reach the outer one, which erodes anyway)."""
+    out = a.copy()
+    inner = (slice(1, -1),) * 3
+    for offset in zip(*np.nonzero(ball)):  # at most 27 shifts of the whole array
+        if offset == (1, 1, 1):
+            continue
+        src = tuple(slice(o, n - 2 + o) for o, n in zip(offset, a.shape))
+        op(out[inner], a[src], out=out[inner])
+    return out
 
 
 def _dilate_ball(mask, spacing, radius):
@@ -124,6 +142,19 @@ def _open_ball(mask, spacing, radius):
     pad = np.pad(mask, 1)
     core = _beyond(pad, spacing, radius)
     return _dilate_ball(core, spacing, radius)[1:-1, 1:-1, 1:-1] & mask
+
+
+def _c_copy(a):
+    """C-ordered copy of a 3-D array (a view of a Fortran-ordered image): slab by slab along
+    the last axis, so that the reads of each slab stay in cache (``np.ascontiguousarray`` of
+    a Fortran-ordered array reads memory with a stride of a whole slice)."""
+    if a.flags.c_contiguous:
+        return a.copy()
+    out = np.empty(a.shape, dtype=a.dtype)
+    block = max(8, 32 // a.dtype.itemsize)
+    for k in range(0, a.shape[2], block):  # a few dozen slabs, not a voxel loop
+        out[:, :, k:k + block] = a[:, :, k:k + block]
+    return out
 
 
 def _box(mask, margin):

@@ -50,8 +50,8 @@ from scipy import ndimage
 from .. import arrays
 from ..io.head_check import check_head
 from ..io.orientation import _cues as _head_cues  # the measurements check_head judges
-from .morphology import (MIN_BALL_VOXELS, _beyond, _box, _closing, _dilate_ball,  # noqa: F401
-                         _down, _fill, _largest_component, _open_ball, _sq_edt, _up)
+from .morphology import (MIN_BALL_VOXELS, _beyond, _box, _c_copy, _closing,  # noqa: F401
+                         _dilate_ball, _down, _fill, _largest_component, _open_ball, _sq_edt, _up)
 from ..progress import Progress
 from . import metal as _metal
 from .surface_objects import DENSE_STEPS, drop_surface_objects
@@ -380,7 +380,7 @@ def _head(vol, skin, spacing, factor, radius):
         box, region = _head_region(coarse, cspace, factor, radius, vol.shape)
     else:
         box = tuple(slice(0, n) for n in vol.shape)
-    sub = np.ascontiguousarray(vol[box])  # one transposing copy; C order from here on
+    sub = _c_copy(vol[box])  # C order from here on
     above = sub >= skin
     if region is not None:
         above &= region
@@ -398,7 +398,7 @@ def _head(vol, skin, spacing, factor, radius):
     out = np.zeros(tuple(t.stop - t.start for t in tight), dtype=bool)
     out[tuple(slice(i.start - t.start, i.stop - t.start) for i, t in zip(inter, tight))] = \
         head[src]
-    return tight, out, np.ascontiguousarray(vol[tight])
+    return tight, out, _c_copy(vol[tight])
 
 
 def _head_region(coarse, cspace, factor, radius, shape):
