@@ -270,6 +270,8 @@ def _pool(vol, spacing, body_level, bone_level, dense_levels=None):
         top = top + (peak >= dense_levels[0]).view(np.uint8) + (peak >= dense_levels[1]).view(
             np.uint8)
     ds = np.asarray(spacing) * f
+    # C order: labelling and morphology of Fortran-ordered masks run several times slower
+    body, top = np.ascontiguousarray(body), np.ascontiguousarray(top)
     if dense_levels is None:
         return body, top > 0, ds
     return body, top > 0, ds, top == 2
@@ -277,12 +279,15 @@ def _pool(vol, spacing, body_level, bone_level, dense_levels=None):
 
 def _block_max(a, f):
     """Maximum over blocks of ``f`` voxels (``a``'s shape a multiple of ``f``; NaN ignored):
-    one axis at a time, in-place maxima of strided views."""
-    for axis, k in enumerate(f):
+    one axis at a time, in-place maxima of strided views; the axis of the largest memory
+    stride first (its views are whole contiguous slabs, and the others then run on a
+    smaller array)."""
+    for axis in sorted(range(3), key=lambda ax: -abs(a.strides[ax])):
+        k = f[axis]
         if k > 1:
             index = [slice(None)] * 3
             index[axis] = slice(0, None, k)
-            out = a[tuple(index)].copy()
+            out = a[tuple(index)].copy(order="K")  # the memory order of `a`
             for offset in range(1, k):
                 index[axis] = slice(offset, None, k)
                 np.fmax(out, a[tuple(index)], out=out)
