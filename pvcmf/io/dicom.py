@@ -102,13 +102,10 @@ def read_dicom_series(folder, wanted=None):
 
     headers = []
     for file in sorted(p for p in folder.iterdir() if p.is_file()):
-        try:  # the whole file at once: its pixels are not parsed a second time
-            ds = pydicom.dcmread(file)
+        try:
+            ds = pydicom.dcmread(file, stop_before_pixels=True)
         except (InvalidDicomError, OSError, EOFError, ValueError):
-            try:  # a header with damaged pixel data: refused below, naming the file
-                ds = pydicom.dcmread(file, stop_before_pixels=True)
-            except (InvalidDicomError, OSError, EOFError, ValueError):
-                continue  # not DICOM: ignored
+            continue  # not DICOM: ignored
         if "ImagePositionPatient" in ds and "PixelSpacing" in ds and "Rows" in ds:
             headers.append((file, ds))
     if not headers:
@@ -124,10 +121,9 @@ def read_dicom_series(folder, wanted=None):
     dy, dx = (float(v) for v in first.PixelSpacing)  # row spacing, column spacing
     check_spacing([dx, dy, dz], folder)
     volume = np.empty((len(slices), rows, cols), dtype=np.float32)
-    for k, (file, ds) in enumerate(slices):  # one file per slice: I/O, not a voxel loop
+    for k, (file, _) in enumerate(slices):  # one file per slice: I/O, not a voxel loop
         try:
-            if "PixelData" not in ds:
-                ds = pydicom.dcmread(file)
+            ds = pydicom.dcmread(file)
             pixels = ds.pixel_array
         except Exception as err:
             raise ValueError(
