@@ -1,4 +1,4 @@
-"""The morphology helpers of segment against scipy.ndimage's own operators (independent
+"""The morphology functions of segment against scipy.ndimage's own operators (independent
 implementations): distance transform, closing by a ball, dilation/opening, block copies."""
 
 from __future__ import annotations
