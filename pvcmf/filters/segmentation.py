@@ -50,8 +50,8 @@ from scipy import ndimage
 from .. import arrays
 from ..io.head_check import check_head
 from ..io.orientation import _cues as _head_cues  # the measurements check_head judges
-from .morphology import (MIN_BALL_VOXELS, _box, _closing, _dilate_ball, _down, _fill,  # noqa: F401
-                         _largest_component, _open_ball, _up)
+from .morphology import (MIN_BALL_VOXELS, _beyond, _box, _c_copy, _closing,  # noqa: F401
+                         _dilate_ball, _down, _fill, _largest_component, _open_ball, _sq_edt, _up)
 from ..progress import Progress
 from . import metal as _metal
 from .surface_objects import DENSE_STEPS, drop_surface_objects
@@ -235,9 +235,7 @@ def segment(
     warnings = []
 
     say("segment: head mask (skin %.0f, objects < %.1f mm dropped)", thr["skin"], object_opening)
-    head = _head(vol, thr["skin"], spacing, factor, object_opening)
-    box = _box(head, 2)
-    head, sub = head[box], vol[box]
+    box, head, sub = _head(vol, thr["skin"], spacing, factor, object_opening)
     if object_opening > 0:
         head, removed = drop_surface_objects(head, sub, spacing, factor, thr["dense"],
                                              object_opening)
@@ -325,7 +323,8 @@ def _validate(ct):
     dims = tuple(int(d) for d in ct.dimensions)
     if len(dims) != 3 or min(dims) < 2:
         raise ValueError(f"ct must be a 3-D image (every dimension >= 2), got dimensions {dims}")
-    if not np.all(np.isfinite(values)):
+    lo, hi = (float(values.min()), float(values.max())) if values.size else (0.0, 0.0)
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # NaN and inf reach the extremes
         bad = int(np.count_nonzero(~np.isfinite(values)))
         raise ValueError(f"ct array 'ct' must be finite, got {bad} NaN/inf value(s)")
     return values.reshape(dims, order="F"), np.asarray(ct.spacing, dtype=float)
@@ -366,22 +365,40 @@ def _refuse_non_head(vol, spacing, thr):
 
 # --------------------------------------------------------------------------- utilities
 def _head(vol, skin, spacing, factor, radius):
-    """The head: thresholded, objects thinner than ``2 radius`` detached (coarse opening)."""
+    """The head: thresholded, objects thinner than ``2 radius`` detached (coarse opening).
+
+    Returns the index box of the head (2 voxels wider, within the image), the head mask and
+    the image values in it (C-ordered copies)."""
     above = vol >= skin
     if not above.any():
         raise ValueError(f"segment: no voxel is >= skin_threshold={skin:.0f} (ct range "
                          f"[{vol.min():.0f}, {vol.max():.0f}]); are the values in HU?")
     cspace = spacing * factor
     coarse = _down(above, factor, "mean")
+    region = None
     if radius > 0 and coarse.any():
         box, region = _head_region(coarse, cspace, factor, radius, vol.shape)
-        above_box = above[box] & region
     else:
         box = tuple(slice(0, n) for n in vol.shape)
-        above_box = above
-    head = np.zeros(vol.shape, dtype=bool)
-    head[box] = _largest_component(above_box, _FACES)
-    return head
+    sub = _c_copy(vol[box])  # C order from here on
+    above = sub >= skin
+    if region is not None:
+        above &= region
+    head = _largest_component(above, _FACES)
+    if head is None:
+        head = above
+    # the head's box, 2 voxels wider (within the image)
+    inner = _box(head, 0) if head.any() else tuple(slice(0, n) for n in head.shape)
+    tight = tuple(slice(max(b.start + i.start - 2, 0), min(b.start + i.stop + 2, n))
+                  for b, i, n in zip(box, inner, vol.shape))
+    inter = tuple(slice(max(t.start, b.start), min(t.stop, b.stop)) for t, b in zip(tight, box))
+    src = tuple(slice(i.start - b.start, i.stop - b.start) for i, b in zip(inter, box))
+    if inter == tight:
+        return tight, np.ascontiguousarray(head[src]), np.ascontiguousarray(sub[src])
+    out = np.zeros(tuple(t.stop - t.start for t in tight), dtype=bool)
+    out[tuple(slice(i.start - t.start, i.stop - t.start) for i, t in zip(inter, tight))] = \
+        head[src]
+    return tight, out, _c_copy(vol[tight])
 
 
 def _head_region(coarse, cspace, factor, radius, shape):
@@ -393,7 +410,7 @@ def _head_region(coarse, cspace, factor, radius, shape):
     r = max(radius, float(np.max(cspace)))  # at least one coarse voxel
     grow = 2.0 * r + float(np.max(cspace))
     cb = _box(coarse, 0)
-    eroded = ndimage.distance_transform_edt(np.pad(coarse[cb], 1), sampling=cspace) > r + 1e-6
+    eroded = _beyond(np.pad(coarse[cb], 1), cspace, r)
     core = _largest_component(eroded[1:-1, 1:-1, 1:-1], _FACES)
     if core is None:  # everything thinner than the ball: keep the plain mask, grown by it
         core, grow = coarse[cb], r + float(np.max(cspace))
@@ -411,29 +428,35 @@ def _head_region(coarse, cspace, factor, radius, shape):
 
 
 def _fill_small_holes(head, spacing, min_cavity, say):
-    inside = _fill(head, _FACES)
-    holes = inside & ~head
-    if not holes.any():
+    """``head`` with its enclosed holes (components of the background, faces connected, that
+    do not reach the array's border) smaller than ``min_cavity`` mm^3 filled: one labelling
+    of the background gives both the holes and their sizes."""
+    lab, n = ndimage.label(~head, structure=_FACES)
+    if n == 0:
         return head
-    lab, n = ndimage.label(holes, structure=_FACES)
-    size_mm3 = np.bincount(lab.ravel())[1:] * float(np.prod(spacing))
-    small = np.concatenate([[False], size_mm3 < min_cavity])
+    border = np.unique(np.concatenate([f.ravel() for f in (
+        lab[0], lab[-1], lab[:, 0], lab[:, -1], lab[:, :, 0], lab[:, :, -1])]))
+    hole = np.ones(n + 1, dtype=bool)
+    hole[border] = False
+    hole[0] = False
+    if not hole.any():
+        return head
+    size_mm3 = np.bincount(lab.ravel(), minlength=n + 1) * float(np.prod(spacing))
+    small = hole & (size_mm3 < min_cavity)
     say("segment: filled %d small holes, kept %d air cavities", int(small.sum()),
-        int(n - small.sum()))
+        int(hole.sum() - small.sum()))
     return head | small[lab]
 
 
 def _write(ct, shape, box, soft, hard, teeth, metal, intracranial):
-    tissue = np.zeros(shape, dtype=np.uint8, order="F")  # AIR; F order: a flat view
-    sub = np.zeros(soft.shape, dtype=np.uint8)
-    sub[soft] = arrays.FAT
-    sub[hard] = arrays.BONE_TISSUE
-    sub[teeth] = arrays.TEETH
-    sub[metal] = arrays.METAL
-    sub[intracranial] = arrays.INTRACRANIAL
+    sub = soft.view(np.uint8) * np.uint8(arrays.FAT)  # AIR elsewhere
+    for mask, label in ((hard, arrays.BONE_TISSUE), (teeth, arrays.TEETH),
+                        (metal, arrays.METAL), (intracranial, arrays.INTRACRANIAL)):
+        np.copyto(sub, np.uint8(label), where=mask)
+    tissue = np.zeros(shape, dtype=np.uint8, order="F")  # F order: a flat view
     tissue[box] = sub
     bone = np.zeros(shape, dtype=np.uint8, order="F")
-    bone[box][hard] = arrays.CRANIUM
+    bone[box] = hard.view(np.uint8) * np.uint8(arrays.CRANIUM)
     out = ct.copy(deep=True)
     out.point_data[arrays.TISSUE] = tissue.ravel(order="F")
     out.point_data[arrays.BONE] = bone.ravel(order="F")
@@ -458,7 +481,7 @@ def _teeth_off_the_brain(teeth, intracranial, spacing, factor, reach=TEETH_BRAIN
     ic = _down(intracranial[wide], f, "any")
     if not ic.any():
         return teeth
-    dist = ndimage.distance_transform_edt(~ic, sampling=cspace)
+    dist = np.sqrt(_sq_edt(~ic, cspace))
     sub = teeth[tbox]
     comp, n = ndimage.label(sub, structure=np.ones((3, 3, 3), dtype=bool))
     idx = np.nonzero(sub)
@@ -483,7 +506,7 @@ def _intracranial(hard, head, spacing, factor, radius):
     enclosed = _fill(skull, _FACES_2D, z_open=True) & ~skull & head_c
     if not enclosed.any():
         return None
-    dist = ndimage.distance_transform_edt(~skull, sampling=cspace)
+    dist = np.sqrt(_sq_edt(~skull, cspace), dtype=np.float64)
     seed = np.unravel_index(int(np.argmax(np.where(enclosed, dist, 0.0))), dist.shape)
     deep = enclosed & (dist >= 0.5 * dist[seed])
     lab, _ = ndimage.label(deep, structure=_FACES)
@@ -551,24 +574,36 @@ def clipped_sides(head, spacing, origin=(0.0, 0.0, 0.0), vol=None, pad_fraction=
     origin = np.asarray(origin, float)
     radius = (3.0 * head.sum() * np.prod(spacing) / (4.0 * np.pi)) ** (1.0 / 3.0)
     floor = None if vol is None else float(vol.min()) + 1e-3 * float(np.ptp(vol))
+    counts = {}  # per axis: head voxels per plane, and those whose next plane is head too
     for (axis, sign), name in _SIDES.items():
-        h = np.moveaxis(head, axis, 0)[::sign]  # outward = increasing index
         other = tuple(a for a in range(3) if a != axis)
-        exposed = h.copy()
-        exposed[:-1] &= ~h[1:]
-        area = exposed.sum(axis=(1, 2)) * float(np.prod(spacing[list(other)]))
+        if axis not in counts:
+            lo, hi = [slice(None)] * 3, [slice(None)] * 3
+            lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+            counts[axis] = (np.count_nonzero(head, axis=other),
+                            np.count_nonzero(head[tuple(lo)] & head[tuple(hi)], axis=other))
+        per_plane, both = counts[axis]
+        exposed = per_plane.copy()  # head voxels whose outward neighbour is not head
+        if sign > 0:
+            exposed[:-1] -= both
+        else:
+            exposed[1:] -= both
+            exposed = exposed[::-1]  # outward = increasing index
+        area = exposed * float(np.prod(spacing[list(other)]))
         plane = int(np.argmax(area))
         if area[plane] < 2.0 * np.pi * radius * spacing[axis]:
             continue
+        index = plane if sign > 0 else head.shape[axis] - 1 - plane
+        face = np.take(head, index, axis=axis)
+        if plane < len(area) - 1:  # the head voxels of the plane with no head beyond
+            face = face & ~np.take(head, index + sign, axis=axis)
         if plane < len(area) - 1 and floor is not None:
-            beyond = np.moveaxis(vol, axis, 0)[::sign][plane + 1][exposed[plane]]
+            beyond = np.take(vol, index + sign, axis=axis)[face]
             if np.mean(beyond <= floor) < pad_fraction:
                 continue
         elif plane < len(area) - 1:
             continue
-        index = plane if sign > 0 else head.shape[axis] - 1 - plane
-        ij = np.nonzero(np.take(head, index, axis=axis) & np.take(
-            np.moveaxis(exposed[::sign], 0, axis), index, axis=axis))
+        ij = np.nonzero(face)
         ext = ", ".join(
             f"{'xyz'[a]} {origin[a] + spacing[a] * ij[k].min():.0f} to "
             f"{origin[a] + spacing[a] * ij[k].max():.0f} mm" for k, a in enumerate(other))

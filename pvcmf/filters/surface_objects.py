@@ -13,8 +13,9 @@ mm of it that the opening of the rest of the head by a ball of ``radius`` mm doe
 (the thin bump the object and its blur raise on the skin; the skin under it stays).
 
 Each object is processed in its own box (``scipy.ndimage.find_objects``): the distance
-transforms (:func:`scipy.ndimage.distance_transform_edt`) run on a few hundred thousand
-voxels, not on the whole head. The depth test runs on the coarse copy of the head.
+transforms (SimpleITK's exact Maurer transform, see :mod:`pvcmf.filters.morphology`) run on
+a few hundred thousand voxels, not on the whole head. The depth test runs on the coarse copy
+of the head.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import logging
 import numpy as np
 from scipy import ndimage
 
-from .morphology import _down, _fill, _largest_component, _up
+from .morphology import _beyond, _down, _fill, _largest_component, _up, _within
 
 log = logging.getLogger(__name__)
 
@@ -91,14 +92,12 @@ def drop_surface_objects(head, vol, spacing, factor, dense, depth, radius=RIM_MM
     cspace = spacing * np.asarray(factor)
     inside = _fill(_down(head, factor, "any"), _FACES)
     # (the image's end is no air: the padding repeats the last slices of a head cut there)
-    deep = ndimage.distance_transform_edt(np.pad(inside, 1, mode="edge"),
-                                          sampling=cspace)[1:-1, 1:-1, 1:-1]
-    deep = _up(deep > depth + float(np.max(cspace)), factor, head.shape)
-    keep[np.unique(lab[deep & objects])] = True
+    deep = _beyond(np.pad(inside, 1, mode="edge"), cspace,
+                   depth + float(np.max(cspace)))[1:-1, 1:-1, 1:-1]
+    keep[_labels_in_blocks(lab, deep, factor)] = True
     # ... or one that does not reach the head's surface (a vessel under the skin)
-    touching = objects & ~ndimage.binary_erosion(head, structure=_FACES, border_value=1)
     on_skin = np.zeros(n + 1, dtype=bool)
-    on_skin[np.unique(lab[touching])] = True
+    on_skin[np.unique(lab[_surface(head) & objects])] = True
     keep |= ~on_skin
     keep[0] = True
     if keep.all():
@@ -126,6 +125,31 @@ def drop_surface_objects(head, vol, spacing, factor, dense, depth, radius=RIM_MM
     return largest, removed
 
 
+def _labels_in_blocks(lab, coarse, factor):
+    """The labels of ``lab`` in the blocks of the full grid that the block-reduced mask
+    ``coarse`` marks (one strided view per offset in the block: no upsampled copy)."""
+    f = [int(v) for v in factor]
+    found = [np.zeros(1, dtype=lab.dtype)]
+    for offset in np.ndindex(*f):
+        view = lab[tuple(slice(o, None, k) for o, k in zip(offset, f))]
+        mask = coarse[tuple(slice(0, n) for n in view.shape)]
+        found.append(np.unique(view[mask]))
+    return np.unique(np.concatenate(found))
+
+
+def _surface(mask):
+    """Voxels of ``mask`` with a face neighbour outside it (the array's border is inside):
+    ``mask & ~binary_erosion(mask, faces, border_value=1)`` by shifted slices."""
+    inner = mask.copy()
+    for axis in range(mask.ndim):
+        lo = [slice(None)] * mask.ndim
+        hi = [slice(None)] * mask.ndim
+        lo[axis], hi[axis] = slice(0, -1), slice(1, None)
+        inner[tuple(lo)] &= mask[tuple(hi)]
+        inner[tuple(hi)] &= mask[tuple(lo)]
+    return mask & ~inner
+
+
 def _parts(obj, sl, length=PART_VOXELS):
     """Boxes (index slices of the whole image) of the stretches of ``obj`` (the object
     cropped to its box ``sl``) along its longest axis, ``length`` voxels each."""
@@ -147,9 +171,9 @@ def _rim(rest, obj, spacing, radius):
     """Voxels of ``rest`` within ``radius`` of ``obj`` that the opening of ``rest`` by a ball
     of ``radius`` does not keep."""
     pad = np.pad(rest, 1)
-    core = ndimage.distance_transform_edt(pad, sampling=spacing) > radius + 1e-6
+    core = _beyond(pad, spacing, radius)
+    near = _within(obj, spacing, radius)
     if not core.any():
-        return rest & (ndimage.distance_transform_edt(~obj, sampling=spacing) <= radius)
-    opened = ndimage.distance_transform_edt(~core, sampling=spacing)[1:-1, 1:-1, 1:-1] <= radius
-    near = ndimage.distance_transform_edt(~obj, sampling=spacing) <= radius
+        return rest & near
+    opened = _within(core, spacing, radius)[1:-1, 1:-1, 1:-1]
     return rest & near & ~opened

@@ -261,29 +261,36 @@ def _pool(vol, spacing, body_level, bone_level, dense_levels=None):
     shape = [n // k * k for n, k in zip(vol.shape, f)]
     v = vol[: shape[0], : shape[1], : shape[2]]
     body = v[:: f[0], :: f[1], :: f[2]] > body_level
-    # one byte per voxel: 1 bone, 2 tooth-dense, 3 metal; then the block maximum
-    code = (v > bone_level).view(np.uint8)
+    # one code per block: 1 bone, 2 tooth-dense, 3 metal. The code rises with the value, so
+    # the block's code is the code of the block's maximum (pooled first: the comparisons
+    # run on the pooled copy only; NaN voxels are ignored)
+    peak = _block_max(v, f)
+    top = (peak > bone_level).view(np.uint8)
     if dense_levels is not None:
-        code = code + (v >= dense_levels[0]).view(np.uint8) + (v >= dense_levels[1]).view(
+        top = top + (peak >= dense_levels[0]).view(np.uint8) + (peak >= dense_levels[1]).view(
             np.uint8)
-    top = _block_max(code, f)
     ds = np.asarray(spacing) * f
+    # C order: labelling and morphology of Fortran-ordered masks run several times slower
+    body, top = np.ascontiguousarray(body), np.ascontiguousarray(top)
     if dense_levels is None:
         return body, top > 0, ds
     return body, top > 0, ds, top == 2
 
 
 def _block_max(a, f):
-    """Maximum over blocks of ``f`` voxels (``a``'s shape a multiple of ``f``): one axis at
-    a time, in-place maxima of strided views."""
-    for axis, k in enumerate(f):
+    """Maximum over blocks of ``f`` voxels (``a``'s shape a multiple of ``f``; NaN ignored):
+    one axis at a time, in-place maxima of strided views; the axis of the largest memory
+    stride first (its views are whole contiguous slabs, and the others then run on a
+    smaller array)."""
+    for axis in sorted(range(3), key=lambda ax: -abs(a.strides[ax])):
+        k = f[axis]
         if k > 1:
             index = [slice(None)] * 3
             index[axis] = slice(0, None, k)
-            out = a[tuple(index)].copy()
+            out = a[tuple(index)].copy(order="K")  # the memory order of `a`
             for offset in range(1, k):
                 index[axis] = slice(offset, None, k)
-                np.maximum(out, a[tuple(index)], out=out)
+                np.fmax(out, a[tuple(index)], out=out)
             a = out
     return a
 
