@@ -7,7 +7,7 @@ import pytest
 import pyvista as pv
 
 from pvcmf import arrays
-from pvcmf.filters.skin import extract_skin
+from pvcmf.filters.skin import SLIVER_FRACTION, extract_skin
 
 RADII = np.array([40.0, 50.0, 45.0])
 
@@ -95,6 +95,20 @@ def test_open_boundary_leaves_the_scan_end_open(cut_head):
     n = np.asarray(skin.point_data[arrays.NORMALS])
     assert (np.einsum("ij,ij->i", n, p / RADII ** 2) > 0).mean() > 0.99
     assert skin.connectivity().point_data["RegionId"].max() == 0
+
+
+@pytest.mark.parametrize("shift", [0.0, 0.3, 0.7, 1.1, 1.6])
+def test_open_cut_leaves_no_sliver_edges(cut_head, shift):
+    """Contour points just beyond an image plane give no edges of a few micrometres at the
+    cut (whose displacement jumps would be measured as crumpling)."""
+    img = cut_head.copy()
+    centre = np.array([0.3 * shift, shift, 0.7 * shift])  # the planes cross the contour anew
+    img[arrays.TISSUE] = ((((img.points - centre) / RADII) ** 2).sum(axis=1) < 1).astype(np.uint8)
+    skin = extract_skin(img, open_boundary=True)
+    edges = skin.extract_all_edges()
+    seg = np.asarray(edges.points)[edges.lines.reshape(-1, 3)[:, 1:]]
+    shortest = np.linalg.norm(seg[:, 0] - seg[:, 1], axis=1).min()
+    assert shortest >= SLIVER_FRACTION * min(cut_head.spacing) * (1 - 1e-6)
 
 
 def test_open_boundary_of_a_head_inside_the_image_is_the_closed_skin(head):

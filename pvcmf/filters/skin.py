@@ -50,6 +50,9 @@ ORIGINAL_POINT_IDS = "vtkOriginalPointIds"
 SINC_ITERATIONS = 40
 #: pass band of the windowed-sinc filter (VTK's units; smaller smooths more)
 SINC_PASS_BAND = 0.05
+#: an open skin's cut on the image's planes: points within this fraction of the smallest
+#: voxel spacing of a plane go onto it, and points as close are merged (no sliver triangles)
+SLIVER_FRACTION = 0.1
 
 
 def _outward_normals(surface):
@@ -104,14 +107,18 @@ def _image_skin(image, threshold, smooth, fill_holes, sinc, open_boundary=False)
                                   normalize_coordinates=True, progress_bar=False)
     if not open_boundary:
         return _outward_normals(surf)
-    surf = _within(surf, np.asarray(image.bounds, dtype=float), 1e-3 * float(spacing.min()))
+    surf = _within(surf, np.asarray(image.bounds, dtype=float), 1e-3 * float(spacing.min()),
+                   snap=SLIVER_FRACTION * float(spacing.min()))
     return _open_outward_normals(surf, field, origin, spacing)
 
 
-def _within(surface, bounds, tol):
+def _within(surface, bounds, tol, snap=0.0):
     """The largest connected piece of ``surface`` clipped to ``bounds`` (``vtkClipPolyData``
     on each plane of the bounds that ``surface`` crosses by more than ``tol``): the
-    surface ends on the planes, with a straight edge."""
+    surface ends on the planes, with a straight edge. Points within ``snap`` of a plane
+    are first moved onto it, and points closer than ``snap`` merged after the clips, so
+    that the cut leaves no sliver triangles (edges of a few micrometres beside a contour
+    point that lay just beyond the plane)."""
     b = np.asarray(bounds, dtype=float)
     for axis in range(3):
         for side, sign in ((0, -1.0), (1, 1.0)):
@@ -120,6 +127,12 @@ def _within(surface, bounds, tol):
                 raise ValueError("the head's contour has no triangle within the image")
             if not np.any(sign * (p[:, axis] - b[2 * axis + side]) > tol):
                 continue
+            near = np.abs(p[:, axis] - b[2 * axis + side]) < snap
+            if near.any():  # onto the plane: the clip then makes no sliver beside them
+                p = p.copy()
+                p[near, axis] = b[2 * axis + side]
+                surface = surface.copy()
+                surface.points = p
             normal = np.zeros(3)
             normal[axis] = sign  # the clip removes the side the normal points to
             origin = np.zeros(3)
@@ -127,7 +140,11 @@ def _within(surface, bounds, tol):
             surface = surface.clip(normal=normal, origin=origin, progress_bar=False)
     if not surface.n_cells:
         raise ValueError("the head's contour has no triangle within the image")
-    return surface.triangulate().clean().connectivity("largest").extract_surface(
+    surface = surface.triangulate().clean(tolerance=snap, absolute=True)
+    if not surface.is_all_triangles:  # the merge made degenerate triangles into lines
+        surface = surface.extract_cells_by_type(pv.CellType.TRIANGLE).extract_surface(
+            algorithm="dataset_surface")
+    return surface.clean().connectivity("largest").extract_surface(
         algorithm="dataset_surface").clean()
 
 
