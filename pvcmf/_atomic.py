@@ -14,8 +14,14 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from pathlib import Path
+
+#: signals held back while a temporary is created, so that one arriving then is raised
+#: only once the temporary is known to its cleanup
+_HELD = {getattr(signal, name) for name in ("SIGINT", "SIGTERM") if hasattr(signal, name)}
 
 
 def umask():
@@ -28,6 +34,25 @@ def umask():
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """Hold Ctrl-C and SIGTERM back (POSIX, main thread) until the block ends.
+
+    A signal between ``mkstemp``/``mkdtemp`` creating a temporary and the ``try`` that
+    removes it would leave the temporary behind; held, it is raised just after, inside
+    that ``try``.
+    """
+    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not \
+            threading.main_thread():
+        yield
+        return
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def remove_temporaries(path):
@@ -71,16 +96,19 @@ def atomic_path(path):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}",
-                               dir=path.parent)
-    os.close(fd)
-    os.chmod(tmp, 0o666 & ~umask())
+    tmp = None
     try:
+        with _signals_held():
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{path.suffix}",
+                                       dir=path.parent)
+            os.close(fd)
+        os.chmod(tmp, 0o666 & ~umask())
         yield tmp
         os.replace(tmp, path)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(tmp)
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(tmp)
         raise
 
 
@@ -114,18 +142,22 @@ def atomic_dir(path):
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent))
-    os.chmod(tmp, 0o777 & ~umask())
-    old = None
+    tmp = old = None
     try:
-        yield tmp
-        if path.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old.part",
+        with _signals_held():
+            tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part",
                                         dir=path.parent))
-            os.replace(path, old / "previous")
-        os.replace(tmp, path)
+        os.chmod(tmp, 0o777 & ~umask())
+        yield tmp
+        with _signals_held():  # the swap: old aside, new in place
+            if path.exists():
+                old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old.part",
+                                            dir=path.parent))
+                os.replace(path, old / "previous")
+            os.replace(tmp, path)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
         if old is not None and (old / "previous").exists() and not path.exists():
             os.replace(old / "previous", path)  # put the previous folder back
         raise

@@ -24,7 +24,7 @@ import pyvista as pv
 from PIL import Image
 
 from . import arrays
-from ._atomic import atomic_dir, atomic_path, remove_temporaries, write_text
+from ._atomic import _signals_held, atomic_dir, atomic_path, remove_temporaries, write_text
 from .cache import file_lock
 from .figures import face_views
 from .figures.osteotomy import osteotomy_panel
@@ -51,13 +51,14 @@ def _check_path(out, name):
     if not ancestor.is_dir():
         raise ValueError(f"{name}={str(out)!r} lies under {ancestor}, which is a file, "
                          "not a folder")
-    try:  # a probe file: permissions, read-only or special file systems all show here
-        fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=ancestor)
-    except OSError as err:
-        raise ValueError(f"{name}={str(out)!r}: cannot write in {ancestor} "
-                         f"({err.strerror or err})") from None
-    os.close(fd)
-    os.remove(probe)
+    with _signals_held():  # a Ctrl-C between making and removing it would leave the probe
+        try:  # a probe file: permissions, read-only or special file systems all show here
+            fd, probe = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=ancestor)
+        except OSError as err:
+            raise ValueError(f"{name}={str(out)!r}: cannot write in {ancestor} "
+                             f"({err.strerror or err})") from None
+        os.close(fd)
+        os.remove(probe)
     return path
 
 

@@ -168,3 +168,27 @@ def test_files_take_the_umask(tiny_case, tmp_path):
         os.umask(old)
     assert (out.stat().st_mode & 0o777) == 0o755
     assert {p.stat().st_mode & 0o777 for p in out.iterdir()} == {0o644}
+
+
+@pytest.mark.skipif(not hasattr(signal, "pthread_sigmask"), reason="POSIX signal masks only")
+@pytest.mark.parametrize("maker", ["mkdtemp", "mkstemp"])
+def test_ctrl_c_while_a_temporary_is_made_leaves_nothing(tmp_path, monkeypatch, maker):
+    """A Ctrl-C arriving right after the temporary exists (before the code that removes
+    it knows its name) is held back until it does, so nothing is left beside the target."""
+    import tempfile
+
+    from pvcmf._atomic import atomic_dir, atomic_path
+
+    real = getattr(tempfile, maker)
+
+    def made_then_interrupted(*args, **kwargs):
+        made = real(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGINT)  # delivered at once unless held
+        return made
+
+    monkeypatch.setattr(tempfile, maker, made_then_interrupted)
+    writer = atomic_dir if maker == "mkdtemp" else atomic_path
+    with pytest.raises(KeyboardInterrupt):
+        with writer(tmp_path / "out.vtp"):
+            pass
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
