@@ -188,7 +188,13 @@ def test_ctrl_c_while_a_temporary_is_made_leaves_nothing(tmp_path, monkeypatch, 
 
     monkeypatch.setattr(tempfile, maker, made_then_interrupted)
     writer = atomic_dir if maker == "mkdtemp" else atomic_path
-    with pytest.raises(KeyboardInterrupt):
-        with writer(tmp_path / "out.vtp"):
-            pass
+    # a process started in the background of a shell inherits SIGINT ignored: make Ctrl-C
+    # raise KeyboardInterrupt here whatever the runner's shell did
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with writer(tmp_path / "out.vtp"):
+                pass
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert sorted(p.name for p in tmp_path.iterdir()) == []
