@@ -38,21 +38,36 @@ def umask():
 
 @contextlib.contextmanager
 def _signals_held():
-    """Hold Ctrl-C and SIGTERM back (POSIX, main thread) until the block ends.
+    """Hold Ctrl-C and SIGTERM back (main thread) until the block ends.
 
     A signal between ``mkstemp``/``mkdtemp`` creating a temporary and the ``try`` that
-    removes it would leave the temporary behind; held, it is raised just after, inside
-    that ``try``.
+    removes it would leave the temporary behind. During the block the Python handlers of
+    SIGINT and SIGTERM only record the signal; afterwards the previous handlers are put
+    back and a recorded signal is handed to its handler (``KeyboardInterrupt`` for
+    Ctrl-C), inside that ``try``. Handlers, unlike a thread's signal mask, run in the main
+    thread whichever thread the signal reached.
     """
-    if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not \
-            threading.main_thread():
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+    caught = []
+    previous = {}
+    for sig in _HELD:
+        handler = signal.getsignal(sig)
+        if handler is None:  # installed outside Python: left alone
+            continue
+        previous[sig] = signal.signal(sig, lambda signum, frame: caught.append(signum))
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for sig in dict.fromkeys(caught):
+            handler = previous[sig]
+            if callable(handler):
+                handler(sig, None)
+            elif handler == signal.SIG_DFL:
+                os.kill(os.getpid(), sig)  # the default action, now that it is back
 
 
 def remove_temporaries(path):
