@@ -35,7 +35,7 @@ from .. import arrays
 from ..filters.model_region import face_box
 from ..filters.osteotomy import voxel_points
 from .anatomy import _warp
-from .exact import _BOUNDARY, _fields, _materials, _project, _region, _volumes
+from .exact import _fields, _labelled_grid, _project, _region, _volumes
 
 log = logging.getLogger("pvcmf.reference")
 
@@ -185,13 +185,7 @@ def conforming_mesh(case, *, n_tets=20_000, spacing=None, face_fraction=0.5,
     plane = on[np.abs(x[on, 1] - box[2]) < 1e-3 * h]
     free = np.setdiff1d(on, plane)
     x = _to_exact(warp, x, tets, free, h)
-    boundary = np.zeros(len(x), dtype=np.uint8)
-    _, active = _region(_fields(warp, x[free]))
-    boundary[free] = active + 1
-    boundary[plane] = len(_BOUNDARY) + 1
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, x)
-    grid.point_data["boundary"] = boundary
-    _materials(grid, warp)
+    grid = _labelled_grid(x, tets, free, plane, warp)
     log.info("conforming truth mesh: %d tetrahedra, surface sampled at %.2f mm, %d boundary "
              "nodes", grid.n_cells, h, len(on))
     return grid

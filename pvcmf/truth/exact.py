@@ -113,3 +113,18 @@ def _materials(grid, warp, n=3):
                                              arrays.FAT).astype(np.uint8)
     grid.cell_data[arrays.MUSCLE] = muscle.reshape(len(tets), -1)[:, 0]
     grid.cell_data[arrays.MUSCLE_FRACTION] = fraction
+
+
+def _labelled_grid(x, tets, free, plane, warp):
+    """The truth's tetrahedral grid: point array ``boundary`` (0 inside; 1 + the index in
+    :data:`_BOUNDARY` of the exact surface a free boundary node lies on; ``len(_BOUNDARY)
+    + 1`` on the posterior plane) and the cell materials of :func:`_materials`."""
+    boundary = np.zeros(len(x), dtype=np.uint8)
+    _, active = _region(_fields(warp, x[free]))
+    boundary[free] = active + 1
+    boundary[plane] = len(_BOUNDARY) + 1
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, x)
+    grid.point_data["boundary"] = boundary
+    _materials(grid, warp)
+    return grid
+

@@ -59,7 +59,7 @@ from ..filters.model_region import face_box
 from ..filters.osteotomy import cut_bones, segment_transforms, voxel_points
 from .anatomy import _warp
 from .conform import conforming_mesh
-from .exact import _BOUNDARY, _fields, _materials, _project, _region, _volumes  # noqa: F401 (re-exported)
+from .exact import _BOUNDARY, _fields, _labelled_grid, _materials, _project, _region, _volumes  # noqa: F401,E501 (re-exported)
 from .grid import cached, grid_hash
 from .solver import solve_reference
 
@@ -222,13 +222,7 @@ def soft_tissue_mesh(case, *, n_tets=30_000, face_fraction=0.5, progress_bar=Fal
     x, tets, free, plane = x[used], remap[tets], remap[free], remap[plane]
     free, plane = free[free >= 0], plane[plane >= 0]
     on = np.union1d(free, plane)
-    boundary = np.zeros(len(x), dtype=np.uint8)
-    _, active = _region(_fields(warp, x[free]))
-    boundary[free] = active + 1
-    boundary[plane] = len(_BOUNDARY) + 1
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, x)
-    grid.point_data["boundary"] = boundary
-    _materials(grid, warp)
+    grid = _labelled_grid(x, tets, free, plane, warp)
     log.info("independent truth mesh: %d tetrahedra at %.2f mm, %d boundary nodes",
              grid.n_cells, h, len(on))
     return grid
