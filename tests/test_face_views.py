@@ -238,3 +238,75 @@ def test_frame_bounds_frame_the_head_not_the_shoulders():
     assert b[3] - b[2] == pytest.approx(190.0, abs=2.0)
     assert b[4] == pytest.approx(-135.0, abs=0.5) and b[5] == pytest.approx(110.0, abs=1.0)
     assert np.allclose(fv.frame_bounds(head), fv.display_bounds(head))  # no shoulders
+
+
+def _long_nosed_head():
+    """A head with a nose 45 mm long and a chin 20 mm in front of the jaw, in the patient
+    frame, on shoulders twice as wide (frame_bounds leaves those out of the width)."""
+    head = pv.ParametricEllipsoid(72.0, 95.0, 115.0, u_res=40, v_res=40, w_res=40)
+    nose = pv.Cone(center=(0.0, 110.0, 10.0), direction=(0.0, 1.0, -0.3), height=45.0,
+                   radius=14.0, resolution=24)
+    chin = pv.Sphere(radius=20.0, center=(0.0, 75.0, -95.0))
+    shoulders = pv.Cylinder(center=(0.0, -70.0, -150.0), direction=(0.0, 0.0, 1.0),
+                            radius=160.0, height=30.0)
+    return pv.merge([m.triangulate().clean() for m in (head, nose, chin, shoulders)])
+
+
+def _screen_coordinates(plotter, points):
+    """Normalised device coordinates (-1..1 across the panel) of display-frame points."""
+    aspect = plotter.renderer.GetTiledAspectRatio()
+    m = plotter.camera.GetCompositeProjectionTransformMatrix(aspect, -1.0, 1.0)
+    m = np.array([[m.GetElement(i, j) for j in range(4)] for i in range(4)])
+    h = np.c_[points, np.ones(len(points))] @ m.T
+    return h[:, :2] / h[:, 3:]
+
+
+@pytest.mark.parametrize("view", ["frontal", "three_quarter", "profile"])
+@pytest.mark.parametrize("window", [(300, 500), (500, 300), (400, 400)])
+@pytest.mark.parametrize("fit_points", [True, False])
+def test_views_fit_the_whole_head_with_a_margin(view, window, fit_points):
+    """The head above the shoulders, nose and chin included, lies inside every panel with
+    the margin free on each side and the title band free at the top (no image drawn),
+    fitted on the skin's points or on the box of frame_bounds alone."""
+    skin = _long_nosed_head()
+    shown = fv.to_display(skin)
+    bounds = fv.frame_bounds(skin)
+    head = np.asarray(shown.points)
+    head = head[head[:, 2] > -135.0]  # above the shoulders
+    assert head[:, 1].max() > 130.0 and head[:, 2].min() < -114.0  # nose tip, chin
+    p = pv.Plotter(off_screen=True, window_size=list(window))
+    try:
+        fv.set_view(p, bounds, view, points=shown.points if fit_points else None)
+        xy = _screen_coordinates(p, head)
+        lo, hi = np.asarray(bounds).reshape(3, 2).T
+        framed = np.asarray(shown.points)
+        framed = _screen_coordinates(p, framed[np.all((framed >= lo) & (framed <= hi), axis=1)])
+    finally:
+        p.close()
+    m, t = 2.0 * fv.FRAME_MARGIN, 2.0 * fv.FRAME_TITLE
+    tol = 1e-6
+    assert xy[:, 0].min() >= -1.0 + m - tol and xy[:, 0].max() <= 1.0 - m + tol
+    assert xy[:, 1].min() >= -1.0 + m - tol and xy[:, 1].max() <= 1.0 - m - t + tol
+    # and what is framed fills the panel: it reaches the margins across or along
+    fills = max(np.ptp(framed[:, 0]) / (2.0 - 2 * m), np.ptp(framed[:, 1]) / (2.0 - 2 * m - t))
+    assert fills > (0.999 if fit_points or view != "three_quarter" else 0.6)
+
+
+def test_fit_parallel_checks_its_inputs():
+    with pytest.raises(ValueError, match="up"):
+        fv.fit_parallel((0, 1, 0, 1, 0, 1), (0.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match="margin"):
+        fv.fit_parallel((0, 1, 0, 1, 0, 1), (0.0, 1.0, 0.0), margin=0.6)
+
+
+def test_profile_overlay_cuts_the_head_midline_not_the_shoulders_centre():
+    """A scan whose shoulders reach further to one side: the default midsagittal plane is
+    the head's centre (frame_bounds), not the centre of all the skin."""
+    head = pv.ParametricEllipsoid(72.0, 95.0, 115.0, u_res=40, v_res=40, w_res=40)
+    shoulders = pv.Cylinder(center=(60.0, -70.0, -150.0), direction=(0.0, 0.0, 1.0),
+                            radius=160.0, height=30.0)
+    skin = pv.merge([m.triangulate().clean() for m in (head, shoulders)])
+    assert abs(0.5 * (skin.bounds[0] + skin.bounds[1])) > 50.0
+    fig = fv.profile_overlay(skin, skin)
+    x = float(fig.axes[0].get_title().split("x = ")[1].split(" mm")[0])
+    assert abs(x) < 1.0

@@ -32,11 +32,12 @@ from matplotlib.figure import Figure
 from vtkmodules.vtkRenderingCore import vtkSelectVisiblePoints
 
 from .. import arrays
-from .framing import FRAME_SLAB, FRAME_WIDEN, frame_bounds  # noqa: F401 (public here too)
+from .framing import (FRAME_MARGIN, FRAME_SLAB, FRAME_TITLE, FRAME_WIDEN,  # noqa: F401
+                      fit_aspect, fit_parallel, frame_bounds, frame_skins)
 
 __all__ = ["VIEWS", "to_display", "display_bounds", "frame_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
            "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "modelled_points", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
-           "prediction_summary", "carry_to_skin",
+           "prediction_summary", "carry_to_skin", "UNMODELLED_COLOR", "fit_parallel",
            "displacement_views"]
 
 SKIN_COLOR = "peachpuff"
@@ -92,25 +93,26 @@ def _check_view(view):
         raise ValueError(f"view must be one of {sorted(VIEWS)}, got {view!r}")
 
 
-def set_view(plotter, bounds, view, zoom=1.0):
+def set_view(plotter, bounds, view, zoom=1.0, margin=FRAME_MARGIN, title=FRAME_TITLE,
+             points=None):
     """Point the active camera at ``bounds`` (display frame) from the clinical ``view``.
 
-    Parallel projection, so the same face has the same size in every view.
+    Parallel projection, so the same face has the same size in every view. The box's
+    projection on the screen, or that of the display-frame ``points`` inside it, fits the
+    panel (:func:`pvcmf.figures.framing.fit_parallel`): ``margin`` free on every side and
+    a ``title`` band at the top, whatever the view and the panel's aspect ratio.
     """
     _check_view(view)
-    b = np.asarray(bounds, dtype=float).reshape(3, 2)
-    center = b.mean(axis=1)
-    size = float(np.linalg.norm(b[:, 1] - b[:, 0]))
     direction = np.asarray(VIEWS[view])
-    plotter.camera_position = [tuple(center + 3.0 * size * direction), tuple(center),
+    aspect = float(plotter.renderer.GetTiledAspectRatio()) or 1.0
+    focal, scale = fit_parallel(bounds, direction, aspect, margin=margin, title=title,
+                                zoom=zoom, points=points)
+    b = np.asarray(bounds, dtype=float).reshape(3, 2)
+    size = max(float(np.linalg.norm(b[:, 1] - b[:, 0])), 1.0)
+    plotter.camera_position = [tuple(focal + 3.0 * size * direction), tuple(focal),
                                (0.0, 0.0, 1.0)]
     plotter.enable_parallel_projection()
-    # fit the box's screen extent: height along z, width along the screen's right vector
-    corners = np.array(np.meshgrid(*b, indexing="ij")).reshape(3, -1).T
-    right = np.cross(-direction, (0.0, 0.0, 1.0))
-    width = float(np.ptp(corners @ right))
-    aspect = float(plotter.renderer.GetTiledAspectRatio()) or 1.0
-    plotter.camera.parallel_scale = 0.54 * max(float(b[2, 1] - b[2, 0]), width / aspect) / zoom
+    plotter.camera.parallel_scale = scale
     plotter.reset_camera_clipping_range()
 
 
@@ -283,8 +285,20 @@ def symmetric_limit(values, visible, percentile=99.0, floor=0.1):
     return max(float(np.percentile(seen, percentile)), float(floor))
 
 
+def _add_skin(plotter, skin, color, unmodelled):
+    """The skin in ``color``; with ``unmodelled`` (a colour), its points outside the model
+    (:func:`modelled_points`) in that colour."""
+    if unmodelled is None or arrays.SKIN_MODELLED not in skin.point_data:
+        return add_patient_mesh(plotter, skin, color=color, specular=0.2)
+    shown = skin.copy(deep=False)
+    shown.clear_data()
+    shown.point_data["modelled"] = modelled_points(skin).astype(np.float64)
+    return add_patient_mesh(plotter, shown, scalars="modelled", cmap=[unmodelled, color],
+                            clim=(0.0, 1.0), show_scalar_bar=False, specular=0.2)
+
+
 def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
-                    window_size=None, color=SKIN_COLOR):
+                    window_size=None, color=SKIN_COLOR, unmodelled=None, font_size=10):
     """Pre-operative and predicted skins side by side in clinical views.
 
     Parameters
@@ -295,11 +309,19 @@ def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
         Rows, from :data:`VIEWS`.
     window_size : (int, int), optional
         Default 440 x 500 pixels per panel.
+    unmodelled : color, optional
+        Draw the predicted skin's points the model does not reach (its
+        ``arrays.SKIN_MODELLED`` array is 0: the back of the head, the neck, whose
+        displacement is an extension fading to zero) in this colour, e.g. ``"0.78"``.
+    font_size : int
+        Of the panel titles.
 
     Returns
     -------
     pyvista.Plotter
-        Off screen, ``len(views)`` rows x 2 columns (pre-operative, predicted).
+        Off screen, ``len(views)`` rows x 2 columns (pre-operative, predicted). Each view
+        fits the head of both skins (:func:`frame_bounds`) with a margin on every side
+        and the title's band free (:func:`set_view`).
     """
     views = tuple(views)
     for v in views:
@@ -307,16 +329,15 @@ def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
     window_size = window_size or (880, 500 * len(views))
     p = pv.Plotter(off_screen=True, shape=(len(views), 2), window_size=list(window_size),
                    border=False)
-    bounds = np.asarray(frame_bounds(pre)).reshape(3, 2)
-    post_b = np.asarray(frame_bounds(post)).reshape(3, 2)
-    bounds = np.c_[np.minimum(bounds[:, 0], post_b[:, 0]), np.maximum(bounds[:, 1], post_b[:, 1])]
+    bounds, points = frame_skins(pre, post)
     for row, view in enumerate(views):
-        for col, (skin, label) in enumerate(((pre, PRE_LABEL), (post, POST_LABEL))):
+        for col, (skin, label, grey) in enumerate(((pre, PRE_LABEL, None),
+                                                   (post, POST_LABEL, unmodelled))):
             p.subplot(row, col)
             p.set_background("white", all_renderers=False)
-            add_patient_mesh(p, skin, color=color, specular=0.2)
-            set_view(p, bounds.ravel(), view)
-            p.add_text(f"{label}, {VIEW_TITLES[view]}", font_size=10, color="black")
+            _add_skin(p, skin, color, grey)
+            set_view(p, bounds, view, points=points)
+            p.add_text(f"{label}, {VIEW_TITLES[view]}", font_size=font_size, color="black")
     return p
 
 
@@ -366,7 +387,8 @@ def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
     pre, post : pyvista.PolyData
         Skins in the patient frame.
     x : float, optional
-        Midsagittal plane x (mm); default the centre of ``pre`` along x.
+        Midsagittal plane x (mm); default the centre of the head of ``pre`` along x
+        (:func:`frame_bounds`: shoulders the scan holds do not move it).
 
     Returns
     -------
@@ -375,8 +397,8 @@ def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
         superior (+z) up, equal axes in mm.
     """
     if x is None:
-        b = pre.bounds
-        x = 0.5 * (b[0] + b[1])
+        b = frame_bounds(pre)  # display frame: x -> -x
+        x = -0.5 * (b[0] + b[1])
     fig = Figure(figsize=figsize)  # fixed layout: every draw gives the same image
     ax = fig.add_subplot()
     fig.subplots_adjust(left=0.2, right=0.96, bottom=0.12, top=0.93)
@@ -486,12 +508,13 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     p = pv.Plotter(off_screen=True, shape=(2, n), row_weights=[0.84, 0.16],
                    groups=[(1, np.s_[:])], window_size=list(window_size), border=False)
     actor = None
+    bounds, points = frame_skins(skin)
     for col, view in enumerate(views):
         p.subplot(0, col)
         p.set_background("white", all_renderers=False)
         actor = add_patient_mesh(p, shown, scalars=title, cmap=cmap, clim=clim,
                                  show_scalar_bar=False, specular=0.1)
-        set_view(p, frame_bounds(skin), view)
+        set_view(p, bounds, view, points=points)
         p.add_text(VIEW_TITLES[view], font_size=10, color="black")
     p.subplot(1, 0)
     p.set_background("white", all_renderers=False)
@@ -514,7 +537,19 @@ def chart_image(fig, dpi=100):
     return np.asarray(canvas.buffer_rgba())[..., :3].copy()
 
 
-def prediction_summary(pre, post, panel=(380, 440)):
+#: colour of the predicted skin the model does not predict in :func:`prediction_summary`
+UNMODELLED_COLOR = "0.78"
+
+
+def _panel_width(pre, post, height, views):
+    """The panel width (pixels) at which the widest of ``views`` of the heads of ``pre``
+    and ``post`` fills the panel both ways (:func:`fit_aspect`)."""
+    bounds, points = frame_skins(pre, post)
+    aspect = max(fit_aspect(bounds, VIEWS[view], points=points) for view in views)
+    return int(round(height * float(np.clip(aspect, 0.6, 1.3))))
+
+
+def prediction_summary(pre, post, panel=(380, 440), unmodelled=UNMODELLED_COLOR):
     """One image for a first look: frontal and profile, pre-operative and predicted, and
     the midsagittal profile overlay, side by side.
 
@@ -523,21 +558,38 @@ def prediction_summary(pre, post, panel=(380, 440)):
     pre, post : pyvista.PolyData
         Skins in the patient frame.
     panel : (int, int)
-        Width and height (pixels) of one 3-D panel.
+        Largest width and the height (pixels) of one 3-D panel: the width is narrowed to
+        the head's proportions (a narrow head, narrow panels).
+    unmodelled : color or None
+        Colour of the predicted skin the model does not reach (``arrays.SKIN_MODELLED``
+        is 0: the back of the head, the neck, spots where the mesh lies deeper than the
+        transfer's band under the skin; their displacement is the transfer's extension,
+        fading to zero, see :func:`face_comparison`); None draws it in the skin colour.
 
     Returns
     -------
     numpy.ndarray
         (h, w, 3) uint8 RGB image: a 2 x 2 block (rows frontal, profile; columns
-        pre-operative, predicted) then the overlay (:func:`profile_overlay`).
+        pre-operative, predicted) then the overlay (:func:`profile_overlay`), with a note
+        under it naming the grey.
     """
-    w, h = panel
-    p = face_comparison(pre, post, views=("frontal", "profile"), window_size=(2 * w, 2 * h))
+    views = ("frontal", "profile")
+    h = int(panel[1])
+    w = min(int(panel[0]), _panel_width(pre, post, h, views))
+    p = face_comparison(pre, post, views=views, window_size=(2 * w, 2 * h),
+                        unmodelled=unmodelled, font_size=11)
     faces = p.screenshot(return_img=True)[..., :3]
     p.close()
     height = faces.shape[0]
-    chart = chart_image(profile_overlay(pre, post, figsize=(0.5 * height / 100, height / 100)))
-    chart = chart[:height]
+    fig = profile_overlay(pre, post, figsize=(0.5 * height / 100, height / 100))
+    grey = (unmodelled is not None and arrays.SKIN_MODELLED in post.point_data
+            and not modelled_points(post).all())
+    if grey:
+        fig.subplots_adjust(bottom=0.16)
+        fig.text(0.5, 0.015, "grey skin: beyond the mesh's reach;\nits move is extrapolated, "
+                 "fading to none",
+                 ha="center", va="bottom", fontsize=9, color="0.3")
+    chart = chart_image(fig)[:height]
     pad = np.full((height - chart.shape[0], chart.shape[1], 3), 255, np.uint8)
     return np.concatenate([faces, np.concatenate([chart, pad])], axis=1)
 
