@@ -398,7 +398,7 @@ def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
     """
     if x is None:
         b = frame_bounds(pre)  # display frame: x -> -x
-        x = -0.5 * (b[0] + b[1])
+        x = round(-0.5 * (b[0] + b[1]), 6) + 0.0  # + 0.0: no "-0.0" in the title
     fig = Figure(figsize=figsize)  # fixed layout: every draw gives the same image
     ax = fig.add_subplot()
     fig.subplots_adjust(left=0.2, right=0.96, bottom=0.12, top=0.93)
