@@ -310,3 +310,25 @@ def test_profile_overlay_cuts_the_head_midline_not_the_shoulders_centre():
     fig = fv.profile_overlay(skin, skin)
     x = float(fig.axes[0].get_title().split("x = ")[1].split(" mm")[0])
     assert abs(x) < 1.0
+
+
+def test_prediction_summary_greys_only_the_predicted_skin_the_mesh_does_not_reach():
+    pre, post = _pre_post()
+    back = np.asarray(post.points)[:, 1] < 0.0  # the back of the head: not modelled
+    post.point_data[arrays.SKIN_MODELLED] = (~back).astype(np.uint8)
+    image = fv.prediction_summary(pre, post, panel=(300, 240))
+    assert image.shape[0] == 480 and image.dtype == np.uint8
+    w = fv._panel_width(pre, post, 240, ("frontal", "profile"))
+    assert w < 300  # narrowed to the head's proportions
+
+    def grey(block):
+        c = block.astype(int)
+        flat = (np.ptp(c, axis=-1) < 8) & (c.max(axis=-1) < 235) & (c.min(axis=-1) > 60)
+        return flat.sum()
+
+    # the profile row below the titles: the pre-operative skin holds only the grey of
+    # anti-aliased outlines, the predicted one the back of the head
+    pre_grey, post_grey = grey(image[270:480, :w]), grey(image[270:480, w:2 * w])
+    assert post_grey > 5 * pre_grey + 2000
+    plain = fv.prediction_summary(pre, post, panel=(300, 240), unmodelled=None)
+    assert grey(plain[270:480, w:2 * w]) < 2 * pre_grey + 100

@@ -581,11 +581,12 @@ def prediction_summary(pre, post, panel=(380, 440), unmodelled=UNMODELLED_COLOR)
     faces = p.screenshot(return_img=True)[..., :3]
     p.close()
     height = faces.shape[0]
-    fig = profile_overlay(pre, post, figsize=(0.5 * height / 100, height / 100))
+    # at least 420 pixels wide: the title and the note fit at any height
+    fig = profile_overlay(pre, post, figsize=(max(0.5 * height, 420) / 100, height / 100))
     grey = (unmodelled is not None and arrays.SKIN_MODELLED in post.point_data
             and not modelled_points(post).all())
     if grey:
-        fig.subplots_adjust(bottom=0.16)
+        fig.subplots_adjust(bottom=0.12 + 40.0 / height)  # 40 pixels for the note
         fig.text(0.5, 0.015, "grey skin: beyond the mesh's reach;\nits move is extrapolated, "
                  "fading to none",
                  ha="center", va="bottom", fontsize=9, color="0.3")
