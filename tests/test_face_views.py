@@ -332,3 +332,27 @@ def test_prediction_summary_greys_only_the_predicted_skin_the_mesh_does_not_reac
     assert post_grey > 5 * pre_grey + 2000
     plain = fv.prediction_summary(pre, post, panel=(300, 240), unmodelled=None)
     assert grey(plain[270:480, w:2 * w]) < 2 * pre_grey + 100
+
+
+def test_culling_keeps_a_piece_wound_the_other_way():
+    """A closed skin of two pieces wound opposite ways (the head inward, the nose outward,
+    as PyVista makes them): each piece is turned outward, so the culled back faces are the
+    hidden ones and the nose shows in the frontal view."""
+    head, nose = _head()
+
+    def volume(mesh):
+        tri, x = mesh.faces.reshape(-1, 4), np.asarray(mesh.points)
+        return np.einsum("ij,ij->i", x[tri[:, 1]], np.cross(x[tri[:, 2]], x[tri[:, 3]])).sum()
+
+    assert volume(head) * volume(nose) < 0 and abs(volume(head)) > abs(volume(nose))
+    skin = head.merge(nose)
+    skin.point_data["nose"] = np.where(np.asarray(skin.points)[:, 1] > 90.0, 1.0, 0.0)
+    p = pv.Plotter(off_screen=True, window_size=[300, 300])
+    actor = fv.add_patient_mesh(p, skin, scalars="nose", cmap=["peachpuff", "red"],
+                                lighting=False, show_scalar_bar=False)
+    assert actor.prop.culling == "back"
+    fv.set_view(p, fv.to_display(skin).bounds, "frontal")
+    img = p.screenshot(return_img=True)
+    p.close()
+    red = np.all(np.abs(img[..., :3].astype(int) - RED) < 30, axis=-1)
+    assert red.sum() > 100  # the nose's tip, seen end on

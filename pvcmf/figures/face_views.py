@@ -132,17 +132,25 @@ def _geometry_key(surface):
 
 def _closed_outward(shown):
     """Whether a triangle surface is closed and edge-manifold (every edge in exactly two
-    triangles), and whether its triangles wind inward (negative enclosed volume)."""
+    triangles), and which triangles wind inward: those of the connected pieces whose
+    enclosed volume is negative (a nose merged onto a head may wind the other way)."""
     if not shown.n_cells or not shown.is_all_triangles:
-        return False, False
+        return False, None
     tri = shown.faces.reshape(-1, 4)[:, 1:]
     e = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
     _, count = np.unique(e[:, 0] * np.int64(shown.n_points) + e[:, 1], return_counts=True)
     if not np.all(count == 2):
-        return False, False
+        return False, None
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = shown.n_points
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    _, piece = connected_components(graph, directed=False)
+    piece = piece[tri[:, 0]]
     x = np.asarray(shown.points, dtype=np.float64)
-    volume = np.einsum("ij,ij->i", x[tri[:, 0]], np.cross(x[tri[:, 1]], x[tri[:, 2]])).sum()
-    return True, bool(volume < 0)
+    volume = np.einsum("ij,ij->i", x[tri[:, 0]], np.cross(x[tri[:, 1]], x[tri[:, 2]]))
+    return True, (np.bincount(piece, weights=volume) < 0)[piece]
 
 
 def shaded_display(mesh):
@@ -150,7 +158,7 @@ def shaded_display(mesh):
     shading, computed once per geometry, and whether it is a closed manifold.
 
     The normals are VTK's (``compute_normals``, as PyVista's ``smooth_shading`` computes
-    them), oriented outward when the surface is closed; the last few geometries are kept,
+    them), oriented outward, piece by piece, when the surface is closed; the last few geometries are kept,
     so the views of one skin share them. Point and cell arrays are those of ``mesh``.
 
     Returns
@@ -168,9 +176,13 @@ def shaded_display(mesh):
                             faces=surface.faces)
         base = shown.compute_normals(cell_normals=False, split_vertices=False)
         closed, inward = _closed_outward(base)  # windings made consistent by VTK
-        if inward:  # outward, so that the culled back faces are the hidden ones
-            normals = -np.asarray(base.point_data[arrays.NORMALS])
-            base = pv.PolyData(base.points, faces=base.faces.reshape(-1, 4)[:, [0, 1, 3, 2]].ravel())
+        if closed and inward.any():  # outward, so that the culled back faces are hidden
+            faces = base.faces.reshape(-1, 4).copy()
+            faces[inward] = faces[inward][:, [0, 1, 3, 2]]
+            normals = np.asarray(base.point_data[arrays.NORMALS]).copy()
+            flipped = np.unique(faces[inward, 1:])
+            normals[flipped] *= -1.0
+            base = pv.PolyData(base.points, faces=faces.ravel())
             base.point_data[arrays.NORMALS] = normals
         _SHADED[key] = (base, closed)
         while len(_SHADED) > _SHADED_MAX:
