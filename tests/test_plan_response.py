@@ -188,7 +188,7 @@ def test_auto_dtype_follows_the_bound(block, monkeypatch):
     opts = {"fix_unmoved_bone": True}
     plan = Plan((Osteotomy("mandible"),))
     exact = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts, plan=plan)
-    bound = response.float32_bound(exact._op2, 1)
+    bound = exact.skin_operator.float32_error(1)
     assert bound > 1e-6  # the block's operator at 20 mm shifts: float64
     assert plan_response(grid, img, skin=skin, bc_options=opts, plan=plan).skin_response.dtype == np.float64
     monkeypatch.setattr(response, "FLOAT32_TOLERANCE", 1.01 * bound)

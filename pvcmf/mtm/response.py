@@ -35,7 +35,6 @@ solves skip the solution checks (unit fields, not motions). Delegates to
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import time
 import warnings
@@ -50,9 +49,10 @@ from ..filters.surface_mapping import Transfer, transfer_operator
 from ..filters.transfer_locate import tetra
 from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
 from ..progress import Progress
-from ._common import blas_threads
 from .constraints import SolutionWarning
 from .plan_sweep import plan_grid  # noqa: F401  (re-exported: pvcmf.mtm.response.plan_grid)
+from .response_operator import FLOAT32_ROTATION, FLOAT32_SHIFT, SkinOperator, float32_bound
+from .response_operator import one_thread as _one_thread
 from .solver import Solver
 
 log = logging.getLogger(__name__)
@@ -62,55 +62,6 @@ __all__ = ["PlanResponse", "plan_response", "plan_grid", "PlanResponseWarning", 
 
 #: largest float32 rounding bound (mm) of the skin operator's product that keeps float32
 FLOAT32_TOLERANCE = 1e-6
-#: plan range of the float32 bound: largest ``|M - I|`` entry of a rotation (30 degrees)
-FLOAT32_ROTATION = 0.5
-#: plan range of the float32 bound: largest centroid shift component (mm)
-FLOAT32_SHIFT = 20.0
-#: skin points per block of the many-plan products (the block's product stays in cache)
-_BLOCK = 256
-
-_controller = None
-
-
-def _one_thread(threads):
-    """Context limiting BLAS to ``threads`` threads through a cached threadpoolctl
-    controller (entering it costs about 0.1 ms; a fresh one several ms)."""
-    global _controller
-    if threads is None:
-        return contextlib.nullcontext()
-    try:
-        from threadpoolctl import ThreadpoolController
-    except ImportError:
-        return blas_threads(threads)
-    if _controller is None:
-        _controller = ThreadpoolController()
-    return _controller.limit(limits=int(threads), user_api="blas")
-
-
-def float32_bound(R, n_segments, rotation=FLOAT32_ROTATION, shift=FLOAT32_SHIFT):
-    """Rounding bound (mm) of the float32 product ``R a`` against the exact one, over every
-    parameter vector ``a`` with rotation entries up to ``rotation`` and centroid shifts up
-    to ``shift`` mm: ``max_rows g |R| s``, ``g = (K + 2) u / (1 - (K + 2) u)`` (``K`` terms,
-    one rounding of the stored ``R`` and one of ``a``), ``s`` the largest ``|a|``.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> R = np.ones((5, 12))
-    >>> b = float32_bound(R, 1, rotation=0.5, shift=20.0)
-    >>> bool(np.isclose(b, 14 * 2.0**-24 / (1 - 14 * 2.0**-24) * (9 * 0.5 + 3 * 20.0)))
-    True
-    """
-    K = R.shape[-1]
-    if K != 12 * n_segments:
-        raise ValueError(f"R must have 12 columns per segment ({12 * n_segments}), got {K}")
-    u = np.finfo(np.float32).eps / 2
-    g = (K + 2) * u / (1 - (K + 2) * u)
-    s = np.tile(np.r_[rotation, rotation, rotation, shift], 3 * n_segments)
-    peak = 0.0
-    for b in range(0, len(R), 65536):  # blocks: no full-size |R| temporary
-        peak = max(peak, float((np.abs(R[b:b + 65536]) @ s).max(initial=0.0)))
-    return g * peak
 
 
 def _transfer_in_background(mesh, skin):
@@ -271,61 +222,47 @@ class PlanResponse:
             bar.step(f"{self.nodal.shape[2]} solves")
             t = time.perf_counter()
             self.surface_ids = boundary_points(mesh)
-            self._opT, self.reached, self.modelled = None, None, None
+            self._skin, self._skin_dense, self.reached, self.modelled = None, None, None, None
             if pending is not None:
                 transfer, wall, cpu = pending.result()
                 self.timings["transfer build (second thread)"] = wall
                 self.timings["transfer build, CPU time (second thread)"] = cpu
-                T = transfer.W
                 self.modelled = transfer.modelled
-                self.reached = np.flatnonzero(np.diff(T.indptr) > 0)
-                K = self.nodal.shape[2]  # one sparse product gives the point-major operator
-                point_major = self.nodal.transpose(1, 0, 2).reshape(mesh.n_points, 3 * K)
-                R = np.asarray(T[self.reached] @ point_major).reshape(-1, 3, K)
-                self._set_operator(R.astype(self._dtype(R, dtype), copy=False))
-            self._surface = np.ascontiguousarray(self.nodal[:, self.surface_ids])
+                point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
+                self._skin = SkinOperator(transfer.W, point_major)
+                self.reached = self._skin.reached
+                self._skin = self._skin.astype(self._dtype(dtype))
+            K = self.nodal.shape[2]  # point-major rows: a plan's product is (n_surface, 3)
+            self._surface = np.ascontiguousarray(
+                self.nodal[:, self.surface_ids].transpose(1, 0, 2)).reshape(-1, K)
             self.timings["transfer"] = time.perf_counter() - t
             self.timings["main thread CPU"] = time.thread_time() - cpu0
             bar.step("transfer folded in")
         self._bc_types = np.asarray(ref[arrays.BC]).copy()
 
-    def _set_operator(self, op):
-        """Store the reached rows' operator ``op`` ``(n_reached, 3, 12 k)`` parameter-major,
-        over every skin point: ``(12 k, 3 n_skin)``, zero columns where the transfer does not
-        reach (a plan's product then writes the whole output, with no scatter)."""
-        n, K = len(self.modelled), op.shape[2]
-        full = np.zeros((K, n, 3), dtype=op.dtype)
-        full[:, self.reached] = np.transpose(op, (2, 0, 1))
-        self._opT = full.reshape(K, 3 * n)
-        self._modelled_rows = None  # the modelled points' operator, made on first use
-
-    @property
-    def _op2(self):
-        """The operator as ``(3 n_skin, 12 k)`` rows (a transposed view)."""
-        return None if self._opT is None else self._opT.T
-
-    @property
-    def _modelled_op(self):
-        if self._modelled_rows is None:
-            cols = (3 * np.flatnonzero(self.modelled)[:, None] + np.arange(3)).ravel()
-            self._modelled_rows = np.ascontiguousarray(self._opT[:, cols].T)  # point-major
-        return self._modelled_rows
-
     @property
     def skin_response(self):
-        if self._opT is None:
+        if self._skin is None:
             return None
-        K = self._opT.shape[0]
-        return np.ascontiguousarray(np.transpose(self._opT.reshape(K, -1, 3), (2, 1, 0)))
+        if self._skin_dense is None:  # made on first use, kept read-only
+            dense = self._skin.rows(np.arange(self._skin.n))  # (K, n_skin, 3)
+            self._skin_dense = np.ascontiguousarray(np.transpose(dense, (2, 1, 0)))
+            self._skin_dense.flags.writeable = False
+        return self._skin_dense
+
+    @property
+    def skin_operator(self):
+        """The stored skin operator (:class:`pvcmf.mtm.response_operator.SkinOperator`)."""
+        return self._skin
 
     def astype(self, dtype):
         """A shallow copy whose skin operator is stored as ``dtype`` (e.g. ``float32``)."""
         import copy
 
         other = copy.copy(self)
-        if self._opT is not None:
-            other._opT = self._opT.astype(dtype)
-            other._modelled_rows = None
+        if self._skin is not None:
+            other._skin = self._skin.astype(dtype)
+            other._skin_dense = None
         return other
 
     @staticmethod
@@ -361,10 +298,10 @@ class PlanResponse:
                     d[mine, i] = basis[:, j]
                     out[:, :, 12 * s + 4 * i + j] = solver.solve(d, checks=False).T
 
-    def _dtype(self, R, dtype):
+    def _dtype(self, dtype):
         if dtype != "auto":
             return np.dtype(dtype)
-        self.float32_error = float32_bound(R.reshape(-1, R.shape[-1]), len(self.segments))
+        self.float32_error = self._skin.float32_error(len(self.segments))
         return np.dtype(np.float32 if self.float32_error <= FLOAT32_TOLERANCE else np.float64)
 
     # ------------------------------------------------------------------ parameters
@@ -407,7 +344,7 @@ class PlanResponse:
 
         ``out``: a C-contiguous float64 ``(n_skin, 3)`` array written in place (and
         returned), e.g. to predict many plans without allocating."""
-        if self._opT is None:
+        if self._skin is None:
             raise ValueError("plan_response was built without skin=: no skin to predict")
         n = len(self.modelled)
         if out is None:
@@ -423,12 +360,7 @@ class PlanResponse:
             u = self._full(plan, self.skin)
             dest[:] = (transfer_operator(self.mesh, self.skin) @ u).ravel()
             return out
-        op = self._opT
-        with _one_thread(self.threads):  # every output entry written: no fill, no scatter
-            if op.dtype == np.float64:
-                np.dot(a, op, out=dest)
-            else:
-                dest[:] = np.dot(a.astype(op.dtype), op)
+        self._skin.apply(a, dest, self.threads)
         return out
 
     def predict(self, plan, out=None):
@@ -494,8 +426,7 @@ class PlanResponse:
         a = self.parameters(plan)
         if a is None:
             return self._full(plan, None)[self.surface_ids]
-        S = self._surface
-        return (S.reshape(-1, S.shape[2]) @ a).reshape(3, -1).T
+        return (self._surface @ a).reshape(-1, 3)
 
     def predict_mesh(self, plan):
         """Displacement ``(n_points, 3)`` of every mesh node."""
@@ -512,26 +443,24 @@ class PlanResponse:
         ``modelled=True`` takes the statistics over the modelled skin only (points within
         the transfer's band of the mesh, :data:`pvcmf.arrays.SKIN_MODELLED`); otherwise over
         every skin point (the unreached ones count as zero)."""
-        if self._opT is None:
+        if self._skin is None:
             raise ValueError("plan_response was built without skin=: no skin statistics")
-        R = self._modelled_op if modelled else self._op2  # rows (3 points, 12 k)
         count = int(self.modelled.sum()) if modelled else len(self.modelled)
+        select = self.modelled if modelled else None
         params = [self.parameters(p) for p in plans]
         out = np.zeros((len(plans), 3))
         fast = [i for i, a in enumerate(params) if a is not None]
-        step = 3 * _BLOCK
         for start in range(0, len(fast), chunk):
             idx = fast[start:start + chunk]
-            A = np.stack([params[i] for i in idx], axis=1).astype(R.dtype)
+            A = np.stack([params[i] for i in idx], axis=1)
             peak, total, total_sq = (np.zeros(len(idx)) for _ in range(3))
             with _one_thread(self.threads):
-                for b in range(0, len(R), step):
-                    U = (R[b:b + step] @ A).reshape(-1, 3, len(idx))
-                    sq = np.einsum("ncp,ncp->np", U, U)
+                for _, U in self._skin.blocks(A, select):  # U: (plans, points, 3)
+                    sq = np.einsum("pnc,pnc->pn", U, U)
                     mag = np.sqrt(sq)
-                    np.maximum(peak, mag.max(axis=0), out=peak)
-                    total += mag.sum(axis=0)
-                    total_sq += sq.sum(axis=0)
+                    np.maximum(peak, mag.max(axis=1, initial=0.0), out=peak)
+                    total += mag.sum(axis=1)
+                    total_sq += sq.sum(axis=1)
             out[idx] = np.column_stack([peak, total / count, np.sqrt(total_sq / count)])
         for i, a in enumerate(params):
             if a is None:
@@ -554,14 +483,14 @@ class PlanResponse:
         chunk : int, default 256
             Plans per matrix product.
         """
-        if self._opT is None:
+        if self._skin is None:
             raise ValueError("plan_response was built without skin=: no skin to predict")
         n = len(self.modelled)
         ids = np.arange(n) if points is None else np.asarray(points, dtype=np.int64)
         if ids.ndim != 1 or (ids.size and (ids.min() < 0 or ids.max() >= n)):
             raise ValueError(f"points must be skin point ids in [0, {n}), got {points!r}")
-        K = self._opT.shape[0]
-        R = self._opT.reshape(K, n, 3)[:, ids].reshape(K, -1)  # (K, 3 ids)
+        K = self._skin.K
+        R = self._skin.rows(ids).reshape(K, -1)  # (K, 3 ids)
         params = [self.parameters(p) for p in plans]
         out = np.zeros((len(plans), ids.size, 3))
         fast = [i for i, a in enumerate(params) if a is not None]
