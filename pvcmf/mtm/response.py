@@ -45,14 +45,14 @@ import pyvista as pv
 from .. import arrays
 from ..filters.boundary_conditions import apply_plan
 from ..filters.osteotomy import cut_bones
-from ..filters.surface_mapping import Transfer, transfer_operator
-from ..filters.transfer_locate import tetra
+from ..filters.surface_mapping import transfer_operator
 from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
 from ..progress import Progress
 from .constraints import SolutionWarning
 from .plan_sweep import plan_grid  # noqa: F401  (re-exported: pvcmf.mtm.response.plan_grid)
 from .response_operator import FLOAT32_ROTATION, FLOAT32_SHIFT, SkinOperator, float32_bound
 from .response_operator import one_thread as _one_thread
+from .response_transfer import transfer_in_background
 from .solver import Solver
 
 log = logging.getLogger(__name__)
@@ -62,27 +62,6 @@ __all__ = ["PlanResponse", "plan_response", "plan_grid", "PlanResponseWarning", 
 
 #: largest float32 rounding bound (mm) of the skin operator's product that keeps float32
 FLOAT32_TOLERANCE = 1e-6
-
-
-def _transfer_in_background(mesh, skin):
-    """Start :class:`Transfer` of ``skin`` on a second thread, to overlap with the
-    factorisation and solves; it works on its own copies of the mesh's points and
-    tetrahedra and of the skin points (no VTK object is shared between the threads).
-    Returns a future of ``(transfer, seconds, CPU seconds of its thread)``."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    points, tets = tetra(mesh)
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
-    x = np.array(skin.points, dtype=float)
-
-    def build():
-        t, c = time.perf_counter(), time.thread_time()
-        return Transfer(grid, x), time.perf_counter() - t, time.thread_time() - c
-
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pvcmf-transfer")
-    future = pool.submit(build)
-    pool.shutdown(wait=False)
-    return future
 
 
 def _segmented(labels, plan):
@@ -201,37 +180,27 @@ class PlanResponse:
         self.float32_error = None
         cpu0 = time.thread_time()
         with Progress(total=4, desc="plan_response", enabled=progress_bar, logger=log) as bar:
-            pending = None if skin is None else _transfer_in_background(mesh, skin)
-            t = time.perf_counter()
-            cut = _segmented(labels, plan)
-            self.centroids = {s: np.asarray(m, float) for s, m in self._pivots(cut, plan).items()}
-            probe = Plan(tuple(Osteotomy(o.segment, translation=tuple(np.eye(3)[i]), cut=o.cut)
-                               for i, o in enumerate(plan.osteotomies)))
-            self._probe = probe
-            ref = apply_plan(mesh, probe, labels, **bc_options)
-            self.segments = tuple(o.segment_id for o in plan.osteotomies)
-            self.timings["bc"] = time.perf_counter() - t
-            bar.step("boundary conditions")
-            t = time.perf_counter()
-            solver = Solver(ref, **solver_options)
-            self.timings["factor"] = time.perf_counter() - t
-            bar.step("factorised")
-            t = time.perf_counter()
-            self.nodal = self._solve_basis(ref, solver)
-            self.timings["solves"] = time.perf_counter() - t
-            bar.step(f"{self.nodal.shape[2]} solves")
+            pending = None if skin is None else transfer_in_background(mesh, skin)
+            try:
+                ref = self._factor_and_solve(bar)
+            except BaseException:
+                if pending is not None:
+                    pending.cancel()
+                raise
             t = time.perf_counter()
             self.surface_ids = boundary_points(mesh)
             self._skin, self._skin_dense, self.reached, self.modelled = None, None, None, None
             if pending is not None:
                 transfer, wall, cpu = pending.result()
-                self.timings["transfer build (second thread)"] = wall
-                self.timings["transfer build, CPU time (second thread)"] = cpu
+                self.timings[f"transfer build ({pending.where})"] = wall
+                self.timings[f"transfer build, CPU time ({pending.where})"] = cpu
                 self.modelled = transfer.modelled
                 point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
                 self._skin = SkinOperator(transfer.W, point_major)
                 self.reached = self._skin.reached
-                self._skin = self._skin.astype(self._dtype(dtype))
+                store = self._dtype(dtype)
+                if store != self._skin.dtype:
+                    self._skin = self._skin.astype(store)
             K = self.nodal.shape[2]  # point-major rows: a plan's product is (n_surface, 3)
             self._surface = np.ascontiguousarray(
                 self.nodal[:, self.surface_ids].transpose(1, 0, 2)).reshape(-1, K)
@@ -239,6 +208,29 @@ class PlanResponse:
             self.timings["main thread CPU"] = time.thread_time() - cpu0
             bar.step("transfer folded in")
         self._bc_types = np.asarray(ref[arrays.BC]).copy()
+
+    def _factor_and_solve(self, bar):
+        """Boundary conditions of the probe plan, one factorisation and the basis solves
+        (:attr:`nodal`); returns the probe's grid."""
+        plan, labels = self.template, self.labels
+        t = time.perf_counter()
+        cut = _segmented(labels, plan)
+        self.centroids = {s: np.asarray(m, float) for s, m in self._pivots(cut, plan).items()}
+        self._probe = Plan(tuple(Osteotomy(o.segment, translation=tuple(np.eye(3)[i]), cut=o.cut)
+                                 for i, o in enumerate(plan.osteotomies)))
+        ref = apply_plan(self.mesh, self._probe, labels, **self.bc_options)
+        self.segments = tuple(o.segment_id for o in plan.osteotomies)
+        self.timings["bc"] = time.perf_counter() - t
+        bar.step("boundary conditions")
+        t = time.perf_counter()
+        solver = Solver(ref, **self.solver_options)
+        self.timings["factor"] = time.perf_counter() - t
+        bar.step("factorised")
+        t = time.perf_counter()
+        self.nodal = self._solve_basis(ref, solver)
+        self.timings["solves"] = time.perf_counter() - t
+        bar.step(f"{self.nodal.shape[2]} solves")
+        return ref
 
     @property
     def skin_response(self):

@@ -1,0 +1,136 @@
+"""The skin transfer of the plan response, built alongside the factorisation and solves.
+
+:class:`pvcmf.filters.surface_mapping.Transfer` runs many small numpy operations that hold
+Python's global interpreter lock; on a second thread they stall the factorisation and solves
+of the calling thread (and those stall it). On Linux, when the calling process runs a single
+Python thread, the transfer is therefore built in a forked child process, which shares
+nothing with the parent after the fork and sends back ``W``, ``inside`` and ``modelled``
+through a pipe (pickle); elsewhere, or when the fork fails, on a second thread. Either way
+the result is the same :class:`Transfer` computation on the same inputs.
+
+Delegates to :func:`os.fork`, :mod:`pickle`, :mod:`concurrent.futures` and
+:class:`pvcmf.filters.surface_mapping.Transfer`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import signal
+import sys
+import threading
+import time
+import types
+
+import numpy as np
+import pyvista as pv
+
+from ..filters.surface_mapping import Transfer
+from ..filters.transfer_locate import tetra
+
+log = logging.getLogger(__name__)
+
+__all__ = ["transfer_in_background"]
+
+#: build the transfer in a forked process where that is possible (False: always a thread)
+USE_PROCESS = True
+
+
+def _build(grid, x, clock=time.thread_time):
+    """``(transfer parts, seconds, CPU seconds)`` of :class:`Transfer` on ``grid``, ``x``."""
+    t, c = time.perf_counter(), clock()
+    transfer = Transfer(grid, x)
+    parts = types.SimpleNamespace(W=transfer.W, inside=transfer.inside,
+                                  modelled=transfer.modelled)
+    return parts, time.perf_counter() - t, clock() - c
+
+
+class _Thread:
+    """The transfer built on a second thread (a future's ``result``)."""
+
+    where = "second thread"
+
+    def __init__(self, grid, x):
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pvcmf-transfer")
+        self._future = pool.submit(_build, grid, x)
+        pool.shutdown(wait=False)
+
+    def result(self):
+        return self._future.result()
+
+    def cancel(self):
+        self._future.cancel()
+
+
+class _Process:
+    """The transfer built in a forked child process; :meth:`result` reads its answer and
+    reaps it, :meth:`cancel` kills it (the parent failed before reading)."""
+
+    where = "second process"
+
+    def __init__(self, grid, x):
+        read, write = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: build, send, exit without returning to the caller
+            status = 1
+            try:
+                os.close(read)
+                try:
+                    answer = ("ok", _build(grid, x, time.process_time))
+                except BaseException as exc:  # noqa: BLE001 - sent to the parent
+                    answer = ("error", exc)
+                with os.fdopen(write, "wb") as fh:
+                    pickle.dump(answer, fh, protocol=pickle.HIGHEST_PROTOCOL)
+                status = 0
+            finally:
+                os._exit(status)
+        os.close(write)
+        self.pid, self._read, self._inputs = pid, read, (grid, x)
+
+    def result(self):
+        try:
+            with os.fdopen(self._read, "rb") as fh:
+                kind, value = pickle.load(fh)
+        except (EOFError, pickle.UnpicklingError) as exc:  # the child died: build here
+            log.warning("plan_response: the transfer process ended without an answer "
+                        "(%s); building the transfer here", exc)
+            kind, value = "ok", _build(*self._inputs)
+        finally:
+            self._read = None
+            os.waitpid(self.pid, 0)
+        if kind == "error":
+            raise value
+        return value
+
+    def cancel(self):
+        if self._read is None:
+            return
+        os.close(self._read)
+        self._read = None
+        try:
+            os.kill(self.pid, signal.SIGKILL)
+        except ProcessLookupError:  # pragma: no cover - already gone
+            pass
+        os.waitpid(self.pid, 0)
+
+
+def transfer_in_background(mesh, skin):
+    """Start :class:`Transfer` of ``skin`` on ``mesh`` beside the caller's work (a forked
+    process or a second thread, see the module docs); it works on its own copies of the
+    mesh's points and tetrahedra and of the skin points (no VTK object is shared). Returns
+    an object whose ``result()`` is ``(transfer, seconds, CPU seconds)`` (``transfer``
+    with ``W``, ``inside``, ``modelled``), whose ``cancel()`` stops it and whose
+    ``where`` names where it runs."""
+    points, tets = tetra(mesh)
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
+    x = np.array(skin.points, dtype=float)
+    if (USE_PROCESS and sys.platform.startswith("linux") and hasattr(os, "fork")
+            and threading.active_count() == 1):
+        try:
+            return _Process(grid, x)
+        except OSError as exc:  # no fork (limits, memory): a thread instead
+            log.info("plan_response: transfer on a thread (fork failed: %s)", exc)
+    return _Thread(grid, x)
