@@ -1,4 +1,4 @@
-"""Plan response operator: the predicted skin of any surgical plan as one small product.
+"""Plan response operator: the predicted skin of any surgical plan as a few small products.
 
 A plan enters the linear MTM only through prescribed displacements: a joint node ``x`` of a
 segment moved by the rigid map ``M`` is displaced by ``(M[:3, :3] - I) x + M[:3, 3]``, and a
@@ -9,28 +9,29 @@ displacement is ``u = R a`` with ``a`` the stacked ``A``'s, and the skin displac
 transfer_operator`). :func:`plan_response` builds ``R`` with one factorisation
 (:class:`pvcmf.mtm.Solver`) and twelve solves per segment, for boundary conditions whose
 *types* match those of the plans it will see (same moved segments, same cut planes);
-:class:`PlanResponse` folds ``T`` in and predicts a plan by one dense matrix product. A plan
+:class:`PlanResponse` folds ``T`` in (:class:`pvcmf.mtm.response_operator.SkinOperator`:
+skin points with few transfer weights, inside the mesh, are evaluated from the nodal
+displacement of the nodes they use; the others from dense rows of ``T R``) and predicts a
+plan by two small dense products and one sparse product that writes the output. A plan
 whose boundary-condition types differ (another set of moved segments when unmoved bone is
 free, other cut planes) is predicted by a full ``apply_plan`` + solve, with a warning.
 
-Coordinates are centred on each segment's pivot centroid. The skin operator is stored
-parameter-major (``(12 k, 3 n_skin)``, zero columns for the skin points the transfer does
-not reach: beyond twice its band): a plan costs one vector-matrix product on one BLAS thread
-that writes the whole dense output (no fill, no scatter), and many plans are blocked
-products reduced to statistics block by block. A predicted surface has its own points
-and data arrays and shares only the cell connectivity of the operator's own copy of the
-skin (pyvista never writes into it in place), so results cannot change each other or the
-input skin.
+Coordinates are centred on each segment's pivot centroid. Skin points the transfer does
+not reach (beyond twice its band) stay at rest; many plans are blocked products reduced to
+statistics block by block. A predicted surface has its own points and data arrays and
+shares only the cell connectivity of the operator's own copy of the skin (pyvista never
+writes into it in place), so results cannot change each other or the input skin.
 
-``float32`` storage halves the memory the product reads; ``dtype='auto'`` takes it when the
-rounding bound of the float32 product, ``(K + 2) u |R| |a|`` per row (:func:`float32_bound`),
-over plans with rotation entries up to :data:`FLOAT32_ROTATION` and centroid shifts up to
-:data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a face the bound is far
-above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md gives the demo's). The
-skin transfer is built on a second thread during the factorisation and solves; the basis
+``float32`` storage halves the memory the products read; ``dtype='auto'`` takes it when
+the rounding bound of the float32 products (:meth:`SkinOperator.float32_error`, from
+:func:`float32_bound`), over plans with rotation entries up to :data:`FLOAT32_ROTATION` and
+centroid shifts up to :data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a
+face the bound is far above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md
+gives the demo's). The skin transfer is built beside the factorisation and solves
+(:mod:`pvcmf.mtm.response_transfer`: a forked process, or a second thread); the basis
 solves skip the solution checks (unit fields, not motions). Delegates to
-:func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS),
-:mod:`concurrent.futures` and threadpoolctl (one BLAS thread for the products).
+:func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS), scipy.sparse
+and threadpoolctl (one BLAS thread for the products).
 """
 
 from __future__ import annotations
@@ -50,7 +51,8 @@ from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
 from ..progress import Progress
 from .constraints import SolutionWarning
 from .plan_sweep import plan_grid  # noqa: F401  (re-exported: pvcmf.mtm.response.plan_grid)
-from .response_operator import FLOAT32_ROTATION, FLOAT32_SHIFT, SkinOperator, float32_bound
+from .response_operator import FLOAT32_ROTATION, FLOAT32_SHIFT, float32_bound  # noqa: F401
+from .response_operator import SkinOperator
 from .response_operator import one_thread as _one_thread
 from .response_transfer import transfer_in_background
 from .solver import Solver
@@ -148,8 +150,10 @@ class PlanResponse:
     nodal : ndarray, shape (3, n_points, 12 * n_segments)
         Nodal response per component.
     skin_response : ndarray or None, shape (3, n_skin, 12 * n_segments)
-        The skin operator per component (a new array on each access; the stored form is
-        parameter-major, ``(12 k, 3 n_skin)``).
+        The skin operator per component as one dense array, made from the stored parts
+        on first access and kept, read-only.
+    skin_operator : pvcmf.mtm.response_operator.SkinOperator or None
+        The stored skin operator (sparse rows on the nodal response, dense rows).
     reached : ndarray of int or None
         Skin points with a non-empty transfer row (the others never move).
     surface_ids : ndarray
@@ -157,15 +161,17 @@ class PlanResponse:
     modelled : ndarray of bool or None
         Skin points the mesh models (within the transfer's band, :data:`arrays.SKIN_MODELLED`).
     float32_error : float or None
-        ``dtype='auto'``: rounding bound (mm) of the float32 skin product against the
-        float64 one, ``max_rows (K + 2) u |R| s`` with ``s`` the plan range
+        ``dtype='auto'``: rounding bound (mm) of the float32 skin products against the
+        float64 ones, ``(K + 2) u |row| s`` over the dense rows and ``(K + 2) u |T_row| |R| s``
+        over the points evaluated from the nodal response, ``s`` the plan range
         (:data:`FLOAT32_ROTATION`, :data:`FLOAT32_SHIFT`); float32 is kept when it is at
         most :data:`FLOAT32_TOLERANCE`.
     timings : dict
         Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
         solves: waiting for the skin transfer, folding it in) and ``transfer build (second
-        thread)`` (the skin transfer's own build, which runs on a second thread during the
-        others) and its CPU time; ``main thread CPU`` the CPU time of the calling thread.
+        process)`` (or ``(second thread)``: the skin transfer's own build, which runs
+        beside the others) and its CPU time; ``main thread CPU`` the CPU time of the
+        calling thread.
     """
 
     def __init__(self, mesh, labels, *, skin, plan, dtype, bc_options, solver_options,
@@ -244,7 +250,6 @@ class PlanResponse:
 
     @property
     def skin_operator(self):
-        """The stored skin operator (:class:`pvcmf.mtm.response_operator.SkinOperator`)."""
         return self._skin
 
     def astype(self, dtype):
@@ -447,12 +452,14 @@ class PlanResponse:
             A = np.stack([params[i] for i in idx], axis=1)
             peak, total, total_sq = (np.zeros(len(idx)) for _ in range(3))
             with _one_thread(self.threads):
-                for _, U in self._skin.blocks(A, select):  # U: (plans, points, 3)
-                    sq = np.einsum("pnc,pnc->pn", U, U)
+                for ids, U in self._skin.blocks(A):  # U: (points, 3, plans)
+                    sq = np.einsum("ncp,ncp->np", U, U)
+                    if select is not None:
+                        sq[~select[ids]] = 0.0  # not counted: adds nothing, max >= 0
                     mag = np.sqrt(sq)
-                    np.maximum(peak, mag.max(axis=1, initial=0.0), out=peak)
-                    total += mag.sum(axis=1)
-                    total_sq += sq.sum(axis=1)
+                    np.maximum(peak, mag.max(axis=0, initial=0.0), out=peak)
+                    total += mag.sum(axis=0)
+                    total_sq += sq.sum(axis=0)
             out[idx] = np.column_stack([peak, total / count, np.sqrt(total_sq / count)])
         for i, a in enumerate(params):
             if a is None:

@@ -260,31 +260,20 @@ class SkinOperator:
             out[:, pick] = block.transpose(2, 0, 1)
         return out
 
-    def blocks(self, A, select=None):
+    def blocks(self, A):
         """Skin displacements of the plans ``A`` (K, P) block by block, in the order of the
-        stored rows: yields ``(ids, U)`` with ``U`` of shape ``(P, len(ids), 3)``, over the
-        reached points (``select``: a boolean mask of skin points to keep)."""
+        stored rows: yields ``(ids, U)`` with ``U`` of shape ``(len(ids), 3, P)``, over the
+        reached points."""
         A = A.astype(self.dtype, copy=False)
         P = A.shape[1]
         d_ids = self.dense_rows
         for b in range(0, len(d_ids), BLOCK):
             ids = d_ids[b:b + BLOCK]
-            U = (A.T @ self.D[:, 3 * b:3 * (b + len(ids))]).reshape(P, -1, 3)
-            yield self._selected(ids, U, select)
+            yield ids, (self.D[:, 3 * b:3 * (b + len(ids))].T @ A).reshape(-1, 3, P)
         if not len(self.sparse_rows):
             return
         X = self.nodes(A)  # (n_u, 3 P)
         step = 4 * BLOCK
         for b in range(0, len(self.sparse_rows), step):
             ids = self.sparse_rows[b:b + step]
-            U = np.asarray(self.S[b:b + step] @ X).reshape(len(ids), 3, P)
-            yield self._selected(ids, U.transpose(2, 0, 1), select)
-
-    @staticmethod
-    def _selected(ids, U, select):
-        if select is None:
-            return ids, U
-        keep = select[ids]
-        if keep.all():
-            return ids, U
-        return ids[keep], U[:, keep]
+            yield ids, np.asarray(self.S[b:b + step] @ X).reshape(len(ids), 3, P)
