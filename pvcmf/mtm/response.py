@@ -344,8 +344,9 @@ class PlanResponse:
         if self._skin is None:
             raise ValueError("plan_response was built without skin=: no skin to predict")
         n = len(self.modelled)
-        if out is None:
-            out = np.empty((n, 3))
+        zeroed = out is None
+        if zeroed:
+            out = np.zeros((n, 3))  # fresh pages are zero already: no fill
         elif (not isinstance(out, np.ndarray) or out.shape != (n, 3) or out.dtype != np.float64
                 or not out.flags.c_contiguous):
             raise ValueError(f"out must be a C-contiguous float64 array of shape ({n}, 3), "
@@ -357,7 +358,7 @@ class PlanResponse:
             u = self._full(plan, self.skin)
             dest[:] = (transfer_operator(self.mesh, self.skin) @ u).ravel()
             return out
-        self._skin.apply(a, dest, self.threads)
+        self._skin.apply(a, dest, self.threads, zeroed=zeroed)
         return out
 
     def predict(self, plan, out=None):

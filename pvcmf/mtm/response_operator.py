@@ -212,8 +212,9 @@ class SkinOperator:
         return max(dense, _rounding_factor(self.K) * float(np.max(rows, initial=0.0)))
 
     # ------------------------------------------------------------------ one plan
-    def apply(self, a, dest, threads=1):
-        """Write ``T R a`` into ``dest`` (flat float64, ``3 n_skin``; overwritten)."""
+    def apply(self, a, dest, threads=1, zeroed=False):
+        """Write ``T R a`` into ``dest`` (flat float64, ``3 n_skin``; overwritten;
+        ``zeroed=True``: ``dest`` holds zeros already, e.g. fresh from :func:`numpy.zeros`)."""
         n_u3 = self.Ru.shape[0]
         if self._x is None or self._x.dtype != self.dtype:
             self._x = np.empty(n_u3 + self.D.shape[1], dtype=self.dtype)
@@ -231,7 +232,8 @@ class SkinOperator:
         if _csr_matvecs is None:  # pragma: no cover
             dest[:] = (H @ x.reshape(-1, 3)).ravel()
             return dest
-        dest.fill(0.0)
+        if not zeroed:
+            dest.fill(0.0)
         _csr_matvecs(H.shape[0], H.shape[1], 3, H.indptr, H.indices, H.data, x, dest)
         return dest
 
