@@ -158,6 +158,7 @@ def build_rows(mesh, labels, skin, template, rows, repeat):
                                                                          / med["bare_cpu"])
     rows["build, transfer on a second thread instead (s)"] = med["thread"]
     rows["build, transfer on a second thread / in a process"] = med["thread"] / med["build"]
+    rows["build, transfer on a second thread, CPU time (s)"] = med["thread_cpu"]
     skin_op = op.skin_operator
     rows["skin operator dtype ('auto')"] = str(skin_op.dtype)
     rows["float32 rounding bound, plans to 30 deg / 20 mm (mm)"] = op.float32_error

@@ -379,6 +379,12 @@ def test_skin_operator_equals_the_sparse_product():
     out = np.full(3 * n, np.nan)
     assert op.apply(a, out) is out
     assert np.abs(out.reshape(n, 3) - exact @ a).max() < 1e-12
+    from concurrent.futures import ThreadPoolExecutor
+
+    many = rng.normal(size=(24, K))  # concurrent plans on one operator
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda b: op.apply(b, np.empty(3 * n)).reshape(n, 3), many))
+    assert max(np.abs(g - exact @ b).max() for g, b in zip(got, many)) < 1e-12
     ids = rng.choice(n, 40)
     assert np.abs(op.rows(ids) - np.transpose(exact[ids], (2, 0, 1))).max() < 1e-12
     A = rng.normal(size=(K, 5))

@@ -170,16 +170,18 @@ class SkinOperator:
         count[self.dense_rows] = 1
         indptr = np.zeros(self.n + 1, dtype=np.int64)
         np.cumsum(count, out=indptr[1:])
-        indices = np.empty(indptr[-1], dtype=np.int32)
+        index = np.int32 if indptr[-1] < np.iinfo(np.int32).max else np.int64
+        indices = np.empty(indptr[-1], dtype=index)
         data = np.ones(indptr[-1])
         starts = indptr[self.sparse_rows]
         within = np.arange(self.S.nnz) - np.repeat(self.S.indptr[:-1], np.diff(self.S.indptr))
         pos = np.repeat(starts, np.diff(self.S.indptr)) + within
         indices[pos], data[pos] = self.S.indices, self.S.data
         indices[indptr[self.dense_rows]] = n_u + np.arange(n_d)
-        if indptr[-1] < np.iinfo(np.int32).max:
-            indptr = indptr.astype(np.int32)
-        return sp.csr_matrix((data, indices, indptr), shape=(self.n, n_u + n_d))
+        H = sp.csr_matrix((data, indices, indptr.astype(index)), shape=(self.n, n_u + n_d))
+        if H.indptr.dtype != H.indices.dtype:  # pragma: no cover - the kernel needs one type
+            H.indptr, H.indices = H.indptr.astype(np.int64), H.indices.astype(np.int64)
+        return H
 
     # ------------------------------------------------------------------ storage
     @property
@@ -216,9 +218,14 @@ class SkinOperator:
         """Write ``T R a`` into ``dest`` (flat float64, ``3 n_skin``; overwritten;
         ``zeroed=True``: ``dest`` holds zeros already, e.g. fresh from :func:`numpy.zeros`)."""
         n_u3 = self.Ru.shape[0]
-        if self._x is None or self._x.dtype != self.dtype:
-            self._x = np.empty(n_u3 + self.D.shape[1], dtype=self.dtype)
-        x = self._x
+        x = self.__dict__.pop("_x", None)  # the kept scratch; a concurrent call makes its own
+        if x is None or x.dtype != self.dtype:
+            x = np.empty(n_u3 + self.D.shape[1], dtype=self.dtype)
+        self._apply(a, x, dest, n_u3, threads, zeroed)
+        self._x = x
+        return dest
+
+    def _apply(self, a, x, dest, n_u3, threads, zeroed):
         with one_thread(threads):
             if self.dtype == np.float64:
                 np.dot(self.Ru, a, out=x[:n_u3])
@@ -231,11 +238,10 @@ class SkinOperator:
         H = self.H
         if _csr_matvecs is None:  # pragma: no cover
             dest[:] = (H @ x.reshape(-1, 3)).ravel()
-            return dest
+            return
         if not zeroed:
             dest.fill(0.0)
         _csr_matvecs(H.shape[0], H.shape[1], 3, H.indptr, H.indices, H.data, x, dest)
-        return dest
 
     def nodes(self, A):
         """Displacement of the used nodes for the plans' parameters ``A`` (K, P):

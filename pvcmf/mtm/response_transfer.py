@@ -4,11 +4,12 @@
 Python's global interpreter lock; on a second thread they stall the factorisation and solves
 of the calling thread (and those stall it). On Linux, when the calling process runs a single
 Python thread, the transfer is therefore built in a forked child process, which shares
-nothing with the parent after the fork and sends back ``W``, ``inside`` and ``modelled``
-through a pipe (pickle); elsewhere, or when the fork fails, on a second thread. Either way
-the result is the same :class:`Transfer` computation on the same inputs.
+nothing with the parent after the fork and writes ``W``, ``inside`` and ``modelled`` to an
+anonymous temporary file (pickle) that the parent reads once the child has exited;
+elsewhere, or when the fork fails, on a second thread. Either way the result is the same
+:class:`Transfer` computation on the same inputs.
 
-Delegates to :func:`os.fork`, :mod:`pickle`, :mod:`concurrent.futures` and
+Delegates to :func:`os.fork`, :mod:`pickle`, :mod:`tempfile`, :mod:`concurrent.futures` and
 :class:`pvcmf.filters.surface_mapping.Transfer`.
 """
 
@@ -19,6 +20,7 @@ import os
 import pickle
 import signal
 import sys
+import tempfile
 import threading
 import time
 import types
@@ -66,55 +68,55 @@ class _Thread:
 
 
 class _Process:
-    """The transfer built in a forked child process; :meth:`result` reads its answer and
-    reaps it, :meth:`cancel` kills it (the parent failed before reading)."""
+    """The transfer built in a forked child process, which writes its answer to an
+    anonymous temporary file and exits (a pipe would make the child wait for the parent to
+    read); :meth:`result` waits for it and reads the answer, :meth:`cancel` kills it (the
+    parent failed before reading)."""
 
     where = "second process"
 
     def __init__(self, grid, x):
-        read, write = os.pipe()
+        self._file = tempfile.TemporaryFile()
+        self._inputs = (grid, x)
         pid = os.fork()
-        if pid == 0:  # the child: build, send, exit without returning to the caller
+        if pid == 0:  # the child: build, write, exit without returning to the caller
             status = 1
             try:
-                os.close(read)
                 try:
                     answer = ("ok", _build(grid, x, time.process_time))
                 except BaseException as exc:  # noqa: BLE001 - sent to the parent
                     answer = ("error", exc)
-                with os.fdopen(write, "wb") as fh:
+                with os.fdopen(os.dup(self._file.fileno()), "wb") as fh:
                     pickle.dump(answer, fh, protocol=pickle.HIGHEST_PROTOCOL)
                 status = 0
             finally:
                 os._exit(status)
-        os.close(write)
-        self.pid, self._read, self._inputs = pid, read, (grid, x)
+        self.pid = pid
 
     def result(self):
+        os.waitpid(self.pid, 0)
         try:
-            with os.fdopen(self._read, "rb") as fh:
-                kind, value = pickle.load(fh)
+            self._file.seek(0)
+            kind, value = pickle.load(self._file)
         except (EOFError, pickle.UnpicklingError) as exc:  # the child died: build here
             log.warning("plan_response: the transfer process ended without an answer "
                         "(%s); building the transfer here", exc)
             kind, value = "ok", _build(*self._inputs)
         finally:
-            self._read = None
-            os.waitpid(self.pid, 0)
+            self._file.close()
         if kind == "error":
             raise value
         return value
 
     def cancel(self):
-        if self._read is None:
+        if self._file.closed:
             return
-        os.close(self._read)
-        self._read = None
         try:
             os.kill(self.pid, signal.SIGKILL)
         except ProcessLookupError:  # pragma: no cover - already gone
             pass
         os.waitpid(self.pid, 0)
+        self._file.close()
 
 
 def transfer_in_background(mesh, skin):
