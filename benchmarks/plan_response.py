@@ -8,8 +8,8 @@ and measures, for a two-segment template (maxilla and mandible):
 * ``full``: one plan by ``apply_plan`` + :func:`pvcmf.mtm.solve` + the skin transfer (a kept
   transfer operator; its build is timed on its own);
 * ``build``: :func:`pvcmf.mtm.response.plan_response` (boundary conditions, one
-  factorisation, twelve solves per segment, the transfer built beside them in a forked
-  process and folded in), and its ratio to a factorisation plus the same solves timed on
+  factorisation, twelve solves per segment, the transfer built beside them, in a forked
+  process unless the cores are contended, and folded in), and its ratio to a factorisation plus the same solves timed on
   their own in the same run (nothing else running in the process; the build's double
   factor, with and without the per-solve solution checks, which the build skips), in
   wall-clock and CPU time (the process's and its child's), medians of ``--repeat`` rounds
@@ -136,14 +136,14 @@ def build_rows(mesh, labels, skin, template, rows, repeat):
         for key, value in zip(("bare", "bare_cpu"),
                               reference_solves(mesh, labels, template, checks=False)):
             times[key].append(value)
-        for key, process in (("thread", False), ("build", True)):
-            response_transfer.USE_PROCESS = process
+        for key, where in (("thread", "thread"), ("build", "auto")):
+            response_transfer.BUILD_IN = where
             op = None  # free the previous operator first
             t, c = time.perf_counter(), cpu_now()
             op = plan_response(mesh, labels, skin=skin, plan=template)
             times[key].append(time.perf_counter() - t)
             times[f"{key}_cpu"].append(cpu_now() - c)
-        response_transfer.USE_PROCESS = True
+        response_transfer.BUILD_IN = "auto"
     med = {key: statistics.median(v) for key, v in times.items()}
     rows["build (s)"] = med["build"]
     for key, value in op.timings.items():
@@ -157,7 +157,7 @@ def build_rows(mesh, labels, skin, template, rows, repeat):
     rows["build / (factorisation + solves without checks), CPU time"] = (med["build_cpu"]
                                                                          / med["bare_cpu"])
     rows["build, transfer on a second thread instead (s)"] = med["thread"]
-    rows["build, transfer on a second thread / in a process"] = med["thread"] / med["build"]
+    rows["build, transfer on a second thread / as built"] = med["thread"] / med["build"]
     rows["build, transfer on a second thread, CPU time (s)"] = med["thread_cpu"]
     skin_op = op.skin_operator
     rows["skin operator dtype ('auto')"] = str(skin_op.dtype)
@@ -317,8 +317,9 @@ def main(argv=None):
                 "their own (the build's double factor; with the solution checks that "
                 "`Solver.solve` runs by default, and without them as the build solves), "
                 "medians of rounds that time the three in turn; "
-                "the skin transfer is built in a forked process during the build, and the "
-                "build's CPU time is the process's and its child's. "
+                "the skin transfer is built beside the factorisation (the timings name "
+                "where: a forked process, or a second thread where the cores are "
+                "contended), and the build's CPU time is the process's and its child's. "
                 "The float32 rounding bound is what ``dtype='auto'`` compares with 1e-6 mm.\n\n"
                 f"Command: `{command}`\n\nMachine: {machine()}\n\n{text}\n")
         with open(args.write, "w", encoding="utf-8") as fh:

@@ -413,21 +413,25 @@ def test_transfer_in_background_equals_the_transfer(block):
 
     grid, _, skin = block
     here = Transfer(grid, skin.points)
-    for use_process in (True, False):
-        response_transfer.USE_PROCESS = use_process
+    for where in ("process", "thread"):
+        response_transfer.BUILD_IN = where
         try:
             pending = response_transfer.transfer_in_background(grid, skin)
             transfer, wall, cpu = pending.result()
         finally:
-            response_transfer.USE_PROCESS = True
-        assert (pending.where == "second process") == (use_process and hasattr(os, "fork"))
+            response_transfer.BUILD_IN = "auto"
+        assert (pending.where == "second process") == (where == "process" and hasattr(os, "fork"))
         assert (transfer.W != here.W).nnz == 0
         assert np.array_equal(transfer.inside, here.inside)
         assert np.array_equal(transfer.modelled, here.modelled)
         assert wall > 0 and cpu > 0
     with pytest.raises(ValueError, match="points must have shape"):
         response_transfer.transfer_in_background(grid, pv.PolyData()).result()
-    pending = response_transfer.transfer_in_background(grid, skin)
+    response_transfer.BUILD_IN = "process"
+    try:
+        pending = response_transfer.transfer_in_background(grid, skin)
+    finally:
+        response_transfer.BUILD_IN = "auto"
     pending.cancel()
     if pending.where == "second process":
         with pytest.raises(ChildProcessError):

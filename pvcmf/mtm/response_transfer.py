@@ -3,7 +3,8 @@
 :class:`pvcmf.filters.surface_mapping.Transfer` runs many small numpy operations that hold
 Python's global interpreter lock; on a second thread they stall the factorisation and solves
 of the calling thread (and those stall it). On Linux, when the calling process runs a single
-Python thread, the transfer is therefore built in a forked child process, which shares
+Python thread and the cores are not contended (:func:`cpu_pressure`), the transfer is
+therefore built in a forked child process, which shares
 nothing with the parent after the fork and writes ``W``, ``inside`` and ``modelled`` to an
 anonymous temporary file (pickle) that the parent reads once the child has exited;
 elsewhere, or when the fork fails, on a second thread. Either way the result is the same
@@ -35,8 +36,33 @@ log = logging.getLogger(__name__)
 
 __all__ = ["transfer_in_background"]
 
-#: build the transfer in a forked process where that is possible (False: always a thread)
-USE_PROCESS = True
+#: where the transfer is built: ``"auto"`` (a forked process where possible and the cores
+#: are not contended, see :func:`cpu_pressure`), ``"process"`` (where possible) or
+#: ``"thread"``
+BUILD_IN = "auto"
+#: ``"auto"`` takes a thread when runnable tasks waited for a core this share (percent) of
+#: the last ten seconds or more: the child then gains no core of its own and only adds
+#: the fork's copy-on-write work
+CPU_PRESSURE_LIMIT = 20.0
+
+
+def cpu_pressure():
+    """Share (percent) of the last ten seconds in which some runnable task waited for a
+    core (Linux pressure stall information, ``/proc/pressure/cpu``), or None where the
+    kernel does not provide it.
+
+    Examples
+    --------
+    >>> p = cpu_pressure()
+    >>> p is None or 0.0 <= p <= 100.0
+    True
+    """
+    try:
+        with open("/proc/pressure/cpu", encoding="ascii") as fh:
+            first = fh.readline().split()
+        return float(dict(f.split("=") for f in first[1:])["avg10"])
+    except (OSError, ValueError, KeyError, IndexError):
+        return None
 
 
 def _build(grid, x, clock=time.thread_time):
@@ -129,8 +155,11 @@ def transfer_in_background(mesh, skin):
     points, tets = tetra(mesh)
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
     x = np.array(skin.points, dtype=float)
-    if (USE_PROCESS and sys.platform.startswith("linux") and hasattr(os, "fork")
-            and threading.active_count() == 1):
+    if BUILD_IN not in ("auto", "process", "thread"):
+        raise ValueError(f"BUILD_IN must be 'auto', 'process' or 'thread', got {BUILD_IN!r}")
+    contended = BUILD_IN == "auto" and (cpu_pressure() or 0.0) >= CPU_PRESSURE_LIMIT
+    if (BUILD_IN != "thread" and not contended and sys.platform.startswith("linux")
+            and hasattr(os, "fork") and threading.active_count() == 1):
         try:
             return _Process(grid, x)
         except OSError as exc:  # no fork (limits, memory): a thread instead
