@@ -370,9 +370,12 @@ def test_skin_operator_equals_the_sparse_product():
     cols = np.concatenate([rng.choice(m, c, replace=False) for c in counts])
     rows, cols = np.r_[rows, rows[:30]], np.r_[cols, cols[:30]]  # 30 duplicates (summed)
     W = sp.csr_matrix((rng.normal(size=len(rows)), (rows, cols)), shape=(n, m))
+    W.data[:5] = 0.0  # explicit zeros: dropped from the operator, kept in W
     Wd = W.toarray()
     R = rng.normal(size=(m, 3, K))
+    before = (W.data.copy(), W.indices.copy(), W.indptr.copy())
     op = SkinOperator(W, R)
+    assert all(np.array_equal(x, y) for x, y in zip(before, (W.data, W.indices, W.indptr)))
     assert len(op.sparse_rows) and len(op.dense_rows) and len(op.reached) < n
     exact = np.einsum("ij,jck->ick", Wd, R)  # (n, 3, K)
     a = rng.normal(size=K)

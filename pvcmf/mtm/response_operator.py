@@ -128,7 +128,7 @@ class SkinOperator:
     """
 
     def __init__(self, W, nodal, sparse_max_nnz=SPARSE_MAX_NNZ):
-        W = sp.csr_matrix(W, dtype=np.float64)
+        W = sp.csr_matrix(W, dtype=np.float64, copy=True)  # the caller's W stays as it is
         W.sum_duplicates()
         W.eliminate_zeros()
         n, m = W.shape
