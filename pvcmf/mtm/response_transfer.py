@@ -4,11 +4,11 @@
 Python's global interpreter lock; on a second thread they stall the factorisation and solves
 of the calling thread (and those stall it). On Linux, when the calling process runs a single
 Python thread and the cores are not contended (:func:`cpu_pressure`), the transfer is
-therefore built in a forked child process, which shares
-nothing with the parent after the fork and writes ``W``, ``inside`` and ``modelled`` to an
-anonymous temporary file (pickle) that the parent reads once the child has exited;
-elsewhere, or when the fork fails, on a second thread. Either way the result is the same
-:class:`Transfer` computation on the same inputs.
+therefore built in a forked child process, which shares nothing with the parent after the
+fork and writes ``W``, ``inside`` and ``modelled`` to an anonymous temporary file (pickle)
+that the parent reads once the child has exited; elsewhere, or when the fork fails, on a
+second thread. Either way the result is the same :class:`Transfer` computation on the same
+inputs.
 
 Delegates to :func:`os.fork`, :mod:`pickle`, :mod:`tempfile`, :mod:`concurrent.futures` and
 :class:`pvcmf.filters.surface_mapping.Transfer`.
@@ -104,7 +104,11 @@ class _Process:
     def __init__(self, grid, x):
         self._file = tempfile.TemporaryFile()
         self._inputs = (grid, x)
-        pid = os.fork()
+        try:
+            pid = os.fork()
+        except OSError:
+            self._file.close()
+            raise
         if pid == 0:  # the child: build, write, exit without returning to the caller
             status = 1
             try:
