@@ -8,18 +8,20 @@ and measures, for a two-segment template (maxilla and mandible):
 * ``full``: one plan by ``apply_plan`` + :func:`pvcmf.mtm.solve` + the skin transfer (a kept
   transfer operator; its build is timed on its own);
 * ``build``: :func:`pvcmf.mtm.response.plan_response` (boundary conditions, one
-  factorisation, twelve solves per segment, the transfer built on a second thread and
-  folded in), and its ratio to a factorisation plus the same solves timed on their own
-  in the same run (nothing else running in the process; the build's double factor, with
-  and without the per-solve solution checks, which the build skips), in wall-clock and
-  CPU time (the process's: both threads), medians of ``--repeat`` rounds that time the
-  three in turn;
+  factorisation, twelve solves per segment, the transfer built beside them, in a forked
+  process unless the cores are contended, and folded in), and its ratio to a factorisation plus the same solves timed on
+  their own in the same run (nothing else running in the process; the build's double
+  factor, with and without the per-solve solution checks, which the build skips), in
+  wall-clock and CPU time (the process's and its child's), medians of ``--repeat`` rounds
+  that time the four in turn (the fourth: the build with the transfer on a second thread);
 * ``predict``: one plan's dense-skin displacement (new array, or written into a kept one),
-  its breakdown (parameters, the product on one BLAS thread, which writes the whole dense
-  output, the new surface), its CPU time (the calling thread's, insensitive to other
-  processes taking the core), the product on two BLAS threads, the predicted surface (a
-  new PolyData, or a kept one updated in place) and the mesh's surface nodes (medians over
-  ``--plans`` random plans);
+  its breakdown (parameters; the product on one BLAS thread: nodal displacement of the
+  nodes the few-weight rows use, dense rows, one CSR product into the output; the new
+  surface), its CPU time (the calling thread's, insensitive to other processes taking
+  the core), the product on two BLAS threads, the same plans through a dense operator
+  over every skin point (one vector-matrix product over ``(12 k, 3 n_skin)``) and the
+  ratio, the predicted surface (a new PolyData, or a kept one updated in place) and the
+  mesh's surface nodes (medians over ``--plans`` random plans);
 * ``statistics``: max / mean / RMS of the skin displacement of ``--batch`` random plans;
 * errors: the operator against the full solve, the float32 rounding bound that decides
   ``dtype='auto'``, and the float32 skin operator against the same product in float64.
@@ -92,6 +94,12 @@ def machine():
             f"Python {platform.python_version()}, numpy {np.__version__}, {platform.system()}")
 
 
+def cpu_now():
+    """CPU seconds of this process and its waited-for children."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 def reference_solves(mesh, labels, template, checks=True):
     """Seconds (wall, process CPU) of one factorisation plus the operator's 12 k solves, on
     their own, with the solver options of :func:`plan_response` (a double factor);
@@ -105,19 +113,22 @@ def reference_solves(mesh, labels, template, checks=True):
                        for i, o in enumerate(template.osteotomies)))
     ref = apply_plan(mesh, probe, labels)
     rhs = np.asarray(ref[arrays.BC_DISPLACEMENT], dtype=float)
-    t, c = time.perf_counter(), time.process_time()
+    t, c = time.perf_counter(), cpu_now()
     solver = Solver(ref, precision="double")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", SolutionWarning)
         for _ in range(12 * len(template.osteotomies)):
             solver.solve(rhs, checks=checks)
-    return time.perf_counter() - t, time.process_time() - c
+    return time.perf_counter() - t, cpu_now() - c
 
 
 def build_rows(mesh, labels, skin, template, rows, repeat):
     """Time the operator's build against a factorisation plus its solves (medians of
-    ``repeat`` rounds, each timing the three in turn)."""
-    times = {key: [] for key in ("ref", "ref_cpu", "bare", "bare_cpu", "build", "build_cpu")}
+    ``repeat`` rounds, each timing the four in turn)."""
+    from pvcmf.mtm import response_transfer
+
+    keys = ("ref", "ref_cpu", "bare", "bare_cpu", "build", "build_cpu", "thread", "thread_cpu")
+    times = {key: [] for key in keys}
     op = None
     for _ in range(repeat):
         for key, value in zip(("ref", "ref_cpu"), reference_solves(mesh, labels, template)):
@@ -125,26 +136,39 @@ def build_rows(mesh, labels, skin, template, rows, repeat):
         for key, value in zip(("bare", "bare_cpu"),
                               reference_solves(mesh, labels, template, checks=False)):
             times[key].append(value)
-        op = None  # free the previous operator first
-        t, c = time.perf_counter(), time.process_time()
-        op = plan_response(mesh, labels, skin=skin, plan=template)
-        times["build"].append(time.perf_counter() - t)
-        times["build_cpu"].append(time.process_time() - c)
+        for key, where in (("thread", "thread"), ("build", "auto")):
+            response_transfer.BUILD_IN = where
+            op = None  # free the previous operator first
+            t, c = time.perf_counter(), cpu_now()
+            op = plan_response(mesh, labels, skin=skin, plan=template)
+            times[key].append(time.perf_counter() - t)
+            times[f"{key}_cpu"].append(cpu_now() - c)
+        response_transfer.BUILD_IN = "auto"
     med = {key: statistics.median(v) for key, v in times.items()}
     rows["build (s)"] = med["build"]
     for key, value in op.timings.items():
         rows[f"build: {key} (s)"] = value
     rows["factorisation + solves on their own (s)"] = med["ref"]
     rows["build / (factorisation + solves)"] = med["build"] / med["ref"]
-    rows["build, CPU time of the process (s)"] = med["build_cpu"]
+    rows["build, CPU time of the process and its child (s)"] = med["build_cpu"]
     rows["factorisation + solves on their own, CPU time (s)"] = med["ref_cpu"]
     rows["build / (factorisation + solves), CPU time"] = med["build_cpu"] / med["ref_cpu"]
     rows["factorisation + solves without solution checks, CPU time (s)"] = med["bare_cpu"]
     rows["build / (factorisation + solves without checks), CPU time"] = (med["build_cpu"]
                                                                          / med["bare_cpu"])
-    rows["skin operator dtype ('auto')"] = str(op.skin_response.dtype)
+    rows["build, transfer on a second thread instead (s)"] = med["thread"]
+    rows["build, transfer on a second thread / as built"] = med["thread"] / med["build"]
+    rows["build, transfer on a second thread, CPU time (s)"] = med["thread_cpu"]
+    skin_op = op.skin_operator
+    rows["skin operator dtype ('auto')"] = str(skin_op.dtype)
     rows["float32 rounding bound, plans to 30 deg / 20 mm (mm)"] = op.float32_error
-    rows["skin points the transfer reaches (stored rows)"] = len(op.reached)
+    rows["skin points the transfer reaches"] = len(op.reached)
+    rows["skin points from the nodal response (few transfer weights)"] = len(skin_op.sparse_rows)
+    rows["mesh nodes those points use"] = len(skin_op.used)
+    rows["skin points with dense rows (many transfer weights)"] = len(skin_op.dense_rows)
+    rows["bytes one plan reads (MB)"] = skin_op.nbytes / 1e6
+    rows["bytes of a dense operator over every skin point (MB)"] = (
+        8 * skin_op.K * 3 * skin_op.n / 1e6)
     return op
 
 
@@ -154,22 +178,51 @@ def predict_rows(op, skin, plans, rows):
 
     op32 = op.astype(np.float32)
     n = skin.n_points
+    buf = np.zeros((n, 3))
     rows["predict, dense skin, per plan (ms)"] = per_plan_ms(op.predict_displacement, plans)
     rows["predict, dense skin, CPU time per plan (ms)"] = per_plan_ms(
         op.predict_displacement, plans, clock=time.thread_time)
     rows["predict breakdown: parameters (ms)"] = per_plan_ms(op.parameters, plans)
     params = {id(p): op.parameters(p) for p in plans}
+    skin_op = op.skin_operator
     out = np.empty(3 * n)
+    rows["predict breakdown: product into the output, one BLAS thread (ms)"] = per_plan_ms(
+        lambda p: skin_op.apply(params[id(p)], out, threads=1), plans)
+    rows["predict breakdown: product, CPU time (ms)"] = per_plan_ms(
+        lambda p: skin_op.apply(params[id(p)], out, threads=1), plans, clock=time.thread_time)
+    rows["product, two BLAS threads (ms)"] = per_plan_ms(
+        lambda p: skin_op.apply(params[id(p)], out, threads=2), plans)
+    n_u3 = skin_op.Ru.shape[0]
+    x = np.empty(n_u3 + skin_op.D.shape[1])
     with _one_thread(1):
-        rows["predict breakdown: product into the output, one BLAS thread (ms)"] = per_plan_ms(
-            lambda p: np.dot(params[id(p)], op._opT, out=out), plans)
-        rows["predict breakdown: product, CPU time (ms)"] = per_plan_ms(
-            lambda p: np.dot(params[id(p)], op._opT, out=out), plans, clock=time.thread_time)
-    with _one_thread(2):
-        rows["product, two BLAS threads (ms)"] = per_plan_ms(
-            lambda p: np.dot(params[id(p)], op._opT, out=out), plans)
+        rows["product breakdown: nodal displacement, CPU time (ms)"] = per_plan_ms(
+            lambda p: np.dot(skin_op.Ru, params[id(p)], out=x[:n_u3]), plans,
+            clock=time.thread_time)
+        rows["product breakdown: dense rows, CPU time (ms)"] = per_plan_ms(
+            lambda p: np.dot(params[id(p)], skin_op.D, out=x[n_u3:]), plans,
+            clock=time.thread_time)
+    full = np.ascontiguousarray(skin_op.rows(np.arange(n)).reshape(skin_op.K, -1))
+    dest = np.empty(3 * n)
+
+    def dense(p):  # a dense operator over every skin point: parameters, one product
+        a = op.parameters(p)
+        with _one_thread(1):
+            np.dot(a, full, out=dest)
+
+    ratio = []
+    for p in plans:  # interleaved, so both see the same machine
+        times = []
+        for fn in (lambda q: op.predict_displacement(q, out=buf), dense):
+            t = time.thread_time()
+            fn(p)
+            times.append(time.thread_time() - t)
+        ratio.append(times[0] / times[1])
+    rows["dense operator over every skin point, into a kept array, per plan (ms)"] = (
+        per_plan_ms(dense, plans))
+    rows["predict into a kept array / dense operator, CPU time (median ratio)"] = (
+        statistics.median(ratio))
+    full = None  # free it before the statistics
     rows["predict, dense skin, float32, per plan (ms)"] = per_plan_ms(op32.predict_displacement, plans)
-    buf = np.zeros((n, 3))
     rows["predict, dense skin, into a kept array, per plan (ms)"] = per_plan_ms(
         lambda p: op.predict_displacement(p, out=buf), plans)
     rows["predict, new PolyData, per plan (ms)"] = per_plan_ms(op.predict, plans)
@@ -253,8 +306,10 @@ def main(argv=None):
     if args.write:
         command = "python benchmarks/plan_response.py " + " ".join(argv or sys.argv[1:])
         page = ("# Plan response operator\n\n"
-                "The predicted skin of a plan as one matrix product "
-                "(:func:`pvcmf.mtm.response.plan_response`) against apply_plan + solve + "
+                "The predicted skin of a plan as a few products over a stored operator "
+                "(:func:`pvcmf.mtm.response.plan_response`: skin points with few transfer "
+                "weights from the nodal displacement, the others from dense rows) "
+                "against apply_plan + solve + "
                 "transfer, on the demo's mesh (virtual patient 1, 2 mm, muscles), in one run. "
                 "Times are medians of wall-clock time unless marked CPU time (the calling "
                 "thread's own time, which other processes sharing the cores do not inflate). "
@@ -262,8 +317,9 @@ def main(argv=None):
                 "their own (the build's double factor; with the solution checks that "
                 "`Solver.solve` runs by default, and without them as the build solves), "
                 "medians of rounds that time the three in turn; "
-                "the skin transfer is built on a second thread during the build, and the "
-                "build's CPU time is the process's (both threads). "
+                "the skin transfer is built beside the factorisation (the timings name "
+                "where: a forked process, or a second thread where the cores are "
+                "contended), and the build's CPU time is the process's and its child's. "
                 "The float32 rounding bound is what ``dtype='auto'`` compares with 1e-6 mm.\n\n"
                 f"Command: `{command}`\n\nMachine: {machine()}\n\n{text}\n")
         with open(args.write, "w", encoding="utf-8") as fh:

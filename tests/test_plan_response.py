@@ -41,11 +41,27 @@ def _random_plan(rng, segments=("maxilla", "mandible")):
                       for s in segments))
 
 
+def _row_bounds(resp, grid, skin, s):
+    """``|row| s`` per skin point and component ``(n_skin, 3)``: ``|T R| s`` for rows with
+    more than :data:`SPARSE_MAX_NNZ` transfer weights, ``|T| (|R| s)`` for the others."""
+    from pvcmf.mtm.response_operator import SPARSE_MAX_NNZ
+
+    T = transfer_operator(grid, skin)
+    R = np.transpose(resp.nodal, (1, 0, 2))  # (n, 3, K)
+    dense = np.abs(np.einsum("ij,jck->ick", T.toarray(), R)) @ s
+    sparse = abs(T) @ (np.abs(R) @ s)
+    few = np.diff(T.indptr) <= SPARSE_MAX_NNZ
+    return np.where(few[:, None], sparse, dense)
+
+
 def test_predict_equals_full_solve(block):
     grid, img, skin = block
     opts = {"fix_unmoved_bone": True}
     resp = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts)
     T = transfer_operator(grid, skin)
+    op = resp.skin_operator  # both kinds of rows: inside (4 weights) and outside the mesh
+    assert len(op.sparse_rows) > 20 and len(op.dense_rows) > 20
+    assert np.all(np.diff(T.indptr)[op.dense_rows] > 8)
     rng = np.random.default_rng(3)
     for segments in (("maxilla", "mandible"), ("mandible",)):
         plan = _random_plan(rng, segments)
@@ -54,6 +70,8 @@ def test_predict_equals_full_solve(block):
         assert np.abs(u).max() > 0.5
         pred = resp.predict(plan)
         assert np.abs(pred[arrays.DISPLACEMENT] - T @ u).max() < 1e-9
+        dense = T @ np.stack([resp.nodal[c] @ resp.parameters(plan) for c in range(3)], axis=1)
+        assert np.abs(pred[arrays.DISPLACEMENT] - dense).max() < 1e-9
         assert np.allclose(pred.points, skin.points + pred[arrays.DISPLACEMENT])
         assert np.abs(resp.predict_nodes(plan) - u[resp.surface_ids]).max() < 1e-9
     stats = resp.statistics([_random_plan(rng) for _ in range(5)])
@@ -82,11 +100,12 @@ def test_float32_storage_keeps_a_micrometre(block):
     exact = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts)
     assert auto.float32_error is not None
     assert (auto.skin_response.dtype == np.float32) == (auto.float32_error <= 1e-6)
-    # the decision follows the operator's bound: (K + 2) u max_rows |R| s, computed here
-    R = exact.skin_response.reshape(-1, exact.skin_response.shape[2])
+    # the decision follows the operator's bound, computed here: (K + 2) u |T R| s for a
+    # dense row, (K + 2) u |T| |R| s for a row evaluated from the nodal response
     s = np.tile([0.5, 0.5, 0.5, 20.0], 6)
     u = np.finfo(np.float32).eps / 2
-    assert np.isclose(auto.float32_error, 26 * u * (np.abs(R) @ s).max(), rtol=1e-6)
+    assert np.isclose(auto.float32_error, 26 * u * _row_bounds(exact, grid, skin, s).max(),
+                      rtol=1e-6)
     rng = np.random.default_rng(5)
     plans = [_random_plan(rng) for _ in range(6)]
     worst = max(np.abs(auto.predict_displacement(p) - exact.predict_displacement(p)).max()
@@ -162,13 +181,12 @@ def test_float32_error_within_the_rounding_bound(block):
     exact = plan_response(grid, img, skin=skin, dtype="float64",
                           bc_options={"fix_unmoved_bone": True})
     single = exact.astype(np.float32)
-    R = exact.skin_response.reshape(-1, exact.skin_response.shape[2])
     eps = np.finfo(np.float32).eps / 2
     rng = np.random.default_rng(7)
     plans = [_random_plan(rng) for _ in range(4)]
     for plan in plans:
         a = exact.parameters(plan)
-        bound = (R.shape[1] + 2) * eps * (np.abs(R) @ np.abs(a))
+        bound = (len(a) + 2) * eps * _row_bounds(exact, grid, skin, np.abs(a)).T.ravel()
         err = np.abs(single.predict_displacement(plan) - exact.predict_displacement(plan))
         assert np.all(err.T.ravel() <= bound + 1e-300)
         assert err.max() > 0  # float32 is really used
@@ -188,7 +206,7 @@ def test_auto_dtype_follows_the_bound(block, monkeypatch):
     opts = {"fix_unmoved_bone": True}
     plan = Plan((Osteotomy("mandible"),))
     exact = plan_response(grid, img, skin=skin, dtype="float64", bc_options=opts, plan=plan)
-    bound = response.float32_bound(exact._op2, 1)
+    bound = exact.skin_operator.float32_error(1)
     assert bound > 1e-6  # the block's operator at 20 mm shifts: float64
     assert plan_response(grid, img, skin=skin, bc_options=opts, plan=plan).skin_response.dtype == np.float64
     monkeypatch.setattr(response, "FLOAT32_TOLERANCE", 1.01 * bound)
@@ -334,3 +352,90 @@ def test_cut_planes_and_labelled_segments(block):
     T = transfer_operator(grid, skin)
     assert np.abs(resp.predict_displacement(plan) - T @ u).max() < 1e-9
     assert img == before
+
+
+def test_skin_operator_equals_the_sparse_product():
+    """Sparse rows on the nodal response plus dense rows equal ``W R a`` for any sparse
+    ``W`` (empty rows, rows of one to forty weights, duplicate entries): one plan, the
+    dense rows of chosen points, the blocks of many plans (each reached point once), float32
+    storage within its rounding bound."""
+    import scipy.sparse as sp
+
+    from pvcmf.mtm.response_operator import SPARSE_MAX_NNZ, SkinOperator
+
+    rng = np.random.default_rng(15)
+    n, m, K = 300, 50, 24
+    counts = rng.choice([0, 1, 4, SPARSE_MAX_NNZ, SPARSE_MAX_NNZ + 1, 20, 40], n)
+    rows = np.repeat(np.arange(n), counts)
+    cols = np.concatenate([rng.choice(m, c, replace=False) for c in counts])
+    rows, cols = np.r_[rows, rows[:30]], np.r_[cols, cols[:30]]  # 30 duplicates (summed)
+    W = sp.csr_matrix((rng.normal(size=len(rows)), (rows, cols)), shape=(n, m))
+    W.data[:5] = 0.0  # explicit zeros: dropped from the operator, kept in W
+    Wd = W.toarray()
+    R = rng.normal(size=(m, 3, K))
+    before = (W.data.copy(), W.indices.copy(), W.indptr.copy())
+    op = SkinOperator(W, R)
+    assert all(np.array_equal(x, y) for x, y in zip(before, (W.data, W.indices, W.indptr)))
+    assert len(op.sparse_rows) and len(op.dense_rows) and len(op.reached) < n
+    exact = np.einsum("ij,jck->ick", Wd, R)  # (n, 3, K)
+    a = rng.normal(size=K)
+    out = np.full(3 * n, np.nan)
+    assert op.apply(a, out) is out
+    assert np.abs(out.reshape(n, 3) - exact @ a).max() < 1e-12
+    from concurrent.futures import ThreadPoolExecutor
+
+    many = rng.normal(size=(24, K))  # concurrent plans on one operator
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda b: op.apply(b, np.empty(3 * n)).reshape(n, 3), many))
+    assert max(np.abs(g - exact @ b).max() for g, b in zip(got, many)) < 1e-12
+    ids = rng.choice(n, 40)
+    assert np.abs(op.rows(ids) - np.transpose(exact[ids], (2, 0, 1))).max() < 1e-12
+    A = rng.normal(size=(K, 5))
+    seen = np.zeros(n, dtype=int)
+    for got, U in op.blocks(A):
+        seen[got] += 1
+        assert np.abs(U - np.einsum("ick,kp->icp", exact[got], A)).max() < 1e-12
+    assert np.array_equal(seen, (np.diff(W.indptr) > 0).astype(int))
+    single = op.astype(np.float32)
+    s = np.abs(a)
+    u = np.finfo(np.float32).eps / 2
+    few = (np.diff(W.indptr) <= SPARSE_MAX_NNZ)[:, None]
+    bound = (K + 2) * u * np.where(few, np.abs(Wd) @ (np.abs(R) @ s), np.abs(exact) @ s)
+    err = np.abs(single.apply(a, np.empty(3 * n)).reshape(n, 3) - exact @ a)
+    assert err.max() > 0 and np.all(err <= 1.0001 * bound)
+
+
+def test_transfer_in_background_equals_the_transfer(block):
+    """The transfer built beside the factorisation (forked process, or thread) equals
+    :class:`Transfer` built here; an error of the build reaches the caller; a cancelled
+    build leaves no child process behind."""
+    import os
+
+    from pvcmf.filters.surface_mapping import Transfer
+    from pvcmf.mtm import response_transfer
+
+    grid, _, skin = block
+    here = Transfer(grid, skin.points)
+    for where in ("process", "thread"):
+        response_transfer.BUILD_IN = where
+        try:
+            pending = response_transfer.transfer_in_background(grid, skin)
+            transfer, wall, cpu = pending.result()
+        finally:
+            response_transfer.BUILD_IN = "auto"
+        assert (pending.where == "second process") == (where == "process" and hasattr(os, "fork"))
+        assert (transfer.W != here.W).nnz == 0
+        assert np.array_equal(transfer.inside, here.inside)
+        assert np.array_equal(transfer.modelled, here.modelled)
+        assert wall > 0 and cpu > 0
+    with pytest.raises(ValueError, match="points must have shape"):
+        response_transfer.transfer_in_background(grid, pv.PolyData()).result()
+    response_transfer.BUILD_IN = "process"
+    try:
+        pending = response_transfer.transfer_in_background(grid, skin)
+    finally:
+        response_transfer.BUILD_IN = "auto"
+    pending.cancel()
+    if pending.where == "second process":
+        with pytest.raises(ChildProcessError):
+            os.waitpid(pending.pid, 0)  # already reaped

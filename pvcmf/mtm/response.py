@@ -1,4 +1,4 @@
-"""Plan response operator: the predicted skin of any surgical plan as one small product.
+"""Plan response operator: the predicted skin of any surgical plan as a few small products.
 
 A plan enters the linear MTM only through prescribed displacements: a joint node ``x`` of a
 segment moved by the rigid map ``M`` is displaced by ``(M[:3, :3] - I) x + M[:3, 3]``, and a
@@ -9,33 +9,33 @@ displacement is ``u = R a`` with ``a`` the stacked ``A``'s, and the skin displac
 transfer_operator`). :func:`plan_response` builds ``R`` with one factorisation
 (:class:`pvcmf.mtm.Solver`) and twelve solves per segment, for boundary conditions whose
 *types* match those of the plans it will see (same moved segments, same cut planes);
-:class:`PlanResponse` folds ``T`` in and predicts a plan by one dense matrix product. A plan
+:class:`PlanResponse` folds ``T`` in (:class:`pvcmf.mtm.response_operator.SkinOperator`:
+skin points with few transfer weights, inside the mesh, are evaluated from the nodal
+displacement of the nodes they use; the others from dense rows of ``T R``) and predicts a
+plan by two small dense products and one sparse product that writes the output. A plan
 whose boundary-condition types differ (another set of moved segments when unmoved bone is
 free, other cut planes) is predicted by a full ``apply_plan`` + solve, with a warning.
 
-Coordinates are centred on each segment's pivot centroid. The skin operator is stored
-parameter-major (``(12 k, 3 n_skin)``, zero columns for the skin points the transfer does
-not reach: beyond twice its band): a plan costs one vector-matrix product on one BLAS thread
-that writes the whole dense output (no fill, no scatter), and many plans are blocked
-products reduced to statistics block by block. A predicted surface has its own points
-and data arrays and shares only the cell connectivity of the operator's own copy of the
-skin (pyvista never writes into it in place), so results cannot change each other or the
-input skin.
+Coordinates are centred on each segment's pivot centroid. Skin points the transfer does
+not reach (beyond twice its band) stay at rest; many plans are blocked products reduced to
+statistics block by block. A predicted surface has its own points and data arrays and
+shares only the cell connectivity of the operator's own copy of the skin (pyvista never
+writes into it in place), so results cannot change each other or the input skin.
 
-``float32`` storage halves the memory the product reads; ``dtype='auto'`` takes it when the
-rounding bound of the float32 product, ``(K + 2) u |R| |a|`` per row (:func:`float32_bound`),
-over plans with rotation entries up to :data:`FLOAT32_ROTATION` and centroid shifts up to
-:data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a face the bound is far
-above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md gives the demo's). The
-skin transfer is built on a second thread during the factorisation and solves; the basis
+``float32`` storage halves the memory the products read; ``dtype='auto'`` takes it when
+the rounding bound of the float32 products (:meth:`SkinOperator.float32_error`, from
+:func:`float32_bound`), over plans with rotation entries up to :data:`FLOAT32_ROTATION` and
+centroid shifts up to :data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a
+face the bound is far above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md
+gives the demo's). The skin transfer is built beside the factorisation and solves
+(:mod:`pvcmf.mtm.response_transfer`: a forked process, or a second thread); the basis
 solves skip the solution checks (unit fields, not motions). Delegates to
-:func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS),
-:mod:`concurrent.futures` and threadpoolctl (one BLAS thread for the products).
+:func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS), scipy.sparse
+and threadpoolctl (one BLAS thread for the products).
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import time
 import warnings
@@ -46,13 +46,15 @@ import pyvista as pv
 from .. import arrays
 from ..filters.boundary_conditions import apply_plan
 from ..filters.osteotomy import cut_bones
-from ..filters.surface_mapping import Transfer, transfer_operator
-from ..filters.transfer_locate import tetra
+from ..filters.surface_mapping import transfer_operator
 from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
 from ..progress import Progress
-from ._common import blas_threads
 from .constraints import SolutionWarning
 from .plan_sweep import plan_grid  # noqa: F401  (re-exported: pvcmf.mtm.response.plan_grid)
+from .response_operator import FLOAT32_ROTATION, FLOAT32_SHIFT, float32_bound  # noqa: F401
+from .response_operator import SkinOperator
+from .response_operator import one_thread as _one_thread
+from .response_transfer import transfer_in_background
 from .solver import Solver
 
 log = logging.getLogger(__name__)
@@ -62,76 +64,6 @@ __all__ = ["PlanResponse", "plan_response", "plan_grid", "PlanResponseWarning", 
 
 #: largest float32 rounding bound (mm) of the skin operator's product that keeps float32
 FLOAT32_TOLERANCE = 1e-6
-#: plan range of the float32 bound: largest ``|M - I|`` entry of a rotation (30 degrees)
-FLOAT32_ROTATION = 0.5
-#: plan range of the float32 bound: largest centroid shift component (mm)
-FLOAT32_SHIFT = 20.0
-#: skin points per block of the many-plan products (the block's product stays in cache)
-_BLOCK = 256
-
-_controller = None
-
-
-def _one_thread(threads):
-    """Context limiting BLAS to ``threads`` threads through a cached threadpoolctl
-    controller (entering it costs about 0.1 ms; a fresh one several ms)."""
-    global _controller
-    if threads is None:
-        return contextlib.nullcontext()
-    try:
-        from threadpoolctl import ThreadpoolController
-    except ImportError:
-        return blas_threads(threads)
-    if _controller is None:
-        _controller = ThreadpoolController()
-    return _controller.limit(limits=int(threads), user_api="blas")
-
-
-def float32_bound(R, n_segments, rotation=FLOAT32_ROTATION, shift=FLOAT32_SHIFT):
-    """Rounding bound (mm) of the float32 product ``R a`` against the exact one, over every
-    parameter vector ``a`` with rotation entries up to ``rotation`` and centroid shifts up
-    to ``shift`` mm: ``max_rows g |R| s``, ``g = (K + 2) u / (1 - (K + 2) u)`` (``K`` terms,
-    one rounding of the stored ``R`` and one of ``a``), ``s`` the largest ``|a|``.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> R = np.ones((5, 12))
-    >>> b = float32_bound(R, 1, rotation=0.5, shift=20.0)
-    >>> bool(np.isclose(b, 14 * 2.0**-24 / (1 - 14 * 2.0**-24) * (9 * 0.5 + 3 * 20.0)))
-    True
-    """
-    K = R.shape[-1]
-    if K != 12 * n_segments:
-        raise ValueError(f"R must have 12 columns per segment ({12 * n_segments}), got {K}")
-    u = np.finfo(np.float32).eps / 2
-    g = (K + 2) * u / (1 - (K + 2) * u)
-    s = np.tile(np.r_[rotation, rotation, rotation, shift], 3 * n_segments)
-    peak = 0.0
-    for b in range(0, len(R), 65536):  # blocks: no full-size |R| temporary
-        peak = max(peak, float((np.abs(R[b:b + 65536]) @ s).max(initial=0.0)))
-    return g * peak
-
-
-def _transfer_in_background(mesh, skin):
-    """Start :class:`Transfer` of ``skin`` on a second thread, to overlap with the
-    factorisation and solves; it works on its own copies of the mesh's points and
-    tetrahedra and of the skin points (no VTK object is shared between the threads).
-    Returns a future of ``(transfer, seconds, CPU seconds of its thread)``."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    points, tets = tetra(mesh)
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
-    x = np.array(skin.points, dtype=float)
-
-    def build():
-        t, c = time.perf_counter(), time.thread_time()
-        return Transfer(grid, x), time.perf_counter() - t, time.thread_time() - c
-
-    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pvcmf-transfer")
-    future = pool.submit(build)
-    pool.shutdown(wait=False)
-    return future
 
 
 def _segmented(labels, plan):
@@ -218,8 +150,10 @@ class PlanResponse:
     nodal : ndarray, shape (3, n_points, 12 * n_segments)
         Nodal response per component.
     skin_response : ndarray or None, shape (3, n_skin, 12 * n_segments)
-        The skin operator per component (a new array on each access; the stored form is
-        parameter-major, ``(12 k, 3 n_skin)``).
+        The skin operator per component as one dense array, made from the stored parts
+        on first access and kept, read-only.
+    skin_operator : pvcmf.mtm.response_operator.SkinOperator or None
+        The stored skin operator (sparse rows on the nodal response, dense rows).
     reached : ndarray of int or None
         Skin points with a non-empty transfer row (the others never move).
     surface_ids : ndarray
@@ -227,15 +161,17 @@ class PlanResponse:
     modelled : ndarray of bool or None
         Skin points the mesh models (within the transfer's band, :data:`arrays.SKIN_MODELLED`).
     float32_error : float or None
-        ``dtype='auto'``: rounding bound (mm) of the float32 skin product against the
-        float64 one, ``max_rows (K + 2) u |R| s`` with ``s`` the plan range
+        ``dtype='auto'``: rounding bound (mm) of the float32 skin products against the
+        float64 ones, ``(K + 2) u |row| s`` over the dense rows and ``(K + 2) u |T_row| |R| s``
+        over the points evaluated from the nodal response, ``s`` the plan range
         (:data:`FLOAT32_ROTATION`, :data:`FLOAT32_SHIFT`); float32 is kept when it is at
         most :data:`FLOAT32_TOLERANCE`.
     timings : dict
         Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
         solves: waiting for the skin transfer, folding it in) and ``transfer build (second
-        thread)`` (the skin transfer's own build, which runs on a second thread during the
-        others) and its CPU time; ``main thread CPU`` the CPU time of the calling thread.
+        process)`` (or ``(second thread)``: the skin transfer's own build, which runs
+        beside the others) and its CPU time; ``main thread CPU`` the CPU time of the
+        calling thread.
     """
 
     def __init__(self, mesh, labels, *, skin, plan, dtype, bc_options, solver_options,
@@ -250,82 +186,80 @@ class PlanResponse:
         self.float32_error = None
         cpu0 = time.thread_time()
         with Progress(total=4, desc="plan_response", enabled=progress_bar, logger=log) as bar:
-            pending = None if skin is None else _transfer_in_background(mesh, skin)
-            t = time.perf_counter()
-            cut = _segmented(labels, plan)
-            self.centroids = {s: np.asarray(m, float) for s, m in self._pivots(cut, plan).items()}
-            probe = Plan(tuple(Osteotomy(o.segment, translation=tuple(np.eye(3)[i]), cut=o.cut)
-                               for i, o in enumerate(plan.osteotomies)))
-            self._probe = probe
-            ref = apply_plan(mesh, probe, labels, **bc_options)
-            self.segments = tuple(o.segment_id for o in plan.osteotomies)
-            self.timings["bc"] = time.perf_counter() - t
-            bar.step("boundary conditions")
-            t = time.perf_counter()
-            solver = Solver(ref, **solver_options)
-            self.timings["factor"] = time.perf_counter() - t
-            bar.step("factorised")
-            t = time.perf_counter()
-            self.nodal = self._solve_basis(ref, solver)
-            self.timings["solves"] = time.perf_counter() - t
-            bar.step(f"{self.nodal.shape[2]} solves")
+            pending = None if skin is None else transfer_in_background(mesh, skin)
+            try:
+                ref = self._factor_and_solve(bar)
+            except BaseException:
+                if pending is not None:
+                    pending.cancel()
+                raise
             t = time.perf_counter()
             self.surface_ids = boundary_points(mesh)
-            self._opT, self.reached, self.modelled = None, None, None
+            self._skin, self._skin_dense, self.reached, self.modelled = None, None, None, None
             if pending is not None:
                 transfer, wall, cpu = pending.result()
-                self.timings["transfer build (second thread)"] = wall
-                self.timings["transfer build, CPU time (second thread)"] = cpu
-                T = transfer.W
+                self.timings[f"transfer build ({pending.where})"] = wall
+                self.timings[f"transfer build, CPU time ({pending.where})"] = cpu
                 self.modelled = transfer.modelled
-                self.reached = np.flatnonzero(np.diff(T.indptr) > 0)
-                K = self.nodal.shape[2]  # one sparse product gives the point-major operator
-                point_major = self.nodal.transpose(1, 0, 2).reshape(mesh.n_points, 3 * K)
-                R = np.asarray(T[self.reached] @ point_major).reshape(-1, 3, K)
-                self._set_operator(R.astype(self._dtype(R, dtype), copy=False))
-            self._surface = np.ascontiguousarray(self.nodal[:, self.surface_ids])
+                point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
+                self._skin = SkinOperator(transfer.W, point_major)
+                self.reached = self._skin.reached
+                store = self._dtype(dtype)
+                if store != self._skin.dtype:
+                    self._skin = self._skin.astype(store)
+            K = self.nodal.shape[2]  # point-major rows: a plan's product is (n_surface, 3)
+            self._surface = np.ascontiguousarray(
+                self.nodal[:, self.surface_ids].transpose(1, 0, 2)).reshape(-1, K)
             self.timings["transfer"] = time.perf_counter() - t
             self.timings["main thread CPU"] = time.thread_time() - cpu0
             bar.step("transfer folded in")
         self._bc_types = np.asarray(ref[arrays.BC]).copy()
 
-    def _set_operator(self, op):
-        """Store the reached rows' operator ``op`` ``(n_reached, 3, 12 k)`` parameter-major,
-        over every skin point: ``(12 k, 3 n_skin)``, zero columns where the transfer does not
-        reach (a plan's product then writes the whole output, with no scatter)."""
-        n, K = len(self.modelled), op.shape[2]
-        full = np.zeros((K, n, 3), dtype=op.dtype)
-        full[:, self.reached] = np.transpose(op, (2, 0, 1))
-        self._opT = full.reshape(K, 3 * n)
-        self._modelled_rows = None  # the modelled points' operator, made on first use
-
-    @property
-    def _op2(self):
-        """The operator as ``(3 n_skin, 12 k)`` rows (a transposed view)."""
-        return None if self._opT is None else self._opT.T
-
-    @property
-    def _modelled_op(self):
-        if self._modelled_rows is None:
-            cols = (3 * np.flatnonzero(self.modelled)[:, None] + np.arange(3)).ravel()
-            self._modelled_rows = np.ascontiguousarray(self._opT[:, cols].T)  # point-major
-        return self._modelled_rows
+    def _factor_and_solve(self, bar):
+        """Boundary conditions of the probe plan, one factorisation and the basis solves
+        (:attr:`nodal`); returns the probe's grid."""
+        plan, labels = self.template, self.labels
+        t = time.perf_counter()
+        cut = _segmented(labels, plan)
+        self.centroids = {s: np.asarray(m, float) for s, m in self._pivots(cut, plan).items()}
+        self._probe = Plan(tuple(Osteotomy(o.segment, translation=tuple(np.eye(3)[i]), cut=o.cut)
+                                 for i, o in enumerate(plan.osteotomies)))
+        ref = apply_plan(self.mesh, self._probe, labels, **self.bc_options)
+        self.segments = tuple(o.segment_id for o in plan.osteotomies)
+        self.timings["bc"] = time.perf_counter() - t
+        bar.step("boundary conditions")
+        t = time.perf_counter()
+        solver = Solver(ref, **self.solver_options)
+        self.timings["factor"] = time.perf_counter() - t
+        bar.step("factorised")
+        t = time.perf_counter()
+        self.nodal = self._solve_basis(ref, solver)
+        self.timings["solves"] = time.perf_counter() - t
+        bar.step(f"{self.nodal.shape[2]} solves")
+        return ref
 
     @property
     def skin_response(self):
-        if self._opT is None:
+        if self._skin is None:
             return None
-        K = self._opT.shape[0]
-        return np.ascontiguousarray(np.transpose(self._opT.reshape(K, -1, 3), (2, 1, 0)))
+        if self._skin_dense is None:  # made on first use, kept read-only
+            dense = self._skin.rows(np.arange(self._skin.n))  # (K, n_skin, 3)
+            self._skin_dense = np.ascontiguousarray(np.transpose(dense, (2, 1, 0)))
+            self._skin_dense.flags.writeable = False
+        return self._skin_dense
+
+    @property
+    def skin_operator(self):
+        return self._skin
 
     def astype(self, dtype):
         """A shallow copy whose skin operator is stored as ``dtype`` (e.g. ``float32``)."""
         import copy
 
         other = copy.copy(self)
-        if self._opT is not None:
-            other._opT = self._opT.astype(dtype)
-            other._modelled_rows = None
+        if self._skin is not None:
+            other._skin = self._skin.astype(dtype)
+            other._skin_dense = None
         return other
 
     @staticmethod
@@ -361,10 +295,10 @@ class PlanResponse:
                     d[mine, i] = basis[:, j]
                     out[:, :, 12 * s + 4 * i + j] = solver.solve(d, checks=False).T
 
-    def _dtype(self, R, dtype):
+    def _dtype(self, dtype):
         if dtype != "auto":
             return np.dtype(dtype)
-        self.float32_error = float32_bound(R.reshape(-1, R.shape[-1]), len(self.segments))
+        self.float32_error = self._skin.float32_error(len(self.segments))
         return np.dtype(np.float32 if self.float32_error <= FLOAT32_TOLERANCE else np.float64)
 
     # ------------------------------------------------------------------ parameters
@@ -407,11 +341,12 @@ class PlanResponse:
 
         ``out``: a C-contiguous float64 ``(n_skin, 3)`` array written in place (and
         returned), e.g. to predict many plans without allocating."""
-        if self._opT is None:
+        if self._skin is None:
             raise ValueError("plan_response was built without skin=: no skin to predict")
         n = len(self.modelled)
-        if out is None:
-            out = np.empty((n, 3))
+        zeroed = out is None
+        if zeroed:
+            out = np.zeros((n, 3))  # fresh pages are zero already: no fill
         elif (not isinstance(out, np.ndarray) or out.shape != (n, 3) or out.dtype != np.float64
                 or not out.flags.c_contiguous):
             raise ValueError(f"out must be a C-contiguous float64 array of shape ({n}, 3), "
@@ -423,12 +358,7 @@ class PlanResponse:
             u = self._full(plan, self.skin)
             dest[:] = (transfer_operator(self.mesh, self.skin) @ u).ravel()
             return out
-        op = self._opT
-        with _one_thread(self.threads):  # every output entry written: no fill, no scatter
-            if op.dtype == np.float64:
-                np.dot(a, op, out=dest)
-            else:
-                dest[:] = np.dot(a.astype(op.dtype), op)
+        self._skin.apply(a, dest, self.threads, zeroed=zeroed)
         return out
 
     def predict(self, plan, out=None):
@@ -494,8 +424,7 @@ class PlanResponse:
         a = self.parameters(plan)
         if a is None:
             return self._full(plan, None)[self.surface_ids]
-        S = self._surface
-        return (S.reshape(-1, S.shape[2]) @ a).reshape(3, -1).T
+        return (self._surface @ a).reshape(-1, 3)
 
     def predict_mesh(self, plan):
         """Displacement ``(n_points, 3)`` of every mesh node."""
@@ -512,24 +441,24 @@ class PlanResponse:
         ``modelled=True`` takes the statistics over the modelled skin only (points within
         the transfer's band of the mesh, :data:`pvcmf.arrays.SKIN_MODELLED`); otherwise over
         every skin point (the unreached ones count as zero)."""
-        if self._opT is None:
+        if self._skin is None:
             raise ValueError("plan_response was built without skin=: no skin statistics")
-        R = self._modelled_op if modelled else self._op2  # rows (3 points, 12 k)
         count = int(self.modelled.sum()) if modelled else len(self.modelled)
+        select = self.modelled if modelled else None
         params = [self.parameters(p) for p in plans]
         out = np.zeros((len(plans), 3))
         fast = [i for i, a in enumerate(params) if a is not None]
-        step = 3 * _BLOCK
         for start in range(0, len(fast), chunk):
             idx = fast[start:start + chunk]
-            A = np.stack([params[i] for i in idx], axis=1).astype(R.dtype)
+            A = np.stack([params[i] for i in idx], axis=1)
             peak, total, total_sq = (np.zeros(len(idx)) for _ in range(3))
             with _one_thread(self.threads):
-                for b in range(0, len(R), step):
-                    U = (R[b:b + step] @ A).reshape(-1, 3, len(idx))
+                for ids, U in self._skin.blocks(A):  # U: (points, 3, plans)
                     sq = np.einsum("ncp,ncp->np", U, U)
+                    if select is not None:
+                        sq[~select[ids]] = 0.0  # not counted: adds nothing, max >= 0
                     mag = np.sqrt(sq)
-                    np.maximum(peak, mag.max(axis=0), out=peak)
+                    np.maximum(peak, mag.max(axis=0, initial=0.0), out=peak)
                     total += mag.sum(axis=0)
                     total_sq += sq.sum(axis=0)
             out[idx] = np.column_stack([peak, total / count, np.sqrt(total_sq / count)])
@@ -554,14 +483,14 @@ class PlanResponse:
         chunk : int, default 256
             Plans per matrix product.
         """
-        if self._opT is None:
+        if self._skin is None:
             raise ValueError("plan_response was built without skin=: no skin to predict")
         n = len(self.modelled)
         ids = np.arange(n) if points is None else np.asarray(points, dtype=np.int64)
         if ids.ndim != 1 or (ids.size and (ids.min() < 0 or ids.max() >= n)):
             raise ValueError(f"points must be skin point ids in [0, {n}), got {points!r}")
-        K = self._opT.shape[0]
-        R = self._opT.reshape(K, n, 3)[:, ids].reshape(K, -1)  # (K, 3 ids)
+        K = self._skin.K
+        R = self._skin.rows(ids).reshape(K, -1)  # (K, 3 ids)
         params = [self.parameters(p) for p in plans]
         out = np.zeros((len(plans), ids.size, 3))
         fast = [i for i, a in enumerate(params) if a is not None]
