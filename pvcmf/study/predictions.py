@@ -46,6 +46,9 @@ _ABOVE = ("cli.py", "accessor.py", "validation.py")
 #: code a judged skin runs beyond its prediction: the truth (mesh, solve, post-operative
 #: CT), the face regions and the cohort's patients
 _JUDGED_EXTRA = ("truth", "study/statistics.py", "study/cohort.py")
+#: libraries whose version is part of a judged skin's key (besides numpy, scipy and VTK):
+#: the truth's solver, the segmentation's distance maps, the meshers, pyvista's filters
+_JUDGED_LIBRARIES = ("ngsolve", "SimpleITK", "gmsh", "pyvista")
 
 
 @functools.lru_cache(maxsize=None)
@@ -79,8 +82,8 @@ def judged_code_hash(package=None):
 
     :func:`prediction_code_hash` and the truth (its mesher, solver and post-operative
     CT: the whole ``truth`` folder), the face regions (``study/statistics.py``) and the
-    cohort's patients (``study/cohort.py``), with the version of NGSolve when it is
-    installed. Keys the cached judged skins and cohort patients
+    cohort's patients (``study/cohort.py``), with the versions of NGSolve, SimpleITK,
+    gmsh and pyvista (those installed). Keys the cached judged skins and cohort patients
     (:func:`cached_judged`, :func:`pvcmf.study.cohort.virtual_patient`).
 
     Examples
@@ -92,13 +95,15 @@ def judged_code_hash(package=None):
     from importlib import metadata
 
     root = Path(package) if package else _PACKAGE
-    try:
-        ngsolve = metadata.version("ngsolve")
-    except metadata.PackageNotFoundError:
-        ngsolve = None
+    versions = {}
+    for name in _JUDGED_LIBRARIES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
     extra = [root / f for f in _JUDGED_EXTRA if (root / f).exists()]
-    return make_key(prediction_code_hash(package), code_hash(*extra, root=root),
-                    f"ngsolve {ngsolve}", length=16)
+    return make_key(prediction_code_hash(package), code_hash(*extra, root=root), versions,
+                    length=16)
 
 
 def _image_digest(image):
