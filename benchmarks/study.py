@@ -15,8 +15,11 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    fit), paper 000's claims tested over the patients, overall and per face region
    (:func:`pvcmf.study.inference.claims_table`), paper 001's models (homogeneous,
    inhomogeneous, a Poisson-ratio sweep, a finer mesh) and claims
-   (:func:`pvcmf.study.claims.paper001_claims`), cost per patient cold and warm: writes
-   ``docs/benchmarks/cohort.md``.
+   (:func:`pvcmf.study.claims.paper001_claims`), cost per patient cold and warm (warm:
+   the patients and the judged skins read from the cache, checked bit for bit against
+   the cold run, and the claims computed again): writes ``docs/benchmarks/cohort.md``.
+   Its sentence on the truth's convergence is read from the table of
+   ``truth_refinement.md`` (:func:`truth_note`).
 
 Writes markdown tables to ``docs/benchmarks/truth_refinement.md`` (1, 2) with the command
 and machine.

@@ -201,3 +201,40 @@ def test_judged_code_hash_follows_the_truth_and_the_judging(tmp_path):
     finally:
         judged_code_hash.cache_clear()
         prediction_code_hash.cache_clear()
+
+
+# ------------------------------------------------------------- the cohort page's text
+def _benchmark():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "study.py"
+    spec = importlib.util.spec_from_file_location("_study_benchmark", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_cohort_page_quotes_the_refinement_page_it_reads(tmp_path):
+    """The truth's convergence on the cohort page comes from the refinement table, not
+    from numbers typed into the script."""
+    bench = _benchmark()
+    page = tmp_path / "truth_refinement.md"
+    head = ("| patient | tetrahedra | edge mm | dofs | Newton | factorisations | solve s "
+            "| released | skin compared | change p50 mm | p90 mm | max mm |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+    rows = ("| 1 | 3000 | 9.0 | 1 | 1 | 1 | 1 | 0 | nan % | nan | nan | nan |\n"
+            "| 1 | 6100 | 7.0 | 1 | 1 | 1 | 1 | 0 | 90 % | 0.011 | 0.321 | 1.0 |\n"
+            "| 2 | 2900 | 9.0 | 1 | 1 | 1 | 1 | 0 | nan % | nan | nan | nan |\n"
+            "| 2 | 6050 | 7.0 | 1 | 1 | 1 | 1 | 0 | 90 % | 0.022 | 0.654 | 1.0 |\n")
+    page.write_text("Mesher ``lattice``: ...\n\n" + head + rows + "\nCost scaling:\n")
+    text = bench.truth_note("independent", 2000, page=page)
+    assert "p90 0.32-0.65 mm" in text and "median 0.011-0.022 mm" in text
+    assert "2900-3000 and 6050-6100 tetrahedra" in text and "not converged" in text
+    assert "mesher ``conforming``" not in text and "finer than this run's 2000" in text
+    page.write_text("Mesher ``conforming`` ...\n\n" + head + rows.replace("0.654", "0.05")
+                    .replace("0.321", "0.08"))
+    text = bench.truth_note("independent", 4000, page=page)
+    assert "has converged" in text and "mesher ``conforming``, not this run's" in text
+    missing = bench.truth_note("independent", 2000, page=tmp_path / "none.md")
+    assert "not measured" in missing and "p90" not in missing
