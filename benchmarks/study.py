@@ -15,8 +15,11 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    fit), paper 000's claims tested over the patients, overall and per face region
    (:func:`pvcmf.study.inference.claims_table`), paper 001's models (homogeneous,
    inhomogeneous, a Poisson-ratio sweep, a finer mesh) and claims
-   (:func:`pvcmf.study.claims.paper001_claims`), cost per patient cold and warm: writes
-   ``docs/benchmarks/cohort.md``.
+   (:func:`pvcmf.study.claims.paper001_claims`), cost per patient cold and warm (warm:
+   the patients and the judged skins read from the cache, checked bit for bit against
+   the cold run, and the claims computed again): writes ``docs/benchmarks/cohort.md``.
+   Its sentence on the truth's convergence is read from the table of
+   ``truth_refinement.md`` (:func:`truth_note`).
 
 Writes markdown tables to ``docs/benchmarks/truth_refinement.md`` (1, 2) with the command
 and machine.
@@ -288,11 +291,33 @@ REGION_METHODS = ("proposed", "state_of_the_art", "homogeneous", "inhomogeneous"
 def _cohort_results(skins, tables, timing, n_tets, fine_tets):
     import pandas as pd
 
+    t = time.perf_counter()
     paper001, nu_table, spread = paper001_claims(skins, sizes=(n_tets, fine_tets))
-    return {"table": pd.concat(tables, ignore_index=True), "claims": _claims(skins),
+    claims, regions = _claims(skins), region_table(skins, REGION_METHODS)
+    return {"table": pd.concat(tables, ignore_index=True), "claims": claims,
             "paper001": _columns(paper001), "nu": nu_table, "spread": spread,
-            "regions": region_table(skins, REGION_METHODS), "cost": pd.DataFrame(timing),
+            "regions": regions, "cost": pd.DataFrame(timing),
+            "claims_seconds": time.perf_counter() - t,
             "fine_tets": fine_tets, "n_patients": len(skins)}
+
+
+def _same_skins(cold, warm):
+    """Whether two runs' judged skins of one patient are bit-identical: the same methods,
+    points, and every point and field array."""
+    if list(cold) != list(warm):
+        return False
+    for method, a in cold.items():
+        b = warm[method]
+        if not np.array_equal(np.asarray(a.points), np.asarray(b.points)):
+            return False
+        for store_a, store_b in ((a.point_data, b.point_data), (a.field_data, b.field_data)):
+            if sorted(store_a.keys()) != sorted(store_b.keys()):
+                return False
+            if not all(np.array_equal(np.asarray(store_a[k]), np.asarray(store_b[k]),
+                                      equal_nan=np.asarray(store_a[k]).dtype.kind == "f")
+                       for k in store_a.keys()):
+                return False
+    return True
 
 
 def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fine_tets=None,
@@ -300,8 +325,11 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fi
     """Run ``n`` seeded cohort patients through both input modes, twice (cold, warm).
 
     Both runs use one cache folder (``cache_dir``, default a new temporary one, so the cold
-    run starts from empty caches): the cold run solves the truths and runs every pipeline,
-    the warm run (fresh predictors, patients built again) reads both from the cache.
+    run starts from empty caches): the cold run builds the patients, solves the truths,
+    runs every pipeline and judges every prediction, the warm run (fresh predictors) reads
+    the patients and the judged skins from the cache and computes the statistics and, over
+    the patients it repeats, the claims again; each warm patient's judged skins are
+    compared bit for bit with the cold ones (``identical``).
     ``checkpoint(results, status)`` is called with the results so far after every
     ``every`` cold patients and after the cold run, so a run stopped early leaves a
     labelled page. ``warm``: how many patients the warm run repeats (default all)."""
@@ -311,13 +339,14 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fi
     fine_tets = fine_tets or 2 * n_tets
     methods = COHORT_METHODS + ("homogeneous", "inhomogeneous") + tuple(
         nu_method(nu) for nu in nus if nu_method(nu) != "homogeneous") + (FINE_METHOD,)
-    timing, skins, tables = [], {}, []
+    timing, skins, tables, warm_skins, warm_tables = [], {}, [], {}, []
     for run in ("cold", "warm"):
         for i, (params, plan) in enumerate(draw):  # a few patients, a handful of pipelines
             if run == "warm" and warm is not None and i >= warm:
                 break
             t = time.perf_counter()
-            case = virtual_patient(params, plan, spacing=spacing, number=101 + i)
+            case = virtual_patient(params, plan, spacing=spacing, number=101 + i, cache=True,
+                                   cache_dir=cache_dir)
             p = case.patient
             predict = study_predictor(spacing=spacing, n_tets=n_tets, truth_tets=truth_tets,
                                       truth=None if truth == "reference" else truth,
@@ -325,15 +354,19 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fi
                                       prediction_cache=True, fine_tets=fine_tets)
             s, _, tab = run_study(predict, patients=(p,), methods=methods, regions=False)
             timing.append({"run": run, "patient": p, "seconds": time.perf_counter() - t,
-                           "p90_change_mm": np.nan})
+                           "p90_change_mm": np.nan, "identical": None})
             tab["excluded"] = [int(s[p][m].field_data[arrays.STUDY_EXCLUDED][0])
                                for m in tab["method"]]
             if run == "cold":
                 skins.update(s)
                 tables.append(tab)
             else:  # the warm run reads what the cold one computed: the same numbers
+                warm_skins.update(s)
+                warm_tables.append(tab)
                 cold = tables[i].set_index("method")["p90"].loc[list(tab["method"])]
                 timing[-1]["p90_change_mm"] = float(np.abs(cold.to_numpy() - tab["p90"]).max())
+                timing[-1]["identical"] = (_same_skins(skins[p], s[p])
+                                           and tables[i].equals(tab))
             print(timing[-1], flush=True)
             done = i + 1
             if (checkpoint is not None and run == "cold" and done >= 2
@@ -343,7 +376,15 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fi
                            "(the warm run not yet made)")
     if tmp is not None:
         tmp.cleanup()
-    return _cohort_results(skins, tables, timing, n_tets, fine_tets)
+    out = _cohort_results(skins, tables, timing, n_tets, fine_tets)
+    if warm_skins:  # the claims over the warm patients, timed: part of a warm run's cost
+        again = _cohort_results(warm_skins, warm_tables, timing, n_tets, fine_tets)
+        out["warm_claims_seconds"] = again["claims_seconds"]
+        out["warm_claims_patients"] = len(warm_skins)
+        if len(warm_skins) == len(skins):
+            out["warm_claims_identical"] = all(
+                out[k].equals(again[k]) for k in ("claims", "paper001", "nu", "regions"))
+    return out
 
 
 def _verdict_lines(claims):
@@ -377,6 +418,78 @@ def _nu_pivot(nu_table):
     return wide.reset_index()
 
 
+def refinement_rows(page=PAGE):
+    """The refinement table of ``truth_refinement.md`` (written by :func:`refinement`):
+    its mesher and, per patient, the tetrahedra of its two finest truths and the skin
+    change between them (p50, p90 mm). None when the page or its table is missing."""
+    if not Path(page).exists():
+        return None
+    text = Path(page).read_text()
+    head = "| patient | tetrahedra | edge mm |"
+    lines = text.splitlines()
+    if head not in "\n".join(lines):
+        return None
+    start = next(i for i, line in enumerate(lines) if line.startswith(head))
+    cols = [c.strip() for c in lines[start].strip("|").split("|")]
+    rows = []
+    for line in lines[start + 2:]:
+        if not line.startswith("|"):
+            break
+        rows.append(dict(zip(cols, (c.strip() for c in line.strip("|").split("|")))))
+    finest = {}
+    for prev, row in zip(rows, rows[1:]):  # consecutive rows of one patient: a change
+        if prev["patient"] == row["patient"] and row["p90 mm"] != "nan":
+            finest[row["patient"]] = {"coarse": int(prev["tetrahedra"]),
+                                      "fine": int(row["tetrahedra"]),
+                                      "p50": float(row["change p50 mm"]),
+                                      "p90": float(row["p90 mm"])}
+    if not finest:
+        return None
+    mesher = "conforming" if "Mesher ``conforming``" in text else "lattice"
+    return {"mesher": mesher, "patients": finest}
+
+
+def _span(values, fmt):
+    lo, hi = min(values), max(values)
+    return f"{lo:{fmt}}" if lo == hi else f"{lo:{fmt}}-{hi:{fmt}}"
+
+
+def truth_note(truth, truth_tets, page=PAGE):
+    """What the refinement page measured of the truth, read from its table: the sentence
+    of the cohort page on how far the truth has converged."""
+    mesher = "lattice" if truth == "independent" else None
+    this = (f"the {truth} truth (mesher ``{mesher}``) of {truth_tets} tetrahedra" if mesher
+            else f"the {truth} truth of {truth_tets} tetrahedra")
+    ref = refinement_rows(page) if truth == "independent" else None
+    if ref is None:
+        return (f"The truth of this run is {this}; ``truth_refinement.md`` holds no "
+                "refinement of it, so how far it has converged is not measured: the errors "
+                "below bound how far the models and this truth agree, not how accurate "
+                "either is; a paired difference between two models is measured against the "
+                "same truth and is the better-founded number.")
+    pats = ref["patients"]
+    p90 = [r["p90"] for r in pats.values()]
+    coarse = [r["coarse"] for r in pats.values()]
+    fine = [r["fine"] for r in pats.values()]
+    converged = max(p90) <= 0.1
+    other = []
+    if ref["mesher"] != mesher:
+        other.append(f"measured with mesher ``{ref['mesher']}``, not this run's")
+    if truth_tets < min(coarse):
+        other.append(f"on meshes finer than this run's {truth_tets} tetrahedra")
+    return (f"The truth of this run is {this}. Its refinement (``truth_refinement.md``, "
+            f"patients {', '.join(pats)} of ``pvcmf.datasets.phantom``"
+            + (f"; {', and '.join(other)}" if other else "") + "): between the two finest "
+            f"truths of each patient ({_span(coarse, 'd')} and {_span(fine, 'd')} "
+            f"tetrahedra) the skin changes by p90 {_span(p90, '.2f')} mm, median "
+            f"{_span([r['p50'] for r in pats.values()], '.3f')} mm; "
+            + ("it has converged there (p90 <= 0.1 mm)." if converged else
+               "it has not converged there (p90 above 0.1 mm), so the errors below bound "
+               "how far the models and this truth agree, not how accurate either is; a "
+               "paired difference between two models is measured against the same truth "
+               "and is the better-founded number."))
+
+
 def cohort_page(args, res, command, status="complete"):
     from pvcmf.study.validation import JUDGE_LIMIT
 
@@ -385,6 +498,10 @@ def cohort_page(args, res, command, status="complete"):
     cold = cost[cost.run == "cold"].seconds
     warm = cost[cost.run == "warm"].seconds
     per_cold, per_warm = float(cold.mean()), float(warm.mean())
+    # the claims over every patient of the run, timed on the cold run's skins (the warm
+    # ones are the same, bit for bit); scaled to 16 patients when the run has fewer
+    claims_s = res["claims_seconds"]
+    warm16 = 16 * per_warm + claims_s * max(16 / res["n_patients"], 1.0)
     keep = [c for c in ("patient", "method", "n", "excluded", "median", "p90", "p95",
                         "within_1mm", "within_2mm") if c in table.columns]
     main_methods = COHORT_METHODS + ("homogeneous", "inhomogeneous", FINE_METHOD)
@@ -417,12 +534,7 @@ def cohort_page(args, res, command, status="complete"):
         "skin points of the judged face left out of every method because the "
         f"post-operative CT shows no skin within ``JUDGE_LIMIT`` ({JUDGE_LIMIT:g} mm) of "
         "where the truth puts it, ``pvcmf.study.validation.study_predictor``).", "",
-        "The truth of this run is the independent truth at the requested size; it has not "
-        "converged (``truth_refinement.md``: between its two finest lattices, 5k and 12k "
-        "tetrahedra, its skin still changes by p90 0.4-0.9 mm, median 0.02-0.05 mm), so "
-        "the errors below bound how far the models and this truth agree, not how accurate "
-        "either is; a paired difference between two models is measured against the same "
-        "truth and is the better-founded number.", "",
+        truth_note(args.truth, args.truth_tets), "",
         "## Verdicts", "",
         "Each claim tested over the patients: Wilcoxon signed-rank test of the per-patient "
         "statistic, Hodges-Lehmann difference (a - b, mm; for a tolerance: value - "
@@ -469,24 +581,37 @@ def cohort_page(args, res, command, status="complete"):
         _markdown(_region_pivot(res["regions"]).round(3)), "",
         "## Cost", "",
         "Wall seconds per patient (the patient built, its truth, post-operative CT, "
-        "registration and every method); cold: empty caches (a new cache folder: "
-        "every truth is solved and every pipeline runs), warm: the same patients again in "
-        "the same process with fresh predictors (patients built, CTs made and registered "
-        "again; the truths and the predictions of each patient read from the "
-        "on-disk cache, ``study_predictor(prediction_cache=True)``). p90_change_mm: the "
-        "largest change of a method's p90 error from the cold run to the warm one.",
+        "registration and every method judged); cold: empty caches (a new cache folder: "
+        "every patient is built, every truth solved, every pipeline run and every "
+        "prediction judged), warm: the same patients again in the same process with "
+        "fresh predictors, reading each patient (``virtual_patient(cache=True)``) and "
+        "each method's judged skin (``pvcmf.study.predictions.cached_judged``) from the "
+        "on-disk cache and computing the statistics again. p90_change_mm: the largest "
+        "change of a method's p90 error from the cold run to the warm one; identical: "
+        "every judged skin of the patient (points, every point and field array) and its "
+        "statistics equal bit for bit in both runs.",
         "", _markdown(cost.round(1)), "",
         f"Mean per patient ({len(cold)} cold, {len(warm)} warm): cold {per_cold:.0f} s"
-        + (f", warm {per_warm:.0f} s" if len(warm) else "") + ". Projected for "
-        f"16 patients at these sizes on this machine: cold {16 * per_cold / 60:.0f} min "
-        f"(target 90 min: {'met' if 16 * per_cold <= 5400 else 'not met'}), warm "
-        + (f"{16 * per_warm / 60:.0f} min (target 5 min: "
-           f"{'met' if 16 * per_warm <= 300 else 'not met'})" if len(warm) else
+        + (f", warm {per_warm:.1f} s" if len(warm) else "") + ". "
+        + f"The claims, per-region table and Poisson-ratio sweep over the {n_pat} "
+        f"patients: {claims_s:.1f} s"
+        + (f"; over the {res['warm_claims_patients']} warm patients "
+           f"{res['warm_claims_seconds']:.1f} s"
+           + (", the same tables as the cold run's" if res.get("warm_claims_identical")
+              else "") if len(warm) else "") + ". "
+        + "Projected for 16 patients at these sizes on this machine: cold "
+        f"{16 * per_cold / 60:.0f} min (target 90 min: "
+        f"{'met' if 16 * per_cold <= 5400 else 'not met'}), warm "
+        + (f"{warm16 / 60:.1f} min with the claims" + (
+            "" if n_pat >= 16 else f" (their seconds scaled by 16 / {n_pat})")
+           + " (target 5 min: "
+           f"{'met' if warm16 <= 300 else 'not met'})" if len(warm) else
            "not measured in this run") + ". A warm run runs no truth "
-        "solve and no MTM pipeline: what is left is building each patient, its "
-        "post-operative CT, the segmentation and registration of both CTs and the "
-        "distances of every method (a rerun in a new process also hashes the prediction "
-        "code once, ``pvcmf.study.predictions.prediction_code_hash``: seconds).", ""]
+        "mesh or solve, no post-operative CT, segmentation or registration and no MTM "
+        "pipeline: what is left is reading the patients and the judged skins, the "
+        "statistics and the claims (a run in a new process also hashes the code that keys "
+        "the cache once, ``pvcmf.study.predictions.judged_code_hash``: seconds, in the "
+        "first warm patient's time when the cold run did not hash it).", ""]
     return "\n".join(lines)
 
 

@@ -128,16 +128,35 @@ def test_nu_optimum_finds_the_paper_value_and_rejects_a_wrong_one():
 
 def test_mesh_claims_fail_for_a_mesh_that_changes_the_prediction():
     same = {p: {"homogeneous": _skin(1.0), FINE_METHOD: _skin(1.0)} for p in range(8)}
-    assert [r["holds"] for r in mesh_size_claims(same, sizes=(5000, 10000))] == [True] * 3
+    assert [r["holds"] for r in mesh_size_claims(same, sizes=(5000, 10000))] == [True] * 4
     worse = {}
     for p in range(8):
-        coarse = _skin(1.3 + 0.01 * p)
+        coarse = _skin(1.5 + 0.01 * p)
         coarse.points = coarse.points + [0.0, 0.8, 0.0]  # the skin 0.8 mm away
         worse[p] = {"homogeneous": coarse, FINE_METHOD: _skin(1.0)}
     rows = mesh_size_claims(worse, sizes=(5000, 10000), n_boot=200)
-    assert [r["verdict"] for r in rows] == ["b better", "b better", "b better"]
+    assert [r["verdict"] for r in rows] == ["b better"] * 4
     assert not any(r["holds"] for r in rows)
     assert "5000 tetrahedra" in rows[0]["claim"] and rows[0]["p_value"] < 0.05
+
+
+def test_mesh_claim_needs_equivalence_not_just_no_difference():
+    """The coarse mesh errs 0.8 mm more on half of the patients and 0.8 mm less on the
+    other half: the paired test finds no difference, yet no patient's error is within
+    the clinical tolerance of the finer mesh's, so "err as the finer mesh does" must not
+    hold; with changes of 0.01-0.08 mm (both signs) the equivalence test shows it."""
+    def skins(change):
+        return {p: {"homogeneous": _skin(1.0 + change(p)),
+                    FINE_METHOD: _skin(1.0)} for p in range(10)}
+
+    far = mesh_size_claims(skins(lambda p: 0.8 * (-1) ** p), sizes=(5000, 10000), n_boot=200)
+    assert far[0]["verdict"] == "no difference" and far[0]["p_value"] > 0.05
+    assert not far[1]["holds"] and not far[0]["holds"]
+    near = mesh_size_claims(skins(lambda p: 0.01 * (p % 8 + 1) * (-1) ** p),
+                            sizes=(5000, 10000), n_boot=200)
+    assert near[0]["verdict"] == "no difference"
+    assert near[1]["holds"] and near[0]["holds"]
+    assert near[1]["p_value"] < 0.05 and str(claims_mod.CLINICAL_TOLERANCE_MM) in near[1]["claim"]
 
 
 def test_below_tolerance_is_not_shown_by_a_few_patients():

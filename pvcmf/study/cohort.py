@@ -15,20 +15,25 @@ from one seed:
   centroid.
 
 :func:`virtual_patient` builds one patient as :func:`pvcmf.datasets.phantom` builds patients
-1-4 (the same rasterizer and CT synthesis), numbered from 101. Delegates to
-:mod:`pvcmf.datasets` and numpy.
+1-4 (the same rasterizer and CT synthesis), numbered from 101, optionally read from and
+written to the on-disk cache (:mod:`pvcmf.cache`). Delegates to :mod:`pvcmf.datasets` and
+numpy.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 
+from ..cache import cache_root, cached, make_key
 from ..datasets import phantom as _phantom
 from ..datasets import template
 from ..plan import Osteotomy, Plan
+from .predictions import _image_digest, judged_code_hash
 
 log = logging.getLogger("pvcmf.validation")
 
@@ -83,7 +88,7 @@ def cohort_parameters(n=16, seed=0):
     return out
 
 
-def virtual_patient(params, plan, *, spacing=2.0, number=101):
+def virtual_patient(params, plan, *, spacing=2.0, number=101, cache=False, cache_dir=None):
     """One virtual patient of the given parameters and plan (see :func:`cohort_parameters`).
 
     Parameters
@@ -96,6 +101,13 @@ def virtual_patient(params, plan, *, spacing=2.0, number=101):
         Voxel size (mm).
     number : int, default 101
         The patient's number (``Case.patient``).
+    cache : bool, default False
+        Read / write the patient in the on-disk cache (``cache_dir``'s ``cases`` folder:
+        its CT, label image and landmarks), keyed by ``params``, ``plan``, ``spacing``,
+        ``number`` and the code that builds it
+        (:func:`pvcmf.study.predictions.judged_code_hash`).
+    cache_dir : path, optional
+        Cache root (default ``PVCMF_CACHE_DIR`` / ``~/.cache/pvcmf``).
 
     Returns
     -------
@@ -103,8 +115,47 @@ def virtual_patient(params, plan, *, spacing=2.0, number=101):
         As :func:`pvcmf.datasets.phantom` returns, with ``parameters`` set (the true
         anatomy of :mod:`pvcmf.truth.anatomy` follows them).
     """
-    t0 = time.perf_counter()
     spacing = _phantom._check_spacing(spacing)
+    if not cache:
+        return _build(params, plan, spacing, number)
+    key = make_key({"parameters": repr(params), "plan": repr(plan), "spacing": spacing,
+                    "number": int(number), "code": judged_code_hash()})
+    root = cache_root("cases") if cache_dir is None else Path(cache_dir) / "cases"
+    t0 = time.perf_counter()
+    case = cached(root / key, lambda: _build(params, plan, spacing, number), folder=True,
+                  read=lambda folder: _read_case(folder, params, plan), write=_write_case)
+    if not getattr(case, "build_seconds", 0.0):
+        case.build_seconds = time.perf_counter() - t0
+    return case
+
+
+def _write_case(case, folder):
+    folder = Path(folder)
+    case.ct.save(folder / "ct.vti")
+    case.truth.save(folder / "truth.vti")
+    meta = {"name": case.name, "patient": int(case.patient), "spacing": float(case.spacing),
+            "landmarks": {k: np.asarray(v, float).tolist() for k, v in case.landmarks.items()},
+            "ct": _image_digest(case.ct), "truth": _image_digest(case.truth)}
+    (folder / "meta.json").write_text(json.dumps(meta))
+
+
+def _read_case(folder, params, plan):
+    """A cached patient, checked against its record (image digests): a truncated or
+    foreign entry raises and is rebuilt."""
+    import pyvista as pv
+
+    folder = Path(folder)
+    meta = json.loads((folder / "meta.json").read_text())
+    ct, truth = pv.read(folder / "ct.vti"), pv.read(folder / "truth.vti")
+    if _image_digest(ct) != meta["ct"] or _image_digest(truth) != meta["truth"]:
+        raise ValueError(f"cached patient {folder} does not match its record")
+    landmarks = {k: np.asarray(v, float) for k, v in meta["landmarks"].items()}
+    return _phantom.Case(name=meta["name"], patient=meta["patient"], spacing=meta["spacing"],
+                         ct=ct, truth=truth, landmarks=landmarks, plan=plan, parameters=params)
+
+
+def _build(params, plan, spacing, number):
+    t0 = time.perf_counter()
     warp = template.PatientWarp(params)
     grid = _phantom._grid_for(warp, spacing)
     labels = _phantom.rasterize(grid, warp)

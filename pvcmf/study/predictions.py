@@ -32,7 +32,8 @@ from ..cache import cache_root, cached, code_hash, make_key
 
 log = logging.getLogger("pvcmf.validation")
 
-__all__ = ["cached_prediction", "prediction_code_hash", "prediction_key"]
+__all__ = ["cached_judged", "cached_prediction", "judged_code_hash", "prediction_code_hash",
+           "prediction_key"]
 
 _PACKAGE = Path(__file__).resolve().parents[1]
 #: folders of the package whose code never runs in a prediction
@@ -42,6 +43,12 @@ _PREDICTION_EXTRA = ("truth/postop.py", "study/validation.py", "study/from_ct.py
                      "study/predictions.py", "study/paper001.py")
 #: top-level modules above the pipeline
 _ABOVE = ("cli.py", "accessor.py", "validation.py")
+#: code a judged skin runs beyond its prediction: the truth (mesh, solve, post-operative
+#: CT), the face regions and the cohort's patients
+_JUDGED_EXTRA = ("truth", "study/statistics.py", "study/cohort.py")
+#: libraries whose version is part of a judged skin's key (besides numpy, scipy and VTK):
+#: the truth's solver, the segmentation's distance maps, the meshers, pyvista's filters
+_JUDGED_LIBRARIES = ("ngsolve", "SimpleITK", "gmsh", "pyvista")
 
 
 @functools.lru_cache(maxsize=None)
@@ -67,6 +74,36 @@ def prediction_code_hash(package=None):
     files += [root / f for f in _PREDICTION_EXTRA if (root / f).exists()]
     versions = f"numpy {np.__version__} scipy {scipy.__version__} vtk {vtk.vtkVersion.GetVTKVersion()}"
     return make_key(code_hash(*files, root=root), versions, length=16)
+
+
+@functools.lru_cache(maxsize=None)
+def judged_code_hash(package=None):
+    """:func:`pvcmf.cache.code_hash` of the code that computes a judged skin of the study.
+
+    :func:`prediction_code_hash` and the truth (its mesher, solver and post-operative
+    CT: the whole ``truth`` folder), the face regions (``study/statistics.py``) and the
+    cohort's patients (``study/cohort.py``), with the versions of NGSolve, SimpleITK,
+    gmsh and pyvista (those installed). Keys the cached judged skins and cohort patients
+    (:func:`cached_judged`, :func:`pvcmf.study.cohort.virtual_patient`).
+
+    Examples
+    --------
+    >>> from pvcmf.study.predictions import judged_code_hash, prediction_code_hash
+    >>> len(judged_code_hash()), judged_code_hash() != prediction_code_hash()
+    (16, True)
+    """
+    from importlib import metadata
+
+    root = Path(package) if package else _PACKAGE
+    versions = {}
+    for name in _JUDGED_LIBRARIES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = None
+    extra = [root / f for f in _JUDGED_EXTRA if (root / f).exists()]
+    return make_key(prediction_code_hash(package), code_hash(*extra, root=root), versions,
+                    length=16)
 
 
 def _image_digest(image):
@@ -192,3 +229,51 @@ def cached_prediction(compute, case, method, options, *, cache=True, cache_dir=N
     if arrays.MAPPING_SUPPORT not in skin.point_data:
         raise ValueError(f"prediction of {method!r} has no {arrays.MAPPING_SUPPORT!r} array")
     return y0, skin
+
+
+#: point arrays every judged skin carries (:func:`pvcmf.study.validation.study_predictor`)
+_JUDGED_ARRAYS = (arrays.DISTANCE, arrays.REGION, arrays.SKIN_POINT_ID, arrays.MAPPING_SUPPORT)
+
+
+def _read_judged(path):
+    """A judged skin, checked: a truncated or foreign entry raises (and is recomputed)."""
+    import pyvista as pv
+
+    skin = pv.read(path)
+    missing = [a for a in _JUDGED_ARRAYS if a not in skin.point_data]
+    if skin.n_points == 0 or missing:
+        raise ValueError(f"judged skin has {skin.n_points} points, lacks arrays {missing}")
+    if arrays.STUDY_EXCLUDED not in skin.field_data.keys():
+        raise ValueError(f"judged skin has no {arrays.STUDY_EXCLUDED!r} field")
+    return skin
+
+
+def cached_judged(compute, case, method, options, *, cache_dir=None):
+    """``compute() -> judged skin``, read from the cache when the entry exists.
+
+    The judged skin of one method (the prediction's distances to the registered
+    post-operative CT's skin on the judged face) depends on the patient, the method,
+    the prediction's and the truth's options and the code of both
+    (:func:`judged_code_hash`): its key is :func:`prediction_key` of those, so a study
+    run again reads it without building the truth's mesh, the post-operative CT, its
+    segmentation and registration, or the distances.
+
+    Parameters
+    ----------
+    compute : callable
+        Computes the judged skin (``pyvista.PolyData``).
+    case, method, options :
+        The key's parts (:func:`prediction_key`); ``options`` must name everything the
+        judging depends on besides the code (sizes, Gaussian width, truth, noise, ...).
+    cache_dir : path, optional
+        Cache root (default ``PVCMF_CACHE_DIR`` / ``~/.cache/pvcmf``); entries go to its
+        ``judged`` folder.
+
+    Returns
+    -------
+    pyvista.PolyData
+        The judged skin.
+    """
+    key = prediction_key(case, method, options, code=judged_code_hash())
+    root = cache_root("judged") if cache_dir is None else Path(cache_dir) / "judged"
+    return cached(root / f"{key}.vtp", compute, read=_read_judged)

@@ -26,7 +26,7 @@ from ..truth.independent import independent_truth_grid
 from ..truth.postop import postop_ct
 from .from_ct import judge_skin, register_postop_skin, skin_from_ct
 from .paper001 import FINE_METHOD, is_paper001_method, paper001_pipeline, paper001_solve
-from .predictions import cached_prediction
+from .predictions import cached_judged, cached_prediction
 from .statistics import _distances, error_statistics
 
 log = logging.getLogger("pvcmf.validation")
@@ -197,7 +197,12 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         pre-operative skin) in the on-disk cache (``cache_dir``'s ``predictions`` folder,
         :mod:`pvcmf.study.predictions`: keyed by the patient, the plan, the method, the
         sizes and the code that computes it), so a second run of a study runs no
-        pipeline. The judging (post-operative CT, registration, distances) always runs.
+        pipeline. With the truth named (``None`` or ``'independent'``), also each judged
+        skin (:func:`pvcmf.study.predictions.cached_judged`: keyed by the patient, the
+        method, the sizes, the truth's options, the noise and the code of the prediction,
+        the truth and the judging), so a second run neither builds the truth's mesh nor
+        makes, segments and registers the post-operative CT; with a ``truth`` callable
+        the judging always runs.
     fine_tets : int, optional
         Tetrahedra of the "homogeneous_fine" method (default ``2 * n_tets``).
 
@@ -223,6 +228,11 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                         ("fine_tets", fine_tets)):
         if int(value) < 100:
             raise ValueError(f"{name} must be an integer >= 100, got {value!r}")
+    # a named truth is known by its options and code, so its judged skins can be cached
+    named = {"truth": truth or "reference", "truth_tets": int(truth_tets),
+             "noise_hu": float(noise_hu), "ct_spacing": ct_spacing,
+             "reach": TRUTH_REACH, "judge_limit": JUDGE_LIMIT} if truth in (
+                 None, "independent") else None
     if truth == "independent":
         truth = functools.partial(independent_truth_grid, n_tets=truth_tets,
                                   cache=truth_cache, cache_dir=cache_dir)
@@ -248,27 +258,33 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                              f"(or one of {CONTROL_METHODS + AUTO_METHODS} or paper 001's "
                              f"models), got {method!r}")
         c = case(patient)
-        if patient not in scans:
-            scans[patient] = _scan(c, patient, truth, noise_hu, ct_spacing)
-        grid, registered, pre_skin, judged = scans[patient]
         size = int(fine_tets) if method == FINE_METHOD else int(n_tets)
+        options = {"n_tets": size, "sigma": float(sigma)}
 
-        def compute():
-            if not paper001:
-                return _prediction(c, method, grid, pre_skin, n_tets, sigma)
-            key = (patient, size)
-            if key not in models:  # one pipeline per patient and size, kept for its models
-                for other in [k for k in models if k[0] != patient]:
-                    del models[other]
-                models[key] = paper001_pipeline(c, size)
-            res = models[key]
-            return _face_y0(res.labels), _map(paper001_solve(res, method), pre_skin, sigma)
+        def judge():
+            if patient not in scans:
+                scans[patient] = _scan(c, patient, truth, noise_hu, ct_spacing)
+            grid, registered, pre_skin, judged = scans[patient]
 
-        y0, pred = cached_prediction(
-            compute, c, method, {"n_tets": size, "sigma": float(sigma)},
-            cache=prediction_cache and method != "truth", cache_dir=cache_dir,
-            n_points=pre_skin.n_points)
-        return _judge(c, registered, pred, y0, judged)
+            def compute():
+                if not paper001:
+                    return _prediction(c, method, grid, pre_skin, n_tets, sigma)
+                key = (patient, size)
+                if key not in models:  # one pipeline per patient and size, for its models
+                    for other in [k for k in models if k[0] != patient]:
+                        del models[other]
+                    models[key] = paper001_pipeline(c, size)
+                res = models[key]
+                return _face_y0(res.labels), _map(paper001_solve(res, method), pre_skin, sigma)
+
+            y0, pred = cached_prediction(
+                compute, c, method, options, cache=prediction_cache and method != "truth",
+                cache_dir=cache_dir, n_points=pre_skin.n_points)
+            return _judge(c, registered, pred, y0, judged)
+
+        if prediction_cache and named is not None:
+            return cached_judged(judge, c, method, {**options, **named}, cache_dir=cache_dir)
+        return judge()
 
     return predict
 

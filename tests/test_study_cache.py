@@ -1,0 +1,240 @@
+"""The cohort study's warm cache: cached patients and judged skins.
+
+* :func:`pvcmf.study.cohort.virtual_patient` with ``cache=True``: the patient read back
+  is the patient built (image bytes, landmarks), a second call builds nothing, and a
+  changed parameter, plan, voxel size, number or code builds again;
+* :func:`pvcmf.study.validation.study_predictor` with ``prediction_cache=True`` and a
+  named truth: a second run reads each judged skin (bit-identical) and runs neither the
+  truth, the post-operative CT nor the judging; a changed option of the truth or the
+  judging, or a changed code, judges again; with a truth callable nothing is judged
+  from the cache;
+* :func:`pvcmf.study.predictions.judged_code_hash` follows the truth's and the judging's
+  code, not their documentation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+from pvcmf import arrays
+from pvcmf.filters.registration import ICP_MATRIX
+from pvcmf.study import cohort, predictions, validation
+from pvcmf.study.cohort import cohort_parameters, virtual_patient
+from pvcmf.study.predictions import _image_digest, judged_code_hash, prediction_code_hash
+
+
+@pytest.fixture
+def fixed_code(monkeypatch):
+    """The package's code hash parses every module (seconds): a fixed one, changeable."""
+    code = {"hash": "code"}
+    monkeypatch.setattr(cohort, "judged_code_hash", lambda *a: code["hash"])
+    monkeypatch.setattr(predictions, "judged_code_hash", lambda *a: code["hash"])
+    monkeypatch.setattr(predictions, "prediction_code_hash", lambda *a: "prediction")
+    return code
+
+
+# ------------------------------------------------------------------------ patients
+def test_cached_patient_is_the_built_one_and_changes_rebuild(tmp_path, monkeypatch,
+                                                             fixed_code):
+    built = []
+    build = cohort._build
+
+    def counting(*args):
+        built.append(args[3])
+        return build(*args)
+
+    monkeypatch.setattr(cohort, "_build", counting)
+    (params, plan), (params2, plan2) = cohort_parameters(2, seed=5)
+    fresh = virtual_patient(params, plan, spacing=4.0, number=101)
+    first = virtual_patient(params, plan, spacing=4.0, number=101, cache=True,
+                            cache_dir=tmp_path)
+    again = virtual_patient(params, plan, spacing=4.0, number=101, cache=True,
+                            cache_dir=tmp_path)
+    assert built == [101, 101]  # the uncached build and the first cached one
+    for case in (first, again):
+        assert _image_digest(case.ct) == _image_digest(fresh.ct)
+        assert _image_digest(case.truth) == _image_digest(fresh.truth)
+        assert case.ct.point_data[arrays.CT].dtype == fresh.ct.point_data[arrays.CT].dtype
+        assert sorted(case.landmarks) == sorted(fresh.landmarks)
+        for name, value in fresh.landmarks.items():
+            np.testing.assert_array_equal(case.landmarks[name], value)
+        assert (case.name, case.patient, case.spacing, case.plan, case.parameters) == (
+            fresh.name, fresh.patient, fresh.spacing, fresh.plan, fresh.parameters)
+    # every part of the key builds again: parameters, plan, number, voxel size, code
+    for kwargs in (dict(params=params2, plan=plan), dict(params=params, plan=plan2),
+                   dict(params=params, plan=plan, number=102),
+                   dict(params=params, plan=plan, spacing=3.9)):
+        n = len(built)
+        virtual_patient(**{"spacing": 4.0, "number": 101, **kwargs}, cache=True,
+                        cache_dir=tmp_path)
+        assert len(built) == n + 1, kwargs
+    fixed_code["hash"] = "other code"
+    virtual_patient(params, plan, spacing=4.0, number=101, cache=True, cache_dir=tmp_path)
+    assert len(built) == 7
+
+
+def test_corrupt_cached_patient_is_rebuilt(tmp_path, monkeypatch, fixed_code):
+    built = []
+    build = cohort._build
+    monkeypatch.setattr(cohort, "_build", lambda *a: built.append(1) or build(*a))
+    params, plan = cohort_parameters(1, seed=5)[0]
+    case = virtual_patient(params, plan, spacing=4.0, cache=True, cache_dir=tmp_path)
+    (entry,) = (tmp_path / "cases").iterdir()
+    damaged = case.ct.copy()
+    damaged.point_data[arrays.CT][0] += 1.0
+    damaged.save(entry / "ct.vti")  # no longer the CT its record names
+    again = virtual_patient(params, plan, spacing=4.0, cache=True, cache_dir=tmp_path)
+    assert len(built) == 2 and _image_digest(again.ct) == _image_digest(case.ct)
+
+
+# -------------------------------------------------------------------- judged skins
+def _case():
+    img = pv.ImageData(dimensions=(3, 3, 3))
+    img.point_data[arrays.CT] = np.arange(27, dtype=np.float32)
+    return cohort._phantom.Case(name="p", patient=101, spacing=3.0, ct=img, truth=img.copy(),
+                                landmarks={"pronasale": np.array([0.0, 50.0, 0.0])},
+                                plan="plan", parameters="params")
+
+
+def _judged(pred):
+    out = pred.copy()
+    out.point_data[arrays.DISTANCE] = np.linspace(-1.0, 2.0, out.n_points) / 3.0
+    out.point_data[arrays.REGION] = (np.arange(out.n_points) % 7).astype(np.uint8)
+    out.point_data[arrays.SKIN_POINT_ID] = np.arange(out.n_points, dtype=np.int64)
+    out.field_data[ICP_MATRIX] = np.eye(4) * 1.1
+    out.field_data[arrays.STUDY_EXCLUDED] = np.array([3])
+    return out
+
+
+def test_second_study_reads_judged_skins_and_changes_judge_again(tmp_path, monkeypatch,
+                                                                  fixed_code):
+    calls = {"scan": 0, "judge": 0}
+
+    def scan(*args):
+        calls["scan"] += 1
+        skin = pv.Sphere(radius=20.0, theta_resolution=10, phi_resolution=10)
+        return None, None, skin, None
+
+    def prediction(case, method, grid, pre_skin, n_tets, sigma):
+        pred = pre_skin.copy()
+        pred.point_data[arrays.MAPPING_SUPPORT] = np.ones(pred.n_points)
+        return -10.0, pred
+
+    def judge(case, registered, pred, y0, masks):
+        calls["judge"] += 1
+        return _judged(pred)
+
+    monkeypatch.setattr(validation, "_scan", scan)
+    monkeypatch.setattr(validation, "_prediction", prediction)
+    monkeypatch.setattr(validation, "_judge", judge)
+    cases = {101: _case()}
+
+    def run(**options):
+        predict = validation.study_predictor(**{
+            "spacing": 3.0, "n_tets": 5000, "truth_tets": 2000, "truth": "independent",
+            "cases": cases, "cache_dir": tmp_path, "prediction_cache": True, **options})
+        return {m: predict(101, m) for m in ("proposed", "truth")}
+
+    cold = run()
+    assert calls == {"scan": 1, "judge": 2}
+    warm = run()
+    assert calls == {"scan": 1, "judge": 2}  # no truth, CT, registration or judging
+    for method, a in cold.items():
+        b = warm[method]
+        np.testing.assert_array_equal(a.points, b.points)
+        assert sorted(a.point_data.keys()) == sorted(b.point_data.keys())
+        for name in a.point_data.keys():
+            np.testing.assert_array_equal(a.point_data[name], b.point_data[name])
+            assert a.point_data[name].dtype == b.point_data[name].dtype
+        for name in a.field_data.keys():
+            np.testing.assert_array_equal(a.field_data[name], b.field_data[name])
+    # every option of the truth and the judging, and the code, judge again
+    for options in (dict(truth_tets=3000), dict(noise_hu=10.0), dict(ct_spacing=2.0),
+                    dict(truth=None), dict(n_tets=6000), dict(sigma=3.0)):
+        n = calls["judge"]
+        run(**options)
+        assert calls["judge"] == n + 2, options
+    fixed_code["hash"] = "other code"
+    n = calls["judge"]
+    run()
+    assert calls["judge"] == n + 2
+    # a truth callable cannot be keyed: always judged
+    n = calls["judge"]
+    run(truth=lambda case: None)
+    run(truth=lambda case: None)
+    assert calls["judge"] == n + 4
+
+
+def test_judged_code_hash_follows_the_truth_and_the_judging(tmp_path):
+    pkg = tmp_path / "pkg"
+    for folder in ("truth", "study", "figures"):
+        (pkg / folder).mkdir(parents=True)
+    files = {"pipeline.py": "def f(x):\n    return x\n",
+             "truth/solver.py": "A = 1\n", "study/statistics.py": "B = 1\n",
+             "study/cohort.py": "C = 1\n", "study/claims.py": "D = 1\n",
+             "figures/plot.py": "E = 1\n"}
+    for name, text in files.items():
+        (pkg / name).write_text(text)
+
+    def hashes():
+        judged_code_hash.cache_clear()
+        prediction_code_hash.cache_clear()
+        return judged_code_hash(pkg), prediction_code_hash(pkg)
+
+    try:
+        before = hashes()
+        (pkg / "truth/solver.py").write_text('"""doc"""\nA = 1  # comment\n')
+        assert hashes() == before  # documentation only
+        for name in ("study/claims.py", "figures/plot.py"):  # never in a judged skin
+            (pkg / name).write_text("D = 2\n")
+            assert hashes() == before, name
+        for name in ("truth/solver.py", "study/statistics.py", "study/cohort.py"):
+            (pkg / name).write_text("A = 3\n")
+            now = hashes()
+            assert now[0] != before[0] and now[1] == before[1], name
+            before = now
+        (pkg / "pipeline.py").write_text("def f(x):\n    return x + 1\n")
+        now = hashes()
+        assert now[0] != before[0] and now[1] != before[1]
+    finally:
+        judged_code_hash.cache_clear()
+        prediction_code_hash.cache_clear()
+
+
+# ------------------------------------------------------------- the cohort page's text
+def _benchmark():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "study.py"
+    spec = importlib.util.spec_from_file_location("_study_benchmark", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_cohort_page_quotes_the_refinement_page_it_reads(tmp_path):
+    """The truth's convergence on the cohort page comes from the refinement table, not
+    from numbers typed into the script."""
+    bench = _benchmark()
+    page = tmp_path / "truth_refinement.md"
+    head = ("| patient | tetrahedra | edge mm | dofs | Newton | factorisations | solve s "
+            "| released | skin compared | change p50 mm | p90 mm | max mm |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+    rows = ("| 1 | 3000 | 9.0 | 1 | 1 | 1 | 1 | 0 | nan % | nan | nan | nan |\n"
+            "| 1 | 6100 | 7.0 | 1 | 1 | 1 | 1 | 0 | 90 % | 0.011 | 0.321 | 1.0 |\n"
+            "| 2 | 2900 | 9.0 | 1 | 1 | 1 | 1 | 0 | nan % | nan | nan | nan |\n"
+            "| 2 | 6050 | 7.0 | 1 | 1 | 1 | 1 | 0 | 90 % | 0.022 | 0.654 | 1.0 |\n")
+    page.write_text("Mesher ``lattice``: ...\n\n" + head + rows + "\nCost scaling:\n")
+    text = bench.truth_note("independent", 2000, page=page)
+    assert "p90 0.32-0.65 mm" in text and "median 0.011-0.022 mm" in text
+    assert "2900-3000 and 6050-6100 tetrahedra" in text and "not converged" in text
+    assert "mesher ``conforming``" not in text and "finer than this run's 2000" in text
+    page.write_text("Mesher ``conforming`` ...\n\n" + head + rows.replace("0.654", "0.05")
+                    .replace("0.321", "0.08"))
+    text = bench.truth_note("independent", 4000, page=page)
+    assert "has converged" in text and "mesher ``conforming``, not this run's" in text
+    missing = bench.truth_note("independent", 2000, page=tmp_path / "none.md")
+    assert "not measured" in missing and "p90" not in missing
