@@ -363,7 +363,7 @@ class PipelineEvaluation(Evaluation):
                 state["grid"], state["labels"], skin=state["skin"] if interpolate else None,
                 plan=target, dtype="float64", bc_options=self.plan_bc_options(state),
                 solver_options=options)
-        if resp.skin_response is not None:
+        if resp.skin_operator is not None:
             return resp.predict_displacement(target)
         return np.asarray(mapping(resp.predict_mesh(target)), float)
 
