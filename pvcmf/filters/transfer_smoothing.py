@@ -27,7 +27,8 @@ nodes, exact for an affine field). Properties:
   band, so the transfer stays continuous across the mesh boundary and where the band
   ends;
 * each step is one sparse matrix product: with ``S`` the step's matrix and ``T`` the
-  transfer, ``T <- S T + F`` (``F`` the guidance term), so the transfer stays a
+  transfer, ``T <- S T + F`` (``F`` the guidance term; both on the rows of the moving
+  points and their neighbours only), so the transfer stays a
   :mod:`scipy.sparse` matrix (skin points x mesh nodes) whose rows widen by the
   neighbours' supports.
 
@@ -154,12 +155,25 @@ def smooth_outside(T, x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS,
                                 NEIGHBOUR_REACH * h)
     if not len(rows):
         return T
-    A = sp.diags(np.bincount(rows, a[rows], minlength=n))
+    # iterate on the block of the moving points and their neighbours only
+    block = np.union1d(rows, N[rows].indices)
+    pos = np.searchsorted(block, rows)
+    ab = np.zeros(len(block))
+    ab[pos] = a[rows]
+    moves = np.zeros(len(block))
+    moves[pos] = 1.0
+    Nb = N[block][:, block]
+    step = (sp.identity(len(block), format="csr")
+            + sp.diags(ab) @ (Nb - sp.diags(moves))).tocsr()
     offsets = x[rows] - N[rows] @ x  # p less its neighbours' mean
-    F = (A @ guide(rows, offsets)).tocsr()
-    step = (A @ (N - sp.diags((np.bincount(rows, minlength=n) > 0).astype(float)))).tocsr()
+    F = (sp.diags(np.bincount(rows, a[rows], minlength=n)) @ guide(rows, offsets)).tocsr()[block]
+    Tb = T[block]
     for _ in range(int(iterations)):
-        T = T + step @ T + F
+        Tb = step @ Tb + F
+    keep = np.ones(n)
+    keep[rows] = 0.0
+    put = sp.csr_matrix((np.ones(len(rows)), (rows, pos)), shape=(n, len(block)))
+    T = sp.diags(keep) @ T + put @ Tb
     T = T.tocsr()
     T.sum_duplicates()
     T.eliminate_zeros()
