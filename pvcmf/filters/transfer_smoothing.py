@@ -82,12 +82,20 @@ def _neighbour_matrix(x, moving, fixed_ok, k, reach):
     kk = min(k + 2, len(cand))
     if kk < 2 or not len(moving):
         return sp.csr_matrix((n, n)), np.zeros(0, dtype=np.int64)
-    dist, idx = cKDTree(x[cand]).query(x[moving], k=kk, distance_upper_bound=reach)
+    tree = cKDTree(x[cand], balanced_tree=False, compact_nodes=False)
+    dist, idx = tree.query(x[moving], k=kk, distance_upper_bound=reach)
     dist, idx = dist.reshape(len(moving), kk), idx.reshape(len(moving), kk)
     nb = np.where(idx < len(cand), cand[np.minimum(idx, len(cand) - 1)], -1)
-    dist = np.where(nb == moving[:, None], np.inf, dist)  # not the point itself
-    order = np.argsort(dist, axis=1, kind="stable")[:, :kk - 1]
-    dist, nb = np.take_along_axis(dist, order, 1), np.take_along_axis(nb, order, 1)
+    me = nb == moving[:, None]  # the point itself (sorted first, but for a duplicate)
+    first = me[:, 0]
+    dist, nb = np.where(first[:, None], np.roll(dist, -1, axis=1), dist), \
+        np.where(first[:, None], np.roll(nb, -1, axis=1), nb)
+    rest = np.flatnonzero(~first & me.any(axis=1))  # self elsewhere: drop it there
+    if rest.size:
+        order = np.argsort(me[rest], axis=1, kind="stable")
+        dist[rest] = np.take_along_axis(dist[rest], order, 1)
+        nb[rest] = np.take_along_axis(nb[rest], order, 1)
+    dist, nb = dist[:, :kk - 1], nb[:, :kk - 1]
     rho = np.minimum(dist[:, -1:], reach)  # the next neighbour's distance, at most reach
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.where(dist[:, :-1] < rho, (1.0 - (dist[:, :-1] / rho) ** 2) ** 2, 0.0)
@@ -170,10 +178,9 @@ def smooth_outside(T, x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS,
     Tb = T[block]
     for _ in range(int(iterations)):
         Tb = step @ Tb + F
-    keep = np.ones(n)
-    keep[rows] = 0.0
-    put = sp.csr_matrix((np.ones(len(rows)), (rows, pos)), shape=(n, len(block)))
-    T = sp.diags(keep) @ T + put @ Tb
+    source = np.arange(n)  # every row from T, the moved ones from Tb
+    source[rows] = n + pos
+    T = sp.vstack([T, Tb], format="csr")[source]
     T = T.tocsr()
     T.sum_duplicates()
     T.eliminate_zeros()
