@@ -69,12 +69,12 @@ def one(kwargs, fit):
     pre = res.skin_pre
     u_nodes = np.asarray(res.post[arrays.DISPLACEMENT], dtype=float)
     modelled = np.asarray(pre.point_data[arrays.SKIN_MODELLED]).astype(bool)
-    start = time.perf_counter()
+    start = time.process_time()  # CPU time: less affected by other jobs than wall time
     plain = Transfer(res.post, pre, smoothing=0)
-    plain_s = time.perf_counter() - start
-    start = time.perf_counter()
+    plain_s = time.process_time() - start
+    start = time.process_time()
     transfer = Transfer(res.post, pre)
-    smoothed_s = time.perf_counter() - start
+    smoothed_s = time.process_time() - start
     forced = unavoidable_crumples(pre, res.post, u_nodes, transfer=transfer, modelled=modelled)
     out = np.flatnonzero(~transfer.inside & transfer.modelled)
     plain_metric = crumple_metric(pre, plain(u_nodes), res.post, u_nodes, transfer=plain,
@@ -93,7 +93,7 @@ def one(kwargs, fit):
 def page(rows, command):
     head = ("| case | mesh fitted to the skin | tetrahedra | skin edges | violations | max ratio "
             "| unavoidable (lower bound) | seconds | without smoothing: violations, max ratio "
-            "| nonzeros per outside row | transfer build s |")
+            "| nonzeros per outside row | transfer build CPU s |")
     lines = ["# Crumpling of the predicted skin", "",
              f"Command: `{command}`  ",
              f"Date: {datetime.date.today().isoformat()}; machine: {platform.machine()}, "
@@ -114,7 +114,8 @@ def page(rows, command):
              "`smoothing=0` (the affine fit to the feet alone, no gradient-guided steps "
              "outside the mesh). Nonzeros per outside row: of the transfer matrix, over the "
              "modelled skin points outside the mesh, without -> with smoothing; transfer "
-             "build: `Transfer(mesh, skin)` without -> with smoothing, one run each.", "",
+             "build: CPU seconds of `Transfer(mesh, skin)` without -> with smoothing, one "
+             "run each.", "",
              head, "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, fit, r in rows:
         lines.append(f"| {name} | {'yes' if fit else 'no'} | {r['tetrahedra']} | {r['edges']} | "

@@ -149,7 +149,7 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND,
         cut) take the extension times a smooth step that falls to zero at ``2 band``, the
         value on the fixed posterior plane; beyond ``2 band`` their rows are empty.
         ``numpy.inf`` extrapolates linearly everywhere.
-    smoothing : int, default 4
+    smoothing : int, default 3
         Gradient-guided smoothing steps of the extension outside the mesh
         (:func:`pvcmf.filters.transfer_smoothing.smooth_outside`; 0: none): they remove
         the stretch of feet that sweep along a concave boundary, keep affine fields

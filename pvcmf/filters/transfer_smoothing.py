@@ -46,9 +46,9 @@ from scipy.spatial import cKDTree
 __all__ = ["smooth_outside", "DEFAULT_ITERATIONS", "STRENGTH", "NEIGHBOURS"]
 
 #: default number of smoothing steps (0: the plain extension)
-DEFAULT_ITERATIONS = 4
+DEFAULT_ITERATIONS = 3
 #: largest weight of the neighbours' mean in one step
-STRENGTH = 0.7
+STRENGTH = 0.8
 #: skin points whose mean a point moves towards
 NEIGHBOURS = 16
 #: distance from the mesh (in median mesh edges) over which the strength rises from 0
