@@ -74,38 +74,34 @@ def strength(dist, band, h, top=STRENGTH):
     return np.where((dist > 0) & (dist <= band), a, 0.0)
 
 
-def _neighbour_matrix(x, moving, fixed_ok, k, reach):
-    """Rows ``moving`` of the normalised neighbour weights ``w_pq`` (``(n, n)`` CSR), over
-    the points ``fixed_ok`` other than ``p``; and the rows that found a neighbour."""
-    n = len(x)
+def _neighbours(x, moving, fixed_ok, k, reach):
+    """Per point of ``moving`` that has one: its ``k`` nearest points among ``fixed_ok``
+    (not itself) within ``reach`` and their normalised weights ``w_pq``. Returns the rows
+    (points), the neighbours ``(r, k)`` and the weights ``(r, k)`` (0 where none)."""
     cand = np.flatnonzero(fixed_ok)
     kk = min(k + 2, len(cand))
-    if kk < 2 or not len(moving):
-        return sp.csr_matrix((n, n)), np.zeros(0, dtype=np.int64)
+    if kk < 3 or not len(moving):
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
     tree = cKDTree(x[cand], balanced_tree=False, compact_nodes=False)
     dist, idx = tree.query(x[moving], k=kk, distance_upper_bound=reach)
     dist, idx = dist.reshape(len(moving), kk), idx.reshape(len(moving), kk)
-    nb = np.where(idx < len(cand), cand[np.minimum(idx, len(cand) - 1)], -1)
-    me = nb == moving[:, None]  # the point itself (sorted first, but for a duplicate)
-    first = me[:, 0]
-    dist, nb = np.where(first[:, None], np.roll(dist, -1, axis=1), dist), \
-        np.where(first[:, None], np.roll(nb, -1, axis=1), nb)
-    rest = np.flatnonzero(~first & me.any(axis=1))  # self elsewhere: drop it there
+    nb = np.where(idx < len(cand), cand[np.minimum(idx, len(cand) - 1)], 0)
+    me = (nb == moving[:, None]) & (idx < len(cand))  # the point itself (first, but for a
+    first = me[:, 0]                                   # duplicate point)
+    dist = np.where(first[:, None], np.roll(dist, -1, axis=1), dist)
+    nb = np.where(first[:, None], np.roll(nb, -1, axis=1), nb)
+    rest = np.flatnonzero(~first & me.any(axis=1))  # itself elsewhere: moved to the end
     if rest.size:
         order = np.argsort(me[rest], axis=1, kind="stable")
         dist[rest] = np.take_along_axis(dist[rest], order, 1)
         nb[rest] = np.take_along_axis(nb[rest], order, 1)
-    dist, nb = dist[:, :kk - 1], nb[:, :kk - 1]
+    dist, nb = dist[:, :kk - 1], nb[:, :kk - 2]  # k neighbours and the next one's distance
     rho = np.minimum(dist[:, -1:], reach)  # the next neighbour's distance, at most reach
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.where(dist[:, :-1] < rho, (1.0 - (dist[:, :-1] / rho) ** 2) ** 2, 0.0)
     total = w.sum(axis=1)
     has = total > 0
-    w = w[has] / total[has, None]
-    rows, nb = moving[has], nb[has, :-1]
-    keep = w > 0
-    N = sp.csr_matrix((w[keep], (np.repeat(rows, keep.sum(axis=1)), nb[keep])), shape=(n, n))
-    return N, rows
+    return moving[has], nb[has], w[has] / total[has, None]
 
 
 def smooth_outside(T, x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS,
@@ -158,30 +154,29 @@ def smooth_outside(T, x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS,
     dist = np.asarray(dist, dtype=float)
     a = strength(dist, band, h, STRENGTH if top is None else top)
     moving = np.flatnonzero(a > 0)
-    N, rows = _neighbour_matrix(x, moving, dist <= band,
-                                NEIGHBOURS if neighbours is None else neighbours,
-                                NEIGHBOUR_REACH * h)
+    rows, nb, w = _neighbours(x, moving, dist <= band,
+                              NEIGHBOURS if neighbours is None else neighbours,
+                              NEIGHBOUR_REACH * h)
     if not len(rows):
         return T
     # iterate on the block of the moving points and their neighbours only
-    block = np.union1d(rows, N[rows].indices)
-    pos = np.searchsorted(block, rows)
-    ab = np.zeros(len(block))
-    ab[pos] = a[rows]
-    moves = np.zeros(len(block))
-    moves[pos] = 1.0
-    Nb = N[block][:, block]
-    step = (sp.identity(len(block), format="csr")
-            + sp.diags(ab) @ (Nb - sp.diags(moves))).tocsr()
-    offsets = x[rows] - N[rows] @ x  # p less its neighbours' mean
-    F = (sp.diags(np.bincount(rows, a[rows], minlength=n)) @ guide(rows, offsets)).tocsr()[block]
+    block = np.union1d(rows, nb[w > 0])
+    pos, local = np.searchsorted(block, rows), np.searchsorted(block, nb)
+    local = np.where(w > 0, local, np.repeat(pos[:, None], w.shape[1], axis=1))
+    ar = a[rows]
+    stay = np.ones(len(block))  # the step: 1 - a on a moving point, 1 on a fixed one
+    stay[pos] = 1.0 - ar
+    diag = np.arange(len(block))
+    step = sp.csr_matrix((np.concatenate([stay, (ar[:, None] * w).ravel()]),
+                          (np.concatenate([diag, np.repeat(pos, w.shape[1])]),
+                           np.concatenate([diag, local.ravel()]))),
+                         shape=(len(block), len(block)))  # (duplicates are summed)
+    offsets = x[rows] - np.einsum("rk,rkc->rc", w, x[nb])  # p less its neighbours' mean
+    F = guide(rows, ar[:, None] * offsets).tocsr()[block]
     Tb = T[block]
     for _ in range(int(iterations)):
         Tb = step @ Tb + F
     source = np.arange(n)  # every row from T, the moved ones from Tb
     source[rows] = n + pos
-    T = sp.vstack([T, Tb], format="csr")[source]
-    T = T.tocsr()
-    T.sum_duplicates()
-    T.eliminate_zeros()
-    return T
+    return sp.vstack([T, Tb], format="csr")[source]
+
