@@ -22,7 +22,7 @@ nodes, exact for an affine field). Properties:
 * an affine field is kept exactly: its values satisfy ``u_q + G (x_p - x_q) = u_p``;
 * an edge's jump is pulled towards ``G_p e``, whose norm is within the gradients of the
   tetrahedra around the point; feet that sweep no longer show as a crumple;
-* the strength ``a_p`` rises smoothly from 0 at the mesh boundary to ``strength`` at
+* the strength ``a_p`` rises smoothly from 0 at the mesh boundary to ``STRENGTH`` at
   ``RAMP`` median mesh edges out, and falls smoothly to 0 over the last quarter of the
   band, so the transfer stays continuous across the mesh boundary and where the band
   ends;
