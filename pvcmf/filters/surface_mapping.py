@@ -28,6 +28,14 @@ and skin:
     ``arrays.SKIN_MODELLED`` tells the two apart); the extension is continuous across the
     mesh boundary (the window and the offsets ``q_f - p`` shrink to zero with ``d``); the
     operator is linear in the nodal displacements. No nearest-node copy, so no steps.
+    Where the boundary is concave (a crack between the lips, a fold) the feet of
+    neighbouring points lie far apart and the fit alone can stretch a skin edge beyond
+    the mesh's gradients; ``smoothing`` explicit steps
+    (:func:`pvcmf.filters.transfer_smoothing.smooth_outside`) then move each point
+    outside the mesh and within ``band`` towards the mean of its nearest skin points'
+    values, each carried to it by the fit's gradient ``G(q)`` (``u_q + G (x_p - x_q)``):
+    the points inside keep their interpolation, an affine field stays exact, and the
+    operator stays sparse (its outside rows take their neighbours' supports).
     :func:`crumple_metric` checks, per skin edge, that the mapped field stretches it no
     more than the steepest tetrahedron around it (for a point outside: around its feet's
     triangles and its ``k`` boundary nodes, the tetrahedra whose values and gradients
@@ -51,7 +59,8 @@ Delegates the geometry (containing tetrahedra, feet on the boundary, nearest bou
 nodes: tetrahedron bounding boxes binned on a grid with vectorised barycentric checks,
 :class:`scipy.spatial.cKDTree`, vectorised closest points) to
 :mod:`pvcmf.filters.transfer_locate`, the gradients to batched :func:`numpy.linalg.inv`, the fits to batched
-:func:`numpy.linalg.solve` (4 x 4 per point) and the operators to :mod:`scipy.sparse`.
+:func:`numpy.linalg.solve` (4 x 4 per point), the smoothing outside the mesh to
+:mod:`pvcmf.filters.transfer_smoothing` and the operators to :mod:`scipy.sparse`.
 """
 
 from __future__ import annotations
@@ -67,6 +76,7 @@ from ..progress import Progress
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
 from .transfer_locate import Located as _Located
 from .transfer_locate import tet_gradients as _gradients
+from .transfer_smoothing import DEFAULT_ITERATIONS, smooth_outside
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +125,8 @@ def _gradient_operators(points, tets, rows, gradients=None):
     return out
 
 
-def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
+def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND,
+                      smoothing=DEFAULT_ITERATIONS, progress_bar=False):
     """Sparse operator ``T`` (points x grid points) with ``u_points = T @ u_nodes``.
 
     Inside the mesh: barycentric interpolation in the containing tetrahedron. Outside: a
@@ -138,6 +149,11 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_
         cut) take the extension times a smooth step that falls to zero at ``2 band``, the
         value on the fixed posterior plane; beyond ``2 band`` their rows are empty.
         ``numpy.inf`` extrapolates linearly everywhere.
+    smoothing : int, default 3
+        Gradient-guided smoothing steps of the extension outside the mesh
+        (:func:`pvcmf.filters.transfer_smoothing.smooth_outside`; 0: none): they remove
+        the stretch of feet that sweep along a concave boundary, keep affine fields
+        exact and leave the points inside the mesh as they are.
     progress_bar : bool, default False
         Show the steps (:class:`pvcmf.progress.Progress`).
 
@@ -164,7 +180,8 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND, progress_
     pts = np.asarray(points.points if isinstance(points, pv.DataSet) else points, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
         raise ValueError(f"points must have shape (n, 3) with n > 0, got {pts.shape}")
-    return Transfer(grid, pts, k=k, band=band, progress_bar=progress_bar).W
+    return Transfer(grid, pts, k=k, band=band, smoothing=smoothing,
+                    progress_bar=progress_bar).W
 
 
 def _decay(d, band):
@@ -176,9 +193,39 @@ def _decay(d, band):
     return 1.0 - t * t * (3.0 - 2.0 * t)
 
 
-def _assemble(loc, band=DEFAULT_BAND):
+def _guided(loc, rows, offsets, D):
+    """Sparse ``(n, m)``: row ``p`` (of the outside points ``rows``) is ``G(q_p) o_p`` (the
+    blend of the nodal gradients ``D`` (stacked x, y, z) at its nearest boundary nodes
+    times ``offsets``) as weights on the nodal displacements."""
+    n, nb, kk = len(loc.p), len(loc.boundary), loc.near.shape[1]
+    slot = np.full(n, -1)
+    slot[loc.outside] = np.arange(len(loc.outside))
+    r = slot[rows]
+    # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix, 3 kk entries per row
+    order = np.argsort(rows, kind="stable")
+    rows, r, offsets = rows[order], r[order], np.asarray(offsets)[order]
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    ptr[1:] = np.cumsum(np.bincount(rows, minlength=n) * 3 * kk)
+    BW = sp.csr_matrix(((offsets[:, :, None] * loc.near_w[r][:, None, :]).ravel(),
+                        (loc.near[r][:, None, :] + nb * np.arange(3)[None, :, None]).ravel(),
+                        ptr), shape=(n, 3 * nb))
+    return BW @ D
+
+
+def _median_edge(loc):
+    """Median edge length of the mesh's tetrahedra (mm), kept on ``loc``."""
+    if getattr(loc, "median_edge", None) is None:
+        tets = loc.tets
+        e = loc.points[tets[:, [1, 2, 3, 2, 3, 3]]] - loc.points[tets[:, [0, 0, 0, 1, 1, 2]]]
+        loc.median_edge = float(np.median(np.linalg.norm(e, axis=2)))
+    return loc.median_edge
+
+
+def _assemble(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
     """The operator from :class:`Located`, built row-sorted as CSR where the rows come
-    sorted (inside points; feet, grouped by point; the outside points' gradient terms)."""
+    sorted (inside points; feet, grouped by point; the outside points' gradient terms),
+    then smoothed outside the mesh (:func:`~pvcmf.filters.transfer_smoothing.smooth_outside`,
+    ``iterations`` steps)."""
     n, m = len(loc.p), len(loc.points)
     ins = np.flatnonzero(loc.inside)
     ptr = np.zeros(n + 1, dtype=np.int64)
@@ -193,20 +240,14 @@ def _assemble(loc, band=DEFAULT_BAND):
         ptr[1:] = np.cumsum(np.bincount(loc.pair_row, minlength=n) * 3)
         face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(), loc.face.ravel(), ptr),
                              shape=(n, m))
-        nb, kk = len(loc.boundary), loc.near.shape[1]
         out = loc.outside
-        offset = offset * decay[out][:, None]
-        # [diag(o_x) W, diag(o_y) W, diag(o_z) W] in one matrix, 3 kk entries per outside row
-        ptr = np.zeros(n + 1, dtype=np.int64)
-        counts = np.zeros(n, dtype=np.int64)
-        counts[out] = 3 * kk
-        ptr[1:] = np.cumsum(counts)
-        BW = sp.csr_matrix(((offset[:, :, None] * loc.near_w[:, None, :]).ravel(),
-                            (loc.near[:, None, :] + nb * np.arange(3)[None, :, None]).ravel(),
-                            ptr), shape=(n, 3 * nb))
         D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary,
                                            loc.gradients), format="csr")
-        T = T + face + BW @ D
+        T = T + face + _guided(loc, out, offset * decay[out][:, None], D)
+        if iterations:
+            guide = lambda rows, o: _guided(loc, rows, o, D)  # noqa: E731
+            T = smooth_outside(T, loc.p, loc.dist, band, _median_edge(loc), guide,
+                               iterations=iterations)
     T = T.tocsr()
     T.sum_duplicates()
     T.eliminate_zeros()
@@ -229,9 +270,7 @@ def _fit_weights(loc, stiffness=None):
     for a in range(4):
         for b in range(a, 4):
             M[:, a, b] = M[:, b, a] = np.bincount(r, w * B[:, a] * B[:, b], minlength=len(out))
-    tets = loc.tets
-    edges = loc.points[tets[:, [1, 2, 3, 2, 3, 3]]] - loc.points[tets[:, [0, 0, 0, 1, 1, 2]]]
-    h = float(np.median(np.linalg.norm(edges, axis=2)))
+    h = _median_edge(loc)
     reg = (stiffness * (loc.dist[out] + h)) ** 2 * M[:, 0, 0]  # M[:, 0, 0]: sum of w_f
     M[:, 1:, 1:] += reg[:, None, None] * np.eye(3)
     first = np.linalg.solve(M, np.broadcast_to(np.eye(4)[0], (len(out), 4))[..., None])[..., 0]
@@ -254,9 +293,12 @@ class Transfer:
     modelled : ndarray of bool
         Points within ``band`` of the mesh (:data:`pvcmf.arrays.SKIN_MODELLED`).
     band : float
+    smoothing : int
+        Smoothing steps outside the mesh (:func:`transfer_operator`).
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K, band=DEFAULT_BAND, progress_bar=False):
+    def __init__(self, grid, points, k=DEFAULT_K, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATIONS,
+                 progress_bar=False):
         pts = np.asarray(points.points if isinstance(points, pv.DataSet) else points, dtype=float)
         if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
             raise ValueError(f"points must have shape (n, 3) with n > 0, got {pts.shape}")
@@ -264,11 +306,14 @@ class Transfer:
             raise ValueError(f"k must be a positive integer, got {k!r}")
         if not float(band) > 0:
             raise ValueError(f"band must be > 0 mm (or numpy.inf), got {band!r}")
+        if isinstance(smoothing, bool) or int(smoothing) != smoothing or smoothing < 0:
+            raise ValueError(f"smoothing must be an integer >= 0, got {smoothing!r}")
         self.band = float(band)
+        self.smoothing = int(smoothing)
         with Progress(total=2, desc="transfer_operator", enabled=progress_bar, logger=log) as bar:
             self._loc = loc = _Located(grid, pts, int(k), reach=2.0 * self.band)
             bar.step(f"{int(loc.inside.sum())} of {len(pts)} points inside the mesh")
-            self.W = _assemble(loc, self.band)
+            self.W = _assemble(loc, self.band, self.smoothing)
             bar.step("operator assembled")
         self.inside = loc.inside
         self.distance = loc.dist

@@ -1,0 +1,182 @@
+"""Gradient-guided smoothing of the mesh -> skin transfer outside the mesh.
+
+:func:`pvcmf.filters.surface_mapping.transfer_operator` extends the mesh's field to a skin
+point ``p`` outside the mesh by a local affine fit to the values on its nearest boundary
+triangles (its *feet*). Where the boundary is concave (a crack between the lips where a
+thin soft layer is not meshed, a fold) the feet of neighbouring skin points lie far apart
+on the boundary: they sweep faster than ``p`` moves, and the extension can stretch a skin
+edge beyond the steepest displacement gradient of the tetrahedra around it. This module
+damps that with a few explicit, linear smoothing steps on the skin points themselves:
+
+``u_p <- (1 - a_p) u_p + a_p sum_q w_pq [u_q + G_p (x_p - x_q)]``
+
+over the ``neighbours`` nearest skin points ``q`` of ``p`` (weights ``w_pq = (1 -
+(r_pq / rho_p)^2)^2`` normalised, ``rho_p`` the distance of the next neighbour, at most
+``NEIGHBOUR_REACH`` median mesh edges), where ``G_p`` is the gradient of the extension's
+fit at ``p`` (the blend of the nodal displacement gradients at its nearest boundary
+nodes, exact for an affine field). Properties:
+
+* only points outside the mesh and within ``band`` of it move (``a_p > 0``), and only
+  points inside the mesh or within ``band`` are neighbours, so the finite-element
+  interpolation inside the mesh is unchanged;
+* an affine field is kept exactly: its values satisfy ``u_q + G (x_p - x_q) = u_p``;
+* an edge's jump is pulled towards ``G_p e``, whose norm is within the gradients of the
+  tetrahedra around the point; feet that sweep no longer show as a crumple;
+* the strength ``a_p`` rises smoothly from 0 at the mesh boundary to ``STRENGTH`` at
+  ``RAMP`` median mesh edges out, and falls smoothly to 0 over the last quarter of the
+  band, so the transfer stays continuous across the mesh boundary and where the band
+  ends;
+* each step is one sparse matrix product: with ``S`` the step's matrix and ``T`` the
+  transfer, ``T <- S T + F`` (``F`` the guidance term; both on the rows of the moving
+  points and their neighbours only), so the transfer stays a
+  :mod:`scipy.sparse` matrix (skin points x mesh nodes) whose rows widen by the
+  neighbours' supports.
+
+The neighbours depend on the points only (not on a surface's connectivity), so a transfer
+built from a skin's points equals the one built from the skin. Delegates the neighbour
+search to :class:`scipy.spatial.cKDTree` and the steps to :mod:`scipy.sparse`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+__all__ = ["smooth_outside", "DEFAULT_ITERATIONS", "STRENGTH", "NEIGHBOURS"]
+
+#: default number of smoothing steps (0: the plain extension)
+DEFAULT_ITERATIONS = 3
+#: largest weight of the neighbours' mean in one step
+STRENGTH = 0.8
+#: skin points whose mean a point moves towards
+NEIGHBOURS = 16
+#: distance from the mesh (in median mesh edges) over which the strength rises from 0
+RAMP = 0.05
+#: farthest neighbour (in median mesh edges)
+NEIGHBOUR_REACH = 2.0
+#: fraction of the band over which the strength falls back to 0 at its outer edge
+BAND_TAPER = 0.25
+
+
+def _smoothstep(t):
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def strength(dist, band, h, top=STRENGTH):
+    """Step weight ``a_p`` per point from its distance ``dist`` to the mesh (0 inside and
+    beyond ``band``), ``h`` the median mesh edge."""
+    dist = np.asarray(dist, dtype=float)
+    a = top * (_smoothstep(dist / (RAMP * h)) if RAMP > 0 else np.ones_like(dist))
+    if np.isfinite(band):
+        a = a * _smoothstep((band - dist) / (BAND_TAPER * band))
+    return np.where((dist > 0) & (dist <= band), a, 0.0)
+
+
+def _neighbours(x, moving, fixed_ok, k, reach):
+    """Per point of ``moving`` that has one: its ``k`` nearest points among ``fixed_ok``
+    (not itself) within ``reach`` and their normalised weights ``w_pq``. Returns the rows
+    (points), the neighbours ``(r, k)`` and the weights ``(r, k)`` (0 where none)."""
+    cand = np.flatnonzero(fixed_ok)
+    kk = min(k + 2, len(cand))
+    if kk < 3 or not len(moving):
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
+    tree = cKDTree(x[cand], balanced_tree=False, compact_nodes=False)
+    dist, idx = tree.query(x[moving], k=kk, distance_upper_bound=reach)
+    dist, idx = dist.reshape(len(moving), kk), idx.reshape(len(moving), kk)
+    nb = np.where(idx < len(cand), cand[np.minimum(idx, len(cand) - 1)], 0)
+    me = (nb == moving[:, None]) & (idx < len(cand))  # the point itself (first, but for a
+    first = me[:, 0]                                   # duplicate point)
+    dist = np.where(first[:, None], np.roll(dist, -1, axis=1), dist)
+    nb = np.where(first[:, None], np.roll(nb, -1, axis=1), nb)
+    rest = np.flatnonzero(~first & me.any(axis=1))  # itself elsewhere: moved to the end
+    if rest.size:
+        order = np.argsort(me[rest], axis=1, kind="stable")
+        dist[rest] = np.take_along_axis(dist[rest], order, 1)
+        nb[rest] = np.take_along_axis(nb[rest], order, 1)
+    dist, nb = dist[:, :kk - 1], nb[:, :kk - 2]  # k neighbours and the next one's distance
+    rho = np.minimum(dist[:, -1:], reach)  # the next neighbour's distance, at most reach
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(dist[:, :-1] < rho, (1.0 - (dist[:, :-1] / rho) ** 2) ** 2, 0.0)
+    total = w.sum(axis=1)
+    has = total > 0
+    return moving[has], nb[has], w[has] / total[has, None]
+
+
+def smooth_outside(T, x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS,
+                   top=None, neighbours=None):
+    """The transfer ``T`` after ``iterations`` gradient-guided smoothing steps (module docs).
+
+    Parameters
+    ----------
+    T : scipy.sparse.csr_matrix, shape (n, m)
+        The transfer (points x mesh nodes).
+    x : ndarray, shape (n, 3)
+        The points.
+    dist : ndarray, shape (n,)
+        Distance of each point to the mesh (0 inside, ``inf`` where it has no row).
+    band : float
+        Points within this distance carry the exact (affine-reproducing) extension; only
+        they move and only they (and the inside points) are neighbours.
+    h : float
+        Median mesh edge (mm): the scale of the ramp and of the neighbours' reach.
+    guide : callable
+        ``guide(rows, offsets)`` -> sparse ``(n, m)`` matrix whose row ``p`` (in ``rows``)
+        is ``G_p offsets_p`` as weights on the nodal displacements.
+    iterations : int
+        Smoothing steps (0 returns ``T``).
+    top : float, optional
+        Largest step weight, in (0, 1] (default :data:`STRENGTH`).
+    neighbours : int, optional
+        Neighbours per point (default :data:`NEIGHBOURS`).
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix, shape (n, m)
+
+    Examples
+    --------
+    >>> import numpy as np, scipy.sparse as sp
+    >>> x = np.column_stack([np.linspace(0, 3, 7), np.zeros(7), np.zeros(7)])
+    >>> T = sp.csr_matrix(np.column_stack([x[:, 0] ** 2, np.ones(7)]))  # u = x^2 (node 0)
+    >>> dist = np.array([0, 0, 1, 1, 1, 0, 0.0])
+    >>> guide = lambda rows, o: sp.csr_matrix((o[:, 0] * 2 * x[rows, 0], (rows, 0 * rows)),
+    ...                                        shape=(7, 2))  # G = du/dx = 2 x
+    >>> S = smooth_outside(T, x, dist, 4.0, 1.0, guide, iterations=3)
+    >>> bool(np.allclose(S[[0, 1, 5, 6]].toarray(), T[[0, 1, 5, 6]].toarray()))
+    True
+    """
+    T = sp.csr_matrix(T)
+    n = T.shape[0]
+    if iterations <= 0:
+        return T
+    dist = np.asarray(dist, dtype=float)
+    a = strength(dist, band, h, STRENGTH if top is None else top)
+    moving = np.flatnonzero(a > 0)
+    rows, nb, w = _neighbours(x, moving, dist <= band,
+                              NEIGHBOURS if neighbours is None else neighbours,
+                              NEIGHBOUR_REACH * h)
+    if not len(rows):
+        return T
+    # iterate on the block of the moving points and their neighbours only
+    block = np.union1d(rows, nb[w > 0])
+    pos, local = np.searchsorted(block, rows), np.searchsorted(block, nb)
+    local = np.where(w > 0, local, np.repeat(pos[:, None], w.shape[1], axis=1))
+    ar = a[rows]
+    stay = np.ones(len(block))  # the step: 1 - a on a moving point, 1 on a fixed one
+    stay[pos] = 1.0 - ar
+    diag = np.arange(len(block))
+    step = sp.csr_matrix((np.concatenate([stay, (ar[:, None] * w).ravel()]),
+                          (np.concatenate([diag, np.repeat(pos, w.shape[1])]),
+                           np.concatenate([diag, local.ravel()]))),
+                         shape=(len(block), len(block)))  # (duplicates are summed)
+    offsets = x[rows] - np.einsum("rk,rkc->rc", w, x[nb])  # p less its neighbours' mean
+    F = guide(rows, ar[:, None] * offsets).tocsr()[block]
+    Tb = T[block]
+    for _ in range(int(iterations)):
+        Tb = step @ Tb + F
+    source = np.arange(n)  # every row from T, the moved ones from Tb
+    source[rows] = n + pos
+    return sp.vstack([T, Tb], format="csr")[source]
+
