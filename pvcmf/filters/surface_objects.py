@@ -25,7 +25,8 @@ import logging
 import numpy as np
 from scipy import ndimage
 
-from .morphology import _beyond, _down, _fill, _largest_component, _up, _within
+from .morphology import (_ball, _beyond, _down, _fill, _largest_component, _pack,
+                         _packed_step, _shifted, _unpack, _up, _within)
 
 log = logging.getLogger(__name__)
 
@@ -177,3 +178,171 @@ def _rim(rest, obj, spacing, radius):
         return rest & near
     opened = _within(core, spacing, radius)[1:-1, 1:-1, 1:-1]
     return rest & near & ~opened
+
+
+#: smallest area (mm^2) of a film: a wrap film or a drape covers centimetres of the skin;
+#: the thin edges of an ear near the scalp or a fold of skin are millimetre pieces
+FILM_MIN_MM2 = 100.0
+#: voxel steps (of the 3x3x3 element) within which a film lies on the body: its own
+#: thickness and the air gap under it, each up to the two voxels the opening removes
+FILM_STEPS = 3
+#: largest voxel size (mm) the film test runs at: two voxels must be thinner than any
+#: anatomy on the skin (the rims of the ears and nostrils are 3 mm and more); on coarser
+#: scans a film hardly shows above the skin threshold anyway
+FILM_VOXEL_MM = 1.25
+
+
+def drop_film(head, vol, spacing, dense, factor=(2, 2, 2), radius=RIM_MM,
+              min_area=FILM_MIN_MM2, largest=True):
+    """The head mask without the thin sheets (wrap film, a drape) lying on the skin.
+
+    A film is at most two voxels thick whatever its density (it blurs over the voxels it
+    crosses) and lies on the skin across a thin air gap, touching it here and there, with
+    the open air on its other side. The
+    thin part of the head is what the opening by a ball of ``MIN_BALL_VOXELS`` (1.5)
+    voxels removes (a 3x3x3 element, whatever the spacing). A thin voxel is film when
+
+    - it lies across a one-voxel air gap from the opened head (the body): the gap voxel
+      touches both; or
+    - it is within ``FILM_STEPS`` steps of the body through any voxel, but not through the
+      head itself (a geodesic test: the film reaches the body only where it touches it).
+
+    and it lies within two coarse voxels of the open air: the air a ball of ``radius`` mm
+    reaches from outside (an opening of the air on the coarse copy of ``factor`` voxels):
+    the walls of the nasal cavity, the turbinates and the mouth, as thin and as close to
+    each other, are out of its reach. Connected pieces of such voxels smaller than
+    ``min_area`` are kept (the thin rim of an
+    ear near the scalp, a fold of skin); the larger ones go with the thin voxels within
+    ``FILM_STEPS`` steps of them (the film's stubs where it touches the skin). Ears,
+    nostrils and lips are thin only at rims that the body reaches directly: they stay.
+    The steps run on masks packed eight voxels a byte (:mod:`pvcmf.filters.morphology`).
+
+    Parameters
+    ----------
+    head : numpy.ndarray of bool
+        The head mask.
+    vol : numpy.ndarray
+        The image values, axes as ``head``.
+    spacing : array-like of 3 float
+        Voxel size (mm). Coarser than ``FILM_VOXEL_MM`` on an axis: nothing is removed.
+    factor : array-like of 3 int
+        Block size of the coarse copy the open air is found on.
+    radius : float
+        Radius (mm) of the ball that finds the open air.
+    dense : float
+        Value (image units) above which a voxel is denser than soft tissue.
+    min_area : float
+        Smallest area (mm^2) of a film piece.
+    largest : bool
+        Keep the largest piece of the mask only (``False``: the caller does, after more
+        pieces are cut off).
+
+    Returns
+    -------
+    head : numpy.ndarray of bool
+        A new mask without the film (its largest piece with ``largest``).
+    removed_ml : float
+        Volume removed (mL).
+
+    Examples
+    --------
+    A ball with a film one voxel above it, touching it along one line:
+
+    >>> import numpy as np
+    >>> from pvcmf.filters.surface_objects import drop_film
+    >>> x, y, z = np.mgrid[:48, :48, :48]
+    >>> r = np.sqrt((x - 24) ** 2 + (y - 24) ** 2 + (z - 24) ** 2)
+    >>> ball, film = r < 17, (abs(r - 18.5) < 0.5) & (x < 20)
+    >>> touch = (abs(z - 24) <= 0) & (r < 19) & (x < 20)
+    >>> vol = np.where(ball | film | touch, 40.0, -1000.0)
+    >>> head, ml = drop_film(ball | film | touch, vol, (1.0,) * 3, 240.0)
+    >>> int(film.sum()), int((head & film).sum()), int((ball & ~head).sum()) < 20
+    (1564, 0, True)
+    """
+    spacing = np.asarray(spacing, dtype=float)
+    head = np.asarray(head, dtype=bool)
+    if float(np.max(spacing)) > FILM_VOXEL_MM or not head.any():
+        return head.copy(), 0.0
+    element = _ball(spacing, 0.0)  # 1.5 voxels on every axis: the 3x3x3 neighbourhood
+    # empty layers around: the packed steps carry bits between rows at the z ends
+    margin = [(2, 2), (2, 2), (FILM_STEPS + 3, FILM_STEPS + 3)]
+    pad = np.pad(head, margin)
+    full = _pack(pad)
+
+    def grow(mask):
+        return _packed_step(mask, element, np.bitwise_or)
+
+    core = grow(_packed_step(full, element, np.bitwise_and))
+    thin = full & ~core & _pack(np.pad(np.asarray(vol) < dense, margin))
+    if not thin.any():
+        return head.copy(), 0.0
+    gap = ~full & grow(core) & grow(thin)  # air touching both the body and a thin voxel
+    seeds = thin & grow(gap)
+    del gap
+    near, reach = core, core
+    for _ in range(FILM_STEPS):  # near the body through any voxel, not through the head
+        near, reach = grow(near), grow(reach) & full
+        seeds |= thin & near & ~reach
+    del near, reach
+    seeds &= _pack(np.pad(_open_air(head, spacing, factor, radius), margin))
+    film = _large_pieces(_unpack(seeds, pad.shape[2]), spacing, min_area)
+    if film is None:
+        return head.copy(), 0.0
+    film = _pack(film)
+    for _ in range(FILM_STEPS):  # the stubs: thin voxels the film reaches
+        film = grow(film) & thin
+    z = FILM_STEPS + 3
+    out = _unpack(full & ~film, pad.shape[2])[2:-2, 2:-2, z:-z]
+    if largest:
+        out = _largest_component(out, _FACES)
+        if out is None:
+            return head.copy(), 0.0
+    out = np.ascontiguousarray(out)
+    removed = float(np.count_nonzero(head & ~out)) * float(np.prod(spacing)) / 1e3
+    log.debug("segment: removed %.2f mL of film lying on the skin", removed)
+    return out, removed
+
+
+def _open_air(head, spacing, factor, radius):
+    """Voxels within two coarse voxels of the open air: the largest piece of the head's box
+    (the air around the head) of the air that a ball of about ``radius`` mm reaches (an
+    opening of the air on the coarse copy by ``radius / coarse voxel`` steps of the 3x3x3
+    element), full resolution. A sinus open at a face cut by the field of view, or a wide
+    airway, is another piece."""
+    f = np.asarray(factor, dtype=int)
+    cspace = spacing * f
+    k = max(1, int(round(radius / float(np.max(cspace)))))
+    m = k + 1  # the erosion sees air beyond the box; one layer for the shifts
+    air = np.pad(~_down(head, f, "any"), m, constant_values=True)
+    element = _ball(cspace, 0.0)
+    for _ in range(k):
+        air = _shifted(air, element, np.logical_and)
+    for _ in range(k):
+        air = _shifted(air, element, np.logical_or)
+    outside = _largest_component(air[m:-m, m:-m, m:-m], _FACES)
+    if outside is None:
+        return np.zeros(head.shape, dtype=bool)
+    outside = np.pad(outside, 3)
+    for _ in range(2):
+        outside = _shifted(outside, element, np.logical_or)
+    return _up(outside[3:-3, 3:-3, 3:-3], f, head.shape)
+
+
+def _large_pieces(seeds, spacing, min_area, block=2):
+    """The voxels of ``seeds`` in pieces of at least ``min_area`` mm^2 (a voxel of a sheet
+    covers ``prod(spacing)^(2/3)``), or None. Pieces are labelled on blocks of ``block``
+    voxels (eight times fewer voxels to label): seeds a voxel apart are one piece."""
+    idx = np.nonzero(seeds)
+    if idx[0].size == 0:
+        return None
+    lab, n = ndimage.label(_down(seeds, (block,) * 3, "any"), structure=_ALL)
+    piece = lab[tuple(i // block for i in idx)]
+    face = float(np.prod(spacing)) ** (2.0 / 3.0)
+    big = np.bincount(piece, minlength=n + 1) * face >= float(min_area)
+    big[0] = False
+    keep = big[piece]
+    if not keep.any():
+        return None
+    out = np.zeros_like(seeds)
+    out[tuple(i[keep] for i in idx)] = True
+    return out
