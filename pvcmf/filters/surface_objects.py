@@ -273,7 +273,7 @@ def drop_film(head, vol, spacing, dense, factor=(2, 2, 2), radius=RIM_MM,
         return _packed_step(mask, element, np.bitwise_or)
 
     core = grow(_packed_step(full, element, np.bitwise_and))
-    thin = full & ~core & _pack(np.pad(np.asarray(vol) < dense, margin))
+    thin = full & ~core
     if not thin.any():
         return head.copy(), 0.0
     gap = ~full & grow(core) & grow(thin)  # air touching both the body and a thin voxel
@@ -284,30 +284,47 @@ def drop_film(head, vol, spacing, dense, factor=(2, 2, 2), radius=RIM_MM,
         near, reach = grow(near), grow(reach) & full
         seeds |= thin & near & ~reach
     del near, reach
-    seeds &= _pack(np.pad(_open_air(head, spacing, factor, radius), margin))
-    film = _large_pieces(_unpack(seeds, pad.shape[2]), spacing, min_area)
-    if film is None:
+    # the seeds' voxels: not dense, next to the open air, in large pieces
+    idx = _packed_nonzero(seeds)
+    idx = tuple(i - m for i, (m, _) in zip(idx, margin))
+    keep = np.asarray(vol)[idx] < dense
+    keep &= _open_air(head, spacing, factor, radius)[tuple(i // k for i, k in
+                                                          zip(idx, factor))]
+    idx = tuple(i[keep] for i in idx)
+    idx = _large_pieces(idx, head.shape, spacing, min_area)
+    if idx is None:
         return head.copy(), 0.0
-    film = _pack(film)
+    film = np.zeros_like(full)
+    z = idx[2] + margin[2][0]
+    np.bitwise_or.at(film, (idx[0] + 2, idx[1] + 2, z // 8),
+                     np.right_shift(np.uint8(128), (z % 8).astype(np.uint8)))
     for _ in range(FILM_STEPS):  # the stubs: thin voxels the film reaches
         film = grow(film) & thin
-    z = FILM_STEPS + 3
-    out = _unpack(full & ~film, pad.shape[2])[2:-2, 2:-2, z:-z]
+    z = margin[2][0]
+    out = np.ascontiguousarray(_unpack(full & ~film, pad.shape[2])[2:-2, 2:-2, z:-z])
     if largest:
         out = _largest_component(out, _FACES)
         if out is None:
             return head.copy(), 0.0
-    out = np.ascontiguousarray(out)
     removed = float(np.count_nonzero(head & ~out)) * float(np.prod(spacing)) / 1e3
     log.debug("segment: removed %.2f mL of film lying on the skin", removed)
     return out, removed
+
+
+def _packed_nonzero(packed):
+    """Indices (as :func:`numpy.nonzero`) of the set voxels of a packed mask: the bytes
+    that are not zero, then their bits."""
+    bx, by, bz = np.nonzero(packed)
+    bits = np.unpackbits(packed[bx, by, bz][:, None], axis=1)
+    row, bit = np.nonzero(bits)
+    return bx[row], by[row], bz[row] * 8 + bit
 
 
 def _open_air(head, spacing, factor, radius):
     """Voxels within two coarse voxels of the open air: the largest piece of the head's box
     (the air around the head) of the air that a ball of about ``radius`` mm reaches (an
     opening of the air on the coarse copy by ``radius / coarse voxel`` steps of the 3x3x3
-    element), full resolution. A sinus open at a face cut by the field of view, or a wide
+    element), on the coarse copy. A sinus open at a face cut by the field of view, or a wide
     airway, is another piece."""
     f = np.asarray(factor, dtype=int)
     cspace = spacing * f
@@ -321,28 +338,29 @@ def _open_air(head, spacing, factor, radius):
         air = _shifted(air, element, np.logical_or)
     outside = _largest_component(air[m:-m, m:-m, m:-m], _FACES)
     if outside is None:
-        return np.zeros(head.shape, dtype=bool)
+        return np.zeros(air[m:-m, m:-m, m:-m].shape, dtype=bool)
     outside = np.pad(outside, 3)
     for _ in range(2):
         outside = _shifted(outside, element, np.logical_or)
-    return _up(outside[3:-3, 3:-3, 3:-3], f, head.shape)
+    return outside[3:-3, 3:-3, 3:-3]
 
 
-def _large_pieces(seeds, spacing, min_area, block=2):
-    """The voxels of ``seeds`` in pieces of at least ``min_area`` mm^2 (a voxel of a sheet
-    covers ``prod(spacing)^(2/3)``), or None. Pieces are labelled on blocks of ``block``
-    voxels (eight times fewer voxels to label): seeds a voxel apart are one piece."""
-    idx = np.nonzero(seeds)
+def _large_pieces(idx, shape, spacing, min_area, block=2):
+    """The voxels ``idx`` (indices into an array of ``shape``) in pieces of at least
+    ``min_area`` mm^2 (a voxel of a sheet covers ``prod(spacing)^(2/3)``), or None. Pieces
+    are labelled on blocks of ``block`` voxels (eight times fewer voxels to label): voxels
+    a voxel apart are one piece."""
     if idx[0].size == 0:
         return None
-    lab, n = ndimage.label(_down(seeds, (block,) * 3, "any"), structure=_ALL)
-    piece = lab[tuple(i // block for i in idx)]
+    blocks = tuple(i // block for i in idx)
+    coarse = np.zeros(tuple(-(-n // block) for n in shape), dtype=bool)
+    coarse[blocks] = True
+    lab, n = ndimage.label(coarse, structure=_ALL)
+    piece = lab[blocks]
     face = float(np.prod(spacing)) ** (2.0 / 3.0)
     big = np.bincount(piece, minlength=n + 1) * face >= float(min_area)
     big[0] = False
     keep = big[piece]
     if not keep.any():
         return None
-    out = np.zeros_like(seeds)
-    out[tuple(i[keep] for i in idx)] = True
-    return out
+    return tuple(i[keep] for i in idx)
