@@ -298,6 +298,7 @@ def drop_film(head, vol, spacing, dense, factor=(2, 2, 2), radius=RIM_MM,
     z = idx[2] + margin[2][0]
     np.bitwise_or.at(film, (idx[0] + 2, idx[1] + 2, z // 8),
                      np.right_shift(np.uint8(128), (z % 8).astype(np.uint8)))
+    thin &= _pack(np.pad(np.asarray(vol) < dense, margin))  # no thin bone
     for _ in range(FILM_STEPS):  # the stubs: thin voxels the film reaches
         film = grow(film) & thin
     z = margin[2][0]
