@@ -16,6 +16,11 @@ Each object is processed in its own box (``scipy.ndimage.find_objects``): the di
 transforms (SimpleITK's exact Maurer transform, see :mod:`pvcmf.filters.morphology`) run on
 a few hundred thousand voxels, not on the whole head. The depth test runs on the coarse copy
 of the head.
+
+A film (a plastic wrap, a drape), lighter than skin but blurred above the skin threshold
+where it lies on the skin across an air gap of a voxel or two, is :func:`drop_film`'s: a
+thickness test (an opening by a 3x3x3 ball) and a test of the air under it, on masks packed
+eight voxels a byte.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ import numpy as np
 from scipy import ndimage
 
 from .morphology import (_ball, _beyond, _down, _fill, _largest_component, _pack,
-                         _packed_step, _shifted, _unpack, _up, _within)
+                         _packed_step, _shifted, _unpack, _within)
 
 log = logging.getLogger(__name__)
 
@@ -198,24 +203,26 @@ def drop_film(head, vol, spacing, dense, factor=(2, 2, 2), radius=RIM_MM,
 
     A film is at most two voxels thick whatever its density (it blurs over the voxels it
     crosses) and lies on the skin across a thin air gap, touching it here and there, with
-    the open air on its other side. The
-    thin part of the head is what the opening by a ball of ``MIN_BALL_VOXELS`` (1.5)
-    voxels removes (a 3x3x3 element, whatever the spacing). A thin voxel is film when
+    the open air on its other side. The thin part of the head is what the opening by a
+    ball of ``MIN_BALL_VOXELS`` (1.5) voxels removes (a 3x3x3 element, whatever the
+    spacing). A thin voxel is film when
 
-    - it lies across a one-voxel air gap from the opened head (the body): the gap voxel
-      touches both; or
-    - it is within ``FILM_STEPS`` steps of the body through any voxel, but not through the
-      head itself (a geodesic test: the film reaches the body only where it touches it).
+    - it lies across a one-voxel air gap from the opened head (the body): an air voxel
+      touches both; or it is within ``FILM_STEPS`` steps of the body through any voxel
+      but not through the head itself (a geodesic test: the film reaches the body only
+      where it touches it);
+    - it is below ``dense`` (thin bone stays: a septum, a nasal bone);
+    - it lies within two coarse voxels of the open air: the air around the head that a
+      ball of ``radius`` mm reaches (an opening of the air on the coarse copy of
+      ``factor`` voxels). The walls of the nasal cavity, the turbinates, the mouth and the
+      sinuses, as thin and as close to each other, are out of its reach.
 
-    and it lies within two coarse voxels of the open air: the air a ball of ``radius`` mm
-    reaches from outside (an opening of the air on the coarse copy of ``factor`` voxels):
-    the walls of the nasal cavity, the turbinates and the mouth, as thin and as close to
-    each other, are out of its reach. Connected pieces of such voxels smaller than
-    ``min_area`` are kept (the thin rim of an
-    ear near the scalp, a fold of skin); the larger ones go with the thin voxels within
-    ``FILM_STEPS`` steps of them (the film's stubs where it touches the skin). Ears,
-    nostrils and lips are thin only at rims that the body reaches directly: they stay.
-    The steps run on masks packed eight voxels a byte (:mod:`pvcmf.filters.morphology`).
+    Pieces of such voxels smaller than ``min_area`` stay (the thin rim of an ear near the
+    scalp, a fold of skin); the larger ones go with the thin voxels within ``FILM_STEPS``
+    steps of them (the film's stubs where it touches the skin). Ears, nostrils and lips
+    are thin only at rims that the body reaches directly: they stay. The steps run on
+    masks packed eight voxels a byte (:mod:`pvcmf.filters.morphology`), the tests of the
+    density and of the open air on the list of candidate voxels only.
 
     Parameters
     ----------
