@@ -148,5 +148,4 @@ def test_female_film_leaves_no_sheet_over_an_air_gap():
     t0 = _vol(pvcmf.filters.segment(ct, check=False, object_opening=0.0)) != arrays.AIR
     after, before = _sheet_over_gap(t).sum(), _sheet_over_gap(t0).sum()
     assert before > 500, f"the crop shows no film ({before} gap voxels)"
-    print(f"gap voxels under a sheet: {before} without the film removal, {after} with it")
     assert after < 0.2 * before, f"{after} gap voxels under a sheet left of {before}"
