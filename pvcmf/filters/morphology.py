@@ -1,6 +1,8 @@
 """Binary morphology on label volumes for :func:`pvcmf.filters.segment`: largest component,
 hole filling, balls of a physical radius, closing/dilation/opening by a ball, bounding boxes
-and block down/up-sampling of masks. Delegates to :mod:`scipy.ndimage`, and the Euclidean
+and block down/up-sampling of masks, and dilations/erosions by a 3x3x3 element on masks
+packed eight voxels a byte (:func:`numpy.packbits`: eight times fewer bytes to OR or AND).
+Delegates to :mod:`scipy.ndimage`, and the Euclidean
 distance transforms to SimpleITK's ``SignedMaurerDistanceMap`` (an exact transform, about
 twice as fast as :func:`scipy.ndimage.distance_transform_edt`, which is the fallback).
 
@@ -195,3 +197,53 @@ def _up(mask, factor, shape):
     for ax, k in enumerate(factor):
         out = np.repeat(out, int(k), axis=ax)
     return out[tuple(slice(0, n) for n in shape)]
+
+
+# --------------------------------------------------------------------------- packed bits
+# Masks packed 8 voxels a byte along the last axis (numpy.packbits, first voxel in the
+# high bit): a dilation or erosion by a 3x3x3 element is then a few dozen ORs/ANDs of
+# byte arrays eight times smaller than the boolean mask.
+
+def _pack(mask):
+    """``mask`` (3-D bool) packed along its last axis, padded with False to a multiple of
+    8 voxels there (:func:`_unpack` takes the length back)."""
+    return np.packbits(np.asarray(mask, dtype=bool), axis=2)
+
+
+def _unpack(packed, n):
+    """The boolean mask of the first ``n`` voxels of the last axis of ``packed``."""
+    return np.unpackbits(packed, axis=2, count=n).view(bool)
+
+
+def _shift_z(packed, dz):
+    """``out[..., z] = mask[..., z + dz]`` for ``dz`` in (-1, 0, 1): bit shifts of the flat
+    bytes, so a bit carries between neighbouring rows at their ends (the callers keep
+    empty layers at both ends of the last axis, at least one more than the steps taken)."""
+    if dz == 0:
+        return packed
+    flat = packed.reshape(-1)
+    out = np.empty_like(flat)
+    if dz > 0:
+        np.left_shift(flat, 1, out=out)
+        out[:-1] |= flat[1:] >> 7
+    else:
+        np.right_shift(flat, 1, out=out)
+        out[1:] |= flat[:-1] << 7
+    return out.reshape(packed.shape)
+
+
+def _packed_step(packed, element, op):
+    """Dilation (``op`` ``np.bitwise_or``) or erosion (``np.bitwise_and``) of a packed mask
+    by a symmetric 3x3x3 ``element``: for every offset, the mask shifted along the packed
+    axis by bit shifts, along the others by slices. The outermost rows and columns of the
+    first two axes keep their values (the callers pad the mask with empty layers)."""
+    shifted = {dz: _shift_z(packed, dz) for dz in (-1, 0, 1) if element[:, :, dz + 1].any()}
+    out = packed.copy()
+    nx, ny = packed.shape[:2]
+    for dx, dy, dz in zip(*np.nonzero(element)):
+        dx, dy, dz = int(dx) - 1, int(dy) - 1, int(dz) - 1
+        if dx == dy == dz == 0:
+            continue
+        src = shifted[dz][1 + dx:nx - 1 + dx, 1 + dy:ny - 1 + dy]
+        op(out[1:-1, 1:-1], src, out=out[1:-1, 1:-1])
+    return out

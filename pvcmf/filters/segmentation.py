@@ -11,8 +11,11 @@ voxels), the costly decisions on a copy downsampled to about ``coarse`` mm:
 2. **head**: ``ct >= skin`` opened with a ball of ``object_opening`` mm (on the coarse copy),
    its largest component, grown back by the same radius within the threshold mask: the
    table, a headrest, sheets and tubes go even where they touch the skin, being thinner than
-   the ball or joined to the head by a thinner neck. Small enclosed holes (< ``min_cavity``
-   mm^3) become tissue; larger ones (sinuses, airway) stay air.
+   the ball or joined to the head by a thinner neck. A film (a plastic wrap, a drape) lying
+   on the skin across a thin air gap goes too (:func:`pvcmf.filters.surface_objects.drop_film`),
+   and so do dense objects lying on the skin (:mod:`pvcmf.filters.surface_objects`). Small
+   enclosed holes (< ``min_cavity`` mm^3) become tissue; larger ones (sinuses, airway) stay
+   air.
 3. **hard tissue**: ``ct >= bone`` in the head; ``>= teeth`` is TEETH (except near the
    intracranial volume: the otic capsule of the petrous bone is as dense); ``>= metal`` is
    METAL (fillings, crowns, plates), hard tissue of its segment. Around the metal
@@ -54,7 +57,7 @@ from .morphology import (MIN_BALL_VOXELS, _beyond, _box, _c_copy, _closing,  # n
                          _dilate_ball, _down, _fill, _largest_component, _open_ball, _sq_edt, _up)
 from ..progress import Progress
 from . import metal as _metal
-from .surface_objects import DENSE_STEPS, drop_surface_objects
+from .surface_objects import DENSE_STEPS, drop_film, drop_surface_objects
 from .field_of_view import clipped_sides
 
 log = logging.getLogger(__name__)
@@ -181,7 +184,8 @@ def segment(
         ``MIN_BALL_VOXELS`` (1.5) coarse voxels.
     object_opening : float
         Radius (mm) of the opening that detaches objects thinner than ``2 * object_opening``
-        (table, headrest, sheets, tubes) from the head; 0 keeps everything connected.
+        (table, headrest, sheets, tubes) from the head; 0 keeps everything connected (no
+        film nor dense object on the skin is removed either).
     coarse : float
         Voxel size (mm) of the downsampled copy the head and intracranial decisions use.
     check : bool
@@ -238,8 +242,13 @@ def segment(
     say("segment: head mask (skin %.0f, objects < %.1f mm dropped)", thr["skin"], object_opening)
     box, head, sub = _head(vol, thr["skin"], spacing, factor, object_opening)
     if object_opening > 0:
+        head, film = drop_film(head, sub, spacing, thr["dense"], factor, largest=False)
         head, removed = drop_surface_objects(head, sub, spacing, factor, thr["dense"],
                                              object_opening)
+        if film > 0:
+            say("segment: removed %.2f mL of film lying on the skin", film)
+            if removed == 0:  # drop_surface_objects keeps the largest piece when it cuts
+                head = _largest_component(head, _FACES)  # not None: the body is left
         if removed > 0:
             say("segment: removed %.2f mL of dense objects lying on the skin", removed)
     if fill_holes:
