@@ -53,6 +53,10 @@ SINC_PASS_BAND = 0.05
 #: an open skin's cut on the image's planes: points within this fraction of the smallest
 #: voxel spacing of a plane go onto it, and points as close are merged (no sliver triangles)
 SLIVER_FRACTION = 0.1
+#: an open skin's triangle is turned outward on its own when the smoothed head mask (0 in
+#: air, 1 in the head) rises along its normal by more than this between one voxel outside
+#: and one voxel inside (a clear rise, not the noise of a flat or thin place)
+ORIENT_MARGIN = 0.1
 
 
 def _outward_normals(surface):
@@ -149,21 +153,39 @@ def _within(surface, bounds, tol, snap=0.0):
 
 
 def _open_outward_normals(surface, field, origin, spacing):
-    """Point normals of an open surface, consistent, pointing to where the smoothed head
-    mask ``field`` (array (x, y, z) on the grid ``origin``, ``spacing``) falls."""
+    """Point normals of an open surface, pointing to where the smoothed head mask ``field``
+    (array (x, y, z) on the grid ``origin``, ``spacing``) falls.
+
+    The triangles are first wound consistently (VTK's normal pass) and the whole surface
+    turned outward by the field; then every triangle along whose normal the field clearly
+    rises (by more than :data:`ORIENT_MARGIN` over one voxel on either side) is turned on
+    its own: a non-manifold edge stops the consistency pass, which would otherwise leave a
+    whole patch wound inward."""
     surf = surface.compute_normals(cell_normals=False, point_normals=True, split_vertices=False,
                                    consistent_normals=True, auto_orient_normals=False)
-    pts = np.asarray(surf.points)
-    n = np.asarray(surf.point_data[arrays.NORMALS])
-    step = n * float(spacing.max())
-    at = [((pts + sign * step - origin) / spacing).T for sign in (1.0, -1.0)]
-    out, inn = (ndimage.map_coordinates(field, c, order=1, mode="nearest") for c in at)
-    if np.sum(out - inn) <= 0:  # the mask falls along the normals: outward already
-        return surf
-    faces = surf.faces.reshape(-1, 4)[:, [0, 1, 3, 2]].ravel()
-    flipped = pv.PolyData(surf.points, faces)
-    flipped.point_data[arrays.NORMALS] = -n
-    return flipped
+    tri = surf.faces.reshape(-1, 4)[:, 1:].copy()
+    pts = np.asarray(surf.points, dtype=float)
+    a, b, c = pts[tri[:, 0]], pts[tri[:, 1]], pts[tri[:, 2]]
+    normal = np.cross(b - a, c - a)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    step = normal * float(spacing.max())
+    centre = (a + b + c) / 3.0
+    at = [((centre + sign * step - origin) / spacing).T for sign in (1.0, -1.0)]
+    out, inn = (ndimage.map_coordinates(field, p, order=1, mode="nearest") for p in at)
+    rise = out - inn  # > 0: the mask grows along the normal, which points into the head
+    if np.sum(rise) > 0:  # most of the surface wound inward: turn it all
+        tri, rise = tri[:, ::-1], -rise
+    inward = rise > ORIENT_MARGIN
+    tri[inward] = tri[inward][:, ::-1]
+    if inward.any():
+        log.info("extract_skin: %d of %d triangles turned outward on their own (a "
+                 "non-manifold edge stopped the consistent winding)", int(inward.sum()),
+                 len(tri))
+    faces = np.column_stack([np.full(len(tri), 3), tri]).ravel()
+    oriented = pv.PolyData(pts.copy(), faces)
+    return oriented.compute_normals(cell_normals=False, point_normals=True,
+                                    split_vertices=False, consistent_normals=False,
+                                    auto_orient_normals=False)
 
 
 def _boundary_faces(grid):
