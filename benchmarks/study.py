@@ -57,7 +57,7 @@ from pvcmf.study.claims import (
 from pvcmf.study.inference import (
     MIN_REGION_POINTS, PAPER_CLAIMS, REGION_GROUPS, claims_table, compare_methods,
 )
-from pvcmf.study.paper001 import FINE_METHOD, NU_GRID, PAPER_NU, nu_method
+from pvcmf.study.paper001 import FINE_METHOD, NU_GRID, PAPER001_AUTO_METHODS, PAPER_NU, nu_method
 from pvcmf.study.validation import run_study, study_predictor
 from pvcmf.truth.independent import independent_truth_grid
 from pvcmf.truth.refinement import exact_skin_samples, refinement_change
@@ -337,7 +337,7 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fi
     cache_dir = cache_dir or tmp.name
     draw = cohort_parameters(n, seed)
     fine_tets = fine_tets or 2 * n_tets
-    methods = COHORT_METHODS + ("homogeneous", "inhomogeneous") + tuple(
+    methods = COHORT_METHODS + ("homogeneous", "inhomogeneous") + PAPER001_AUTO_METHODS + tuple(
         nu_method(nu) for nu in nus if nu_method(nu) != "homogeneous") + (FINE_METHOD,)
     timing, skins, tables, warm_skins, warm_tables = [], {}, [], {}, []
     for run in ("cold", "warm"):
@@ -504,7 +504,8 @@ def cohort_page(args, res, command, status="complete"):
     warm16 = 16 * per_warm + claims_s * max(16 / res["n_patients"], 1.0)
     keep = [c for c in ("patient", "method", "n", "excluded", "median", "p90", "p95",
                         "within_1mm", "within_2mm") if c in table.columns]
-    main_methods = COHORT_METHODS + ("homogeneous", "inhomogeneous", FINE_METHOD)
+    main_methods = (COHORT_METHODS + ("homogeneous", "inhomogeneous") + PAPER001_AUTO_METHODS
+                    + (FINE_METHOD,))
     errors = table[table["method"].isin(main_methods)]
     n_pat = res["n_patients"]
     few = n_pat < 6
@@ -523,12 +524,14 @@ def cohort_page(args, res, command, status="complete"):
         "oracle inputs (true bone labels and landmarks) and ``proposed_auto`` / "
         "``state_of_the_art_auto`` from the CT and the plan alone (automatic "
         "segmentation, bone segments, atlas fit). Paper 001's models "
-        "(``pvcmf.study.paper001``, oracle inputs, no atlas muscles, a mesh that ignores "
+        "(``pvcmf.study.paper001``, no atlas muscles, a mesh that ignores "
         f"the tissue classes): ``homogeneous`` (one isotropic material, nu {PAPER_NU:g}), "
         "``inhomogeneous`` (each tetrahedron mixes fat and muscle by its share of the "
         "per-slice Gaussian-mixture classification, nu_fat 0.485, nu_muscle 0.43, "
         f"E_muscle / E_fat 1), ``homogeneous_nu<nu>`` (the sweep) and ``{FINE_METHOD}`` "
-        f"(the homogeneous model on {fine_tets} tetrahedra). |error| in mm on the judged "
+        f"(the homogeneous model on {fine_tets} tetrahedra), all with oracle inputs (true "
+        "bone labels), and ``homogeneous_auto`` / ``inhomogeneous_auto``, the two models "
+        "from the CT and the plan alone (automatic bone segments). |error| in mm on the judged "
         "anterior face (signed error statistics of "
         "``pvcmf.study.statistics.error_statistics``; n: judged skin points; excluded: "
         "skin points of the judged face left out of every method because the "

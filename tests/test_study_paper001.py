@@ -191,3 +191,45 @@ def test_region_claim_ranks_a_degraded_region_worse():
     assert few["verdict"].item() == "not tested" and few["n"].item() == 0
     with pytest.raises(ValueError, match="region must be"):
         paired_errors(skins[0]["proposed"], skins[0]["bad"], region=("mouth",))
+
+
+def test_ct_only_models_get_no_true_labels(monkeypatch):
+    """``homogeneous_auto`` / ``inhomogeneous_auto`` are paper 001's models from the CT and
+    the plan alone: their pipeline gets neither the true bone labels nor the landmarks, and
+    they stay out of the Poisson-ratio sweep."""
+    from types import SimpleNamespace
+
+    from pvcmf.study import paper001
+
+    seen = []
+
+    def fake_simulate(ct, plan, **kw):
+        seen.append(kw)
+        return SimpleNamespace(mesh=object(), skipped=())
+
+    monkeypatch.setattr(paper001, "simulate", fake_simulate)
+    case = SimpleNamespace(ct="ct", plan="plan", truth="true bones", landmarks={"a": 1})
+    paper001.paper001_pipeline(case, 100)
+    paper001.paper001_pipeline(case, 100, oracle=False)
+    assert seen[0]["bones"] == "true bones" and seen[0]["landmarks"] == {"a": 1}
+    assert seen[1]["bones"] is None and seen[1]["landmarks"] is None
+    for m in paper001.PAPER001_AUTO_METHODS:
+        assert is_paper001_method(m) and method_nu(m) is None
+
+
+def test_paper001_claims_repeat_for_the_ct_only_models():
+    skins = _nu_skins(lambda p: 0.46)
+    for p, s in skins.items():
+        s["inhomogeneous"] = _skin(1.2)
+        s[FINE_METHOD] = _skin(1.0)
+    table = claims_mod.paper001_claims(skins, n_boot=200)[0]
+    assert not table["claim"].str.contains("CT-only", regex=False).any()
+    for p, s in skins.items():  # from the CT alone the inhomogeneous model errs less
+        s["homogeneous_auto"], s["inhomogeneous_auto"] = _skin(1.5), _skin(1.0 + 0.01 * p)
+    table = claims_mod.paper001_claims(skins, n_boot=200)[0]
+    ct_only = table[table["claim"].str.contains("[CT-only]", regex=False)]
+    assert len(ct_only) == 2
+    assert (ct_only["verdict"] == "a better").all() and not ct_only["holds"].any()
+    oracle = table[table["claim"].str.startswith("the inhomogeneous model")
+                   & ~table["claim"].str.contains("CT-only", regex=False)]
+    assert len(oracle) == 2 and oracle["holds"].all()

@@ -330,7 +330,10 @@ def paper001_claims(skins, *, sizes=None, alpha=0.05, n_boot=1000, seed=0):
     ----------
     skins : dict
         ``skins[patient][method]`` with ``"homogeneous"``, ``"inhomogeneous"``,
-        ``"homogeneous_fine"`` and the homogeneous model at several Poisson ratios.
+        ``"homogeneous_fine"`` and the homogeneous model at several Poisson ratios; where
+        every patient also has ``"homogeneous_auto"`` and ``"inhomogeneous_auto"`` (from
+        the CT alone), the inhomogeneous-homogeneous rows are repeated for them
+        ("[CT-only]").
     sizes : (int, int), optional
         Requested tetrahedra of ``"homogeneous"`` and ``"homogeneous_fine"``.
     alpha, n_boot, seed :
@@ -350,10 +353,11 @@ def paper001_claims(skins, *, sizes=None, alpha=0.05, n_boot=1000, seed=0):
 
     from .inference import claims_table
 
-    rows = claims_table(skins, [
-        (f"the inhomogeneous model is not significantly better than the homogeneous one "
-         f"(paper 001; {s})", "inhomogeneous", "homogeneous", s) for s in ("median", "p90")],
-        alpha=alpha, n_boot=n_boot, seed=seed)
+    pairs = [(f"the inhomogeneous model is not significantly better than the homogeneous one "
+              f"(paper 001; {s})", "inhomogeneous", "homogeneous", s) for s in ("median", "p90")]
+    if all({"homogeneous_auto", "inhomogeneous_auto"} <= set(m) for m in skins.values()):
+        pairs += [(f"{c} [CT-only]", f"{a}_auto", f"{b}_auto", s) for c, a, b, s in pairs]
+    rows = claims_table(skins, pairs, alpha=alpha, n_boot=n_boot, seed=seed)
     rows["holds"] = rows["verdict"] != "a better"
     nu_table, spread, nu_rows = nu_optimum(skins, alpha=alpha, n_boot=max(n_boot, 2000),
                                            seed=seed)

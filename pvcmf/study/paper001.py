@@ -14,7 +14,10 @@ Paper 001 meshes the facial soft tissue without muscles and compares
 * the homogeneous model at other Poisson ratios (its sweep, :func:`nu_method`), re-solved
   on the same mesh;
 * the homogeneous model on a finer mesh (``"homogeneous_fine"``), for the claim that a
-  mesh of a given size is enough.
+  mesh of a given size is enough;
+* ``"homogeneous_auto"`` and ``"inhomogeneous_auto"``: the two models from the CT and the
+  plan alone (automatic bone segments, no true labels), as a real pipeline has them; the
+  other names get the true bone labels (oracle inputs).
 
 Method names of :func:`pvcmf.study.validation.study_predictor`. One pipeline run
 (segmentation, classification, mesh, boundary conditions; :func:`pvcmf.pipeline.simulate`)
@@ -31,8 +34,9 @@ import numpy as np
 from .. import arrays, filters, mtm
 from ..pipeline import simulate
 
-__all__ = ["FINE_METHOD", "NU_GRID", "PAPER001_METHODS", "PAPER_NU", "is_paper001_method",
-           "method_nu", "nu_method", "paper001_pipeline", "paper001_solve"]
+__all__ = ["FINE_METHOD", "NU_GRID", "PAPER001_AUTO_METHODS", "PAPER001_METHODS", "PAPER_NU",
+           "is_paper001_method", "method_nu", "nu_method", "paper001_pipeline",
+           "paper001_solve"]
 
 #: paper 001's optimal Poisson ratio of the homogeneous model (sec. 3.1: 0.45 <= nu <= 0.46)
 PAPER_NU = 0.46
@@ -43,6 +47,8 @@ NU_GRID = (0.30, 0.40, 0.45, 0.46, 0.47, 0.49)
 FINE_METHOD = "homogeneous_fine"
 #: the fixed methods of paper 001 (the sweep adds :func:`nu_method` names)
 PAPER001_METHODS = ("homogeneous", "inhomogeneous", FINE_METHOD)
+#: the homogeneous and inhomogeneous models from the CT and the plan alone
+PAPER001_AUTO_METHODS = ("homogeneous_auto", "inhomogeneous_auto")
 _NU_NAME = re.compile(r"^homogeneous_nu(0\.\d{1,4})$")
 
 
@@ -72,21 +78,25 @@ def method_nu(method):
 
 def is_paper001_method(method):
     """Whether ``method`` is one of paper 001's models (:data:`PAPER001_METHODS` or a
-    :func:`nu_method` name)."""
-    return method in PAPER001_METHODS or method_nu(method) is not None
+    :func:`nu_method` name, or one of :data:`PAPER001_AUTO_METHODS`)."""
+    return (method in PAPER001_METHODS or method in PAPER001_AUTO_METHODS
+            or method_nu(method) is not None)
 
 
-def paper001_pipeline(case, n_tets):
+def paper001_pipeline(case, n_tets, oracle=True):
     """Paper 001's pre-operative model of a patient, unsolved: segmentation with the true
-    bone labels and landmarks, fat/muscle classification, no atlas muscles, a mesh that
-    ignores the tissue classes, the plan's boundary conditions.
+    bone labels and landmarks (``oracle=False``: the bone segments found from the CT, as
+    :func:`pvcmf.pipeline.simulate` finds them for a real scan), fat/muscle
+    classification, no atlas muscles, a mesh that ignores the tissue classes, the plan's
+    boundary conditions.
 
     Returns
     -------
     pvcmf.pipeline.Result
         ``mesh`` (with boundary conditions) and ``labels`` (classified tissue).
     """
-    res = simulate(case.ct, case.plan, bones=case.truth, landmarks=case.landmarks,
+    res = simulate(case.ct, case.plan, bones=case.truth if oracle else None,
+                   landmarks=case.landmarks if oracle else None,
                    n_tets=n_tets, mesh_options={"conforming": False}, figures=False,
                    muscles=False, classify=True, solve=False)
     if res.mesh is None:
@@ -113,13 +123,16 @@ def paper001_solve(res, method):
     res : pvcmf.pipeline.Result
         The patient's unsolved model.
     method : str
-        ``"inhomogeneous"``, or a homogeneous method (:func:`method_nu`).
+        ``"inhomogeneous"``, a homogeneous method (:func:`method_nu`), or one of
+        :data:`PAPER001_AUTO_METHODS` (the same model; the inputs differ upstream).
 
     Returns
     -------
     pyvista.UnstructuredGrid
         The solved mesh (``arrays.DISPLACEMENT``).
     """
+    if method in PAPER001_AUTO_METHODS:
+        method = method[: -len("_auto")]
     if method == "inhomogeneous":
         g = filters.sample_muscle_fraction(res.mesh, res.labels)
         f = np.clip(np.asarray(g.cell_data[arrays.MUSCLE_FRACTION], float), 0.0, 1.0)

@@ -25,7 +25,8 @@ from ..truth.grid import _skin_of, truth_grid
 from ..truth.independent import independent_truth_grid
 from ..truth.postop import postop_ct
 from .from_ct import judge_skin, register_postop_skin, skin_from_ct
-from .paper001 import FINE_METHOD, is_paper001_method, paper001_pipeline, paper001_solve
+from .paper001 import (FINE_METHOD, PAPER001_AUTO_METHODS, is_paper001_method, paper001_pipeline,
+                       paper001_solve)
 from .predictions import cached_judged, cached_prediction
 from .statistics import _distances, error_statistics
 
@@ -269,11 +270,12 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
             def compute():
                 if not paper001:
                     return _prediction(c, method, grid, pre_skin, n_tets, sigma)
-                key = (patient, size)
-                if key not in models:  # one pipeline per patient and size, for its models
+                auto = method in PAPER001_AUTO_METHODS  # from the CT and the plan alone
+                key = (patient, size, auto)
+                if key not in models:  # one pipeline per patient, size and inputs
                     for other in [k for k in models if k[0] != patient]:
                         del models[other]
-                    models[key] = paper001_pipeline(c, size)
+                    models[key] = paper001_pipeline(c, size, oracle=not auto)
                 res = models[key]
                 return _face_y0(res.labels), _map(paper001_solve(res, method), pre_skin, sigma)
 
