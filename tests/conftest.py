@@ -24,6 +24,35 @@ def data_dir():
     return path
 
 
+@pytest.fixture(scope="session")
+def female_ct(data_dir):
+    """The Visible Human female head CT in the patient frame, read once per run, with its
+    values as an (x, y, z) array: ``(image, values)``. Tests crop it (:func:`crop_ct`) and
+    never write into it."""
+    import numpy as np
+
+    import pvcmf
+    from pvcmf import arrays
+
+    root = data_dir / "vhp_female_head"
+    if not root.is_dir():
+        pytest.skip(f"{root} not found (set PVCMF_DATA_DIR to the real-data folder)")
+    ct = pvcmf.read_ct(root, frame="patient")
+    return ct, np.asarray(ct[arrays.CT]).reshape(ct.dimensions, order="F")
+
+
+def _crop_ct(ct, values, box):
+    import numpy as np
+
+    from pvcmf import arrays
+
+    sub = values[tuple(box)]
+    origin = np.asarray(ct.origin) + np.asarray(ct.spacing) * [b.start for b in box]
+    img = pv.ImageData(dimensions=sub.shape, spacing=ct.spacing, origin=origin)
+    img[arrays.CT] = np.ascontiguousarray(sub).ravel(order="F")
+    return img
+
+
 @pytest.fixture()
 def verify_image_cache(verify_image_cache):
     """pytest-pyvista image comparison with baselines in tests/image_cache."""
@@ -79,3 +108,10 @@ def segmented_patients():
         case = pvcmf.datasets.phantom(patient=p, spacing=2.0)
         out[p] = (case, case.ct.cmf.segment())
     return out
+
+
+@pytest.fixture(scope="session")
+def crop_ct():
+    """``crop_ct(ct, values, box)``: a new image of ``values[box]`` (three slices) with
+    ``ct``'s spacing, placed where the box lies in ``ct``."""
+    return _crop_ct

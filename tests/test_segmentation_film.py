@@ -5,9 +5,6 @@ air gap on the skin. The real-scan test skips without the data."""
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 import pyvista as pv
@@ -107,25 +104,16 @@ def test_film_held_by_a_post_is_removed_around_it():
 
 
 # --------------------------------------------------------------------------- real CT
-def _female_back_of_neck():
+def _female_back_of_neck(female_ct, crop_ct):
     """The Visible Human female's back of the head and neck, 1 mm, 20 to 140 mm above its
     first slice: its wrap film lies there over the skin across an air gap."""
-    root = Path(os.environ.get("PVCMF_DATA_DIR", Path(__file__).parents[1] / ".." / "shared"
-                               / "data")) / "vhp_female_head"
-    if not root.is_dir():
-        pytest.skip(f"{root} not found (set PVCMF_DATA_DIR to the real-data folder)")
-    ct = pvcmf.read_ct(root, frame="patient")
-    v = np.asarray(ct[arrays.CT]).reshape(ct.dimensions, order="F")
+    ct, v = female_ct
     head = (v[:, :, 20:140] > -500.0).any(axis=2)
     xs, ys = np.flatnonzero(head.any(axis=1)), np.flatnonzero(head.any(axis=0))
     # the back half of the head (the patient frame: y anterior)
     box = (slice(int(xs[0]) - 8, int(xs[-1]) + 9),
            slice(int(ys[0]) - 8, (int(ys[0]) + int(ys[-1])) // 2), slice(20, 140))
-    sub = v[box]
-    origin = np.asarray(ct.origin) + np.asarray(ct.spacing) * [b.start for b in box]
-    img = pv.ImageData(dimensions=sub.shape, spacing=ct.spacing, origin=origin)
-    img[arrays.CT] = np.ascontiguousarray(sub).ravel(order="F")
-    return img
+    return crop_ct(ct, v, box)
 
 
 def _sheet_over_gap(tissue):
@@ -140,10 +128,10 @@ def _sheet_over_gap(tissue):
     return holes & (depth <= 4.0)
 
 
-def test_female_film_leaves_no_sheet_over_an_air_gap():
+def test_female_film_leaves_no_sheet_over_an_air_gap(female_ct, crop_ct):
     """Segmenting the back of the real head leaves few air pockets under a sheet near the
     skin (the film's gap), a fraction of those the film makes when not removed."""
-    ct = _female_back_of_neck()
+    ct = _female_back_of_neck(female_ct, crop_ct)
     t = _vol(pvcmf.filters.segment(ct, check=False)) != arrays.AIR
     t0 = _vol(pvcmf.filters.segment(ct, check=False, object_opening=0.0)) != arrays.AIR
     after, before = _sheet_over_gap(t).sum(), _sheet_over_gap(t0).sum()

@@ -5,9 +5,6 @@ ridge on the scalp. The real-scan test skips without the data."""
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 import pyvista as pv
@@ -126,16 +123,11 @@ def test_marker_on_the_skin_removed_bone_under_thin_skin_kept():
 
 
 # --------------------------------------------------------------------------- real CT
-def _female_upper_head():
+def _female_upper_head(female_ct, crop_ct):
     """The Visible Human female from 150 mm above its first slice to the vertex, 1 mm,
     cropped in-slice to the head: the cords of its wrap run down both sides of the scalp,
     with no ear or nose there."""
-    root = Path(os.environ.get("PVCMF_DATA_DIR", Path(__file__).parents[1] / ".." / "shared"
-                               / "data")) / "vhp_female_head"
-    if not root.is_dir():
-        pytest.skip(f"{root} not found (set PVCMF_DATA_DIR to the real-data folder)")
-    ct = pvcmf.read_ct(root, frame="patient")
-    v = np.asarray(ct[arrays.CT]).reshape(ct.dimensions, order="F")
+    ct, v = female_ct
     k = int(150.0 / ct.spacing[2])
     body = (v[:, :, k:] > -500.0).any(axis=2)
     box = []
@@ -143,19 +135,15 @@ def _female_upper_head():
         hit = np.flatnonzero(body.any(axis=1 - axis))
         box.append(slice(max(int(hit[0]) - 10, 0), min(int(hit[-1]) + 11, v.shape[axis])))
     box.append(slice(k, v.shape[2]))
-    sub = v[tuple(box)]
-    origin = np.asarray(ct.origin) + np.asarray(ct.spacing) * [b.start for b in box]
-    img = pv.ImageData(dimensions=sub.shape, spacing=ct.spacing, origin=origin)
-    img[arrays.CT] = np.ascontiguousarray(sub).ravel(order="F")
-    return img
+    return crop_ct(ct, v, box)
 
 
-def test_female_scalp_has_no_cord_ridge():
+def test_female_scalp_has_no_cord_ridge(female_ct, crop_ct):
     """No dense ridge stands on the scalp: the pieces of the head that stand over 2 mm out
     of its opening by a 3 mm ball and run over 15 mm (the cords, 3 mm across, did so over
     their whole length) hold no voxel denser than soft tissue. (The wrap's film, thinner and
     lighter than skin, still joins the skin at places near the vertex.)"""
-    ct = _female_upper_head()
+    ct = _female_upper_head(female_ct, crop_ct)
     lab = pvcmf.filters.segment(ct, check=False)  # a crop of the vault: no jaws
     thr = calibrate(ct)
     dense = thr["soft"] + 0.2 * (thr["soft"] - thr["air"])
