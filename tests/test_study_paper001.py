@@ -79,13 +79,14 @@ def test_models_and_meshes_differ_and_a_recomputed_one_does_not(runs):
     """The inhomogeneous model is another model (its skin moves differently), the finer
     mesh another mesh of the same model (at these tiny sizes their skins differ by mm: the
     Gaussian mapping spans half an edge); the same model and mesh recomputed gives the
-    same skin."""
+    same skin to rounding."""
     skins = runs[0][1]
     hom, inh, fine = skins["homogeneous"], skins["inhomogeneous"], skins[FINE_METHOD]
     assert claims_mod._skin_change(hom, inh, q=100) > 1e-3
     change = claims_mod._skin_change(hom, fine)
     assert 0.01 < change < 5.0
-    assert claims_mod._skin_change(hom, runs[1][1]["homogeneous"]) == 0.0
+    # the same computation may differ in the last bits (threaded sums): far below a micrometre
+    assert claims_mod._skin_change(hom, runs[1][1]["homogeneous"]) < 1e-9
 
 
 def test_per_region_rows(runs):
