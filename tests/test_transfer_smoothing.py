@@ -105,3 +105,34 @@ def test_smooth_outside_validates_and_keeps_fixed_rows():
     assert smooth_outside(T, x, dist, 4.0, 1.0, guide, iterations=0) is not None
     with pytest.raises(ValueError, match="smoothing"):
         Transfer(pv.ImageData(dimensions=(3, 3, 3)).triangulate(), x, smoothing=-1)
+
+
+def test_steps_on_dense_columns_equal_the_smoothed_transfer(crack):
+    """Smoothing ``W0 X`` (a few dense columns) equals the smoothed sparse transfer times
+    ``X``, and the plan response's skin operator built from ``W0`` and the steps equals the
+    one built from the smoothed transfer."""
+    from pvcmf.mtm.response_operator import SkinOperator
+
+    grid, skin, _ = crack
+    tr = Transfer(grid, skin)
+    steps = tr.steps
+    assert steps is not None and len(steps.rows) > 100
+    assert (steps.apply(tr.W0) != tr.W).nnz == 0
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(grid.n_points, 7))
+    full = tr.W @ X
+    moved = steps.moved_rows(tr.W0, X)
+    assert np.abs(moved - full[steps.rows]).max() < 1e-12 * np.abs(full).max()
+    rest = np.setdiff1d(np.arange(skin.n_points), steps.rows)
+    assert np.array_equal(tr.W[rest].toarray(), tr.W0[rest].toarray())
+    nodal = rng.normal(size=(grid.n_points, 3, 12))
+    folded = SkinOperator(tr.W0, nodal, steps=steps)
+    plain = SkinOperator(tr.W, nodal)
+    assert np.array_equal(folded.reached, plain.reached)
+    ids = np.arange(skin.n_points)
+    assert np.abs(folded.rows(ids) - plain.rows(ids)).max() < 1e-12 * np.abs(nodal).max()
+    a = rng.normal(size=12)
+    got, want = folded.apply(a, np.empty(3 * skin.n_points)), plain.apply(a, np.empty(3 * skin.n_points))
+    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+    with pytest.raises(ValueError, match="steps must act on"):
+        SkinOperator(tr.W0[:-1], nodal, steps=steps)

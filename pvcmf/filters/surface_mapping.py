@@ -76,7 +76,7 @@ from ..progress import Progress
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
 from .transfer_locate import Located as _Located
 from .transfer_locate import tet_gradients as _gradients
-from .transfer_smoothing import DEFAULT_ITERATIONS, smooth_outside
+from .transfer_smoothing import DEFAULT_ITERATIONS, smoothing_steps
 
 log = logging.getLogger(__name__)
 
@@ -226,6 +226,21 @@ def _assemble(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
     sorted (inside points; feet, grouped by point; the outside points' gradient terms),
     then smoothed outside the mesh (:func:`~pvcmf.filters.transfer_smoothing.smooth_outside`,
     ``iterations`` steps)."""
+    T, steps = _assemble_parts(loc, band, iterations)
+    return T if steps is None else steps.apply(T)
+
+
+def _tidy(T):
+    T = T.tocsr()
+    T.sum_duplicates()
+    T.eliminate_zeros()
+    return T
+
+
+def _assemble_parts(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
+    """The operator before the smoothing steps and the steps
+    (:func:`~pvcmf.filters.transfer_smoothing.smoothing_steps`, None where none)."""
+    steps = None
     n, m = len(loc.p), len(loc.points)
     ins = np.flatnonzero(loc.inside)
     ptr = np.zeros(n + 1, dtype=np.int64)
@@ -246,12 +261,9 @@ def _assemble(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
         T = T + face + _guided(loc, out, offset * decay[out][:, None], D)
         if iterations:
             guide = lambda rows, o: _guided(loc, rows, o, D)  # noqa: E731
-            T = smooth_outside(T, loc.p, loc.dist, band, _median_edge(loc), guide,
-                               iterations=iterations)
-    T = T.tocsr()
-    T.sum_duplicates()
-    T.eliminate_zeros()
-    return T
+            steps = smoothing_steps(loc.p, loc.dist, band, _median_edge(loc), guide,
+                                    iterations=iterations)
+    return _tidy(T), steps
 
 
 def _fit_weights(loc, stiffness=None):
@@ -285,7 +297,12 @@ class Transfer:
     Attributes
     ----------
     W : scipy.sparse.csr_matrix
-        The operator ``T``.
+        The operator ``T`` (``steps`` applied to ``W0``, made on first use and kept).
+    W0 : scipy.sparse.csr_matrix
+        The operator before the smoothing steps.
+    steps : pvcmf.filters.transfer_smoothing.Steps or None
+        The smoothing steps as sparse matrices (None: none move a point): ``T @ X`` is
+        ``W0 @ X`` with the rows ``steps.rows`` replaced by ``steps.moved_rows(W0, X)``.
     inside : ndarray of bool
         Points inside a tetrahedron.
     distance : ndarray
@@ -313,7 +330,8 @@ class Transfer:
         with Progress(total=2, desc="transfer_operator", enabled=progress_bar, logger=log) as bar:
             self._loc = loc = _Located(grid, pts, int(k), reach=2.0 * self.band)
             bar.step(f"{int(loc.inside.sum())} of {len(pts)} points inside the mesh")
-            self.W = _assemble(loc, self.band, self.smoothing)
+            self.W0, self.steps = _assemble_parts(loc, self.band, self.smoothing)
+            self._W = None if self.steps is not None else self.W0
             bar.step("operator assembled")
         self.inside = loc.inside
         self.distance = loc.dist
@@ -322,6 +340,12 @@ class Transfer:
                  "boundary, %d not modelled (farther than %.3g mm)", len(pts),
                  int(loc.inside.sum()), int((~loc.inside & self.modelled).sum()),
                  int((~self.modelled).sum()), self.band)
+
+    @property
+    def W(self):
+        if self._W is None:
+            self._W = self.steps.apply(self.W0)
+        return self._W
 
     def __call__(self, u):
         return np.asarray(self.W @ np.asarray(u, dtype=float))

@@ -30,7 +30,10 @@ nodes, exact for an affine field). Properties:
   transfer, ``T <- S T + F`` (``F`` the guidance term; both on the rows of the moving
   points and their neighbours only), so the transfer stays a
   :mod:`scipy.sparse` matrix (skin points x mesh nodes) whose rows widen by the
-  neighbours' supports.
+  neighbours' supports. :func:`smoothing_steps` returns ``S`` and ``F`` themselves
+  (:class:`Steps`): the steps are linear and do not depend on the field, so a product
+  ``T X`` with a few dense columns (the plan response's nodal basis) can be smoothed
+  after the product (:meth:`Steps.moved_rows`), where the rows stay narrow.
 
 The neighbours depend on the points only (not on a surface's connectivity), so a transfer
 built from a skin's points equals the one built from the skin. Delegates the neighbour
@@ -43,7 +46,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-__all__ = ["smooth_outside", "DEFAULT_ITERATIONS", "STRENGTH", "NEIGHBOURS"]
+__all__ = ["smooth_outside", "smoothing_steps", "Steps", "DEFAULT_ITERATIONS", "STRENGTH",
+           "NEIGHBOURS"]
 
 #: default number of smoothing steps (0: the plain extension)
 DEFAULT_ITERATIONS = 3
@@ -104,6 +108,104 @@ def _neighbours(x, moving, fixed_ok, k, reach):
     return moving[has], nb[has], w[has] / total[has, None]
 
 
+def smoothing_steps(x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS, top=None,
+                    neighbours=None):
+    """The ``iterations`` gradient-guided smoothing steps (module docs) as sparse matrices
+    (:class:`Steps`), or None where no point moves.
+
+    The parameters are those of :func:`smooth_outside` (without ``T``); ``guide``'s matrix
+    is built once here. ``smoothing_steps(...).apply(T)`` is ``smooth_outside(T, ...)``.
+
+    Examples
+    --------
+    >>> import numpy as np, scipy.sparse as sp
+    >>> x = np.column_stack([np.linspace(0, 3, 7), np.zeros(7), np.zeros(7)])
+    >>> guide = lambda rows, o: sp.csr_matrix((o[:, 0] * 2 * x[rows, 0], (rows, 0 * rows)),
+    ...                                        shape=(7, 2))
+    >>> steps = smoothing_steps(x, np.array([0, 0, 1, 1, 1, 0, 0.0]), 4.0, 1.0, guide)
+    >>> steps.rows.tolist(), steps.step.shape
+    ([2, 3, 4], (7, 7))
+    """
+    if iterations <= 0:
+        return None
+    dist = np.asarray(dist, dtype=float)
+    n = len(dist)
+    a = strength(dist, band, h, STRENGTH if top is None else top)
+    moving = np.flatnonzero(a > 0)
+    rows, nb, w = _neighbours(x, moving, dist <= band,
+                              NEIGHBOURS if neighbours is None else neighbours,
+                              NEIGHBOUR_REACH * h)
+    if not len(rows):
+        return None
+    # the steps act on the block of the moving points and their neighbours only
+    block = np.union1d(rows, nb[w > 0])
+    pos, local = np.searchsorted(block, rows), np.searchsorted(block, nb)
+    local = np.where(w > 0, local, np.repeat(pos[:, None], w.shape[1], axis=1))
+    ar = a[rows]
+    stay = np.ones(len(block))  # the step: 1 - a on a moving point, 1 on a fixed one
+    stay[pos] = 1.0 - ar
+    diag = np.arange(len(block))
+    step = sp.csr_matrix((np.concatenate([stay, (ar[:, None] * w).ravel()]),
+                          (np.concatenate([diag, np.repeat(pos, w.shape[1])]),
+                           np.concatenate([diag, local.ravel()]))),
+                         shape=(len(block), len(block)))  # (duplicates are summed)
+    offsets = x[rows] - np.einsum("rk,rkc->rc", w, x[nb])  # p less its neighbours' mean
+    F = guide(rows, ar[:, None] * offsets).tocsr()[block]
+    return Steps(n, block, rows, pos, step, F, int(iterations))
+
+
+class Steps:
+    """Smoothing steps as sparse matrices: on the rows ``block`` of a transfer ``T``
+    (skin points x mesh nodes), ``T_block <- step @ T_block + F``, ``iterations`` times;
+    the rows ``rows`` (the moving points, at ``pos`` in ``block``) then replace those of
+    ``T`` (the block's other rows do not change).
+
+    The steps are linear and independent of the field, so they commute with any product
+    on the right: ``apply(T) @ X`` equals ``T @ X`` with the moved rows replaced by
+    :meth:`moved_rows` ``(T, X)``, which smooths the dense ``T_block @ X`` (a few columns)
+    instead of the sparse ``T_block`` (whose rows widen by the neighbours' supports).
+
+    Attributes
+    ----------
+    n : int
+        Rows of the transfer.
+    block, rows, pos : ndarray of int
+    step : scipy.sparse.csr_matrix, shape (len(block), len(block))
+    F : scipy.sparse.csr_matrix, shape (len(block), m)
+        The guidance term (zero on the fixed rows).
+    iterations : int
+    """
+
+    def __init__(self, n, block, rows, pos, step, F, iterations):
+        self.n, self.block, self.rows, self.pos = n, block, rows, pos
+        self.step, self.F, self.iterations = step, F, iterations
+
+    def apply(self, T):
+        """The smoothed transfer (CSR, shape of ``T``, sorted indices, no explicit zeros)."""
+        T = sp.csr_matrix(T)
+        Tb = T[self.block]
+        for _ in range(self.iterations):
+            Tb = self.step @ Tb + self.F
+        source = np.arange(self.n)  # every row from T, the moved ones from Tb
+        source[self.rows] = self.n + self.pos
+        out = sp.vstack([T, Tb], format="csr")[source]
+        out.sum_duplicates()
+        out.eliminate_zeros()
+        return out
+
+    def moved_rows(self, T, X):
+        """Rows ``rows`` of ``apply(T) @ X`` (dense ``(len(rows), X.shape[1])``): the steps
+        applied to ``T_block @ X`` and ``F @ X``."""
+        T = sp.csr_matrix(T)
+        X = np.asarray(X)
+        Y = np.asarray(T[self.block] @ X)
+        FX = np.asarray(self.F @ X)
+        for _ in range(self.iterations):
+            Y = self.step @ Y
+            Y += FX
+        return Y[self.pos]
+
+
 def smooth_outside(T, x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS,
                    top=None, neighbours=None):
     """The transfer ``T`` after ``iterations`` gradient-guided smoothing steps (module docs).
@@ -147,36 +249,6 @@ def smooth_outside(T, x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS,
     >>> bool(np.allclose(S[[0, 1, 5, 6]].toarray(), T[[0, 1, 5, 6]].toarray()))
     True
     """
-    T = sp.csr_matrix(T)
-    n = T.shape[0]
-    if iterations <= 0:
-        return T
-    dist = np.asarray(dist, dtype=float)
-    a = strength(dist, band, h, STRENGTH if top is None else top)
-    moving = np.flatnonzero(a > 0)
-    rows, nb, w = _neighbours(x, moving, dist <= band,
-                              NEIGHBOURS if neighbours is None else neighbours,
-                              NEIGHBOUR_REACH * h)
-    if not len(rows):
-        return T
-    # iterate on the block of the moving points and their neighbours only
-    block = np.union1d(rows, nb[w > 0])
-    pos, local = np.searchsorted(block, rows), np.searchsorted(block, nb)
-    local = np.where(w > 0, local, np.repeat(pos[:, None], w.shape[1], axis=1))
-    ar = a[rows]
-    stay = np.ones(len(block))  # the step: 1 - a on a moving point, 1 on a fixed one
-    stay[pos] = 1.0 - ar
-    diag = np.arange(len(block))
-    step = sp.csr_matrix((np.concatenate([stay, (ar[:, None] * w).ravel()]),
-                          (np.concatenate([diag, np.repeat(pos, w.shape[1])]),
-                           np.concatenate([diag, local.ravel()]))),
-                         shape=(len(block), len(block)))  # (duplicates are summed)
-    offsets = x[rows] - np.einsum("rk,rkc->rc", w, x[nb])  # p less its neighbours' mean
-    F = guide(rows, ar[:, None] * offsets).tocsr()[block]
-    Tb = T[block]
-    for _ in range(int(iterations)):
-        Tb = step @ Tb + F
-    source = np.arange(n)  # every row from T, the moved ones from Tb
-    source[rows] = n + pos
-    return sp.vstack([T, Tb], format="csr")[source]
-
+    steps = smoothing_steps(x, dist, band, h, guide, iterations=iterations, top=top,
+                            neighbours=neighbours)
+    return sp.csr_matrix(T) if steps is None else steps.apply(T)

@@ -202,7 +202,7 @@ class PlanResponse:
                 self.timings[f"transfer build, CPU time ({pending.where})"] = cpu
                 self.modelled = transfer.modelled
                 point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
-                self._skin = SkinOperator(transfer.W, point_major)
+                self._skin = SkinOperator(transfer.W0, point_major, steps=transfer.steps)
                 self.reached = self._skin.reached
                 store = self._dtype(dtype)
                 if store != self._skin.dtype:

@@ -118,6 +118,11 @@ class SkinOperator:
         Nodal response, point-major.
     sparse_max_nnz : int
         Rows with at most this many weights are sparse rows.
+    steps : pvcmf.filters.transfer_smoothing.Steps, optional
+        Smoothing steps of the transfer: ``W`` is the transfer before them, and the rows
+        they move are dense rows made by smoothing ``W_block R`` (a few dense columns,
+        :meth:`~pvcmf.filters.transfer_smoothing.Steps.moved_rows`) rather than from the
+        smoothed sparse rows (whose supports widen step by step).
 
     Attributes
     ----------
@@ -127,41 +132,52 @@ class SkinOperator:
         Skin points evaluated through the nodal displacement, and through dense rows.
     """
 
-    def __init__(self, W, nodal, sparse_max_nnz=SPARSE_MAX_NNZ):
+    def __init__(self, W, nodal, sparse_max_nnz=SPARSE_MAX_NNZ, steps=None):
         W = sp.csr_matrix(W, dtype=np.float64, copy=True)  # the caller's W stays as it is
         W.sum_duplicates()
         W.eliminate_zeros()
         n, m = W.shape
         if nodal.ndim != 3 or nodal.shape[:2] != (m, 3):
             raise ValueError(f"nodal must have shape ({m}, 3, K), got {nodal.shape}")
+        if steps is not None and steps.n != n:
+            raise ValueError(f"steps must act on {n} rows, got {steps.n}")
         self.n, self.K = n, nodal.shape[2]
         count = np.diff(W.indptr)
-        self.reached = np.flatnonzero(count > 0)
-        sparse = (count > 0) & (count <= sparse_max_nnz)
+        moved = np.zeros(n, dtype=bool)
+        if steps is not None:
+            moved[steps.rows] = True
+        self.reached = np.flatnonzero((count > 0) | moved)
+        sparse = (count > 0) & (count <= sparse_max_nnz) & ~moved
         self.sparse_rows = np.flatnonzero(sparse)
-        self.dense_rows = np.flatnonzero(count > sparse_max_nnz)
+        self.dense_rows = np.flatnonzero((count > sparse_max_nnz) | moved)
         Ws = W[self.sparse_rows]
         self.used, local = np.unique(Ws.indices, return_inverse=True)
         self.S = sp.csr_matrix((Ws.data, local.ravel().astype(np.int32), Ws.indptr),
                                shape=(len(self.sparse_rows), len(self.used)))
         self.Ru = np.ascontiguousarray(nodal[self.used].reshape(-1, self.K))  # (3 n_u, K)
-        self.D = self._dense(W[self.dense_rows], nodal)  # (K, 3 n_d)
-        self.H = self._placement(W, sparse)
+        self.D = self._dense(W, nodal, moved, steps)  # (K, 3 n_d)
+        self.H = self._placement(sparse)
         self._x = None
 
-    def _dense(self, Wd, nodal):
-        """The dense rows ``Wd R``, parameter-major ``(K, 3 n_d)``, built in row blocks
-        (each block's product is transposed while it is in cache)."""
-        K, n_d = self.K, Wd.shape[0]
+    def _dense(self, W, nodal, moved, steps):
+        """The dense rows ``W R`` (the moved ones smoothed by ``steps``), parameter-major
+        ``(K, 3 n_d)``, built in row blocks (each block's product is transposed while it is
+        in cache)."""
+        K, n_d = self.K, len(self.dense_rows)
         flat = nodal.reshape(nodal.shape[0], 3 * K)
         D = np.empty((K, n_d, 3))
+        plain = np.flatnonzero(~moved[self.dense_rows])  # positions among the dense rows
+        Wd = W[self.dense_rows[plain]]
         step = 4096
-        for b in range(0, n_d, step):
+        for b in range(0, len(plain), step):
             block = np.asarray(Wd[b:b + step] @ flat).reshape(-1, 3, K)
-            D[:, b:b + step] = block.transpose(2, 0, 1)
+            D[:, plain[b:b + step]] = block.transpose(2, 0, 1)
+        if steps is not None:
+            at = np.searchsorted(self.dense_rows, steps.rows)
+            D[:, at] = steps.moved_rows(W, flat).reshape(-1, 3, K).transpose(2, 0, 1)
         return D.reshape(K, 3 * n_d)
 
-    def _placement(self, W, sparse):
+    def _placement(self, sparse):
         """CSR ``H`` (n_skin, n_u + n_d): the sparse rows' weights on the used nodes, and a
         weight 1 placing each dense row's result at its skin point."""
         n_u, n_d = len(self.used), len(self.dense_rows)

@@ -5,8 +5,10 @@ Python's global interpreter lock; on a second thread they stall the factorisatio
 of the calling thread (and those stall it). On Linux, when the calling process runs a single
 Python thread and the cores are not contended (:func:`cpu_pressure`), the transfer is
 therefore built in a forked child process, which shares nothing with the parent after the
-fork and writes ``W``, ``inside`` and ``modelled`` to an anonymous temporary file (pickle)
-that the parent reads once the child has exited; elsewhere, or when the fork fails, on a
+fork and writes the transfer before its smoothing steps (``W0``), the steps as sparse
+matrices, ``inside`` and ``modelled`` (:class:`Parts`) to an anonymous temporary file
+(pickle) that the parent reads once the child has exited (the steps are applied to the
+folded dense rows, :class:`pvcmf.mtm.response_operator.SkinOperator`); elsewhere, or when the fork fails, on a
 second thread. Either way the result is the same :class:`Transfer` computation on the same
 inputs.
 
@@ -24,7 +26,6 @@ import sys
 import tempfile
 import threading
 import time
-import types
 
 import numpy as np
 import pyvista as pv
@@ -65,12 +66,29 @@ def cpu_pressure():
         return None
 
 
+class Parts:
+    """What the plan response needs of a :class:`Transfer`: ``W0`` (the transfer before
+    its smoothing steps), ``steps`` (:class:`~pvcmf.filters.transfer_smoothing.Steps` or
+    None), ``inside`` and ``modelled``; ``W`` (the smoothed transfer) is made on first use,
+    as :attr:`Transfer.W`."""
+
+    def __init__(self, transfer):
+        self.W0, self.steps = transfer.W0, transfer.steps
+        self.inside, self.modelled = transfer.inside, transfer.modelled
+        self._W = None
+
+    @property
+    def W(self):
+        if self._W is None:
+            self._W = self.W0 if self.steps is None else self.steps.apply(self.W0)
+        return self._W
+
+
 def _build(grid, x, clock=time.thread_time):
-    """``(transfer parts, seconds, CPU seconds)`` of :class:`Transfer` on ``grid``, ``x``."""
+    """``(transfer parts, seconds, CPU seconds)`` of :class:`Transfer` on ``grid``, ``x``
+    (:class:`Parts`: the smoothing steps are not applied to the sparse transfer)."""
     t, c = time.perf_counter(), clock()
-    transfer = Transfer(grid, x)
-    parts = types.SimpleNamespace(W=transfer.W, inside=transfer.inside,
-                                  modelled=transfer.modelled)
+    parts = Parts(Transfer(grid, x))
     return parts, time.perf_counter() - t, clock() - c
 
 
@@ -153,8 +171,8 @@ def transfer_in_background(mesh, skin):
     """Start :class:`Transfer` of ``skin`` on ``mesh`` beside the caller's work (a forked
     process or a second thread, see the module docs); it works on its own copies of the
     mesh's points and tetrahedra and of the skin points (no VTK object is shared). Returns
-    an object whose ``result()`` is ``(transfer, seconds, CPU seconds)`` (``transfer``
-    with ``W``, ``inside``, ``modelled``), whose ``cancel()`` stops it and whose
+    an object whose ``result()`` is ``(transfer, seconds, CPU seconds)`` (``transfer`` a
+    :class:`Parts`), whose ``cancel()`` stops it and whose
     ``where`` names where it runs."""
     points, tets = tetra(mesh)
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
