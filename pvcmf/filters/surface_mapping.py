@@ -193,10 +193,11 @@ def _decay(d, band):
     return 1.0 - t * t * (3.0 - 2.0 * t)
 
 
-def _guided(loc, rows, offsets, D):
+def _guided(loc, rows, offsets, D, factors=False):
     """Sparse ``(n, m)``: row ``p`` (of the outside points ``rows``) is ``G(q_p) o_p`` (the
     blend of the nodal gradients ``D`` (stacked x, y, z) at its nearest boundary nodes
-    times ``offsets``) as weights on the nodal displacements."""
+    times ``offsets``) as weights on the nodal displacements (``factors=True``: the
+    factors ``(BW, D)`` of that product, ``BW`` of shape ``(n, 3 n_boundary)``)."""
     n, nb, kk = len(loc.p), len(loc.boundary), loc.near.shape[1]
     slot = np.full(n, -1)
     slot[loc.outside] = np.arange(len(loc.outside))
@@ -209,7 +210,7 @@ def _guided(loc, rows, offsets, D):
     BW = sp.csr_matrix(((offsets[:, :, None] * loc.near_w[r][:, None, :]).ravel(),
                         (loc.near[r][:, None, :] + nb * np.arange(3)[None, :, None]).ravel(),
                         ptr), shape=(n, 3 * nb))
-    return BW @ D
+    return (BW, D) if factors else BW @ D
 
 
 def _median_edge(loc):
@@ -260,7 +261,7 @@ def _assemble_parts(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
                                            loc.gradients), format="csr")
         T = T + face + _guided(loc, out, offset * decay[out][:, None], D)
         if iterations:
-            guide = lambda rows, o: _guided(loc, rows, o, D)  # noqa: E731
+            guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
             steps = smoothing_steps(loc.p, loc.dist, band, _median_edge(loc), guide,
                                     iterations=iterations)
     return _tidy(T), steps

@@ -138,9 +138,14 @@ def smoothing_steps(x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS, t
     if not len(rows):
         return None
     # the steps act on the block of the moving points and their neighbours only
-    block = np.union1d(rows, nb[w > 0])
-    pos, local = np.searchsorted(block, rows), np.searchsorted(block, nb)
-    local = np.where(w > 0, local, np.repeat(pos[:, None], w.shape[1], axis=1))
+    member = np.zeros(n, dtype=bool)  # the block, sorted, and each point's place in it
+    member[rows] = True
+    member[nb[w > 0]] = True
+    block = np.flatnonzero(member)
+    slot = np.zeros(n, dtype=np.int64)
+    slot[block] = np.arange(len(block))
+    pos = slot[rows]
+    local = np.where(w > 0, slot[nb], pos[:, None])
     ar = a[rows]
     stay = np.ones(len(block))  # the step: 1 - a on a moving point, 1 on a fixed one
     stay[pos] = 1.0 - ar
@@ -150,7 +155,11 @@ def smoothing_steps(x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS, t
                            np.concatenate([diag, local.ravel()]))),
                          shape=(len(block), len(block)))  # (duplicates are summed)
     offsets = x[rows] - np.einsum("rk,rkc->rc", w, x[nb])  # p less its neighbours' mean
-    F = guide(rows, ar[:, None] * offsets).tocsr()[block]
+    F = guide(rows, ar[:, None] * offsets)
+    if isinstance(F, tuple):  # (B, G) with F = B @ G: kept as factors, the block's rows of B
+        F = (sp.csr_matrix(F[0])[block], sp.csr_matrix(F[1]))
+    else:
+        F = sp.csr_matrix(F)[block]
     return Steps(n, block, rows, pos, step, F, int(iterations))
 
 
@@ -172,13 +181,28 @@ class Steps:
     block, rows, pos : ndarray of int
     step : scipy.sparse.csr_matrix, shape (len(block), len(block))
     F : scipy.sparse.csr_matrix, shape (len(block), m)
-        The guidance term (zero on the fixed rows).
+        The guidance term (zero on the fixed rows); made on first use where ``guide`` gave
+        it as factors ``(B, G)`` (then ``F X`` is ``B (G X)``: narrower rows).
     iterations : int
     """
 
     def __init__(self, n, block, rows, pos, step, F, iterations):
         self.n, self.block, self.rows, self.pos = n, block, rows, pos
-        self.step, self.F, self.iterations = step, F, iterations
+        self.step, self.iterations = step, iterations
+        self._F, self._factors = (None, F) if isinstance(F, tuple) else (F, None)
+
+    @property
+    def F(self):
+        if self._F is None:
+            B, G = self._factors
+            self._F = B @ G
+        return self._F
+
+    def _times_F(self, X):
+        if self._factors is None:
+            return np.asarray(self._F @ X)
+        B, G = self._factors
+        return np.asarray(B @ np.asarray(G @ X))
 
     def apply(self, T):
         """The smoothed transfer (CSR, shape of ``T``, sorted indices, no explicit zeros)."""
@@ -199,7 +223,7 @@ class Steps:
         T = sp.csr_matrix(T)
         X = np.asarray(X)
         Y = np.asarray(T[self.block] @ X)
-        FX = np.asarray(self.F @ X)
+        FX = self._times_F(X)
         for _ in range(self.iterations):
             Y = self.step @ Y
             Y += FX
@@ -225,7 +249,8 @@ def smooth_outside(T, x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS,
         Median mesh edge (mm): the scale of the ramp and of the neighbours' reach.
     guide : callable
         ``guide(rows, offsets)`` -> sparse ``(n, m)`` matrix whose row ``p`` (in ``rows``)
-        is ``G_p offsets_p`` as weights on the nodal displacements.
+        is ``G_p offsets_p`` as weights on the nodal displacements, or the factors
+        ``(B, G)`` of that matrix ``B @ G``.
     iterations : int
         Smoothing steps (0 returns ``T``).
     top : float, optional
