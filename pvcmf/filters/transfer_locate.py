@@ -237,8 +237,9 @@ class Located:
         self.pair_w = w[keep]
         row = np.concatenate([np.repeat(out, ex), out[r]])
         tri_of = np.concatenate([cand[:, :ex].ravel(), cand[r, j + ex]])
-        return (row[sel], np.column_stack([np.take(c, sel) for c in qs]),
-                np.column_stack([np.take(c, sel) for c in bs]), np.take(tri, tri_of[sel], axis=0))
+        # (closest points and coordinates: transposed views of one gather of their rows)
+        return (row[sel], np.take(qs, sel, axis=1).T, np.take(bs, sel, axis=1).T,
+                np.take(tri, tri_of[sel], axis=0))
 
 
 class _Triangles:
