@@ -9,7 +9,7 @@ import pyvista as pv
 
 from pvcmf import arrays
 from pvcmf.filters import apply_plan, cut_bones
-from pvcmf.filters.surface_mapping import transfer_operator
+from pvcmf.filters.surface_mapping import Transfer, transfer_operator
 from pvcmf.mtm import solve
 from pvcmf.mtm.response import PlanResponseWarning, plan_response
 from pvcmf.plan import Osteotomy, Plan
@@ -62,6 +62,8 @@ def test_predict_equals_full_solve(block):
     op = resp.skin_operator  # both kinds of rows: inside (4 weights) and outside the mesh
     assert len(op.sparse_rows) > 20 and len(op.dense_rows) > 20
     assert np.all(np.diff(T.indptr)[op.dense_rows] > 8)
+    steps = Transfer(grid, skin).steps  # smoothed rows: folded first, smoothed after
+    assert steps is not None and np.isin(steps.rows, op.dense_rows).all()
     rng = np.random.default_rng(3)
     for segments in (("maxilla", "mandible"), ("mandible",)):
         plan = _random_plan(rng, segments)
@@ -424,7 +426,7 @@ def test_transfer_in_background_equals_the_transfer(block):
         finally:
             response_transfer.BUILD_IN = "auto"
         assert (pending.where == "second process") == (where == "process" and hasattr(os, "fork"))
-        assert (transfer.W != here.W).nnz == 0
+        assert (transfer.W != here.W).nnz == 0 and (transfer.W0 != here.W0).nnz == 0
         assert np.array_equal(transfer.inside, here.inside)
         assert np.array_equal(transfer.modelled, here.modelled)
         assert wall > 0 and cpu > 0

@@ -168,7 +168,9 @@ class PlanResponse:
         most :data:`FLOAT32_TOLERANCE`.
     timings : dict
         Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
-        solves: waiting for the skin transfer, folding it in) and ``transfer build (second
+        solves: waiting for the skin transfer, folding it in), ``fold`` (of those, the skin
+        operator's products: the transfer before its smoothing steps times the nodal
+        response, then the steps on those dense rows) and ``transfer build (second
         process)`` (or ``(second thread)``: the skin transfer's own build, which runs
         beside the others) and its CPU time; ``main thread CPU`` the CPU time of the
         calling thread.
@@ -202,7 +204,9 @@ class PlanResponse:
                 self.timings[f"transfer build, CPU time ({pending.where})"] = cpu
                 self.modelled = transfer.modelled
                 point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
+                fold = time.perf_counter()
                 self._skin = SkinOperator(transfer.W0, point_major, steps=transfer.steps)
+                self.timings["fold"] = time.perf_counter() - fold
                 self.reached = self._skin.reached
                 store = self._dtype(dtype)
                 if store != self._skin.dtype:

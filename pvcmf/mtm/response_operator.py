@@ -18,6 +18,11 @@ takes is decided by its number of nonzeros alone (:data:`SPARSE_MAX_NNZ`), so an
    the transfer does not reach have no entry and stay zero. The product accumulates
    straight into the caller's output (scipy's compiled CSR kernel), no scatter or copy.
 
+A transfer smoothed outside the mesh (``T = S(W0)``: a few linear steps on the rows of
+points outside it, :class:`pvcmf.filters.transfer_smoothing.Steps`) is folded as ``W0 R``
+with the steps applied to those dense rows (``3 K`` columns) afterwards: the steps widen
+sparse rows (each takes its neighbours' supports), not dense ones.
+
 Many plans (statistics, batched displacements) go through blocked matrix products over
 the same parts, in any order of the rows. ``float32`` storage applies to ``R_used`` and
 ``D`` (``H`` stays float64 and ``x`` is cast exactly), with the rounding bound
