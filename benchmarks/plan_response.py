@@ -9,7 +9,8 @@ and measures, for a two-segment template (maxilla and mandible):
   transfer operator; its build is timed on its own);
 * ``build``: :func:`pvcmf.mtm.response.plan_response` (boundary conditions, one
   factorisation, twelve solves per segment, the transfer built beside them, in a forked
-  process unless the cores are contended, and folded in), and its ratio to a factorisation plus the same solves timed on
+  process unless the cores are contended, and folded in: the unsmoothed transfer times the
+  nodal response, then the smoothing steps on those dense rows), and its ratio to a factorisation plus the same solves timed on
   their own in the same run (nothing else running in the process; the build's double
   factor, with and without the per-solve solution checks, which the build skips), in
   wall-clock and CPU time (the process's and its child's), medians of ``--repeat`` rounds
@@ -321,6 +322,10 @@ def main(argv=None):
                 "the skin transfer is built beside the factorisation (the timings name "
                 "where: a forked process, or a second thread where the cores are "
                 "contended), and the build's CPU time is the process's and its child's. "
+                "The transfer's smoothing steps outside the mesh act on the folded dense "
+                "rows (`build: fold`: the unsmoothed transfer times the nodal response, then "
+                "the steps), not on the sparse transfer; the transfer build on its own makes "
+                "the smoothed sparse operator that map_to_surface applies. "
                 "The float32 rounding bound is what ``dtype='auto'`` compares with 1e-6 mm.\n\n"
                 f"Command: `{command}`\n\nMachine: {machine()}\n\n{text}\n")
         with open(args.write, "w", encoding="utf-8") as fh:
