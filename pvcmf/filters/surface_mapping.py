@@ -215,6 +215,8 @@ def _guided(loc, rows, offsets, D, factors=False):
 
 def _median_edge(loc):
     """Median edge length of the mesh's tetrahedra (mm), kept on ``loc``."""
+    if getattr(loc, "median_edge", None) is None and getattr(loc, "index", None) is not None:
+        loc.median_edge = loc.index.median_edge
     if getattr(loc, "median_edge", None) is None:
         tets = loc.tets
         e = loc.points[tets[:, [1, 2, 3, 2, 3, 3]]] - loc.points[tets[:, [0, 0, 0, 1, 1, 2]]]
@@ -229,6 +231,19 @@ def _assemble(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
     ``iterations`` steps)."""
     T, steps = _assemble_parts(loc, band, iterations)
     return T if steps is None else steps.apply(T)
+
+
+def _stacked_gradients(loc):
+    """The nodal gradient operators at the boundary nodes, stacked x, y, z (CSR), kept on
+    the mesh's index where ``loc`` has one (points located in parts share them)."""
+    index = getattr(loc, "index", None)
+    D = getattr(index, "stacked_gradients", None)
+    if D is None:
+        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary, loc.gradients),
+                      format="csr")
+        if index is not None:
+            index.stacked_gradients = D
+    return D
 
 
 def _tidy(T):
@@ -257,8 +272,7 @@ def _assemble_parts(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
         face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(), loc.face.ravel(), ptr),
                              shape=(n, m))
         out = loc.outside
-        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary,
-                                           loc.gradients), format="csr")
+        D = _stacked_gradients(loc)
         T = T + face + _guided(loc, out, offset * decay[out][:, None], D)
         if iterations:
             guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 
 from .skin import _boundary_faces
 
-__all__ = ["Located", "closest_on_triangles", "tetra", "tet_gradients"]
+__all__ = ["Located", "MeshIndex", "closest_on_triangles", "tetra", "tet_gradients"]
 
 #: barycentric coordinates down to this (negative) value still count as inside a tetrahedron
 INSIDE_TOL = 1e-6
@@ -62,6 +62,65 @@ def closest_on_triangles(p, a, b, c):
     return q, bary
 
 
+class _TriangleSet:
+    """Boundary triangles with what the feet need: circumradii about the centroids, a
+    :class:`~scipy.spatial.cKDTree` of the centroids, the median edge ``h`` and
+    :class:`_Triangles`."""
+
+    def __init__(self, points, tri):
+        corners = points[tri]
+        centre = corners.mean(axis=1)
+        self.radius = np.linalg.norm(corners - centre[:, None, :], axis=2).max(axis=1)
+        self.tree = cKDTree(centre, balanced_tree=False, compact_nodes=False)
+        e = corners[:, [0, 1, 2]] - corners[:, [1, 2, 0]]
+        self.h = float(np.median(np.linalg.norm(e, axis=2)))
+        self.frames = _Triangles(corners)
+
+
+class MeshIndex:
+    """The mesh's half of :class:`Located`, made once and shared by the point sets located
+    against it (``Located(grid, points, index=index)``): the tetrahedra's
+    :func:`tet_gradients`, their bounding boxes binned on a grid, the boundary triangles
+    and nodes and a :class:`~scipy.spatial.cKDTree` of the nodes; the triangles' own tree
+    (:class:`_TriangleSet`) and the median tetrahedron edge on first use. Points located
+    with one index, in any split, get the same answers as all of them at once."""
+
+    def __init__(self, grid):
+        self.points, self.tets = pts, tets = tetra(grid)
+        self.gradients = tet_gradients(pts, tets)
+        vol = self.gradients[1]
+        self.usable = usable = np.flatnonzero(vol > 1e-300 / 6.0)  # degenerate: holds nothing
+        corners = pts[tets[usable]]
+        radius = np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1)
+        pad = (radius * 8 * INSIDE_TOL + 1e-9 * float(radius.max(initial=1.0)))[:, None]
+        lo, hi = corners.min(axis=1) - pad, corners.max(axis=1) + pad
+        self.box_rows = (np.ascontiguousarray(lo.T), np.ascontiguousarray(hi.T))
+        self.bins = _BoxBins(lo, hi) if usable.size else None
+        src = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, pts)
+        self.tri = tri = _boundary_faces(src)
+        self.boundary = np.unique(tri)
+        self.btree = cKDTree(pts[self.boundary], balanced_tree=False, compact_nodes=False)
+        e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
+        self.h_max = float(np.linalg.norm(e, axis=2).max()) if len(tri) else 0.0
+        self._triangles = self._median = None
+
+    @property
+    def triangles(self):
+        """The boundary triangles' :class:`_TriangleSet` (made on first use)."""
+        if self._triangles is None:
+            self._triangles = _TriangleSet(self.points, self.tri)
+        return self._triangles
+
+    @property
+    def median_edge(self):
+        """Median edge length of the tetrahedra (mm)."""
+        if self._median is None:
+            tets = self.tets
+            e = self.points[tets[:, [1, 2, 3, 2, 3, 3]]] - self.points[tets[:, [0, 0, 0, 1, 1, 2]]]
+            self._median = float(np.median(np.linalg.norm(e, axis=2)))
+        return self._median
+
+
 class Located:
     """Where points lie relative to a tetrahedral mesh (shared by the transfer and the
     crumple metric).
@@ -78,20 +137,21 @@ class Located:
     ``gradients`` holds the tetrahedra's :func:`tet_gradients` (for the operator).
     """
 
-    def __init__(self, grid, points, k=8, n_triangles=24, reach=np.inf):
-        self.points, self.tets = tetra(grid)
+    def __init__(self, grid, points, k=8, n_triangles=24, reach=np.inf, index=None):
+        if index is None:
+            index = MeshIndex(grid)
+        self.index = index
+        self.points, self.tets = index.points, index.tets
         p = np.asarray(points, dtype=float)
         self.p = p
-        src = pv.UnstructuredGrid({pv.CellType.TETRA: self.tets}, self.points)
-        self._find_cells(src)
-        tri = _boundary_faces(src)
-        self.boundary = np.unique(tri)
+        self._find_cells()
+        tri = index.tri
+        self.boundary = index.boundary
         self.dist = np.where(self.inside, 0.0, np.inf)
         out = np.flatnonzero(~self.inside)
-        btree = cKDTree(self.points[self.boundary], balanced_tree=False, compact_nodes=False)
+        btree = index.btree
         if out.size and np.isfinite(reach):  # cheap reject: far from every boundary node
-            e = self.points[tri[:, [0, 1, 2]]] - self.points[tri[:, [1, 2, 0]]]
-            h_max = float(np.linalg.norm(e, axis=2).max())
+            h_max = index.h_max
             dn = btree.query(p[out], distance_upper_bound=reach + h_max)[0]
             out = out[dn - h_max <= reach]
         self.outside = out
@@ -122,7 +182,7 @@ class Located:
             self.face_bary, self.face = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
             self.near, self.near_w = np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
 
-    def _find_cells(self, src=None):
+    def _find_cells(self):
         """Containing tetrahedra. A point whose barycentric coordinates are all above
         ``-INSIDE_TOL`` lies in the tetrahedron's bounding box widened by ``8 INSIDE_TOL``
         times its largest centroid-corner distance, so binning the boxes on a uniform grid
@@ -132,18 +192,14 @@ class Located:
         is largest (the one that holds it; on a shared face, either)."""
         p, pts, tets = self.p, self.points, self.tets
         n = len(p)
-        self.gradients = inv, vol = tet_gradients(pts, tets)  # reused by the operator
-        usable = np.flatnonzero(vol > 1e-300 / 6.0)  # a degenerate tetrahedron holds no point
-        corners = pts[tets[usable]]
-        radius = np.linalg.norm(corners - corners.mean(axis=1, keepdims=True), axis=2).max(axis=1)
-        pad = (radius * 8 * INSIDE_TOL + 1e-9 * float(radius.max(initial=1.0)))[:, None]
-        lo, hi = corners.min(axis=1) - pad, corners.max(axis=1) + pad
+        self.gradients = inv, vol = self.index.gradients  # reused by the operator
+        usable = self.index.usable
         cell = np.full(n, -1, dtype=np.int64)
         bary = np.zeros((n, 4))
         score = np.full(n, -np.inf)
         if usable.size:
-            tet_of, start, stop, pkey = _bin_boxes(lo, hi, p)
-            axes, lo_t, hi_t = (np.ascontiguousarray(v.T) for v in (p, lo, hi))
+            tet_of, start, stop, pkey = self.index.bins.of(p)
+            axes, (lo_t, hi_t) = np.ascontiguousarray(p.T), self.index.box_rows
             count = stop - start
             bounds = np.searchsorted(np.cumsum(count), np.arange(0, count.sum(), 1 << 20))
             for a, b in zip(bounds, np.r_[bounds[1:], n]):  # ~1M pairs per chunk
@@ -184,16 +240,14 @@ class Located:
         ``reach`` (by that same lower bound) gets no feet and distance ``inf``. Returns the
         pairs' points, closest points, barycentric coordinates and triangles, grouped by
         point, each point's candidates in order of centroid distance."""
-        p, pts = self.p[out], self.points
+        p = self.p[out]
         kt = min(n_triangles, len(tri))
-        corners = pts[tri]
-        centre = corners.mean(axis=1)
-        radius = np.linalg.norm(corners - centre[:, None, :], axis=2).max(axis=1)
-        cdist, cand = cKDTree(centre, balanced_tree=False, compact_nodes=False).query(p, k=kt)
+        index = getattr(self, "index", None)
+        tset = index.triangles if index is not None and tri is index.tri else \
+            _TriangleSet(self.points, tri)
+        radius, h, frames = tset.radius, tset.h, tset.frames
+        cdist, cand = tset.tree.query(p, k=kt)
         cdist, cand = cdist.reshape(len(out), kt), cand.reshape(len(out), kt)
-        e = corners[:, [0, 1, 2]] - corners[:, [1, 2, 0]]
-        h = float(np.median(np.linalg.norm(e, axis=2)))
-        frames = _Triangles(corners)
         n, ex = len(out), min(exact, kt)
         # closest points and coordinates as rows, the ex nearest first (pages are touched
         # only as far as they are written)
@@ -363,34 +417,48 @@ def _bin_boxes(lo, hi, p):
     """Boxes ``[lo, hi]`` binned on a uniform grid (spacing: half the median box size): the box
     ids sorted by bin, and per point the range ``[start, stop)`` of the boxes sharing its
     bin (empty outside the grid), and the point's bin."""
-    h = 0.5 * float(np.median((hi - lo).max(axis=1)))
-    h = h if h > 0 else 1.0
-    origin = lo.min(axis=0)
-    i0 = np.floor((lo - origin) / h).astype(np.int64)
-    i1 = np.floor((hi - origin) / h).astype(np.int64)
-    dims = i1.max(axis=0) + 1
-    span = i1 - i0 + 1
-    count = span.prod(axis=1)
-    m = len(lo)
-    box = np.repeat(np.arange(m), count)
-    small = np.int32 if count.max(initial=0) < 2**31 else np.int64
-    local = (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)).astype(small)
-    dz, rem = np.divmod(local, (span[:, 0] * span[:, 1]).astype(small)[box])
-    dy, dx = np.divmod(rem, span[:, 0].astype(small)[box])
-    base = ((i0[:, 2] * dims[1] + i0[:, 1]) * dims[0] + i0[:, 0])[box]
-    key = base + (dz * dims[1] + dy) * dims[0] + dx
-    if float(np.prod(dims.astype(float))) * m < 2.0**62:
-        # one sort of (bin, box) pairs as a single integer: boxes by bin, then by id
-        pair = np.sort(key * m + box)
-        key = pair // m
-        box = pair - key * m
-    else:
-        order = np.lexsort((box, key))
-        key, box = key[order], box[order]
-    ip = np.floor((p - origin) / h)
-    valid = ((ip >= 0) & (ip < dims)).all(axis=1)
-    ip = np.where(valid[:, None], ip, 0).astype(np.int64)
-    pkey = np.where(valid, (ip[:, 2] * dims[1] + ip[:, 1]) * dims[0] + ip[:, 0], -1)
-    start = np.searchsorted(key, pkey, side="left")
-    stop = np.where(valid, np.searchsorted(key, pkey, side="right"), start)
-    return box, start, stop, pkey
+    return _BoxBins(lo, hi).of(p)
+
+
+class _BoxBins:
+    """Boxes ``[lo, hi]`` binned on a uniform grid (spacing: half the median box size),
+    sorted by bin (:meth:`of` lists the boxes sharing a point's bin)."""
+
+    def __init__(self, lo, hi):
+        h = 0.5 * float(np.median((hi - lo).max(axis=1)))
+        h = h if h > 0 else 1.0
+        origin = lo.min(axis=0)
+        i0 = np.floor((lo - origin) / h).astype(np.int64)
+        i1 = np.floor((hi - origin) / h).astype(np.int64)
+        dims = i1.max(axis=0) + 1
+        span = i1 - i0 + 1
+        count = span.prod(axis=1)
+        m = len(lo)
+        box = np.repeat(np.arange(m), count)
+        small = np.int32 if count.max(initial=0) < 2**31 else np.int64
+        local = (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)).astype(small)
+        dz, rem = np.divmod(local, (span[:, 0] * span[:, 1]).astype(small)[box])
+        dy, dx = np.divmod(rem, span[:, 0].astype(small)[box])
+        base = ((i0[:, 2] * dims[1] + i0[:, 1]) * dims[0] + i0[:, 0])[box]
+        key = base + (dz * dims[1] + dy) * dims[0] + dx
+        if float(np.prod(dims.astype(float))) * m < 2.0**62:
+            # one sort of (bin, box) pairs as a single integer: boxes by bin, then by id
+            pair = np.sort(key * m + box)
+            key = pair // m
+            box = pair - key * m
+        else:
+            order = np.lexsort((box, key))
+            key, box = key[order], box[order]
+        self.h, self.origin, self.dims, self.key, self.box = h, origin, dims, key, box
+
+    def of(self, p):
+        """The box ids sorted by bin, and per point of ``p`` the range ``[start, stop)`` of
+        the boxes sharing its bin (empty outside the grid), and the point's bin."""
+        h, origin, dims, key = self.h, self.origin, self.dims, self.key
+        ip = np.floor((p - origin) / h)
+        valid = ((ip >= 0) & (ip < dims)).all(axis=1)
+        ip = np.where(valid[:, None], ip, 0).astype(np.int64)
+        pkey = np.where(valid, (ip[:, 2] * dims[1] + ip[:, 1]) * dims[0] + ip[:, 0], -1)
+        start = np.searchsorted(key, pkey, side="left")
+        stop = np.where(valid, np.searchsorted(key, pkey, side="right"), start)
+        return self.box, start, stop, pkey
