@@ -408,28 +408,47 @@ def test_skin_operator_equals_the_sparse_product():
 
 
 def test_transfer_in_background_equals_the_transfer(block):
-    """The transfer built beside the factorisation (forked process, or thread) equals
-    :class:`Transfer` built here; an error of the build reaches the caller; a cancelled
-    build leaves no child process behind."""
+    """The transfer built by a helper (forked process, or thread) and the calling thread,
+    in ranges of points, equals :class:`Transfer` built here bit for bit, however the
+    ranges are shared (both build some); ranges a dead helper had taken are built by the
+    caller; an error of the build reaches the caller; a cancelled build leaves no child
+    process behind."""
     import os
+    import threading
 
     from pvcmf.filters.surface_mapping import Transfer
     from pvcmf.mtm import response_transfer
 
     grid, _, skin = block
     here = Transfer(grid, skin.points)
-    for where in ("process", "thread"):
-        response_transfer.BUILD_IN = where
+    chunk = response_transfer.CHUNK
+    for where, size in (("process", chunk), ("thread", chunk), ("process", 37), ("thread", 37)):
+        response_transfer.BUILD_IN, response_transfer.CHUNK = where, size
         try:
             pending = response_transfer.transfer_in_background(grid, skin)
-            transfer, wall, cpu = pending.result()
+            transfer, timings = pending.result()
         finally:
-            response_transfer.BUILD_IN = "auto"
+            response_transfer.BUILD_IN, response_transfer.CHUNK = "auto", chunk
         assert (pending.where == "second process") == (where == "process" and hasattr(os, "fork"))
         assert (transfer.W != here.W).nnz == 0 and (transfer.W0 != here.W0).nnz == 0
+        assert np.array_equal(transfer.W0.data, here.W0.data)
+        assert np.array_equal(transfer.W0.indices, here.W0.indices)
         assert np.array_equal(transfer.inside, here.inside)
         assert np.array_equal(transfer.modelled, here.modelled)
-        assert wall > 0 and cpu > 0
+        n_ranges = -(-skin.n_points // size)
+        built = (timings[f"transfer ranges ({pending.where})"],
+                 timings["transfer ranges (calling thread)"])
+        assert sum(built) == n_ranges
+    # a helper that took ranges and died: the caller builds them
+    builder = response_transfer._Builder(grid, np.asarray(skin.points, dtype=float))
+    builder.ranges = response_transfer.ranges(skin.n_points, 37)
+    claims = response_transfer._Claims(len(builder.ranges), threading.Lock())
+    taken = [claims.front(), claims.front()]
+    dead = type("Dead", (), {"where": "second process", "cancel": lambda self: None,
+                             "result": lambda self: ({}, 0.0, 0.0, None)})()
+    transfer, timings = response_transfer._Pending(builder, claims, dead).result()
+    assert taken == [0, 1] and timings["transfer ranges (calling thread)"] == len(builder.ranges)
+    assert (transfer.W != here.W).nnz == 0
     with pytest.raises(ValueError, match="points must have shape"):
         response_transfer.transfer_in_background(grid, pv.PolyData()).result()
     response_transfer.BUILD_IN = "process"
@@ -440,4 +459,4 @@ def test_transfer_in_background_equals_the_transfer(block):
     pending.cancel()
     if pending.where == "second process":
         with pytest.raises(ChildProcessError):
-            os.waitpid(pending.pid, 0)  # already reaped
+            os.waitpid(pending.helper.pid, 0)  # already reaped

@@ -27,8 +27,9 @@ the rounding bound of the float32 products (:meth:`SkinOperator.float32_error`, 
 :func:`float32_bound`), over plans with rotation entries up to :data:`FLOAT32_ROTATION` and
 centroid shifts up to :data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a
 face the bound is far above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md
-gives the demo's). The skin transfer is built beside the factorisation and solves
-(:mod:`pvcmf.mtm.response_transfer`: a forked process, or a second thread); the basis
+gives the demo's). The skin transfer is built on both cores: a helper (a forked
+process, or a second thread) starts on its rows beside the factorisation and solves, and
+the calling thread takes the rows left after them (:mod:`pvcmf.mtm.response_transfer`); the basis
 solves skip the solution checks (unit fields, not motions). Delegates to
 :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS), scipy.sparse
 and threadpoolctl (one BLAS thread for the products).
@@ -54,7 +55,7 @@ from .plan_sweep import plan_grid  # noqa: F401  (re-exported: pvcmf.mtm.respons
 from .response_operator import FLOAT32_ROTATION, FLOAT32_SHIFT, float32_bound  # noqa: F401
 from .response_operator import SkinOperator
 from .response_operator import one_thread as _one_thread
-from .response_transfer import transfer_in_background
+from .response_transfer import _cores, transfer_in_background
 from .solver import Solver
 
 log = logging.getLogger(__name__)
@@ -168,12 +169,13 @@ class PlanResponse:
         most :data:`FLOAT32_TOLERANCE`.
     timings : dict
         Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
-        solves: waiting for the skin transfer, folding it in), ``fold`` (of those, the skin
-        operator's products: the transfer before its smoothing steps times the nodal
-        response, then the steps on those dense rows) and ``transfer build (second
-        process)`` (or ``(second thread)``: the skin transfer's own build, which runs
-        beside the others) and its CPU time; ``main thread CPU`` the CPU time of the
-        calling thread.
+        solves: the skin transfer's ranges left to the calling thread, waiting for the
+        helper, joining, folding), ``fold`` (of those, the skin operator's products: the
+        transfer before its smoothing steps times the nodal response, then the steps on
+        those dense rows, on every core), the transfer's ``rows`` built by the helper
+        (``(second process)`` or ``(second thread)``, beside the others) and by the
+        calling thread, with their CPU times and ranges, its ``join`` (the smoothing
+        steps), and ``main thread CPU`` the CPU time of the calling thread.
     """
 
     def __init__(self, mesh, labels, *, skin, plan, dtype, bc_options, solver_options,
@@ -199,13 +201,13 @@ class PlanResponse:
             self.surface_ids = boundary_points(mesh)
             self._skin, self._skin_dense, self.reached, self.modelled = None, None, None, None
             if pending is not None:
-                transfer, wall, cpu = pending.result()
-                self.timings[f"transfer build ({pending.where})"] = wall
-                self.timings[f"transfer build, CPU time ({pending.where})"] = cpu
+                transfer, timings = pending.result()
+                self.timings.update(timings)
                 self.modelled = transfer.modelled
                 point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
                 fold = time.perf_counter()
-                self._skin = SkinOperator(transfer.W0, point_major, steps=transfer.steps)
+                self._skin = SkinOperator(transfer.W0, point_major, steps=transfer.steps,
+                                          threads=_cores())
                 self.timings["fold"] = time.perf_counter() - fold
                 self.reached = self._skin.reached
                 store = self._dtype(dtype)

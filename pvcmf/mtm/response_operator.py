@@ -128,6 +128,9 @@ class SkinOperator:
         they move are dense rows made by smoothing ``W_block R`` (a few dense columns,
         :meth:`~pvcmf.filters.transfer_smoothing.Steps.moved_rows`) rather than from the
         smoothed sparse rows (whose supports widen step by step).
+    threads : int, default 1
+        Threads of the fold's sparse products (split by rows: the same numbers for any
+        number).
 
     Attributes
     ----------
@@ -137,7 +140,7 @@ class SkinOperator:
         Skin points evaluated through the nodal displacement, and through dense rows.
     """
 
-    def __init__(self, W, nodal, sparse_max_nnz=SPARSE_MAX_NNZ, steps=None):
+    def __init__(self, W, nodal, sparse_max_nnz=SPARSE_MAX_NNZ, steps=None, threads=1):
         W = sp.csr_matrix(W, dtype=np.float64, copy=True)  # the caller's W stays as it is
         W.sum_duplicates()
         W.eliminate_zeros()
@@ -160,26 +163,38 @@ class SkinOperator:
         self.S = sp.csr_matrix((Ws.data, local.ravel().astype(np.int32), Ws.indptr),
                                shape=(len(self.sparse_rows), len(self.used)))
         self.Ru = np.ascontiguousarray(nodal[self.used].reshape(-1, self.K))  # (3 n_u, K)
-        self.D = self._dense(W, nodal, moved, steps)  # (K, 3 n_d)
+        self.D = self._dense(W, nodal, moved, steps, threads)  # (K, 3 n_d)
         self.H = self._placement(sparse)
         self._x = None
 
-    def _dense(self, W, nodal, moved, steps):
+    def _dense(self, W, nodal, moved, steps, threads=1):
         """The dense rows ``W R`` (the moved ones smoothed by ``steps``), parameter-major
         ``(K, 3 n_d)``, built in row blocks (each block's product is transposed while it is
-        in cache)."""
+        in cache; ``threads`` threads share the blocks and the steps' products, which
+        release the GIL: the same numbers for any number of threads)."""
         K, n_d = self.K, len(self.dense_rows)
         flat = nodal.reshape(nodal.shape[0], 3 * K)
         D = np.empty((K, n_d, 3))
         plain = np.flatnonzero(~moved[self.dense_rows])  # positions among the dense rows
         Wd = W[self.dense_rows[plain]]
         step = 4096
-        for b in range(0, len(plain), step):
+
+        def fill(b):
             block = np.asarray(Wd[b:b + step] @ flat).reshape(-1, 3, K)
             D[:, plain[b:b + step]] = block.transpose(2, 0, 1)
+
+        starts = range(0, len(plain), step)
+        if threads > 1 and len(starts) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(int(threads), thread_name_prefix="pvcmf-fold") as pool:
+                list(pool.map(fill, starts))
+        else:
+            for b in starts:
+                fill(b)
         if steps is not None:
             at = np.searchsorted(self.dense_rows, steps.rows)
-            D[:, at] = steps.moved_rows(W, flat).reshape(-1, 3, K).transpose(2, 0, 1)
+            D[:, at] = steps.moved_rows(W, flat, threads).reshape(-1, 3, K).transpose(2, 0, 1)
         return D.reshape(K, 3 * n_d)
 
     def _placement(self, sparse):

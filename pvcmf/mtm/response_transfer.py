@@ -1,24 +1,35 @@
-"""The skin transfer of the plan response, built alongside the factorisation and solves.
+"""The skin transfer of the plan response, built on both cores beside the factorisation.
+
+The transfer's rows before its smoothing steps are built in ranges of skin points
+(:mod:`pvcmf.filters.transfer_parts`: row ``i`` depends on point ``i`` alone, so the
+ranges stacked equal :class:`pvcmf.filters.surface_mapping.Transfer`'s rows bit for bit).
+A helper starts on the ranges from the front while the calling thread runs the
+boundary conditions, the factorisation and the solves; the calling thread then takes the
+ranges left from the back, so both cores finish together (ranges handed out one at a
+time through counters in shared memory). The calling thread joins the ranges and makes
+the smoothing steps (their neighbour search on every core); the plan response folds the
+rows with the nodal response (:class:`pvcmf.mtm.response_operator.SkinOperator`, its
+sparse products on every core, the helper being done).
 
 :class:`pvcmf.filters.surface_mapping.Transfer` runs many small numpy operations that hold
 Python's global interpreter lock; on a second thread they stall the factorisation and solves
 of the calling thread (and those stall it). On Linux, when the calling process runs a single
-Python thread and the cores are not contended (:func:`cpu_pressure`), the transfer is
-therefore built in a forked child process, which shares nothing with the parent after the
-fork and writes the transfer before its smoothing steps (``W0``), the steps as sparse
-matrices, ``inside`` and ``modelled`` (:class:`Parts`) to an anonymous temporary file
-(pickle) that the parent reads once the child has exited (the steps are applied to the
-folded dense rows, :class:`pvcmf.mtm.response_operator.SkinOperator`); elsewhere, or when the fork fails, on a
-second thread. Either way the result is the same :class:`Transfer` computation on the same
-inputs.
+Python thread and the cores are not contended (:func:`cpu_pressure`), the helper is
+therefore a forked child process, which shares only the range counters with the parent
+after the fork and writes its ranges' rows (with what the join reads of the mesh) to an
+anonymous temporary file (pickle) that the parent reads once the child has exited;
+elsewhere, or when the fork fails, a second thread. If the child dies, the caller builds
+its ranges. Either way the result is the same transfer.
 
-Delegates to :func:`os.fork`, :mod:`pickle`, :mod:`tempfile`, :mod:`concurrent.futures` and
-:class:`pvcmf.filters.surface_mapping.Transfer`.
+Delegates to :func:`os.fork`, :mod:`mmap`, :mod:`multiprocessing` (a lock), :mod:`pickle`,
+:mod:`tempfile`, :mod:`concurrent.futures` and :mod:`pvcmf.filters.transfer_parts`.
 """
 
 from __future__ import annotations
 
 import logging
+import mmap
+import multiprocessing
 import os
 import pickle
 import signal
@@ -26,20 +37,21 @@ import sys
 import tempfile
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pyvista as pv
 
-from ..filters.surface_mapping import Transfer
 from ..filters.transfer_locate import tetra
+from ..filters.transfer_parts import CHUNK, MeshIndex, join_rows, ranges, transfer_rows
 
 log = logging.getLogger(__name__)
 
 __all__ = ["transfer_in_background"]
 
-#: where the transfer is built: ``"auto"`` (a forked process where possible and the cores
-#: are not contended, see :func:`cpu_pressure`), ``"process"`` (where possible) or
-#: ``"thread"``
+#: where the helper builds its ranges of the transfer: ``"auto"`` (a forked process where
+#: possible and the cores are not contended, see :func:`cpu_pressure`), ``"process"``
+#: (where possible) or ``"thread"``
 BUILD_IN = "auto"
 #: ``"auto"`` takes a thread when runnable tasks waited for a core this share (percent) of
 #: the last ten seconds or more: the child then gains no core of its own and only adds
@@ -66,62 +78,105 @@ def cpu_pressure():
         return None
 
 
-class Parts:
-    """What the plan response needs of a :class:`Transfer`: ``W0`` (the transfer before
-    its smoothing steps), ``steps`` (:class:`~pvcmf.filters.transfer_smoothing.Steps` or
-    None), ``inside`` and ``modelled``; ``W`` (the smoothed transfer) is made on first use,
-    as :attr:`Transfer.W`."""
+class _Claims:
+    """Ranges of skin points shared by two builders: the helper takes them from the front,
+    the caller from the back, one at a time, until they meet (counters in shared memory,
+    so a forked child and its parent see the same ones)."""
 
-    def __init__(self, transfer):
-        self.W0, self.steps = transfer.W0, transfer.steps
-        self.inside, self.modelled = transfer.inside, transfer.modelled
-        self._W = None
+    def __init__(self, n, lock):
+        self._buf = mmap.mmap(-1, 16)  # anonymous and shared: survives the fork
+        self._c = np.frombuffer(self._buf, dtype=np.int64)
+        self._c[:] = (0, n - 1)
+        self._lock = lock
 
-    @property
-    def W(self):
-        if self._W is None:
-            self._W = self.W0 if self.steps is None else self.steps.apply(self.W0)
-        return self._W
+    def front(self):
+        with self._lock:
+            i = int(self._c[0])
+            if i > self._c[1]:
+                return None
+            self._c[0] = i + 1
+            return i
+
+    def back(self):
+        with self._lock:
+            j = int(self._c[1])
+            if j < self._c[0]:
+                return None
+            self._c[1] = j - 1
+            return j
+
+    def stop(self):
+        """No range is handed out any more (the helper ends after its current one)."""
+        with self._lock:
+            self._c[0] = self._c[1] + 1
 
 
-def _build(grid, x, clock=time.thread_time):
-    """``(transfer parts, seconds, CPU seconds)`` of :class:`Transfer` on ``grid``, ``x``
-    (:class:`Parts`: the smoothing steps are not applied to the sparse transfer)."""
-    t, c = time.perf_counter(), clock()
-    parts = Parts(Transfer(grid, x))
-    return parts, time.perf_counter() - t, clock() - c
+class _Builder:
+    """The transfer's rows of ranges of the skin points (:func:`transfer_rows`) against
+    one :class:`MeshIndex`, made on first use."""
+
+    def __init__(self, grid, x):
+        self.grid, self.x = grid, x
+        self.ranges = ranges(len(x), CHUNK)
+        self._index = None
+        self._index_lock = threading.Lock()
+
+    def index(self):
+        with self._index_lock:
+            if self._index is None:
+                self._index = MeshIndex(self.grid)
+            return self._index
+
+    def run(self, claim, clock=time.thread_time):
+        """``({range: Rows}, seconds, CPU seconds)`` of the ranges ``claim()`` hands out."""
+        t, c = time.perf_counter(), clock()
+        done = {}
+        while (i := claim()) is not None:
+            a, b = self.ranges[i]
+            done[i] = transfer_rows(self.index(), self.x[a:b])
+        return done, time.perf_counter() - t, clock() - c
+
+    def summary(self):
+        """What :func:`join_rows` reads of the index (sent back by a child process)."""
+        index = self.index()
+        index.median_edge  # noqa: B018 - made here, sent along
+        return SimpleNamespace(boundary=index.boundary, median_edge=index.median_edge,
+                               points=index.points, tets=index.tets,
+                               gradients=index.gradients,
+                               stacked_gradients=getattr(index, "stacked_gradients", None))
 
 
 class _Thread:
-    """The transfer built on a second thread (a future's ``result``)."""
+    """The helper on a second thread (a future's ``result``)."""
 
     where = "second thread"
 
-    def __init__(self, grid, x):
+    def __init__(self, builder, claims):
         from concurrent.futures import ThreadPoolExecutor
 
+        self.builder = builder
         pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pvcmf-transfer")
-        self._future = pool.submit(_build, grid, x)
+        self._future = pool.submit(builder.run, claims.front)
         pool.shutdown(wait=False)
 
     def result(self):
-        return self._future.result()
+        done, wall, cpu = self._future.result()
+        return done, wall, cpu, None
 
     def cancel(self):
         self._future.cancel()
 
 
 class _Process:
-    """The transfer built in a forked child process, which writes its answer to an
-    anonymous temporary file and exits (a pipe would make the child wait for the parent to
-    read); :meth:`result` waits for it and reads the answer, :meth:`cancel` kills it (the
-    parent failed before reading)."""
+    """The helper in a forked child process, which writes its rows to an anonymous
+    temporary file and exits (a pipe would make the child wait for the parent to read);
+    :meth:`result` waits for it and reads them, :meth:`cancel` kills it (the parent failed
+    before reading)."""
 
     where = "second process"
 
-    def __init__(self, grid, x):
+    def __init__(self, builder, claims):
         self._file = tempfile.TemporaryFile()
-        self._inputs = (grid, x)
         try:
             pid = os.fork()
         except OSError:
@@ -131,7 +186,8 @@ class _Process:
             status = 1
             try:
                 try:
-                    answer = ("ok", _build(grid, x, time.process_time))
+                    done, wall, cpu = builder.run(claims.front, time.process_time)
+                    answer = ("ok", (done, wall, cpu, builder.summary() if done else None))
                 except BaseException as exc:  # noqa: BLE001 - sent to the parent
                     answer = ("error", exc)
                 with os.fdopen(os.dup(self._file.fileno()), "wb") as fh:
@@ -146,10 +202,10 @@ class _Process:
         try:
             self._file.seek(0)
             kind, value = pickle.load(self._file)
-        except (EOFError, pickle.UnpicklingError) as exc:  # the child died: build here
+        except (EOFError, pickle.UnpicklingError) as exc:  # the child died: its ranges here
             log.warning("plan_response: the transfer process ended without an answer "
-                        "(%s); building the transfer here", exc)
-            kind, value = "ok", _build(*self._inputs)
+                        "(%s); building its part of the transfer here", exc)
+            kind, value = "ok", ({}, 0.0, 0.0, None)
         finally:
             self._file.close()
         if kind == "error":
@@ -167,23 +223,82 @@ class _Process:
         self._file.close()
 
 
+class _Pending:
+    """The transfer being built by a helper (:class:`_Process` or :class:`_Thread`) and,
+    once the caller asks for it, by the caller too."""
+
+    def __init__(self, builder, claims, helper):
+        self.builder, self.claims, self.helper = builder, claims, helper
+        self.where = helper.where
+
+    def result(self):
+        """``(transfer, timings)``: the joined transfer (:class:`Joined`) after the caller
+        has built the ranges the helper had not taken, and the seconds of each part."""
+        builder = self.builder
+        try:
+            mine, wall, cpu = builder.run(self.claims.back)
+        except BaseException:
+            self.cancel()
+            raise
+        theirs, their_wall, their_cpu, summary = self.helper.result()
+        t, c = time.perf_counter(), time.thread_time()
+        rows = {**theirs, **mine}
+        missing = [i for i in range(len(builder.ranges)) if i not in rows]
+        for i in missing:  # the helper died: its ranges here
+            rows[i] = transfer_rows(builder.index(), builder.x[slice(*builder.ranges[i])])
+        index = builder.index() if (mine or missing or summary is None) else summary
+        joined = join_rows(index, builder.x, [rows[i] for i in range(len(builder.ranges))],
+                           workers=_cores())
+        where = self.where
+        timings = {
+            f"transfer rows ({where}) (s)": their_wall,
+            f"transfer rows, CPU time ({where}) (s)": their_cpu,
+            f"transfer ranges ({where})": len(theirs),
+            "transfer rows (calling thread) (s)": wall,
+            "transfer rows, CPU time (calling thread) (s)": cpu,
+            "transfer ranges (calling thread)": len(mine) + len(missing),
+            "transfer join: smoothing steps (s)": time.perf_counter() - t,
+            "transfer join, CPU time (calling thread) (s)": time.thread_time() - c,
+        }
+        return joined, timings
+
+    def cancel(self):
+        self.claims.stop()
+        self.helper.cancel()
+
+
+def _cores():
+    """Cores this process may run on (at least 1)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def transfer_in_background(mesh, skin):
-    """Start :class:`Transfer` of ``skin`` on ``mesh`` beside the caller's work (a forked
+    """Start the skin transfer of ``skin`` on ``mesh`` beside the caller's work (a forked
     process or a second thread, see the module docs); it works on its own copies of the
     mesh's points and tetrahedra and of the skin points (no VTK object is shared). Returns
-    an object whose ``result()`` is ``(transfer, seconds, CPU seconds)`` (``transfer`` a
-    :class:`Parts`), whose ``cancel()`` stops it and whose
-    ``where`` names where it runs."""
+    an object whose ``result()`` builds the ranges left (on the calling thread) and
+    returns ``(transfer, timings)`` (``transfer`` a
+    :class:`~pvcmf.filters.transfer_parts.Joined`: ``W0``, ``steps``, ``inside``,
+    ``modelled``), whose ``cancel()`` stops the helper and whose ``where`` names where
+    it runs."""
     points, tets = tetra(mesh)
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
     x = np.array(skin.points, dtype=float)
+    if x.ndim != 2 or x.shape[1] != 3 or not len(x):
+        raise ValueError(f"skin points must have shape (n, 3) with n > 0, got {x.shape}")
     if BUILD_IN not in ("auto", "process", "thread"):
         raise ValueError(f"BUILD_IN must be 'auto', 'process' or 'thread', got {BUILD_IN!r}")
+    builder = _Builder(grid, x)
     contended = BUILD_IN == "auto" and (cpu_pressure() or 0.0) >= CPU_PRESSURE_LIMIT
     if (BUILD_IN != "thread" and not contended and sys.platform.startswith("linux")
             and hasattr(os, "fork") and threading.active_count() == 1):
+        claims = _Claims(len(builder.ranges), multiprocessing.get_context("fork").Lock())
         try:
-            return _Process(grid, x)
+            return _Pending(builder, claims, _Process(builder, claims))
         except OSError as exc:  # no fork (limits, memory): a thread instead
             log.info("plan_response: transfer on a thread (fork failed: %s)", exc)
-    return _Thread(grid, x)
+    claims = _Claims(len(builder.ranges), threading.Lock())
+    return _Pending(builder, claims, _Thread(builder, claims))
