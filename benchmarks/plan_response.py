@@ -8,9 +8,11 @@ and measures, for a two-segment template (maxilla and mandible):
 * ``full``: one plan by ``apply_plan`` + :func:`pvcmf.mtm.solve` + the skin transfer (a kept
   transfer operator; its build is timed on its own);
 * ``build``: :func:`pvcmf.mtm.response.plan_response` (boundary conditions, one
-  factorisation, twelve solves per segment, the transfer built beside them, in a forked
-  process unless the cores are contended, and folded in: the unsmoothed transfer times the
-  nodal response, then the smoothing steps on those dense rows), and its ratio to a factorisation plus the same solves timed on
+  factorisation, twelve solves per segment, the transfer's rows built in ranges of skin
+  points by a helper beside them (a forked process unless the cores are contended, or
+  as ``--build-in`` says) and by the calling thread after its solves, joined (the
+  smoothing steps) and folded in: the unsmoothed transfer times the nodal response, then
+  the smoothing steps on those dense rows), and its ratio to a factorisation plus the same solves timed on
   their own in the same run (nothing else running in the process; the build's double
   factor, with and without the per-solve solution checks, which the build skips), in
   wall-clock and CPU time (the process's and its child's), medians of ``--repeat`` rounds
@@ -123,9 +125,10 @@ def reference_solves(mesh, labels, template, checks=True):
     return time.perf_counter() - t, cpu_now() - c
 
 
-def build_rows(mesh, labels, skin, template, rows, repeat):
+def build_rows(mesh, labels, skin, template, rows, repeat, build_in="auto"):
     """Time the operator's build against a factorisation plus its solves (medians of
-    ``repeat`` rounds, each timing the four in turn)."""
+    ``repeat`` rounds, each timing the four in turn; ``build_in``: where the build's
+    helper runs, :data:`pvcmf.mtm.response_transfer.BUILD_IN`)."""
     from pvcmf.mtm import response_transfer
 
     keys = ("ref", "ref_cpu", "bare", "bare_cpu", "build", "build_cpu", "thread", "thread_cpu")
@@ -137,7 +140,7 @@ def build_rows(mesh, labels, skin, template, rows, repeat):
         for key, value in zip(("bare", "bare_cpu"),
                               reference_solves(mesh, labels, template, checks=False)):
             times[key].append(value)
-        for key, where in (("thread", "thread"), ("build", "auto")):
+        for key, where in (("thread", "thread"), ("build", build_in)):
             response_transfer.BUILD_IN = where
             op = None  # free the previous operator first
             t, c = time.perf_counter(), cpu_now()
@@ -149,6 +152,8 @@ def build_rows(mesh, labels, skin, template, rows, repeat):
     rows["build (s)"] = med["build"]
     for key, value in op.timings.items():
         rows[f"build: {key} (s)"] = value
+    for key, value in (op.transfer_ranges or {}).items():
+        rows[f"build: transfer ranges ({key})"] = value
     rows["factorisation + solves on their own (s)"] = med["ref"]
     rows["build / (factorisation + solves)"] = med["build"] / med["ref"]
     rows["build, CPU time of the process and its child (s)"] = med["build_cpu"]
@@ -263,7 +268,7 @@ def run(args):
         return transfer(u)
 
     rows["full solve per plan (s)"] = median_time(lambda: full(plans[0]), args.repeat)
-    op = build_rows(mesh, labels, skin, template, rows, args.repeat)
+    op = build_rows(mesh, labels, skin, template, rows, args.repeat, args.build_in)
     op32 = predict_rows(op, skin, plans[:args.plans], rows)
     rows["full / predict (dense skin)"] = (rows["full solve per plan (s)"]
                                            / (1e-3 * rows["predict, dense skin, per plan (ms)"]))
@@ -300,6 +305,9 @@ def main(argv=None):
     p.add_argument("--batch", type=int, default=1000, help="plans of the statistics batch")
     p.add_argument("--repeat", type=int, default=3,
                    help="repeats of the full solve and of the build with its reference")
+    p.add_argument("--build-in", choices=("auto", "process", "thread"), default="auto",
+                   help="where the build's transfer helper runs (default: a forked process "
+                        "unless the cores are contended, then a second thread)")
     p.add_argument("--write", metavar="MD", help="write the table as a MyST page")
     args = p.parse_args(argv)
     rows = run(args)
@@ -319,9 +327,14 @@ def main(argv=None):
                 "their own (the build's double factor; with the solution checks that "
                 "`Solver.solve` runs by default, and without them as the build solves), "
                 "medians of rounds that time the three in turn; "
-                "the skin transfer is built beside the factorisation (the timings name "
-                "where: a forked process, or a second thread where the cores are "
-                "contended), and the build's CPU time is the process's and its child's. "
+                "the skin transfer's rows are built in ranges of skin points on both "
+                "cores: a helper starts on them beside the factorisation and solves, the "
+                "calling thread takes the ranges left after its solves (the timings name "
+                "the helper: a forked process, or a second thread; `--build-in` chooses, "
+                "`auto` takes the thread when the kernel's pressure stall information "
+                "shows tasks waiting for a core), then joins them (`transfer join`: the "
+                "smoothing steps) and folds them in on both cores; the build's CPU time "
+                "is the process's (all its threads) and its child's. "
                 "The transfer's smoothing steps outside the mesh act on the folded dense "
                 "rows (`build: fold`: the unsmoothed transfer times the nodal response, then "
                 "the steps), not on the sparse transfer; the transfer build on its own makes "

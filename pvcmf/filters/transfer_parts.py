@@ -27,7 +27,8 @@ from .surface_mapping import DEFAULT_BAND, DEFAULT_K, _assemble_parts, _guided, 
 from .transfer_locate import Located, MeshIndex
 from .transfer_smoothing import DEFAULT_ITERATIONS, smoothing_steps
 
-__all__ = ["MeshIndex", "Rows", "Joined", "ranges", "transfer_rows", "join_rows", "CHUNK"]
+__all__ = ["MeshIndex", "Rows", "Joined", "ranges", "prepared_index", "transfer_rows",
+           "join_rows", "CHUNK"]
 
 #: points per range (small enough that two builders finish within a range of each other,
 #: large enough that the per-range overhead stays a few percent)
@@ -45,6 +46,24 @@ def ranges(n, size=CHUNK):
     if isinstance(size, bool) or int(size) != size or size < 1:
         raise ValueError(f"size must be a positive integer, got {size!r}")
     return [(s, min(s + int(size), n)) for s in range(0, n, int(size))]
+
+
+def _mesh_view(index):
+    """What the operator assembly reads of the mesh, as a ``Located``-like view."""
+    return SimpleNamespace(index=index, points=index.points, tets=index.tets,
+                           boundary=index.boundary, gradients=index.gradients)
+
+
+def prepared_index(grid):
+    """:class:`~pvcmf.filters.transfer_locate.MeshIndex` of ``grid`` with everything
+    :func:`transfer_rows` and :func:`join_rows` read of it made now (the boundary
+    triangles' tree, the median edge, the nodal gradient operators): one pickle of it
+    serves another process."""
+    index = MeshIndex(grid)
+    index.triangles  # noqa: B018 - made now
+    index.median_edge  # noqa: B018
+    _stacked_gradients(_mesh_view(index))
+    return index
 
 
 class Rows:
@@ -105,12 +124,11 @@ def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATI
     has = [i for i, r in enumerate(parts) if len(r.outside)]
     steps = None
     if has and smoothing:
-        loc = SimpleNamespace(
-            p=p, boundary=index.boundary, index=index, points=index.points, tets=index.tets,
-            gradients=index.gradients,
-            outside=np.concatenate([parts[i].outside + offset[i] for i in has]),
-            near=np.concatenate([parts[i].near for i in has]),
-            near_w=np.concatenate([parts[i].near_w for i in has]))
+        loc = _mesh_view(index)
+        loc.p = p
+        loc.outside = np.concatenate([parts[i].outside + offset[i] for i in has])
+        loc.near = np.concatenate([parts[i].near for i in has])
+        loc.near_w = np.concatenate([parts[i].near_w for i in has])
         D = _stacked_gradients(loc)
         guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
         steps = smoothing_steps(p, dist, float(band), index.median_edge, guide,

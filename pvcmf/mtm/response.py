@@ -174,8 +174,12 @@ class PlanResponse:
         transfer before its smoothing steps times the nodal response, then the steps on
         those dense rows, on every core), the transfer's ``rows`` built by the helper
         (``(second process)`` or ``(second thread)``, beside the others) and by the
-        calling thread, with their CPU times and ranges, its ``join`` (the smoothing
-        steps), and ``main thread CPU`` the CPU time of the calling thread.
+        calling thread, with their CPU times, its ``join`` (the smoothing steps), and
+        the CPU time of the calling thread (``main thread CPU``; ``main thread CPU, bc +
+        factor + solves`` up to the solves).
+    transfer_ranges : dict or None
+        Ranges of skin points whose transfer rows the helper (``'second process'`` or
+        ``'second thread'``) and the ``'calling thread'`` built.
     """
 
     def __init__(self, mesh, labels, *, skin, plan, dtype, bc_options, solver_options,
@@ -193,6 +197,7 @@ class PlanResponse:
             pending = None if skin is None else transfer_in_background(mesh, skin)
             try:
                 ref = self._factor_and_solve(bar)
+                self.timings["main thread CPU, bc + factor + solves"] = time.thread_time() - cpu0
             except BaseException:
                 if pending is not None:
                     pending.cancel()
@@ -200,9 +205,11 @@ class PlanResponse:
             t = time.perf_counter()
             self.surface_ids = boundary_points(mesh)
             self._skin, self._skin_dense, self.reached, self.modelled = None, None, None, None
+            self.transfer_ranges = None
             if pending is not None:
                 transfer, timings = pending.result()
                 self.timings.update(timings)
+                self.transfer_ranges = pending.ranges
                 self.modelled = transfer.modelled
                 point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
                 fold = time.perf_counter()

@@ -37,13 +37,12 @@ import sys
 import tempfile
 import threading
 import time
-from types import SimpleNamespace
 
 import numpy as np
 import pyvista as pv
 
 from ..filters.transfer_locate import tetra
-from ..filters.transfer_parts import CHUNK, MeshIndex, join_rows, ranges, transfer_rows
+from ..filters.transfer_parts import CHUNK, join_rows, prepared_index, ranges, transfer_rows
 
 log = logging.getLogger(__name__)
 
@@ -84,10 +83,17 @@ class _Claims:
     so a forked child and its parent see the same ones)."""
 
     def __init__(self, n, lock):
-        self._buf = mmap.mmap(-1, 16)  # anonymous and shared: survives the fork
+        self._buf = mmap.mmap(-1, 24)  # anonymous and shared: survives the fork
         self._c = np.frombuffer(self._buf, dtype=np.int64)
-        self._c[:] = (0, n - 1)
+        self._c[:] = (0, n - 1, 0)  # front, back, the helper's mesh index is written
         self._lock = lock
+
+    @property
+    def index_written(self):
+        return bool(self._c[2])
+
+    def mark_index_written(self):
+        self._c[2] = 1
 
     def front(self):
         with self._lock:
@@ -120,11 +126,14 @@ class _Builder:
         self.ranges = ranges(len(x), CHUNK)
         self._index = None
         self._index_lock = threading.Lock()
+        self.fetch = None  # returns the helper's index where it has one to give
 
     def index(self):
         with self._index_lock:
+            if self._index is None and self.fetch is not None:
+                self._index = self.fetch()
             if self._index is None:
-                self._index = MeshIndex(self.grid)
+                self._index = prepared_index(self.grid)
             return self._index
 
     def run(self, claim, clock=time.thread_time):
@@ -135,15 +144,6 @@ class _Builder:
             a, b = self.ranges[i]
             done[i] = transfer_rows(self.index(), self.x[a:b])
         return done, time.perf_counter() - t, clock() - c
-
-    def summary(self):
-        """What :func:`join_rows` reads of the index (sent back by a child process)."""
-        index = self.index()
-        index.median_edge  # noqa: B018 - made here, sent along
-        return SimpleNamespace(boundary=index.boundary, median_edge=index.median_edge,
-                               points=index.points, tets=index.tets,
-                               gradients=index.gradients,
-                               stacked_gradients=getattr(index, "stacked_gradients", None))
 
 
 class _Thread:
@@ -160,11 +160,13 @@ class _Thread:
         pool.shutdown(wait=False)
 
     def result(self):
-        done, wall, cpu = self._future.result()
-        return done, wall, cpu, None
+        return self._future.result()
 
     def cancel(self):
         self._future.cancel()
+
+    def close(self):
+        pass
 
 
 class _Process:
@@ -176,18 +178,23 @@ class _Process:
     where = "second process"
 
     def __init__(self, builder, claims):
-        self._file = tempfile.TemporaryFile()
+        self._file, self._index_file = tempfile.TemporaryFile(), tempfile.TemporaryFile()
+        self._claims = claims
         try:
             pid = os.fork()
         except OSError:
             self._file.close()
+            self._index_file.close()
             raise
         if pid == 0:  # the child: build, write, exit without returning to the caller
             status = 1
             try:
                 try:
-                    done, wall, cpu = builder.run(claims.front, time.process_time)
-                    answer = ("ok", (done, wall, cpu, builder.summary() if done else None))
+                    t, c = time.perf_counter(), time.process_time()
+                    self._share_index(builder.index())
+                    done = builder.run(claims.front, time.process_time)[0]
+                    wall, cpu = time.perf_counter() - t, time.process_time() - c
+                    answer = ("ok", (done, wall, cpu))
                 except BaseException as exc:  # noqa: BLE001 - sent to the parent
                     answer = ("error", exc)
                 with os.fdopen(os.dup(self._file.fileno()), "wb") as fh:
@@ -196,6 +203,23 @@ class _Process:
             finally:
                 os._exit(status)
         self.pid = pid
+        builder.fetch = self._fetch_index
+
+    def _share_index(self, index):
+        """Write the mesh index for the parent (it reads it instead of making its own)."""
+        with os.fdopen(os.dup(self._index_file.fileno()), "wb") as fh:
+            pickle.dump(index, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        self._claims.mark_index_written()
+
+    def _fetch_index(self):
+        """The child's mesh index, or None where it has not written it (yet)."""
+        if not self._claims.index_written or self._index_file.closed:
+            return None
+        try:
+            self._index_file.seek(0)
+            return pickle.load(self._index_file)
+        except (EOFError, pickle.UnpicklingError, OSError):  # pragma: no cover - torn
+            return None
 
     def result(self):
         os.waitpid(self.pid, 0)
@@ -205,7 +229,7 @@ class _Process:
         except (EOFError, pickle.UnpicklingError) as exc:  # the child died: its ranges here
             log.warning("plan_response: the transfer process ended without an answer "
                         "(%s); building its part of the transfer here", exc)
-            kind, value = "ok", ({}, 0.0, 0.0, None)
+            kind, value = "ok", ({}, 0.0, 0.0)
         finally:
             self._file.close()
         if kind == "error":
@@ -220,7 +244,11 @@ class _Process:
         except ProcessLookupError:  # pragma: no cover - already gone
             pass
         os.waitpid(self.pid, 0)
+        self.close()
+
+    def close(self):
         self._file.close()
+        self._index_file.close()
 
 
 class _Pending:
@@ -230,37 +258,44 @@ class _Pending:
     def __init__(self, builder, claims, helper):
         self.builder, self.claims, self.helper = builder, claims, helper
         self.where = helper.where
+        self.ranges = None
 
     def result(self):
         """``(transfer, timings)``: the joined transfer (:class:`Joined`) after the caller
-        has built the ranges the helper had not taken, and the seconds of each part."""
+        has built the ranges the helper had not taken, and the seconds of each part
+        (:attr:`ranges` then says how many ranges each built)."""
         builder = self.builder
         try:
             mine, wall, cpu = builder.run(self.claims.back)
         except BaseException:
             self.cancel()
             raise
-        theirs, their_wall, their_cpu, summary = self.helper.result()
-        t, c = time.perf_counter(), time.thread_time()
-        rows = {**theirs, **mine}
-        missing = [i for i in range(len(builder.ranges)) if i not in rows]
-        for i in missing:  # the helper died: its ranges here
-            rows[i] = transfer_rows(builder.index(), builder.x[slice(*builder.ranges[i])])
-        index = builder.index() if (mine or missing or summary is None) else summary
-        joined = join_rows(index, builder.x, [rows[i] for i in range(len(builder.ranges))],
-                           workers=_cores())
+        try:
+            theirs, their_wall, their_cpu = self.helper.result()
+            t, c = time.perf_counter(), time.thread_time()
+            joined = self._join({**theirs, **mine})
+        finally:
+            self.helper.close()
         where = self.where
+        self.ranges = {where: len(theirs), "calling thread": len(builder.ranges) - len(theirs)}
         timings = {
-            f"transfer rows ({where}) (s)": their_wall,
-            f"transfer rows, CPU time ({where}) (s)": their_cpu,
-            f"transfer ranges ({where})": len(theirs),
-            "transfer rows (calling thread) (s)": wall,
-            "transfer rows, CPU time (calling thread) (s)": cpu,
-            "transfer ranges (calling thread)": len(mine) + len(missing),
-            "transfer join: smoothing steps (s)": time.perf_counter() - t,
-            "transfer join, CPU time (calling thread) (s)": time.thread_time() - c,
+            f"transfer rows ({where})": their_wall,
+            f"transfer rows, CPU time ({where})": their_cpu,
+            "transfer rows (calling thread)": wall,
+            "transfer rows, CPU time (calling thread)": cpu,
+            "transfer join": time.perf_counter() - t,
+            "transfer join, CPU time (calling thread)": time.thread_time() - c,
         }
         return joined, timings
+
+    def _join(self, rows):
+        """The ranges joined (those a dead helper had taken built here first)."""
+        builder = self.builder
+        for i in range(len(builder.ranges)):
+            if i not in rows:  # the helper died: its ranges here
+                rows[i] = transfer_rows(builder.index(), builder.x[slice(*builder.ranges[i])])
+        return join_rows(builder.index(), builder.x, [rows[i] for i in range(len(builder.ranges))],
+                         workers=_cores())
 
     def cancel(self):
         self.claims.stop()
