@@ -9,7 +9,7 @@ and measures, for a two-segment template (maxilla and mandible):
   transfer operator; its build is timed on its own);
 * ``build``: :func:`pvcmf.mtm.response.plan_response` (boundary conditions, one
   factorisation, twelve solves per segment, the transfer's rows built in ranges of skin
-  points by a helper beside them (a forked process unless the cores are contended, or
+  points by a partner beside them (a forked process unless the cores are contended, or
   as ``--build-in`` says) and by the calling thread after its solves, joined (the
   smoothing steps) and folded in: the unsmoothed transfer times the nodal response, then
   the smoothing steps on those dense rows), and its ratio to a factorisation plus the same solves timed on
@@ -128,7 +128,7 @@ def reference_solves(mesh, labels, template, checks=True):
 def build_rows(mesh, labels, skin, template, rows, repeat, build_in="auto"):
     """Time the operator's build against a factorisation plus its solves (medians of
     ``repeat`` rounds, each timing the four in turn; ``build_in``: where the build's
-    helper runs, :data:`pvcmf.mtm.response_transfer.BUILD_IN`)."""
+    partner runs, :data:`pvcmf.mtm.response_transfer.BUILD_IN`)."""
     from pvcmf.mtm import response_transfer
 
     keys = ("ref", "ref_cpu", "bare", "bare_cpu", "build", "build_cpu", "thread", "thread_cpu")
@@ -306,7 +306,7 @@ def main(argv=None):
     p.add_argument("--repeat", type=int, default=3,
                    help="repeats of the full solve and of the build with its reference")
     p.add_argument("--build-in", choices=("auto", "process", "thread"), default="auto",
-                   help="where the build's transfer helper runs (default: a forked process "
+                   help="where the build's transfer partner runs (default: a forked process "
                         "unless the cores are contended, then a second thread)")
     p.add_argument("--write", metavar="MD", help="write the table as a MyST page")
     args = p.parse_args(argv)
@@ -328,9 +328,9 @@ def main(argv=None):
                 "`Solver.solve` runs by default, and without them as the build solves), "
                 "medians of rounds that time the three in turn; "
                 "the skin transfer's rows are built in ranges of skin points on both "
-                "cores: a helper starts on them beside the factorisation and solves, the "
+                "cores: a partner starts on them beside the factorisation and solves, the "
                 "calling thread takes the ranges left after its solves (the timings name "
-                "the helper: a forked process, or a second thread; `--build-in` chooses, "
+                "the partner: a forked process, or a second thread; `--build-in` chooses, "
                 "`auto` takes the thread when the kernel's pressure stall information "
                 "shows tasks waiting for a core), then joins them (`transfer join`: the "
                 "smoothing steps) and folds them in on both cores; the build's CPU time "

@@ -408,9 +408,9 @@ def test_skin_operator_equals_the_sparse_product():
 
 
 def test_transfer_in_background_equals_the_transfer(block):
-    """The transfer built by a helper (forked process, or thread) and the calling thread,
+    """The transfer built by a partner (forked process, or thread) and the calling thread,
     in ranges of points, equals :class:`Transfer` built here bit for bit, however the
-    ranges are shared (both build some); ranges a dead helper had taken are built by the
+    ranges are shared (both build some); ranges a dead partner had taken are built by the
     caller; an error of the build reaches the caller; a cancelled build leaves no child
     process behind."""
     import os
@@ -438,7 +438,7 @@ def test_transfer_in_background_equals_the_transfer(block):
         n_ranges = -(-skin.n_points // size)
         assert sum(pending.ranges.values()) == n_ranges
         assert timings[f"transfer rows, CPU time ({pending.where})"] >= 0
-    # a helper that took ranges and died: the caller builds them
+    # a partner that took ranges and died: the caller builds them
     builder = response_transfer._Builder(grid, np.asarray(skin.points, dtype=float))
     builder.ranges = response_transfer.ranges(skin.n_points, 37)
     claims = response_transfer._Claims(len(builder.ranges), threading.Lock())
@@ -460,7 +460,7 @@ def test_transfer_in_background_equals_the_transfer(block):
     pending.cancel()
     if pending.where == "second process":
         with pytest.raises(ChildProcessError):
-            os.waitpid(pending.helper.pid, 0)  # already reaped
+            os.waitpid(pending.partner.pid, 0)  # already reaped
 
 
 def test_fold_on_several_threads_equals_one(block, monkeypatch):

@@ -75,7 +75,8 @@ from .. import arrays
 from ..progress import Progress
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
 from .transfer_locate import Located as _Located
-from .transfer_locate import tet_gradients as _gradients
+from .transfer_locate import gradient_operators as _gradient_operators  # noqa: F401
+from .transfer_locate import stacked_gradients as _stacked_gradients
 from .transfer_smoothing import DEFAULT_ITERATIONS, smoothing_steps
 
 log = logging.getLogger(__name__)
@@ -99,30 +100,6 @@ FIT_STIFFNESS = 0.2
 #: counts as crumpled: 1e-4 is a tenth of a micrometre per millimetre, where both the
 #: stretch and the mesh's gradients are round-off of a region that does not move
 DEFAULT_FLOOR = 1e-4
-
-
-def _gradient_operators(points, tets, rows, gradients=None):
-    """Sparse ``(len(rows), n)`` operators ``D_c`` (c = x, y, z): the volume-weighted mean
-    of the displacement gradients of the tetrahedra around each node ``rows``
-    (``gradients``: :func:`~pvcmf.filters.transfer_locate.tet_gradients` if known)."""
-    n, m = len(points), len(tets)
-    inv, vol = _gradients(points, tets) if gradients is None else gradients
-    coef = np.empty((m, 3, 4))  # d/dx_c of the linear interpolant: coefficient of node a
-    coef[:, :, 1:] = inv
-    coef[:, :, 0] = -inv.sum(axis=2)
-    slot = np.full(n, -1)
-    slot[rows] = np.arange(len(rows))
-    t_of = np.repeat(np.arange(m), 4)
-    node = tets.ravel()
-    keep = slot[node] >= 0
-    avg = sp.csr_matrix((vol[t_of[keep]], (slot[node[keep]], t_of[keep])), shape=(len(rows), m))
-    total = np.asarray(avg.sum(axis=1)).ravel()
-    avg = sp.diags(1.0 / np.where(total > 0, total, 1.0)) @ avg
-    out = []
-    for c in range(3):
-        grad = sp.csr_matrix((coef[:, c, :].ravel(), (t_of, node)), shape=(m, n))
-        out.append((avg @ grad).tocsr())
-    return out
 
 
 def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND,
@@ -231,19 +208,6 @@ def _assemble(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
     ``iterations`` steps)."""
     T, steps = _assemble_parts(loc, band, iterations)
     return T if steps is None else steps.apply(T)
-
-
-def _stacked_gradients(loc):
-    """The nodal gradient operators at the boundary nodes, stacked x, y, z (CSR), kept on
-    the mesh's index where ``loc`` has one (points located in parts share them)."""
-    index = getattr(loc, "index", None)
-    D = getattr(index, "stacked_gradients", None)
-    if D is None:
-        D = sp.vstack(_gradient_operators(loc.points, loc.tets, loc.boundary, loc.gradients),
-                      format="csr")
-        if index is not None:
-            index.stacked_gradients = D
-    return D
 
 
 def _tidy(T):

@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import numpy as np
 import pyvista as pv
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .skin import _boundary_faces
 
-__all__ = ["Located", "MeshIndex", "closest_on_triangles", "tetra", "tet_gradients"]
+__all__ = ["Located", "MeshIndex", "closest_on_triangles", "gradient_operators",
+           "stacked_gradients", "tetra", "tet_gradients"]
 
 #: barycentric coordinates down to this (negative) value still count as inside a tetrahedron
 INSIDE_TOL = 1e-6
@@ -50,6 +52,43 @@ def tet_gradients(points, tets):
     inv = np.zeros_like(edges)
     inv[ok] = np.linalg.inv(edges[ok])
     return inv, np.abs(det) / 6.0
+
+
+def gradient_operators(points, tets, rows, gradients=None):
+    """Sparse ``(len(rows), n)`` operators ``D_c`` (c = x, y, z): the volume-weighted mean
+    of the displacement gradients of the tetrahedra around each node ``rows``
+    (``gradients``: :func:`~pvcmf.filters.transfer_locate.tet_gradients` if known)."""
+    n, m = len(points), len(tets)
+    inv, vol = tet_gradients(points, tets) if gradients is None else gradients
+    coef = np.empty((m, 3, 4))  # d/dx_c of the linear interpolant: coefficient of node a
+    coef[:, :, 1:] = inv
+    coef[:, :, 0] = -inv.sum(axis=2)
+    slot = np.full(n, -1)
+    slot[rows] = np.arange(len(rows))
+    t_of = np.repeat(np.arange(m), 4)
+    node = tets.ravel()
+    keep = slot[node] >= 0
+    avg = sp.csr_matrix((vol[t_of[keep]], (slot[node[keep]], t_of[keep])), shape=(len(rows), m))
+    total = np.asarray(avg.sum(axis=1)).ravel()
+    avg = sp.diags(1.0 / np.where(total > 0, total, 1.0)) @ avg
+    out = []
+    for c in range(3):
+        grad = sp.csr_matrix((coef[:, c, :].ravel(), (t_of, node)), shape=(m, n))
+        out.append((avg @ grad).tocsr())
+    return out
+
+
+def stacked_gradients(loc):
+    """The nodal gradient operators at the boundary nodes, stacked x, y, z (CSR), kept on
+    the mesh's index where ``loc`` has one (points located in parts share them)."""
+    index = getattr(loc, "index", None)
+    D = getattr(index, "stacked_gradients", None)
+    if D is None:
+        D = sp.vstack(gradient_operators(loc.points, loc.tets, loc.boundary, loc.gradients),
+                      format="csr")
+        if index is not None:
+            index.stacked_gradients = D
+    return D
 
 
 def closest_on_triangles(p, a, b, c):

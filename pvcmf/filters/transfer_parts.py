@@ -108,10 +108,10 @@ class Joined:
         return self._W
 
 
-def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATIONS, workers=1):
+def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATIONS, threads=1):
     """The transfer of ``points`` from the :class:`Rows` of consecutive ranges ``parts``
     (in order, covering every point): ``W0`` stacked, and the smoothing steps made once
-    (:func:`~pvcmf.filters.transfer_smoothing.smoothing_steps`; ``workers``: threads of its
+    (:func:`~pvcmf.filters.transfer_smoothing.smoothing_steps`; ``threads``: threads of its
     neighbour search). Returns :class:`Joined`."""
     p = np.asarray(points, dtype=float)
     sizes = [len(r.inside) for r in parts]
@@ -132,5 +132,5 @@ def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATI
         D = _stacked_gradients(loc)
         guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
         steps = smoothing_steps(p, dist, float(band), index.median_edge, guide,
-                                iterations=int(smoothing), workers=workers)
+                                iterations=int(smoothing), threads=threads)
     return Joined(W0, steps, inside, dist, float(band))

@@ -115,17 +115,17 @@ def strength(dist, band, h, top=STRENGTH):
     return np.where((dist > 0) & (dist <= band), a, 0.0)
 
 
-def _neighbours(x, moving, fixed_ok, k, reach, workers=1):
+def _neighbours(x, moving, fixed_ok, k, reach, threads=1):
     """Per point of ``moving`` that has one: its ``k`` nearest points among ``fixed_ok``
     (not itself) within ``reach`` and their normalised weights ``w_pq``. Returns the rows
     (points), the neighbours ``(r, k)`` and the weights ``(r, k)`` (0 where none);
-    ``workers``: threads of the search."""
+    ``threads``: threads of the search."""
     cand = np.flatnonzero(fixed_ok)
     kk = min(k + 2, len(cand))
     if kk < 3 or not len(moving):
         return np.zeros(0, dtype=np.int64), np.zeros((0, 1), dtype=np.int64), np.zeros((0, 1))
     tree = cKDTree(x[cand], balanced_tree=False, compact_nodes=False)
-    dist, idx = tree.query(x[moving], k=kk, distance_upper_bound=reach, workers=workers)
+    dist, idx = tree.query(x[moving], k=kk, distance_upper_bound=reach, workers=threads)
     dist, idx = dist.reshape(len(moving), kk), idx.reshape(len(moving), kk)
     nb = np.where(idx < len(cand), cand[np.minimum(idx, len(cand) - 1)], 0)
     me = (nb == moving[:, None]) & (idx < len(cand))  # the point itself (first, but for a
@@ -147,13 +147,13 @@ def _neighbours(x, moving, fixed_ok, k, reach, workers=1):
 
 
 def smoothing_steps(x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS, top=None,
-                    neighbours=None, workers=1):
+                    neighbours=None, threads=1):
     """The ``iterations`` gradient-guided smoothing steps (module docs) as sparse matrices
     (:class:`Steps`), or None where no point moves.
 
     The parameters are those of :func:`smooth_outside` (without ``T``); ``guide``'s matrix
     is built once here. ``smoothing_steps(...).apply(T)`` is ``smooth_outside(T, ...)``.
-    ``workers``: threads of the neighbour search (the same neighbours for any number).
+    ``threads``: threads of the neighbour search (the same neighbours for any number).
 
     Examples
     --------
@@ -173,7 +173,7 @@ def smoothing_steps(x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS, t
     moving = np.flatnonzero(a > 0)
     rows, nb, w = _neighbours(x, moving, dist <= band,
                               NEIGHBOURS if neighbours is None else neighbours,
-                              NEIGHBOUR_REACH * h, workers)
+                              NEIGHBOUR_REACH * h, threads)
     if not len(rows):
         return None
     # the steps act on the block of the moving points and their neighbours only

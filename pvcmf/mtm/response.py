@@ -27,7 +27,7 @@ the rounding bound of the float32 products (:meth:`SkinOperator.float32_error`, 
 :func:`float32_bound`), over plans with rotation entries up to :data:`FLOAT32_ROTATION` and
 centroid shifts up to :data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a
 face the bound is far above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md
-gives the demo's). The skin transfer is built on both cores: a helper (a forked
+gives the demo's). The skin transfer is built on both cores: a partner (a forked
 process, or a second thread) starts on its rows beside the factorisation and solves, and
 the calling thread takes the rows left after them (:mod:`pvcmf.mtm.response_transfer`); the basis
 solves skip the solution checks (unit fields, not motions). Delegates to
@@ -170,15 +170,15 @@ class PlanResponse:
     timings : dict
         Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
         solves: the skin transfer's ranges left to the calling thread, waiting for the
-        helper, joining, folding), ``fold`` (of those, the skin operator's products: the
+        partner, joining, folding), ``fold`` (of those, the skin operator's products: the
         transfer before its smoothing steps times the nodal response, then the steps on
-        those dense rows, on every core), the transfer's ``rows`` built by the helper
+        those dense rows, on every core), the transfer's ``rows`` built by the partner
         (``(second process)`` or ``(second thread)``, beside the others) and by the
         calling thread, with their CPU times, its ``join`` (the smoothing steps), and
         the CPU time of the calling thread (``main thread CPU``; ``main thread CPU, bc +
         factor + solves`` up to the solves).
     transfer_ranges : dict or None
-        Ranges of skin points whose transfer rows the helper (``'second process'`` or
+        Ranges of skin points whose transfer rows the partner (``'second process'`` or
         ``'second thread'``) and the ``'calling thread'`` built.
     """
 

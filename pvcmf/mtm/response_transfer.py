@@ -3,18 +3,18 @@
 The transfer's rows before its smoothing steps are built in ranges of skin points
 (:mod:`pvcmf.filters.transfer_parts`: row ``i`` depends on point ``i`` alone, so the
 ranges stacked equal :class:`pvcmf.filters.surface_mapping.Transfer`'s rows bit for bit).
-A helper starts on the ranges from the front while the calling thread runs the
+A partner starts on the ranges from the front while the calling thread runs the
 boundary conditions, the factorisation and the solves; the calling thread then takes the
 ranges left from the back, so both cores finish together (ranges handed out one at a
 time through counters in shared memory). The calling thread joins the ranges and makes
 the smoothing steps (their neighbour search on every core); the plan response folds the
 rows with the nodal response (:class:`pvcmf.mtm.response_operator.SkinOperator`, its
-sparse products on every core, the helper being done).
+sparse products on every core, the partner being done).
 
 :class:`pvcmf.filters.surface_mapping.Transfer` runs many small numpy operations that hold
 Python's global interpreter lock; on a second thread they stall the factorisation and solves
 of the calling thread (and those stall it). On Linux, when the calling process runs a single
-Python thread and the cores are not contended (:func:`cpu_pressure`), the helper is
+Python thread and the cores are not contended (:func:`cpu_pressure`), the partner is
 therefore a forked child process, which shares only the range counters with the parent
 after the fork and writes its ranges' rows (with what the join reads of the mesh) to an
 anonymous temporary file (pickle) that the parent reads once the child has exited;
@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["transfer_in_background"]
 
-#: where the helper builds its ranges of the transfer: ``"auto"`` (a forked process where
+#: where the partner builds its ranges of the transfer: ``"auto"`` (a forked process where
 #: possible and the cores are not contended, see :func:`cpu_pressure`), ``"process"``
 #: (where possible) or ``"thread"``
 BUILD_IN = "auto"
@@ -78,14 +78,14 @@ def cpu_pressure():
 
 
 class _Claims:
-    """Ranges of skin points shared by two builders: the helper takes them from the front,
+    """Ranges of skin points shared by two builders: the partner takes them from the front,
     the caller from the back, one at a time, until they meet (counters in shared memory,
     so a forked child and its parent see the same ones)."""
 
     def __init__(self, n, lock):
         self._buf = mmap.mmap(-1, 24)  # anonymous and shared: survives the fork
         self._c = np.frombuffer(self._buf, dtype=np.int64)
-        self._c[:] = (0, n - 1, 0)  # front, back, the helper's mesh index is written
+        self._c[:] = (0, n - 1, 0)  # front, back, the partner's mesh index is written
         self._lock = lock
 
     @property
@@ -112,7 +112,7 @@ class _Claims:
             return j
 
     def stop(self):
-        """No range is handed out any more (the helper ends after its current one)."""
+        """No range is handed out any more (the partner ends after its current one)."""
         with self._lock:
             self._c[0] = self._c[1] + 1
 
@@ -126,7 +126,7 @@ class _Builder:
         self.ranges = ranges(len(x), CHUNK)
         self._index = None
         self._index_lock = threading.Lock()
-        self.fetch = None  # returns the helper's index where it has one to give
+        self.fetch = None  # returns the partner's index where it has one to give
 
     def index(self):
         with self._index_lock:
@@ -147,7 +147,7 @@ class _Builder:
 
 
 class _Thread:
-    """The helper on a second thread (a future's ``result``)."""
+    """The partner on a second thread (a future's ``result``)."""
 
     where = "second thread"
 
@@ -155,22 +155,25 @@ class _Thread:
         from concurrent.futures import ThreadPoolExecutor
 
         self.builder = builder
-        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pvcmf-transfer")
-        self._future = pool.submit(builder.run, claims.front)
-        pool.shutdown(wait=False)
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pvcmf-transfer")
+        self._future = self._pool.submit(builder.run, claims.front)
 
     def result(self):
-        return self._future.result()
+        try:
+            return self._future.result()
+        finally:  # the thread has ended when this returns (a later build may fork)
+            self._pool.shutdown(wait=True)
 
     def cancel(self):
         self._future.cancel()
+        self._pool.shutdown(wait=False)
 
     def close(self):
         pass
 
 
 class _Process:
-    """The helper in a forked child process, which writes its rows to an anonymous
+    """The partner in a forked child process, which writes its rows to an anonymous
     temporary file and exits (a pipe would make the child wait for the parent to read);
     :meth:`result` waits for it and reads them, :meth:`cancel` kills it (the parent failed
     before reading)."""
@@ -252,17 +255,17 @@ class _Process:
 
 
 class _Pending:
-    """The transfer being built by a helper (:class:`_Process` or :class:`_Thread`) and,
+    """The transfer being built by a partner (:class:`_Process` or :class:`_Thread`) and,
     once the caller asks for it, by the caller too."""
 
-    def __init__(self, builder, claims, helper):
-        self.builder, self.claims, self.helper = builder, claims, helper
-        self.where = helper.where
+    def __init__(self, builder, claims, partner):
+        self.builder, self.claims, self.partner = builder, claims, partner
+        self.where = partner.where
         self.ranges = None
 
     def result(self):
         """``(transfer, timings)``: the joined transfer (:class:`Joined`) after the caller
-        has built the ranges the helper had not taken, and the seconds of each part
+        has built the ranges the partner had not taken, and the seconds of each part
         (:attr:`ranges` then says how many ranges each built)."""
         builder = self.builder
         try:
@@ -271,11 +274,11 @@ class _Pending:
             self.cancel()
             raise
         try:
-            theirs, their_wall, their_cpu = self.helper.result()
+            theirs, their_wall, their_cpu = self.partner.result()
             t, c = time.perf_counter(), time.thread_time()
             joined = self._join({**theirs, **mine})
         finally:
-            self.helper.close()
+            self.partner.close()
         where = self.where
         self.ranges = {where: len(theirs), "calling thread": len(builder.ranges) - len(theirs)}
         timings = {
@@ -289,17 +292,17 @@ class _Pending:
         return joined, timings
 
     def _join(self, rows):
-        """The ranges joined (those a dead helper had taken built here first)."""
+        """The ranges joined (those a dead partner had taken built here first)."""
         builder = self.builder
         for i in range(len(builder.ranges)):
-            if i not in rows:  # the helper died: its ranges here
+            if i not in rows:  # the partner died: its ranges here
                 rows[i] = transfer_rows(builder.index(), builder.x[slice(*builder.ranges[i])])
         return join_rows(builder.index(), builder.x, [rows[i] for i in range(len(builder.ranges))],
-                         workers=_cores())
+                         threads=_cores())
 
     def cancel(self):
         self.claims.stop()
-        self.helper.cancel()
+        self.partner.cancel()
 
 
 def _cores():
@@ -317,7 +320,7 @@ def transfer_in_background(mesh, skin):
     an object whose ``result()`` builds the ranges left (on the calling thread) and
     returns ``(transfer, timings)`` (``transfer`` a
     :class:`~pvcmf.filters.transfer_parts.Joined`: ``W0``, ``steps``, ``inside``,
-    ``modelled``), whose ``cancel()`` stops the helper and whose ``where`` names where
+    ``modelled``), whose ``cancel()`` stops the partner and whose ``where`` names where
     it runs."""
     points, tets = tetra(mesh)
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
