@@ -16,8 +16,10 @@ Python's global interpreter lock; on a second thread they stall the factorisatio
 of the calling thread (and those stall it). On Linux, when the calling process runs a single
 Python thread and the cores are not contended (:func:`cpu_pressure`), the partner is
 therefore a forked child process, which shares only the range counters with the parent
-after the fork and writes its ranges' rows (with what the join reads of the mesh) to an
-anonymous temporary file (pickle) that the parent reads once the child has exited;
+after the fork: it first writes its mesh index
+(:class:`~pvcmf.filters.transfer_locate.MeshIndex`, pickled; the parent reads it in
+milliseconds instead of making its own), then its ranges' rows to an anonymous temporary
+file (pickle) that the parent reads once the child has exited;
 elsewhere, or when the fork fails, a second thread. If the child dies, the caller builds
 its ranges. Either way the result is the same transfer.
 
@@ -173,8 +175,9 @@ class _Thread:
 
 
 class _Process:
-    """The partner in a forked child process, which writes its rows to an anonymous
-    temporary file and exits (a pipe would make the child wait for the parent to read);
+    """The partner in a forked child process, which writes its mesh index (for the parent's
+    ranges) and then its rows to anonymous temporary files and exits (a pipe would make
+    the child wait for the parent to read);
     :meth:`result` waits for it and reads them, :meth:`cancel` kills it (the parent failed
     before reading)."""
 
