@@ -40,6 +40,12 @@ _MAX_MOVE = 1.5
 _TOLERANCE = 0.05
 _MIN_COS = 0.3
 _CLEARANCE = 0.5
+#: the lowest code projected: the named muscles (``_MUSCLE0 + 1``). ``_MUSCLE0`` would also
+#: move the muscle tissue without id (tongue, temporalis, neck) against the fat; the
+#: temporalis, a thin sheet under thin fat on the skull, then makes sheets intersect
+_LOWEST = _MUSCLE0 + 1
+#: vertices searched for the nearest vertex of another sheet
+_NEIGHBOURS = 24
 
 
 class MuscleIndicators:
@@ -51,13 +57,16 @@ class MuscleIndicators:
 
     def __init__(self, fine):
         self.code, self.origin, self.spacing = fine[0], np.asarray(fine[1], float), np.asarray(fine[2], float)
-        self._boxes = ndimage.find_objects(np.where(self.code > _MUSCLE0, self.code, 0))
+        # box of code c at index c - _MUSCLE0 (muscle tissue without id, then the named)
+        self._boxes = ndimage.find_objects(
+            np.where(self.code >= _MUSCLE0, self.code.astype(np.int64) - _MUSCLE0 + 1, 0))
         self._cache = {}
 
     def _field(self, c):
         """(value, gradient (3 arrays, per voxel), box start (z, y, x)) of code ``c``."""
         if c not in self._cache:
-            box = self._boxes[c - 1] if c - 1 < len(self._boxes) else None
+            i = c - _MUSCLE0
+            box = self._boxes[i] if 0 <= i < len(self._boxes) else None
             if box is None:
                 self._cache[c] = None
                 return None
@@ -98,7 +107,8 @@ def _projected_vertices(points, tri, side_codes):
     """
     n_pts = len(points)
     named = side_codes > _MUSCLE0
-    muscle_code = np.where(named[:, 0], side_codes[:, 0], np.where(named[:, 1], side_codes[:, 1], 0))
+    top = side_codes.max(axis=1)
+    muscle_code = np.where(top >= _LOWEST, top, 0)
     v = tri.ravel()
     code = np.repeat(muscle_code, 3)
     big = np.iinfo(np.int64).max
@@ -126,13 +136,24 @@ def _projected_vertices(points, tri, side_codes):
 def _muscle_normals(points, tri, side_codes):
     """Unit vertex normals of the named muscles' sheets, pointing into the muscle (the
     higher code; VTK's SurfaceNets orients a triangle towards its second side)."""
-    named = (side_codes > _MUSCLE0).any(axis=1)
+    named = (side_codes >= _LOWEST).any(axis=1)
     t = tri[named]
     n = np.cross(points[t[:, 1]] - points[t[:, 0]], points[t[:, 2]] - points[t[:, 0]])
     n *= np.where(side_codes[named, 1] > side_codes[named, 0], 1.0, -1.0)[:, None]
     vn = np.stack([np.bincount(t.ravel(), weights=np.repeat(n[:, k], 3), minlength=len(points))
                    for k in range(3)], axis=1)
     return vn / np.maximum(np.linalg.norm(vn, axis=1), 1e-30)[:, None]
+
+
+def _clearance(tree, x, code, c, k=_NEIGHBOURS):
+    """Distance from ``x`` to the nearest surface vertex not projected with muscle code
+    ``c`` (among the ``k`` nearest vertices; beyond them, the distance of the last)."""
+    k = min(k, tree.n)
+    d, j = tree.query(x, k=k)
+    d, j = d.reshape(len(x), k), j.reshape(len(x), k)
+    other = code[j] != c
+    first = np.argmax(other, axis=1)
+    return np.where(other.any(axis=1), d[np.arange(len(x)), first], d[:, -1])
 
 
 def project_onto_indicators(points, tri, side_codes, indicators):
@@ -156,12 +177,11 @@ def project_onto_indicators(points, tri, side_codes, indicators):
     code, plane = _projected_vertices(points, tri, side_codes)
     voxel = float(np.min(indicators.spacing))
     normal = _muscle_normals(points, tri, side_codes)
+    tree = spatial.cKDTree(points)
     moved = 0
     for c in np.unique(code[code > 0]):  # one pass per named muscle (a dozen)
         idx = np.flatnonzero(code == c)
-        others = np.flatnonzero(code != c)
-        clearance = (spatial.cKDTree(points[others]).query(points[idx])[0] if len(others)
-                     else np.full(len(idx), np.inf))
+        clearance = _clearance(tree, points[idx], code, c)
         x0 = points[idx]
         x = x0.copy()
         for _ in range(_STEPS):
