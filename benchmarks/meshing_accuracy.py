@@ -36,7 +36,8 @@ import pvcmf
 from pvcmf.filters import tetrahedralize
 from pvcmf.filters.meshing import SURFACE_SPACING
 from pvcmf.pipeline import face_box
-from pvcmf.truth.anatomy import interface_distance, label_interface_distance, muscle_volume_errors
+from pvcmf.truth.anatomy import (interface_distance, interface_distance_by_muscle,
+                                 label_interface_distance, muscle_volume_errors)
 
 MODES = ("staircase", "subvoxel")
 
@@ -52,7 +53,7 @@ def label_row(case):
             "corner_p90": np.percentile(d["corners"], 90), "all_p90": np.percentile(both, 90)}
 
 
-def row(case, n_tets, face_fraction, mode="staircase"):
+def row(case, n_tets, face_fraction, mode="staircase", by_muscle=False):
     t = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -62,13 +63,37 @@ def row(case, n_tets, face_fraction, mode="staircase"):
     seconds = time.perf_counter() - t
     d = interface_distance(grid, case)
     v = muscle_volume_errors(grid, case).set_index("muscle")["error"]
+    per = ({k: (np.percentile(x, 90) if len(x) else np.nan, len(x))
+            for k, x in interface_distance_by_muscle(grid, case).items()} if by_muscle else None)
     m50, m90 = np.percentile(d["muscle"], [50, 90])
     g50, g90 = np.percentile(d["generic"], [50, 90])
     return {"patient": case.patient, "requested": n_tets, "mode": mode, "tets": grid.n_cells,
             "spacing": float(grid.field_data[SURFACE_SPACING][0]), "mesh_s": seconds, "muscle_p50": m50, "muscle_p90": m90, "generic_p50": g50,
             "generic_p90": g90, "vol_median_abs": float(v.abs().median()),
             "vol_max_abs": float(v.abs().max()),
-            "masseter": float(v[["masseter_left", "masseter_right"]].abs().max())}
+            "masseter": float(v[["masseter_left", "masseter_right"]].abs().max()),
+            "per_muscle": per, "volume": v}
+
+
+def per_muscle_table(rows):
+    """Markdown lines: p90 (mm), number of samples and volume error per muscle, for the
+    rows measured per muscle."""
+    detail = [r for r in rows if r["per_muscle"] is not None]
+    if not detail:
+        return []
+    head = [f"{r['mode']} {r['tets']}" for r in detail]
+    lines = ["", "## Per muscle", "",
+             "Facial-muscle interface p90 (mm), its number of samples (face centroids and",
+             "vertices) and the muscle's volume error, per mesh (mode, tetrahedra).", "",
+             "| muscle | " + " | ".join(head) + " |",
+             "|---|" + "---|" * len(detail)]
+    for name in detail[0]["per_muscle"]:
+        cells = []
+        for r in detail:
+            p90, n = r["per_muscle"][name]
+            cells.append(f"{p90:.2f} ({n}), {100 * r['volume'][name]:+.0f} %")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def main(argv=None):
@@ -78,6 +103,8 @@ def main(argv=None):
     ap.add_argument("--spacing", type=float, default=2.0)
     ap.add_argument("--face-fraction", type=float, default=0.5)
     ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
+    ap.add_argument("--by-muscle", type=int, nargs="*", default=[60_000],
+                    help="requested counts also tabulated per muscle")
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args(argv)
     rows, labels = [], []
@@ -87,8 +114,9 @@ def main(argv=None):
         print(labels[-1], flush=True)
         for n in args.counts:
             for mode in args.modes:
-                rows.append(row(case, n, args.face_fraction, mode))
-                print(rows[-1], flush=True)
+                rows.append(row(case, n, args.face_fraction, mode, n in args.by_muscle))
+                print({k: v for k, v in rows[-1].items() if k not in ("per_muscle", "volume")},
+                      flush=True)
     half = args.spacing / 2
     lines = [
         "# Meshing accuracy against the true anatomy", "",
@@ -99,7 +127,8 @@ def main(argv=None):
         f"p90 within half a voxel ({half:g} mm).", "",
         f"Command: `python benchmarks/meshing_accuracy.py --patients "
         f"{' '.join(map(str, args.patients))} --counts {' '.join(map(str, args.counts))} "
-        f"--spacing {args.spacing:g} --modes {' '.join(args.modes)}`  ",
+        f"--spacing {args.spacing:g} --modes {' '.join(args.modes)} --by-muscle "
+        f"{' '.join(map(str, args.by_muscle))}`  ",
         f"Machine: {platform.machine()}, {platform.processor() or 'cpu'}, Python "
         f"{sys.version.split()[0]}, pvcmf {pvcmf.__version__}.", "",
         "## The label image", "",
@@ -129,6 +158,7 @@ def main(argv=None):
             f"{r['muscle_p50']:.2f} | {r['muscle_p90']:.2f} | {r['generic_p50']:.2f} | "
             f"{r['generic_p90']:.2f} | {100 * r['vol_median_abs']:.0f} % | "
             f"{100 * r['vol_max_abs']:.0f} % | {100 * r['masseter']:.0f} % |")
+    lines += per_muscle_table(rows)
     lines += [
         "", "## Reading the tables", "",
         "The label image is what the mesher knows of the muscles: its voxel faces' centres lie",

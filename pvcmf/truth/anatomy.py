@@ -13,6 +13,7 @@ exact, with no voxel staircase.
   interfaces (faces between a facial muscle and other soft tissue, and between generic
   muscle tissue and fat) to the true ones: the length of three Newton projections onto
   the zero set of ``f = phi o T`` (gradient by central differences);
+* :func:`interface_distance_by_muscle` -> the facial-muscle distances per muscle;
 * :func:`label_interface_distance` -> the same for the label image itself: its voxel
   faces between a facial muscle and other soft tissue (the staircase any mesher of the
   labels starts from), at their centres and corners;
@@ -37,7 +38,8 @@ from ..datasets import template
 
 log = logging.getLogger("pvcmf.reference")
 
-__all__ = ["GENERIC_MUSCLES", "interface_distance", "label_interface_distance",
+__all__ = ["GENERIC_MUSCLES", "interface_distance", "interface_distance_by_muscle",
+           "label_interface_distance",
            "muscle_volume_errors", "true_level_set"]
 
 #: the generic muscle tissue of the atlas (``tissue == MUSCLE_TISSUE``, no facial muscle id)
@@ -187,6 +189,45 @@ def interface_distance(grid, patient):
                          points[g[:, 2]]]) if len(g) else np.zeros((0, 3))
     out["generic"] = (np.min([_distance(patient, name, gs) for name in GENERIC_MUSCLES], axis=0)
                       if len(gs) else np.zeros(0))
+    return out
+
+
+def interface_distance_by_muscle(grid, patient):
+    """Distances (mm) of a mesh's facial-muscle interfaces to the true ones, per muscle.
+
+    The samples of :func:`interface_distance`'s ``"muscle"`` distances (centroids and
+    vertices of the faces between a facial muscle and other soft tissue), grouped by the
+    muscle on the face.
+
+    Parameters
+    ----------
+    grid : pyvista.UnstructuredGrid
+        Tetrahedral mesh with cell array ``arrays.MUSCLE``, patient frame.
+    patient : int or pvcmf.datasets.Case
+        The virtual patient it was meshed from.
+
+    Returns
+    -------
+    dict
+        Muscle name (``arrays.MUSCLES`` order) -> 1-D float array of distances (mm);
+        empty for a muscle the mesh lacks.
+    """
+    if not isinstance(grid, pv.UnstructuredGrid):
+        raise TypeError(f"grid must be a pyvista.UnstructuredGrid, got {type(grid).__name__}")
+    tets = np.asarray(grid.cells_dict[pv.CellType.TETRA], dtype=np.int64)
+    muscle = np.asarray(arrays.require_array(grid, arrays.MUSCLE, "cell", dtype="iu", ncomp=1,
+                                             producer="tetrahedralize"))
+    points = np.asarray(grid.points, dtype=float)
+    faces, a, b = _internal_faces(tets)
+    one = (muscle[a] > 0) != (muscle[b] > 0)
+    m = np.where(muscle[a] > 0, muscle[a], muscle[b])[one]
+    f = faces[one]
+    out = {}
+    for name, mid in arrays.MUSCLE_IDS.items():  # twelve muscles, vectorised inside
+        g = f[m == mid]
+        x = np.concatenate([points[g].mean(axis=1), points[g].reshape(-1, 3)])
+        out[name] = (np.minimum(_distance(patient, name, x), _distance(patient, "eyes", x))
+                     if len(x) else np.zeros(0))
     return out
 
 
