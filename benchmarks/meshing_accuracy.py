@@ -170,7 +170,13 @@ def main(argv=None):
         "cannot restore a strap's rims and bends that the coarse grid lost: the p90 falls",
         "with the working spacing, i.e. with the count. The sub-voxel interfaces lower the",
         "median distance at every count and the p90 most where the working spacing is about",
-        "the muscles' thickness.",
+        "the muscles' thickness.", "",
+        "The thin muscles' volume errors come from the same limit. On a working grid coarser",
+        "than a strap, the muscle claims as many working cells as its volume fills: a layer",
+        "one cell thick over about thickness / spacing of the strap's extent, which the",
+        "placement then thins to the strap, so the mesh keeps about that share of the",
+        "muscle. The label image itself holds each muscle's volume closely, except where two",
+        "muscles overlap (the later in `arrays.MUSCLES` keeps the voxels) and under the eyes.",
     ]
     if not args.no_write:
         PAGE.write_text("\n".join(lines) + "\n")
