@@ -4,7 +4,8 @@ The label image is a voxel staircase of smooth analytic surfaces; a mesh is judg
 the surfaces themselves: the distance of its muscle interfaces to the true ones (goal: p90
 within half a voxel) and each facial muscle's volume against its true volume in the same
 mesh. The measure is checked first on points placed at known distances from a true
-surface. ``benchmarks/meshing_accuracy.py`` tabulates both against the tetrahedra count
+surface; the sub-voxel interfaces (``tetrahedralize(subvoxel=True)``) also on an analytic
+muscle shell. ``benchmarks/meshing_accuracy.py`` tabulates both against the tetrahedra count
 (docs/benchmarks/meshing_accuracy.md).
 """
 
@@ -95,16 +96,105 @@ def test_muscle_interfaces_against_the_true_surfaces(patient_mesh):
     assert np.percentile(d["muscle"], 90) < 1.6 * SPACING
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known limitation: the muscle interfaces of the mesh lie at p90 4.1 mm (3 mm "
-    "voxels, 10k tetrahedra) and 1.6 mm (2 mm voxels, 60k) from the true surfaces, not "
-    "within half a voxel: the facial muscles are 3-5 mm thick straps, one or two voxels, "
-    "and the mesher follows the voxel labels (docs/benchmarks/meshing_accuracy.md)",
-)
-def test_muscle_interfaces_within_half_a_voxel_goal(patient_mesh):
+# the goal at 3 mm voxels is met from ~90k tetrahedra on; measured at 120k: p90 1.38 mm
+# with sub-voxel interfaces, 1.44 mm without (2 mm voxels: docs/benchmarks/meshing_accuracy.md)
+def test_interface_distance_by_muscle_groups_the_muscle_samples(patient_mesh):
+    """The per-muscle distances are the facial-muscle distances, grouped by muscle."""
+    from pvcmf.truth.anatomy import interface_distance_by_muscle
+
     case, grid = patient_mesh
-    assert np.percentile(interface_distance(grid, case)["muscle"], 90) <= 0.5 * SPACING
+    flat = np.sort(interface_distance(grid, case)["muscle"])
+    per = interface_distance_by_muscle(grid, case)
+    assert list(per) == list(arrays.MUSCLES)
+    assert sum(len(v) > 0 for v in per.values()) >= 8
+    np.testing.assert_allclose(np.sort(np.concatenate(list(per.values()))), flat)
+
+
+GOAL_N_TETS = 120_000
+
+
+@pytest.fixture(scope="module")
+def subvoxel_mesh():
+    case = pvcmf.datasets.phantom(1, spacing=SPACING)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        grid = tetrahedralize(case.truth, n_tets=GOAL_N_TETS, conforming=True,
+                              roi=face_box(case.truth, 0.5), subvoxel=True)
+    return case, grid
+
+
+def test_muscle_interfaces_within_half_a_voxel_goal(subvoxel_mesh):
+    """The goal: the muscle interfaces of a sub-voxel mesh within half a voxel (p90) of
+    the true surfaces, at a count where the working spacing (~3.8 mm) is about the
+    muscles' thickness: coarser meshes cannot follow the 3-5 mm straps."""
+    case, grid = subvoxel_mesh
+    d = interface_distance(grid, case)["muscle"]
+    assert len(d) > 2000
+    assert np.percentile(d, 90) <= 0.5 * SPACING
+
+
+R_SHELL, T_SHELL, C_SHELL = 14.0, 3.6, np.array([0.3, -0.2, 0.1])
+
+
+def shell_image(spacing=2.0, half=26.0):
+    """Fat in a box of air holding a spherical muscle shell 3.6 mm thick (muscle id 1),
+    labelled at the voxel centres: a thin curved strap like the facial muscles."""
+    import pyvista as pv
+
+    n = int(round(2 * half / spacing)) + 1
+    img = pv.ImageData(dimensions=(n, n, n), spacing=(spacing,) * 3, origin=(-half,) * 3)
+    r = np.linalg.norm(img.points - C_SHELL, axis=1)
+    tissue = np.where(np.abs(img.points).max(axis=1) < half - 3, arrays.FAT, arrays.AIR)
+    inside = np.abs(r - R_SHELL) < T_SHELL / 2
+    tissue[inside] = arrays.MUSCLE_TISSUE
+    img.point_data[arrays.TISSUE] = tissue.astype(np.uint8)
+    img.point_data[arrays.MUSCLE] = inside.astype(np.uint8)
+    return img
+
+
+def shell_distance(grid):
+    """Distance of the muscle / fat faces (centroids and vertices) to the shell's two
+    spheres."""
+    import pyvista as pv
+
+    from pvcmf.truth.anatomy import _internal_faces
+
+    muscle = np.asarray(grid.cell_data[arrays.MUSCLE])
+    faces, a, b = _internal_faces(np.asarray(grid.cells_dict[pv.CellType.TETRA]))
+    p = np.asarray(grid.points)[faces[(muscle[a] > 0) != (muscle[b] > 0)]]
+    x = np.concatenate([p.mean(axis=1), p.reshape(-1, 3)])
+    return np.abs(np.abs(np.linalg.norm(x - C_SHELL, axis=1) - R_SHELL) - T_SHELL / 2)
+
+
+def test_subvoxel_interfaces_on_an_analytic_shell():
+    """Sub-voxel interfaces lie nearer the analytic surfaces of a thin curved muscle than
+    the staircase's average (measured p50 0.43 -> 0.22 mm, p90 0.81 -> 0.55 mm with 2 mm
+    voxels and 20k tetrahedra), within a third of a voxel at p90."""
+    img = shell_image()
+    plain = shell_distance(tetrahedralize(img, n_tets=20_000))
+    sub = shell_distance(tetrahedralize(img, n_tets=20_000, subvoxel=True))
+    assert len(sub) > 1000
+    assert np.percentile(sub, 50) < 0.7 * np.percentile(plain, 50)
+    assert np.percentile(sub, 90) < 0.8 * np.percentile(plain, 90)
+    assert np.percentile(sub, 90) < 0.35 * 2.0
+
+
+def test_subvoxel_is_checked():
+    with pytest.raises(TypeError, match="subvoxel"):
+        tetrahedralize(shell_image(), n_tets=5_000, subvoxel="yes")
+
+
+def test_label_interface_distance_of_the_staircase():
+    """The voxel faces between a muscle and other soft tissue: their centres lie within
+    half a voxel of the true surface (the surface crosses the segment between the two
+    voxel centres), their corners further."""
+    from pvcmf.truth.anatomy import label_interface_distance
+
+    case = pvcmf.datasets.phantom(1, spacing=SPACING)
+    d = label_interface_distance(case.truth, case)
+    assert len(d["corners"]) == 4 * len(d["centres"]) > 1000
+    assert np.percentile(d["centres"], 90) < 0.5 * SPACING
+    assert np.percentile(d["corners"], 90) > np.percentile(d["centres"], 90)
 
 
 def test_muscle_volumes_against_the_true_volumes(patient_mesh):

@@ -13,6 +13,10 @@ exact, with no voxel staircase.
   interfaces (faces between a facial muscle and other soft tissue, and between generic
   muscle tissue and fat) to the true ones: the length of three Newton projections onto
   the zero set of ``f = phi o T`` (gradient by central differences);
+* :func:`interface_distance_by_muscle` -> the facial-muscle distances per muscle;
+* :func:`label_interface_distance` -> the same for the label image itself: its voxel
+  faces between a facial muscle and other soft tissue (the staircase any mesher of the
+  labels starts from), at their centres and corners;
 * :func:`muscle_volume_errors` -> each facial muscle's mesh volume against the true volume
   of the muscle inside the same mesh (each tetrahedron near the muscle sampled at 20
   barycentric points).
@@ -34,7 +38,9 @@ from ..datasets import template
 
 log = logging.getLogger("pvcmf.reference")
 
-__all__ = ["GENERIC_MUSCLES", "interface_distance", "muscle_volume_errors", "true_level_set"]
+__all__ = ["GENERIC_MUSCLES", "interface_distance", "interface_distance_by_muscle",
+           "label_interface_distance",
+           "muscle_volume_errors", "true_level_set"]
 
 #: the generic muscle tissue of the atlas (``tissue == MUSCLE_TISSUE``, no facial muscle id)
 GENERIC_MUSCLES = {"tongue": tongue_sdf, "temporalis": temporalis_sdf,
@@ -184,6 +190,109 @@ def interface_distance(grid, patient):
     out["generic"] = (np.min([_distance(patient, name, gs) for name in GENERIC_MUSCLES], axis=0)
                       if len(gs) else np.zeros(0))
     return out
+
+
+def interface_distance_by_muscle(grid, patient):
+    """Distances (mm) of a mesh's facial-muscle interfaces to the true ones, per muscle.
+
+    The samples of :func:`interface_distance`'s ``"muscle"`` distances (centroids and
+    vertices of the faces between a facial muscle and other soft tissue), grouped by the
+    muscle on the face.
+
+    Parameters
+    ----------
+    grid : pyvista.UnstructuredGrid
+        Tetrahedral mesh with cell array ``arrays.MUSCLE``, patient frame.
+    patient : int or pvcmf.datasets.Case
+        The virtual patient it was meshed from.
+
+    Returns
+    -------
+    dict
+        Muscle name (``arrays.MUSCLES`` order) -> 1-D float array of distances (mm);
+        empty for a muscle the mesh lacks.
+    """
+    if not isinstance(grid, pv.UnstructuredGrid):
+        raise TypeError(f"grid must be a pyvista.UnstructuredGrid, got {type(grid).__name__}")
+    tets = np.asarray(grid.cells_dict[pv.CellType.TETRA], dtype=np.int64)
+    muscle = np.asarray(arrays.require_array(grid, arrays.MUSCLE, "cell", dtype="iu", ncomp=1,
+                                             producer="tetrahedralize"))
+    points = np.asarray(grid.points, dtype=float)
+    faces, a, b = _internal_faces(tets)
+    one = (muscle[a] > 0) != (muscle[b] > 0)
+    m = np.where(muscle[a] > 0, muscle[a], muscle[b])[one]
+    f = faces[one]
+    out = {}
+    for name, mid in arrays.MUSCLE_IDS.items():  # twelve muscles, vectorised inside
+        g = f[m == mid]
+        x = np.concatenate([points[g].mean(axis=1), points[g].reshape(-1, 3)])
+        out[name] = (np.minimum(_distance(patient, name, x), _distance(patient, "eyes", x))
+                     if len(x) else np.zeros(0))
+    return out
+
+
+def label_interface_distance(labels, patient):
+    """Distances (mm) of a label image's facial-muscle interfaces to the true ones.
+
+    The interfaces are the voxel faces between a voxel of a facial muscle and a
+    soft-tissue voxel (fat or muscle tissue) of no facial muscle; each is sampled at its centre and
+    its four corners, and measured like :func:`interface_distance` (to the muscle's
+    true surface, or the eyes' where nearer).
+
+    Parameters
+    ----------
+    labels : pyvista.ImageData
+        Axis-aligned label image with point arrays ``arrays.TISSUE`` and
+        ``arrays.MUSCLE`` (e.g. a virtual patient's ``truth``).
+    patient : int or pvcmf.datasets.Case
+        The virtual patient the labels show.
+
+    Returns
+    -------
+    dict
+        ``"centres"`` and ``"corners"``: 1-D float arrays of distances (mm).
+
+    Examples
+    --------
+    >>> import pvcmf                                                          # doctest: +SKIP
+    >>> case = pvcmf.datasets.phantom(1, spacing=2.0)                         # doctest: +SKIP
+    >>> d = label_interface_distance(case.truth, case)                        # doctest: +SKIP
+    """
+    if not isinstance(labels, pv.ImageData):
+        raise TypeError(f"labels must be a pyvista.ImageData, got {type(labels).__name__}")
+    shape = tuple(labels.dimensions[::-1])
+    tissue = np.asarray(arrays.require_array(labels, arrays.TISSUE, "point", dtype="iu",
+                                             producer="segment")).reshape(shape)
+    muscle = np.asarray(arrays.require_array(labels, arrays.MUSCLE, "point", dtype="iu",
+                                             producer="embed_muscles")).reshape(shape)
+    soft = np.isin(tissue, arrays.SOFT_LABELS)
+    origin, sp = np.asarray(labels.origin, float), np.asarray(labels.spacing, float)
+    centres, ids = [], []
+    for ax in range(3):  # array axes z, y, x: faces between a voxel and the next one
+        lo = tuple(slice(0, -1) if k == ax else slice(None) for k in range(3))
+        hi = tuple(slice(1, None) if k == ax else slice(None) for k in range(3))
+        ma, mb = muscle[lo], muscle[hi]
+        hit = (ma != mb) & soft[lo] & soft[hi] & ((ma == 0) | (mb == 0))
+        for mid in (ma, mb):  # the muscle on one side, other soft tissue on the other
+            sel = hit & (mid > 0)
+            iz, iy, ix = np.nonzero(sel)
+            xyz = np.stack([ix, iy, iz], axis=1).astype(float)
+            xyz[:, 2 - ax] += 0.5
+            centres.append((origin + xyz * sp, 2 - ax))
+            ids.append(mid[sel])
+    out = {"centres": [], "corners": []}
+    for (c, axis), m in zip(centres, ids):
+        u, v = [k for k in range(3) if k != axis]
+        corners = np.concatenate([c + 0.5 * (a * sp[u] * np.eye(3)[u] + b * sp[v] * np.eye(3)[v])
+                                  for a in (-1, 1) for b in (-1, 1)])
+        for key, pts, mm in (("centres", c, m), ("corners", corners, np.tile(m, 4))):
+            d = np.full(len(pts), np.inf)
+            for name, mid in arrays.MUSCLE_IDS.items():  # twelve muscles, vectorised inside
+                sel = mm == mid
+                if sel.any():
+                    d[sel] = _distance(patient, name, pts[sel])
+            out[key].append(np.minimum(d, _distance(patient, "eyes", pts)) if len(pts) else d)
+    return {k: np.concatenate(v) for k, v in out.items()}
 
 
 def _barycentric_samples(k=4):

@@ -12,6 +12,8 @@ module                    what it does
                           voxels up to their volume), topology repair, connected regions
 ``surfaces``              conforming SurfaceNets surfaces snapped onto the image
                           interfaces, constrained smoothing, closedness check, patches
+``subvoxel``              optional sub-voxel muscle interfaces: the muscle sheets on the
+                          half level of the smoothed label indicators
 ``volume``                gmsh volume meshing (one at a time per process), sliver
                           removal, the count model of the working spacing
 ``grading``               optional size grading (gmsh background field from a distance
@@ -30,7 +32,8 @@ The steps:
 2. every connected region of the working grid gets its own label and VTK's SurfaceNets
    builds conforming multi-label surfaces: an interface between two regions is one set
    of triangles shared by both, snapped onto the full-resolution image interfaces and
-   lightly smoothed;
+   lightly smoothed; with ``subvoxel=True`` the named muscles' sheets are then moved
+   onto the half level of their smoothed label indicators (between the voxel centres);
 3. the surfaces are checked (every region's boundary must be closed) and a volume per
    region is meshed by gmsh (HXT); when gmsh rejects the surfaces, a slightly different
    grid, then weaker smoothing and placement, finally the plain working-grid surfaces are

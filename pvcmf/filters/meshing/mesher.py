@@ -30,6 +30,7 @@ from .quality import (
     GRADING, MIN_DIHEDRAL, MIN_RADIUS_RATIO, N_TETS_REQUESTED, P1_DIHEDRAL, P1_RADIUS_RATIO,
     SMOOTHING_SCALE, SURFACE_SPACING, TIME_SURFACE, TIME_TOTAL, TIME_VOLUME, tet_quality,
 )
+from .subvoxel import MuscleIndicators
 from .surfaces import (
     _FINE_TARGETS, _TARGET_REACH, _check_surfaces, _fine_faces, _split_patches, _surfaces,
 )
@@ -60,6 +61,7 @@ def tetrahedralize(
     sliver_optimizer=None,
     threads=1,
     grading=None,
+    subvoxel=False,
     progress_bar=False,
 ):
     """Labelled tetrahedral mesh of the facial soft tissue of a label image.
@@ -126,6 +128,15 @@ def tetrahedralize(
         deep in the fat go to finer surfaces. The thin facial tissue (6-12 mm) leaves
         little to grade; thicker tissue gains more. Measured effects:
         ``docs/benchmarks/meshing.md``.
+    subvoxel : bool, default False
+        Sub-voxel muscle interfaces (``conforming=True``): after the placement and the
+        smoothing, the vertices of the sheets between a named muscle and other soft
+        tissue are moved onto the half level of the muscle's label indicator smoothed by
+        a Gaussian of half a voxel (:mod:`pvcmf.filters.meshing.subvoxel`); those on
+        the junction with the skin, the bone or the region's cut move within that
+        surface. The label image is the only input. ``False``: the surfaces follow the
+        local average of the voxel staircase. Measured effects:
+        ``docs/benchmarks/meshing_accuracy.md``.
     progress_bar : bool, default False
         Show the steps (:class:`pvcmf.progress.Progress`: a tqdm bar, or INFO log lines
         without tqdm).
@@ -185,6 +196,8 @@ def tetrahedralize(
         raise ValueError(
             f"sliver_optimizer must be None or one of {_SLIVER_OPTIMIZERS}, got {sliver_optimizer!r}"
         )
+    if not isinstance(subvoxel, (bool, np.bool_)):
+        raise TypeError(f"subvoxel must be True or False, got {type(subvoxel).__name__} {subvoxel!r}")
     optimizers = () if sliver_optimizer is None else (sliver_optimizer,)
     growth = check_grading(grading)
     if spacing is not None and (not isinstance(spacing, numbers.Real) or spacing <= 0):
@@ -198,7 +211,8 @@ def tetrahedralize(
         result, failures, t_surface, t_volume = _mesh_calibrated(
             fine, s, spacing, n_tets, fallbacks, min_spacing, pieces,
             dict(threads=threads, optimize=optimize, min_dihedral=min_dihedral if optimize else None,
-                 optimizers=optimizers, grading=graded),
+                 optimizers=optimizers, grading=graded,
+                 indicators=MuscleIndicators(fine) if conforming and subvoxel else None),
             bar,
         )
         nodes, tets, comp_code, cell_comp, smoothing, s, reach = result
@@ -439,7 +453,7 @@ def _output_grid(nodes, tets, codes):
 
 
 def _mesh_once(fine, s, smoothing, reach, pieces, accept, *, threads, optimize, min_dihedral,
-               optimizers=(), grading=None):
+               optimizers=(), grading=None, indicators=None):
     """One surface + volume meshing pass at spacing ``s``; raises SurfaceError."""
     t0 = time.perf_counter()
     sub, origin = _working_grid(fine, s)
@@ -456,7 +470,7 @@ def _mesh_once(fine, s, smoothing, reach, pieces, accept, *, threads, optimize, 
             f"labels: the soft tissue vanishes on a {s:.3g} mm working grid; "
             "request more tetrahedra or a smaller spacing"
         )
-    points, tri, sides = _surfaces(comp, origin, s, smoothing, comp_code, fine, reach)
+    points, tri, sides = _surfaces(comp, origin, s, smoothing, comp_code, fine, reach, indicators)
     try:
         _check_surfaces(tri, sides, comp_code)
     except SurfaceError as exc:

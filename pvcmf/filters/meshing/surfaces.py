@@ -25,6 +25,7 @@ from vtkmodules.vtkFiltersCore import vtkConstrainedSmoothingFilter
 
 from ... import arrays
 from .grid import _FAT, _MUSCLE0, SurfaceError, _code_name
+from .subvoxel import project_onto_indicators
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +47,8 @@ _FOLD_ITERATIONS = 8
 _PLACE_NAMED_MUSCLES = True
 
 
-def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None, reach=_TARGET_REACH):
+def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None, reach=_TARGET_REACH,
+              indicators=None):
     """Multi-label SurfaceNets surfaces: (points, triangles, side labels (n, 2)).
 
     SurfaceNets runs unsmoothed: where three regions meet in one cell without sharing a
@@ -57,7 +59,10 @@ def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None, reach
     regions inside its SurfaceNets cell (:func:`_fine_targets`), so the surfaces follow
     the image, not the working grid; the surface is then smoothed with VTK's
     ``vtkConstrainedSmoothingFilter`` (every vertex stays within
-    ``smoothing_scale * s * sqrt(3) / 2`` of that position).
+    ``smoothing_scale * s * sqrt(3) / 2`` of that position). With ``indicators``
+    (:class:`~pvcmf.filters.meshing.subvoxel.MuscleIndicators`) and ``reach > 0``, the
+    named muscles' sheets are then moved onto their sub-voxel interfaces
+    (:func:`_subvoxel`).
     """
     img = pv.ImageData(dimensions=comp.shape[::-1], spacing=(s, s, s), origin=origin)
     img.point_data[arrays.MESH_COMPONENT] = comp.ravel()
@@ -81,9 +86,30 @@ def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None, reach
         f.SetRelaxationFactor(0.5)
         f.Update()
         points = np.asarray(pv.wrap(f.GetOutput()).points, float)
+    if indicators is not None and comp_code is not None and reach > 0:
+        points = _subvoxel(points, tri, comp_code[sides], indicators)
     tri, sides = tri[keep], sides[keep]
     used, inverse = np.unique(tri, return_inverse=True)
     return points[used], inverse.reshape(-1, 3), sides
+
+
+def _subvoxel(points, tri, side_codes, indicators):
+    """The muscle sheets' vertices on their smoothed indicators' half level
+    (:func:`~pvcmf.filters.meshing.subvoxel.project_onto_indicators`), the moves of the
+    vertices of a triangle that turned by more than ~73 degrees halved until none does."""
+    target, n_moved = project_onto_indicators(points, tri, side_codes, indicators)
+    move = target - points
+    n0 = _oriented_normals(points, tri, side_codes)
+    n0 /= np.maximum(np.linalg.norm(n0, axis=1), 1e-30)[:, None]
+    for _ in range(_FOLD_ITERATIONS):
+        n1 = _oriented_normals(points + move, tri, side_codes)
+        cos = np.einsum("ij,ij->i", n0, n1) / np.maximum(np.linalg.norm(n1, axis=1), 1e-30)
+        fold = cos < _FOLD_COS
+        if not fold.any():
+            break
+        move[np.unique(tri[fold])] *= 0.5
+    log.debug("tetrahedralize: %d muscle surface vertices on the sub-voxel interfaces", n_moved)
+    return points + move
 
 
 def _fine_faces(fine):
