@@ -15,7 +15,9 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    fit), paper 000's claims tested over the patients, overall and per face region
    (:func:`pvcmf.study.inference.claims_table`), paper 001's models (homogeneous,
    inhomogeneous, a Poisson-ratio sweep, a finer mesh) and claims
-   (:func:`pvcmf.study.claims.paper001_claims`), cost per patient cold and warm (warm:
+   (:func:`pvcmf.study.claims.paper001_claims`; the mesh-size claim, ``--n-tets``
+   against ``--fine-tets``, in its own section with the per-patient distance between the
+   two meshes' skins, :func:`mesh_note`), cost per patient cold and warm (warm:
    the patients and the judged skins read from the cache, checked bit for bit against
    the cold run, and the claims computed again): writes ``docs/benchmarks/cohort.md``.
    Its sentence on the truth's convergence is read from the table of
@@ -31,6 +33,8 @@ Run::
         --counts 4000 8000 16000 --order-check --fine 40000
     python benchmarks/study.py --compare --truth independent --patients 1 2 3 4
     python benchmarks/study.py --cohort 2 --spacing 3 --n-tets 8000 --truth-tets 4000
+    python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 2000 \
+        --fine-tets 60000
 """
 
 from __future__ import annotations
