@@ -11,7 +11,10 @@
   the error (the claim that the two err alike holds only when the change of the error is
   shown below :data:`CLINICAL_TOLERANCE_MM`: an equivalence test, not the absence of a
   difference), the change of the error against paper 001's 0.05 mm, and the skin
-  difference between the two meshes' predictions against :data:`CLINICAL_TOLERANCE_MM`;
+  difference between the two meshes' predictions against :data:`CLINICAL_TOLERANCE_MM`
+  (the one comparison that does not depend on the truth);
+* :func:`mesh_size_table` -> per patient, both meshes' error statistic and the distance
+  between their predicted skins (p50, p90, max);
 * :func:`paper001_claims` -> all of paper 001's claims: the inhomogeneous model against
   the homogeneous one, the Poisson ratio, the mesh size;
 * :func:`region_table` -> per patient, method and face region (lips, chin, nose,
