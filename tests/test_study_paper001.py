@@ -15,7 +15,9 @@ import pyvista as pv
 
 from pvcmf import arrays, mtm, reference
 from pvcmf.study import claims as claims_mod
-from pvcmf.study.claims import below_tolerance, mesh_size_claims, nu_optimum, region_table
+from pvcmf.study.claims import (
+    below_tolerance, mesh_size_claims, mesh_size_table, nu_optimum, region_table,
+)
 from pvcmf.study.inference import claims_table, compare_methods, paired_errors
 from pvcmf.study.paper001 import (
     FINE_METHOD, PAPER_NU, is_paper001_method, method_nu, nu_method,
@@ -82,11 +84,11 @@ def test_models_and_meshes_differ_and_a_recomputed_one_does_not(runs):
     same skin to rounding."""
     skins = runs[0][1]
     hom, inh, fine = skins["homogeneous"], skins["inhomogeneous"], skins[FINE_METHOD]
-    assert claims_mod._skin_change(hom, inh, q=100) > 1e-3
-    change = claims_mod._skin_change(hom, fine)
+    assert claims_mod._skin_change(hom, inh).max() > 1e-3
+    change = mesh_size_table({1: skins})["skin_p90"].item()
     assert 0.01 < change < 5.0
     # the same computation may differ in the last bits (threaded sums): far below a micrometre
-    assert claims_mod._skin_change(hom, runs[1][1]["homogeneous"]) < 1e-9
+    assert claims_mod._skin_change(hom, runs[1][1]["homogeneous"]).max() < 1e-9
 
 
 def test_per_region_rows(runs):
@@ -234,3 +236,48 @@ def test_paper001_claims_repeat_for_the_ct_only_models():
     oracle = table[table["claim"].str.startswith("the inhomogeneous model")
                    & ~table["claim"].str.contains("CT-only", regex=False)]
     assert len(oracle) == 2 and oracle["holds"].all()
+
+
+def test_mesh_table_matches_points_by_id_and_skin_difference_ignores_the_truth():
+    """The skin difference pairs the two predictions point by point through
+    ``SKIN_POINT_ID`` (not by storage order) and does not read the truth's distances; the
+    errors do."""
+    coarse, fine = _skin(1.0), _skin(1.0)
+    fine.points = fine.points + [0.0, 0.3, 0.4]  # every point 0.5 mm away
+    order = np.random.default_rng(1).permutation(fine.n_points)
+    shuffled = pv.PolyData(np.asarray(fine.points)[order])
+    for name in (arrays.SKIN_POINT_ID, arrays.DISTANCE, arrays.REGION):
+        shuffled[name] = np.asarray(fine[name])[order]
+    row = mesh_size_table({7: {"homogeneous": coarse, FINE_METHOD: shuffled}}).iloc[0]
+    assert row["patient"] == 7 and row["points"] == 60
+    assert np.isclose(row["skin_p90"], 0.5) and np.isclose(row["skin_max"], 0.5)
+    assert np.isclose(row["change"], 0.0)
+    other = coarse.copy()
+    other[arrays.DISTANCE] = other[arrays.DISTANCE] + 0.7  # another truth, same prediction
+    again = mesh_size_table({7: {"homogeneous": other, FINE_METHOD: shuffled}}).iloc[0]
+    assert again["skin_p90"] == row["skin_p90"]
+    assert np.isclose(again["change"], 0.7)
+
+
+def test_mesh_claims_separate_the_skins_from_the_errors():
+    """Meshes whose skins lie 0.8 mm apart but err alike against the truth fail the skin
+    equivalence and pass the error rows; meshes whose skins lie 0.1 mm apart but err 0.8
+    mm apart against the truth pass the skin equivalence and fail the error rows."""
+    apart = {}
+    for p in range(10):
+        coarse = _skin(1.0 + 0.001 * p)
+        coarse.points = coarse.points + [0.0, 0.8 + 0.01 * p, 0.0]
+        apart[p] = {"homogeneous": coarse, FINE_METHOD: _skin(1.0)}
+    rows = mesh_size_claims(apart, sizes=(30000, 60000), n_boot=200)
+    assert [r["holds"] for r in rows] == [True, True, True, False]
+    assert "independent of the truth" in rows[3]["claim"]
+    assert all("against the truth" in r["claim"] for r in rows[:3])
+    assert "30000 tetrahedra" in rows[0]["claim"] and "60000" in rows[3]["claim"]
+    close = {}
+    for p in range(10):
+        coarse = _skin(1.8 + 0.01 * p)
+        coarse.points = coarse.points + [0.0, 0.1, 0.0]
+        close[p] = {"homogeneous": coarse, FINE_METHOD: _skin(1.0)}
+    rows = mesh_size_claims(close, sizes=(30000, 60000), n_boot=200)
+    assert [r["holds"] for r in rows] == [False, False, False, True]
+    assert rows[3]["p_value"] < 0.05 and rows[0]["verdict"] == "b better"
