@@ -55,7 +55,8 @@ from .head_check import TEETH_STEPS, _teeth_ml, check_head  # noqa: F401 (re-exp
 
 log = logging.getLogger(__name__)
 
-__all__ = ["check_head", "check_units", "orient_head", "reorient", "standardize", "HU_OFFSETS"]
+__all__ = ["check_head", "check_units", "orient_head", "orientation_code", "reorient", "standardize",
+           "HU_OFFSETS"]
 
 #: offsets (HU = value + offset) of the usual CT storage conventions
 HU_OFFSETS = (0.0, -1000.0, -1024.0, -32768.0)
@@ -211,6 +212,19 @@ def _parse_code(code):
             f"orient must be 'auto', 'none' or a 3-letter code with one of L/R, A/P, S/I per "
             f"image axis (e.g. 'LAS' for the patient frame, 'LPI'), got {code!r}")
     return code, picks
+
+
+def orientation_code(code):
+    """The upper-case 3-letter orientation code ``code`` names, or a ValueError.
+
+    One letter per image axis from L/R, A/P, S/I, each pair once (see :func:`reorient`).
+
+    Examples
+    --------
+    >>> orientation_code("lpi")
+    'LPI'
+    """
+    return _parse_code(code)[0]
 
 
 def reorient(image, code):
