@@ -340,6 +340,15 @@ def _simulate(args):
     return _finish(result, args)
 
 
+def _case_name(pred):
+    """The case's name in the figures: the run folder's name for a ``pvcmf simulate``
+    output (``RUN/predicted_skin.vtp``), else the file's stem."""
+    pred = Path(pred).absolute()
+    if pred.name == "predicted_skin.vtp" and pred.parent.name:
+        return pred.parent.name
+    return pred.stem
+
+
 def _check_validate_inputs(args):
     """``--pred``, ``--post`` and ``--pre`` exist and ``--pred``/``--pre`` are surfaces,
     before any work; the message names the option."""
@@ -366,7 +375,7 @@ def _validate(args):
               "region": args.region, "landmarks": args.landmarks or "(none)"}
     args.out.mkdir(parents=True, exist_ok=True)
     figures = {} if args.no_figures else report.validation_figures(v.skin, args.out,
-                                                                   case=args.pred.stem)
+                                                                   case=_case_name(args.pred))
     write_validation(v, args.out, inputs=inputs, extra_files=figures)
     if not args.no_report:
         v.files["report"] = report.write_report(args.out, title=f"Validation: {args.pred}")

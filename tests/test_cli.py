@@ -356,3 +356,10 @@ def test_validate_inputs_are_named_before_any_work(tmp_path, capsys):
     assert info.value.code == 2
     assert "--region" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_validate_names_the_case_by_its_run_folder():
+    from pvcmf.cli import _case_name
+
+    assert _case_name(Path("runs/female/predicted_skin.vtp")) == "female"
+    assert _case_name(Path("scans/patient7_post.stl")) == "patient7_post"
