@@ -356,3 +356,36 @@ def test_culling_keeps_a_piece_wound_the_other_way():
     p.close()
     red = np.all(np.abs(img[..., :3].astype(int) - RED) < 30, axis=-1)
     assert red.sum() > 100  # the nose's tip, seen end on
+
+
+def _texts(plotter):
+    """Every text a plotter's panels show (corner annotations and text actors)."""
+    out = []
+    for renderer in plotter.renderers:
+        props = renderer.GetViewProps()
+        props.InitTraversal()
+        for _ in range(props.GetNumberOfItems()):
+            a = props.GetNextProp()
+            if a.IsA("vtkCornerAnnotation"):
+                out += [a.GetText(i) for i in range(8) if a.GetText(i)]
+            elif a.IsA("vtkTextActor"):
+                out.append(a.GetInput())
+    return out
+
+
+def test_displacement_bar_says_when_its_colours_saturate():
+    """The range is a percentile: when shown values lie beyond it the figure says where the
+    colours end and gives the largest value; when none do it says nothing."""
+    pre, _ = _pre_post()
+    u = np.asarray(pre[arrays.DISPLACEMENT]).copy()
+    front = int(np.argmax(pre.points[:, 1]))  # the nose tip: seen from the front
+    u[front, 1] = 9.0
+    pre.point_data[arrays.DISPLACEMENT] = u
+    p = fv.displacement_views(pre, "ap", window_size=(600, 400))
+    notes = [t for t in _texts(p) if "colours end at" in t]
+    p.close()
+    assert len(notes) == 1 and "; colours end at \u00b1" in notes[0], notes
+    assert notes[0].endswith(" mm; largest 9.0 mm"), notes
+    p = fv.displacement_views(pre, "ap", window_size=(600, 400), limit=10.0)
+    assert not [t for t in _texts(p) if "colours end at" in t]
+    p.close()
