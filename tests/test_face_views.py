@@ -389,3 +389,26 @@ def test_displacement_bar_says_when_its_colours_saturate():
     p = fv.displacement_views(pre, "ap", window_size=(600, 400), limit=10.0)
     assert not [t for t in _texts(p) if "colours end at" in t]
     p.close()
+
+
+def test_one_skin_row_fills_every_panel():
+    """``face_pre.png`` / ``face_post.png``: in each view the head fills its panel as
+    :func:`pvcmf.figures.framing.fit_parallel` promises (the three-quarter view too, whose
+    box corners reach further out than the head)."""
+    from pvcmf.figures.framing import FRAME_MARGIN, FRAME_TITLE
+    from pvcmf.outputs import _row
+
+    head, nose = _head()
+    p = _row((head + nose).triangulate().clean(), tuple(fv.VIEWS), "pre-operative")
+    image = np.asarray(p.screenshot(return_img=True), dtype=float)
+    p.close()
+    width = image.shape[1] // len(fv.VIEWS)
+    for k, view in enumerate(fv.VIEWS):
+        panel = image[:, k * width:(k + 1) * width]
+        skin = panel.min(axis=2) < 200  # the skin, not the white
+        skin[: int(FRAME_TITLE * panel.shape[0]) + 1] = False  # nor the title
+        rows, cols = np.nonzero(skin)
+        fill = max((rows.max() - rows.min()) / ((1 - 2 * FRAME_MARGIN - FRAME_TITLE)
+                                                 * panel.shape[0]),
+                   (cols.max() - cols.min()) / ((1 - 2 * FRAME_MARGIN) * panel.shape[1]))
+        assert fill > 0.93, (view, fill)
