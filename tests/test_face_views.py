@@ -412,3 +412,38 @@ def test_one_skin_row_fills_every_panel():
                                                  * panel.shape[0]),
                    (cols.max() - cols.min()) / ((1 - 2 * FRAME_MARGIN) * panel.shape[1]))
         assert fill > 0.93, (view, fill)
+
+
+def test_plan_sequence_is_drawn_as_a_photograph():
+    """The planner's sequence figure uses the photographic convention: skin pushed out on
+    the patient's left (+x) shows red on the viewer's right in a frontal view, and the
+    colour bar lies in its own strip under the faces."""
+    from pvcmf.figures.plan_sequence import plan_sequence
+
+    head, _ = _head()
+    out = np.asarray(head.points) / np.linalg.norm(head.points, axis=1, keepdims=True)
+    face = head.copy()
+    u = np.where(head.points[:, [0]] > 20.0, 4.0 * out, 0.0)
+    face.points = np.asarray(head.points) + u
+    face.point_data[arrays.DISPLACEMENT] = u
+    still = head.copy()
+    still.point_data[arrays.DISPLACEMENT] = np.zeros_like(u)
+    p = plan_sequence([still, face], ["+0", "+4"], view="frontal", window_size=(600, 360))
+    img = np.asarray(p.screenshot(return_img=True), dtype=int)
+    p.close()
+    panel = img[: int(0.85 * img.shape[0]), 300:]  # the second face, above the bar's strip
+    red = (panel[..., 0] > 150) & (panel[..., 0] - panel[..., 2] > 60)
+    assert red.sum() > 100
+    assert np.nonzero(red)[1].mean() > 0.55 * panel.shape[1]
+    assert not red[:, : panel.shape[1] // 3].any()
+
+
+def test_normal_component_ignores_stale_normals():
+    """A skin carrying an active ``Normals`` array that is not its unit outward normal (a
+    parametric surface's, or a moved skin's old ones) still gets its own normals."""
+    head = pv.ParametricEllipsoid(70.0, 90.0, 100.0, u_res=40, v_res=40).triangulate().clean()
+    assert arrays.NORMALS in head.point_data  # VTK's parametric normals, not unit length
+    out = np.asarray(head.points) / np.linalg.norm(head.points, axis=1, keepdims=True)
+    head.point_data[arrays.DISPLACEMENT] = 2.0 * out
+    value = fv.signed_displacement(head, "normal")
+    assert np.all((value > 1.0) & (value <= 2.0 + 1e-6)), (value.min(), value.max())

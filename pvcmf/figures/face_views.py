@@ -267,7 +267,9 @@ def signed_displacement(skin, component="ap"):
     if component == "magnitude":
         return np.linalg.norm(u, axis=1)
     if component == "normal":
-        normals = skin.extract_surface(algorithm=None).compute_normals(
+        surface = pv.PolyData(np.asarray(skin.points), faces=skin.extract_surface(
+            algorithm=None).faces)  # without arrays: VTK would keep stale active normals
+        normals = surface.compute_normals(
             cell_normals=False, point_normals=True, auto_orient_normals=True,
             consistent_normals=True, split_vertices=False)[arrays.NORMALS]
         return np.einsum("ij,ij->i", u, np.asarray(normals, dtype=np.float64))
