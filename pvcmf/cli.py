@@ -382,9 +382,18 @@ def _validate(args):
     return v
 
 
+#: columns of regions.csv that ``validate`` prints, and their printed names: the signed
+#: median and the percentiles of the unsigned distance
+VALIDATION_COLUMNS = {"region": "region", "n": "points", "median": "signed median",
+                      "p50": "|d| p50", "p90": "|d| p90", "p95": "|d| p95",
+                      "within_1mm": "% within 1 mm", "within_2mm": "% within 2 mm"}
+
+
 def _report_validation(v):
-    table = v.table[["region", "n", "median", "p50", "p90", "p95", "within_1mm", "within_2mm"]]
+    table = v.table[list(VALIDATION_COLUMNS)].rename(columns=VALIDATION_COLUMNS)
     print(table.to_string(index=False, float_format=lambda x: f"{x:.2f}"))
+    print("(distances in mm, + where the prediction lies outside the actual skin; the "
+          "percentiles are of |distance|)")
     reg = v.registration
     print(f"\nICP on the unchanged region: RMS {reg['rms_mm']:.3f} mm, "
           f"{'converged' if reg['converged'] else 'NOT converged'}")

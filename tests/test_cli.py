@@ -363,3 +363,23 @@ def test_validate_names_the_case_by_its_run_folder():
 
     assert _case_name(Path("runs/female/predicted_skin.vtp")) == "female"
     assert _case_name(Path("scans/patient7_post.stl")) == "patient7_post"
+
+
+def test_validate_prints_which_columns_are_signed(capsys):
+    """The printed region table names the signed median and the unsigned percentiles
+    (regions.csv's 'median' and 'p50' differ by the sign alone)."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from pvcmf.cli import _report_validation
+
+    table = pd.DataFrame([{"region": "face", "n": 10, "median": -0.5, "mean_abs": 0.5,
+                           "p50": 0.5, "p90": 0.9, "p95": 1.0, "within_1mm": 90.0,
+                           "within_2mm": 100.0}])
+    v = SimpleNamespace(table=table, registration={"rms_mm": 0.01, "converged": True},
+                        files={})
+    _report_validation(v)
+    out = capsys.readouterr().out
+    header = out.splitlines()[0]
+    assert "signed median" in header and "|d| p90" in header and "% within 2 mm" in header
