@@ -45,7 +45,10 @@ from . import arrays, datasets
 from ._version import __version__
 from .datasets import headsq
 from . import report
-from .io import export, read_ct, read_landmarks, read_plan_file, write_surface
+from .io import (check_export, export, read_ct, read_landmarks, read_plan_file,
+                 write_surface)
+from .io.orientation import orientation_code
+from .io.surfaces import SURFACE_FORMATS
 from .outputs import check_output_dir, check_output_file
 from .pipeline import STEPS, flip_axes, simulate
 from .planner import add_plan_parser, run_plan
@@ -57,6 +60,11 @@ log = logging.getLogger(__name__)
 #: defaults of ``pvcmf demo``: coarse enough to finish in well under 2 minutes on 2 cores
 DEMO_SPACING = 2.0
 DEMO_N_TETS = 25_000
+
+
+#: the exit statuses, as every command's --help states them
+EXIT_STATUS = ("Exit status: 0 done, 2 bad input (the message names the option), 1 a step "
+               "failed, 130 interrupted.")
 
 
 def _positive_int(text):
@@ -77,6 +85,67 @@ def _positive_float(text):
     if not value > 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
     return value
+
+
+def _units(text):
+    """``--units``: 'auto', 'hu' or a number (the offset to add to reach HU)."""
+    if text.strip().lower() in ("auto", "hu"):
+        return text.strip().lower()
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected 'auto', 'hu' or a number (the offset to add), got {text!r}") from None
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite offset, got {text!r}")
+    return value
+
+
+def _orient(text):
+    """``--orient``: 'auto', 'none' or a 3-letter code such as 'LPI'."""
+    if text.strip().lower() in ("auto", "none"):
+        return text.strip().lower()
+    try:
+        code = orientation_code(text.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            "expected 'auto', 'none' or a 3-letter code, one letter per image axis from L/R, "
+            f"A/P, S/I, each pair once (e.g. 'LPI'), got {text!r}") from None
+    return code
+
+
+def _flip(text):
+    """``--flip``: distinct letters of 'xyz' (may be empty)."""
+    axes = text.strip().lower()
+    if set(axes) - set("xyz") or len(set(axes)) != len(axes):
+        raise argparse.ArgumentTypeError(
+            f"expected distinct letters of 'xyz' (e.g. 'yz'), got {text!r}")
+    return axes
+
+
+def _export_path(text):
+    """``--export``: a path whose extension a writer knows (:func:`pvcmf.io.check_export`)."""
+    try:
+        return check_export(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err).removeprefix("export: ")) from None
+
+
+def _region(text):
+    """``--region``: 'upper' or six numbers xmin,xmax,ymin,ymax,zmin,zmax (mm), each min
+    below its max; returned as given (:func:`pvcmf.study.validate.validate` parses it)."""
+    if text.strip() in ("upper", "upper_face"):
+        return text.strip()
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 6 or not np.all(np.isfinite(values)) or \
+            not all(lo < hi for lo, hi in zip(values[::2], values[1::2])):
+        raise argparse.ArgumentTypeError(
+            "expected 'upper' or six numbers xmin,xmax,ymin,ymax,zmin,zmax in mm, each min "
+            f"below its max, got {text!r}")
+    return text
 
 
 def _out_path(text):
@@ -118,7 +187,11 @@ def _common(parser):
 
 def _add_validate_parser(sub):
     val = sub.add_parser("validate", help="judge a predicted skin against a post-operative "
-                                          "skin or CT (ICP, signed distances, Figs. 6-8)")
+                                          "skin or CT (ICP, signed distances, Figs. 6-8)",
+                         description="Register a post-operative skin or CT onto the prediction "
+                         "(ICP on the face that surgery leaves unchanged) and map the signed "
+                         "error: validated_skin.vtp, regions.csv, Figs. 6-8, report.html. "
+                         + EXIT_STATUS)
     val.add_argument("--pred", required=True, type=Path,
                      help="predicted skin (predicted_skin.vtp of pvcmf simulate, or STL/PLY/OBJ)")
     val.add_argument("--post", required=True, type=Path,
@@ -128,7 +201,7 @@ def _add_validate_parser(sub):
     val.add_argument("--pre", type=Path, default=None,
                      help="pre-operative skin, the ICP target (default: skin_pre.vtp next to "
                           "--pred if there, else the prediction itself)")
-    val.add_argument("--region", default="upper",
+    val.add_argument("--region", type=_region, default="upper",
                      help="ICP region surgery leaves unchanged: 'upper' (forehead, orbits, nose "
                           "bridge; default) or xmin,xmax,ymin,ymax,zmin,zmax in mm")
     val.add_argument("--landmarks", type=Path, default=None,
@@ -151,14 +224,21 @@ def build_parser():
     parser.add_argument("--version", action="version", version=f"pvcmf {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    demo = sub.add_parser("demo", help="predict a virtual patient's face after its Table II plan")
+    demo = sub.add_parser("demo", help="predict a virtual patient's face after its Table II plan",
+                          description="Predict a virtual patient's face after its Table II plan "
+                          "and write the skins, the solved mesh, the figures, summary.json and "
+                          "report.html into --out. " + EXIT_STATUS)
     _common(demo)
     demo.add_argument("--patient", type=int, choices=(1, 2, 3, 4), default=1,
                       help="virtual patient 1-4 (default 1)")
     demo.add_argument("--spacing", type=_positive_float, default=DEMO_SPACING,
                       help=f"voxel size of the virtual CT in mm (default {DEMO_SPACING})")
 
-    sim = sub.add_parser("simulate", help="predict the face from a CT and a plan file")
+    sim = sub.add_parser("simulate", help="predict the face from a CT and a plan file",
+                         description="Predict the face from a head CT and a plan file and "
+                         "write the skins, the solved mesh, the figures, summary.json and "
+                         "report.html into --out (replaced as a whole when the run completes). "
+                         + EXIT_STATUS)
     _common(sim)
     sim.add_argument("--ct", required=True, type=Path,
                      help="CT file or DICOM folder (read by pvcmf.read_ct), or 'headsq' for "
@@ -170,20 +250,20 @@ def build_parser():
     sim.add_argument("--landmarks", type=Path, default=None,
                      help="Slicer markups (.mrk.json or .fcsv) with the muscle atlas's "
                           "landmarks (pvcmf.io.read_landmarks); automatic without")
-    sim.add_argument("--export", type=Path, default=None,
+    sim.add_argument("--export", type=_export_path, default=None,
                      help="also write the solved model for another tool: .inp (CalculiX/"
                           "Abaqus), .feb (FEBio) or a meshio format (.vtu, .msh, ...)")
     sim.add_argument("--offset", type=float, default=None,
                      help="HU = scale * value + offset (for scanner units; default 0, "
                           "headsq: its loader's default)")
     sim.add_argument("--scale", type=float, default=None, help="see --offset (default 1)")
-    sim.add_argument("--units", default="auto",
+    sim.add_argument("--units", type=_units, default="auto",
                      help="'auto' (detect scanner units from the histogram; default), 'hu', or "
                           "the offset to add to reach HU; --offset/--scale imply 'hu'")
-    sim.add_argument("--orient", default="auto",
+    sim.add_argument("--orient", type=_orient, default="auto",
                      help="'auto' (face +y and vertex +z checked from the anatomy; default), "
                           "'none' (trust the file), or where the image axes point, e.g. 'LPI'")
-    sim.add_argument("--flip", default="",
+    sim.add_argument("--flip", type=_flip, default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
     _add_validate_parser(sub)
@@ -232,6 +312,9 @@ def _simulate(args):
     args.offset_given, args.scale_given = args.offset is not None, args.scale is not None
     args.offset = 0.0 if args.offset is None else args.offset
     args.scale = 1.0 if args.scale is None else args.scale
+    if args.export is not None and args.no_predict:
+        raise ValueError(f"--export={str(args.export)!r} writes the solved model, which "
+                         "--no-predict does not make: drop one of them")
     plan = read_plan_file(args.plan)  # fail on a bad plan before reading the CT
     landmarks = read_landmarks(args.landmarks) if args.landmarks else None
     start = time.perf_counter()
@@ -246,11 +329,6 @@ def _simulate(args):
     units = args.units
     if units == "auto" and (args.offset_given or args.scale_given or str(args.ct) == "headsq"):
         units = "hu"  # already mapped to HU by the given offset/scale or by headsq()
-    elif units not in ("auto", "hu"):
-        try:
-            units = float(units)
-        except ValueError:
-            raise ValueError(f"--units must be 'auto', 'hu' or a number, got {units!r}") from None
     result = simulate(ct, plan, args.out, landmarks=landmarks, n_tets=args.n_tets,
                       predict=not args.no_predict, muscles=not args.no_muscles,
                       classify=args.classify, fit_skin=args.fit_skin,
@@ -262,7 +340,31 @@ def _simulate(args):
     return _finish(result, args)
 
 
+def _case_name(pred):
+    """The case's name in the figures: the run folder's name for a ``pvcmf simulate``
+    output (``RUN/predicted_skin.vtp``), else the file's stem."""
+    pred = Path(pred).absolute()
+    if pred.name == "predicted_skin.vtp" and pred.parent.name:
+        return pred.parent.name
+    return pred.stem
+
+
+def _check_validate_inputs(args):
+    """``--pred``, ``--post`` and ``--pre`` exist and ``--pred``/``--pre`` are surfaces,
+    before any work; the message names the option."""
+    for name in ("pred", "post", "pre"):
+        path = getattr(args, name)
+        if path is not None and not path.exists():
+            raise FileNotFoundError(f"--{name}={str(path)!r} does not exist")
+    for name in ("pred", "pre"):
+        path = getattr(args, name)
+        if path is not None and (path.is_dir() or path.suffix.lower() not in SURFACE_FORMATS):
+            raise ValueError(f"--{name}={str(path)!r} must be a skin surface file ending in "
+                             f"one of {', '.join(SURFACE_FORMATS)}")
+
+
 def _validate(args):
+    _check_validate_inputs(args)
     pre = args.pre
     if pre is None and (args.pred.parent / "skin_pre.vtp").exists():
         pre = args.pred.parent / "skin_pre.vtp"
@@ -273,16 +375,25 @@ def _validate(args):
               "region": args.region, "landmarks": args.landmarks or "(none)"}
     args.out.mkdir(parents=True, exist_ok=True)
     figures = {} if args.no_figures else report.validation_figures(v.skin, args.out,
-                                                                   case=args.pred.stem)
+                                                                   case=_case_name(args.pred))
     write_validation(v, args.out, inputs=inputs, extra_files=figures)
     if not args.no_report:
         v.files["report"] = report.write_report(args.out, title=f"Validation: {args.pred}")
     return v
 
 
+#: columns of regions.csv that ``validate`` prints, and their printed names: the signed
+#: median and the percentiles of the unsigned distance
+VALIDATION_COLUMNS = {"region": "region", "n": "points", "median": "signed median",
+                      "p50": "|d| p50", "p90": "|d| p90", "p95": "|d| p95",
+                      "within_1mm": "% within 1 mm", "within_2mm": "% within 2 mm"}
+
+
 def _report_validation(v):
-    table = v.table[["region", "n", "median", "p50", "p90", "p95", "within_1mm", "within_2mm"]]
+    table = v.table[list(VALIDATION_COLUMNS)].rename(columns=VALIDATION_COLUMNS)
     print(table.to_string(index=False, float_format=lambda x: f"{x:.2f}"))
+    print("(distances in mm, + where the prediction lies outside the actual skin; the "
+          "percentiles are of |distance|)")
     reg = v.registration
     print(f"\nICP on the unchanged region: RMS {reg['rms_mm']:.3f} mm, "
           f"{'converged' if reg['converged'] else 'NOT converged'}")
@@ -328,6 +439,8 @@ def _check_out(args):
     """Check ``--out`` before any work (a folder; a .csv/.parquet file for ``sweep``)."""
     if getattr(args, "out", None) is None:
         return
+    if getattr(args, "export", None) is not None:
+        args.export = check_output_file(args.export, "--export")
     if args.command == "sweep":
         check_output_file(args.out, "--out", suffixes=(".csv", ".parquet"))
     else:  # validate writes beside what is there; demo and simulate replace the folder

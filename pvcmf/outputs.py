@@ -227,12 +227,12 @@ def _row(skin, views, label):
     """One skin in several views, side by side."""
     p = pv.Plotter(off_screen=True, shape=(1, len(views)), window_size=[400 * len(views), 480],
                    border=False)
-    bounds = face_views.frame_bounds(skin)
+    bounds, points = face_views.frame_skins(skin)  # as face_comparison frames them
     for col, view in enumerate(views):
         p.subplot(0, col)
         p.set_background("white", all_renderers=False)
         face_views.add_patient_mesh(p, skin, color=face_views.SKIN_COLOR, specular=0.2)
-        face_views.set_view(p, bounds, view)
+        face_views.set_view(p, bounds, view, points=points)
         p.add_text(f"{label}, {face_views.VIEW_TITLES[view]}", font_size=10, color="black")
     return p
 

@@ -376,3 +376,21 @@ def test_maxilla_moved_up_and_back_inverts_no_tetrahedron(small_head, rim):
     ratios = _volume_ratios(post)
     assert ratios.min() > 0.1, f"volume ratio {ratios.min():.3f}"
     assert int(post.field_data[arrays.MTM_INVERTED][0]) == 0
+
+
+def test_figure_4_is_drawn_as_a_photograph():
+    """Fig. 4 draws the patient as a photograph: seen from behind (panel c), nodes on the
+    patient's left lie on the viewer's left."""
+    from pvcmf.figures.boundary_conditions import figure_4
+
+    grid = pv.ImageData(dimensions=(9, 9, 9), spacing=(10.0, 10.0, 10.0),
+                        origin=(-40.0, -40.0, -40.0)).triangulate()
+    bc = np.full(grid.n_points, arrays.BC_CODES["free"], dtype=np.int8)
+    bc[grid.points[:, 0] > 25.0] = arrays.BC_CODES["fixed"]  # the patient's left side
+    grid.point_data[arrays.BC] = bc
+    p = figure_4(grid, window_size=(900, 320), point_size=6)
+    img = np.asarray(p.screenshot(return_img=True), dtype=int)[..., :3]
+    p.close()
+    panel = img[40:, 600:]  # panel c), below its title
+    coloured = np.nonzero(panel.max(axis=-1) - panel.min(axis=-1) > 90)[1]
+    assert coloured.size > 20 and coloured.mean() < 0.45 * panel.shape[1], coloured.mean()

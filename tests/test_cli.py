@@ -284,3 +284,102 @@ def test_progress_bar_without_tqdm(monkeypatch, caplog):
     steps = [r.getMessage() for r in caplog.records if r.getMessage().startswith("simulate [")]
     n = len(STEPS)
     assert len(steps) == n and steps[-1].startswith(f"simulate [{n}/{n}]")
+
+
+def test_simulate_options_are_refused_before_the_ct_is_read(tmp_path, capsys, monkeypatch):
+    """A misspelt --units, --orient, --flip or --export, or --export with --no-predict, is
+    refused naming the option before the CT is read (a 1 mm DICOM folder takes seconds)
+    and before anything is written."""
+    import pvcmf.cli as cli
+
+    def no_read(*args, **kwargs):
+        raise AssertionError("the CT was read before the options were checked")
+
+    monkeypatch.setattr(cli, "read_ct", no_read)
+    monkeypatch.setattr(cli, "headsq", no_read)
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[osteotomy]]\nsegment = "maxilla"\ntranslation = [0, 0, 3]\n')
+    out = tmp_path / "out"
+    base = ["simulate", "--ct", str(tmp_path / "ct.nrrd"), "--plan", str(plan), "--out",
+            str(out), "--no-progress"]
+    for extra, words in ((["--units", "foo"], ["--units", "'foo'"]),
+                         (["--orient", "XYZ"], ["--orient", "'XYZ'"]),
+                         (["--orient", "LLS"], ["--orient", "'LLS'"]),
+                         (["--flip", "q"], ["--flip", "'q'"]),
+                         (["--flip", "yy"], ["--flip", "'yy'"]),
+                         (["--export", str(tmp_path / "model.xyz")], ["--export", "'.xyz'"])):
+        with pytest.raises(SystemExit) as info:
+            main(base + extra)
+        assert info.value.code == 2, extra
+        err = capsys.readouterr().err
+        assert all(w in err for w in words), (extra, err)
+    code = main(base + ["--export", str(tmp_path / "model.inp"), "--no-predict"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "--export=" in err and "--no-predict" in err
+    assert not out.exists() and not (tmp_path / "model.inp").exists()
+    parser = cli.build_parser()
+    args = parser.parse_args(base + ["--units", "-1024", "--orient", "lpi", "--flip", "YZ"])
+    assert (args.units, args.orient, args.flip) == (-1024.0, "LPI", "yz")
+
+
+def test_missing_plan_file_is_named(tmp_path, capsys):
+    out = tmp_path / "out"
+    code = main(["simulate", "--ct", "headsq", "--plan", str(tmp_path / "plan.toml"),
+                 "--out", str(out), "--no-progress"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "plan file" in err and "plan.toml" in err and "does not exist" in err
+    assert not out.exists()
+
+
+def test_validate_inputs_are_named_before_any_work(tmp_path, capsys):
+    skin = tmp_path / "predicted_skin.vtp"
+    pv.Sphere().save(skin)
+    plan = tmp_path / "plan.toml"
+    plan.write_text("")
+    out = tmp_path / "out"
+    for argv, words in ((["--pred", str(tmp_path / "no.vtp"), "--post", str(skin)],
+                         ["--pred=", "no.vtp", "does not exist"]),
+                        (["--pred", str(skin), "--post", str(tmp_path / "no.stl")],
+                         ["--post=", "no.stl", "does not exist"]),
+                        (["--pred", str(plan), "--post", str(skin)],
+                         ["--pred=", "plan.toml", ".vtp"]),
+                        (["--pred", str(skin), "--post", str(skin), "--pre", str(tmp_path)],
+                         ["--pre=", ".vtp"])):
+        assert main(["validate", *argv, "--out", str(out), "--no-progress"]) == 2, argv
+        err = capsys.readouterr().err
+        assert all(w in err for w in words), (argv, err)
+    with pytest.raises(SystemExit) as info:
+        main(["validate", "--pred", str(skin), "--post", str(skin), "--out", str(out),
+              "--region", "1,2,3"])
+    assert info.value.code == 2
+    assert "--region" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_validate_names_the_case_by_its_run_folder():
+    from pvcmf.cli import _case_name
+
+    assert _case_name(Path("runs/female/predicted_skin.vtp")) == "female"
+    assert _case_name(Path("scans/patient7_post.stl")) == "patient7_post"
+
+
+def test_validate_prints_which_columns_are_signed(capsys):
+    """The printed region table names the signed median and the unsigned percentiles
+    (regions.csv's 'median' and 'p50' differ by the sign alone)."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from pvcmf.cli import _report_validation
+
+    table = pd.DataFrame([{"region": "face", "n": 10, "median": -0.5, "mean_abs": 0.5,
+                           "p50": 0.5, "p90": 0.9, "p95": 1.0, "within_1mm": 90.0,
+                           "within_2mm": 100.0}])
+    v = SimpleNamespace(table=table, registration={"rms_mm": 0.01, "converged": True},
+                        files={})
+    _report_validation(v)
+    out = capsys.readouterr().out
+    header = out.splitlines()[0]
+    assert "signed median" in header and "|d| p90" in header and "% within 2 mm" in header

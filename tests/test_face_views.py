@@ -356,3 +356,94 @@ def test_culling_keeps_a_piece_wound_the_other_way():
     p.close()
     red = np.all(np.abs(img[..., :3].astype(int) - RED) < 30, axis=-1)
     assert red.sum() > 100  # the nose's tip, seen end on
+
+
+def _texts(plotter):
+    """Every text a plotter's panels show (corner annotations and text actors)."""
+    out = []
+    for renderer in plotter.renderers:
+        props = renderer.GetViewProps()
+        props.InitTraversal()
+        for _ in range(props.GetNumberOfItems()):
+            a = props.GetNextProp()
+            if a.IsA("vtkCornerAnnotation"):
+                out += [a.GetText(i) for i in range(8) if a.GetText(i)]
+            elif a.IsA("vtkTextActor"):
+                out.append(a.GetInput())
+    return out
+
+
+def test_displacement_bar_says_when_its_colours_saturate():
+    """The range is a percentile: when shown values lie beyond it the figure says where the
+    colours end and gives the largest value; when none do it says nothing."""
+    pre, _ = _pre_post()
+    u = np.asarray(pre[arrays.DISPLACEMENT]).copy()
+    front = int(np.argmax(pre.points[:, 1]))  # the nose tip: seen from the front
+    u[front, 1] = 9.0
+    pre.point_data[arrays.DISPLACEMENT] = u
+    p = fv.displacement_views(pre, "ap", window_size=(600, 400))
+    notes = [t for t in _texts(p) if "colours end at" in t]
+    p.close()
+    assert len(notes) == 1 and "; colours end at \u00b1" in notes[0], notes
+    assert notes[0].endswith(" mm; largest 9.0 mm"), notes
+    p = fv.displacement_views(pre, "ap", window_size=(600, 400), limit=10.0)
+    assert not [t for t in _texts(p) if "colours end at" in t]
+    p.close()
+
+
+def test_one_skin_row_fills_every_panel():
+    """``face_pre.png`` / ``face_post.png``: in each view the head fills its panel as
+    :func:`pvcmf.figures.framing.fit_parallel` promises (the three-quarter view too, whose
+    box corners reach further out than the head)."""
+    from pvcmf.figures.framing import FRAME_MARGIN, FRAME_TITLE
+    from pvcmf.outputs import _row
+
+    head, nose = _head()
+    p = _row((head + nose).triangulate().clean(), tuple(fv.VIEWS), "pre-operative")
+    image = np.asarray(p.screenshot(return_img=True), dtype=float)
+    p.close()
+    width = image.shape[1] // len(fv.VIEWS)
+    for k, view in enumerate(fv.VIEWS):
+        panel = image[:, k * width:(k + 1) * width]
+        skin = panel.min(axis=2) < 200  # the skin, not the white
+        skin[: int(FRAME_TITLE * panel.shape[0]) + 1] = False  # nor the title
+        rows, cols = np.nonzero(skin)
+        fill = max((rows.max() - rows.min()) / ((1 - 2 * FRAME_MARGIN - FRAME_TITLE)
+                                                 * panel.shape[0]),
+                   (cols.max() - cols.min()) / ((1 - 2 * FRAME_MARGIN) * panel.shape[1]))
+        assert fill > 0.93, (view, fill)
+
+
+def test_plan_sequence_is_drawn_as_a_photograph():
+    """The planner's sequence figure uses the photographic convention: skin pushed out on
+    the patient's left (+x) shows red on the viewer's right in a frontal view, and the
+    colour bar lies in its own strip under the faces."""
+    from pvcmf.figures.plan_sequence import plan_sequence
+
+    head, _ = _head()
+    out = np.asarray(head.points) / np.linalg.norm(head.points, axis=1, keepdims=True)
+    face = head.copy()
+    u = np.where(head.points[:, [0]] > 20.0, 4.0 * out, 0.0)
+    face.points = np.asarray(head.points) + u
+    face.point_data[arrays.DISPLACEMENT] = u
+    still = head.copy()
+    still.point_data[arrays.DISPLACEMENT] = np.zeros_like(u)
+    p = plan_sequence([still, face], ["+0", "+4"], view="frontal", window_size=(600, 360))
+    img = np.asarray(p.screenshot(return_img=True), dtype=int)
+    p.close()
+    panel = img[: int(0.85 * img.shape[0]), 300:]  # the second face, above the bar's strip
+    red = (panel[..., 0] > 150) & (panel[..., 0] - panel[..., 2] > 60)
+    assert red.sum() > 100
+    assert np.nonzero(red)[1].mean() > 0.55 * panel.shape[1]
+    assert not red[:, : panel.shape[1] // 3].any()
+
+
+def test_normal_component_ignores_stale_normals():
+    """A skin carrying an active ``Normals`` array that is not its unit outward normal (a
+    parametric surface's, or a moved skin's old ones) still gets its own normals."""
+    head = pv.ParametricEllipsoid(70.0, 90.0, 100.0, u_res=40, v_res=40).triangulate().clean()
+    assert arrays.NORMALS in head.point_data  # VTK's parametric normals, not unit length
+    out = np.asarray(head.points) / np.linalg.norm(head.points, axis=1, keepdims=True)
+    head.point_data[arrays.DISPLACEMENT] = 2.0 * out
+    value = fv.signed_displacement(head, "normal")
+    assert np.all((value > 1.0) & (value <= 2.0 + 1e-6)), (value.min(), value.max())

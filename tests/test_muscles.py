@@ -339,3 +339,21 @@ def test_figure_2b_label_slice(embedded, verify_chart):
     verify_chart(fig)
     with pytest.raises(ValueError, match="muscle"):
         figure_2b(embedded[1][1])  # no muscle array: says which filter makes it
+
+
+def test_figure_2a_is_drawn_as_a_photograph(embedded, monkeypatch):
+    """Fig. 2a looks at the face from the front, a little from the patient's left, as a
+    photograph: the left muscles (drawn alone, the view framed on all) lie on the viewer's
+    right."""
+    import pvcmf.figures.muscles as fm
+
+    _, _, true, _ = embedded[1]
+    every = fm.muscle_surfaces
+    monkeypatch.setattr(fm, "muscle_surfaces", lambda labels: {
+        name: surf for name, surf in every(labels).items() if name.endswith("_left")})
+    p = fm.figure_2a(true, window_size=(400, 400), opacity=0.0)
+    p.remove_legend()
+    img = np.asarray(p.screenshot(return_img=True), dtype=int)[..., :3]
+    p.close()
+    coloured = np.nonzero(img.max(axis=-1) - img.min(axis=-1) > 80)[1]
+    assert coloured.size > 200 and coloured.mean() > 0.55 * img.shape[1], coloured.mean()

@@ -120,3 +120,16 @@ def test_pure_and_json_report(head):
     json.dumps(report)
     with pytest.raises(TypeError, match="pyvista.ImageData"):
         standardize(np.zeros((4, 4, 4)))
+
+
+def test_units_given_that_leave_the_peaks_far_from_hu_are_refused(head):
+    """Scanner units read as HU ('hu', or a wrong offset) are refused naming the offset the
+    peaks ask for; given units that leave one peak within reach (a cone-beam scan's grey
+    values) are kept."""
+    scanner = stored_as(head, "LAS", 1024.0)
+    for given in ("hu", 1000.0):
+        with pytest.raises(ValueError, match=r"not in HU under these units.*HU = value -1024"):
+            check_units(scanner, given)
+    out, report = check_units(stored_as(head, "LAS", 300.0), "hu")  # soft tissue ~340 HU
+    assert report["offset"] == 0.0
+    np.testing.assert_array_equal(out[arrays.CT], head[arrays.CT] + 300.0)

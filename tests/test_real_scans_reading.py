@@ -102,6 +102,7 @@ def test_cli_simulate_finds_units_and_axes(data_dir, tmp_path, capsys):
     ct = json.loads((tmp_path / "summary.json").read_text())["ct"]
     assert ct["units"]["units"] == "scanner" and ct["orientation"]["code"] == "LPI"
     assert "left/right taken from the file" in ct["orientation"]["left_right"]
-    code = main(["simulate", "--ct", str(nhdr), "--plan", str(plan), "--out",
-                 str(tmp_path / "bad"), "--no-progress", "--no-predict", "--orient", "XYZ"])
-    assert code == 2 and "3-letter code" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:  # refused by the argument parser
+        main(["simulate", "--ct", str(nhdr), "--plan", str(plan), "--out",
+              str(tmp_path / "bad"), "--no-progress", "--no-predict", "--orient", "XYZ"])
+    assert info.value.code == 2 and "3-letter code" in capsys.readouterr().err

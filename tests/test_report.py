@@ -178,3 +178,25 @@ def test_skin_with_lines_is_packed_and_decimated():
     assert skin.n_lines == 1
     packed = pack_skin(skin, {"z": np.asarray(skin.points)[:, 2]}, max_points=500)
     assert 0 < packed["n_points"] <= 600 and packed["n_triangles"] > 0
+
+
+def _unpack(packed):
+    import base64
+    import gzip
+
+    q = np.frombuffer(gzip.decompress(base64.b64decode(packed["points"])), np.uint16)
+    points = np.asarray(packed["origin"]) + q.reshape(-1, 3) * np.asarray(packed["step"])
+    tri = np.frombuffer(gzip.decompress(base64.b64decode(packed["triangles"])), np.uint32)
+    return points, tri.reshape(-1, 3)
+
+
+def test_viewer_shows_the_patient_as_a_photograph():
+    """The 3D view's points are in the display frame (x -> -x): its front view (camera on +y,
+    z up) shows the patient's right on the viewer's left; the triangles stay wound outward."""
+    sphere = pv.Sphere(radius=50.0, center=(30.0, 0.0, 0.0))  # on the patient's left
+    points, tri = _unpack(pack_skin(sphere))
+    assert points[:, 0].mean() == pytest.approx(-30.0, abs=0.5)
+    a, b, c = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
+    normal = np.cross(b - a, c - a)
+    centre = (a + b + c) / 3.0 - points.mean(axis=0)
+    assert (np.einsum("ij,ij->i", normal, centre) > 0).mean() > 0.99  # outward

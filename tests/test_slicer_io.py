@@ -309,3 +309,20 @@ def test_hdf5_transform_written_by_simpleitk(tmp_path, kind):
     point = np.array([10.0, -20.0, 30.0])  # ITK maps fixed -> moving points
     np.testing.assert_allclose(from_h5[:3, :3] @ point + from_h5[:3, 3],
                                t.TransformPoint(point.tolist()), atol=1e-9)
+
+
+def test_plan_file_errors_name_the_file_and_the_keys(tmp_path):
+    """A missing plan names itself; a misspelt key lists every key a plan file takes,
+    'transform' and 'frame' included."""
+    from pvcmf.io import read_plan_file
+
+    with pytest.raises(FileNotFoundError, match=r"plan file .*nope\.toml.* does not exist"):
+        read_plan_file(tmp_path / "nope.toml")
+    folder = tmp_path / "folder.toml"
+    folder.mkdir()
+    with pytest.raises(FileNotFoundError, match="is a folder"):
+        read_plan_file(folder)
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[osteotomy]]\nsegment = "mandible"\ntransfrom = "m.tfm"\n')
+    with pytest.raises(ValueError, match=r"\['transfrom'\].*'transform', 'frame'"):
+        read_plan_file(plan)

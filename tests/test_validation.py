@@ -503,3 +503,71 @@ def test_fig8_cumulative(study, verify_chart):
     verify_chart(fig)
     with pytest.raises(ValueError, match="expected"):
         fig8_cumulative({1: {"proposed": [1.0]}, 2: {"other": [1.0]}})
+
+
+def _blue_columns(image):
+    """Mean column (pixels from the left) of the clearly blue pixels of an RGB image."""
+    rgb = np.asarray(image, dtype=float)[..., :3]
+    blue = (rgb[..., 2] > 120) & (rgb[..., 2] > rgb[..., 0] + 60)
+    return np.nonzero(blue)[1]
+
+
+def test_fig6_shows_the_patients_right_on_the_viewers_left():
+    """Fig. 6 is drawn as the face figures and a clinical photograph: an error on the
+    patient's left (+x) appears on the viewer's right."""
+    skin = pv.Sphere(radius=60.0, theta_resolution=60, phi_resolution=60)
+    skin[arrays.DISTANCE] = np.where(skin.points[:, 0] > 20.0, 5.0, 0.0)
+    pl = fig6_error_maps({1: {"proposed": skin}}, window_size=(400, 440))
+    image = pl.screenshot(return_img=True)
+    pl.close()
+    cols = _blue_columns(image[: int(0.8 * image.shape[0])])  # above the colour bar
+    assert cols.size > 100 and cols.mean() > 0.6 * image.shape[1], cols.mean()
+
+
+def test_fig6_to_8_name_a_case_that_is_no_patient_number(study):
+    """A case named by a word is written as it is; a patient number as P<n>."""
+    skins, dists = study
+    fig = fig8_cumulative({"female head": dists[1], 2: dists[2]})
+    assert [ax.get_title() for ax in fig.axes] == ["female head", "P2"]
+    fig = fig7_boxplots({"female head": dists[1]})
+    assert [t.get_text() for t in fig.axes[0].get_xticklabels()] == ["female head"]
+    pl = fig6_error_maps({"female head": skins[1]}, window_size=(480, 260))
+    names = set()
+    for renderer in pl.renderers:
+        props = renderer.GetViewProps()
+        props.InitTraversal()
+        for _ in range(props.GetNumberOfItems()):
+            a = props.GetNextProp()
+            if a.IsA("vtkCornerAnnotation"):
+                names.add(a.GetText(2))
+            elif a.IsA("vtkTextActor"):
+                names.add(a.GetInput())
+    pl.close()
+    assert "female head  proposed" in names and not any("Pfemale" in str(n) for n in names)
+    assert any("white within \u00b12" in str(n) for n in names)
+
+
+def test_validation_figures_count_the_modelled_skin_only(tmp_path, monkeypatch):
+    """Figs. 7 and 8 judge the skin the model predicts, as regions.csv does: the unmodelled
+    back of the head (distance 0) does not raise the share of small errors."""
+    from matplotlib.figure import Figure
+
+    import pvcmf.report.figures as rf
+
+    seen = {}
+
+    def capture(name):
+        def draw(data, **kwargs):
+            seen[name] = next(iter(next(iter(data.values())).values()))
+            return Figure()
+        return draw
+
+    monkeypatch.setattr(rf, "fig7_boxplots", capture("fig7"))
+    monkeypatch.setattr(rf, "fig8_cumulative", capture("fig8"))
+    skin = pv.Sphere(theta_resolution=20, phi_resolution=20)
+    front = skin.points[:, 1] > 0
+    skin[arrays.DISTANCE] = np.where(front, 3.0, 0.0)
+    skin[arrays.SKIN_MODELLED] = front.astype(np.uint8)
+    rf.validation_figures(skin, tmp_path, case="c")
+    for name in ("fig7", "fig8"):
+        np.testing.assert_array_equal(seen[name], np.full(front.sum(), 3.0))

@@ -17,6 +17,7 @@ import pyvista as pv
 
 from .. import arrays
 from ..filters.osteotomy import _segment_surface
+from .face_views import add_patient_mesh
 
 __all__ = ["figure_4", "BC_COLORS"]
 
@@ -28,12 +29,15 @@ _PANELS = (("sliding", "a) sliding-contact segment", "front"),
 
 
 def _view(plotter, bounds, where):
+    """Camera on the patient-frame ``bounds`` from ``where``, placed in the display frame
+    (x -> -x) in which :func:`pvcmf.figures.face_views.add_patient_mesh` draws."""
+    flip = np.array([-1.0, 1.0, 1.0])
     b = np.asarray(bounds).reshape(3, 2)
-    center = b.mean(axis=1)
+    center = b.mean(axis=1) * flip
     size = float(np.linalg.norm(b[:, 1] - b[:, 0]))
     direction = {"front": (0.25, 1.0, 0.15), "side": (-1.0, 0.6, 0.2),
-                 "back": (-0.6, -1.0, 0.3)}[where]
-    direction = np.asarray(direction) / np.linalg.norm(direction)
+                 "back": (-0.6, -1.0, 0.3)}[where]  # patient frame: "side" is the right
+    direction = np.asarray(direction) * flip / np.linalg.norm(direction)
     plotter.camera_position = [tuple(center + 2.2 * size * direction), tuple(center),
                                (0.0, 0.0, 1.0)]
     plotter.camera.zoom(1.5)
@@ -84,12 +88,13 @@ def figure_4(grid, labels=None, window_size=(1500, 520), point_size=9.0):
         p.subplot(0, col)
         p.set_background("white", all_renderers=False)
         if bone is not None:
-            p.add_mesh(bone, color="lightgray", opacity=0.35, smooth_shading=True)
-        p.add_mesh(surface, color="peachpuff", opacity=0.3, smooth_shading=True)
+            add_patient_mesh(p, bone, color="lightgray", opacity=0.35)
+        add_patient_mesh(p, surface, color="peachpuff", opacity=0.3)
         sel = bc == arrays.BC_CODES[kind]
         if sel.any():
-            p.add_mesh(pv.PolyData(points[sel]), color=BC_COLORS[kind],
-                       render_points_as_spheres=True, point_size=point_size)
+            add_patient_mesh(p, pv.PolyData(points[sel]), color=BC_COLORS[kind],
+                             render_points_as_spheres=True, point_size=point_size,
+                             smooth_shading=False)
         p.add_text(f"{title} ({int(sel.sum())} nodes)", font_size=10, color="black")
         _view(p, grid.bounds, where)
     return p

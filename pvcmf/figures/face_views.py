@@ -38,7 +38,7 @@ from .profiles import POST_LABEL, PRE_LABEL, anterior_profile, profile_overlay  
 __all__ = ["VIEWS", "to_display", "display_bounds", "frame_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
            "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "modelled_points", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
            "prediction_summary", "carry_to_skin", "UNMODELLED_COLOR", "fit_parallel",
-           "displacement_views"]
+           "displacement_views", "saturation_note"]
 
 SKIN_COLOR = "peachpuff"
 #: camera direction (from the focal point toward the camera) in the DISPLAY frame
@@ -267,7 +267,9 @@ def signed_displacement(skin, component="ap"):
     if component == "magnitude":
         return np.linalg.norm(u, axis=1)
     if component == "normal":
-        normals = skin.extract_surface(algorithm=None).compute_normals(
+        surface = pv.PolyData(np.asarray(skin.points), faces=skin.extract_surface(
+            algorithm=None).faces)  # without arrays: VTK would keep stale active normals
+        normals = surface.compute_normals(
             cell_normals=False, point_normals=True, auto_orient_normals=True,
             consistent_normals=True, split_vertices=False)[arrays.NORMALS]
         return np.einsum("ij,ij->i", u, np.asarray(normals, dtype=np.float64))
@@ -422,18 +424,17 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     for v in views:
         _check_view(v)
     values = signed_displacement(skin, component)
-    if limit is None:  # displacement_limit, without computing the values twice
-        if visible is None:
-            visible = visible_in_views(skin, views) & modelled_points(skin)
-        m = symmetric_limit(values, visible, percentile)
-    else:
-        m = float(limit)
+    if visible is None and limit is None:
+        visible = visible_in_views(skin, views) & modelled_points(skin)
+    # displacement_limit, without computing the values twice
+    m = symmetric_limit(values, visible, percentile) if limit is None else float(limit)
     clim = (0.0, m) if component == "magnitude" else (-m, m)
     cmap = cmap or ("viridis" if component == "magnitude" else "RdBu_r")
     shown = skin.copy(deep=True)
     shown.clear_data()
     title = COMPONENT_TITLES[component]
     shown.point_data[title] = values
+    note = saturation_note(values, m, visible, signed=component != "magnitude")
     n = len(views)
     window_size = window_size or (440 * n, 600)
     p = pv.Plotter(off_screen=True, shape=(2, n), row_weights=[0.84, 0.16],
@@ -454,8 +455,42 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
                      title_font_size=16, label_font_size=14, n_labels=5, fmt="%.1f")
     bar.SetTextPositionToPrecedeScalarBar()  # tick labels below the bar
     bar.SetTitle("")  # the title goes above the bar, clear of the labels
-    p.add_text(title, position="upper_edge", font_size=11, color="black")
+    if note:  # the colours saturate: the title says where, in a size that fits the strip
+        caption = p.add_text(f"{title}; {note}", position=(0.5, 0.82), viewport=True,
+                             color="black")
+        prop = caption.GetTextProperty()
+        prop.SetFontSize(int(min(22, 0.95 * window_size[0] / (0.55 * len(caption.GetInput())))))
+        prop.SetJustificationToCentered()
+        prop.SetVerticalJustificationToCentered()
+    else:
+        p.add_text(title, position="upper_edge", font_size=11, color="black")
     return p
+
+
+def saturation_note(values, limit, visible=None, signed=True):
+    """Words for the colour bar when some shown values lie beyond its range, else ``""``.
+
+    The colours stop at ``limit`` (a percentile, so a few points saturate): the bar then
+    says so and gives the largest value, over the ``visible`` points (all without it).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> saturation_note(np.array([-0.5, 1.0, 2.7]), 2.2)
+    'colours end at \u00b12.2 mm; largest 2.7 mm'
+    >>> saturation_note(np.array([0.5, 1.0]), 2.2)
+    ''
+    """
+    values = np.asarray(values, dtype=np.float64)
+    shown = values if visible is None else values[np.asarray(visible, dtype=bool)]
+    shown = np.abs(shown[np.isfinite(shown)])
+    if shown.size == 0:
+        return ""
+    largest = float(shown.max())
+    if f"{largest:.1f}" == f"{limit:.1f}" or largest <= limit:  # reads as the bar's end
+        return ""
+    sign = "\u00b1" if signed else ""
+    return f"colours end at {sign}{limit:.1f} mm; largest {largest:.1f} mm"
 
 
 def chart_image(fig, dpi=100):

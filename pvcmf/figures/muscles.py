@@ -22,6 +22,7 @@ from scipy import ndimage
 
 from .. import arrays
 from ..filters.fibers import muscle_boxes, obb_polydata
+from .face_views import add_patient_mesh
 
 __all__ = ["figure_2a", "figure_2b", "figure_3", "MUSCLE_COLORS", "muscle_surfaces"]
 
@@ -87,16 +88,19 @@ def _skin(labels):
 
 
 def _camera(plotter, labels, where="front"):
-    """Look at the muscles from the front-left, framing the face."""
+    """Look at the muscles from the patient's front-left, framing the face; the meshes are
+    drawn in the display frame (:func:`pvcmf.figures.face_views.add_patient_mesh`), so the
+    camera is placed there too."""
     _, muscle = _labels(labels)
     pts = np.asarray(labels.points)[muscle != arrays.MUSCLE_NONE]
     if len(pts) == 0:
         pts = np.asarray(labels.points)
+    flip = np.array([-1.0, 1.0, 1.0])  # patient frame -> display frame
     lo, hi = pts.min(0), pts.max(0)
-    center = 0.5 * (lo + hi)
+    center = 0.5 * (lo + hi) * flip
     size = float(np.linalg.norm(hi - lo))
-    direction = {"front": (0.45, 1.0, 0.12), "side": (1.0, 0.35, 0.1)}[where]
-    direction = np.asarray(direction) / np.linalg.norm(direction)
+    direction = {"front": (0.45, 1.0, 0.12), "side": (1.0, 0.35, 0.1)}[where]  # patient frame
+    direction = np.asarray(direction) * flip / np.linalg.norm(direction)
     plotter.camera_position = [tuple(center + 2.0 * size * direction), tuple(center),
                                (0.0, 0.0, 1.0)]
 
@@ -145,9 +149,9 @@ def figure_2a(labels, window_size=(800, 800), opacity=0.25):
     surfaces = muscle_surfaces(labels)
     p = pv.Plotter(off_screen=True, window_size=list(window_size))
     p.set_background("white")
-    p.add_mesh(_skin(labels), color=SKIN_COLOR, opacity=opacity, smooth_shading=True)
+    add_patient_mesh(p, _skin(labels), color=SKIN_COLOR, opacity=opacity)
     for name, surf in surfaces.items():
-        p.add_mesh(surf, color=MUSCLE_COLORS[_kind(name)], smooth_shading=True)
+        add_patient_mesh(p, surf, color=MUSCLE_COLORS[_kind(name)])
     _legend(p, surfaces)
     _camera(p, labels, "front")
     return p
@@ -272,16 +276,16 @@ def figure_3(labels, levels=None, window_size=(800, 800)):
     boxes = muscle_boxes(labels, levels=levels)
     p = pv.Plotter(off_screen=True, window_size=list(window_size))
     p.set_background("white")
-    p.add_mesh(_skin(labels), color=SKIN_COLOR, opacity=0.08)
+    add_patient_mesh(p, _skin(labels), color=SKIN_COLOR, opacity=0.08, smooth_shading=False)
     for name, surf in surfaces.items():
-        p.add_mesh(surf, color=MUSCLE_COLORS[_kind(name)], opacity=0.85, smooth_shading=True)
+        add_patient_mesh(p, surf, color=MUSCLE_COLORS[_kind(name)], opacity=0.85)
     for name, parts in boxes.items():
         color = MUSCLE_COLORS[_kind(name)]
         for center, axes, half in parts:
-            p.add_mesh(obb_polydata(center, axes, half).extract_all_edges(), color=color,
-                       line_width=2)
-            p.add_mesh(pv.Line(center - half[0] * axes[0], center + half[0] * axes[0]),
-                       color="black", line_width=3)
+            add_patient_mesh(p, obb_polydata(center, axes, half).extract_all_edges(),
+                             color=color, line_width=2, smooth_shading=False)
+            add_patient_mesh(p, pv.Line(center - half[0] * axes[0], center + half[0] * axes[0]),
+                             color="black", line_width=3, smooth_shading=False)
     _legend(p, surfaces)
     _camera(p, labels, "front")
     return p

@@ -15,6 +15,7 @@ import pyvista as pv
 from scipy import ndimage
 
 from .. import arrays
+from .face_views import add_patient_mesh
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +126,10 @@ def virtual_patient(case, *, window_size=(1200, 600), skin_opacity=0.25,
 
     pl = pv.Plotter(shape=(1, len(views)), window_size=list(window_size),
                     off_screen=off_screen, border=False)
-    center = np.asarray(skin.center)
+    # drawn in the display frame (x -> -x) as a photograph: the patient's right on the
+    # viewer's left from the front, the face toward the viewer's right in the right view
+    flip = np.array([-1.0, 1.0, 1.0])
+    center = np.asarray(skin.center) * flip
     size = float(np.linalg.norm(np.asarray(skin.bounds).reshape(3, 2)[:, 1]
                                 - np.asarray(skin.bounds).reshape(3, 2)[:, 0]))
     for i, view in enumerate(views):
@@ -133,14 +137,13 @@ def virtual_patient(case, *, window_size=(1200, 600), skin_opacity=0.25,
         pl.set_background("white")
         for b, surf in bones.items():
             if surf.n_points:
-                pl.add_mesh(surf, color=BONE_COLORS[b], smooth_shading=True, specular=0.2)
+                add_patient_mesh(pl, surf, color=BONE_COLORS[b], specular=0.2)
         for name, surf in muscles.items():
             if surf.n_points:
                 kind = name.rsplit("_", 1)[0]
-                pl.add_mesh(surf, color=MUSCLE_COLORS[kind], smooth_shading=True)
-        pl.add_mesh(skin, color=SKIN_COLOR, opacity=skin_opacity, smooth_shading=True,
-                    specular=0.1)
-        d = np.asarray(directions[view], float)
+                add_patient_mesh(pl, surf, color=MUSCLE_COLORS[kind])
+        add_patient_mesh(pl, skin, color=SKIN_COLOR, opacity=skin_opacity, specular=0.1)
+        d = np.asarray(directions[view], float) * flip  # the camera side, display frame
         d /= np.linalg.norm(d)
         pl.camera_position = [tuple(center + 2.2 * size * d), tuple(center), (0.0, 0.0, 1.0)]
         pl.camera.zoom(1.25)

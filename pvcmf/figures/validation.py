@@ -24,6 +24,7 @@ from matplotlib.colors import ListedColormap
 from matplotlib.figure import Figure
 
 from .. import arrays
+from .face_views import add_patient_mesh, display_bounds
 
 #: drawing order and colours of the methods (paper 000: proposed red, state of the art blue)
 METHOD_COLORS = {"proposed": "tab:red", "state_of_the_art": "tab:blue"}
@@ -71,6 +72,19 @@ def error_colormap(limit=6.0, acceptable=2.0, n=256):
     return ListedColormap(rgb, name="pvcmf_error")
 
 
+def patient_label(patient):
+    """``"P1"`` for a patient number (the papers' names), the name itself otherwise.
+
+    Examples
+    --------
+    >>> patient_label(3), patient_label("female head")
+    ('P3', 'female head')
+    """
+    if isinstance(patient, (int, np.integer)) and not isinstance(patient, bool):
+        return f"P{patient}"
+    return str(patient)
+
+
 def _check_nested(data, name):
     if not isinstance(data, dict) or not data:
         raise ValueError(f"{name} must be a non-empty dict patient -> method -> data")
@@ -101,9 +115,11 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camer
     window_size : (int, int), optional
         Pixels; default 380 x 440 per panel.
     camera : str or list, optional
-        PyVista camera position; default: from the front (camera on +y, z up), parallel
-        projection, zoomed so that the face (both methods' skins of the patient) fills
-        its panel.
+        PyVista camera position in the display frame (x -> -x, see
+        :func:`pvcmf.figures.face_views.to_display`); default: from the front (camera on
+        +y, z up, the patient's right on the viewer's left as in a clinical photograph),
+        parallel projection, zoomed so that the face (both methods' skins of the patient)
+        fills its panel.
 
     Returns
     -------
@@ -134,16 +150,17 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camer
         for method in methods:
             arrays.require_array(skins[patient][method], arrays.DISTANCE, "point", dtype="f",
                                  ncomp=1, producer="distance_to")
-        lo = np.min([skins[patient][m].bounds[::2] for m in methods], axis=0)
-        hi = np.max([skins[patient][m].bounds[1::2] for m in methods], axis=0)
+        # display frame (x -> -x): the patient's right on the viewer's left, as the face
+        # figures and a clinical photograph show it (pvcmf.figures.face_views)
+        lo = np.min([display_bounds(skins[patient][m])[::2] for m in methods], axis=0)
+        hi = np.max([display_bounds(skins[patient][m])[1::2] for m in methods], axis=0)
         centre = (lo + hi) / 2
         half_w, half_h = max((hi[0] - lo[0]) / 2, 1e-6), max((hi[2] - lo[2]) / 2, 1e-6)
         for c, method in enumerate(methods):
             pl.subplot(r, c)
-            pl.add_mesh(skins[patient][method], scalars=arrays.DISTANCE, cmap=cmap,
-                        clim=(-limit, limit), show_scalar_bar=False, smooth_shading=True,
-                        copy_mesh=True)
-            label = f"P{patient}  {METHOD_LABELS.get(method, method)}"
+            add_patient_mesh(pl, skins[patient][method], scalars=arrays.DISTANCE, cmap=cmap,
+                             clim=(-limit, limit), show_scalar_bar=False)
+            label = f"{patient_label(patient)}  {METHOD_LABELS.get(method, method)}"
             pl.add_text(label, position="upper_left", font_size=9, color="black")
             if camera is None:  # front view, the face's box filling the panel
                 scale = 1.15 * max(half_h, half_w / aspect)  # half the panel's height, mm
@@ -156,11 +173,17 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camer
             else:
                 pl.camera_position = camera
     pl.subplot(len(patients) - 1, len(methods) - 1)
-    pl.add_scalar_bar(
+    bar = pl.add_scalar_bar(
         title="signed error (mm)", mapper=pl.mapper, n_labels=7, color="black",
-        vertical=False, position_x=0.05, position_y=0.015, width=0.9, height=0.07,
+        vertical=False, position_x=0.05, position_y=0.045, width=0.9, height=0.05,
         fmt="%.0f", title_font_size=12, label_font_size=10,
     )
+    bar.SetTextPositionToPrecedeScalarBar()  # tick labels under the bar
+    bar.SetTitle("")  # VTK puts the title on the labels' side, over the middle label
+    text = pl.add_text(f"signed error (mm), white within \u00b1{acceptable:g}",
+                       position=(0.5, 0.1), viewport=True, color="black")
+    text.GetTextProperty().SetFontSize(12)  # pixels, as the bar's labels
+    text.GetTextProperty().SetJustificationToCentered()
     return pl
 
 
@@ -218,7 +241,7 @@ def fig7_boxplots(distances, *, whis=(5, 95), figsize=(7.0, 3.6)):
             ax.text(x, med, f"{med:.2f}", ha="center", va="bottom", fontsize=7,
                     color="black")
         ax.plot([], [], "s", color=color, alpha=0.55, label=METHOD_LABELS.get(method, method))
-    ax.set_xticks(np.arange(len(patients)), [f"P{p}" for p in patients])
+    ax.set_xticks(np.arange(len(patients)), [patient_label(p) for p in patients])
     # say on the figure what the whiskers are: the paper's box plots do not, and matplotlib's
     # default (1.5 IQR) would be read otherwise
     ax.set_xlabel(f"boxes: quartiles, line and number: median, whiskers: {_whisker_text(whis)}"
@@ -290,7 +313,7 @@ def fig8_cumulative(distances, *, marks=(1.0, 2.0), xmax=None, figsize=None):
                             fontsize=7, color=color)
         for level in marks:
             ax.axvline(level, color="0.6", lw=0.8, ls=":")
-        ax.set_title(f"P{patient}", fontsize=10)
+        ax.set_title(patient_label(patient), fontsize=10)
         ax.set_xlim(0, xmax)
         ax.set_ylim(0, 102)
         ax.set_xlabel("|error| (mm)")

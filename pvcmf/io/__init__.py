@@ -10,6 +10,7 @@ writes a skin as STL, OBJ or PLY for planning software.
 from .ct import read_ct
 from .exporters import (
     calculix_available,
+    check_export,
     export,
     read_calculix_dat,
     run_calculix,
@@ -21,7 +22,7 @@ from .landmarks import read_landmarks, write_landmarks
 from .surfaces import read_surface, write_surface
 from .transforms import read_itk_transform, read_plan_file, read_transform, write_itk_transform
 
-__all__ = ["read_ct", "export", "write_mesh", "write_inp", "write_feb", "run_calculix",
+__all__ = ["read_ct", "export", "check_export", "write_mesh", "write_inp", "write_feb", "run_calculix",
            "read_calculix_dat", "calculix_available", "read_landmarks", "write_landmarks",
            "read_transform", "read_itk_transform", "write_itk_transform", "read_plan_file",
            "write_surface", "read_surface"]

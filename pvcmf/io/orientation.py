@@ -55,7 +55,8 @@ from .head_check import TEETH_STEPS, _teeth_ml, check_head  # noqa: F401 (re-exp
 
 log = logging.getLogger(__name__)
 
-__all__ = ["check_head", "check_units", "orient_head", "reorient", "standardize", "HU_OFFSETS"]
+__all__ = ["check_head", "check_units", "orient_head", "orientation_code", "reorient", "standardize",
+           "HU_OFFSETS"]
 
 #: offsets (HU = value + offset) of the usual CT storage conventions
 HU_OFFSETS = (0.0, -1000.0, -1024.0, -32768.0)
@@ -125,6 +126,29 @@ def _peaks(vol):
 
 
 # --------------------------------------------------------------------------- units
+#: HU by which both the air and the soft-tissue peak may miss their values under given units
+#: before the units are refused (cone-beam grey values stray by a few hundred; scanner units
+#: read as HU by about a thousand)
+GIVEN_UNITS_TOLERANCE = 500.0
+
+
+def _check_given_units(air, soft, offset, given):
+    """Refuse given units (``'hu'`` or an offset) under which both peaks miss their HU by
+    more than :data:`GIVEN_UNITS_TOLERANCE`, naming the offset the peaks ask for."""
+    air_hu, soft_hu = air + offset, soft + offset
+    if abs(air_hu - AIR_HU) <= GIVEN_UNITS_TOLERANCE or \
+            abs(soft_hu - SOFT_HU) <= GIVEN_UNITS_TOLERANCE:
+        return
+    cost = [2 * abs(SOFT_HU - soft - o) + abs(AIR_HU - air - o) for o in HU_OFFSETS]
+    best = HU_OFFSETS[int(np.argmin(cost))]
+    raise ValueError(
+        f"check_units: with {given}, air lies at {air_hu:.0f} HU and soft "
+        f"tissue at {soft_hu:.0f} HU (a CT has them near {AIR_HU:g} and {SOFT_HU:g}): the "
+        f"values are not in HU under these units; expected units='auto' (pvcmf simulate: "
+        f"--units auto and no --offset), or the offset the peaks ask for: HU = value "
+        f"{best:+g} on the values read")
+
+
 def check_units(image, units="auto"):
     """Bring a CT into Hounsfield units, detecting scanner units from its histogram.
 
@@ -192,6 +216,8 @@ def check_units(image, units="auto"):
             offset = float(round(from_soft))
             how = (f"air peak {a:.0f} and soft-tissue peak {s:.0f} fit no usual convention: "
                    f"offset {offset:+g} puts soft tissue at {SOFT_HU:g} HU")
+    if units != "auto":
+        _check_given_units(a, s, offset, "units='hu'" if units == "hu" else f"units={offset:g}")
     report.update(units="hu" if offset == 0 else "scanner", offset=offset, how=how)
     if offset != 0:
         log.warning("check_units: scanner units; HU = value %+g (%s)", offset, how)
@@ -211,6 +237,19 @@ def _parse_code(code):
             f"orient must be 'auto', 'none' or a 3-letter code with one of L/R, A/P, S/I per "
             f"image axis (e.g. 'LAS' for the patient frame, 'LPI'), got {code!r}")
     return code, picks
+
+
+def orientation_code(code):
+    """The upper-case 3-letter orientation code ``code`` names, or a ValueError.
+
+    One letter per image axis from L/R, A/P, S/I, each pair once (see :func:`reorient`).
+
+    Examples
+    --------
+    >>> orientation_code("lpi")
+    'LPI'
+    """
+    return _parse_code(code)[0]
 
 
 def reorient(image, code):

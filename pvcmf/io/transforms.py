@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..plan import _OSTEOTOMY_KEYS as OSTEOTOMY_KEYS
 from ..plan import Plan, _toml_loads
 
 log = logging.getLogger(__name__)
@@ -391,6 +392,10 @@ def read_plan_file(path, *, itk_direction="resampling"):
     suffix = path.suffix.lower()
     if suffix not in (".toml", ".json"):
         raise ValueError(f"plan file must be .toml or .json, got {path.name!r}")
+    if not path.is_file():
+        what = "is a folder" if path.is_dir() else "does not exist"
+        raise FileNotFoundError(f"plan file {str(path)!r} {what} (expected a .toml or .json "
+                                "plan)")
     text = path.read_text(encoding="utf-8")
     try:
         data = json.loads(text) if suffix == ".json" else _toml_loads(text)
@@ -404,8 +409,12 @@ def read_plan_file(path, *, itk_direction="resampling"):
             converted.append(item)
             continue
         item = dict(item)
-        frame = item.pop("frame", None)
         where = f"{path.name}: osteotomy[{i}]"
+        allowed = [*OSTEOTOMY_KEYS, "transform", "frame"]  # the file's keys, before conversion
+        unknown = sorted(set(item) - set(allowed))
+        if unknown:
+            raise ValueError(f"{where} has unknown key(s) {unknown}; allowed keys are {allowed}")
+        frame = item.pop("frame", None)
         if "transform" in item:
             if "matrix" in item:
                 raise ValueError(f"{where} gives both 'transform' and 'matrix'")

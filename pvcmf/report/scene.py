@@ -84,9 +84,11 @@ def pack_skin(skin, scalars=None, *, max_points=DEFAULT_MAX_POINTS):
     Returns
     -------
     dict
-        JSON-ready: ``origin``, ``step`` (dequantisation), ``points`` (uint16 x 3),
-        ``triangles`` (uint32 x 3), ``scalars`` (name -> float32, with ``range``), and
-        ``n_points``, ``n_triangles``.
+        JSON-ready: ``origin``, ``step`` (dequantisation), ``points`` (uint16 x 3, in the
+        display frame of :mod:`pvcmf.figures.face_views`: x -> -x, so the viewer shows the
+        patient as a photograph does), ``triangles`` (uint32 x 3, wound for the reflected
+        points), ``scalars`` (name -> float32, with ``range``), and ``n_points``,
+        ``n_triangles``.
 
     Examples
     --------
@@ -111,6 +113,12 @@ def pack_skin(skin, scalars=None, *, max_points=DEFAULT_MAX_POINTS):
         scalars = {k: v[nearest] for k, v in scalars.items()}
         tri, faces = _triangles(small)
         points = np.asarray(tri.points, dtype=float)
+    # the display frame (x -> -x): the patient frame is left-handed (x left, y anterior, z
+    # superior), so drawn as it is every view is a mirror image; reflected, the front view
+    # shows the patient's right on the viewer's left as a photograph does, and the
+    # triangles are wound the other way so that their normals still point outward
+    points = points * np.array([-1.0, 1.0, 1.0])
+    faces = np.ascontiguousarray(faces[:, [0, 2, 1]])
     lo, hi = points.min(axis=0), points.max(axis=0)
     step = np.maximum(hi - lo, 1e-9) / 65535.0
     q = np.rint((points - lo) / step).astype(np.uint16)

@@ -28,7 +28,7 @@ from .febio import FEB_VERSION, write_feb
 
 log = logging.getLogger(__name__)
 
-__all__ = ["export", "write_mesh", "write_inp", "write_feb", "run_calculix",
+__all__ = ["export", "check_export", "write_mesh", "write_inp", "write_feb", "run_calculix",
            "read_calculix_dat", "calculix_available", "FEB_VERSION", "WRITERS"]
 
 #: extension -> writer of the solver formats; any other extension meshio knows goes to
@@ -127,6 +127,30 @@ def write_mesh(dataset, path, *, file_format=None, binary=True):
     return path
 
 
+def check_export(path):
+    """``path`` as a :class:`pathlib.Path` if :func:`export` knows its extension, else a
+    ValueError listing the known ones; checked before any work.
+
+    Examples
+    --------
+    >>> from pvcmf.io import check_export
+    >>> check_export("model.inp").suffix
+    '.inp'
+    """
+    import meshio
+
+    path = Path(path)
+    if path.suffix.lower() in WRITERS:
+        return path
+    try:
+        meshio._helpers._filetypes_from_path(path)
+    except (ValueError, KeyError, meshio.ReadError):
+        known = sorted(set(WRITERS) | set(meshio.extension_to_filetypes))
+        raise ValueError(f"export: unknown extension {path.suffix!r} of {str(path)!r}; "
+                         f"known: {', '.join(known)}") from None
+    return path
+
+
 def export(grid, path, *, file_format=None):
     """Export a grid for another tool; the format comes from ``path``'s extension.
 
@@ -157,17 +181,10 @@ def export(grid, path, *, file_format=None):
     >>> export(pv.Sphere(), os.path.join(tempfile.mkdtemp(), "s.vtu")).suffix
     '.vtu'
     """
-    import meshio
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix in WRITERS and file_format is None:
         return WRITERS[suffix](grid, path)
     if file_format is None:
-        try:
-            meshio._helpers._filetypes_from_path(path)
-        except (ValueError, KeyError, meshio.ReadError):
-            known = sorted(set(WRITERS) | set(meshio.extension_to_filetypes))
-            raise ValueError(f"export: unknown extension {path.suffix!r} of {str(path)!r}; "
-                             f"known: {', '.join(known)}") from None
+        check_export(path)
     return write_mesh(grid, path, file_format=file_format)
