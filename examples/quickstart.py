@@ -21,7 +21,8 @@ labels = (case.ct.cmf.segment()                             # tissue / bone labe
 mesh = (labels.cmf.tetrahedralize(n_tets=8_000, roi=face_box(labels, 0.5))  # every tet in one tissue
         .cmf.fiber_directions()                             # muscle fibres from OBBs
         .cmf.assign_materials()                             # paper 000 Table I
-        .cmf.apply_plan(case.plan, case.truth, fix_unmoved_bone=True))  # bc arrays
+        .cmf.apply_plan(case.plan, case.truth, fix_unmoved_bone=True,
+                    release_margin="auto"))              # bc arrays, torn tissue released
 post = mesh.cmf.solve()                                     # point array "displacement"
 skin = labels.cmf.skin()                                    # dense pre-operative skin
 pred = post.cmf.map_to_surface(skin)                        # predicted post-operative skin

@@ -480,3 +480,26 @@ def test_fold_on_several_threads_equals_one(block, monkeypatch):
     assert np.array_equal(one.D, two.D) and np.array_equal(one.Ru, two.Ru)
     assert np.array_equal(transfer_smoothing.rows_product(tr.W0, nodal[:, 0], 3),
                           tr.W0 @ nodal[:, 0])
+
+
+def test_auto_release_margin_is_fixed_from_the_plan_given(block):
+    """``release_margin='auto'`` frees the fixed nodes within twice the plan's largest move:
+    the operator fixes that margin from the plan it is built with and equals apply_plan's
+    'auto' for that plan; built without motions it refuses."""
+    grid, img, skin = block
+    opts = {"fix_unmoved_bone": True, "release_margin": "auto"}
+    plan = Plan((Osteotomy("mandible", (0.8, 0.3, -0.2), (2.0, 0.0, 1.0)),))
+    resp = plan_response(grid, img, skin=skin, plan=plan, dtype="float64", bc_options=opts)
+    ref = apply_plan(grid, plan, img, **opts)
+    plain = apply_plan(grid, plan, img, fix_unmoved_bone=True)
+    # the margin frees nodes here, so a margin left at 'auto' per unit probe would differ
+    assert np.sum(ref[arrays.BC] == arrays.BC_FREE) > np.sum(plain[arrays.BC] == arrays.BC_FREE)
+    u = np.asarray(solve(ref)[arrays.DISPLACEMENT])
+    T = transfer_operator(grid, skin)
+    assert np.abs(resp.predict(plan)[arrays.DISPLACEMENT] - T @ u).max() < 1e-9
+    moving = np.isin(ref[arrays.BC], (arrays.BC_JOINT, arrays.BC_SLIDING))
+    assert resp.release_margin == pytest.approx(
+        2 * np.linalg.norm(ref[arrays.BC_DISPLACEMENT][moving], axis=1).max())
+    with pytest.raises(ValueError, match="release_margin='auto'"):
+        plan_response(grid, img, skin=skin, plan=Plan((Osteotomy("mandible"),)),
+                      bc_options=opts)

@@ -112,7 +112,8 @@ def plan_response(mesh, labels, *, skin=None, plan=None, dtype="auto", bc_option
     skin : pyvista.DataSet, optional
         Dense skin (e.g. ``labels.cmf.skin()``): :meth:`PlanResponse.predict` maps onto it.
     plan : pvcmf.Plan, optional
-        Segments and cut planes of the plans to come (its motions are ignored). Default:
+        Segments and cut planes of the plans to come (its motions are ignored, except to fix
+        ``release_margin="auto"``). Default:
         every movable segment the ``bone`` label holds, without cut planes.
     dtype : {'auto', 'float32', 'float64'}
         Storage of the skin operator; ``'auto'`` keeps float32 when the rounding bound of
@@ -121,6 +122,9 @@ def plan_response(mesh, labels, *, skin=None, plan=None, dtype="auto", bc_option
         and centroid shifts up to 20 mm.
     bc_options : dict, optional
         Keyword arguments of :func:`pvcmf.filters.apply_plan` (e.g. ``fix_unmoved_bone``).
+        ``release_margin='auto'`` (twice a plan's largest move) is fixed once, from
+        ``plan``'s motions (:attr:`PlanResponse.release_margin`), so that one operator has
+        one set of boundary types; a ``plan`` that moves nothing is then refused.
     solver_options : dict, optional
         Keyword arguments of :class:`pvcmf.mtm.Solver` (``precision='double'`` unless given:
         its solves need no refinement).
@@ -167,6 +171,9 @@ class PlanResponse:
         over the points evaluated from the nodal response, ``s`` the plan range
         (:data:`FLOAT32_ROTATION`, :data:`FLOAT32_SHIFT`); float32 is kept when it is at
         most :data:`FLOAT32_TOLERANCE`.
+    release_margin : float or None
+        The release margin (mm) of the operator's boundary conditions
+        (``bc_options['release_margin']``, ``'auto'`` resolved from the build plan).
     timings : dict
         Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
         solves: the skin transfer's ranges left to the calling thread, waiting for the
@@ -237,6 +244,7 @@ class PlanResponse:
         self.centroids = {s: np.asarray(m, float) for s, m in self._pivots(cut, plan).items()}
         self._probe = Plan(tuple(Osteotomy(o.segment, translation=tuple(np.eye(3)[i]), cut=o.cut)
                                  for i, o in enumerate(plan.osteotomies)))
+        self.bc_options = self._fixed_release(plan)
         ref = apply_plan(self.mesh, self._probe, labels, **self.bc_options)
         self.segments = tuple(o.segment_id for o in plan.osteotomies)
         self.timings["bc"] = time.perf_counter() - t
@@ -250,6 +258,30 @@ class PlanResponse:
         self.timings["solves"] = time.perf_counter() - t
         bar.step(f"{self.nodal.shape[2]} solves")
         return ref
+
+    def _fixed_release(self, plan):
+        """``bc_options`` with ``release_margin='auto'`` made a number: twice the largest
+        move ``plan`` prescribes (what ``'auto'`` gives that plan), so that every plan the
+        operator evaluates has the same boundary types; refused for a plan without motion."""
+        opts = dict(self.bc_options)
+        margin = opts.get("release_margin")
+        if not (isinstance(margin, str) and margin == "auto"):
+            self.release_margin = margin
+            return opts
+        if all(np.allclose(o.matrix(), np.eye(4)) for o in plan.osteotomies):
+            raise ValueError(
+                "bc_options release_margin='auto' (twice the plan's largest move) needs "
+                "plan= with its motions: one operator has one set of boundary types; got a "
+                "plan that moves nothing. Pass plan= or a release_margin in mm")
+        grid = apply_plan(self.mesh, plan, self.labels, **{**opts, "release_margin": None})
+        code = np.asarray(grid[arrays.BC])
+        disp = np.asarray(grid[arrays.BC_DISPLACEMENT], dtype=float)
+        moving = (code == arrays.BC_JOINT) | (code == arrays.BC_SLIDING)
+        opts["release_margin"] = self.release_margin = 2.0 * float(
+            np.linalg.norm(disp[moving], axis=1).max(initial=0.0))
+        log.info("plan_response: release_margin='auto' fixed at %.3g mm from the plan given",
+                 self.release_margin)
+        return opts
 
     @property
     def skin_response(self):
