@@ -444,6 +444,9 @@ def main(argv=None):
                     help="with --fine: the patients of the finer truth (default: the first)")
     ap.add_argument("--mesher", default="lattice", choices=["lattice", "conforming"],
                     help="with --refinement: the independent truth's mesher")
+    ap.add_argument("--materials", default="cells", choices=["cells", "field"],
+                    help="with --refinement: the independent truth's materials (per "
+                         "tetrahedron, or a field of the position)")
     ap.add_argument("--no-cache", action="store_true",
                     help="solve every truth again (default: reuse the on-disk cache)")
     ap.add_argument("--n-tets", type=int, default=30_000)
@@ -458,14 +461,15 @@ def main(argv=None):
              f"pvcmf {pvcmf.__version__}.", ""]
     if args.refinement:
         parts.append(refinement(args.patients, args.counts, args.spacing,
-                                cache=not args.no_cache, mesher=args.mesher))
+                                cache=not args.no_cache, mesher=args.mesher,
+                                materials=args.materials))
         if args.order_check:
             parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing,
                                      args.mesher)
         for patient in (args.fine_patients or args.patients[:1]) if args.fine else ():
             parts[-1] += fine_truth_cost(patient, args.counts, args.fine,
                                          args.spacing, cache=not args.no_cache,
-                                         mesher=args.mesher)
+                                         mesher=args.mesher, materials=args.materials)
     if args.compare:
         parts.append(compare(args.patients, args.truth, args.spacing, args.n_tets,
                              args.truth_tets))

@@ -33,22 +33,23 @@ def _row(p, grid):
             "max": np.nan, "released": len(grid.field_data[arrays.REFERENCE_RELEASED])}
 
 
-def fine_truth_cost(patient, counts, fine, spacing, cache=True, mesher="lattice"):
+def fine_truth_cost(patient, counts, fine, spacing, cache=True, mesher="lattice",
+                    materials="cells"):
     """One finer truth of ``patient`` (``fine`` tetrahedra asked): its cost and the change
     of its skin from the finest truth of the table (``counts[-1]``)."""
     case = pvcmf.datasets.phantom(patient, spacing=spacing)
     points = exact_skin_samples(case)
     coarse = independent_truth_grid(case, n_tets=counts[-1], cache=cache, mesher=mesher,
-                                    reuse_factor=True)
+                                    materials=materials, reuse_factor=True)
     grid = independent_truth_grid(case, n_tets=fine, cache=cache, mesher=mesher,
-                                  reuse_factor=True)
+                                  materials=materials, reuse_factor=True)
     r = _row(patient, grid)
     change = refinement_change(coarse, grid, points)
     print(r, {k: change[k] for k in ("p50", "p90", "max", "compared")}, flush=True)
     trend = ""
     if len(counts) > 1:  # p90 ~ edge^k from the last two changes, projected to 0.1 mm
         prev = independent_truth_grid(case, n_tets=counts[-2], cache=cache, mesher=mesher,
-                                      reuse_factor=True)
+                                      materials=materials, reuse_factor=True)
         a, b, c = _row(patient, prev), _row(patient, coarse), r
         first = refinement_change(prev, coarse, points)["p90"]
         k = np.log(first / change["p90"]) / np.log(b["h"] / c["h"])
@@ -112,7 +113,15 @@ _CONFORMING = ("Mesher ``conforming`` (``pvcmf.truth.conform.conforming_mesh``):
                "factorisation). Edge mm: the median edge of the mesh.")
 
 
-def refinement(patients, counts, spacing, cache=True, mesher="lattice"):
+_CELLS = "each tetrahedron mixes fat and muscle by its sampled muscle fraction."
+_FIELD = ("materials ``field`` (``pvcmf.truth.independent.material_field``): fat and muscle "
+          "mixed by the exact muscle indicator sampled every ``MATERIAL_MM`` mm and "
+          "smoothed over ``MATERIAL_SIGMA_MM`` mm, a field of the position projected onto "
+          "quadratic polynomials on each element at the solve, so every mesh integrates "
+          "the same material.")
+
+
+def refinement(patients, counts, spacing, cache=True, mesher="lattice", materials="cells"):
     rows = []
     for p in patients:
         case = pvcmf.datasets.phantom(p, spacing=spacing)
@@ -120,7 +129,7 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice"):
         prev = None
         for n in counts:
             grid = independent_truth_grid(case, n_tets=n, cache=cache, mesher=mesher,
-                                          reuse_factor=True)
+                                          materials=materials, reuse_factor=True)
             row = _row(p, grid)
             if prev is not None:
                 change = refinement_change(prev, grid, points)
@@ -155,8 +164,8 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice"):
             "is the same problem on every mesh: every node on a bone surface is tied, its "
             "data the segments' rigid moves blended by smooth weights of the position "
             "(``BLEND_MM``); the posterior plane is held except within ``CLEARANCE_MM`` of "
-            "a moved bone; the tongue is not meshed (free, as the oral air); each "
-            "tetrahedron mixes fat and muscle by its sampled muscle fraction. "
+            "a moved bone; the tongue is not meshed (free, as the oral air); "
+            + (_FIELD if materials == "field" else _CELLS) + " "
             + (_CONFORMING if mesher == "conforming" else _LATTICE) + "\n\n")
     fits = []
     for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
