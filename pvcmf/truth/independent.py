@@ -23,7 +23,11 @@ the labels, nor the boundary model:
 * materials: the muscle fraction of each tetrahedron (the twelve facial muscles,
   temporalis, neck muscles; the eyes excluded), sampled at points inside it, mixes Table I
   fat and muscle (rule of mixtures), so a muscle sheet thinner than the elements keeps its
-  stiffness on every mesh; muscle isotropic (the truth's fibre term vanishes for Table I);
+  stiffness on every mesh; muscle isotropic (the truth's fibre term vanishes for Table I).
+  With ``materials="field"`` the mixture is a field of the position instead
+  (:func:`material_field`: the muscle indicator sampled every :data:`MATERIAL_MM` mm and
+  smoothed), projected onto quadratic polynomials on each element by the solver, so the
+  stiffness varies inside an element and every mesh integrates the same material;
 * boundary model, no :func:`pvcmf.filters.apply_plan`: soft tissue is tied to the bone
   surfaces it touches (periosteum): a node on a bone surface moves by the plan's rigid
   moves of the segments (``segment_transforms`` of the cut bones; unmoved bone: none)
