@@ -256,7 +256,10 @@ def material_field(case, grid, *, step=MATERIAL_MM, sigma=MATERIAL_SIGMA_MM):
     :func:`pvcmf.truth.solver.solve_reference`): Table I fat and muscle mixed by the muscle
     indicator of the exact anatomy, sampled every ``step`` mm over the grid's bounding box
     and smoothed by a Gaussian of ``sigma`` mm, so every mesh integrates the same material
-    (a per-element muscle fraction would change with the elements).
+    (a per-element muscle fraction would change with the elements), up to the sampling:
+    the lattice starts at the grid's bounds, so the lattices of two meshes may be offset
+    by up to a ``step`` (their trilinear interpolants differ by that much at a muscle's
+    edge).
 
     Returns
     -------
