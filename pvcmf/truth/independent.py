@@ -23,7 +23,11 @@ the labels, nor the boundary model:
 * materials: the muscle fraction of each tetrahedron (the twelve facial muscles,
   temporalis, neck muscles; the eyes excluded), sampled at points inside it, mixes Table I
   fat and muscle (rule of mixtures), so a muscle sheet thinner than the elements keeps its
-  stiffness on every mesh; muscle isotropic (the truth's fibre term vanishes for Table I);
+  stiffness on every mesh; muscle isotropic (the truth's fibre term vanishes for Table I).
+  With ``materials="field"`` the mixture is a field of the position instead
+  (:func:`material_field`: the muscle indicator sampled every :data:`MATERIAL_MM` mm and
+  smoothed), projected onto quadratic polynomials on each element by the solver, so the
+  stiffness varies inside an element and every mesh integrates the same material;
 * boundary model, no :func:`pvcmf.filters.apply_plan`: soft tissue is tied to the bone
   surfaces it touches (periosteum): a node on a bone surface moves by the plan's rigid
   moves of the segments (``segment_transforms`` of the cut bones; unmoved bone: none)
@@ -44,6 +48,7 @@ still :func:`pvcmf.truth.grid.truth_grid` (until the refinement study of
 
 from __future__ import annotations
 
+import hashlib
 import logging
 
 import numpy as np
@@ -54,6 +59,9 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .. import arrays, filters
+from ..atlas.muscles import _muscle_models
+from ..atlas.shapes import F32
+from ..atlas.soft_tissue import eyes_sdf, neck_muscles_sdf, temporalis_sdf, tongue_sdf
 from ..cache import cache_root
 from ..filters.model_region import face_box
 from ..filters.osteotomy import cut_bones, segment_transforms, voxel_points
@@ -76,6 +84,9 @@ CLEARANCE_MM = 20.0
 #: a lattice edge whose midpoint bulges out of the soft tissue by more than this share of
 #: the spacing crosses a gap of the anatomy: its tetrahedra are not meshed
 GAP_RATIO = 0.25
+#: sampling step (mm) and Gaussian smoothing (sigma, mm) of the muscle indicator whose
+#: rule-of-mixtures materials the truth evaluates at its quadrature points
+MATERIAL_MM, MATERIAL_SIGMA_MM = 1.5, 1.0
 
 def _lattice(box, h):
     """Freudenthal lattice of ``box`` (x0, x1, y0, y1, z0, z1) at spacing ``h``: points
@@ -228,6 +239,55 @@ def soft_tissue_mesh(case, *, n_tets=30_000, face_fraction=0.5, progress_bar=Fal
     return grid
 
 
+def _muscle_indicator(warp, x):
+    """1 inside a muscle (the twelve facial muscles, temporalis, neck muscles, tongue; the
+    eyes excluded), 0 elsewhere, at patient points ``x`` (n, 3)."""
+    X = tuple(x[:, i].astype(F32) for i in range(3))
+    s = warp.soft(warp.base_inverse(X))
+    inside = np.minimum.reduce([np.asarray(fn(s), float)
+                                for fn in (tongue_sdf, temporalis_sdf, neck_muscles_sdf)]) < 0
+    for model in _muscle_models().values():  # twelve muscles, vectorised inside
+        inside |= np.asarray(model(s)) < 0
+    return (inside & ~(np.asarray(eyes_sdf(s), float) < 0)).astype(np.float32)
+
+
+def material_field(case, grid, *, step=MATERIAL_MM, sigma=MATERIAL_SIGMA_MM):
+    """The truth's materials as fields of the position (``materials`` of
+    :func:`pvcmf.truth.solver.solve_reference`): Table I fat and muscle mixed by the muscle
+    indicator of the exact anatomy, sampled every ``step`` mm over the grid's bounding box
+    and smoothed by a Gaussian of ``sigma`` mm, so every mesh integrates the same material
+    (a per-element muscle fraction would change with the elements), up to the sampling:
+    the lattice starts at the grid's bounds, so the lattices of two meshes may be offset
+    by up to a ``step`` (their trilinear interpolants differ by that much at a muscle's
+    edge).
+
+    Returns
+    -------
+    dict
+        ``origin``, ``end`` (mm), ``e_cross``, ``nu`` (nz, ny, nx) and ``fraction``.
+    """
+    warp = _warp(case)
+    b = np.asarray(grid.bounds, dtype=float).reshape(3, 2)
+    lo, hi = b[:, 0] - 2 * step, b[:, 1] + 2 * step
+    axes = [np.arange(lo[i], hi[i] + step, step) for i in range(3)]
+    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # x fastest
+    p = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+    f = np.empty(len(p), dtype=np.float32)
+    for i in range(0, len(p), 250_000):  # chunks bound the memory of the level sets
+        f[i:i + 250_000] = _muscle_indicator(warp, p[i:i + 250_000])
+    f = np.clip(ndimage.gaussian_filter(f.reshape(x.shape), sigma / step), 0.0, 1.0)
+    # Table I fat (fraction 0) and muscle (1), mixed as assign_materials mixes them
+    two = pv.UnstructuredGrid({pv.CellType.TETRA: np.array([[0, 1, 2, 3], [0, 1, 2, 3]])},
+                              np.vstack([np.zeros(3), np.eye(3)]))
+    two.cell_data[arrays.TISSUE] = np.array([arrays.FAT, arrays.MUSCLE_TISSUE], np.uint8)
+    two.cell_data[arrays.MUSCLE_FRACTION] = np.array([0.0, 1.0])
+    two = filters.assign_materials(two, default_fiber=(0.0, 0.0, 1.0))
+    e, nu = (np.asarray(two.cell_data[k], float) for k in (arrays.E_CROSS, arrays.NU))
+    return {"origin": (axes[0][0], axes[1][0], axes[2][0]),
+            "end": (axes[0][-1], axes[1][-1], axes[2][-1]), "fraction": f,
+            "e_cross": e[0] + f * (e[1] - e[0]), "nu": nu[0] + f * (nu[1] - nu[0])}
+
+
 def _segment_weights(labels, segments, x, sigma=BLEND_MM):
     """Smooth partition of unity over the bone segments at points ``x`` (n, 3): (n, k).
 
@@ -295,7 +355,7 @@ def _boundary_conditions(case, grid, blend=BLEND_MM, clearance=CLEARANCE_MM):
 
 def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fraction=0.5,
                            cache=True, cache_dir=None, mesher="lattice", reuse_factor=False,
-                           progress_bar=False):
+                           materials="cells", progress_bar=False):
     """The solved independent truth of a virtual patient (module docstring).
 
     Parameters
@@ -318,6 +378,10 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         ``'conforming'``: :func:`pvcmf.truth.conform.conforming_mesh` (gmsh, conforming to
         the exact surfaces: the same meshed volume at every size; ``n_tets`` sets its
         surface spacing). Same boundary model and materials on both.
+    materials : {'cells', 'field'}, default 'cells'
+        ``'cells'``: each tetrahedron mixes fat and muscle by its sampled muscle fraction;
+        ``'field'``: the mixture is a field of the position (:func:`material_field`)
+        evaluated at the quadrature points: the same material on every mesh.
     reuse_factor : bool, default False
         Passed to :func:`pvcmf.truth.solver.solve_reference` (conjugate gradients
         preconditioned by the last factorisation between refactorisations; the same
@@ -336,6 +400,8 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
     >>> from pvcmf.truth.independent import independent_truth_grid              # doctest: +SKIP
     >>> g = independent_truth_grid(pvcmf.datasets.phantom(1, spacing=2.0))      # doctest: +SKIP
     """
+    if materials not in ("cells", "field"):
+        raise ValueError(f"materials must be 'cells' or 'field', got {materials!r}")
     if mesher == "lattice":
         grid = soft_tissue_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
     elif mesher == "conforming":
@@ -346,8 +412,14 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
     # Table I; the fibre direction is immaterial to the truth's law for Table I (its fibre
     # term vanishes where the muscle is softer along the fibre than across)
     grid = filters.assign_materials(grid, default_fiber=(0.0, 0.0, 1.0))
-    key = grid_hash(grid, f"independent|order={order}|steps={steps}")
+    field, params = None, f"independent|order={order}|steps={steps}"
+    if materials == "field":
+        field = material_field(case, grid)
+        params += "|materials=" + hashlib.sha256(
+            np.ascontiguousarray(field["fraction"]).tobytes()
+            + np.asarray(field["origin"] + field["end"]).tobytes()).hexdigest()[:16]
+    key = grid_hash(grid, params)
     path = cache_root("reference", cache_dir) / f"independent_{key}.vtu"
     return cached(path, lambda: solve_reference(grid, order=order, steps=steps,
-                                                reuse_factor=reuse_factor,
+                                                reuse_factor=reuse_factor, materials=field,
                                                 progress_bar=progress_bar), cache=cache)

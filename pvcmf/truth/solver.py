@@ -206,7 +206,7 @@ def _damped_newton(ngs, form, gfu, maxerr, maxit, linear):
 def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton=30,
                     inverse="sparsecholesky", reuse_factor=False, threads=None,
                     predictor="tangent", release_below=0.2, law="neo-hookean",
-                    progress_bar=False):
+                    materials=None, progress_bar=False):
     """Large-deformation neo-Hookean solve of a planned tetrahedral grid with NGSolve.
 
     Parameters
@@ -255,6 +255,13 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
         ``k/2 (2 a.eps a)^2``), the linearisation of the same energy at the undeformed state:
         a control that the tests of the large-deformation behaviour must reject (it is
         not rotation invariant).
+    materials : dict, optional
+        Isotropic materials as fields of the position, evaluated at the quadrature points
+        (``ngsolve.VoxelCoefficient``, trilinear) instead of the cell arrays ``E_cross``
+        and ``nu``: ``origin`` and ``end`` (the box's corners, mm) and ``e_cross`` and
+        ``nu``, arrays of shape (nz, ny, nx) of samples over that box (x fastest). A
+        material that is the same function on every mesh (the cell arrays still set the
+        fibre term and the tolerance's scale).
     threads : bool, optional
         Assemble and factorise inside ``ngsolve.TaskManager()`` (all cores). Default: only
         when the 1-minute load average is below half the cores (NGSolve's threads spin
@@ -301,7 +308,7 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
     if law not in _LAWS:
         raise ValueError(f"law must be one of {_LAWS}, got {law!r}")
     released = _release(inp, release_below)
-    model = _model(ngm, ngs, inp, order, penalty, law)
+    model = _model(ngm, ngs, inp, order, penalty, law, materials)
     linear = _Linear(ngs, model["form"], model["freedofs"], inverse, reuse=reuse_factor)
     start = time.perf_counter()
     if threads is None:
@@ -329,6 +336,8 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
 
 #: strain energies of :func:`solve_reference` (``law``)
 _LAWS = ("neo-hookean", "linear")
+#: polynomial order per element of a ``materials`` field (:func:`_material_fields`)
+MATERIAL_ORDER = 2
 
 
 def _inputs(grid, release_below, predictor):
@@ -388,7 +397,7 @@ def _release(inp, release_below):
     return released
 
 
-def _model(ngm, ngs, inp, order, penalty, law="neo-hookean"):
+def _model(ngm, ngs, inp, order, penalty, law="neo-hookean", materials=None):
     """The NGSolve mesh, space, energy form and prescribed data of the truth."""
     points, tets, faces, constrained = inp["points"], inp["tets"], inp["faces"], inp["constrained"]
     sliding = inp["bc"] == arrays.BC_SLIDING
@@ -406,8 +415,13 @@ def _model(ngm, ngs, inp, order, penalty, law="neo-hookean"):
         return f
 
     e_cross, nu, k_fib, fib = inp["e_cross"], inp["nu"], inp["k_fib"], inp["fib"]
-    mu = cellwise(e_cross / (2 * (1 + nu)))
-    lam = cellwise(e_cross * nu / ((1 + nu) * (1 - 2 * nu)))
+    if materials is None:
+        mu = cellwise(e_cross / (2 * (1 + nu)))
+        lam = cellwise(e_cross * nu / ((1 + nu) * (1 - 2 * nu)))
+    else:  # fields of the position, projected onto quadratic polynomials per element
+        e_f, nu_f = _material_fields(ngs, mesh, materials)
+        mu = e_f / (2 * (1 + nu_f))
+        lam = e_f * nu_f / ((1 + nu_f) * (1 - 2 * nu_f))
     fes = ngs.H1(mesh, order=order, dim=3, dirichlet="dirichlet")
     u = fes.TrialFunction()
     if law == "linear":  # small strain: the control the large-deformation tests reject
@@ -446,6 +460,30 @@ def _model(ngm, ngs, inp, order, penalty, law="neo-hookean"):
     model = {"mesh": mesh, "fes": fes, "form": form, "gfu": gfu, "load": load}
     model.update(_prescribed(ngs, mesh, fes, g_p1, inp))
     return model
+
+
+def _material_fields(ngs, mesh, materials, order=MATERIAL_ORDER):
+    """``E_cross`` and ``nu`` of a ``materials`` field on ``mesh``: the trilinear
+    interpolant of the samples (``ngsolve.VoxelCoefficient``), L2-projected onto
+    polynomials of ``order`` on each element and clipped to the samples' range (the
+    projection is used, not the voxel coefficient itself, whose linearisation in NGSolve's
+    symbolic energy differs from its residual)."""
+    out = []
+    box = tuple(map(float, materials["origin"])), tuple(map(float, materials["end"]))
+    space = ngs.L2(mesh, order=order)
+    for name in ("e_cross", "nu"):
+        v = np.ascontiguousarray(materials[name], dtype=np.float64)
+        if v.ndim != 3:
+            raise ValueError(f"materials {name} must be a 3-d array (nz, ny, nx), got shape "
+                             f"{v.shape}")
+        lo, hi = float(v.min()), float(v.max())
+        if not (lo > 0 if name == "e_cross" else (lo > -1 and hi < 0.5)):
+            raise ValueError("materials e_cross must be > 0 and nu in (-1, 0.5) everywhere, "
+                             f"got {name} in [{lo}, {hi}]")
+        f = ngs.GridFunction(space)
+        f.Set(ngs.VoxelCoefficient(*box, v, linear=True))
+        out.append(ngs.IfPos(f - hi, hi, ngs.IfPos(f - lo, f, lo)))
+    return out
 
 
 def _prescribed(ngs, mesh, fes, g_p1, inp):

@@ -1,0 +1,237 @@
+"""Benchmark: the independent truth's refinement study (``study.py --refinement``).
+
+Per virtual patient, :func:`pvcmf.truth.independent.independent_truth_grid` at the
+requested counts (P2), each solve's cost (dofs, Newton iterations, factorisations,
+seconds); the exact skin moved by each truth (:mod:`pvcmf.truth.refinement`), and the
+p50 / p90 / max of its change between successive counts. Converged when the p90 between
+the two finest is <= 0.1 mm. :func:`refinement_rows` reads the table back (the cohort
+page quotes it). Run through ``benchmarks/study.py --refinement``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+import pvcmf
+from pvcmf import arrays, filters
+from pvcmf.truth.independent import independent_truth_grid
+from pvcmf.truth.refinement import exact_skin_samples, refinement_change
+
+PAGE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "truth_refinement.md"
+
+
+def _row(p, grid):
+    """A truth's mesh and solve cost, as a table row."""
+    dofs, newton, factors, seconds = grid.field_data[arrays.REFERENCE_SOLVER]
+    edges = grid.extract_all_edges().compute_cell_sizes(length=True, area=False,
+                                                        volume=False)["Length"]
+    return {"patient": p, "tets": grid.n_cells, "h": float(np.median(edges)),
+            "dofs": int(dofs), "newton": int(newton), "factorisations": int(factors),
+            "seconds": float(seconds), "share": np.nan, "p50": np.nan, "p90": np.nan,
+            "max": np.nan, "released": len(grid.field_data[arrays.REFERENCE_RELEASED])}
+
+
+def fine_truth_cost(patient, counts, fine, spacing, cache=True, mesher="lattice",
+                    materials="cells"):
+    """One finer truth of ``patient`` (``fine`` tetrahedra asked): its cost and the change
+    of its skin from the finest truth of the table (``counts[-1]``)."""
+    case = pvcmf.datasets.phantom(patient, spacing=spacing)
+    points = exact_skin_samples(case)
+    coarse = independent_truth_grid(case, n_tets=counts[-1], cache=cache, mesher=mesher,
+                                    materials=materials, reuse_factor=True)
+    grid = independent_truth_grid(case, n_tets=fine, cache=cache, mesher=mesher,
+                                  materials=materials, reuse_factor=True)
+    r = _row(patient, grid)
+    change = refinement_change(coarse, grid, points)
+    print(r, {k: change[k] for k in ("p50", "p90", "max", "compared")}, flush=True)
+    trend = ""
+    if len(counts) > 1:  # p90 ~ edge^k from the last two changes, projected to 0.1 mm
+        prev = independent_truth_grid(case, n_tets=counts[-2], cache=cache, mesher=mesher,
+                                      materials=materials, reuse_factor=True)
+        a, b, c = _row(patient, prev), _row(patient, coarse), r
+        first = refinement_change(prev, coarse, points)["p90"]
+        k = np.log(first / change["p90"]) / np.log(b["h"] / c["h"])
+        t = np.log(c["tets"] / b["tets"]) / np.log(b["h"] / c["h"])
+        cost = np.log(c["seconds"] / b["seconds"]) / np.log(c["tets"] / b["tets"])
+        if k > 0:
+            h = c["h"] * (0.1 / change["p90"]) ** (1 / k)
+            tets = c["tets"] * (c["h"] / h) ** t
+            trend = (f" Trend: p90 {first:.3f} mm ({a['h']:.1f} -> {b['h']:.1f} mm edges), "
+                     f"{change['p90']:.3f} mm ({b['h']:.1f} -> {c['h']:.1f} mm): p90 ~ "
+                     f"edge^{k:.2f}; 0.1 mm projected at an edge of {h:.1f} mm, about "
+                     f"{tets:.0f} tetrahedra, solve about {c['seconds'] * (tets / c['tets']) ** cost / 60:.0f} "
+                     "min on this machine (extrapolated, not measured).")
+        else:
+            trend = (f" Trend: p90 {first:.3f} mm ({a['h']:.1f} -> {b['h']:.1f} mm edges), "
+                     f"{change['p90']:.3f} mm ({b['h']:.1f} -> {c['h']:.1f} mm): not shrinking, "
+                     "no projection.")
+    return (f"\n\nA finer truth, patient {patient} (``--fine {fine}``): {r['tets']} tetrahedra "
+            f"(edge {r['h']:.1f} mm), {r['dofs']} dofs, {r['newton']} Newton iterations, "
+            f"{r['factorisations']} factorisations, solve {r['seconds']:.0f} s (measured); "
+            f"skin change from the {counts[-1]} truth above over {100 * change['compared']:.0f} "
+            f"% of the skin: p50 {change['p50']:.3f} mm, p90 {change['p90']:.3f} mm, "
+            f"max {change['max']:.3f} mm." + trend)
+
+
+def order_check(patient, count, spacing, mesher="lattice"):
+    """The P2 discretisation error on one mesh of the truth: the small-strain control law
+    solved with P2 and with P3 elements on the same mesh (so the same geometry, materials
+    and boundary data), compared on the exact skin."""
+    from pvcmf.truth.conform import conforming_mesh
+    from pvcmf.truth.independent import _boundary_conditions, soft_tissue_mesh
+    from pvcmf.truth.solver import solve_reference
+
+    case = pvcmf.datasets.phantom(patient, spacing=spacing)
+    points = exact_skin_samples(case)
+    mesh = conforming_mesh if mesher == "conforming" else soft_tissue_mesh
+    grid = _boundary_conditions(case, mesh(case, n_tets=count))
+    grid = filters.assign_materials(grid, default_fiber=(0.0, 0.0, 1.0))
+    p2, p3 = (solve_reference(grid, order=k, law="linear", steps=1) for k in (2, 3))
+    change = refinement_change(p2, p3, points)
+    print("order check", {k: change[k] for k in ("p50", "p90", "max", "compared")}, flush=True)
+    return (f"\n\nDiscretisation error of P2 on one mesh (``--order-check``): patient "
+            f"{patient}, the {count} mesh ({grid.n_cells} tetrahedra), the small-strain control "
+            f"law solved with P2 and with P3 elements on that same mesh (same geometry, "
+            f"materials and boundary data): skin difference p50 {change['p50']:.3f} mm, p90 "
+            f"{change['p90']:.3f} mm, max {change['max']:.3f} mm. The part of the change "
+            "between two meshes above this is the problem itself resolved differently by "
+            "the two meshes (the thin tissue, the muscle sheets, the surfaces).")
+
+
+_LATTICE = ("Mesher ``lattice``: lattice edges across a gap thinner than the lattice are "
+            "not meshed, boundary nodes are snapped onto the exact surfaces (flattened caps "
+            "dropped). Edge mm: the median edge of the mesh (its spacing times about 1.4, "
+            "the face diagonals included).")
+_CONFORMING = ("Mesher ``conforming`` (``pvcmf.truth.conform.conforming_mesh``): the exact "
+               "soft-tissue surface sampled on a grid (spacing from the count), "
+               "triangulated (flying edges) and filled with tetrahedra by gmsh, its "
+               "boundary nodes projected onto the exact surfaces where that flattens no "
+               "element; the same meshed volume at every size. Solves use "
+               "``reuse_factor=True`` (conjugate gradients preconditioned by the last "
+               "factorisation). Edge mm: the median edge of the mesh.")
+
+
+_CELLS = "each tetrahedron mixes fat and muscle by its sampled muscle fraction."
+_FIELD = ("materials ``field`` (``pvcmf.truth.independent.material_field``): fat and muscle "
+          "mixed by the exact muscle indicator sampled every ``MATERIAL_MM`` mm and "
+          "smoothed over ``MATERIAL_SIGMA_MM`` mm, a field of the position projected onto "
+          "quadratic polynomials on each element at the solve, so every mesh integrates "
+          "the same material.")
+
+
+def refinement(patients, counts, spacing, cache=True, mesher="lattice", materials="cells"):
+    rows = []
+    for p in patients:
+        case = pvcmf.datasets.phantom(p, spacing=spacing)
+        points = exact_skin_samples(case)
+        prev = None
+        for n in counts:
+            grid = independent_truth_grid(case, n_tets=n, cache=cache, mesher=mesher,
+                                          materials=materials, reuse_factor=True)
+            row = _row(p, grid)
+            if prev is not None:
+                change = refinement_change(prev, grid, points)
+                row.update({k: v for k, v in change.items() if k in ("p50", "p90", "max")})
+                row["share"] = change["compared"]
+                last = change["change"]
+            prev = grid
+            rows.append(row)
+            print(row, flush=True)
+        if len(counts) > 1:
+            change_picture(points, last, PAGE.parent / f"truth_refinement_{p}.png")
+    head = ("| patient | tetrahedra | edge mm | dofs | Newton | factorisations | solve s "
+            "| released | skin compared | change p50 mm | p90 mm | max mm |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|")
+    body = [f"| {r['patient']} | {r['tets']} | {r['h']:.1f} | {r['dofs']} | {r['newton']} | "
+            f"{r['factorisations']} | {r['seconds']:.0f} | {r['released']} | "
+            f"{100 * r['share']:.0f} % | {r['p50']:.3f} | {r['p90']:.3f} | {r['max']:.3f} |"
+            for r in rows]
+    text = ("Skin points: the exact skin of the meshed face "
+            "(``pvcmf.truth.refinement.exact_skin_samples``: the voxel skin projected onto "
+            "the zero set of the patient's level sets, kept where that boundary is the "
+            "skin); each truth's displacement there is that of its closest boundary point "
+            "(``skin_displacement``); the change is taken from the next coarser truth over "
+            "the points both meshes reach within a quarter of the coarser median edge "
+            "(``refinement_change``). Converged: p90 <= 0.1 mm between the two finest. "
+            "Solve s: the NGSolve solve (load steps, Newton, factorisations) on this "
+            "machine, read from the truth's ``reference_solver`` record (cached truths keep "
+            "the cost of the run that made them). The pictures colour the exact skin by "
+            "the change between the two finest truths of each patient "
+            "(``truth_refinement_<patient>.png``).\n\n"
+            "Model (``pvcmf.truth.independent``), defined on the exact anatomy so that it "
+            "is the same problem on every mesh: every node on a bone surface is tied, its "
+            "data the segments' rigid moves blended by smooth weights of the position "
+            "(``BLEND_MM``); the posterior plane is held except within ``CLEARANCE_MM`` of "
+            "a moved bone; the tongue is not meshed (free, as the oral air); "
+            + (_FIELD if materials == "field" else _CELLS) + " "
+            + (_CONFORMING if mesher == "conforming" else _LATTICE) + "\n\n")
+    fits = []
+    for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
+        r = [x for x in rows if x["patient"] == p]
+        if len(r) > 1:
+            k, c = np.polyfit(np.log([x["tets"] for x in r]), np.log([x["seconds"] for x in r]), 1)
+            fits.append(f"patient {p}: solve s ~ tetrahedra^{k:.2f}; projected "
+                        f"{np.exp(c) * 30_000 ** k / 60:.0f} min at 30k and "
+                        f"{np.exp(c) * 60_000 ** k / 60:.0f} min at 60k tetrahedra "
+                        "(extrapolated from the rows above, not measured; wall seconds on a "
+                        "2-core machine shared with other jobs, so the exponent varies with "
+                        "the load)")
+    tail = "\n\nCost scaling:\n\n" + "\n".join(f"- {f}" for f in fits) if fits else ""
+    if len(counts) > 1:
+        tail += "\n\n" + "\n\n".join(
+            f"![skin change between the two finest truths, patient {p}]"
+            f"(truth_refinement_{p}.png)" for p in patients)
+    return ("## Refinement of the independent truth\n\n" + text + head + "\n"
+            + "\n".join(body) + tail)
+
+
+def change_picture(points, change, path):
+    """The exact skin points coloured by their change between the two finest truths
+    (grey: not reached by both meshes), front and side, offscreen."""
+    import pyvista as pv
+
+    ok = np.isfinite(change)
+    pl = pv.Plotter(shape=(1, 2), off_screen=True, window_size=(1200, 600))
+    for i, (view, up) in enumerate((((0, 1, 0), (0, 0, 1)), ((-1, 0.2, 0), (0, 0, 1)))):
+        pl.subplot(0, i)
+        if (~ok).any():
+            pl.add_points(pv.PolyData(points[~ok]), color="lightgrey", point_size=4)
+        pl.add_points(pv.PolyData(points[ok]), scalars=change[ok], clim=[0, 2],
+                      cmap="viridis", point_size=5,
+                      scalar_bar_args={"title": "skin change mm"})
+        pl.view_vector(view, viewup=up)
+    pl.screenshot(str(path))
+    pl.close()
+
+
+def refinement_rows(page=PAGE):
+    """The refinement table of ``truth_refinement.md`` (written by :func:`refinement`):
+    its mesher and, per patient, the tetrahedra of its two finest truths and the skin
+    change between them (p50, p90 mm). None when the page or its table is missing."""
+    if not Path(page).exists():
+        return None
+    text = Path(page).read_text()
+    head = "| patient | tetrahedra | edge mm |"
+    lines = text.splitlines()
+    if head not in "\n".join(lines):
+        return None
+    start = next(i for i, line in enumerate(lines) if line.startswith(head))
+    cols = [c.strip() for c in lines[start].strip("|").split("|")]
+    rows = []
+    for line in lines[start + 2:]:
+        if not line.startswith("|"):
+            break
+        rows.append(dict(zip(cols, (c.strip() for c in line.strip("|").split("|")))))
+    finest = {}
+    for prev, row in zip(rows, rows[1:]):  # consecutive rows of one patient: a change
+        if prev["patient"] == row["patient"] and row["p90 mm"] != "nan":
+            finest[row["patient"]] = {"coarse": int(prev["tetrahedra"]),
+                                      "fine": int(row["tetrahedra"]),
+                                      "p50": float(row["change p50 mm"]),
+                                      "p90": float(row["p90 mm"])}
+    if not finest:
+        return None
+    mesher = "conforming" if "Mesher ``conforming``" in text else "lattice"
+    return {"mesher": mesher, "patients": finest}
