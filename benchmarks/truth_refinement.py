@@ -10,6 +10,7 @@ page quotes it). Run through ``benchmarks/study.py --refinement``.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -209,7 +210,8 @@ def change_picture(points, change, path):
 def refinement_rows(page=PAGE):
     """The refinement table of ``truth_refinement.md`` (written by :func:`refinement`):
     its mesher and, per patient, the tetrahedra of its two finest truths and the skin
-    change between them (p50, p90 mm). None when the page or its table is missing."""
+    change between them (p50, p90 mm), a finer truth's paragraph ("A finer truth, patient
+    ...") taking over from the table's rows. None when the page or its table is missing."""
     if not Path(page).exists():
         return None
     text = Path(page).read_text()
@@ -231,6 +233,13 @@ def refinement_rows(page=PAGE):
                                       "fine": int(row["tetrahedra"]),
                                       "p50": float(row["change p50 mm"]),
                                       "p90": float(row["p90 mm"])}
+    last = {r["patient"]: int(r["tetrahedra"]) for r in rows}
+    for pat, tets, p50, p90 in re.findall(  # a finer truth's paragraph supersedes the table
+            r"A finer truth, patient (\d+) \(.*?\): (\d+) tetrahedra .*?skin change from the "
+            r"\d+ truth above [^:]*: p50 ([\d.]+) mm, p90 ([\d.]+) mm", text):
+        if pat in last:
+            finest[pat] = {"coarse": last[pat], "fine": int(tets), "p50": float(p50),
+                           "p90": float(p90)}
     if not finest:
         return None
     mesher = "conforming" if "Mesher ``conforming``" in text else "lattice"

@@ -236,5 +236,11 @@ def test_cohort_page_quotes_the_refinement_page_it_reads(tmp_path):
                     .replace("0.321", "0.08"))
     text = bench.truth_note("independent", 4000, page=page)
     assert "has converged" in text and "mesher ``conforming``, not this run's" in text
+    page.write_text("Mesher ``conforming`` ...\n\n" + head + rows + "\nA finer truth, patient 2 "
+                    "(``--fine 12000``): 11900 tetrahedra (edge 5.0 mm), 9 dofs; skin change "
+                    "from the 6000 truth above over 96 % of the skin: p50 0.004 mm, p90 "
+                    "0.097 mm, max 1.0 mm.\n")
+    text = bench.truth_note("independent", 2000, page=page)  # the finer truth takes over
+    assert "p90 0.10-0.32 mm" in text and "3000-6050 and 6100-11900 tetrahedra" in text
     missing = bench.truth_note("independent", 2000, page=tmp_path / "none.md")
     assert "not measured" in missing and "p90" not in missing
