@@ -75,7 +75,7 @@ class Planner:
         seconds = time.perf_counter() - start
         status = (f"signed displacement {signed.min():+.1f} .. {signed.max():+.1f} mm "
                   f"({self.model.kind}, {1000 * seconds:.0f} ms)")
-        return status, data_url(profile_png(self.model.skin, self.scene.face))
+        return status, data_url(profile_png(self.model.skin, self.scene.predicted))
 
     def plan_toml(self):
         """The current plan as the TOML text :func:`pvcmf.plan.write_plan` writes."""
