@@ -280,3 +280,18 @@ def test_page_slider_updates_view_and_saves_plan(planner_server):
     saved = read_plan(save)
     assert saved == expected
     assert PlanSliders(template=TABLE_II[1]).from_plan(saved) == values
+
+
+def test_plan_help_describes_the_command_and_its_exit_statuses(capsys, tmp_path):
+    """``pvcmf plan --help`` says what the command does and its exit statuses, like the
+    other subcommands; a CT that does not exist is bad input (status 2, before any work)."""
+    from pvcmf.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["plan", "--help"])
+    assert stop.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "serve a planner page" in text and "Save plan" in text
+    assert "Exit status: 0 the server stopped, 2 bad input" in text
+    assert main(["plan", "--ct", str(tmp_path / "missing.nrrd")]) == 2
+    assert "pvcmf plan: error:" in capsys.readouterr().err
