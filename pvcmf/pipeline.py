@@ -523,16 +523,8 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
 
 
 def _segment_sources(labels, plan):
-    """Where :func:`cut_bones` takes each planned segment from, without a bone-segment image.
-
-    >>> import numpy as np, pyvista as pv
-    >>> from pvcmf.plan import Plan, Osteotomy
-    >>> img = pv.ImageData(dimensions=(2, 2, 2))
-    >>> img[arrays.BONE] = np.full(8, arrays.CRANIUM, dtype=np.uint8)
-    >>> print(_segment_sources(img, Plan((Osteotomy("maxilla", cut=(((0, 0, 0), (0, 0, 1)),)),
-    ...                                  Osteotomy("mandible")))))
-    no bone-segment image: maxilla from the plan's cut planes, mandible from the anatomy (find_jaws)
-    """
+    """Where :func:`cut_bones` takes each planned segment from, without a bone-segment
+    image: the plan's cut planes, the labels, or the anatomy (``find_jaws``)."""
     bone = np.asarray(labels[arrays.BONE]) if arrays.BONE in labels.point_data else None
     parts = []
     for o in plan.osteotomies:
