@@ -94,7 +94,8 @@ def check_output_dir(out, name="out", *, replaces=True):
         entries = [e for e in os.listdir(path) if not e.startswith(".")]
         if entries and not (path / RUN_MARKER).is_file():
             raise ValueError(
-                f"{name}={str(out)!r} is a folder with {len(entries)} entries but no "
+                f"{name}={str(out)!r} is a folder with {len(entries)} "
+                f"{'entry' if len(entries) == 1 else 'entries'} but no "
                 f"{RUN_MARKER}: it holds no earlier pvcmf run, and a run replaces the whole "
                 "folder; choose a new or empty folder"
             )
@@ -285,14 +286,21 @@ def write_outputs(result, out, images=None):
 
 def _save(dataset, path):
     """Write ``dataset`` atomically with VTK's XML writer, without string field data (which
-    meshio and other readers refuse), so that every file of a run reads back in meshio."""
+    meshio and other readers refuse), so that every file of a run reads back in meshio, and
+    without VTK's internal point and cell arrays (names starting ``vtk``: extraction ids,
+    probe masks), which index meshes the run does not write."""
     strings = [k for k in dataset.field_data.keys()
                if np.asarray(dataset.field_data[k]).dtype.kind in "USO"]
-    if strings:
+    internal = [(data, k) for data in ("point_data", "cell_data")
+                for k in getattr(dataset, data).keys() if k.startswith("vtk")]
+    if strings or internal:
         dataset = dataset.copy(deep=False)
         for key in strings:
             dataset.field_data.remove(key)
-        log.debug("%s: string field data %s not written", Path(path).name, strings)
+        for data, key in internal:
+            getattr(dataset, data).remove(key)
+        log.debug("%s: string field data %s and VTK arrays %s not written", Path(path).name,
+                  strings, [k for _, k in internal])
     with atomic_path(path) as tmp:
         dataset.save(tmp)
     return Path(path)

@@ -518,8 +518,23 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
     if bones is not None:
         labels = run.run("bone segments", _transfer_bone_segments, labels, bones)
     else:
-        run.skip("bone segments", "segments from the plan's cut planes / the labels")
+        run.skip("bone segments", _segment_sources(labels, plan))
     return cut_bones(labels, plan)
+
+
+def _segment_sources(labels, plan):
+    """Where :func:`cut_bones` takes each planned segment from, without a bone-segment
+    image: the plan's cut planes, the labels, or the anatomy (``find_jaws``)."""
+    bone = np.asarray(labels[arrays.BONE]) if arrays.BONE in labels.point_data else None
+    parts = []
+    for o in plan.osteotomies:
+        if o.cut:
+            parts.append(f"{o.segment} from the plan's cut planes")
+        elif bone is not None and np.any(bone == o.segment_id):
+            parts.append(f"{o.segment} from the labels")
+        else:
+            parts.append(f"{o.segment} from the anatomy (find_jaws)")
+    return "no bone-segment image: " + (", ".join(parts) or "the plan moves no bone segment")
 
 
 def _model_steps(run, labels, plan, opts, *, n_tets, box, predict, solve, progress_bar):

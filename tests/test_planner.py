@@ -77,6 +77,62 @@ def test_signed_displacement_and_profile():
     assert np.allclose(np.linalg.norm(segs.reshape(-1, 2), axis=1), 10.0, atol=0.1)
 
 
+# --------------------------------------------------------------------------- scene
+class _FakeModel:
+    """A head whose right half (patient frame x < 0) bulges out by 4 mm, and a bone block
+    on the patient's right only: what the scene draws, without preparing a model."""
+
+    segments = ("mandible",)
+
+    def __init__(self):
+        self.skin = pv.ParametricEllipsoid(70.0, 95.0, 110.0, u_res=60,
+                                           v_res=60).triangulate().clean()
+        for name in list(self.skin.point_data.keys()):
+            del self.skin.point_data[name]
+        self.skin = self.skin.compute_normals(cell_normals=False, auto_orient_normals=True)
+        self.bones = pv.MultiBlock({"mandible": pv.Box((-60.0, -20.0, 0.0, 40.0, -60.0, -20.0),
+                                                       level=2).triangulate()})
+
+    def displacement(self, plan):
+        x = np.asarray(self.skin.points)
+        return np.where(x[:, [0]] < -20.0, 4.0 * np.asarray(self.skin.point_normals), 0.0)
+
+    def skeleton(self, plan):
+        return self.bones
+
+
+def _scene_image(scene):
+    scene.update(Plan((Osteotomy("mandible"),)))
+    scene.set_view("frontal")
+    img = np.asarray(scene.screenshot(), dtype=int)
+    scene.close()
+    return img
+
+
+def test_scene_shows_the_patient_as_a_photograph():
+    """The planner's frontal view shows the patient's right (x < 0 in the patient frame) on
+    the viewer's left, as the face figures do: the face pushed out on the right side is red
+    on the left of its panel, and the bone on the patient's right lies on the left of the
+    skeleton panel."""
+    from pvcmf.planner.views import Scene
+
+    model = _FakeModel()
+    scene = Scene(model, window_size=(800, 400))
+    img = _scene_image(scene)
+    # the prediction the profile is cut from stays in the patient frame
+    assert np.allclose(scene.predicted.points[:, 0].min(), model.skin.points[:, 0].min() - 4.0,
+                       atol=0.5)
+    face = img[40:-60, 400:]  # the face panel, above its colour bar
+    red = (face[..., 0] > 150) & (face[..., 0] - face[..., 2] > 60)
+    assert red.sum() > 200
+    assert np.nonzero(red)[1].mean() < 0.45 * face.shape[1]
+    skeleton = img[40:, :400]
+    blue = (skeleton[..., 2] > 150) & (skeleton[..., 2] - skeleton[..., 0] > 60)
+    assert blue.sum() > 200 and np.nonzero(blue)[1].mean() < 0.45 * skeleton.shape[1]
+    with pytest.raises(ValueError, match="view must be one of"):
+        Scene(model).set_view("top")
+
+
 # --------------------------------------------------------------------------- model
 @pytest.fixture(scope="module")
 def model():
@@ -224,3 +280,18 @@ def test_page_slider_updates_view_and_saves_plan(planner_server):
     saved = read_plan(save)
     assert saved == expected
     assert PlanSliders(template=TABLE_II[1]).from_plan(saved) == values
+
+
+def test_plan_help_describes_the_command_and_its_exit_statuses(capsys, tmp_path):
+    """``pvcmf plan --help`` says what the command does and its exit statuses, like the
+    other subcommands; a CT that does not exist is bad input (status 2, before any work)."""
+    from pvcmf.cli import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["plan", "--help"])
+    assert stop.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "serve a planner page" in text and "Save plan" in text
+    assert "Exit status: 0 the server stopped, 2 bad input" in text
+    assert main(["plan", "--ct", str(tmp_path / "missing.nrrd")]) == 2
+    assert "pvcmf plan: error:" in capsys.readouterr().err

@@ -75,7 +75,7 @@ class Planner:
         seconds = time.perf_counter() - start
         status = (f"signed displacement {signed.min():+.1f} .. {signed.max():+.1f} mm "
                   f"({self.model.kind}, {1000 * seconds:.0f} ms)")
-        return status, data_url(profile_png(self.model.skin, self.scene.face))
+        return status, data_url(profile_png(self.model.skin, self.scene.predicted))
 
     def plan_toml(self):
         """The current plan as the TOML text :func:`pvcmf.plan.write_plan` writes."""
@@ -177,9 +177,20 @@ def serve(model, *, port=0, save_path="plan.toml", open_browser=False):
 
 
 # --------------------------------------------------------------------------- `pvcmf plan`
+#: ``pvcmf plan --help``: what the command does and its exit statuses
+PLAN_DESCRIPTION = (
+    "Prepare the model of a head CT once (segmentation, mesh, plan-response operator), then "
+    "serve a planner page on 127.0.0.1: sliders move the maxilla and the mandible, the "
+    "predicted face and its profile update live, and 'Save plan' writes a plan file for "
+    "pvcmf simulate --plan. Needs the planner extra (pip install \"pvcmf[planner]\"). "
+    "Exit status: 0 the server stopped, 2 bad input (the message names the option), "
+    "1 a step failed (trame missing included), 130 interrupted.")
+
+
 def add_plan_parser(sub):
     """Add ``pvcmf plan`` to the ``pvcmf`` subcommands."""
-    p = sub.add_parser("plan", help="interactive surgical planner in the web browser")
+    p = sub.add_parser("plan", help="interactive surgical planner in the web browser",
+                       description=PLAN_DESCRIPTION)
     p.add_argument("--ct", required=True,
                    help="CT file or DICOM folder, 'headsq' (VTK's head CT) or 'phantom[:N]' "
                         "(virtual patient N, 1-4)")

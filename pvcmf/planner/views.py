@@ -4,6 +4,10 @@
   skeleton (bone at rest in grey, the moved segments in colour) and the predicted face
   coloured by its signed displacement (mm along the outward skin normal: + outward,
   - inward). :meth:`Scene.update` moves both for a plan, in place.
+  The scene is drawn as a photograph, like every face figure: the meshes are reflected
+  once into the display frame of :mod:`pvcmf.figures.face_views` (x -> -x, triangles
+  rewound so that they still face outward), so the frontal view shows the patient's right
+  on the viewer's left; a plan then only rewrites the moved points.
 * :func:`profile_png` -- the midsagittal profile before (grey) and after (red) as a PNG
   (matplotlib's Agg canvas), and :func:`data_url` to put it in a web page.
 
@@ -19,15 +23,40 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays
+from ..figures.face_views import VIEWS
 
-__all__ = ["Scene", "data_url", "profile_png", "profile_segments", "signed_displacement",
-           "DISPLACEMENT_CLIM", "SIGNED"]
+__all__ = ["Scene", "data_url", "display_copy", "profile_png", "profile_segments",
+           "signed_displacement", "DISPLACEMENT_CLIM", "SCENE_VIEWS", "SIGNED"]
 
 #: point array of the predicted face: displacement along the outward skin normal (mm)
 SIGNED = "signed displacement (mm)"
 #: colour range of the signed displacement map, mm
 DISPLACEMENT_CLIM = (-8.0, 8.0)
 _SEGMENT_COLOURS = {"maxilla": "mediumseagreen", "mandible": "dodgerblue", "cranium": "wheat"}
+#: patient frame (x left, y anterior, z superior; left-handed) -> display frame (x right)
+_MIRROR = np.array([-1.0, 1.0, 1.0])
+#: camera directions of :meth:`Scene.set_view` in the display frame: the clinical views of
+#: :data:`pvcmf.figures.face_views.VIEWS` and a front-right oblique one (the default)
+SCENE_VIEWS = {"oblique": (0.8, 1.6, 0.25), **VIEWS}
+
+
+def display_copy(mesh):
+    """``mesh`` (patient frame) as a new PolyData in the display frame: points x -> -x,
+    cells wound the other way (so their normals still point outward), no arrays.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> tri = pv.PolyData([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], faces=[3, 0, 1, 2])
+    >>> shown = display_copy(tri)
+    >>> shown.points[1].tolist(), float(shown.compute_normals().cell_normals[0, 2])
+    ([-1.0, 0.0, 0.0], 1.0)
+    """
+    surface = mesh if isinstance(mesh, pv.PolyData) else mesh.extract_surface()
+    shown = pv.PolyData(np.asarray(surface.points, dtype=np.float64) * _MIRROR,
+                        faces=np.asarray(surface.faces).copy())
+    shown.flip_faces(inplace=True)
+    return shown
 
 
 def signed_displacement(skin, displacement):
@@ -118,7 +147,12 @@ class Scene:
         self.model = model
         self.plotter = pv.Plotter(shape=(1, 2), off_screen=True, window_size=list(window_size),
                                   border=False)
-        self.face = model.skin.copy()
+        #: the predicted skin in the patient frame (point array ``displacement``)
+        self.predicted = pv.PolyData(np.asarray(model.skin.points, dtype=np.float64).copy(),
+                                     faces=model.skin.faces)
+        self.predicted.point_data[arrays.DISPLACEMENT] = np.zeros((model.skin.n_points, 3))
+        #: the predicted skin as drawn, in the display frame (x -> -x)
+        self.face = display_copy(model.skin)
         self.face.point_data[SIGNED] = np.zeros(self.face.n_points)
         self.bones = {}
         self.plotter.subplot(0, 0)
@@ -127,9 +161,10 @@ class Scene:
             rest = model.bones[name]
             if rest is None or rest.n_points == 0:
                 continue
+            shown = display_copy(rest)
             if name in model.segments:
-                self.plotter.add_mesh(rest, color="#bbbbbb", opacity=0.35)
-            moved = rest.copy()
+                self.plotter.add_mesh(shown, color="#bbbbbb", opacity=0.35)
+            moved = shown.copy()
             self.bones[name] = moved
             self.plotter.add_mesh(moved, color=_SEGMENT_COLOURS.get(name, "white"),
                                   smooth_shading=True)
@@ -140,14 +175,17 @@ class Scene:
                               scalar_bar_args={"title": "mm along normal", "n_labels": 5,
                                                "fmt": "%.0f", "vertical": False})
         self.plotter.link_views()
-        self._camera()
+        self.set_view()
 
-    def _camera(self):
-        """Front-right oblique view of the face (patient frame: x left, y anterior, z up)."""
+    def set_view(self, view="oblique"):
+        """Point the linked cameras at the face from ``view`` (:data:`SCENE_VIEWS`: the
+        front-right ``"oblique"``, or ``"frontal"``, ``"three_quarter"``, ``"profile"``)."""
+        if view not in SCENE_VIEWS:
+            raise ValueError(f"view must be one of {sorted(SCENE_VIEWS)}, got {view!r}")
         bounds = np.asarray(self.face.bounds).reshape(3, 2)
         centre = bounds.mean(axis=1)
         size = float(np.ptp(bounds, axis=1).max())
-        direction = np.array([-0.8, 1.6, 0.25])
+        direction = np.asarray(SCENE_VIEWS[view], dtype=float)
         direction /= np.linalg.norm(direction)
         self.plotter.camera_position = [tuple(centre + 2.2 * size * direction), tuple(centre),
                                         (0.0, 0.0, 1.0)]
@@ -156,14 +194,16 @@ class Scene:
 
     def update(self, plan):
         """Show ``plan``: move the segments and the face; return the signed displacement."""
-        disp = self.model.displacement(plan)
-        self.face.points = np.asarray(self.model.skin.points) + disp
-        self.face.point_data[arrays.DISPLACEMENT] = disp
+        disp = np.asarray(self.model.displacement(plan), dtype=np.float64)
+        points = np.asarray(self.model.skin.points, dtype=np.float64) + disp
+        self.predicted.points = points
+        self.predicted.point_data[arrays.DISPLACEMENT] = disp
+        self.face.points = points * _MIRROR
         signed = signed_displacement(self.model.skin, disp)
         self.face.point_data[SIGNED] = signed
         moved = self.model.skeleton(plan)
         for name, block in self.bones.items():
-            block.points = np.asarray(moved[name].points)
+            block.points = np.asarray(moved[name].points, dtype=np.float64) * _MIRROR
         return signed  # the web view (or :meth:`screenshot`) renders
 
     def screenshot(self, filename=None):
