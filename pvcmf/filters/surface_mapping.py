@@ -304,11 +304,17 @@ def _fit_weights(loc, stiffness=None):
     slot = np.full(len(p), -1)
     slot[out] = np.arange(len(out))
     r = slot[loc.pair_row]
-    B = np.column_stack([np.ones(len(r)), loc.q - p[loc.pair_row]])  # (pairs, 4)
-    M = np.zeros((len(out), 4, 4))
+    # B = [1, q_f - p] (pairs, 4), from its columns (contiguous rows of the feet)
+    cols = np.asarray(loc.q).T - np.take(np.ascontiguousarray(p.T), loc.pair_row, axis=1)
+    B = np.empty((len(r), 4))
+    B[:, 0] = 1.0
+    B[:, 1:] = cols.T
+    M = np.empty((len(out), 4, 4))  # (B[:, 0] is 1: w B_0 B_b is w B_b)
     for a in range(4):
+        wa = w if a == 0 else w * cols[a - 1]
         for b in range(a, 4):
-            M[:, a, b] = M[:, b, a] = np.bincount(r, w * B[:, a] * B[:, b], minlength=len(out))
+            M[:, a, b] = M[:, b, a] = np.bincount(r, wa if b == 0 else wa * cols[b - 1],
+                                                  minlength=len(out))
     h = _median_edge(loc)
     reg = (stiffness * (loc.dist[out] + h)) ** 2 * M[:, 0, 0]  # M[:, 0, 0]: sum of w_f
     M[:, 1:, 1:] += reg[:, None, None] * np.eye(3)
