@@ -60,7 +60,8 @@ nodes: tetrahedron bounding boxes binned on a grid with vectorised barycentric c
 :class:`scipy.spatial.cKDTree`, vectorised closest points) to
 :mod:`pvcmf.filters.transfer_locate`, the gradients to batched :func:`numpy.linalg.inv`, the fits to batched
 :func:`numpy.linalg.solve` (4 x 4 per point), the smoothing outside the mesh to
-:mod:`pvcmf.filters.transfer_smoothing` and the operators to :mod:`scipy.sparse`.
+:mod:`pvcmf.filters.transfer_smoothing`, the rows before it to
+:mod:`pvcmf.filters.transfer_assembly` and the operators to :mod:`scipy.sparse`.
 """
 
 from __future__ import annotations
@@ -74,6 +75,7 @@ import scipy.sparse as sp
 from .. import arrays
 from ..progress import Progress
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
+from .transfer_assembly import rows_operator
 from .transfer_locate import Located as _Located
 from .transfer_locate import gradient_operators as _gradient_operators  # noqa: F401
 from .transfer_locate import stacked_gradients as _stacked_gradients
@@ -217,56 +219,6 @@ def _tidy(T):
     return T
 
 
-def _nodes_and_gradients(loc):
-    """``[I; D]`` (CSR, ``(m + 3 n_boundary, m)``): the nodal values over the stacked nodal
-    gradients at the boundary nodes, kept on the mesh's index where ``loc`` has one."""
-    index = getattr(loc, "index", None)
-    S = getattr(index, "nodes_and_gradients", None)
-    if S is None:
-        S = sp.vstack([sp.identity(len(loc.points), format="csr"), _stacked_gradients(loc)],
-                      format="csr")
-        if index is not None:
-            index.nodes_and_gradients = S
-    return S
-
-
-def _rows_operator(loc, scale, offsets):
-    """The rows before the smoothing steps as one product ``A @ [I; D]`` (CSR, sorted
-    indices, no explicit zeros). ``A`` is built in place from its known row structure: on
-    an outside row the blend of its nearest boundary nodes' gradients times ``offsets``
-    (as :func:`_guided`), then its feet's weights ``scale`` times their triangles'
-    coordinates, summed per node in the feet's order; on an inside row its barycentric
-    coordinates. Each node's value is the sum of its gradient terms plus its feet's sum:
-    the same floating-point sums as adding the three parts."""
-    n, m, nb = len(loc.p), len(loc.points), len(loc.boundary)
-    out, kk = loc.outside, loc.near.shape[1]
-    ins = np.flatnonzero(loc.inside)
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    ptr[1:] = np.cumsum(loc.inside * 4)
-    T = sp.csr_matrix((loc.bary[ins].ravel(), loc.tets[loc.cell[ins]].ravel(), ptr), shape=(n, m))
-    ptr = np.zeros(n + 1, dtype=np.int64)  # pair rows are sorted: CSR directly
-    ptr[1:] = np.cumsum(np.bincount(loc.pair_row, minlength=n) * 3)
-    face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(), loc.face.ravel(), ptr),
-                         shape=(n, m))
-    local = T + face  # the feet's duplicates summed in order, per row
-    width = np.diff(local.indptr)
-    guided = np.zeros(n, dtype=np.int64)
-    guided[out] = 3 * kk
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(width + guided, out=ptr[1:])
-    data = np.empty(ptr[-1])
-    cols = np.empty(ptr[-1], dtype=np.int64)
-    at = ptr[out][:, None, None] + np.arange(3 * kk).reshape(3, kk)
-    data[at] = offsets[:, :, None] * loc.near_w[:, None, :]
-    cols[at] = m + loc.near[:, None, :] + nb * np.arange(3)[None, :, None]
-    at = np.arange(local.nnz) + np.repeat(ptr[:-1] + guided - local.indptr[:-1], width)
-    data[at], cols[at] = local.data, local.indices
-    A = sp.csr_matrix((data, cols, ptr), shape=(n, m + 3 * nb))
-    T = A @ _nodes_and_gradients(loc)
-    T.sort_indices()
-    return T
-
-
 def _assemble_parts(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
     """The operator before the smoothing steps and the steps
     (:func:`~pvcmf.filters.transfer_smoothing.smoothing_steps`, None where none)."""
@@ -284,7 +236,7 @@ def _assemble_parts(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
     decay = _decay(loc.dist, band)
     alpha, offset = _fit_weights(loc)
     out = loc.outside
-    T = _rows_operator(loc, alpha * decay[loc.pair_row], offset * decay[out][:, None])
+    T = rows_operator(loc, alpha * decay[loc.pair_row], offset * decay[out][:, None])
     if iterations:
         D = _stacked_gradients(loc)
         guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
