@@ -60,7 +60,8 @@ nodes: tetrahedron bounding boxes binned on a grid with vectorised barycentric c
 :class:`scipy.spatial.cKDTree`, vectorised closest points) to
 :mod:`pvcmf.filters.transfer_locate`, the gradients to batched :func:`numpy.linalg.inv`, the fits to batched
 :func:`numpy.linalg.solve` (4 x 4 per point), the smoothing outside the mesh to
-:mod:`pvcmf.filters.transfer_smoothing` and the operators to :mod:`scipy.sparse`.
+:mod:`pvcmf.filters.transfer_smoothing`, the rows before it to
+:mod:`pvcmf.filters.transfer_assembly` and the operators to :mod:`scipy.sparse`.
 """
 
 from __future__ import annotations
@@ -74,6 +75,7 @@ import scipy.sparse as sp
 from .. import arrays
 from ..progress import Progress
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
+from .transfer_assembly import rows_operator
 from .transfer_locate import Located as _Located
 from .transfer_locate import gradient_operators as _gradient_operators  # noqa: F401
 from .transfer_locate import stacked_gradients as _stacked_gradients
@@ -222,27 +224,25 @@ def _assemble_parts(loc, band=DEFAULT_BAND, iterations=DEFAULT_ITERATIONS):
     (:func:`~pvcmf.filters.transfer_smoothing.smoothing_steps`, None where none)."""
     steps = None
     n, m = len(loc.p), len(loc.points)
-    ins = np.flatnonzero(loc.inside)
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    ptr[1:] = np.cumsum(loc.inside * 4)
-    T = sp.csr_matrix((loc.bary[ins].ravel(), loc.tets[loc.cell[ins]].ravel(), ptr), shape=(n, m))
     npair = len(loc.pair_row)
-    if npair:  # the feet's local affine fit (see _fit_weights), times the decay
-        decay = _decay(loc.dist, band)
-        alpha, offset = _fit_weights(loc)
-        scale = alpha * decay[loc.pair_row]
-        ptr = np.zeros(n + 1, dtype=np.int64)  # pair rows are sorted: CSR directly
-        ptr[1:] = np.cumsum(np.bincount(loc.pair_row, minlength=n) * 3)
-        face = sp.csr_matrix(((scale[:, None] * loc.face_bary).ravel(), loc.face.ravel(), ptr),
-                             shape=(n, m))
-        out = loc.outside
+    if not npair:
+        ins = np.flatnonzero(loc.inside)
+        ptr = np.zeros(n + 1, dtype=np.int64)
+        ptr[1:] = np.cumsum(loc.inside * 4)
+        T = sp.csr_matrix((loc.bary[ins].ravel(), loc.tets[loc.cell[ins]].ravel(), ptr),
+                          shape=(n, m))
+        return _tidy(T), steps
+    # the feet's local affine fit (see _fit_weights), times the decay
+    decay = _decay(loc.dist, band)
+    alpha, offset = _fit_weights(loc)
+    out = loc.outside
+    T = rows_operator(loc, alpha * decay[loc.pair_row], offset * decay[out][:, None])
+    if iterations:
         D = _stacked_gradients(loc)
-        T = T + face + _guided(loc, out, offset * decay[out][:, None], D)
-        if iterations:
-            guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
-            steps = smoothing_steps(loc.p, loc.dist, band, _median_edge(loc), guide,
-                                    iterations=iterations)
-    return _tidy(T), steps
+        guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
+        steps = smoothing_steps(loc.p, loc.dist, band, _median_edge(loc), guide,
+                                iterations=iterations)
+    return T, steps
 
 
 def _fit_weights(loc, stiffness=None):
@@ -256,11 +256,17 @@ def _fit_weights(loc, stiffness=None):
     slot = np.full(len(p), -1)
     slot[out] = np.arange(len(out))
     r = slot[loc.pair_row]
-    B = np.column_stack([np.ones(len(r)), loc.q - p[loc.pair_row]])  # (pairs, 4)
-    M = np.zeros((len(out), 4, 4))
+    # B = [1, q_f - p] (pairs, 4), from its columns (contiguous rows of the feet)
+    cols = np.asarray(loc.q).T - np.take(np.ascontiguousarray(p.T), loc.pair_row, axis=1)
+    B = np.empty((len(r), 4))
+    B[:, 0] = 1.0
+    B[:, 1:] = cols.T
+    M = np.empty((len(out), 4, 4))  # (B[:, 0] is 1: w B_0 B_b is w B_b)
     for a in range(4):
+        wa = w if a == 0 else w * cols[a - 1]
         for b in range(a, 4):
-            M[:, a, b] = M[:, b, a] = np.bincount(r, w * B[:, a] * B[:, b], minlength=len(out))
+            M[:, a, b] = M[:, b, a] = np.bincount(r, wa if b == 0 else wa * cols[b - 1],
+                                                  minlength=len(out))
     h = _median_edge(loc)
     reg = (stiffness * (loc.dist[out] + h)) ** 2 * M[:, 0, 0]  # M[:, 0, 0]: sum of w_f
     M[:, 1:, 1:] += reg[:, None, None] * np.eye(3)
