@@ -74,6 +74,7 @@ import scipy.sparse as sp
 from .. import arrays
 from ..progress import Progress
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
+from .skin_islands import modelled_skin
 from .transfer_locate import Located as _Located
 from .transfer_locate import gradient_operators as _gradient_operators  # noqa: F401
 from .transfer_locate import stacked_gradients as _stacked_gradients
@@ -365,7 +366,8 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
     pyvista.DataSet
         Copy of ``skin`` with point array ``arrays.DISPLACEMENT`` (float64 (n, 3), mm),
         and ``arrays.TRANSFER_INSIDE`` (``'interpolate'``: 1 inside a tetrahedron) and
-        ``arrays.SKIN_MODELLED`` (``'interpolate'``: 1 within ``band`` of the mesh) or
+        ``arrays.SKIN_MODELLED`` (``'interpolate'``: 1 within ``band`` of the mesh or in a
+        small island that such skin encloses, :func:`~pvcmf.filters.skin_islands.modelled_skin`) or
         ``SUPPORT`` (``'gaussian'``); points moved when ``warp``.
 
     Raises
@@ -405,8 +407,8 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
             disp = mapping(u)
             bar.step(f"{skin.n_points} skin points")
         out.point_data[arrays.TRANSFER_INSIDE] = mapping.inside.astype(np.uint8)
-        out.point_data[arrays.SKIN_MODELLED] = mapping.modelled.astype(np.uint8)
-        reached = mapping.modelled
+        reached = modelled_skin(skin, mapping.modelled, grid)
+        out.point_data[arrays.SKIN_MODELLED] = reached.astype(np.uint8)
     else:
         disp = _gaussian(grid, skin, u, sigma, radius, progress_bar, out)
         reached = np.asarray(out.point_data[SUPPORT]) > 0
