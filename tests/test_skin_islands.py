@@ -7,7 +7,7 @@ import pyvista as pv
 
 from pvcmf import arrays
 from pvcmf.filters.skin_islands import (fill_enclosed, island_area_limit, modelled_skin,
-                                        skin_triangles)
+                                        skin_triangles, undo_decay)
 from pvcmf.filters.surface_mapping import Transfer, map_to_surface
 
 
@@ -102,3 +102,15 @@ def test_map_to_surface_fills_the_bump():
     assert got[i]
     assert not got[far].any()
     assert np.array_equal(got, modelled_skin(skin, tr.modelled, grid))
+    # the filled point takes the extension without the fade: the affine field exactly
+    u = np.asarray(out[arrays.DISPLACEMENT])
+    assert np.allclose(u[got], 0.1 * np.asarray(skin.points)[got], atol=1e-9)
+    assert np.linalg.norm(tr(grid[arrays.DISPLACEMENT])[i] - u[i]) > 0.05  # faded there
+
+
+def test_undo_decay():
+    u = np.ones((4, 3))
+    got = undo_decay(u, [True, True, False, True], [0.25, 1.0, 0.5, 0.0])
+    assert np.allclose(got[:, 0], [4.0, 1.0, 1.0, 1.0]) and not np.shares_memory(got, u)
+    with pytest.raises(ValueError, match="u_skin"):
+        undo_decay(u, [True], [1.0])

@@ -9,7 +9,10 @@ smooth extension as their neighbours', so the threshold alone would mark specks.
 (over the skin's own triangle edges) whose area is at most ``max_area`` and that touches
 no open border of the skin; the large unmodelled rest (the back of the head, the neck)
 stays unmodelled. :func:`island_area_limit` derives ``max_area`` from the mesh's median
-edge (:data:`ISLAND_EDGES` edges as a disc's radius).
+edge (:data:`ISLAND_EDGES` edges as a disc's radius). Beyond the band the transfer fades
+its extension towards zero (``pvcmf.filters.surface_mapping._decay``);
+:func:`undo_decay` takes that fade back at the filled points, so their displacement is the
+extension that the modelled skin around them carries.
 
 Delegates the components to :func:`scipy.sparse.csgraph.connected_components` and the
 triangles to :meth:`pyvista.PolyData.triangulate`.
@@ -28,7 +31,8 @@ from .transfer_locate import tetra
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ISLAND_EDGES", "island_area_limit", "skin_triangles", "fill_enclosed", "modelled_skin"]
+__all__ = ["ISLAND_EDGES", "island_area_limit", "skin_triangles", "fill_enclosed", "modelled_skin",
+           "undo_decay"]
 
 #: radius, in median mesh edges, of the disc whose area bounds an island that is filled
 ISLAND_EDGES = 2.0
@@ -165,3 +169,41 @@ def modelled_skin(skin, modelled, grid, edges=ISLAND_EDGES):
     """
     return fill_enclosed(skin.points, skin_triangles(skin), modelled,
                          island_area_limit(grid, edges))
+
+
+def undo_decay(u_skin, filled, decay):
+    """The transferred displacement with the decay beyond the band taken back at the
+    ``filled`` points (islands :func:`modelled_skin` fills): there the transfer's row is
+    the extension times ``decay`` (in ``(0, 1]`` within ``2 band``; no smoothing step moves
+    a point beyond the band), so ``u / decay`` is the extension itself, as for the
+    modelled skin around it.
+
+    Parameters
+    ----------
+    u_skin : array_like, shape (n, 3)
+        Transferred displacement (mm).
+    filled : array_like of bool, shape (n,)
+        Points modelled only through a filled island.
+    decay : array_like, shape (n,)
+        The transfer's decay weight per point
+        (:func:`pvcmf.filters.surface_mapping._decay` of its distance and band).
+
+    Returns
+    -------
+    numpy.ndarray, shape (n, 3)
+        A new array; rows outside ``filled`` or with no decay weight left as they are.
+
+    Examples
+    --------
+    >>> undo_decay([[1.0, 0, 0], [1.0, 0, 0]], [False, True], [0.5, 0.5]).tolist()
+    [[1.0, 0.0, 0.0], [2.0, 0.0, 0.0]]
+    """
+    u = np.array(u_skin, dtype=float)
+    f = np.asarray(filled, dtype=bool).reshape(-1)
+    w = np.asarray(decay, dtype=float).reshape(-1)
+    if u.shape != (len(f), 3) or len(w) != len(f):
+        raise ValueError(f"u_skin must have shape (n, 3) and filled, decay shape (n,), got "
+                         f"{u.shape}, {f.shape} and {w.shape}")
+    rows = f & (w > 0)
+    u[rows] /= w[rows, None]
+    return u

@@ -7,7 +7,9 @@ triangles beyond :data:`TRANSFER_REACH` of the model's box (they do not move:
 onto the rest with :class:`pvcmf.filters.surface_mapping.Transfer` (zero farther out, as
 the transfer itself is beyond ``2 band``). The skin within the transfer's band is
 modelled, and so are the small islands beyond it that the modelled skin encloses
-(:func:`pvcmf.filters.skin_islands.modelled_skin`); skin on bare teeth or bone is not
+(:func:`pvcmf.filters.skin_islands.modelled_skin`; they take the extension without the
+transfer's fade beyond the band, :func:`~pvcmf.filters.skin_islands.undo_decay`); skin on
+bare teeth or bone is not
 (:func:`pvcmf.filters.meshing.skin_fit.on_hard_tissue`); the crumple metric
 (:func:`pvcmf.filters.surface_mapping.crumple_metric`) is taken over the modelled skin.
 """
@@ -21,8 +23,8 @@ import numpy as np
 from .. import arrays
 from .meshing.skin_fit import DEFAULT_REACH, on_hard_tissue
 from .skin import coarsen_outside, head_skin, sub_surface
-from .skin_islands import modelled_skin
-from .surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
+from .skin_islands import modelled_skin, undo_decay
+from .surface_mapping import DEFAULT_BAND, Transfer, _decay, crumple_metric
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +96,8 @@ def predict_skin(labels, post, pre=None, box=None):
     in_band = np.zeros(pre.n_points, dtype=bool)
     in_band[ids] = transfer.modelled
     in_band = modelled_skin(pre, in_band, post)  # small islands the modelled skin encloses
+    disp_part = undo_decay(disp_part, in_band[ids] & ~transfer.modelled,
+                           _decay(transfer.distance, transfer.band))
     modelled_part = in_band[ids] & ~on_hard_tissue(part.points, labels)
     metric = crumple_metric(part, disp_part, post, u_nodes, transfer=transfer,
                             modelled=modelled_part)

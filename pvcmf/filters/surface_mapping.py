@@ -74,7 +74,7 @@ import scipy.sparse as sp
 from .. import arrays
 from ..progress import Progress
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
-from .skin_islands import modelled_skin
+from .skin_islands import modelled_skin, undo_decay
 from .transfer_locate import Located as _Located
 from .transfer_locate import gradient_operators as _gradient_operators  # noqa: F401
 from .transfer_locate import stacked_gradients as _stacked_gradients
@@ -405,9 +405,11 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
         with Progress(total=1, desc="map_to_surface", enabled=progress_bar, logger=log) as bar:
             mapping = Transfer(grid, skin.points, k=k, band=band)
             disp = mapping(u)
+            reached = modelled_skin(skin, mapping.modelled, grid)
+            disp = undo_decay(disp, reached & ~mapping.modelled,
+                              _decay(mapping.distance, mapping.band))
             bar.step(f"{skin.n_points} skin points")
         out.point_data[arrays.TRANSFER_INSIDE] = mapping.inside.astype(np.uint8)
-        reached = modelled_skin(skin, mapping.modelled, grid)
         out.point_data[arrays.SKIN_MODELLED] = reached.astype(np.uint8)
     else:
         disp = _gaussian(grid, skin, u, sigma, radius, progress_bar, out)
