@@ -8,6 +8,8 @@ import pyvista as pv
 from pvcmf import arrays
 from pvcmf.filters.skin_islands import (fill_enclosed, island_area_limit, modelled_skin,
                                         skin_triangles, undo_decay)
+from pvcmf.filters.skin import head_skin
+from pvcmf.filters.skin_prediction import predict_skin
 from pvcmf.filters.surface_mapping import Transfer, map_to_surface
 
 
@@ -114,3 +116,37 @@ def test_undo_decay():
     assert np.allclose(got[:, 0], [4.0, 1.0, 1.0, 1.0]) and not np.shares_memory(got, u)
     with pytest.raises(ValueError, match="u_skin"):
         undo_decay(u, [True], [1.0])
+
+
+def test_predict_skin_fills_a_bump_on_the_face():
+    """An ellipsoidal head (semi-axes 60, 80, 90 mm; the front at y = 80) whose face lies in
+    a box of tetrahedra reaching y = 82, with one skin point on the front pushed 8 mm out
+    (6 mm beyond the mesh, beyond the 4 mm band): it is modelled and moves with the
+    affine field; the back of the head is not modelled."""
+    radii = np.array([60.0, 80.0, 90.0])
+    img = pv.ImageData(dimensions=(46, 58, 53), spacing=(3.0, 3.0, 3.0), origin=(-69, -87, -60))
+    inside = ((img.points / radii) ** 2).sum(axis=1) < 1
+    img[arrays.TISSUE] = np.where(inside, arrays.FAT, arrays.AIR).astype(np.uint8)
+    box = (-70.0, 70.0, 20.0, 82.0, -30.0, 100.0)
+    grid = pv.ImageData(dimensions=(15, 8, 14), spacing=(10.0, 62.0 / 7.0, 10.0),
+                        origin=(-70.0, 20.0, -30.0)).cast_to_unstructured_grid().triangulate()
+    B = np.array([[0.0, 0.0, 0.01], [0.02, 0.0, 0.0], [0.0, 0.03, 0.0]])
+    c = np.array([0.0, 2.0, -0.6])
+    grid.point_data[arrays.DISPLACEMENT] = np.asarray(grid.points) @ B.T + c
+    pre = head_skin(img, box)
+    p = np.asarray(pre.points).copy()
+    i = int(np.argmax(p[:, 1] - np.abs(p[:, 0]) - np.abs(p[:, 2])))
+    assert p[i, 1] > 78.0
+    p[i, 1] += 8.0
+    pre.points = p
+    assert Transfer(grid, p[i:i + 1]).distance[0] > 5.0
+    out, moved = predict_skin(img, grid, pre=pre, box=box)  # the back is coarsened
+    q = np.asarray(out.points)
+    j = int(np.argmin(np.linalg.norm(q - p[i], axis=1)))
+    assert np.allclose(q[j], p[i])
+    m = np.asarray(out.point_data[arrays.SKIN_MODELLED]).astype(bool)
+    u = np.asarray(out.point_data[arrays.DISPLACEMENT])
+    assert m[j]
+    assert np.allclose(u[j], q[j] @ B.T + c, atol=1e-9)
+    assert (q[:, 1] < 0.0).sum() > 100 and not m[q[:, 1] < 0.0].any()
+    assert moved.field_data[arrays.SKIN_MODELLED_POINTS][0] == m.sum()
