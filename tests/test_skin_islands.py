@@ -37,6 +37,14 @@ def test_hole_in_the_cap_filled_rest_kept():
     area = fill_enclosed(p, tri, modelled, 1e-6)
     assert not area[hole].any()
     assert fill_enclosed(p, tri, modelled, 1e5).all()
+    # a skin that nothing models is no island, however small
+    none = np.zeros(len(p), dtype=bool)
+    assert not fill_enclosed(p, tri, none, 1e5).any()
+    tiny = pv.Sphere(radius=1.0, center=(50.0, 0.0, 0.0))  # a separate piece, unmodelled
+    both = (skin + tiny).clean()
+    first = np.linalg.norm(both.points, axis=1) < 30.0  # the big sphere, modelled
+    assert first.sum() == skin.n_points
+    assert np.array_equal(fill_enclosed(both.points, skin_triangles(both), first, 1e5), first)
 
 
 def test_islands_at_an_open_border_kept():

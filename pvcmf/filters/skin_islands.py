@@ -79,9 +79,9 @@ def fill_enclosed(points, triangles, modelled, max_area):
 
     An island is a connected component of unmodelled points over the edges of
     ``triangles`` (both ends unmodelled). It is filled when its area (a third of the area
-    of each triangle around each of its points) is at most ``max_area`` and none of its
-    points lies on an open border of the skin (an edge of one triangle only). Points in
-    no triangle are left as they are.
+    of each triangle around each of its points) is at most ``max_area``, an edge joins it
+    to modelled skin and none of its points lies on an open border of the skin (an edge
+    of one triangle only). Points in no triangle are left as they are.
 
     Parameters
     ----------
@@ -119,7 +119,7 @@ def fill_enclosed(points, triangles, modelled, max_area):
     if not float(max_area) >= 0:
         raise ValueError(f"max_area must be >= 0 mm^2, got {max_area!r}")
     out = m.copy()
-    if not len(tri) or m.all() or float(max_area) == 0:
+    if not len(tri) or m.all() or not m.any() or float(max_area) == 0:
         return out
     if tri.min() < 0 or tri.max() >= len(p):
         raise ValueError(f"triangles must index the {len(p)} points, got ids "
@@ -140,7 +140,10 @@ def fill_enclosed(points, triangles, modelled, max_area):
     ncomp = int(comp.max()) + 1
     area = np.bincount(comp[free], point_area[free], minlength=ncomp)
     touches = np.bincount(comp[free & border], minlength=ncomp) > 0
-    small = (area <= float(max_area)) & ~touches
+    rim = edges[free[edges].sum(axis=1) == 1]  # one end modelled, one not
+    rim = rim[free[rim]]
+    enclosed = np.bincount(comp[rim], minlength=ncomp) > 0  # modelled skin around it
+    small = (area <= float(max_area)) & ~touches & enclosed
     fill = free & in_tri & small[comp]
     out |= fill
     if fill.any():
