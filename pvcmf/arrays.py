@@ -288,10 +288,8 @@ CRUMPLE_VIOLATIONS = "crumple_violations"
 CRUMPLE_MAX_RATIO = "crumple_max_ratio"
 CRUMPLE_EDGES = "crumple_edges"  #: summary / field data: number of skin edges checked
 #: point (skin), uint8, 1 where the mesh models the skin (inside it or within the transfer's
-#: band, and small islands beyond the band that such skin encloses:
-#: :func:`pvcmf.filters.skin_islands.modelled_skin`); 0 where the skin is not modelled (e.g.
-#: behind a face model's posterior cut) and its displacement is the extension decayed to
-#: the fixed plane's zero
+#: band); 0 where the skin is not modelled (e.g. behind a face model's posterior cut) and its
+#: displacement is the extension decayed to the fixed plane's zero
 SKIN_MODELLED = "skin_modelled"
 #: summary / field data: skin points the mesh models (:data:`SKIN_MODELLED`)
 SKIN_MODELLED_POINTS = "skin_modelled_points"

@@ -5,11 +5,7 @@ whole head as the scan has it, open where its field of view ends), keeps a quart
 triangles beyond :data:`TRANSFER_REACH` of the model's box (they do not move:
 :func:`pvcmf.filters.skin.coarsen_outside`), and carries the solved mesh's displacement
 onto the rest with :class:`pvcmf.filters.surface_mapping.Transfer` (zero farther out, as
-the transfer itself is beyond ``2 band``). The skin within the transfer's band is
-modelled, and so are the small islands beyond it that the modelled skin encloses
-(:func:`pvcmf.filters.skin_islands.modelled_skin`; they take the extension without the
-transfer's fade beyond the band, :func:`~pvcmf.filters.skin_islands.undo_decay`); skin on
-bare teeth or bone is not
+the transfer itself is beyond ``2 band``). Skin on bare teeth or bone is not modelled
 (:func:`pvcmf.filters.meshing.skin_fit.on_hard_tissue`); the crumple metric
 (:func:`pvcmf.filters.surface_mapping.crumple_metric`) is taken over the modelled skin.
 """
@@ -23,8 +19,7 @@ import numpy as np
 from .. import arrays
 from .meshing.skin_fit import DEFAULT_REACH, on_hard_tissue
 from .skin import coarsen_outside, head_skin, sub_surface
-from .skin_islands import modelled_skin, undo_decay
-from .surface_mapping import DEFAULT_BAND, Transfer, _decay, crumple_metric
+from .surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
 
 log = logging.getLogger(__name__)
 
@@ -61,9 +56,8 @@ def predict_skin(labels, post, pre=None, box=None):
     predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
     displacement onto the skin within :data:`TRANSFER_REACH` of the box (farther, zero
     displacement: the transfer is zero there anyway, and the skin there keeps a quarter of
-    its triangles, :data:`FAR_REDUCTION`). Skin beyond the transfer's band (except small
-    islands the modelled skin encloses, :func:`~pvcmf.filters.skin_islands.modelled_skin`)
-    or on bare teeth or bone is not modelled (``arrays.SKIN_MODELLED``); the crumple metric over
+    its triangles, :data:`FAR_REDUCTION`). Skin beyond the transfer's band or on
+    bare teeth or bone is not modelled (``arrays.SKIN_MODELLED``); the crumple metric over
     the modelled skin goes to the predicted skin's field data (``SKIN_SUMMARY``).
 
     Parameters
@@ -93,12 +87,7 @@ def predict_skin(labels, post, pre=None, box=None):
     u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
     transfer = Transfer(post, part)
     disp_part = transfer(u_nodes)
-    in_band = np.zeros(pre.n_points, dtype=bool)
-    in_band[ids] = transfer.modelled
-    in_band = modelled_skin(pre, in_band, post)  # small islands the modelled skin encloses
-    disp_part = undo_decay(disp_part, in_band[ids] & ~transfer.modelled,
-                           _decay(transfer.distance, transfer.band))
-    modelled_part = in_band[ids] & ~on_hard_tissue(part.points, labels)
+    modelled_part = transfer.modelled & ~on_hard_tissue(part.points, labels)
     metric = crumple_metric(part, disp_part, post, u_nodes, transfer=transfer,
                             modelled=modelled_part)
     log.info("skin: %d points (%d within reach of the model, %d modelled), %d edges stretched "

@@ -75,7 +75,6 @@ import scipy.sparse as sp
 from .. import arrays
 from ..progress import Progress
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
-from .skin_islands import modelled_skin, undo_decay
 from .transfer_assembly import rows_operator
 from .transfer_locate import Located as _Located
 from .transfer_locate import gradient_operators as _gradient_operators  # noqa: F401
@@ -372,8 +371,7 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
     pyvista.DataSet
         Copy of ``skin`` with point array ``arrays.DISPLACEMENT`` (float64 (n, 3), mm),
         and ``arrays.TRANSFER_INSIDE`` (``'interpolate'``: 1 inside a tetrahedron) and
-        ``arrays.SKIN_MODELLED`` (``'interpolate'``: 1 within ``band`` of the mesh or in a
-        small island that such skin encloses, :func:`~pvcmf.filters.skin_islands.modelled_skin`) or
+        ``arrays.SKIN_MODELLED`` (``'interpolate'``: 1 within ``band`` of the mesh) or
         ``SUPPORT`` (``'gaussian'``); points moved when ``warp``.
 
     Raises
@@ -411,12 +409,10 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
         with Progress(total=1, desc="map_to_surface", enabled=progress_bar, logger=log) as bar:
             mapping = Transfer(grid, skin.points, k=k, band=band)
             disp = mapping(u)
-            reached = modelled_skin(skin, mapping.modelled, grid)
-            disp = undo_decay(disp, reached & ~mapping.modelled,
-                              _decay(mapping.distance, mapping.band))
             bar.step(f"{skin.n_points} skin points")
         out.point_data[arrays.TRANSFER_INSIDE] = mapping.inside.astype(np.uint8)
-        out.point_data[arrays.SKIN_MODELLED] = reached.astype(np.uint8)
+        out.point_data[arrays.SKIN_MODELLED] = mapping.modelled.astype(np.uint8)
+        reached = mapping.modelled
     else:
         disp = _gaussian(grid, skin, u, sigma, radius, progress_bar, out)
         reached = np.asarray(out.point_data[SUPPORT]) > 0
