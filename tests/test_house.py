@@ -29,12 +29,12 @@ MAX_FUNCTION_LINES = 100
 
 # house-patterns: begin
 # the forbidden words are spelled in pieces, so that this file does not use them itself
-SESSION, LEAD, ENGINEER = "sess" + "ion", "le" + "ad", "engin" + "eer"
+_W_S, _W_L, _W_E = "sess" + "ion", "le" + "ad", "engin" + "eer"
 WORDING = {
-    SESSION: re.compile(rf"\b{SESSION}s?\b", re.I),
-    f"the {LEAD}": re.compile(rf"\b(?:the|a|our) {LEAD}\b(?!\s+(?:to|time)\b)|\b{LEAD}'s\b", re.I),
+    _W_S: re.compile(rf"\b{_W_S}s?\b", re.I),
+    f"the {_W_L}": re.compile(rf"\b(?:the|a|our) {_W_L}\b(?!\s+(?:to|time)\b)|\b{_W_L}'s\b", re.I),
     "helper letter": re.compile(r"\bhelpers? [A-D]\b"),
-    ENGINEER: re.compile(rf"\b{ENGINEER}s?\b", re.I),
+    _W_E: re.compile(rf"\b{_W_E}s?\b", re.I),
     "integrator": re.compile(r"\bintegrators?\b", re.I),
     "issue number": re.compile(r"(?<![\w&/])#[0-9]{1,4}\b(?![0-9a-fA-F])|\bissues? #?[0-9]+\b", re.I),
     "commit hash": re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])(?:[0-9a-f]{40}|[0-9a-f]{7,12})\b"),
@@ -109,8 +109,8 @@ def wording_hits(text):
 
 # house-patterns: begin (examples of what the patterns must catch)
 @pytest.mark.parametrize("text, rule", [
-    (f"as the {LEAD} measured", f"the {LEAD}"), (f"in {SESSION} 2", SESSION),
-    ("helper B wrote", "helper letter"), (f"five {ENGINEER}s", ENGINEER),
+    (f"as the {_W_L} measured", f"the {_W_L}"), (f"in {_W_S} 2", _W_S),
+    ("helper B wrote", "helper letter"), (f"five {_W_E}s", _W_E),
     ("see #12 for", "issue number"), ("fixes issue 14", "issue number"),
     ("before a1a9675 landed", "commit hash"), ("at load 1.6", "machine load"),
     ("at load average 9-12", "machine load"),

@@ -93,6 +93,21 @@ def _surfaces(comp, origin, s, smoothing_scale, comp_code=None, fine=None, reach
     return points[used], inverse.reshape(-1, 3), sides
 
 
+def _halve_folding_moves(points, move, tri, side_codes, n0):
+    """``move`` (a copy) with the moves of the vertices of every triangle that turns by
+    more than ~73 degrees from its unit normal ``n0`` halved, until none does (at most
+    :data:`_FOLD_ITERATIONS` times)."""
+    move = move.copy()
+    for _ in range(_FOLD_ITERATIONS):
+        n1 = _oriented_normals(points + move, tri, side_codes)
+        cos = np.einsum("ij,ij->i", n0, n1) / np.maximum(np.linalg.norm(n1, axis=1), 1e-30)
+        fold = cos < _FOLD_COS
+        if not fold.any():
+            break
+        move[np.unique(tri[fold])] *= 0.5
+    return move
+
+
 def _subvoxel(points, tri, side_codes, indicators):
     """The muscle sheets' vertices on their smoothed indicators' half level
     (:func:`~pvcmf.filters.meshing.subvoxel.project_onto_indicators`), the moves of the
@@ -101,13 +116,7 @@ def _subvoxel(points, tri, side_codes, indicators):
     move = target - points
     n0 = _oriented_normals(points, tri, side_codes)
     n0 /= np.maximum(np.linalg.norm(n0, axis=1), 1e-30)[:, None]
-    for _ in range(_FOLD_ITERATIONS):
-        n1 = _oriented_normals(points + move, tri, side_codes)
-        cos = np.einsum("ij,ij->i", n0, n1) / np.maximum(np.linalg.norm(n1, axis=1), 1e-30)
-        fold = cos < _FOLD_COS
-        if not fold.any():
-            break
-        move[np.unique(tri[fold])] *= 0.5
+    move = _halve_folding_moves(points, move, tri, side_codes, n0)
     log.debug("tetrahedralize: %d muscle surface vertices on the sub-voxel interfaces", n_moved)
     return points + move
 
@@ -258,13 +267,7 @@ def _fine_targets(points, s, tri, side_codes, fine, reach=_TARGET_REACH, cache=N
             lap -= np.einsum("ij,ij->i", lap, vn)[:, None] * vn
             move[single] += _TANGENTIAL_RELAXATION * lap[single]
     n0 = tnorm / np.maximum(np.linalg.norm(tnorm, axis=1), 1e-30)[:, None]
-    for _ in range(_FOLD_ITERATIONS):
-        n1 = _oriented_normals(points + move, tri, side_codes)
-        cos = np.einsum("ij,ij->i", n0, n1) / np.maximum(np.linalg.norm(n1, axis=1), 1e-30)
-        fold = cos < _FOLD_COS
-        if not fold.any():
-            break
-        move[np.unique(tri[fold])] *= 0.5
+    move = _halve_folding_moves(points, move, tri, side_codes, n0)
     log.debug("tetrahedralize: %d of %d surface vertices placed on the fine interfaces", int(has.sum()), n_pts)
     return points + move
 
