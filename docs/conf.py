@@ -21,8 +21,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import pvcmf  # noqa: E402  (after the path: the documented package is this checkout's)
+import pvcmf.figures.offscreen  # noqa: E402
 
 pyvista.OFF_SCREEN = True
+pvcmf.figures.offscreen.prefer_egl()  # headless: EGL without a failed X attempt
 pyvista.BUILDING_GALLERY = True
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
 # gallery scripts write their PNG/CSV files next to the build, not into the source tree

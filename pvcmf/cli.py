@@ -48,6 +48,7 @@ from . import report
 from .io import (check_export, export, read_ct, read_landmarks, read_plan_file,
                  write_surface)
 from .io.orientation import orientation_code
+from .figures.offscreen import prefer_egl
 from .io.surfaces import SURFACE_FORMATS
 from .outputs import check_output_dir, check_output_file
 from .pipeline import STEPS, flip_axes, simulate
@@ -453,6 +454,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     pv.OFF_SCREEN = True
+    prefer_egl()
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         if args.command == "plan":  # serves until stopped; nothing to report

@@ -8,7 +8,10 @@ from pathlib import Path
 import pytest
 import pyvista as pv
 
+from pvcmf.figures.offscreen import prefer_egl
+
 pv.OFF_SCREEN = True
+prefer_egl()  # headless: EGL straight away, without VTK's failed X attempt
 ROOT = Path(__file__).resolve().parents[1]
 
 # Tests find the shared real data through PVCMF_DATA_DIR, defaulting to ../shared/data.
