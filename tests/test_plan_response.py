@@ -482,6 +482,47 @@ def test_fold_on_several_threads_equals_one(block, monkeypatch):
                           tr.W0 @ nodal[:, 0])
 
 
+def test_fold_from_the_product_made_beside_the_join(block):
+    """The transfer joined with ``right`` (its product made on a second thread beside the
+    smoothing steps) gives that product bit for bit, and the skin operator folded from it
+    equals the one that makes its own products; a product of another shape, or one given
+    with a transfer that needs tidying (an explicit zero out of order), is not used."""
+    import scipy.sparse as sp
+
+    from pvcmf.filters.transfer_locate import tetra
+    from pvcmf.filters.transfer_parts import join_rows, prepared_index, ranges, transfer_rows
+    from pvcmf.mtm.response_operator import SkinOperator
+
+    grid, _, skin = block
+    points, tets = tetra(grid)
+    index = prepared_index(pv.UnstructuredGrid({pv.CellType.TETRA: tets}, points))
+    x = np.asarray(skin.points, dtype=float)
+    parts = [transfer_rows(index, x[a:b]) for a, b in ranges(len(x), 97)]
+    nodal = np.random.default_rng(8).normal(size=(grid.n_points, 3, 12))
+    flat = nodal.reshape(grid.n_points, -1)
+    plain = join_rows(index, x, parts)
+    joined = join_rows(index, x, parts, right=flat)
+    assert plain.product is None and joined.steps is not None
+    assert np.array_equal(joined.product, joined.W0 @ flat)
+    assert (joined.W0 != plain.W0).nnz == 0
+    own = SkinOperator(joined.W0, nodal, steps=joined.steps)
+    for threads in (1, 2):
+        got = SkinOperator(joined.W0, nodal, steps=joined.steps, threads=threads,
+                           product=joined.product)
+        assert np.array_equal(got.D, own.D) and np.array_equal(got.Ru, own.Ru)
+    wrong = SkinOperator(joined.W0, nodal, steps=joined.steps, product=joined.product[:-1])
+    assert np.array_equal(wrong.D, own.D)
+    # the same operator with an explicit zero (unsorted) in its last row: tidied, so a
+    # product (here a wrong one) is not used
+    dup = sp.csr_matrix((np.r_[joined.W0.data, [0.0]], np.r_[joined.W0.indices, [0]],
+                         np.r_[joined.W0.indptr[:-1], [joined.W0.nnz + 1]]), joined.W0.shape)
+    assert not (dup.has_canonical_format and np.all(dup.data))
+    tidy = SkinOperator(dup, nodal, steps=joined.steps, product=np.zeros_like(joined.product))
+    assert np.array_equal(tidy.D, own.D)
+    with pytest.raises(ValueError, match="right must have"):
+        join_rows(index, x, parts, right=flat[:-1])
+
+
 def test_auto_release_margin_is_fixed_from_the_plan_given(block):
     """``release_margin='auto'`` frees the fixed nodes within twice the plan's largest move:
     the operator fixes that margin from the plan it is built with and equals apply_plan's

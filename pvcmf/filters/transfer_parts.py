@@ -25,7 +25,7 @@ import scipy.sparse as sp
 
 from .surface_mapping import DEFAULT_BAND, DEFAULT_K, _assemble_parts, _guided, _stacked_gradients
 from .transfer_locate import Located, MeshIndex
-from .transfer_smoothing import DEFAULT_ITERATIONS, smoothing_steps
+from .transfer_smoothing import DEFAULT_ITERATIONS, rows_product, smoothing_steps
 
 __all__ = ["MeshIndex", "Rows", "Joined", "ranges", "prepared_index", "transfer_rows",
            "join_rows", "CHUNK"]
@@ -93,12 +93,14 @@ def transfer_rows(index, points, k=DEFAULT_K, band=DEFAULT_BAND):
 class Joined:
     """What :class:`~pvcmf.filters.surface_mapping.Transfer` holds, from :func:`join_rows`:
     ``W0``, ``steps``, ``inside``, ``distance``, ``modelled``, ``band`` and ``W`` (the
-    smoothed transfer, made on first use)."""
+    smoothed transfer, made on first use); ``product``: ``W0 @ right`` where
+    :func:`join_rows` was given ``right`` (else None)."""
 
-    def __init__(self, W0, steps, inside, distance, band):
+    def __init__(self, W0, steps, inside, distance, band, product=None):
         self.W0, self.steps, self.inside, self.distance = W0, steps, inside, distance
         self.band = band
         self.modelled = distance <= band
+        self.product = product
         self._W = None
 
     @property
@@ -108,29 +110,51 @@ class Joined:
         return self._W
 
 
-def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATIONS, threads=1):
+def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATIONS, threads=1,
+              right=None):
     """The transfer of ``points`` from the :class:`Rows` of consecutive ranges ``parts``
     (in order, covering every point): ``W0`` stacked, and the smoothing steps made once
     (:func:`~pvcmf.filters.transfer_smoothing.smoothing_steps`; ``threads``: threads of its
-    neighbour search). Returns :class:`Joined`."""
+    neighbour search). ``right``: a dense ``(n_mesh_points, c)`` array; ``W0 @ right``
+    (:func:`~pvcmf.filters.transfer_smoothing.rows_product`) is made on a second thread
+    while the steps are made (``Joined.product``). Returns :class:`Joined`."""
     p = np.asarray(points, dtype=float)
     sizes = [len(r.inside) for r in parts]
     if sum(sizes) != len(p):
         raise ValueError(f"parts must cover the {len(p)} points, got {sum(sizes)} rows")
     W0 = sp.vstack([r.W0 for r in parts], format="csr")
+    if right is not None and np.shape(right)[0] != W0.shape[1]:
+        raise ValueError(f"right must have {W0.shape[1]} rows (mesh points), got "
+                         f"{np.shape(right)}")
     inside = np.concatenate([r.inside for r in parts])
     dist = np.concatenate([r.dist for r in parts])
+    pool = product = None
+    if right is not None:  # the product beside the steps (its kernel releases the GIL)
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(1, thread_name_prefix="pvcmf-product")
+        product = pool.submit(rows_product, W0, right, 1)
+    try:
+        steps = _steps(index, p, parts, dist, band, smoothing, threads, sizes)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True)
+    return Joined(W0, steps, inside, dist, float(band),
+                  None if product is None else product.result())
+
+
+def _steps(index, p, parts, dist, band, smoothing, threads, sizes):
+    """The smoothing steps of the joined rows (None where none move a point)."""
     offset = np.cumsum([0] + sizes[:-1])
     has = [i for i, r in enumerate(parts) if len(r.outside)]
-    steps = None
-    if has and smoothing:
-        loc = _mesh_view(index)
-        loc.p = p
-        loc.outside = np.concatenate([parts[i].outside + offset[i] for i in has])
-        loc.near = np.concatenate([parts[i].near for i in has])
-        loc.near_w = np.concatenate([parts[i].near_w for i in has])
-        D = _stacked_gradients(loc)
-        guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
-        steps = smoothing_steps(p, dist, float(band), index.median_edge, guide,
-                                iterations=int(smoothing), threads=threads)
-    return Joined(W0, steps, inside, dist, float(band))
+    if not (has and smoothing):
+        return None
+    loc = _mesh_view(index)
+    loc.p = p
+    loc.outside = np.concatenate([parts[i].outside + offset[i] for i in has])
+    loc.near = np.concatenate([parts[i].near for i in has])
+    loc.near_w = np.concatenate([parts[i].near_w for i in has])
+    D = _stacked_gradients(loc)
+    guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
+    return smoothing_steps(p, dist, float(band), index.median_edge, guide,
+                           iterations=int(smoothing), threads=threads)

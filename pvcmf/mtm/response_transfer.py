@@ -7,9 +7,10 @@ A partner starts on the ranges from the front while the calling thread runs the
 boundary conditions, the factorisation and the solves; the calling thread then takes the
 ranges left from the back, so both cores finish together (ranges handed out one at a
 time through counters in shared memory). The calling thread joins the ranges and makes
-the smoothing steps (their neighbour search on every core); the plan response folds the
-rows with the nodal response (:class:`pvcmf.mtm.response_operator.SkinOperator`, its
-sparse products on every core, the partner being done).
+the smoothing steps (their neighbour search on every core) while a second thread
+multiplies the joined rows by the nodal response (``right``); the plan response folds
+that product in (:class:`pvcmf.mtm.response_operator.SkinOperator`: the smoothing
+steps on its dense rows, on every core, the partner being done).
 
 :class:`pvcmf.filters.surface_mapping.Transfer` runs many small numpy operations that hold
 Python's global interpreter lock; on a second thread they stall the factorisation and solves
@@ -266,10 +267,12 @@ class _Pending:
         self.where = partner.where
         self.ranges = None
 
-    def result(self):
+    def result(self, right=None):
         """``(transfer, timings)``: the joined transfer (:class:`Joined`) after the caller
         has built the ranges the partner had not taken, and the seconds of each part
-        (:attr:`ranges` then says how many ranges each built)."""
+        (:attr:`ranges` then says how many ranges each built); ``right``: a dense array
+        whose product with the transfer before its steps is made beside the join
+        (``transfer.product``, :func:`~pvcmf.filters.transfer_parts.join_rows`)."""
         builder = self.builder
         try:
             mine, wall, cpu = builder.run(self.claims.back)
@@ -279,7 +282,7 @@ class _Pending:
         try:
             theirs, their_wall, their_cpu = self.partner.result()
             t, c = time.perf_counter(), time.thread_time()
-            joined = self._join({**theirs, **mine})
+            joined = self._join({**theirs, **mine}, right)
         finally:
             self.partner.close()
         where = self.where
@@ -294,14 +297,14 @@ class _Pending:
         }
         return joined, timings
 
-    def _join(self, rows):
+    def _join(self, rows, right=None):
         """The ranges joined (those a dead partner had taken built here first)."""
         builder = self.builder
         for i in range(len(builder.ranges)):
             if i not in rows:  # the partner died: its ranges here
                 rows[i] = transfer_rows(builder.index(), builder.x[slice(*builder.ranges[i])])
         return join_rows(builder.index(), builder.x, [rows[i] for i in range(len(builder.ranges))],
-                         threads=_cores())
+                         threads=_cores(), right=right)
 
     def cancel(self):
         self.claims.stop()
