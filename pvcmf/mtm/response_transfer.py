@@ -17,10 +17,10 @@ Python's global interpreter lock; on a second thread they stall the factorisatio
 of the calling thread (and those stall it). On Linux, when the calling process runs a single
 Python thread and the cores are not contended (:func:`cpu_pressure`), the partner is
 therefore a forked child process, which shares only the range counters with the parent
-after the fork: it first writes its mesh index
-(:class:`~pvcmf.filters.transfer_locate.MeshIndex`, pickled; the parent reads it in
-milliseconds instead of making its own), then its ranges' rows to an anonymous temporary
-file (pickle) that the parent reads once the child has exited;
+after the fork (and inherits the mesh index,
+:class:`~pvcmf.filters.transfer_locate.MeshIndex`, made before it: one index, never
+pickled), and writes its ranges' rows to an anonymous temporary file (pickle) that the
+parent reads once the child has exited;
 elsewhere, or when the fork fails, a second thread. If the child dies, the caller builds
 its ranges. Either way the result is the same transfer.
 
@@ -86,17 +86,10 @@ class _Claims:
     so a forked child and its parent see the same ones)."""
 
     def __init__(self, n, lock):
-        self._buf = mmap.mmap(-1, 24)  # anonymous and shared: survives the fork
+        self._buf = mmap.mmap(-1, 16)  # anonymous and shared: survives the fork
         self._c = np.frombuffer(self._buf, dtype=np.int64)
-        self._c[:] = (0, n - 1, 0)  # front, back, the partner's mesh index is written
+        self._c[:] = (0, n - 1)  # front, back
         self._lock = lock
-
-    @property
-    def index_written(self):
-        return bool(self._c[2])
-
-    def mark_index_written(self):
-        self._c[2] = 1
 
     def front(self):
         with self._lock:
@@ -122,22 +115,18 @@ class _Claims:
 
 class _Builder:
     """The transfer's rows of ranges of the skin points (:func:`transfer_rows`) against
-    one :class:`MeshIndex`, made on first use."""
+    one :class:`MeshIndex`, made before the partner starts (a forked child inherits it:
+    neither process makes or reads another)."""
 
     def __init__(self, grid, x):
         self.grid, self.x = grid, x
         self.ranges = ranges(len(x), CHUNK)
-        self._index = None
-        self._index_lock = threading.Lock()
-        self.fetch = None  # returns the partner's index where it has one to give
+        t = time.perf_counter()
+        self._index = prepared_index(grid)
+        self.index_seconds = time.perf_counter() - t
 
     def index(self):
-        with self._index_lock:
-            if self._index is None and self.fetch is not None:
-                self._index = self.fetch()
-            if self._index is None:
-                self._index = prepared_index(self.grid)
-            return self._index
+        return self._index
 
     def run(self, claim, clock=time.thread_time):
         """``({range: Rows}, seconds, CPU seconds)`` of the ranges ``claim()`` hands out."""
@@ -176,29 +165,25 @@ class _Thread:
 
 
 class _Process:
-    """The partner in a forked child process, which writes its mesh index (for the parent's
-    ranges) and then its rows to anonymous temporary files and exits (a pipe would make
-    the child wait for the parent to read);
+    """The partner in a forked child process, which writes its rows to an anonymous
+    temporary file and exits (a pipe would make the child wait for the parent to read);
     :meth:`result` waits for it and reads them, :meth:`cancel` kills it (the parent failed
     before reading)."""
 
     where = "second process"
 
     def __init__(self, builder, claims):
-        self._file, self._index_file = tempfile.TemporaryFile(), tempfile.TemporaryFile()
-        self._claims = claims
+        self._file = tempfile.TemporaryFile()
         try:
             pid = os.fork()
         except OSError:
             self._file.close()
-            self._index_file.close()
             raise
         if pid == 0:  # the child: build, write, exit without returning to the caller
             status = 1
             try:
                 try:
                     t, c = time.perf_counter(), time.process_time()
-                    self._share_index(builder.index())
                     done = builder.run(claims.front, time.process_time)[0]
                     wall, cpu = time.perf_counter() - t, time.process_time() - c
                     answer = ("ok", (done, wall, cpu))
@@ -210,23 +195,6 @@ class _Process:
             finally:
                 os._exit(status)
         self.pid = pid
-        builder.fetch = self._fetch_index
-
-    def _share_index(self, index):
-        """Write the mesh index for the parent (it reads it instead of making its own)."""
-        with os.fdopen(os.dup(self._index_file.fileno()), "wb") as fh:
-            pickle.dump(index, fh, protocol=pickle.HIGHEST_PROTOCOL)
-        self._claims.mark_index_written()
-
-    def _fetch_index(self):
-        """The child's mesh index, or None where it has not written it (yet)."""
-        if not self._claims.index_written or self._index_file.closed:
-            return None
-        try:
-            self._index_file.seek(0)
-            return pickle.load(self._index_file)
-        except (EOFError, pickle.UnpicklingError, OSError):  # pragma: no cover - torn
-            return None
 
     def result(self):
         os.waitpid(self.pid, 0)
@@ -255,7 +223,6 @@ class _Process:
 
     def close(self):
         self._file.close()
-        self._index_file.close()
 
 
 class _Pending:
@@ -288,6 +255,7 @@ class _Pending:
         where = self.where
         self.ranges = {where: len(theirs), "calling thread": len(builder.ranges) - len(theirs)}
         timings = {
+            "transfer index (before the partner)": builder.index_seconds,
             f"transfer rows ({where})": their_wall,
             f"transfer rows, CPU time ({where})": their_cpu,
             "transfer rows (calling thread)": wall,
@@ -327,7 +295,7 @@ def transfer_in_background(mesh, skin):
     returns ``(transfer, timings)`` (``transfer`` a
     :class:`~pvcmf.filters.transfer_parts.Joined`: ``W0``, ``steps``, ``inside``,
     ``modelled``), whose ``cancel()`` stops the partner and whose ``where`` names where
-    it runs."""
+    it runs. The mesh index is made here, before the partner starts."""
     points, tets = tetra(mesh)
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
     x = np.array(skin.points, dtype=float)
