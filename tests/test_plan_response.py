@@ -463,6 +463,57 @@ def test_transfer_in_background_equals_the_transfer(block):
             os.waitpid(pending.partner.pid, 0)  # already reaped
 
 
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs os.fork")
+def test_ranges_a_dead_child_wrote_are_kept(block, caplog):
+    """The forked partner writes each range as it builds it: where it died after writing
+    two of the three ranges it had taken (a torn record last), the parent keeps those two
+    and builds the third with the rest, and the transfer equals :class:`Transfer`; an
+    error the child sent reaches the caller."""
+    import os
+    import pickle
+    import tempfile
+    import threading
+
+    from pvcmf.filters.surface_mapping import Transfer
+    from pvcmf.mtm import response_transfer
+
+    grid, _, skin = block
+    here = Transfer(grid, skin.points)
+    builder = response_transfer._Builder(grid, np.asarray(skin.points, dtype=float))
+    builder.ranges = response_transfer.ranges(skin.n_points, 37)
+    claims = response_transfer._Claims(len(builder.ranges), threading.Lock())
+    taken = [claims.front() for _ in range(3)]
+
+    def dead_child(records, tail=b""):
+        proc = response_transfer._Process.__new__(response_transfer._Process)
+        proc._file = tempfile.TemporaryFile()
+        for record in records:
+            pickle.dump(record, proc._file, protocol=pickle.HIGHEST_PROTOCOL)
+        proc._file.write(tail)
+        pid = os.fork()
+        if pid == 0:
+            os._exit(0)
+        proc.pid = pid
+        return proc
+
+    written = {i: response_transfer.transfer_rows(builder.index(),
+                                                  builder.x[slice(*builder.ranges[i])])
+               for i in taken[:2]}
+    torn = pickle.dumps(("range", taken[2], written[taken[0]]))[:50]
+    partner = dead_child([("range", i, r) for i, r in written.items()], torn)
+    with caplog.at_level("WARNING", logger="pvcmf.mtm.response_transfer"):
+        pending = response_transfer._Pending(builder, claims, partner)
+        transfer, _ = pending.result()
+    assert "ended without an answer" in caplog.text
+    assert pending.ranges["second process"] == 2
+    assert pending.ranges["calling thread"] == len(builder.ranges) - 2
+    assert (transfer.W != here.W).nnz == 0 and (transfer.W0 != here.W0).nnz == 0
+    claims = response_transfer._Claims(len(builder.ranges), threading.Lock())
+    partner = dead_child([("error", ValueError("from the child"))])
+    with pytest.raises(ValueError, match="from the child"):
+        response_transfer._Pending(builder, claims, partner).result()
+
+
 def test_fold_on_several_threads_equals_one(block, monkeypatch):
     """The skin operator's fold split among threads (rows of its sparse products) gives the
     same numbers, bit for bit, as on one thread."""

@@ -19,10 +19,10 @@ Python thread and the cores are not contended (:func:`cpu_pressure`), the partne
 therefore a forked child process, which shares only the range counters with the parent
 after the fork (and inherits the mesh index,
 :class:`~pvcmf.filters.transfer_locate.MeshIndex`, made before it: one index, never
-pickled), and writes its ranges' rows to an anonymous temporary file (pickle) that the
-parent reads once the child has exited;
+pickled), and writes each range's rows to an anonymous temporary file (pickle) as soon
+as it has built it, which the parent reads once the child has exited;
 elsewhere, or when the fork fails, a second thread. If the child dies, the caller builds
-its ranges. Either way the result is the same transfer.
+the ranges it had taken and not written. Either way the result is the same transfer.
 
 Delegates to :func:`os.fork`, :mod:`mmap`, :mod:`multiprocessing` (a lock), :mod:`pickle`,
 :mod:`tempfile`, :mod:`concurrent.futures` and :mod:`pvcmf.filters.transfer_parts`.
@@ -128,13 +128,19 @@ class _Builder:
     def index(self):
         return self._index
 
-    def run(self, claim, clock=time.thread_time):
-        """``({range: Rows}, seconds, CPU seconds)`` of the ranges ``claim()`` hands out."""
+    def run(self, claim, clock=time.thread_time, keep=None):
+        """``({range: Rows}, seconds, CPU seconds)`` of the ranges ``claim()`` hands out
+        (``keep(i, rows)``: called with each range as it is built, instead of returning
+        it)."""
         t, c = time.perf_counter(), clock()
         done = {}
         while (i := claim()) is not None:
             a, b = self.ranges[i]
-            done[i] = transfer_rows(self.index(), self.x[a:b])
+            rows = transfer_rows(self.index(), self.x[a:b])
+            if keep is None:
+                done[i] = rows
+            else:
+                keep(i, rows)
         return done, time.perf_counter() - t, clock() - c
 
 
@@ -165,10 +171,11 @@ class _Thread:
 
 
 class _Process:
-    """The partner in a forked child process, which writes its rows to an anonymous
-    temporary file and exits (a pipe would make the child wait for the parent to read);
-    :meth:`result` waits for it and reads them, :meth:`cancel` kills it (the parent failed
-    before reading)."""
+    """The partner in a forked child process, which writes each range's rows to an
+    anonymous temporary file as soon as it has built it (so that only the last one is
+    left to write once the ranges are taken), then its timings, and exits (a pipe would
+    make the child wait for the parent to read); :meth:`result` waits for it and reads
+    them, :meth:`cancel` kills it (the parent failed before reading)."""
 
     where = "second process"
 
@@ -182,14 +189,16 @@ class _Process:
         if pid == 0:  # the child: build, write, exit without returning to the caller
             status = 1
             try:
-                try:
-                    t, c = time.perf_counter(), time.process_time()
-                    done = builder.run(claims.front, time.process_time)[0]
-                    wall, cpu = time.perf_counter() - t, time.process_time() - c
-                    answer = ("ok", (done, wall, cpu))
-                except BaseException as exc:  # noqa: BLE001 - sent to the parent
-                    answer = ("error", exc)
                 with os.fdopen(os.dup(self._file.fileno()), "wb") as fh:
+                    def keep(i, rows):
+                        pickle.dump(("range", i, rows), fh, protocol=pickle.HIGHEST_PROTOCOL)
+
+                    try:
+                        t, c = time.perf_counter(), time.process_time()
+                        builder.run(claims.front, time.process_time, keep=keep)
+                        answer = ("ok", time.perf_counter() - t, time.process_time() - c)
+                    except BaseException as exc:  # noqa: BLE001 - sent to the parent
+                        answer = ("error", exc)
                     pickle.dump(answer, fh, protocol=pickle.HIGHEST_PROTOCOL)
                 status = 0
             finally:
@@ -197,19 +206,28 @@ class _Process:
         self.pid = pid
 
     def result(self):
+        """``({range: Rows}, seconds, CPU seconds)`` of the child; where it died, the
+        ranges it wrote (the caller builds the others it had taken)."""
         os.waitpid(self.pid, 0)
+        done, last = {}, None
         try:
             self._file.seek(0)
-            kind, value = pickle.load(self._file)
-        except (EOFError, pickle.UnpicklingError) as exc:  # the child died: its ranges here
+            while last is None:
+                record = pickle.load(self._file)
+                if record[0] == "range":
+                    done[record[1]] = record[2]
+                else:
+                    last = record
+        except Exception as exc:  # noqa: BLE001 - the child died: its other ranges here
             log.warning("plan_response: the transfer process ended without an answer "
-                        "(%s); building its part of the transfer here", exc)
-            kind, value = "ok", ({}, 0.0, 0.0)
+                        "(%s: %s); building the rest of its part of the transfer here",
+                        type(exc).__name__, exc)
+            last = ("ok", 0.0, 0.0)
         finally:
             self._file.close()
-        if kind == "error":
-            raise value
-        return value
+        if last[0] == "error":
+            raise last[1]
+        return done, last[1], last[2]
 
     def cancel(self):
         if self._file.closed:
