@@ -30,9 +30,11 @@ from .transfer_smoothing import DEFAULT_ITERATIONS, rows_product, smoothing_step
 __all__ = ["MeshIndex", "Rows", "Joined", "ranges", "prepared_index", "transfer_rows",
            "join_rows", "CHUNK"]
 
-#: points per range (small enough that two builders finish within a range of each other,
-#: large enough that the per-range overhead stays a few percent)
-CHUNK = 6144
+#: points per range (small enough that two builders finish within a range of each other
+#: and that a range's arrays of (point, foot) pairs, a dozen or more feet per point
+#: outside the mesh, stay in the core's cache; large enough that the per-range overhead
+#: stays a few percent)
+CHUNK = 2048
 
 
 def ranges(n, size=CHUNK):
