@@ -486,7 +486,7 @@ def test_ranges_a_dead_child_wrote_are_kept(block, caplog):
 
     def dead_child(records, tail=b""):
         proc = response_transfer._Process.__new__(response_transfer._Process)
-        proc._file = tempfile.TemporaryFile()
+        proc._file, proc._index_file = tempfile.TemporaryFile(), tempfile.TemporaryFile()
         for record in records:
             pickle.dump(record, proc._file, protocol=pickle.HIGHEST_PROTOCOL)
         proc._file.write(tail)

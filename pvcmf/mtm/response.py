@@ -180,13 +180,12 @@ class PlanResponse:
         partner, joining, folding), ``fold`` (of those, the skin operator's parts: the
         smoothing steps on the dense rows of the transfer before them times the nodal
         response, on every core, and the rows laid out parameter-major), the transfer's
-        ``index`` (the mesh index, made by the calling thread before the partner
-        starts), its ``rows`` built by the partner (``(second process)`` or ``(second
-        thread)``, beside the others) and by the calling thread, with their CPU times,
-        its ``join`` (the smoothing steps, with the product of the transfer before them
-        and the nodal response made beside them on a second thread), and the CPU time of
-        the calling thread (``main thread CPU``; ``main thread CPU, bc + factor +
-        solves`` up to the solves).
+        ``rows`` built by the partner (``(second process)`` or ``(second thread)``,
+        beside the others) and by the calling thread, with their CPU times, its ``join``
+        (the smoothing steps, with the product of the transfer before them and the nodal
+        response made beside them on a second thread), and the CPU time of the calling
+        thread (``main thread CPU``; ``main thread CPU, bc + factor + solves`` up to the
+        solves).
     transfer_ranges : dict or None
         Ranges of skin points whose transfer rows the partner (``'second process'`` or
         ``'second thread'``) and the ``'calling thread'`` built.

@@ -17,10 +17,11 @@ Python's global interpreter lock; on a second thread they stall the factorisatio
 of the calling thread (and those stall it). On Linux, when the calling process runs a single
 Python thread and the cores are not contended (:func:`cpu_pressure`), the partner is
 therefore a forked child process, which shares only the range counters with the parent
-after the fork (and inherits the mesh index,
-:class:`~pvcmf.filters.transfer_locate.MeshIndex`, made before it: one index, never
-pickled), and writes each range's rows to an anonymous temporary file (pickle) as soon
-as it has built it, which the parent reads once the child has exited;
+after the fork: it first writes its mesh index
+(:class:`~pvcmf.filters.transfer_locate.MeshIndex`, pickled; the parent reads it in
+milliseconds instead of making its own, and the child makes it while the parent runs
+the boundary conditions), then each range's rows to an anonymous temporary file
+(pickle) as soon as it has built it, which the parent reads once the child has exited;
 elsewhere, or when the fork fails, a second thread. If the child dies, the caller builds
 the ranges it had taken and not written. Either way the result is the same transfer.
 
@@ -86,10 +87,17 @@ class _Claims:
     so a forked child and its parent see the same ones)."""
 
     def __init__(self, n, lock):
-        self._buf = mmap.mmap(-1, 16)  # anonymous and shared: survives the fork
+        self._buf = mmap.mmap(-1, 24)  # anonymous and shared: survives the fork
         self._c = np.frombuffer(self._buf, dtype=np.int64)
-        self._c[:] = (0, n - 1)  # front, back
+        self._c[:] = (0, n - 1, 0)  # front, back, the partner's mesh index is written
         self._lock = lock
+
+    @property
+    def index_written(self):
+        return bool(self._c[2])
+
+    def mark_index_written(self):
+        self._c[2] = 1
 
     def front(self):
         with self._lock:
@@ -115,18 +123,22 @@ class _Claims:
 
 class _Builder:
     """The transfer's rows of ranges of the skin points (:func:`transfer_rows`) against
-    one :class:`MeshIndex`, made before the partner starts (a forked child inherits it:
-    neither process makes or reads another)."""
+    one :class:`MeshIndex`, made on first use."""
 
     def __init__(self, grid, x):
         self.grid, self.x = grid, x
         self.ranges = ranges(len(x), CHUNK)
-        t = time.perf_counter()
-        self._index = prepared_index(grid)
-        self.index_seconds = time.perf_counter() - t
+        self._index = None
+        self._index_lock = threading.Lock()
+        self.fetch = None  # returns the partner's index where it has one to give
 
     def index(self):
-        return self._index
+        with self._index_lock:
+            if self._index is None and self.fetch is not None:
+                self._index = self.fetch()
+            if self._index is None:
+                self._index = prepared_index(self.grid)
+            return self._index
 
     def run(self, claim, clock=time.thread_time, keep=None):
         """``({range: Rows}, seconds, CPU seconds)`` of the ranges ``claim()`` hands out
@@ -171,20 +183,23 @@ class _Thread:
 
 
 class _Process:
-    """The partner in a forked child process, which writes each range's rows to an
-    anonymous temporary file as soon as it has built it (so that only the last one is
-    left to write once the ranges are taken), then its timings, and exits (a pipe would
-    make the child wait for the parent to read); :meth:`result` waits for it and reads
-    them, :meth:`cancel` kills it (the parent failed before reading)."""
+    """The partner in a forked child process, which writes its mesh index (for the parent's
+    ranges) to an anonymous temporary file, then each range's rows to another as soon as
+    it has built it (so that only the last one is left to write once the ranges are
+    taken), then its timings, and exits (a pipe would make the child wait for the parent
+    to read); :meth:`result` waits for it and reads them, :meth:`cancel` kills it (the
+    parent failed before reading)."""
 
     where = "second process"
 
     def __init__(self, builder, claims):
-        self._file = tempfile.TemporaryFile()
+        self._file, self._index_file = tempfile.TemporaryFile(), tempfile.TemporaryFile()
+        self._claims = claims
         try:
             pid = os.fork()
         except OSError:
             self._file.close()
+            self._index_file.close()
             raise
         if pid == 0:  # the child: build, write, exit without returning to the caller
             status = 1
@@ -195,6 +210,7 @@ class _Process:
 
                     try:
                         t, c = time.perf_counter(), time.process_time()
+                        self._share_index(builder.index())
                         builder.run(claims.front, time.process_time, keep=keep)
                         answer = ("ok", time.perf_counter() - t, time.process_time() - c)
                     except BaseException as exc:  # noqa: BLE001 - sent to the parent
@@ -204,6 +220,23 @@ class _Process:
             finally:
                 os._exit(status)
         self.pid = pid
+        builder.fetch = self._fetch_index
+
+    def _share_index(self, index):
+        """Write the mesh index for the parent (it reads it instead of making its own)."""
+        with os.fdopen(os.dup(self._index_file.fileno()), "wb") as fh:
+            pickle.dump(index, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        self._claims.mark_index_written()
+
+    def _fetch_index(self):
+        """The child's mesh index, or None where it has not written it (yet)."""
+        if not self._claims.index_written or self._index_file.closed:
+            return None
+        try:
+            self._index_file.seek(0)
+            return pickle.load(self._index_file)
+        except (EOFError, pickle.UnpicklingError, OSError):  # pragma: no cover - torn
+            return None
 
     def result(self):
         """``({range: Rows}, seconds, CPU seconds)`` of the child; where it died, the
@@ -241,6 +274,7 @@ class _Process:
 
     def close(self):
         self._file.close()
+        self._index_file.close()
 
 
 class _Pending:
@@ -273,7 +307,6 @@ class _Pending:
         where = self.where
         self.ranges = {where: len(theirs), "calling thread": len(builder.ranges) - len(theirs)}
         timings = {
-            "transfer index (before the partner)": builder.index_seconds,
             f"transfer rows ({where})": their_wall,
             f"transfer rows, CPU time ({where})": their_cpu,
             "transfer rows (calling thread)": wall,
@@ -313,7 +346,7 @@ def transfer_in_background(mesh, skin):
     returns ``(transfer, timings)`` (``transfer`` a
     :class:`~pvcmf.filters.transfer_parts.Joined`: ``W0``, ``steps``, ``inside``,
     ``modelled``), whose ``cancel()`` stops the partner and whose ``where`` names where
-    it runs. The mesh index is made here, before the partner starts."""
+    it runs."""
     points, tets = tetra(mesh)
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets.copy()}, points.copy())
     x = np.array(skin.points, dtype=float)
