@@ -534,10 +534,11 @@ def test_fold_on_several_threads_equals_one(block, monkeypatch):
 
 
 def test_fold_from_the_product_made_beside_the_join(block):
-    """The transfer joined with ``right`` (its product made on a second thread beside the
-    smoothing steps) gives that product bit for bit, and the skin operator folded from it
-    equals the one that makes its own products; a product of another shape, or one given
-    with a transfer that needs tidying (an explicit zero out of order), is not used."""
+    """The transfer joined with ``right`` (its products with column blocks made on a second
+    thread beside the smoothing steps) gives those products bit for bit, and the skin
+    operator folded from them (one displacement component at a time) equals the one that
+    makes its own products; products of another shape, or given with a transfer that
+    needs tidying (an explicit zero out of order), are not used."""
     import scipy.sparse as sp
 
     from pvcmf.filters.transfer_locate import tetra
@@ -550,13 +551,15 @@ def test_fold_from_the_product_made_beside_the_join(block):
     x = np.asarray(skin.points, dtype=float)
     parts = [transfer_rows(index, x[a:b]) for a, b in ranges(len(x), 97)]
     nodal = np.random.default_rng(8).normal(size=(grid.n_points, 3, 12))
-    flat = nodal.reshape(grid.n_points, -1)
+    right = [np.ascontiguousarray(nodal[:, c]) for c in range(3)]
     plain = join_rows(index, x, parts)
-    joined = join_rows(index, x, parts, right=flat)
+    joined = join_rows(index, x, parts, right=right)
     assert plain.product is None and joined.steps is not None
-    assert np.array_equal(joined.product, joined.W0 @ flat)
+    assert all(np.array_equal(p, joined.W0 @ r) for p, r in zip(joined.product, right))
     assert (joined.W0 != plain.W0).nnz == 0
     own = SkinOperator(joined.W0, nodal, steps=joined.steps)
+    assert np.abs(own.rows(np.arange(len(x))) - np.einsum(
+        "ij,jck->kic", joined.W.toarray(), nodal)).max() < 1e-12 * np.abs(nodal).max()
     for threads in (1, 2):
         got = SkinOperator(joined.W0, nodal, steps=joined.steps, threads=threads,
                            product=joined.product)
@@ -568,10 +571,13 @@ def test_fold_from_the_product_made_beside_the_join(block):
     dup = sp.csr_matrix((np.r_[joined.W0.data, [0.0]], np.r_[joined.W0.indices, [0]],
                          np.r_[joined.W0.indptr[:-1], [joined.W0.nnz + 1]]), joined.W0.shape)
     assert not (dup.has_canonical_format and np.all(dup.data))
-    tidy = SkinOperator(dup, nodal, steps=joined.steps, product=np.zeros_like(joined.product))
+    zeros = [np.zeros_like(p) for p in joined.product]
+    tidy = SkinOperator(dup, nodal, steps=joined.steps, product=zeros)
     assert np.array_equal(tidy.D, own.D)
-    with pytest.raises(ValueError, match="right must have"):
-        join_rows(index, x, parts, right=flat[:-1])
+    with pytest.raises(ValueError, match="right must hold"):
+        join_rows(index, x, parts, right=[r[:-1] for r in right])
+    with pytest.raises(ValueError, match="right must be a non-empty list"):
+        join_rows(index, x, parts, right=right[0])
 
 
 def test_auto_release_margin_is_fixed_from_the_plan_given(block):

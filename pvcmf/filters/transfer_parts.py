@@ -95,8 +95,8 @@ def transfer_rows(index, points, k=DEFAULT_K, band=DEFAULT_BAND):
 class Joined:
     """What :class:`~pvcmf.filters.surface_mapping.Transfer` holds, from :func:`join_rows`:
     ``W0``, ``steps``, ``inside``, ``distance``, ``modelled``, ``band`` and ``W`` (the
-    smoothed transfer, made on first use); ``product``: ``W0 @ right`` where
-    :func:`join_rows` was given ``right`` (else None)."""
+    smoothed transfer, made on first use); ``product``: ``W0 @`` each block of ``right``
+    where :func:`join_rows` was given ``right`` (a list; else None)."""
 
     def __init__(self, W0, steps, inside, distance, band, product=None):
         self.W0, self.steps, self.inside, self.distance = W0, steps, inside, distance
@@ -117,25 +117,31 @@ def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATI
     """The transfer of ``points`` from the :class:`Rows` of consecutive ranges ``parts``
     (in order, covering every point): ``W0`` stacked, and the smoothing steps made once
     (:func:`~pvcmf.filters.transfer_smoothing.smoothing_steps`; ``threads``: threads of its
-    neighbour search). ``right``: a dense ``(n_mesh_points, c)`` array; ``W0 @ right``
-    (:func:`~pvcmf.filters.transfer_smoothing.rows_product`) is made on a second thread
-    while the steps are made (``Joined.product``). Returns :class:`Joined`."""
+    neighbour search). ``right``: a list of dense ``(n_mesh_points, c)`` arrays (column
+    blocks); ``W0 @`` each (:func:`~pvcmf.filters.transfer_smoothing.rows_product`) is
+    made on a second thread while the steps are made (``Joined.product``, a list).
+    Returns :class:`Joined`."""
     p = np.asarray(points, dtype=float)
     sizes = [len(r.inside) for r in parts]
     if sum(sizes) != len(p):
         raise ValueError(f"parts must cover the {len(p)} points, got {sum(sizes)} rows")
     W0 = sp.vstack([r.W0 for r in parts], format="csr")
-    if right is not None and np.shape(right)[0] != W0.shape[1]:
-        raise ValueError(f"right must have {W0.shape[1]} rows (mesh points), got "
-                         f"{np.shape(right)}")
+    if right is not None:
+        if not isinstance(right, (list, tuple)) or not right:
+            raise ValueError(f"right must be a non-empty list of arrays, got "
+                             f"{type(right).__name__}")
+        right = [np.asarray(r) for r in right]
+        if any(r.ndim != 2 or r.shape[0] != W0.shape[1] for r in right):
+            raise ValueError(f"right must hold arrays of {W0.shape[1]} rows (mesh points), "
+                             f"got {[r.shape for r in right]}")
     inside = np.concatenate([r.inside for r in parts])
     dist = np.concatenate([r.dist for r in parts])
     pool = product = None
-    if right is not None:  # the product beside the steps (its kernel releases the GIL)
+    if right is not None:  # the products beside the steps (their kernel releases the GIL)
         from concurrent.futures import ThreadPoolExecutor
 
         pool = ThreadPoolExecutor(1, thread_name_prefix="pvcmf-product")
-        product = pool.submit(rows_product, W0, right, 1)
+        product = pool.submit(lambda: [rows_product(W0, r, 1) for r in right])
     try:
         steps = _steps(index, p, parts, dist, band, smoothing, threads, sizes)
     finally:

@@ -217,8 +217,8 @@ class PlanResponse:
             self.transfer_ranges = None
             if pending is not None:
                 point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
-                transfer, timings = pending.result(  # W0 R made beside the join
-                    right=point_major.reshape(len(point_major), -1))
+                transfer, timings = pending.result(  # W0 R_c made beside the join
+                    right=[self.nodal[c] for c in range(3)])
                 self.timings.update(timings)
                 self.transfer_ranges = pending.ranges
                 self.modelled = transfer.modelled

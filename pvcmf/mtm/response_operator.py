@@ -155,7 +155,8 @@ class SkinOperator:
         if steps is not None and steps.n != n:
             raise ValueError(f"steps must act on {n} rows, got {steps.n}")
         self.n, self.K = n, nodal.shape[2]
-        if product is not None and (not tidy or np.shape(product) != (n, 3 * self.K)):
+        if product is not None and (not tidy or not isinstance(product, (list, tuple))
+                                    or [np.shape(x) for x in product] != [(n, self.K)] * 3):
             product = None  # made for another W (or one that was not tidy): not used
         count = np.diff(W.indptr)
         moved = np.zeros(n, dtype=bool)
@@ -176,44 +177,49 @@ class SkinOperator:
 
     def _dense(self, W, nodal, moved, steps, threads=1, product=None):
         """The dense rows ``W R`` (the moved ones smoothed by ``steps``), parameter-major
-        ``(K, 3 n_d)``: the rows' products (``product``: ``W R`` over every row, where
-        the caller has it), then each block of rows transposed while it is in cache
-        (``threads`` threads share the products, which release the GIL, and the blocks:
-        the same numbers for any number of threads)."""
+        ``(K, 3 n_d)``, one displacement component (``K`` columns) at a time, so that the
+        steps' buffers stay small: the rows' products (``product``: ``W R_c`` over every
+        row for each component ``c``, where the caller has them), then each block of rows
+        transposed while it is in cache (``threads`` threads share the products, which
+        release the GIL, and the blocks: the same numbers for any number of threads)."""
         K, n_d = self.K, len(self.dense_rows)
-        flat = nodal.reshape(nodal.shape[0], 3 * K)
         plain = ~moved[self.dense_rows]  # among the dense rows
-        if product is None:
-            rows_plain = rows_product(W[self.dense_rows[plain]], flat, threads)
-            at_plain = np.arange(len(rows_plain))
-        else:
-            rows_plain, at_plain = product, self.dense_rows[plain]
-        if steps is not None:
-            rows_moved, pos = steps.smoothed_block(W, flat, threads, product=product)
-            at_moved = pos[np.searchsorted(steps.rows, self.dense_rows[~plain])]
-        # per dense row: its source (moved or plain) and its row there
+        Wp = W[self.dense_rows[plain]] if product is None else None
+        # per dense row: its row in the plain or the moved rows' products
         source = np.empty(n_d, dtype=np.int64)
-        source[plain] = at_plain
-        if steps is not None:
-            source[~plain] = at_moved
+        source[plain] = np.arange(plain.sum()) if product is None else self.dense_rows[plain]
         D = np.empty((K, n_d, 3))
-        step = 2048
+        for c in range(3):
+            Xc = np.ascontiguousarray(nodal[:, c, :])  # (m, K)
+            rows_plain = rows_product(Wp, Xc, threads) if product is None else product[c]
+            rows_moved = None
+            if steps is not None:
+                rows_moved, pos = steps.smoothed_block(
+                    W, Xc, threads, product=None if product is None else product[c])
+                source[~plain] = pos[np.searchsorted(steps.rows, self.dense_rows[~plain])]
+            self._lay_out(D[:, :, c], plain, source, rows_plain, rows_moved, threads)
+        return D.reshape(K, 3 * n_d)
+
+    @staticmethod
+    def _lay_out(Dc, plain, source, rows_plain, rows_moved, threads, step=2048):
+        """``Dc`` (``(K, n_d)``, a component of the dense rows) from the rows of the plain
+        and moved rows' products, in blocks of ``step`` rows shared among ``threads``."""
+        from ..filters.transfer_smoothing import _on_threads
+
+        n_d = Dc.shape[1]
         starts = list(range(0, n_d, step))
 
         def put(i):
             for b in starts[i::max(1, threads)]:
                 e = min(b + step, n_d)
-                block = np.empty((e - b, 3 * K))
+                block = np.empty((e - b, Dc.shape[0]))
                 mask = plain[b:e]
                 block[mask] = rows_plain[source[b:e][mask]]
-                if steps is not None:
+                if rows_moved is not None:
                     block[~mask] = rows_moved[source[b:e][~mask]]
-                D[:, b:e] = block.reshape(-1, 3, K).transpose(2, 0, 1)
-
-        from ..filters.transfer_smoothing import _on_threads
+                Dc[:, b:e] = block.T
 
         _on_threads(put, max(1, min(int(threads), len(starts))))
-        return D.reshape(K, 3 * n_d)
 
     def _placement(self, sparse):
         """CSR ``H`` (n_skin, n_u + n_d): the sparse rows' weights on the used nodes, and a

@@ -289,8 +289,8 @@ class _Pending:
     def result(self, right=None):
         """``(transfer, timings)``: the joined transfer (:class:`Joined`) after the caller
         has built the ranges the partner had not taken, and the seconds of each part
-        (:attr:`ranges` then says how many ranges each built); ``right``: a dense array
-        whose product with the transfer before its steps is made beside the join
+        (:attr:`ranges` then says how many ranges each built); ``right``: a list of dense
+        arrays whose products with the transfer before its steps are made beside the join
         (``transfer.product``, :func:`~pvcmf.filters.transfer_parts.join_rows`)."""
         builder = self.builder
         try:
