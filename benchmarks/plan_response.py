@@ -11,8 +11,9 @@ and measures, for a two-segment template (maxilla and mandible):
   factorisation, twelve solves per segment, the transfer's rows built in ranges of skin
   points by a partner beside them (a forked process unless the cores are contended, or
   as ``--build-in`` says) and by the calling thread after its solves, joined (the
-  smoothing steps) and folded in: the unsmoothed transfer times the nodal response, then
-  the smoothing steps on those dense rows), and its ratio to a factorisation plus the same solves timed on
+  smoothing steps, with the unsmoothed transfer times the nodal response made beside them
+  on a second thread) and folded in: the smoothing steps on those dense rows), and its
+  ratio to a factorisation plus the same solves timed on
   their own in the same run (nothing else running in the process; the build's double
   factor, with and without the per-solve solution checks, which the build skips), in
   wall-clock and CPU time (the process's and its child's), medians of ``--repeat`` rounds
@@ -339,11 +340,12 @@ def main(argv=None):
                 "the partner: a forked process, or a second thread; `--build-in` chooses, "
                 "`auto` takes the thread when the kernel's pressure stall information "
                 "shows tasks waiting for a core), then joins them (`transfer join`: the "
-                "smoothing steps) and folds them in on both cores; the build's CPU time "
+                "smoothing steps, and beside them on a second thread the unsmoothed "
+                "transfer times the nodal response) and folds them in on both cores "
+                "(`build: fold`: the steps on those dense rows); the build's CPU time "
                 "is the process's (all its threads) and its child's. "
                 "The transfer's smoothing steps outside the mesh act on the folded dense "
-                "rows (`build: fold`: the unsmoothed transfer times the nodal response, then "
-                "the steps), not on the sparse transfer; the transfer build on its own makes "
+                "rows, not on the sparse transfer; the transfer build on its own makes "
                 "the smoothed sparse operator that map_to_surface applies. "
                 "The float32 rounding bound is what ``dtype='auto'`` compares with 1e-6 mm.\n\n"
                 f"Command: `{command}`\n\nMachine: {machine()}\n\n{text}\n")

@@ -463,6 +463,57 @@ def test_transfer_in_background_equals_the_transfer(block):
             os.waitpid(pending.partner.pid, 0)  # already reaped
 
 
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs os.fork")
+def test_ranges_a_dead_child_wrote_are_kept(block, caplog):
+    """The forked partner writes each range as it builds it: where it died after writing
+    two of the three ranges it had taken (a torn record last), the parent keeps those two
+    and builds the third with the rest, and the transfer equals :class:`Transfer`; an
+    error the child sent reaches the caller."""
+    import os
+    import pickle
+    import tempfile
+    import threading
+
+    from pvcmf.filters.surface_mapping import Transfer
+    from pvcmf.mtm import response_transfer
+
+    grid, _, skin = block
+    here = Transfer(grid, skin.points)
+    builder = response_transfer._Builder(grid, np.asarray(skin.points, dtype=float))
+    builder.ranges = response_transfer.ranges(skin.n_points, 37)
+    claims = response_transfer._Claims(len(builder.ranges), threading.Lock())
+    taken = [claims.front() for _ in range(3)]
+
+    def dead_child(records, tail=b""):
+        proc = response_transfer._Process.__new__(response_transfer._Process)
+        proc._file, proc._index_file = tempfile.TemporaryFile(), tempfile.TemporaryFile()
+        for record in records:
+            pickle.dump(record, proc._file, protocol=pickle.HIGHEST_PROTOCOL)
+        proc._file.write(tail)
+        pid = os.fork()
+        if pid == 0:
+            os._exit(0)
+        proc.pid = pid
+        return proc
+
+    written = {i: response_transfer.transfer_rows(builder.index(),
+                                                  builder.x[slice(*builder.ranges[i])])
+               for i in taken[:2]}
+    torn = pickle.dumps(("range", taken[2], written[taken[0]]))[:50]
+    partner = dead_child([("range", i, r) for i, r in written.items()], torn)
+    with caplog.at_level("WARNING", logger="pvcmf.mtm.response_transfer"):
+        pending = response_transfer._Pending(builder, claims, partner)
+        transfer, _ = pending.result()
+    assert "ended without an answer" in caplog.text
+    assert pending.ranges["second process"] == 2
+    assert pending.ranges["calling thread"] == len(builder.ranges) - 2
+    assert (transfer.W != here.W).nnz == 0 and (transfer.W0 != here.W0).nnz == 0
+    claims = response_transfer._Claims(len(builder.ranges), threading.Lock())
+    partner = dead_child([("error", ValueError("from the child"))])
+    with pytest.raises(ValueError, match="from the child"):
+        response_transfer._Pending(builder, claims, partner).result()
+
+
 def test_fold_on_several_threads_equals_one(block, monkeypatch):
     """The skin operator's fold split among threads (rows of its sparse products) gives the
     same numbers, bit for bit, as on one thread."""
@@ -480,6 +531,53 @@ def test_fold_on_several_threads_equals_one(block, monkeypatch):
     assert np.array_equal(one.D, two.D) and np.array_equal(one.Ru, two.Ru)
     assert np.array_equal(transfer_smoothing.rows_product(tr.W0, nodal[:, 0], 3),
                           tr.W0 @ nodal[:, 0])
+
+
+def test_fold_from_the_product_made_beside_the_join(block):
+    """The transfer joined with ``right`` (its products with column blocks made on a second
+    thread beside the smoothing steps) gives those products bit for bit, and the skin
+    operator folded from them (one displacement component at a time) equals the one that
+    makes its own products; products of another shape, or given with a transfer that
+    needs tidying (an explicit zero out of order), are not used."""
+    import scipy.sparse as sp
+
+    from pvcmf.filters.transfer_locate import tetra
+    from pvcmf.filters.transfer_parts import join_rows, prepared_index, ranges, transfer_rows
+    from pvcmf.mtm.response_operator import SkinOperator
+
+    grid, _, skin = block
+    points, tets = tetra(grid)
+    index = prepared_index(pv.UnstructuredGrid({pv.CellType.TETRA: tets}, points))
+    x = np.asarray(skin.points, dtype=float)
+    parts = [transfer_rows(index, x[a:b]) for a, b in ranges(len(x), 97)]
+    nodal = np.random.default_rng(8).normal(size=(grid.n_points, 3, 12))
+    right = [np.ascontiguousarray(nodal[:, c]) for c in range(3)]
+    plain = join_rows(index, x, parts)
+    joined = join_rows(index, x, parts, right=right)
+    assert plain.product is None and joined.steps is not None
+    assert all(np.array_equal(p, joined.W0 @ r) for p, r in zip(joined.product, right))
+    assert (joined.W0 != plain.W0).nnz == 0
+    own = SkinOperator(joined.W0, nodal, steps=joined.steps)
+    assert np.abs(own.rows(np.arange(len(x))) - np.einsum(
+        "ij,jck->kic", joined.W.toarray(), nodal)).max() < 1e-12 * np.abs(nodal).max()
+    for threads in (1, 2):
+        got = SkinOperator(joined.W0, nodal, steps=joined.steps, threads=threads,
+                           product=joined.product)
+        assert np.array_equal(got.D, own.D) and np.array_equal(got.Ru, own.Ru)
+    wrong = SkinOperator(joined.W0, nodal, steps=joined.steps, product=joined.product[:-1])
+    assert np.array_equal(wrong.D, own.D)
+    # the same operator with an explicit zero (unsorted) in its last row: tidied, so a
+    # product (here a wrong one) is not used
+    dup = sp.csr_matrix((np.r_[joined.W0.data, [0.0]], np.r_[joined.W0.indices, [0]],
+                         np.r_[joined.W0.indptr[:-1], [joined.W0.nnz + 1]]), joined.W0.shape)
+    assert not (dup.has_canonical_format and np.all(dup.data))
+    zeros = [np.zeros_like(p) for p in joined.product]
+    tidy = SkinOperator(dup, nodal, steps=joined.steps, product=zeros)
+    assert np.array_equal(tidy.D, own.D)
+    with pytest.raises(ValueError, match="right must hold"):
+        join_rows(index, x, parts, right=[r[:-1] for r in right])
+    with pytest.raises(ValueError, match="right must be a non-empty list"):
+        join_rows(index, x, parts, right=right[0])
 
 
 def test_auto_release_margin_is_fixed_from_the_plan_given(block):

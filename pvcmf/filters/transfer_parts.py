@@ -25,14 +25,16 @@ import scipy.sparse as sp
 
 from .surface_mapping import DEFAULT_BAND, DEFAULT_K, _assemble_parts, _guided, _stacked_gradients
 from .transfer_locate import Located, MeshIndex
-from .transfer_smoothing import DEFAULT_ITERATIONS, smoothing_steps
+from .transfer_smoothing import DEFAULT_ITERATIONS, rows_product, smoothing_steps
 
 __all__ = ["MeshIndex", "Rows", "Joined", "ranges", "prepared_index", "transfer_rows",
            "join_rows", "CHUNK"]
 
-#: points per range (small enough that two builders finish within a range of each other,
-#: large enough that the per-range overhead stays a few percent)
-CHUNK = 6144
+#: points per range (small enough that two builders finish within a range of each other
+#: and that a range's arrays of (point, foot) pairs, a dozen or more feet per point
+#: outside the mesh, stay in the core's cache; large enough that the per-range overhead
+#: stays a few percent)
+CHUNK = 2048
 
 
 def ranges(n, size=CHUNK):
@@ -93,12 +95,14 @@ def transfer_rows(index, points, k=DEFAULT_K, band=DEFAULT_BAND):
 class Joined:
     """What :class:`~pvcmf.filters.surface_mapping.Transfer` holds, from :func:`join_rows`:
     ``W0``, ``steps``, ``inside``, ``distance``, ``modelled``, ``band`` and ``W`` (the
-    smoothed transfer, made on first use)."""
+    smoothed transfer, made on first use); ``product``: ``W0 @`` each block of ``right``
+    where :func:`join_rows` was given ``right`` (a list; else None)."""
 
-    def __init__(self, W0, steps, inside, distance, band):
+    def __init__(self, W0, steps, inside, distance, band, product=None):
         self.W0, self.steps, self.inside, self.distance = W0, steps, inside, distance
         self.band = band
         self.modelled = distance <= band
+        self.product = product
         self._W = None
 
     @property
@@ -108,29 +112,57 @@ class Joined:
         return self._W
 
 
-def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATIONS, threads=1):
+def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATIONS, threads=1,
+              right=None):
     """The transfer of ``points`` from the :class:`Rows` of consecutive ranges ``parts``
     (in order, covering every point): ``W0`` stacked, and the smoothing steps made once
     (:func:`~pvcmf.filters.transfer_smoothing.smoothing_steps`; ``threads``: threads of its
-    neighbour search). Returns :class:`Joined`."""
+    neighbour search). ``right``: a list of dense ``(n_mesh_points, c)`` arrays (column
+    blocks); ``W0 @`` each (:func:`~pvcmf.filters.transfer_smoothing.rows_product`) is
+    made on a second thread while the steps are made (``Joined.product``, a list).
+    Returns :class:`Joined`."""
     p = np.asarray(points, dtype=float)
     sizes = [len(r.inside) for r in parts]
     if sum(sizes) != len(p):
         raise ValueError(f"parts must cover the {len(p)} points, got {sum(sizes)} rows")
     W0 = sp.vstack([r.W0 for r in parts], format="csr")
+    if right is not None:
+        if not isinstance(right, (list, tuple)) or not right:
+            raise ValueError(f"right must be a non-empty list of arrays, got "
+                             f"{type(right).__name__}")
+        right = [np.asarray(r) for r in right]
+        if any(r.ndim != 2 or r.shape[0] != W0.shape[1] for r in right):
+            raise ValueError(f"right must hold arrays of {W0.shape[1]} rows (mesh points), "
+                             f"got {[r.shape for r in right]}")
     inside = np.concatenate([r.inside for r in parts])
     dist = np.concatenate([r.dist for r in parts])
+    pool = product = None
+    if right is not None:  # the products beside the steps (their kernel releases the GIL)
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(1, thread_name_prefix="pvcmf-product")
+        product = pool.submit(lambda: [rows_product(W0, r, 1) for r in right])
+    try:
+        steps = _steps(index, p, parts, dist, band, smoothing, threads, sizes)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True)
+    return Joined(W0, steps, inside, dist, float(band),
+                  None if product is None else product.result())
+
+
+def _steps(index, p, parts, dist, band, smoothing, threads, sizes):
+    """The smoothing steps of the joined rows (None where none move a point)."""
     offset = np.cumsum([0] + sizes[:-1])
     has = [i for i, r in enumerate(parts) if len(r.outside)]
-    steps = None
-    if has and smoothing:
-        loc = _mesh_view(index)
-        loc.p = p
-        loc.outside = np.concatenate([parts[i].outside + offset[i] for i in has])
-        loc.near = np.concatenate([parts[i].near for i in has])
-        loc.near_w = np.concatenate([parts[i].near_w for i in has])
-        D = _stacked_gradients(loc)
-        guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
-        steps = smoothing_steps(p, dist, float(band), index.median_edge, guide,
-                                iterations=int(smoothing), threads=threads)
-    return Joined(W0, steps, inside, dist, float(band))
+    if not (has and smoothing):
+        return None
+    loc = _mesh_view(index)
+    loc.p = p
+    loc.outside = np.concatenate([parts[i].outside + offset[i] for i in has])
+    loc.near = np.concatenate([parts[i].near for i in has])
+    loc.near_w = np.concatenate([parts[i].near_w for i in has])
+    D = _stacked_gradients(loc)
+    guide = lambda rows, o: _guided(loc, rows, o, D, factors=True)  # noqa: E731
+    return smoothing_steps(p, dist, float(band), index.median_edge, guide,
+                           iterations=int(smoothing), threads=threads)

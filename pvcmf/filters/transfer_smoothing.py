@@ -46,6 +46,11 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+try:  # scipy's compiled kernel ``y += A x`` for a CSR matrix and several vectors
+    from scipy.sparse._sparsetools import csr_matvecs as _csr_matvecs
+except ImportError:  # pragma: no cover - older or newer scipy layouts
+    _csr_matvecs = None
+
 __all__ = ["smooth_outside", "smoothing_steps", "Steps", "DEFAULT_ITERATIONS", "STRENGTH",
            "NEIGHBOURS", "rows_product"]
 
@@ -67,10 +72,16 @@ BAND_TAPER = 0.25
 ROWS_PER_THREAD = 4096
 
 
-def rows_product(A, X, threads=1):
-    """``A @ X`` (sparse times dense, ``(rows, columns)``) with the rows split among
-    ``threads`` threads: scipy's CSR kernel releases the GIL, and each row is the same sum
-    in any split, so the result does not depend on ``threads``.
+def rows_product(A, X, threads=1, out=None, add=None):
+    """``A @ X`` (sparse times dense, ``(rows, columns)``; plus ``add`` where given) with the
+    rows split among ``threads`` threads: scipy's CSR kernel releases the GIL, and each row
+    is the same sum in any split, so the result does not depend on ``threads``.
+
+    Each thread writes its rows straight into ``out`` (a C-contiguous float64 ``(rows,
+    columns)`` array, overwritten; made where None) with scipy's compiled kernel, which
+    sums a row's products in the order of its entries onto zeros, as ``A @ X`` does:
+    no row slices of ``A``, no temporaries, no copy into the result. ``add`` (same shape)
+    is added to each row range by its thread, as ``A @ X + add`` would add it.
 
     Examples
     --------
@@ -84,20 +95,68 @@ def rows_product(A, X, threads=1):
     X = np.asarray(X)
     n = A.shape[0]
     threads = max(1, min(int(threads), n // ROWS_PER_THREAD))
-    if threads == 1:
-        return np.asarray(A @ X)
-    from concurrent.futures import ThreadPoolExecutor
-
-    out = np.empty((n,) + X.shape[1:], dtype=np.result_type(A.dtype, X.dtype))
+    if not _kernel_fits(A, X, out):
+        result = np.asarray(A @ X) if threads == 1 else _split_product(A, X, threads)
+        if add is not None:
+            result = result + add
+        if out is None:
+            return result
+        out[...] = result
+        return out
+    X = np.ascontiguousarray(X)
+    if out is None:
+        out = np.empty((n, X.shape[1]))
     bounds = np.linspace(0, n, threads + 1).astype(np.int64)
+    flat_x = X.reshape(-1)
+
+    def part(i):
+        a, b = int(bounds[i]), int(bounds[i + 1])
+        rows = out[a:b]
+        rows.fill(0.0)
+        _csr_matvecs(b - a, A.shape[1], X.shape[1], A.indptr[a:b + 1], A.indices, A.data,
+                     flat_x, rows.reshape(-1))
+        if add is not None:
+            rows += add[a:b]
+
+    _on_threads(part, threads)
+    return out
+
+
+def _kernel_fits(A, X, out):
+    """Whether :func:`rows_product` can run scipy's kernel into ``out`` (float64 values,
+    one index type, two-dimensional ``X``, a C-contiguous float64 ``out`` of the shape)."""
+    if _csr_matvecs is None or X.ndim != 2 or A.dtype != np.float64 or X.dtype != np.float64:
+        return False
+    if A.indptr.dtype != A.indices.dtype:
+        return False
+    return out is None or (out.dtype == np.float64 and out.flags.c_contiguous
+                           and out.shape == (A.shape[0], X.shape[1]))
+
+
+def _split_product(A, X, threads):
+    out = np.empty((A.shape[0],) + X.shape[1:], dtype=np.result_type(A.dtype, X.dtype))
+    bounds = np.linspace(0, A.shape[0], threads + 1).astype(np.int64)
 
     def part(i):
         a, b = bounds[i], bounds[i + 1]
         out[a:b] = A[a:b] @ X
 
-    with ThreadPoolExecutor(threads, thread_name_prefix="pvcmf-rows") as pool:
-        list(pool.map(part, range(threads)))
+    _on_threads(part, threads)
     return out
+
+
+def _on_threads(part, threads):
+    """``part(i)`` for ``i < threads``, on that many threads (the calling one included)."""
+    if threads == 1:
+        part(0)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(threads - 1, thread_name_prefix="pvcmf-rows") as pool:
+        done = [pool.submit(part, i) for i in range(1, threads)]
+        part(0)
+        for f in done:
+            f.result()
 
 
 def _smoothstep(t):
@@ -237,11 +296,11 @@ class Steps:
             self._F = B @ G
         return self._F
 
-    def _times_F(self, X, threads=1):
+    def _times_F(self, X, threads=1, GX=None):
         if self._factors is None:
             return rows_product(self._F, X, threads)
         B, G = self._factors
-        return rows_product(B, rows_product(G, X, threads), threads)
+        return rows_product(B, rows_product(G, X, threads) if GX is None else GX, threads)
 
     def apply(self, T):
         """The smoothed transfer (CSR, shape of ``T``, sorted indices, no explicit zeros)."""
@@ -256,18 +315,41 @@ class Steps:
         out.eliminate_zeros()
         return out
 
-    def moved_rows(self, T, X, threads=1):
+    def moved_rows(self, T, X, threads=1, product=None):
         """Rows ``rows`` of ``apply(T) @ X`` (dense ``(len(rows), X.shape[1])``): the steps
         applied to ``T_block @ X`` and ``F @ X`` (``threads``: :func:`rows_product`; the
-        same result for any number)."""
-        T = sp.csr_matrix(T)
+        same result for any number).
+
+        ``product``: ``T @ X`` over every row of ``T``, where the caller has it (the same
+        numbers as the block's rows of it): the first step then reads its block's rows
+        in place (the step's columns mapped to rows of ``T``) instead of a product of
+        its own. The steps write into two buffers in turn, each thread adding the
+        guidance term to its own rows."""
+        Y, at = self.smoothed_block(T, X, threads, product)
+        return Y[at]
+
+    def smoothed_block(self, T, X, threads=1, product=None):
+        """``(Y, at)``: the block's rows after the steps (:meth:`moved_rows`'s arguments)
+        and where the moved rows lie in it (:meth:`moved_rows` is ``Y[at]``, here without
+        that copy)."""
         X = np.asarray(X)
-        Y = rows_product(T[self.block], X, threads)
+        if product is None:
+            Y = rows_product(sp.csr_matrix(T)[self.block], X, threads)
+            first = self.step
+        else:
+            Y = np.asarray(product)
+            step = self.step  # its columns as rows of T: the block's rows read in place
+            first = sp.csr_matrix((step.data, self.block[step.indices], step.indptr),
+                                  shape=(step.shape[0], len(Y)))
+        if not self.iterations:  # (the block's rows of T X as they are)
+            return Y, (self.pos if product is None else self.block[self.pos])
         FX = self._times_F(X, threads)
-        for _ in range(self.iterations):
-            Y = rows_product(self.step, Y, threads)
-            Y += FX
-        return Y[self.pos]
+        buffers = [None, None]  # written in turn: a step never writes what it reads
+        for it in range(self.iterations):
+            Y = rows_product(first if it == 0 else self.step, Y, threads,
+                             out=buffers[it % 2], add=FX)
+            buffers[it % 2] = Y
+        return Y, self.pos
 
 
 def smooth_outside(T, x, dist, band, h, guide, *, iterations=DEFAULT_ITERATIONS,

@@ -177,13 +177,15 @@ class PlanResponse:
     timings : dict
         Seconds of ``bc`` (apply_plan), ``factor``, ``solves``, ``transfer`` (after the
         solves: the skin transfer's ranges left to the calling thread, waiting for the
-        partner, joining, folding), ``fold`` (of those, the skin operator's products: the
-        transfer before its smoothing steps times the nodal response, then the steps on
-        those dense rows, on every core), the transfer's ``rows`` built by the partner
-        (``(second process)`` or ``(second thread)``, beside the others) and by the
-        calling thread, with their CPU times, its ``join`` (the smoothing steps), and
-        the CPU time of the calling thread (``main thread CPU``; ``main thread CPU, bc +
-        factor + solves`` up to the solves).
+        partner, joining, folding), ``fold`` (of those, the skin operator's parts: the
+        smoothing steps on the dense rows of the transfer before them times the nodal
+        response, on every core, and the rows laid out parameter-major), the transfer's
+        ``rows`` built by the partner (``(second process)`` or ``(second thread)``,
+        beside the others) and by the calling thread, with their CPU times, its ``join``
+        (the smoothing steps, with the product of the transfer before them and the nodal
+        response made beside them on a second thread), and the CPU time of the calling
+        thread (``main thread CPU``; ``main thread CPU, bc + factor + solves`` up to the
+        solves).
     transfer_ranges : dict or None
         Ranges of skin points whose transfer rows the partner (``'second process'`` or
         ``'second thread'``) and the ``'calling thread'`` built.
@@ -214,14 +216,15 @@ class PlanResponse:
             self._skin, self._skin_dense, self.reached, self.modelled = None, None, None, None
             self.transfer_ranges = None
             if pending is not None:
-                transfer, timings = pending.result()
+                point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
+                transfer, timings = pending.result(  # W0 R_c made beside the join
+                    right=[self.nodal[c] for c in range(3)])
                 self.timings.update(timings)
                 self.transfer_ranges = pending.ranges
                 self.modelled = transfer.modelled
-                point_major = np.ascontiguousarray(self.nodal.transpose(1, 0, 2))
                 fold = time.perf_counter()
                 self._skin = SkinOperator(transfer.W0, point_major, steps=transfer.steps,
-                                          threads=_cores())
+                                          threads=_cores(), product=transfer.product)
                 self.timings["fold"] = time.perf_counter() - fold
                 self.reached = self._skin.reached
                 store = self._dtype(dtype)

@@ -40,6 +40,7 @@ import contextlib
 import numpy as np
 import scipy.sparse as sp
 
+from ..filters.transfer_smoothing import rows_product
 from ._common import blas_threads
 
 try:  # scipy's compiled kernel ``y += A x`` for a CSR matrix and several vectors
@@ -140,16 +141,23 @@ class SkinOperator:
         Skin points evaluated through the nodal displacement, and through dense rows.
     """
 
-    def __init__(self, W, nodal, sparse_max_nnz=SPARSE_MAX_NNZ, steps=None, threads=1):
-        W = sp.csr_matrix(W, dtype=np.float64, copy=True)  # the caller's W stays as it is
-        W.sum_duplicates()
-        W.eliminate_zeros()
+    def __init__(self, W, nodal, sparse_max_nnz=SPARSE_MAX_NNZ, steps=None, threads=1,
+                 product=None):
+        W = sp.csr_matrix(W, dtype=np.float64)
+        tidy = W.has_canonical_format and bool(np.all(W.data))
+        if not tidy:  # the caller's W stays as it is
+            W = W.copy()
+            W.sum_duplicates()
+            W.eliminate_zeros()
         n, m = W.shape
         if nodal.ndim != 3 or nodal.shape[:2] != (m, 3):
             raise ValueError(f"nodal must have shape ({m}, 3, K), got {nodal.shape}")
         if steps is not None and steps.n != n:
             raise ValueError(f"steps must act on {n} rows, got {steps.n}")
         self.n, self.K = n, nodal.shape[2]
+        if product is not None and (not tidy or not isinstance(product, (list, tuple))
+                                    or [np.shape(x) for x in product] != [(n, self.K)] * 3):
+            product = None  # made for another W (or one that was not tidy): not used
         count = np.diff(W.indptr)
         moved = np.zeros(n, dtype=bool)
         if steps is not None:
@@ -163,39 +171,55 @@ class SkinOperator:
         self.S = sp.csr_matrix((Ws.data, local.ravel().astype(np.int32), Ws.indptr),
                                shape=(len(self.sparse_rows), len(self.used)))
         self.Ru = np.ascontiguousarray(nodal[self.used].reshape(-1, self.K))  # (3 n_u, K)
-        self.D = self._dense(W, nodal, moved, steps, threads)  # (K, 3 n_d)
+        self.D = self._dense(W, nodal, moved, steps, threads, product)  # (K, 3 n_d)
         self.H = self._placement(sparse)
         self._x = None
 
-    def _dense(self, W, nodal, moved, steps, threads=1):
+    def _dense(self, W, nodal, moved, steps, threads=1, product=None):
         """The dense rows ``W R`` (the moved ones smoothed by ``steps``), parameter-major
-        ``(K, 3 n_d)``, built in row blocks (each block's product is transposed while it is
-        in cache; ``threads`` threads share the blocks and the steps' products, which
-        release the GIL: the same numbers for any number of threads)."""
+        ``(K, 3 n_d)``, one displacement component (``K`` columns) at a time, so that the
+        steps' buffers stay small: the rows' products (``product``: ``W R_c`` over every
+        row for each component ``c``, where the caller has them), then each block of rows
+        transposed while it is in cache (``threads`` threads share the products, which
+        release the GIL, and the blocks: the same numbers for any number of threads)."""
         K, n_d = self.K, len(self.dense_rows)
-        flat = nodal.reshape(nodal.shape[0], 3 * K)
+        plain = ~moved[self.dense_rows]  # among the dense rows
+        Wp = W[self.dense_rows[plain]] if product is None else None
+        # per dense row: its row in the plain or the moved rows' products
+        source = np.empty(n_d, dtype=np.int64)
+        source[plain] = np.arange(plain.sum()) if product is None else self.dense_rows[plain]
         D = np.empty((K, n_d, 3))
-        plain = np.flatnonzero(~moved[self.dense_rows])  # positions among the dense rows
-        Wd = W[self.dense_rows[plain]]
-        step = 4096
-
-        def fill(b):
-            block = np.asarray(Wd[b:b + step] @ flat).reshape(-1, 3, K)
-            D[:, plain[b:b + step]] = block.transpose(2, 0, 1)
-
-        starts = range(0, len(plain), step)
-        if threads > 1 and len(starts) > 1:
-            from concurrent.futures import ThreadPoolExecutor
-
-            with ThreadPoolExecutor(int(threads), thread_name_prefix="pvcmf-fold") as pool:
-                list(pool.map(fill, starts))
-        else:
-            for b in starts:
-                fill(b)
-        if steps is not None:
-            at = np.searchsorted(self.dense_rows, steps.rows)
-            D[:, at] = steps.moved_rows(W, flat, threads).reshape(-1, 3, K).transpose(2, 0, 1)
+        for c in range(3):
+            Xc = np.ascontiguousarray(nodal[:, c, :])  # (m, K)
+            rows_plain = rows_product(Wp, Xc, threads) if product is None else product[c]
+            rows_moved = None
+            if steps is not None:
+                rows_moved, pos = steps.smoothed_block(
+                    W, Xc, threads, product=None if product is None else product[c])
+                source[~plain] = pos[np.searchsorted(steps.rows, self.dense_rows[~plain])]
+            self._lay_out(D[:, :, c], plain, source, rows_plain, rows_moved, threads)
         return D.reshape(K, 3 * n_d)
+
+    @staticmethod
+    def _lay_out(Dc, plain, source, rows_plain, rows_moved, threads, step=2048):
+        """``Dc`` (``(K, n_d)``, a component of the dense rows) from the rows of the plain
+        and moved rows' products, in blocks of ``step`` rows shared among ``threads``."""
+        from ..filters.transfer_smoothing import _on_threads
+
+        n_d = Dc.shape[1]
+        starts = list(range(0, n_d, step))
+
+        def put(i):
+            for b in starts[i::max(1, threads)]:
+                e = min(b + step, n_d)
+                block = np.empty((e - b, Dc.shape[0]))
+                mask = plain[b:e]
+                block[mask] = rows_plain[source[b:e][mask]]
+                if rows_moved is not None:
+                    block[~mask] = rows_moved[source[b:e][~mask]]
+                Dc[:, b:e] = block.T
+
+        _on_threads(put, max(1, min(int(threads), len(starts))))
 
     def _placement(self, sparse):
         """CSR ``H`` (n_skin, n_u + n_d): the sparse rows' weights on the used nodes, and a

@@ -7,9 +7,10 @@ A partner starts on the ranges from the front while the calling thread runs the
 boundary conditions, the factorisation and the solves; the calling thread then takes the
 ranges left from the back, so both cores finish together (ranges handed out one at a
 time through counters in shared memory). The calling thread joins the ranges and makes
-the smoothing steps (their neighbour search on every core); the plan response folds the
-rows with the nodal response (:class:`pvcmf.mtm.response_operator.SkinOperator`, its
-sparse products on every core, the partner being done).
+the smoothing steps (their neighbour search on every core) while a second thread
+multiplies the joined rows by the nodal response (``right``); the plan response folds
+that product in (:class:`pvcmf.mtm.response_operator.SkinOperator`: the smoothing
+steps on its dense rows, on every core, the partner being done).
 
 :class:`pvcmf.filters.surface_mapping.Transfer` runs many small numpy operations that hold
 Python's global interpreter lock; on a second thread they stall the factorisation and solves
@@ -18,10 +19,11 @@ Python thread and the cores are not contended (:func:`cpu_pressure`), the partne
 therefore a forked child process, which shares only the range counters with the parent
 after the fork: it first writes its mesh index
 (:class:`~pvcmf.filters.transfer_locate.MeshIndex`, pickled; the parent reads it in
-milliseconds instead of making its own), then its ranges' rows to an anonymous temporary
-file (pickle) that the parent reads once the child has exited;
+milliseconds instead of making its own, and the child makes it while the parent runs
+the boundary conditions), then each range's rows to an anonymous temporary file
+(pickle) as soon as it has built it, which the parent reads once the child has exited;
 elsewhere, or when the fork fails, a second thread. If the child dies, the caller builds
-its ranges. Either way the result is the same transfer.
+the ranges it had taken and not written. Either way the result is the same transfer.
 
 Delegates to :func:`os.fork`, :mod:`mmap`, :mod:`multiprocessing` (a lock), :mod:`pickle`,
 :mod:`tempfile`, :mod:`concurrent.futures` and :mod:`pvcmf.filters.transfer_parts`.
@@ -138,13 +140,19 @@ class _Builder:
                 self._index = prepared_index(self.grid)
             return self._index
 
-    def run(self, claim, clock=time.thread_time):
-        """``({range: Rows}, seconds, CPU seconds)`` of the ranges ``claim()`` hands out."""
+    def run(self, claim, clock=time.thread_time, keep=None):
+        """``({range: Rows}, seconds, CPU seconds)`` of the ranges ``claim()`` hands out
+        (``keep(i, rows)``: called with each range as it is built, instead of returning
+        it)."""
         t, c = time.perf_counter(), clock()
         done = {}
         while (i := claim()) is not None:
             a, b = self.ranges[i]
-            done[i] = transfer_rows(self.index(), self.x[a:b])
+            rows = transfer_rows(self.index(), self.x[a:b])
+            if keep is None:
+                done[i] = rows
+            else:
+                keep(i, rows)
         return done, time.perf_counter() - t, clock() - c
 
 
@@ -176,10 +184,11 @@ class _Thread:
 
 class _Process:
     """The partner in a forked child process, which writes its mesh index (for the parent's
-    ranges) and then its rows to anonymous temporary files and exits (a pipe would make
-    the child wait for the parent to read);
-    :meth:`result` waits for it and reads them, :meth:`cancel` kills it (the parent failed
-    before reading)."""
+    ranges) to an anonymous temporary file, then each range's rows to another as soon as
+    it has built it (so that only the last one is left to write once the ranges are
+    taken), then its timings, and exits (a pipe would make the child wait for the parent
+    to read); :meth:`result` waits for it and reads them, :meth:`cancel` kills it (the
+    parent failed before reading)."""
 
     where = "second process"
 
@@ -195,15 +204,17 @@ class _Process:
         if pid == 0:  # the child: build, write, exit without returning to the caller
             status = 1
             try:
-                try:
-                    t, c = time.perf_counter(), time.process_time()
-                    self._share_index(builder.index())
-                    done = builder.run(claims.front, time.process_time)[0]
-                    wall, cpu = time.perf_counter() - t, time.process_time() - c
-                    answer = ("ok", (done, wall, cpu))
-                except BaseException as exc:  # noqa: BLE001 - sent to the parent
-                    answer = ("error", exc)
                 with os.fdopen(os.dup(self._file.fileno()), "wb") as fh:
+                    def keep(i, rows):
+                        pickle.dump(("range", i, rows), fh, protocol=pickle.HIGHEST_PROTOCOL)
+
+                    try:
+                        t, c = time.perf_counter(), time.process_time()
+                        self._share_index(builder.index())
+                        builder.run(claims.front, time.process_time, keep=keep)
+                        answer = ("ok", time.perf_counter() - t, time.process_time() - c)
+                    except BaseException as exc:  # noqa: BLE001 - sent to the parent
+                        answer = ("error", exc)
                     pickle.dump(answer, fh, protocol=pickle.HIGHEST_PROTOCOL)
                 status = 0
             finally:
@@ -228,19 +239,28 @@ class _Process:
             return None
 
     def result(self):
+        """``({range: Rows}, seconds, CPU seconds)`` of the child; where it died, the
+        ranges it wrote (the caller builds the others it had taken)."""
         os.waitpid(self.pid, 0)
+        done, last = {}, None
         try:
             self._file.seek(0)
-            kind, value = pickle.load(self._file)
-        except (EOFError, pickle.UnpicklingError) as exc:  # the child died: its ranges here
+            while last is None:
+                record = pickle.load(self._file)
+                if record[0] == "range":
+                    done[record[1]] = record[2]
+                else:
+                    last = record
+        except Exception as exc:  # noqa: BLE001 - the child died: its other ranges here
             log.warning("plan_response: the transfer process ended without an answer "
-                        "(%s); building its part of the transfer here", exc)
-            kind, value = "ok", ({}, 0.0, 0.0)
+                        "(%s: %s); building the rest of its part of the transfer here",
+                        type(exc).__name__, exc)
+            last = ("ok", 0.0, 0.0)
         finally:
             self._file.close()
-        if kind == "error":
-            raise value
-        return value
+        if last[0] == "error":
+            raise last[1]
+        return done, last[1], last[2]
 
     def cancel(self):
         if self._file.closed:
@@ -266,10 +286,12 @@ class _Pending:
         self.where = partner.where
         self.ranges = None
 
-    def result(self):
+    def result(self, right=None):
         """``(transfer, timings)``: the joined transfer (:class:`Joined`) after the caller
         has built the ranges the partner had not taken, and the seconds of each part
-        (:attr:`ranges` then says how many ranges each built)."""
+        (:attr:`ranges` then says how many ranges each built); ``right``: a list of dense
+        arrays whose products with the transfer before its steps are made beside the join
+        (``transfer.product``, :func:`~pvcmf.filters.transfer_parts.join_rows`)."""
         builder = self.builder
         try:
             mine, wall, cpu = builder.run(self.claims.back)
@@ -279,7 +301,7 @@ class _Pending:
         try:
             theirs, their_wall, their_cpu = self.partner.result()
             t, c = time.perf_counter(), time.thread_time()
-            joined = self._join({**theirs, **mine})
+            joined = self._join({**theirs, **mine}, right)
         finally:
             self.partner.close()
         where = self.where
@@ -294,14 +316,14 @@ class _Pending:
         }
         return joined, timings
 
-    def _join(self, rows):
+    def _join(self, rows, right=None):
         """The ranges joined (those a dead partner had taken built here first)."""
         builder = self.builder
         for i in range(len(builder.ranges)):
             if i not in rows:  # the partner died: its ranges here
                 rows[i] = transfer_rows(builder.index(), builder.x[slice(*builder.ranges[i])])
         return join_rows(builder.index(), builder.x, [rows[i] for i in range(len(builder.ranges))],
-                         threads=_cores())
+                         threads=_cores(), right=right)
 
     def cancel(self):
         self.claims.stop()
