@@ -452,6 +452,22 @@ def test_symmetric_covered_bone_gives_a_symmetric_response():
     assert u[free, 1].max() > 1.0  # the tissue round the plate follows it
 
 
+def test_plan_response_equals_the_full_solve_on_covered_bone():
+    """The nodes a covered bone carries move rigidly with it in the plan-response operator
+    as in the full solve (rotations too: the carried nodes' positions enter its basis)."""
+    from pvcmf.mtm.response import plan_response
+
+    labels, grid = plate_in_a_coarse_mesh()
+    grid = _materials(grid)
+    resp = plan_response(grid, labels, plan=Plan((Osteotomy("maxilla", (0.0, 0.0, 1.0)),)))
+    plan = Plan((Osteotomy("maxilla", (0.7, -1.2, 3.1), (4.0, -2.5, 3.0)),))
+    full = _solver()(apply_plan(grid, plan, labels))
+    u = np.asarray(full[arrays.DISPLACEMENT])
+    carried = np.asarray(full[arrays.BC]) == arrays.BC_JOINT
+    assert carried.sum() == 10 and np.abs(u[~carried]).max() > 0.5
+    np.testing.assert_allclose(resp.predict_mesh(plan), u, atol=1e-9)
+
+
 def cKDTree_query(points, targets):
     """Index of the point of ``points`` at each of ``targets`` (they coincide)."""
     from scipy.spatial import cKDTree

@@ -371,11 +371,11 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin, cov
     surf_ids = np.flatnonzero(surface.ravel(order="F"))
     vox = voxel_points(labels, surf_ids)
     points = np.asarray(grid.points, dtype=np.float64)
-    nodes = boundary_points(grid)
-    dist, near = cKDTree(vox).query(points[nodes], distance_upper_bound=contact * (1 + 1e-9))
+    outer = boundary_points(grid)
+    dist, near = cKDTree(vox).query(points[outer], distance_upper_bound=contact * (1 + 1e-9))
     touching = np.isfinite(dist)
-    nodes, ids = nodes[touching], surf_ids[near[touching]]
-    cov_nodes, cov_ids = _covered(grid, labels, hard, points, cover)
+    nodes, ids = outer[touching], surf_ids[near[touching]]
+    cov_nodes, cov_ids = _covered(grid, labels, hard, points, outer, cover)
     extra = ~np.isin(cov_nodes, nodes)
     nodes = np.concatenate([nodes, cov_nodes[extra]])
     ids = np.concatenate([ids, cov_ids[extra]])
@@ -394,11 +394,11 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin, cov
     return hard, nodes, at, bone[ids], teeth[ids], teeth[ids]
 
 
-def _covered(grid, labels, hard, points, cover):
+def _covered(grid, labels, hard, points, outer, cover):
     """The interior nodes that carry the hard voxels lying inside the mesh's tetrahedra:
     each such voxel goes to its nearest node, kept when that node is not on the mesh's
-    boundary and lies within ``cover`` mm; each of those nodes takes the nearest voxel it
-    carries. Returns the nodes and the flat ids of their voxels."""
+    boundary (the nodes ``outer``) and lies within ``cover`` mm; each of those nodes takes
+    the nearest voxel it carries. Returns the nodes and the flat ids of their voxels."""
     none = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     lo, hi = points.min(axis=0), points.max(axis=0)
     ids = np.flatnonzero(hard)
@@ -413,7 +413,7 @@ def _covered(grid, labels, hard, points, cover):
         return none
     dist, node = cKDTree(points).query(at)
     interior = np.ones(len(points), dtype=bool)
-    interior[boundary_points(grid)] = False
+    interior[outer] = False
     keep = interior[node] & (dist <= cover * (1 + 1e-9))
     ids, dist, node = ids[keep], dist[keep], node[keep]
     order = np.lexsort((dist, node))  # per node, its nearest voxel first
