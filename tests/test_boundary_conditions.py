@@ -178,6 +178,7 @@ def test_zero_plan_prescribes_zero(head):
     ({"posterior_depth": np.nan}, ValueError, "posterior_depth must be a finite"),
     ({"normal_sigma": -1}, ValueError, "normal_sigma"),
     ({"teeth_margin": -1.0}, ValueError, "teeth_margin must be a finite number >= 0"),
+    ({"cover_distance": 0}, ValueError, "cover_distance must be a finite number > 0"),
 ])
 def test_bad_arguments(head, kwargs, error, match):
     labels, grid = head
@@ -394,3 +395,83 @@ def test_figure_4_is_drawn_as_a_photograph():
     panel = img[40:, 600:]  # panel c), below its title
     coloured = np.nonzero(panel.max(axis=-1) - panel.min(axis=-1) > 90)[1]
     assert coloured.size > 20 and coloured.mean() < 0.45 * panel.shape[1], coloured.mean()
+
+
+# --------------------------------------------------------------------------- covered bone
+def plate_in_a_coarse_mesh():
+    """A 1 mm thick maxilla plate (|x| < 10, y = 0, |z| < 3) inside a block of fat, and a
+    tetrahedral mesh of the block with 4 mm edges that covers the plate: no node lies
+    within 1 mm of it (the nearest are 1.5 mm away, at y = -1.5). The mesh is
+    mirror-symmetric about x = 0 (one half and its mirror image); the voxel centres lie
+    off the mid-planes between nodes, so each has one nearest node."""
+    img = pv.ImageData(dimensions=(30, 27, 26), origin=(-14.5, -13, -12.5))
+    x, y, z = img.points.T
+    plate = (np.abs(x) <= 10) & (y == 0) & (np.abs(z) <= 3)
+    img[arrays.BONE] = np.where(plate, arrays.MAXILLA, 0).astype(np.uint8)
+    img[arrays.TISSUE] = np.where(plate, arrays.BONE_TISSUE, arrays.FAT).astype(np.uint8)
+    half = pv.ImageData(dimensions=(4, 6, 6), spacing=(4, 4, 4), origin=(0, -9.5, -10))
+    half = half.cast_to_unstructured_grid().triangulate()
+    tets = half.cells_dict[pv.CellType.TETRA]
+    pts = np.asarray(half.points, dtype=float)
+    mirror = pts * [-1, 1, 1]
+    cells = np.vstack([tets, tets[:, [1, 0, 2, 3]] + len(pts)])  # mirrored, same orientation
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: cells}, np.vstack([pts, mirror])).clean()
+    return img, grid
+
+
+def test_bone_covered_by_the_mesh_moves_the_nodes_around_it():
+    """A bone thinner than the elements lies inside them: each of its voxels is carried by
+    its nearest node, which moves with it; by contact alone no node touches the plate."""
+    from scipy.spatial import cKDTree
+
+    labels, grid = plate_in_a_coarse_mesh()
+    plan = Plan((Osteotomy("maxilla", (0.0, 0.0, 4.0)),))
+    out = apply_plan(grid, plan, labels)
+    bc = np.asarray(out[arrays.BC])
+    plate = labels.points[labels[arrays.BONE] == arrays.MAXILLA]
+    carriers = np.unique(cKDTree(grid.points).query(plate)[1])
+    assert len(carriers) == 10  # x 0, +-4, +-8 and z +-2, at y = -1.5
+    joint = np.flatnonzero(bc == arrays.BC_JOINT)
+    np.testing.assert_array_equal(joint, carriers)
+    np.testing.assert_allclose(out[arrays.BC_DISPLACEMENT][joint],
+                               np.tile([0.0, 4.0, 0.0], (len(joint), 1)), atol=1e-12)
+    np.testing.assert_allclose(grid.points[joint, 1], -1.5)
+    with pytest.raises(ValueError, match="cover_distance=1 mm"):  # the nodes are 1.5 mm off
+        apply_plan(grid, plan, labels, cover_distance=1.0)
+
+
+def test_symmetric_covered_bone_gives_a_symmetric_response():
+    solve = _solver()
+    labels, grid = plate_in_a_coarse_mesh()
+    plan = Plan((Osteotomy("maxilla", (0.0, 0.0, 4.0)),))
+    post = solve(apply_plan(_materials(grid), plan, labels))
+    p, u = post.points, np.asarray(post[arrays.DISPLACEMENT])
+    mirror = cKDTree_query(p, p * [-1, 1, 1])
+    np.testing.assert_allclose(u[mirror] * [-1, 1, 1], u, atol=1e-9)
+    free = post[arrays.BC] == arrays.BC_FREE
+    assert u[free, 1].max() > 1.0  # the tissue round the plate follows it
+
+
+def test_plan_response_equals_the_full_solve_on_covered_bone():
+    """The nodes a covered bone carries move rigidly with it in the plan-response operator
+    as in the full solve (rotations too: the carried nodes' positions enter its basis)."""
+    from pvcmf.mtm.response import plan_response
+
+    labels, grid = plate_in_a_coarse_mesh()
+    grid = _materials(grid)
+    resp = plan_response(grid, labels, plan=Plan((Osteotomy("maxilla", (0.0, 0.0, 1.0)),)))
+    plan = Plan((Osteotomy("maxilla", (0.7, -1.2, 3.1), (4.0, -2.5, 3.0)),))
+    full = _solver()(apply_plan(grid, plan, labels))
+    u = np.asarray(full[arrays.DISPLACEMENT])
+    carried = np.asarray(full[arrays.BC]) == arrays.BC_JOINT
+    assert carried.sum() == 10 and np.abs(u[~carried]).max() > 0.5
+    np.testing.assert_allclose(resp.predict_mesh(plan), u, atol=1e-9)
+
+
+def cKDTree_query(points, targets):
+    """Index of the point of ``points`` at each of ``targets`` (they coincide)."""
+    from scipy.spatial import cKDTree
+
+    dist, idx = cKDTree(points).query(targets)
+    assert dist.max() < 1e-9
+    return idx

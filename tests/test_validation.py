@@ -275,6 +275,28 @@ def test_statistics_of_normal_distribution():
     assert s["within_2mm"] == pytest.approx(100 * folded.cdf(2.0), abs=0.3)
 
 
+def test_cheeks_split_at_the_face_midline_not_at_a_bent_nose():
+    """A nose bent 7 mm to the patient's left: the cheeks are split at the middle of the
+    face's width (x = 0, by construction), or at the midline landmarks when given."""
+    head = pv.ParametricEllipsoid(70, 90, 110, u_res=160, v_res=110).triangulate().clean()
+    p = np.asarray(head.points, dtype=float)
+    p[:, 1] += 14 * np.exp(-(((p[:, 0] - 7) / 12) ** 2 + ((p[:, 2] - 5) / 22) ** 2)) \
+        * (p[:, 1] > 0)
+    head.points = p
+    ids = arrays.FACE_REGIONS
+    reg = np.asarray(label_face_regions(head)[arrays.REGION])
+    assert p[np.argmax(p[:, 1]), 0] > 5  # the tip is off the midline
+    left, right = p[reg == ids["cheek_left"]], p[reg == ids["cheek_right"]]
+    assert len(left) > 50 and len(left) == pytest.approx(len(right), rel=0.05)
+    assert left[:, 0].min() == pytest.approx(-right[:, 0].max(), abs=1.5)  # both 24 mm out
+    assert left[:, 0].min() == pytest.approx(24.0, abs=1.5)
+    marks = {"stomion": (4.0, 90.0, -40.0), "pogonion": (4.0, 85.0, -80.0)}
+    reg = np.asarray(label_face_regions(head, landmarks=marks)[arrays.REGION])
+    left, right = p[reg == ids["cheek_left"]], p[reg == ids["cheek_right"]]
+    assert left[:, 0].min() == pytest.approx(28.0, abs=1.5)
+    assert right[:, 0].max() == pytest.approx(-20.0, abs=1.5)
+
+
 def test_face_regions_and_table(face):
     labelled = label_face_regions(face)
     reg = labelled[arrays.REGION]

@@ -25,8 +25,15 @@ free        0         everything else
 Contact is decided on the boundary nodes of the tetrahedral mesh: a node touches hard
 tissue when the nearest hard-tissue voxel centre of ``bones`` (bone or teeth) lies within
 ``contact_distance``, and it takes the class of that voxel (teeth -> sliding, bone of a
-moving segment -> joint, other bone -> free or fixed). Where several apply, joint and
-sliding win over fixed (a node glued to a moving bone moves with it).
+moving segment -> joint, other bone -> free or fixed). A mesh coarser than a thin bone (an
+edentulous maxilla, an orbital floor, a sinus wall) covers it instead of leaving a hole
+for it, and no boundary node touches it: every hard voxel whose centre lies inside a
+tetrahedron is then carried by its nearest node, which takes the class of the nearest
+voxel it carries, when that node is inside the mesh (not on its boundary, which contact
+decides) and within ``cover_distance``. The bone inside the mesh so moves the tissue on
+both of its sides, as the nodes around it sample it, and as the mesh is refined the nodes
+it holds close in on it. Where several apply, joint and sliding win over fixed (a node
+glued to a moving bone moves with it).
 
 Delegates to :class:`scipy.spatial.cKDTree` (nearest hard voxel), :mod:`scipy.ndimage`
 (surface voxels, the smoothed hard-tissue indicator whose gradient gives the normals, trilinear
@@ -123,7 +130,8 @@ MIN_FIXED_SHARE = 0.01
 
 def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_posterior=True,
                posterior_depth=2.0, fix_unmoved_bone=False, contact_distance=None,
-               teeth_margin=None, normal_sigma=1.0, release_margin=None, progress_bar=False):
+               teeth_margin=None, normal_sigma=1.0, release_margin=None, cover_distance=None,
+               progress_bar=False):
     """Turn a surgical plan into the soft-tissue mesh's boundary conditions.
 
     Parameters
@@ -175,6 +183,12 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         tissue over the unmoved bone is free, as in paper 000. ``'auto'``: twice the
         largest prescribed move (strain about 0.5 at most; :func:`pvcmf.pipeline.simulate`
         uses it); ``None`` or 0 keeps every fixed node.
+    cover_distance : float, optional
+        A hard voxel whose centre lies inside a tetrahedron (bone the mesh covers) is
+        carried by its nearest node when that node is inside the mesh and within this
+        distance (mm) of it. Default: twice ``contact_distance`` (on a 1 mm CT, the nodes
+        beside a 1-2 mm bone plate that 25,000 tetrahedra over the face lay 1.5-2 mm off
+        it; further nodes are held by the tissue the mesh does model between them).
     progress_bar : bool, default False
         Show the steps (:class:`pvcmf.progress.Progress`).
 
@@ -190,7 +204,7 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         If ``grid``, ``plan`` or ``bones`` have the wrong type.
     ValueError
         If ``bones`` is missing or lacks ``bone``/``tissue``, a planned segment is not in
-        it, an option is out of range, or a moved segment touches no node of the mesh
+        it, an option is out of range, or a moved segment holds no node of the mesh
         (the plan would move nothing).
 
     Examples
@@ -217,6 +231,8 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         raise TypeError(f"plan must be a pvcmf.Plan, got {type(plan).__name__}")
     tissue, posterior_depth, contact, teeth_margin = _check_bones(
         grid, bones, posterior_depth, contact_distance, normal_sigma, teeth_margin, release_margin)
+    cover = _positive("cover_distance", cover_distance, allow_none=True)
+    cover = 2.0 * contact if cover is None else cover
     with Progress(total=3, desc="apply_plan", enabled=progress_bar, logger=log) as bar:
         labels = cut_bones(bones, plan)
         transforms = segment_transforms(labels, plan)
@@ -227,9 +243,9 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         code = np.full(n, arrays.BC_FREE, dtype=np.int8)
         disp = np.zeros((n, 3))
         normal = np.zeros((n, 3))
-        hard, vox, nodes, near, seg, is_teeth, on_teeth = _hard_contacts(
-            grid, labels, bones, bone, tissue, contact, teeth_margin)
-        bar.step(f"{len(nodes)} boundary nodes touch hard tissue")
+        hard, nodes, anchor, seg, is_teeth, on_teeth = _hard_contacts(
+            grid, labels, bones, bone, tissue, contact, teeth_margin, cover)
+        bar.step(f"{len(nodes)} nodes held by hard tissue")
         moved = np.isin(seg, list(transforms))
         # nodes on the teeth margin only (bone next to the teeth: the crown's partial-volume
         # rim, the alveolar bone round the roots): on a jaw that stays, freed near a move
@@ -259,7 +275,7 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
             idx = nodes[sel]
             code[idx] = arrays.BC_SLIDING
             disp[idx] = rigid(idx, seg[sel])
-            normal[idx] = _surface_normals(labels, hard, points[idx], vox[near[sel]],
+            normal[idx] = _surface_normals(labels, hard, points[idx], anchor[sel],
                                            normal_sigma)
 
         if joint or sliding:
@@ -267,8 +283,10 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
                 if not np.any(seg == s):
                     raise ValueError(
                         f"the plan moves {arrays.BONE_NAMES[s]!r} but no mesh node lies within "
-                        f"contact_distance={contact:g} mm of it: is the mesh in the same frame "
-                        f"as bones, or should contact_distance be larger?"
+                        f"contact_distance={contact:g} mm of it (boundary nodes) or carries "
+                        f"it within cover_distance={cover:g} mm (nodes inside the mesh): is "
+                        f"the mesh in the same frame as bones, or should contact_distance be "
+                        f"larger?"
                     )
         released = _release_near_moves(code, disp, points, release_margin,
                                        rim & (code == arrays.BC_SLIDING))
@@ -276,7 +294,7 @@ def apply_plan(grid, plan, bones=None, *, joint=True, sliding=True, fixed_poster
         if fixed_posterior and not fix_unmoved_bone:
             _warn_few_fixed(code, posterior_depth)
         counts = {k: int(np.sum(code == v)) for k, v in arrays.BC_CODES.items()}
-        log.info("apply_plan: %s (contact %.2f mm, %d boundary nodes touch hard tissue)",
+        log.info("apply_plan: %s (contact %.2f mm, %d nodes held by hard tissue)",
                  counts, contact, len(nodes))
         out = grid.copy()
         out.point_data[arrays.BC] = code
@@ -327,15 +345,21 @@ def _check_bones(grid, bones, posterior_depth, contact_distance, normal_sigma, t
     return tissue, posterior_depth, contact, teeth_margin
 
 
-def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
-    """The boundary nodes of ``grid`` within ``contact`` mm of the hard tissue.
+def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin, cover):
+    """The nodes of ``grid`` that hard tissue holds, and what holds each.
 
-    Returns the hard-tissue mask (bone or teeth voxels), the centres of its surface
-    voxels, the touching nodes, the index of their nearest surface voxel, its bone
-    segment, whether it lies within ``teeth_margin`` of the teeth and whether it is a
-    tooth voxel itself.
+    Two ways: a boundary node within ``contact`` mm of a hard surface voxel centre takes
+    the nearest one (the tissue on a bone surface); and every hard voxel whose centre lies
+    inside a tetrahedron (bone the mesh covers: a mesh coarser than a thin bone covers it)
+    is carried by its nearest node when that is an interior node within ``cover`` mm,
+    which takes the nearest such voxel. A node held both ways keeps its contact.
+
+    Returns the hard-tissue mask (bone or teeth voxels), the held nodes, the centre of
+    the voxel that holds each, its bone segment, whether it lies within ``teeth_margin``
+    of the teeth and whether it is a tooth voxel itself.
     """
     # hard tissue: bone or teeth voxels; only their surface layer can be nearest to tissue
+    # outside them
     hard = (bone > 0) | np.isin(tissue, arrays.HARD_LABELS)
     dims = tuple(bones.dimensions)
     vol = hard.reshape(dims, order="F")
@@ -347,12 +371,16 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
     surf_ids = np.flatnonzero(surface.ravel(order="F"))
     vox = voxel_points(labels, surf_ids)
     points = np.asarray(grid.points, dtype=np.float64)
-    nodes = boundary_points(grid)
-    dist, near = cKDTree(vox).query(points[nodes], distance_upper_bound=contact * (1 + 1e-9))
+    outer = boundary_points(grid)
+    dist, near = cKDTree(vox).query(points[outer], distance_upper_bound=contact * (1 + 1e-9))
     touching = np.isfinite(dist)
-    nodes, near = nodes[touching], near[touching]
-    near_ids = surf_ids[near]
+    nodes, ids = outer[touching], surf_ids[near[touching]]
+    cov_nodes, cov_ids = _covered(grid, labels, hard, points, outer, cover)
+    extra = ~np.isin(cov_nodes, nodes)
+    nodes = np.concatenate([nodes, cov_nodes[extra]])
+    ids = np.concatenate([ids, cov_ids[extra]])
     teeth = tissue == arrays.TEETH
+    at = voxel_points(labels, ids)
     if teeth_margin > 0 and teeth.any():
         # distance to the teeth on a crop around them (the margin is a few voxels)
         spacing = np.asarray(bones.spacing, dtype=float)
@@ -361,10 +389,36 @@ def _hard_contacts(grid, labels, bones, bone, tissue, contact, teeth_margin):
         near_teeth = np.zeros(dims, dtype=bool)
         near_teeth[box] = ndimage.distance_transform_edt(
             ~vol_teeth[box], sampling=spacing) <= teeth_margin * (1 + 1e-9)
-        # the nearest voxels are hard (surface voxels): within the margin is all to ask
-        return hard, vox, nodes, near, bone[near_ids], near_teeth[
-            np.unravel_index(near_ids, dims, order="F")], teeth[near_ids]
-    return hard, vox, nodes, near, bone[near_ids], teeth[near_ids], teeth[near_ids]
+        # the holding voxels are hard: within the margin is all to ask
+        return hard, nodes, at, bone[ids], near_teeth.ravel(order="F")[ids], teeth[ids]
+    return hard, nodes, at, bone[ids], teeth[ids], teeth[ids]
+
+
+def _covered(grid, labels, hard, points, outer, cover):
+    """The interior nodes that carry the hard voxels lying inside the mesh's tetrahedra:
+    each such voxel goes to its nearest node, kept when that node is not on the mesh's
+    boundary (the nodes ``outer``) and lies within ``cover`` mm; each of those nodes takes
+    the nearest voxel it carries. Returns the nodes and the flat ids of their voxels."""
+    none = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    ids = np.flatnonzero(hard)
+    at = voxel_points(labels, ids)
+    box = np.all((at >= lo) & (at <= hi), axis=1)  # the mesh's bounding box only
+    ids, at = ids[box], at[box]
+    if not len(ids):
+        return none
+    inside = np.asarray(grid.find_containing_cell(at)) >= 0
+    ids, at = ids[inside], at[inside]
+    if not len(ids):
+        return none
+    dist, node = cKDTree(points).query(at)
+    interior = np.ones(len(points), dtype=bool)
+    interior[outer] = False
+    keep = interior[node] & (dist <= cover * (1 + 1e-9))
+    ids, dist, node = ids[keep], dist[keep], node[keep]
+    order = np.lexsort((dist, node))  # per node, its nearest voxel first
+    node, first = np.unique(node[order], return_index=True)
+    return node.astype(np.int64), ids[order[first]]
 
 
 def _box(mask, pad):

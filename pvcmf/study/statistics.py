@@ -143,6 +143,38 @@ _REGION_BOXES = {
 }
 
 
+#: landmarks on the face's midsagittal line: the median of their x is the midline
+_MIDLINE_LANDMARKS = ("soft_tissue_nasion", "nasion", "subnasale", "labrale_superius",
+                      "stomion", "labrale_inferius", "soft_tissue_B_point", "pogonion",
+                      "soft_tissue_pogonion", "menton", "soft_tissue_menton")
+
+
+def _midline(p, face, tip, landmarks, scale, row=2.0):
+    """x (mm) of the face's midsagittal plane.
+
+    The median x of the midline landmarks given; without them, the median over the
+    ``row`` mm tall rows of the face (nose bridge to chin) of the midpoint between the
+    face's leftmost and rightmost point: the middle of the face's width, which a nose tip
+    bent to one side (a cadaver's, a broken nose) does not move. The nose tip's x when the
+    face has no row of 20 points.
+    """
+    marks = [landmarks[k][0] for k in _MIDLINE_LANDMARKS if k in landmarks]
+    if marks:
+        return float(np.median(marks))
+    dz = p[:, 2] - tip[2]
+    keep = face & (dz >= _REGION_BOXES["chin"][2] * scale) & (dz < _REGION_BOXES["nose"][3] * scale)
+    rows = np.floor(dz[keep] / row).astype(np.int64)
+    if rows.size == 0:
+        return float(tip[0])
+    _, inv, counts = np.unique(rows, return_inverse=True, return_counts=True)
+    lo = np.full(counts.size, np.inf)
+    hi = np.full(counts.size, -np.inf)
+    np.minimum.at(lo, inv, p[keep, 0])
+    np.maximum.at(hi, inv, p[keep, 0])
+    full = counts >= 20
+    return float(np.median(0.5 * (lo + hi)[full])) if full.any() else float(tip[0])
+
+
 def _front_visible(p, cell=2.0, slack=3.0):
     """Points within ``slack`` mm of the most anterior point of their 2 mm (x, z) column."""
     ij = np.floor((p[:, [0, 2]] - p[:, [0, 2]].min(axis=0)) / cell).astype(np.int64)
@@ -157,10 +189,14 @@ def label_face_regions(skin, *, landmarks=None, scale=1.0, depth=45.0):
     """Label the face regions of a skin in the patient frame (x left, y anterior, z up).
 
     Geometric labeller: the nose tip (pronasale) is the most anterior point (or
-    ``landmarks['pronasale']``); regions are boxes around it in (|x - x_tip|, z - z_tip)
-    of an average adult face (nose -12..35 mm around the tip and 17 mm either side;
-    upper lip -30..-12 mm, lower lip -45..-30, chin -75..-45, within 24-28 mm of the
-    midline; cheeks 24-62 mm lateral, -45..20 mm; the patient's left cheek has x > x_tip),
+    ``landmarks['pronasale']``); the midline is the median x of the midline landmarks
+    given (``subnasale``, ``stomion``, ``pogonion``, ...) or else the middle of the face's
+    width (the median, over 2 mm rows from the chin to the nose bridge, of the midpoint
+    between the face's leftmost and rightmost point: a nose tip bent to one side does not
+    move it). Regions are boxes in (|x - x_mid|, z - z_tip) of an average adult face (nose
+    -12..35 mm around the tip and 17 mm either side of the tip; upper lip -30..-12 mm,
+    lower lip -45..-30, chin -75..-45, within 24-28 mm of the midline; cheeks 24-62 mm
+    lateral, -45..20 mm; the patient's left cheek has x > x_mid),
     all times ``scale``, and only points within ``depth`` mm behind the tip that are
     seen from the front (within 3 mm of the most anterior point of their 2 mm (x, z)
     column: inner surfaces and the back of the head are left out). The lip / chin bands are moved to ``landmarks['stomion']`` and
@@ -201,9 +237,10 @@ def label_face_regions(skin, *, landmarks=None, scale=1.0, depth=45.0):
     landmarks = dict(landmarks or {})
     p = np.asarray(skin.points, dtype=float)
     tip = np.asarray(landmarks.get("pronasale", p[np.argmax(p[:, 1])]), dtype=float)
-    dx = np.abs(p[:, 0] - tip[0])
     dz = p[:, 2] - tip[2]
     face = (p[:, 1] >= tip[1] - depth * scale) & _front_visible(p)
+    mid = _midline(p, face, tip, landmarks, scale)
+    dx = np.abs(p[:, 0] - mid)
     bands = {k: [v[0] * scale, v[1] * scale, v[2] * scale, v[3] * scale]
              for k, v in _REGION_BOXES.items()}
     # landmark-driven band limits (relative to the tip)
@@ -219,9 +256,10 @@ def label_face_regions(skin, *, landmarks=None, scale=1.0, depth=45.0):
         bands["chin"][2] = z - 20 * scale
     region = np.zeros(len(p), dtype=np.uint8)
     for name, (x0, x1, z0, z1) in bands.items():  # five regions, not a loop over points
-        inside = face & (dx >= x0) & (dx < x1) & (dz >= z0) & (dz < z1)
+        across = np.abs(p[:, 0] - tip[0]) if name == "nose" else dx
+        inside = face & (across >= x0) & (across < x1) & (dz >= z0) & (dz < z1)
         if name == "cheek":
-            left = p[:, 0] > tip[0]
+            left = p[:, 0] > mid
             region[inside & left] = arrays.FACE_REGIONS["cheek_left"]
             region[inside & ~left] = arrays.FACE_REGIONS["cheek_right"]
         else:
