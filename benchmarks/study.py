@@ -525,8 +525,12 @@ def main(argv=None):
                          "first patient, its cost and its change from the finest count")
     ap.add_argument("--fine-patients", type=int, nargs="+", default=None,
                     help="with --fine: the patients of the finer truth (default: the first)")
-    ap.add_argument("--mesher", default="lattice", choices=["lattice", "conforming"],
+    ap.add_argument("--mesher", default="lattice", choices=["lattice", "conforming", "graded"],
                     help="with --refinement: the independent truth's mesher")
+    ap.add_argument("--face-mm", type=float, nargs="+", default=None,
+                    help="with --refinement --mesher graded: the face sizes (mm) of the "
+                         "sequence, coarse to fine (the finest --counts sets the size "
+                         "elsewhere)")
     ap.add_argument("--materials", default="cells", choices=["cells", "field"],
                     help="with --refinement: the independent truth's materials (per "
                          "tetrahedron, or a field of the position)")
@@ -545,7 +549,7 @@ def main(argv=None):
     if args.refinement:
         parts.append(refinement(args.patients, args.counts, args.spacing,
                                 cache=not args.no_cache, mesher=args.mesher,
-                                materials=args.materials))
+                                materials=args.materials, face_mm=args.face_mm))
         if args.order_check:
             parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing,
                                      args.mesher)

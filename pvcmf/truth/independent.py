@@ -68,6 +68,7 @@ from ..filters.osteotomy import cut_bones, segment_transforms, voxel_points
 from .anatomy import _warp
 from .conform import conforming_mesh
 from .exact import _BOUNDARY, _fields, _labelled_grid, _materials, _project, _region, _volumes  # noqa: F401,E501 (re-exported)
+from .graded import graded_mesh
 from .grid import cached, grid_hash
 from .solver import solve_reference
 
@@ -355,7 +356,7 @@ def _boundary_conditions(case, grid, blend=BLEND_MM, clearance=CLEARANCE_MM):
 
 def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fraction=0.5,
                            cache=True, cache_dir=None, mesher="lattice", reuse_factor=False,
-                           materials="cells", progress_bar=False):
+                           materials="cells", face_mm=3.0, progress_bar=False):
     """The solved independent truth of a virtual patient (module docstring).
 
     Parameters
@@ -373,15 +374,20 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         :func:`pvcmf.truth.grid_hash` of the planned grid and the options).
     cache_dir : path, optional
         Cache folder.
-    mesher : {'lattice', 'conforming'}, default 'lattice'
+    mesher : {'lattice', 'conforming', 'graded'}, default 'lattice'
         ``'lattice'``: :func:`soft_tissue_mesh` (the lattice-and-snap mesher);
         ``'conforming'``: :func:`pvcmf.truth.conform.conforming_mesh` (gmsh, conforming to
         the exact surfaces: the same meshed volume at every size; ``n_tets`` sets its
-        surface spacing). Same boundary model and materials on both.
+        surface spacing); ``'graded'``: :func:`pvcmf.truth.graded.graded_mesh` (as
+        ``'conforming'``, ``face_mm`` fine in the ball of the moved bones, the
+        conforming spacing of ``n_tets`` elsewhere). Same boundary model and materials on
+        all.
     materials : {'cells', 'field'}, default 'cells'
         ``'cells'``: each tetrahedron mixes fat and muscle by its sampled muscle fraction;
         ``'field'``: the mixture is a field of the position (:func:`material_field`)
         evaluated at the quadrature points: the same material on every mesh.
+    face_mm : float, default 3.0
+        With ``mesher='graded'``: the size (mm) of the surface sampling in the face.
     reuse_factor : bool, default False
         Passed to :func:`pvcmf.truth.solver.solve_reference` (conjugate gradients
         preconditioned by the last factorisation between refactorisations; the same
@@ -406,8 +412,10 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         grid = soft_tissue_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
     elif mesher == "conforming":
         grid = conforming_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
+    elif mesher == "graded":
+        grid = graded_mesh(case, n_tets=n_tets, face_mm=face_mm, face_fraction=face_fraction)
     else:
-        raise ValueError(f"mesher must be 'lattice' or 'conforming', got {mesher!r}")
+        raise ValueError(f"mesher must be 'lattice', 'conforming' or 'graded', got {mesher!r}")
     grid = _boundary_conditions(case, grid)
     # Table I; the fibre direction is immaterial to the truth's law for Table I (its fibre
     # term vanishes where the muscle is softer along the fibre than across)
