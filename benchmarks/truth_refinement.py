@@ -196,7 +196,7 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
             "Solve s: the NGSolve solve (load steps, Newton, factorisations) on this "
             "machine, read from the truth's ``reference_solver`` record (cached truths keep "
             "the cost of the run that made them). The pictures colour the exact skin by "
-            "the change between the two finest truths of each patient "
+            "the change between the two finest truths of each patient (0-0.5 mm) "
             "(``truth_refinement_<patient>.png``).\n\n"
             "Model (``pvcmf.truth.independent``), defined on the exact anatomy so that it "
             "is the same problem on every mesh: every node on a bone surface is tied, its "
@@ -218,12 +218,28 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
                         "2-core machine shared with other jobs, so the exponent varies with "
                         "the load)")
     tail = "\n\nCost scaling:\n\n" + "\n".join(f"- {f}" for f in fits) if fits else ""
+    tail += _verdict(rows, patients) if len(levels) > 1 else ""
     if len(counts) > 1:
         tail += "\n\n" + "\n\n".join(
             f"![skin change between the two finest truths, patient {p}]"
             f"(truth_refinement_{p}.png)" for p in patients)
     return ("## Refinement of the independent truth\n\n" + text + head + "\n"
             + "\n".join(body) + tail)
+
+
+def _verdict(rows, patients):
+    """Per patient, the change between its two finest truths against the 0.1 mm goal."""
+    lines = []
+    for p in patients:
+        r = [x for x in rows if x["patient"] == p]
+        a, b = r[-2], r[-1]
+        size = (f"face {a['face']} -> {b['face']} mm" if b.get("face") else
+                f"{a['tets']} -> {b['tets']} tetrahedra")
+        ok = b["p90"] <= 0.1
+        lines.append(f"- patient {p} ({size}; {a['tets']} -> {b['tets']} tetrahedra): "
+                     f"p90 {b['p90']:.3f} mm, "
+                     + ("converged (p90 <= 0.1 mm)" if ok else "not converged (p90 > 0.1 mm)"))
+    return "\n\nBetween the two finest truths:\n\n" + "\n".join(lines)
 
 
 def change_picture(points, change, path):
@@ -237,7 +253,7 @@ def change_picture(points, change, path):
         pl.subplot(0, i)
         if (~ok).any():
             pl.add_points(pv.PolyData(points[~ok]), color="lightgrey", point_size=4)
-        pl.add_points(pv.PolyData(points[ok]), scalars=change[ok], clim=[0, 2],
+        pl.add_points(pv.PolyData(points[ok]), scalars=change[ok], clim=[0, 0.5],
                       cmap="viridis", point_size=5,
                       scalar_bar_args={"title": "skin change mm"})
         pl.view_vector(view, viewup=up)

@@ -19,7 +19,8 @@ the labels, nor the boundary model:
   would hinge freely). The lattice meshes less of the soft tissue the coarser it is (the
   thin tissue of the face is about one lattice cell thick); ``mesher="conforming"``
   (:func:`pvcmf.truth.conform.conforming_mesh`, gmsh on the exact surface) meshes the same
-  volume at every size;
+  volume at every size; ``mesher="graded"`` (:func:`pvcmf.truth.graded.graded_mesh`) is
+  that mesh refined in the face that the plan moves;
 * materials: the muscle fraction of each tetrahedron (the twelve facial muscles,
   temporalis, neck muscles; the eyes excluded), sampled at points inside it, mixes Table I
   fat and muscle (rule of mixtures), so a muscle sheet thinner than the elements keeps its
@@ -257,10 +258,12 @@ def material_field(case, grid, *, step=MATERIAL_MM, sigma=MATERIAL_SIGMA_MM):
     :func:`pvcmf.truth.solver.solve_reference`): Table I fat and muscle mixed by the muscle
     indicator of the exact anatomy, sampled every ``step`` mm over the grid's bounding box
     and smoothed by a Gaussian of ``sigma`` mm, so every mesh integrates the same material
-    (a per-element muscle fraction would change with the elements), up to the sampling:
-    the lattice starts at the grid's bounds, so the lattices of two meshes may be offset
-    by up to a ``step`` (their trilinear interpolants differ by that much at a muscle's
-    edge).
+    (a per-element muscle fraction would change with the elements). The lattice is the
+    whole multiples of ``step`` in the patient frame over the grid's bounds (and four steps
+    beyond), so every mesh samples the same points: a lattice starting at each grid's own
+    bounds was offset between two meshes, and with a muscle up to some 260 times stiffer
+    than fat the two trilinear interpolants differed by up to about ten times at a
+    muscle's edge.
 
     Returns
     -------
@@ -269,8 +272,9 @@ def material_field(case, grid, *, step=MATERIAL_MM, sigma=MATERIAL_SIGMA_MM):
     """
     warp = _warp(case)
     b = np.asarray(grid.bounds, dtype=float).reshape(3, 2)
-    lo, hi = b[:, 0] - 2 * step, b[:, 1] + 2 * step
-    axes = [np.arange(lo[i], hi[i] + step, step) for i in range(3)]
+    # whole multiples of the step: every mesh samples the same lattice points
+    lo, hi = np.floor(b[:, 0] / step) - 4, np.ceil(b[:, 1] / step) + 4
+    axes = [step * np.arange(lo[i], hi[i] + 1) for i in range(3)]
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # x fastest
     p = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
     f = np.empty(len(p), dtype=np.float32)
