@@ -95,10 +95,7 @@ def test_material_field_samples_the_muscles_x_fastest():
     case = pvcmf.datasets.phantom(1, spacing=3.0)
     warp = _warp(case)
     # a box of 24 mm around a muscle point of the face
-    b = np.asarray(case.truth.bounds).reshape(3, 2)
-    grid = np.stack(np.meshgrid(*(np.linspace(lo, hi, 30) for lo, hi in b), indexing="ij"),
-                    axis=-1).reshape(-1, 3)
-    c = grid[np.flatnonzero(_muscle_indicator(warp, grid))[0]]
+    c = _muscle_point(case, warp)
     box = pv.Box(bounds=np.column_stack([c - 12.0, c + 12.0]).ravel())
     box = box.cast_to_unstructured_grid()
     m = material_field(case, box, step=2.0, sigma=0.0)
@@ -119,6 +116,16 @@ def test_material_field_samples_the_muscles_x_fastest():
     np.testing.assert_allclose(m["e_cross"][f == 0], e[0])
 
 
+def _muscle_point(case, warp):
+    """A point inside a muscle of the patient (the first of a 30^3 lattice of its box)."""
+    from pvcmf.truth.independent import _muscle_indicator
+
+    b = np.asarray(case.truth.bounds).reshape(3, 2)
+    grid = np.stack(np.meshgrid(*(np.linspace(lo, hi, 30) for lo, hi in b), indexing="ij"),
+                    axis=-1).reshape(-1, 3)
+    return grid[np.flatnonzero(_muscle_indicator(warp, grid))[0]]
+
+
 def _trilinear(m, step, p):
     from scipy.interpolate import RegularGridInterpolator
 
@@ -130,14 +137,10 @@ def _trilinear(m, step, p):
 def test_material_field_is_the_same_for_meshes_of_different_bounds():
     import pvcmf
     from pvcmf.truth.anatomy import _warp
-    from pvcmf.truth.independent import _muscle_indicator, material_field
+    from pvcmf.truth.independent import material_field
 
     case = pvcmf.datasets.phantom(1, spacing=3.0)
-    warp = _warp(case)
-    b = np.asarray(case.truth.bounds).reshape(3, 2)
-    grid = np.stack(np.meshgrid(*(np.linspace(lo, hi, 30) for lo, hi in b), indexing="ij"),
-                    axis=-1).reshape(-1, 3)
-    c = grid[np.flatnonzero(_muscle_indicator(warp, grid))[0]]
+    c = _muscle_point(case, _warp(case))
     boxes = [pv.Box(bounds=np.column_stack([c - 12.0 + s, c + 12.0 + s]).ravel())
              .cast_to_unstructured_grid() for s in (0.0, 0.7)]  # bounds 0.7 mm apart
     m = [material_field(case, box, step=1.5, sigma=1.0) for box in boxes]
