@@ -7,6 +7,8 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    factorisations, seconds); the exact skin moved by each truth
    (:mod:`pvcmf.truth.refinement`), and the p50 / p90 / max of its change between
    successive counts. Converged when the p90 between the two finest is <= 0.1 mm.
+   With ``--mesher graded`` the sequence is the face sizes ``--face-mm`` (coarse to
+   fine), the finest count setting the size elsewhere.
 2. ``--compare``: the study (``study_predictor(truth=...)``) of "proposed",
    "state_of_the_art" and the controls, and :func:`pvcmf.study.inference.compare_methods`
    per patient and over the patients.
@@ -31,6 +33,8 @@ Run::
     python benchmarks/study.py --refinement --patients 1 --counts 8000 16000 32000
     python benchmarks/study.py --refinement --patients 1 2 3 4 --spacing 3 \
         --counts 4000 8000 16000 --order-check --fine 40000
+    python benchmarks/study.py --refinement --mesher graded --materials field \
+        --patients 1 2 3 4 --spacing 3 --counts 30000 --face-mm 4.0 3.2
     python benchmarks/study.py --compare --truth independent --patients 1 2 3 4
     python benchmarks/study.py --cohort 2 --spacing 3 --n-tets 8000 --truth-tets 4000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 2000 \

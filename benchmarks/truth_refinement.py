@@ -1,7 +1,8 @@
 """Benchmark: the independent truth's refinement study (``study.py --refinement``).
 
 Per virtual patient, :func:`pvcmf.truth.independent.independent_truth_grid` at the
-requested counts (P2), each solve's cost (dofs, Newton iterations, factorisations,
+requested counts (P2; ``mesher="graded"``: at the finest count, refined in the face to
+each of the face sizes), each solve's cost (dofs, Newton iterations, factorisations,
 seconds); the exact skin moved by each truth (:mod:`pvcmf.truth.refinement`), and the
 p50 / p90 / max of its change between successive counts. Converged when the p90 between
 the two finest is <= 0.1 mm. :func:`refinement_rows` reads the table back (the cohort
