@@ -174,6 +174,7 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
             print(row, flush=True)
         if len(levels) > 1:
             change_picture(points, last, PAGE.parent / f"truth_refinement_{p}.png")
+            rows[-1]["bands"] = _by_distance(case, points, last)
     head = ("| patient | tetrahedra | face mm | edge mm | dofs | Newton | factorisations "
             "| solve s | released | skin compared | change p50 mm | p90 mm | max mm "
             "| p90 mm, any closest triangle |\n"
@@ -228,6 +229,30 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
             + "\n".join(body) + tail)
 
 
+#: distances (mm) from the moved bone over which the finest change is summarised
+BANDS = (0.0, 10.0, 20.0, 30.0, 50.0, np.inf)
+
+
+def _by_distance(case, points, change):
+    """p90 of the change (mm) and the number of skin points per band of distance from the
+    plan's moved bone segments (:data:`BANDS`)."""
+    from scipy.spatial import cKDTree
+
+    from pvcmf.filters.osteotomy import cut_bones, segment_transforms, voxel_points
+
+    labels = cut_bones(case.truth, case.plan)
+    moved = [s for s, m in segment_transforms(labels, case.plan).items()
+             if not np.allclose(m, np.eye(4))]
+    bone = np.asarray(labels[arrays.BONE])
+    d = cKDTree(voxel_points(labels, np.flatnonzero(np.isin(bone, moved)))).query(points)[0]
+    out = []
+    for lo, hi in zip(BANDS[:-1], BANDS[1:]):
+        m = np.isfinite(change) & (d >= lo) & (d < hi)
+        out.append((lo, hi, int(m.sum()), float(np.percentile(change[m], 90)) if m.any()
+                    else np.nan))
+    return out
+
+
 def _verdict(rows, patients):
     """Per patient, the change between its two finest truths against the 0.1 mm goal."""
     lines = []
@@ -237,9 +262,13 @@ def _verdict(rows, patients):
         size = (f"face {a['face']} -> {b['face']} mm" if b.get("face") else
                 f"{a['tets']} -> {b['tets']} tetrahedra")
         ok = b["p90"] <= 0.1
+        bands = "; ".join(f"{lo:.0f}-{hi:.0f} mm: {q:.3f} ({n})" if np.isfinite(hi) else
+                          f"beyond {lo:.0f} mm: {q:.3f} ({n})" for lo, hi, n, q in b["bands"])
         lines.append(f"- patient {p} ({size}; {a['tets']} -> {b['tets']} tetrahedra): "
                      f"p90 {b['p90']:.3f} mm, "
-                     + ("converged (p90 <= 0.1 mm)" if ok else "not converged (p90 > 0.1 mm)"))
+                     + ("converged (p90 <= 0.1 mm)" if ok else "not converged (p90 > 0.1 mm)")
+                     + f". p90 mm (skin points) by distance of the skin from the moved bone: "
+                     + bands)
     return "\n\nBetween the two finest truths:\n\n" + "\n".join(lines)
 
 
