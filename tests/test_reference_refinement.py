@@ -3,6 +3,15 @@
 * the skin sampler: points on the exact skin (the patient's level set is zero there);
 * the displacement at a boundary point: exact for an affine field (linear interpolation
   on the closest boundary triangle), and the distance to the boundary is the analytic one;
+  with the exact skin's normals, the closest point of two lips facing each other across a
+  gap is on the lip facing the same way (any closest triangle: the other lip), and the
+  closest point on a triangle is a brute-force search's;
+* the graded mesher: its radial map samples the size it is given (``h_face`` in the
+  ball, growing by ``GRADING`` beyond it, never coarser along the sphere); on virtual
+  patient 1 its skin triangles are about ``face_mm`` in the ball of the moved bones and no
+  coarser than the conforming mesh's of the same count far from it, it meshes as much of
+  the exact volume as that mesh (the thin tissue kept) and reaches the skin over the
+  vault as often;
 * convergence: the truth's mesher and boundary model on virtual patient 1 at three lattice
   sizes, solved with the small-strain control law on linear elements (seconds, where the
   P2 neo-Hookean truth takes minutes; the mesher and the boundary model are the same):
