@@ -131,7 +131,9 @@ _GRADED = ("Mesher ``graded`` (``pvcmf.truth.graded.graded_mesh``): as ``conform
 
 _CELLS = "each tetrahedron mixes fat and muscle by its sampled muscle fraction."
 _FIELD = ("materials ``field`` (``pvcmf.truth.independent.material_field``): fat and muscle "
-          "mixed by the exact muscle indicator sampled every ``MATERIAL_MM`` mm and "
+          "mixed by the exact muscle indicator sampled every ``MATERIAL_MM`` mm (on the "
+          "whole multiples of the step in the patient frame: the same points for every "
+          "mesh) and "
           "smoothed over ``MATERIAL_SIGMA_MM`` mm, a field of the position projected onto "
           "quadratic polynomials on each element at the solve, so every mesh integrates "
           "the same material.")
