@@ -7,6 +7,8 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    factorisations, seconds); the exact skin moved by each truth
    (:mod:`pvcmf.truth.refinement`), and the p50 / p90 / max of its change between
    successive counts. Converged when the p90 between the two finest is <= 0.1 mm.
+   With ``--mesher graded`` the sequence is the face sizes ``--face-mm`` (coarse to
+   fine), the finest count setting the size elsewhere.
 2. ``--compare``: the study (``study_predictor(truth=...)``) of "proposed",
    "state_of_the_art" and the controls, and :func:`pvcmf.study.inference.compare_methods`
    per patient and over the patients.
@@ -31,6 +33,8 @@ Run::
     python benchmarks/study.py --refinement --patients 1 --counts 8000 16000 32000
     python benchmarks/study.py --refinement --patients 1 2 3 4 --spacing 3 \
         --counts 4000 8000 16000 --order-check --fine 40000
+    python benchmarks/study.py --refinement --mesher graded --materials field \
+        --patients 1 2 3 4 --spacing 3 --counts 30000 --face-mm 4.0 3.2
     python benchmarks/study.py --compare --truth independent --patients 1 2 3 4
     python benchmarks/study.py --cohort 2 --spacing 3 --n-tets 8000 --truth-tets 4000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 2000 \
@@ -525,8 +529,12 @@ def main(argv=None):
                          "first patient, its cost and its change from the finest count")
     ap.add_argument("--fine-patients", type=int, nargs="+", default=None,
                     help="with --fine: the patients of the finer truth (default: the first)")
-    ap.add_argument("--mesher", default="lattice", choices=["lattice", "conforming"],
+    ap.add_argument("--mesher", default="lattice", choices=["lattice", "conforming", "graded"],
                     help="with --refinement: the independent truth's mesher")
+    ap.add_argument("--face-mm", type=float, nargs="+", default=None,
+                    help="with --refinement --mesher graded: the face sizes (mm) of the "
+                         "sequence, coarse to fine (the finest --counts sets the size "
+                         "elsewhere)")
     ap.add_argument("--materials", default="cells", choices=["cells", "field"],
                     help="with --refinement: the independent truth's materials (per "
                          "tetrahedron, or a field of the position)")
@@ -545,7 +553,7 @@ def main(argv=None):
     if args.refinement:
         parts.append(refinement(args.patients, args.counts, args.spacing,
                                 cache=not args.no_cache, mesher=args.mesher,
-                                materials=args.materials))
+                                materials=args.materials, face_mm=args.face_mm))
         if args.order_check:
             parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing,
                                      args.mesher)

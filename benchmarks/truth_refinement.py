@@ -1,7 +1,8 @@
 """Benchmark: the independent truth's refinement study (``study.py --refinement``).
 
 Per virtual patient, :func:`pvcmf.truth.independent.independent_truth_grid` at the
-requested counts (P2), each solve's cost (dofs, Newton iterations, factorisations,
+requested counts (P2; ``mesher="graded"``: at the finest count, refined in the face to
+each of the face sizes), each solve's cost (dofs, Newton iterations, factorisations,
 seconds); the exact skin moved by each truth (:mod:`pvcmf.truth.refinement`), and the
 p50 / p90 / max of its change between successive counts. Converged when the p90 between
 the two finest is <= 0.1 mm. :func:`refinement_rows` reads the table back (the cohort
@@ -18,7 +19,8 @@ import numpy as np
 import pvcmf
 from pvcmf import arrays, filters
 from pvcmf.truth.independent import independent_truth_grid
-from pvcmf.truth.refinement import exact_skin_samples, refinement_change
+from pvcmf.truth.refinement import (exact_skin_normals, exact_skin_samples,
+                                    refinement_change)
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "truth_refinement.md"
 
@@ -114,52 +116,91 @@ _CONFORMING = ("Mesher ``conforming`` (``pvcmf.truth.conform.conforming_mesh``):
                "factorisation). Edge mm: the median edge of the mesh.")
 
 
+_GRADED = ("Mesher ``graded`` (``pvcmf.truth.graded.graded_mesh``): as ``conforming``, "
+           "the surface sampled on a grid regular in a radially mapped space, so that it "
+           "is ``face mm`` fine within the ball of the moved bone segments (centre: their "
+           "centroid, radius: their farthest voxel from it; the lips, chin, cheeks and, for a "
+           "moved maxilla, the nose), the size growing by ``GRADING`` mm per mm beyond it "
+           "up to the conforming spacing of the count (``--counts``, the finest) "
+           "elsewhere, so the thin tissue over the skull vault is meshed at least as finely "
+           "as by the conforming mesh of that count; the tetrahedra grow from the surface "
+           "inwards. The sequence refines the face only, by a fixed factor per step; the "
+           "problem (exact geometry, boundary data, material field) is the same on every "
+           "mesh.")
+
+
 _CELLS = "each tetrahedron mixes fat and muscle by its sampled muscle fraction."
 _FIELD = ("materials ``field`` (``pvcmf.truth.independent.material_field``): fat and muscle "
-          "mixed by the exact muscle indicator sampled every ``MATERIAL_MM`` mm and "
+          "mixed by the exact muscle indicator sampled every ``MATERIAL_MM`` mm (on the "
+          "whole multiples of the step in the patient frame: the same points for every "
+          "mesh) and "
           "smoothed over ``MATERIAL_SIGMA_MM`` mm, a field of the position projected onto "
           "quadratic polynomials on each element at the solve, so every mesh integrates "
           "the same material.")
 
 
-def refinement(patients, counts, spacing, cache=True, mesher="lattice", materials="cells"):
+def _levels(counts, mesher, face_mm):
+    """The meshes of one patient's sequence: (n_tets, face mm or None) coarse to fine
+    (``graded``: the finest count outside the face, each face size inside it)."""
+    if mesher == "graded":
+        if not face_mm:
+            raise ValueError("mesher 'graded' needs face sizes (--face-mm)")
+        return [(counts[-1], f) for f in face_mm]
+    return [(n, None) for n in counts]
+
+
+def refinement(patients, counts, spacing, cache=True, mesher="lattice", materials="cells",
+               face_mm=None):
     rows = []
+    levels = _levels(counts, mesher, face_mm)
     for p in patients:
         case = pvcmf.datasets.phantom(p, spacing=spacing)
         points = exact_skin_samples(case)
+        normals = exact_skin_normals(case, points)
         prev = None
-        for n in counts:
+        for n, face in levels:
             grid = independent_truth_grid(case, n_tets=n, cache=cache, mesher=mesher,
-                                          materials=materials, reuse_factor=True)
+                                          materials=materials, reuse_factor=True,
+                                          **({"face_mm": face} if face else {}))
             row = _row(p, grid)
+            row["face"] = face
             if prev is not None:
-                change = refinement_change(prev, grid, points)
+                change = refinement_change(prev, grid, points, normals=normals)
                 row.update({k: v for k, v in change.items() if k in ("p50", "p90", "max")})
                 row["share"] = change["compared"]
+                nearest = refinement_change(prev, grid, points)  # any closest triangle
+                row["p90_nearest"], row["max_nearest"] = nearest["p90"], nearest["max"]
                 last = change["change"]
             prev = grid
             rows.append(row)
             print(row, flush=True)
-        if len(counts) > 1:
+        if len(levels) > 1:
             change_picture(points, last, PAGE.parent / f"truth_refinement_{p}.png")
-    head = ("| patient | tetrahedra | edge mm | dofs | Newton | factorisations | solve s "
-            "| released | skin compared | change p50 mm | p90 mm | max mm |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|---|")
-    body = [f"| {r['patient']} | {r['tets']} | {r['h']:.1f} | {r['dofs']} | {r['newton']} | "
-            f"{r['factorisations']} | {r['seconds']:.0f} | {r['released']} | "
-            f"{100 * r['share']:.0f} % | {r['p50']:.3f} | {r['p90']:.3f} | {r['max']:.3f} |"
-            for r in rows]
+            rows[-1]["bands"] = _by_distance(case, points, last)
+    head = ("| patient | tetrahedra | face mm | edge mm | dofs | Newton | factorisations "
+            "| solve s | released | skin compared | change p50 mm | p90 mm | max mm "
+            "| p90 mm, any closest triangle |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    body = [f"| {r['patient']} | {r['tets']} | {r['face'] or '-'} | {r['h']:.1f} | "
+            f"{r['dofs']} | {r['newton']} | {r['factorisations']} | {r['seconds']:.0f} | "
+            f"{r['released']} | {100 * r['share']:.0f} % | {r['p50']:.3f} | {r['p90']:.3f} | "
+            f"{r['max']:.3f} | {r.get('p90_nearest', np.nan):.3f} |" for r in rows]
     text = ("Skin points: the exact skin of the meshed face "
             "(``pvcmf.truth.refinement.exact_skin_samples``: the voxel skin projected onto "
             "the zero set of the patient's level sets, kept where that boundary is the "
             "skin); each truth's displacement there is that of its closest boundary point "
-            "(``skin_displacement``); the change is taken from the next coarser truth over "
+            "(``skin_displacement``) on the boundary triangles facing the same way as "
+            "the exact skin there (outward normals less than 90 degrees apart, "
+            "``exact_skin_normals``: across a gap narrower than a coarse mesh's elements, "
+            "the lips, the closest boundary point of the upper lip can lie on the lower "
+            "lip); the last column gives the p90 with the closest point on any triangle, "
+            "as before. The change is taken from the next coarser truth over "
             "the points both meshes reach within a quarter of the coarser median edge "
             "(``refinement_change``). Converged: p90 <= 0.1 mm between the two finest. "
             "Solve s: the NGSolve solve (load steps, Newton, factorisations) on this "
             "machine, read from the truth's ``reference_solver`` record (cached truths keep "
             "the cost of the run that made them). The pictures colour the exact skin by "
-            "the change between the two finest truths of each patient "
+            "the change between the two finest truths of each patient (0-0.5 mm) "
             "(``truth_refinement_<patient>.png``).\n\n"
             "Model (``pvcmf.truth.independent``), defined on the exact anatomy so that it "
             "is the same problem on every mesh: every node on a bone surface is tied, its "
@@ -167,7 +208,8 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
             "(``BLEND_MM``); the posterior plane is held except within ``CLEARANCE_MM`` of "
             "a moved bone; the tongue is not meshed (free, as the oral air); "
             + (_FIELD if materials == "field" else _CELLS) + " "
-            + (_CONFORMING if mesher == "conforming" else _LATTICE) + "\n\n")
+            + {"conforming": _CONFORMING, "graded": _CONFORMING + " " + _GRADED}.get(
+                mesher, _LATTICE) + "\n\n")
     fits = []
     for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
         r = [x for x in rows if x["patient"] == p]
@@ -180,12 +222,56 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
                         "2-core machine shared with other jobs, so the exponent varies with "
                         "the load)")
     tail = "\n\nCost scaling:\n\n" + "\n".join(f"- {f}" for f in fits) if fits else ""
+    tail += _verdict(rows, patients) if len(levels) > 1 else ""
     if len(counts) > 1:
         tail += "\n\n" + "\n\n".join(
             f"![skin change between the two finest truths, patient {p}]"
             f"(truth_refinement_{p}.png)" for p in patients)
     return ("## Refinement of the independent truth\n\n" + text + head + "\n"
             + "\n".join(body) + tail)
+
+
+#: distances (mm) from the moved bone over which the finest change is summarised
+BANDS = (0.0, 10.0, 20.0, 30.0, 50.0, np.inf)
+
+
+def _by_distance(case, points, change):
+    """p90 of the change (mm) and the number of skin points per band of distance from the
+    plan's moved bone segments (:data:`BANDS`)."""
+    from scipy.spatial import cKDTree
+
+    from pvcmf.filters.osteotomy import cut_bones, segment_transforms, voxel_points
+
+    labels = cut_bones(case.truth, case.plan)
+    moved = [s for s, m in segment_transforms(labels, case.plan).items()
+             if not np.allclose(m, np.eye(4))]
+    bone = np.asarray(labels[arrays.BONE])
+    d = cKDTree(voxel_points(labels, np.flatnonzero(np.isin(bone, moved)))).query(points)[0]
+    out = []
+    for lo, hi in zip(BANDS[:-1], BANDS[1:]):
+        m = np.isfinite(change) & (d >= lo) & (d < hi)
+        out.append((lo, hi, int(m.sum()), float(np.percentile(change[m], 90)) if m.any()
+                    else np.nan))
+    return out
+
+
+def _verdict(rows, patients):
+    """Per patient, the change between its two finest truths against the 0.1 mm goal."""
+    lines = []
+    for p in patients:
+        r = [x for x in rows if x["patient"] == p]
+        a, b = r[-2], r[-1]
+        size = (f"face {a['face']} -> {b['face']} mm" if b.get("face") else
+                f"{a['tets']} -> {b['tets']} tetrahedra")
+        ok = b["p90"] <= 0.1
+        bands = "; ".join(f"{lo:.0f}-{hi:.0f} mm: {q:.3f} ({n})" if np.isfinite(hi) else
+                          f"beyond {lo:.0f} mm: {q:.3f} ({n})" for lo, hi, n, q in b["bands"])
+        lines.append(f"- patient {p} ({size}; {a['tets']} -> {b['tets']} tetrahedra): "
+                     f"p90 {b['p90']:.3f} mm, "
+                     + ("converged (p90 <= 0.1 mm)" if ok else "not converged (p90 > 0.1 mm)")
+                     + f". p90 mm (skin points) by distance of the skin from the moved bone: "
+                     + bands)
+    return "\n\nBetween the two finest truths:\n\n" + "\n".join(lines)
 
 
 def change_picture(points, change, path):
@@ -199,7 +285,7 @@ def change_picture(points, change, path):
         pl.subplot(0, i)
         if (~ok).any():
             pl.add_points(pv.PolyData(points[~ok]), color="lightgrey", point_size=4)
-        pl.add_points(pv.PolyData(points[ok]), scalars=change[ok], clim=[0, 2],
+        pl.add_points(pv.PolyData(points[ok]), scalars=change[ok], clim=[0, 0.5],
                       cmap="viridis", point_size=5,
                       scalar_bar_args={"title": "skin change mm"})
         pl.view_vector(view, viewup=up)
@@ -242,5 +328,6 @@ def refinement_rows(page=PAGE):
                            "p90": float(p90)}
     if not finest:
         return None
-    mesher = "conforming" if "Mesher ``conforming``" in text else "lattice"
+    mesher = ("graded" if "Mesher ``graded``" in text else
+              "conforming" if "Mesher ``conforming``" in text else "lattice")
     return {"mesher": mesher, "patients": finest}

@@ -236,6 +236,9 @@ def test_cohort_page_quotes_the_refinement_page_it_reads(tmp_path):
                     .replace("0.321", "0.08"))
     text = bench.truth_note("independent", 4000, page=page)
     assert "has converged" in text and "mesher ``conforming``, not this run's" in text
+    page.write_text("Mesher ``conforming`` ... Mesher ``graded`` ...\n\n" + head + rows)
+    assert "mesher ``graded``, not this run's" in bench.truth_note("independent", 4000,
+                                                                   page=page)
     page.write_text("Mesher ``conforming`` ...\n\n" + head + rows + "\nA finer truth, patient 2 "
                     "(``--fine 12000``): 11900 tetrahedra (edge 5.0 mm), 9 dofs; skin change "
                     "from the 6000 truth above over 96 % of the skin: p50 0.004 mm, p90 "

@@ -8,7 +8,9 @@
   (a step in the stiffness that the element faces do not follow), to the projection's
   clipped overshoot;
 * the sampled muscle indicator is laid out as ``VoxelCoefficient`` reads it (x fastest)
-  and mixes Table I fat and muscle as ``assign_materials`` does.
+  and mixes Table I fat and muscle as ``assign_materials`` does;
+* two meshes of different bounds get the same field: the same lattice points (whole
+  multiples of the step), so the same trilinear interpolant where both reach.
 """
 
 from __future__ import annotations
@@ -93,10 +95,7 @@ def test_material_field_samples_the_muscles_x_fastest():
     case = pvcmf.datasets.phantom(1, spacing=3.0)
     warp = _warp(case)
     # a box of 24 mm around a muscle point of the face
-    b = np.asarray(case.truth.bounds).reshape(3, 2)
-    grid = np.stack(np.meshgrid(*(np.linspace(lo, hi, 30) for lo, hi in b), indexing="ij"),
-                    axis=-1).reshape(-1, 3)
-    c = grid[np.flatnonzero(_muscle_indicator(warp, grid))[0]]
+    c = _muscle_point(case, warp)
     box = pv.Box(bounds=np.column_stack([c - 12.0, c + 12.0]).ravel())
     box = box.cast_to_unstructured_grid()
     m = material_field(case, box, step=2.0, sigma=0.0)
@@ -115,3 +114,37 @@ def test_material_field_samples_the_muscles_x_fastest():
     e = np.asarray(two.cell_data[arrays.E_CROSS])
     np.testing.assert_allclose(m["e_cross"][f == 1], e[1])
     np.testing.assert_allclose(m["e_cross"][f == 0], e[0])
+
+
+def _muscle_point(case, warp):
+    """A point inside a muscle of the patient (the first of a 30^3 lattice of its box)."""
+    from pvcmf.truth.independent import _muscle_indicator
+
+    b = np.asarray(case.truth.bounds).reshape(3, 2)
+    grid = np.stack(np.meshgrid(*(np.linspace(lo, hi, 30) for lo, hi in b), indexing="ij"),
+                    axis=-1).reshape(-1, 3)
+    return grid[np.flatnonzero(_muscle_indicator(warp, grid))[0]]
+
+
+def _trilinear(m, step, p):
+    from scipy.interpolate import RegularGridInterpolator
+
+    f = m["e_cross"]
+    axes = [m["origin"][i] + step * np.arange(f.shape[2 - i]) for i in range(3)]
+    return RegularGridInterpolator(axes[::-1], f)(p[:, ::-1])
+
+
+def test_material_field_is_the_same_for_meshes_of_different_bounds():
+    import pvcmf
+    from pvcmf.truth.anatomy import _warp
+    from pvcmf.truth.independent import material_field
+
+    case = pvcmf.datasets.phantom(1, spacing=3.0)
+    c = _muscle_point(case, _warp(case))
+    boxes = [pv.Box(bounds=np.column_stack([c - 12.0 + s, c + 12.0 + s]).ravel())
+             .cast_to_unstructured_grid() for s in (0.0, 0.7)]  # bounds 0.7 mm apart
+    m = [material_field(case, box, step=1.5, sigma=1.0) for box in boxes]
+    p = np.random.default_rng(1).uniform(c - 11.0, c + 11.0, (5000, 3))
+    a, e = _trilinear(m[0], 1.5, p), _trilinear(m[1], 1.5, p)
+    assert np.ptp(a) > 0.1  # a muscle's edge in the box
+    np.testing.assert_allclose(a, e, rtol=1e-6)

@@ -34,6 +34,9 @@ Modules:
   "independent")``; the study's default truth is still :func:`truth_grid`);
 * :mod:`pvcmf.truth.conform` - ``conforming_mesh``: the independent truth's soft tissue
   meshed by gmsh on its exact surface (``independent_truth_grid(mesher="conforming")``);
+* :mod:`pvcmf.truth.graded` - ``graded_mesh``: the same, its surface sampled finely in the
+  ball of the moved bones and at the conforming spacing elsewhere
+  (``independent_truth_grid(mesher="graded")``);
 * :mod:`pvcmf.truth.exact` - the exact soft tissue's level sets, projection and muscle
   fractions, shared by the meshers and the refinement measure;
 * :mod:`pvcmf.truth.refinement` - the independent truth's refinement measured on the

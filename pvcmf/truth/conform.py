@@ -118,6 +118,26 @@ def _gmsh_volume(surf):
     return points[used], remap[tets]
 
 
+def _soft_points(case, box):
+    """The soft-tissue voxel centres in front of the face box's coronal plane and their
+    volume (mm^3)."""
+    soft = np.isin(np.asarray(case.truth[arrays.TISSUE]), arrays.SOFT_LABELS)
+    pts = voxel_points(case.truth, np.flatnonzero(soft))
+    pts = pts[pts[:, 1] >= box[2]]
+    return pts, float(len(pts)) * float(np.prod(case.truth.spacing))
+
+
+def _volume_mesh(surf):
+    """gmsh's tetrahedra (positively oriented) of the volume bounded by ``surf``: points,
+    tets and the ids of the boundary nodes."""
+    x, tets = _gmsh_volume(surf)
+    flip = _volumes(x, tets) < 0
+    tets[flip] = tets[flip][:, [0, 2, 1, 3]]
+    surface = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, x).extract_surface(
+        pass_pointid=True, algorithm="dataset_surface")
+    return x, tets, np.unique(np.asarray(surface.point_data[arrays.ORIGINAL_POINT_IDS]))
+
+
 def _to_exact(warp, x, tets, nodes, spacing):
     """Boundary ``nodes`` projected onto the exact surfaces (at most ``spacing`` each);
     the projections that flatten a tetrahedron below a tenth of its volume undone."""
@@ -166,22 +186,13 @@ def conforming_mesh(case, *, n_tets=20_000, spacing=None, face_fraction=0.5,
     """
     warp = _warp(case)
     box = face_box(case.truth, face_fraction)
-    soft = np.isin(np.asarray(case.truth[arrays.TISSUE]), arrays.SOFT_LABELS)
-    pts = voxel_points(case.truth, np.flatnonzero(soft))
-    pts = pts[pts[:, 1] >= box[2]]
-    volume = float(len(pts)) * float(np.prod(case.truth.spacing))
+    pts, volume = _soft_points(case, box)
     h = float(spacing) if spacing is not None else surface_spacing(volume, n_tets)
     if not h > 0:
         raise ValueError(f"spacing must be > 0, got {spacing!r}")
     lo, hi = pts.min(axis=0) - h, pts.max(axis=0) + h
     lo[1] = box[2] - 0.5 * h
-    surf = _surface(warp, lo, hi, box[2], h)
-    x, tets = _gmsh_volume(surf)
-    flip = _volumes(x, tets) < 0  # positive orientation
-    tets[flip] = tets[flip][:, [0, 2, 1, 3]]
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, x)
-    surface = grid.extract_surface(pass_pointid=True, algorithm="dataset_surface")
-    on = np.unique(np.asarray(surface.point_data[arrays.ORIGINAL_POINT_IDS]))
+    x, tets, on = _volume_mesh(_surface(warp, lo, hi, box[2], h))
     plane = on[np.abs(x[on, 1] - box[2]) < 1e-3 * h]
     free = np.setdiff1d(on, plane)
     x = _to_exact(warp, x, tets, free, h)

@@ -19,7 +19,8 @@ the labels, nor the boundary model:
   would hinge freely). The lattice meshes less of the soft tissue the coarser it is (the
   thin tissue of the face is about one lattice cell thick); ``mesher="conforming"``
   (:func:`pvcmf.truth.conform.conforming_mesh`, gmsh on the exact surface) meshes the same
-  volume at every size;
+  volume at every size; ``mesher="graded"`` (:func:`pvcmf.truth.graded.graded_mesh`) is
+  that mesh refined in the face that the plan moves;
 * materials: the muscle fraction of each tetrahedron (the twelve facial muscles,
   temporalis, neck muscles; the eyes excluded), sampled at points inside it, mixes Table I
   fat and muscle (rule of mixtures), so a muscle sheet thinner than the elements keeps its
@@ -68,6 +69,7 @@ from ..filters.osteotomy import cut_bones, segment_transforms, voxel_points
 from .anatomy import _warp
 from .conform import conforming_mesh
 from .exact import _BOUNDARY, _fields, _labelled_grid, _materials, _project, _region, _volumes  # noqa: F401,E501 (re-exported)
+from .graded import graded_mesh
 from .grid import cached, grid_hash
 from .solver import solve_reference
 
@@ -256,10 +258,12 @@ def material_field(case, grid, *, step=MATERIAL_MM, sigma=MATERIAL_SIGMA_MM):
     :func:`pvcmf.truth.solver.solve_reference`): Table I fat and muscle mixed by the muscle
     indicator of the exact anatomy, sampled every ``step`` mm over the grid's bounding box
     and smoothed by a Gaussian of ``sigma`` mm, so every mesh integrates the same material
-    (a per-element muscle fraction would change with the elements), up to the sampling:
-    the lattice starts at the grid's bounds, so the lattices of two meshes may be offset
-    by up to a ``step`` (their trilinear interpolants differ by that much at a muscle's
-    edge).
+    (a per-element muscle fraction would change with the elements). The lattice is the
+    whole multiples of ``step`` in the patient frame over the grid's bounds (and four steps
+    beyond), so every mesh samples the same points: a lattice starting at each grid's own
+    bounds was offset between two meshes, and with a muscle up to some 260 times stiffer
+    than fat the two trilinear interpolants differed by up to about ten times at a
+    muscle's edge.
 
     Returns
     -------
@@ -268,8 +272,9 @@ def material_field(case, grid, *, step=MATERIAL_MM, sigma=MATERIAL_SIGMA_MM):
     """
     warp = _warp(case)
     b = np.asarray(grid.bounds, dtype=float).reshape(3, 2)
-    lo, hi = b[:, 0] - 2 * step, b[:, 1] + 2 * step
-    axes = [np.arange(lo[i], hi[i] + step, step) for i in range(3)]
+    # whole multiples of the step: every mesh samples the same lattice points
+    lo, hi = np.floor(b[:, 0] / step) - 4, np.ceil(b[:, 1] / step) + 4
+    axes = [step * np.arange(lo[i], hi[i] + 1) for i in range(3)]
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")  # x fastest
     p = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
     f = np.empty(len(p), dtype=np.float32)
@@ -355,7 +360,7 @@ def _boundary_conditions(case, grid, blend=BLEND_MM, clearance=CLEARANCE_MM):
 
 def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fraction=0.5,
                            cache=True, cache_dir=None, mesher="lattice", reuse_factor=False,
-                           materials="cells", progress_bar=False):
+                           materials="cells", face_mm=3.0, progress_bar=False):
     """The solved independent truth of a virtual patient (module docstring).
 
     Parameters
@@ -373,15 +378,20 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         :func:`pvcmf.truth.grid_hash` of the planned grid and the options).
     cache_dir : path, optional
         Cache folder.
-    mesher : {'lattice', 'conforming'}, default 'lattice'
+    mesher : {'lattice', 'conforming', 'graded'}, default 'lattice'
         ``'lattice'``: :func:`soft_tissue_mesh` (the lattice-and-snap mesher);
         ``'conforming'``: :func:`pvcmf.truth.conform.conforming_mesh` (gmsh, conforming to
         the exact surfaces: the same meshed volume at every size; ``n_tets`` sets its
-        surface spacing). Same boundary model and materials on both.
+        surface spacing); ``'graded'``: :func:`pvcmf.truth.graded.graded_mesh` (as
+        ``'conforming'``, ``face_mm`` fine in the ball of the moved bones, the
+        conforming spacing of ``n_tets`` elsewhere). Same boundary model and materials on
+        all.
     materials : {'cells', 'field'}, default 'cells'
         ``'cells'``: each tetrahedron mixes fat and muscle by its sampled muscle fraction;
         ``'field'``: the mixture is a field of the position (:func:`material_field`)
         evaluated at the quadrature points: the same material on every mesh.
+    face_mm : float, default 3.0
+        With ``mesher='graded'``: the size (mm) of the surface sampling in the face.
     reuse_factor : bool, default False
         Passed to :func:`pvcmf.truth.solver.solve_reference` (conjugate gradients
         preconditioned by the last factorisation between refactorisations; the same
@@ -406,8 +416,10 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         grid = soft_tissue_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
     elif mesher == "conforming":
         grid = conforming_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
+    elif mesher == "graded":
+        grid = graded_mesh(case, n_tets=n_tets, face_mm=face_mm, face_fraction=face_fraction)
     else:
-        raise ValueError(f"mesher must be 'lattice' or 'conforming', got {mesher!r}")
+        raise ValueError(f"mesher must be 'lattice', 'conforming' or 'graded', got {mesher!r}")
     grid = _boundary_conditions(case, grid)
     # Table I; the fibre direction is immaterial to the truth's law for Table I (its fibre
     # term vanishes where the muscle is softer along the fibre than across)

@@ -15,6 +15,13 @@ where it happens to fall inside both):
 * :func:`refinement_change` - the per-point change of that displacement between two
   truths (p50 / p90 / max), over the points both meshes reach within a tolerance.
 
+With the exact skin's outward normals (:func:`exact_skin_normals`) the closest boundary
+point is sought only on the boundary triangles that face the same way (outward normals at
+less than 90 degrees): where two skin surfaces face each other across a gap (the lips,
+a nostril) narrower than a coarse mesh's elements, the closest boundary point of a skin
+point of the upper lip can lie on the lower lip, whose displacement is another's; the
+triangle facing the same way is the upper lip's own.
+
 Delegates to pyvista / VTK (closest cell), numpy, and :mod:`pvcmf.truth.exact` (the
 exact anatomy).
 """
@@ -29,7 +36,8 @@ from ..filters.model_region import face_box
 from .anatomy import _warp
 from .exact import _BOUNDARY, _fields, _project, _region
 
-__all__ = ["exact_skin_samples", "refinement_change", "skin_displacement"]
+__all__ = ["exact_skin_normals", "exact_skin_samples", "refinement_change",
+           "skin_displacement"]
 
 
 def exact_skin_samples(case, *, face_fraction=0.5, tol=0.05):
@@ -66,6 +74,66 @@ def exact_skin_samples(case, *, face_fraction=0.5, tol=0.05):
     return p[keep]
 
 
+def exact_skin_normals(case, points, dh=0.2):
+    """Outward unit normals (n, 3) of the exact skin at ``points`` (the gradient of the
+    patient's skin level set, central differences of ``dh`` mm)."""
+    warp = _warp(case)
+    p = np.atleast_2d(np.asarray(points, dtype=float))
+    g = np.column_stack([_fields(warp, p + dh * e)["skin"] - _fields(warp, p - dh * e)["skin"]
+                         for e in np.eye(3)])
+    return g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), np.finfo(float).tiny)
+
+
+def _closest_on_triangles(p, a, b, c):
+    """Closest points of triangles (a, b, c) (..., 3) to points ``p`` (..., 3) (the
+    Voronoi regions of the vertices, edges and face, all vectorised)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = np.einsum("...i,...i", ab, ap), np.einsum("...i,...i", ac, ap)
+    bp, cp = p - b, p - c
+    d3, d4 = np.einsum("...i,...i", ab, bp), np.einsum("...i,...i", ac, bp)
+    d5, d6 = np.einsum("...i,...i", ab, cp), np.einsum("...i,...i", ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    tiny = np.finfo(float).tiny
+    den = np.where(va + vb + vc == 0, tiny, va + vb + vc)
+    v, w = vb / den, vc / den
+    out = a + v[..., None] * ab + w[..., None] * ac  # inside the face
+    t_bc = (d4 - d3) / np.where((d4 - d3) + (d5 - d6) == 0, tiny, (d4 - d3) + (d5 - d6))
+    cases = [  # (mask, point), the last true mask wins
+        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), b + t_bc[..., None] * (c - b)),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + (d2 / np.where(d2 - d6 == 0, tiny, d2 - d6))
+         [..., None] * ac),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + (d1 / np.where(d1 - d3 == 0, tiny, d1 - d3))
+         [..., None] * ab),
+        ((d6 >= 0) & (d5 <= d6), c), ((d3 >= 0) & (d4 <= d3), b), ((d1 <= 0) & (d2 <= 0), a)]
+    for mask, q in cases:  # six Voronoi regions
+        out = np.where(mask[..., None], q, out)
+    return out
+
+
+def _facing_closest(x, tri, points, normals, cell, closest, k=32):
+    """Where the closest triangle ``cell`` faces away from ``normals``, the closest point
+    among the ``k`` triangles nearest by centroid that face the same way (unchanged where
+    none does)."""
+    a, b, c = (x[tri[:, i]] for i in range(3))
+    tn = np.cross(b - a, c - a)
+    bad = np.flatnonzero(np.einsum("ij,ij->i", tn[cell], normals) <= 0)
+    if not len(bad):
+        return cell, closest
+    from scipy.spatial import cKDTree
+
+    _, cand = cKDTree((a + b + c) / 3).query(points[bad], k=min(k, len(tri)))
+    cand = np.atleast_2d(cand)
+    q = _closest_on_triangles(points[bad][:, None], a[cand], b[cand], c[cand])
+    d = np.linalg.norm(q - points[bad][:, None], axis=2)
+    d[np.einsum("ikj,ij->ik", tn[cand], normals[bad]) <= 0] = np.inf
+    j = np.argmin(d, axis=1)
+    ok = np.isfinite(d[np.arange(len(bad)), j])
+    cell, closest = cell.copy(), closest.copy()
+    cell[bad[ok]] = cand[ok, j[ok]]
+    closest[bad[ok]] = q[ok, j[ok]]
+    return cell, closest
+
+
 def _triangles(grid):
     """Boundary triangles of a tetrahedral grid, as grid point ids (m, 3)."""
     surf = grid.extract_surface(pass_pointid=True, algorithm="dataset_surface").triangulate()
@@ -73,7 +141,7 @@ def _triangles(grid):
     return pid[surf.faces.reshape(-1, 4)[:, 1:]]
 
 
-def skin_displacement(grid, points):
+def skin_displacement(grid, points, normals=None):
     """A solved truth's displacement at points on (or near) its boundary.
 
     Parameters
@@ -82,6 +150,9 @@ def skin_displacement(grid, points):
         Solved tetrahedral grid with point array ``arrays.DISPLACEMENT``.
     points : array_like, shape (n, 3)
         Query points (e.g. :func:`exact_skin_samples`).
+    normals : array_like, shape (n, 3), optional
+        Outward normals at the points (:func:`exact_skin_normals`): the closest point is
+        then sought on the boundary triangles facing the same way (module doc).
 
     Returns
     -------
@@ -110,6 +181,12 @@ def skin_displacement(grid, points):
     surf = pv.PolyData(x, np.column_stack([np.full(len(tri), 3), tri]).ravel())
     cell, closest = surf.find_closest_cell(points, return_closest_point=True)
     cell, closest = np.atleast_1d(cell), np.atleast_2d(closest)
+    if normals is not None:
+        normals = np.atleast_2d(np.asarray(normals, dtype=float))
+        if normals.shape != points.shape:
+            raise ValueError(f"normals must have the points' shape {points.shape}, got "
+                             f"{normals.shape}")
+        cell, closest = _facing_closest(x, tri, points, normals, cell, closest)
     a, b, c = (x[tri[cell, k]] for k in range(3))
     # barycentric coordinates of the closest point (on the triangle, so in [0, 1])
     v0, v1, v2 = b - a, c - a, closest - a
@@ -149,7 +226,7 @@ def _midpoints(grid, tri):
     return values[pos]
 
 
-def refinement_change(coarse, fine, points, *, reach=None):
+def refinement_change(coarse, fine, points, *, reach=None, normals=None):
     """Per-point change of the skin displacement between two solved truths.
 
     Parameters
@@ -162,6 +239,8 @@ def refinement_change(coarse, fine, points, *, reach=None):
         Points farther than this (mm) from either truth's boundary are left out (where a
         mesh does not reach the skin: a lattice too coarse for a thin part). Default: a
         quarter of the coarse truth's median edge length.
+    normals : array_like, shape (n, 3), optional
+        Outward normals of the exact skin at the points (:func:`skin_displacement`).
 
     Returns
     -------
@@ -175,8 +254,8 @@ def refinement_change(coarse, fine, points, *, reach=None):
         e = coarse.extract_all_edges().compute_cell_sizes(length=True, area=False,
                                                           volume=False)["Length"]
         reach = 0.25 * float(np.median(e))
-    uc, dc = skin_displacement(coarse, points)
-    uf, df = skin_displacement(fine, points)
+    uc, dc = skin_displacement(coarse, points, normals)
+    uf, df = skin_displacement(fine, points, normals)
     ok = (dc <= reach) & (df <= reach)
     change = np.full(len(points), np.nan)
     change[ok] = np.linalg.norm(uf[ok] - uc[ok], axis=1)
