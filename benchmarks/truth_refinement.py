@@ -279,7 +279,12 @@ def change_picture(points, change, path):
     (grey: not reached by both meshes), front and side, offscreen."""
     import pyvista as pv
 
+    from pvcmf.figures.face_views import saturation_note
+    from pvcmf.figures.offscreen import prefer_egl
+
+    prefer_egl()
     ok = np.isfinite(change)
+    note = saturation_note(change, 0.5, ok, signed=False)
     pl = pv.Plotter(shape=(1, 2), off_screen=True, window_size=(1200, 600))
     for i, (view, up) in enumerate((((0, 1, 0), (0, 0, 1)), ((-1, 0.2, 0), (0, 0, 1)))):
         pl.subplot(0, i)
@@ -288,6 +293,8 @@ def change_picture(points, change, path):
         pl.add_points(pv.PolyData(points[ok]), scalars=change[ok], clim=[0, 0.5],
                       cmap="viridis", point_size=5,
                       scalar_bar_args={"title": "skin change mm"})
+        if note and i == 0:
+            pl.add_text(note, position="upper_left", font_size=10, color="black")
         pl.view_vector(view, viewup=up)
     pl.screenshot(str(path))
     pl.close()
