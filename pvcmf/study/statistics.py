@@ -193,7 +193,7 @@ def label_face_regions(skin, *, landmarks=None, scale=1.0, depth=45.0):
     given (``subnasale``, ``stomion``, ``pogonion``, ...) or else the middle of the face's
     width (the median, over 2 mm rows from the chin to the nose bridge, of the midpoint
     between the face's leftmost and rightmost point: a nose tip bent to one side does not
-    move it). Regions are boxes in (|x - x_mid|, z - z_tip) of an average adult face (nose
+    move it). Regions are boxes in (``|x - x_mid|``, ``z - z_tip``) of an average adult face (nose
     -12..35 mm around the tip and 17 mm either side of the tip; upper lip -30..-12 mm,
     lower lip -45..-30, chin -75..-45, within 24-28 mm of the midline; cheeks 24-62 mm
     lateral, -45..20 mm; the patient's left cheek has x > x_mid),

@@ -9,7 +9,7 @@ elements the two meshes cross. Here the surface is still one flying-edges contou
 sides of a thin shell cannot cross), sampled on a grid that is regular in a *mapped*
 space: the radial map
 
-    x = c + rho(|xi - c|) (xi - c) / |xi - c|,   rho'(r) = h(rho(r)) / h_face,
+    ``x = c + rho(|xi - c|) (xi - c) / |xi - c|``,   ``rho'(r) = h(rho(r)) / h_face``,
 
 (a diffeomorphism) takes a regular grid of spacing ``h_face`` to a grid that is
 ``h_face`` fine within the ball of centre ``c`` and radius ``R`` and grows by
