@@ -407,15 +407,17 @@ def _covered(grid, labels, hard, points, outer, cover):
     ids, at = ids[box], at[box]
     if not len(ids):
         return none
-    inside = np.asarray(grid.find_containing_cell(at)) >= 0
-    ids, at = ids[inside], at[inside]
-    if not len(ids):
-        return none
+    # the nearest node first (a cheap search): only voxels whose nearest node is interior
+    # and within ``cover`` can be kept, so only they are located in the tetrahedra
     dist, node = cKDTree(points).query(at)
     interior = np.ones(len(points), dtype=bool)
     interior[outer] = False
     keep = interior[node] & (dist <= cover * (1 + 1e-9))
-    ids, dist, node = ids[keep], dist[keep], node[keep]
+    ids, at, dist, node = ids[keep], at[keep], dist[keep], node[keep]
+    if not len(ids):
+        return none
+    inside = np.asarray(grid.find_containing_cell(at)) >= 0
+    ids, dist, node = ids[inside], dist[inside], node[inside]
     order = np.lexsort((dist, node))  # per node, its nearest voxel first
     node, first = np.unique(node[order], return_index=True)
     return node.astype(np.int64), ids[order[first]]
