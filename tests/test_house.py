@@ -30,6 +30,8 @@ MAX_FUNCTION_LINES = 100
 # house-patterns: begin
 # the forbidden words are spelled in pieces, so that this file does not use them itself
 _W_S, _W_L, _W_E = "sess" + "ion", "le" + "ad", "engin" + "eer"
+_W_H, _W_I, _W_LOAD = "hel" + "per", "iss" + "ue", "lo" + "ad"
+_W_HASH = "a1a" + "9675"
 WORDING = {
     _W_S: re.compile(rf"\b{_W_S}s?\b", re.I),
     f"the {_W_L}": re.compile(rf"\b(?:the|a|our) {_W_L}\b(?!\s+(?:to|time)\b)|\b{_W_L}'s\b", re.I),
@@ -110,10 +112,10 @@ def wording_hits(text):
 # house-patterns: begin (examples of what the patterns must catch)
 @pytest.mark.parametrize("text, rule", [
     (f"as the {_W_L} measured", f"the {_W_L}"), (f"in {_W_S} 2", _W_S),
-    ("helper B wrote", "helper letter"), (f"five {_W_E}s", _W_E),
-    ("see #12 for", "issue number"), ("fixes issue 14", "issue number"),
-    ("before a1a9675 landed", "commit hash"), ("at load 1.6", "machine load"),
-    ("at load average 9-12", "machine load"),
+    (f"{_W_H} B wrote", f"{_W_H} letter"), (f"five {_W_E}s", _W_E),
+    ("see #" + "12 for", f"{_W_I} number"), (f"fixes {_W_I} 14", f"{_W_I} number"),
+    (f"before {_W_HASH} landed", "commit hash"), (f"at {_W_LOAD} 1.6", f"machine {_W_LOAD}"),
+    (f"at {_W_LOAD} average 9-12", f"machine {_W_LOAD}"),
     ("commit 4683baa1c2d3e4f5a6b7c8d9e0f1a2b3c4d5e6f7", "commit hash"),
 ])
 # house-patterns: end
@@ -122,8 +124,8 @@ def test_wording_patterns_catch(text, rule):
 
 
 @pytest.mark.parametrize("text", [
-    '@pytest.fixture(scope="session")', "a session-scoped fixture", "this may lead to errors", "color='#1f77b4'",
-    "load 90 % of the steps", "e = 1e-13", "a sha256 of 64 hex digits " + "ab12" * 16,
+    '@pytest.fixture(scope="' + _W_S + '")', f"a {_W_S}-scoped fixture", "this may lead to errors", "color='#1f77b4'",
+    f"{_W_LOAD} 90 % of the steps", "e = 1e-13", "a sha256 of 64 hex digits " + "ab12" * 16,
     "patients 1-4", "the mtm_helpers module", "the mesh has 30000 tetrahedra",
 ])
 def test_wording_patterns_spare(text):

@@ -148,7 +148,7 @@ def test_defaults_are_hu():
 # --------------------------------------------------------------------------- virtual patients
 @pytest.fixture(scope="module")
 def patients(segmented_patients):
-    """conftest's session fixture: phantoms at 2 mm (as test_phantom.py) and segment()."""
+    """conftest's fixture shared by the whole run: phantoms at 2 mm (as test_phantom.py) and segment()."""
     return segmented_patients
 
 
