@@ -535,6 +535,9 @@ def main(argv=None):
                     help="with --refinement --mesher graded: the face sizes (mm) of the "
                          "sequence, coarse to fine (the finest --counts sets the size "
                          "elsewhere)")
+    ap.add_argument("--until-converged", action="store_true",
+                    help="refinement: stop a patient's sequence once its skin changes by "
+                         "p90 <= 0.1 mm from the level before")
     ap.add_argument("--materials", default="cells", choices=["cells", "field"],
                     help="with --refinement: the independent truth's materials (per "
                          "tetrahedron, or a field of the position)")
@@ -553,7 +556,8 @@ def main(argv=None):
     if args.refinement:
         parts.append(refinement(args.patients, args.counts, args.spacing,
                                 cache=not args.no_cache, mesher=args.mesher,
-                                materials=args.materials, face_mm=args.face_mm))
+                                materials=args.materials, face_mm=args.face_mm,
+                                until=0.1 if args.until_converged else None))
         if args.order_check:
             parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing,
                                      args.mesher)

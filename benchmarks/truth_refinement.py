@@ -150,7 +150,10 @@ def _levels(counts, mesher, face_mm):
 
 
 def refinement(patients, counts, spacing, cache=True, mesher="lattice", materials="cells",
-               face_mm=None):
+               face_mm=None, until=None):
+    """The refinement sequence of each patient (``_levels``), coarse to fine; with
+    ``until`` (mm), a patient's sequence stops at the first level whose skin change p90
+    from the one before is at most ``until`` (its finer levels are not solved)."""
     rows = []
     levels = _levels(counts, mesher, face_mm)
     for p in patients:
@@ -174,6 +177,8 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
             prev = grid
             rows.append(row)
             print(row, flush=True)
+            if until is not None and row.get("p90", np.inf) <= until:
+                break
         if len(levels) > 1:
             change_picture(points, last, PAGE.parent / f"truth_refinement_{p}.png")
             rows[-1]["bands"] = _by_distance(case, points, last)
@@ -223,7 +228,7 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
                         "the load)")
     tail = "\n\nCost scaling:\n\n" + "\n".join(f"- {f}" for f in fits) if fits else ""
     tail += _verdict(rows, patients) if len(levels) > 1 else ""
-    if len(counts) > 1:
+    if len(levels) > 1:
         tail += "\n\n" + "\n\n".join(
             f"![skin change between the two finest truths, patient {p}]"
             f"(truth_refinement_{p}.png)" for p in patients)
@@ -292,7 +297,9 @@ def change_picture(points, change, path):
             pl.add_points(pv.PolyData(points[~ok]), color="lightgrey", point_size=4)
         pl.add_points(pv.PolyData(points[ok]), scalars=change[ok], clim=[0, 0.5],
                       cmap="viridis", point_size=5,
-                      scalar_bar_args={"title": "skin change mm"})
+                      scalar_bar_args={"title": "skin change mm", "vertical": True,
+                                       "position_x": 0.84, "position_y": 0.15,
+                                       "height": 0.7, "width": 0.1})
         if note and i == 0:
             pl.add_text(note, position="upper_left", font_size=10, color="black")
         pl.view_vector(view, viewup=up)
@@ -308,11 +315,11 @@ def refinement_rows(page=PAGE):
     if not Path(page).exists():
         return None
     text = Path(page).read_text()
-    head = "| patient | tetrahedra | edge mm |"
+    head = "| patient | tetrahedra |"  # (graded sequences add a face mm column)
     lines = text.splitlines()
-    if head not in "\n".join(lines):
+    start = next((i for i, line in enumerate(lines) if line.startswith(head)), None)
+    if start is None:
         return None
-    start = next(i for i, line in enumerate(lines) if line.startswith(head))
     cols = [c.strip() for c in lines[start].strip("|").split("|")]
     rows = []
     for line in lines[start + 2:]:

@@ -245,5 +245,14 @@ def test_cohort_page_quotes_the_refinement_page_it_reads(tmp_path):
                     "0.097 mm, max 1.0 mm.\n")
     text = bench.truth_note("independent", 2000, page=page)  # the finer truth takes over
     assert "p90 0.10-0.32 mm" in text and "3000-6050 and 6100-11900 tetrahedra" in text
+    graded = ("| patient | tetrahedra | face mm | edge mm | dofs | Newton | factorisations "
+              "| solve s | released | skin compared | change p50 mm | p90 mm | max mm |\n"
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+              "| 1 | 44000 | 4.0 | 5.9 | 1 | 1 | 1 | 1 | 3 | nan % | nan | nan | nan |\n"
+              "| 1 | 66000 | 3.2 | 5.1 | 1 | 1 | 1 | 1 | 0 | 99 % | 0.009 | 0.174 | 1.8 |\n"
+              "| 1 | 99000 | 2.56 | 4.4 | 1 | 1 | 1 | 1 | 0 | 99 % | 0.004 | 0.081 | 0.9 |\n")
+    page.write_text("Mesher ``conforming`` ... Mesher ``graded`` ...\n\n" + graded)
+    text = bench.truth_note("independent", 2000, page=page)  # the face mm column is read
+    assert "66000 and 99000 tetrahedra" in text and "p90 0.08 mm" in text, text
     missing = bench.truth_note("independent", 2000, page=tmp_path / "none.md")
     assert "not measured" in missing and "p90" not in missing
