@@ -23,7 +23,9 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    the patients and the judged skins read from the cache, checked bit for bit against
    the cold run, and the claims computed again): writes ``docs/benchmarks/cohort.md``.
    Its sentence on the truth's convergence is read from the table of
-   ``truth_refinement.md`` (``truth_refinement.truth_note``).
+   ``truth_refinement.md`` (``truth_refinement.truth_note``). ``--truth-mesher``,
+   ``--truth-face-mm``, ``--truth-materials``: the independent truth's options (``graded``,
+   a face size, ``field``: the truth of the refinement study, solved as it solves it).
 
 Writes markdown tables to ``docs/benchmarks/truth_refinement.md`` (1, 2) with the command
 and machine.
@@ -39,6 +41,8 @@ Run::
     python benchmarks/study.py --cohort 2 --spacing 3 --n-tets 8000 --truth-tets 4000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 2000 \
         --fine-tets 60000
+    python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 30000 \
+        --truth-mesher graded --truth-face-mm 4.0 --truth-materials field --fine-tets 60000
 """
 
 from __future__ import annotations
