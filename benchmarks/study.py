@@ -272,11 +272,12 @@ def _mesh_rows(paper001):
     return list(rows.itertuples(index=False))
 
 
-def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets):
+def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets, truth_face_mm=None):
     """The cohort page's section on paper 001's mesh-size claim: what the claim says,
     the equivalence of the two meshes' skins (independent of the truth), the paired error
     (against the truth), and the verdict, read from ``mesh`` (``mesh_size_table``) and the
-    rows of ``paper001``."""
+    rows of ``paper001``. ``truth_face_mm``: the face size of a graded truth
+    (``truth_tets`` then sets its size elsewhere only)."""
     paired, clinical, paper, skin = _mesh_rows(paper001)
     tol = CLINICAL_TOLERANCE_MM
 
@@ -296,6 +297,11 @@ def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets):
     coarser = ("coarser than either model mesh" if truth_tets < n_tets else
                "finer than the coarser model mesh" if truth_tets > n_tets else
                "as fine as the coarser model mesh")
+    truth = (f"The truth of this run has {truth_tets} tetrahedra, {coarser}."
+             if truth_face_mm is None else
+             f"The truth of this run is graded: {truth_face_mm:g} mm in the face, the "
+             f"conforming spacing of {truth_tets} tetrahedra elsewhere (more tetrahedra "
+             "than that in all).")
     return [
         f"Paper 001 (sec. 3.2): about 30 000 tetrahedra are enough, a much denser mesh "
         f"changing the p90 error by less than {MESH_TOLERANCE_MM:g} mm. Tested here with "
@@ -325,10 +331,9 @@ def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets):
         f"{above(sp90, tol)}); "
         f"paper 001's own criterion (p90 error within {MESH_TOLERANCE_MM:g} mm) "
         f"{'holds' if paper.holds else 'does not hold'}.", "",
-        f"The truth of this run has {truth_tets} tetrahedra, {coarser}. The skin "
-        "difference between the two model meshes does not depend on the truth. The error "
-        "comparison does: both meshes are judged against this one truth, so a paired "
-        "error difference smaller than the truth's own discretisation error is not "
+        f"{truth} The skin difference between the two model meshes does not depend on "
+        "the truth. The error comparison does: both meshes are judged against this one "
+        "truth, so a paired error difference smaller than the truth's own discretisation error is not "
         "resolved by it, and a finer model mesh need not err less against a coarser "
         "truth.", "",
         _markdown(mesh.round(3)), ""]
@@ -413,7 +418,8 @@ def cohort_page(args, res, command, status="complete"):
         f"are tested at {args.n_tets} against {fine_tets} tetrahedra (paper 001: 30 000 "
         "against 200 000; section \"Mesh size\" below).", "",
         "## Mesh size", "",
-        *mesh_note(res["mesh"], paper001, args.n_tets, fine_tets, args.truth_tets),
+        *mesh_note(res["mesh"], paper001, args.n_tets, fine_tets, args.truth_tets,
+                   args.truth_face_mm if args.truth_mesher == "graded" else None),
         "## Errors per patient and method", "",
         _markdown(errors[keep].round(3)), "",
         "## Paper 000's claims, paired over the patients", "",
