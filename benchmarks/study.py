@@ -333,9 +333,9 @@ def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets, truth_face_mm=None)
         f"{'holds' if paper.holds else 'does not hold'}.", "",
         f"{truth} The skin difference between the two model meshes does not depend on "
         "the truth. The error comparison does: both meshes are judged against this one "
-        "truth, so a paired error difference smaller than the truth's own discretisation error is not "
-        "resolved by it, and a finer model mesh need not err less against a coarser "
-        "truth.", "",
+        "truth, so a paired error difference smaller than the truth's own "
+        "discretisation error is not resolved by it, and a finer model mesh need not err "
+        "less against a coarser truth.", "",
         _markdown(mesh.round(3)), ""]
 
 

@@ -6,7 +6,8 @@ each of the face sizes), each solve's cost (dofs, Newton iterations, factorisati
 seconds); the exact skin moved by each truth (:mod:`pvcmf.truth.refinement`), and the
 p50 / p90 / max of its change between successive counts. Converged when the p90 between
 the two finest is <= 0.1 mm. :func:`refinement_rows` reads the table back and
-:func:`truth_note` says on the cohort page what it measured of the cohort's truth. Run through ``benchmarks/study.py --refinement``.
+:func:`truth_note` says on the cohort page what it measured of the cohort's truth.
+Run through ``benchmarks/study.py --refinement``.
 """
 
 from __future__ import annotations
