@@ -23,7 +23,9 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    the patients and the judged skins read from the cache, checked bit for bit against
    the cold run, and the claims computed again): writes ``docs/benchmarks/cohort.md``.
    Its sentence on the truth's convergence is read from the table of
-   ``truth_refinement.md`` (:func:`truth_note`).
+   ``truth_refinement.md`` (``truth_refinement.truth_note``). ``--truth-mesher``,
+   ``--truth-face-mm``, ``--truth-materials``: the independent truth's options (``graded``,
+   a face size, ``field``: the truth of the refinement study, solved as it solves it).
 
 Writes markdown tables to ``docs/benchmarks/truth_refinement.md`` (1, 2) with the command
 and machine.
@@ -39,6 +41,8 @@ Run::
     python benchmarks/study.py --cohort 2 --spacing 3 --n-tets 8000 --truth-tets 4000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 2000 \
         --fine-tets 60000
+    python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 30000 \
+        --truth-mesher graded --truth-face-mm 4.0 --truth-materials field --fine-tets 60000
 """
 
 from __future__ import annotations
@@ -70,13 +74,13 @@ from pvcmf.study.validation import run_study, study_predictor
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from truth_refinement import (  # noqa: E402 (the refinement study: benchmarks/truth_refinement.py)
-    PAGE, fine_truth_cost, order_check, refinement, refinement_rows,
+    PAGE, _truth_name, fine_truth_cost, order_check, refinement, truth_note,
 )
 
 
-def compare(patients, truth, spacing, n_tets, truth_tets):
+def compare(patients, truth, spacing, n_tets, truth_tets, **truth_options):
     predict = study_predictor(spacing=spacing, n_tets=n_tets, truth_tets=truth_tets,
-                              truth=None if truth == "reference" else truth)
+                              truth=None if truth == "reference" else truth, **truth_options)
     methods = ("proposed", "state_of_the_art", "no_muscles", "wrong_nu")
     skins, _, _ = run_study(predict, patients=patients, methods=methods)
     out = ["## Paired inference", ""]
@@ -155,7 +159,8 @@ def _same_skins(cold, warm):
 
 
 def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fine_tets=None,
-                 nus=NU_GRID, checkpoint=None, every=4, warm=None):
+                 nus=NU_GRID, checkpoint=None, every=4, warm=None, truth_mesher="lattice",
+                 truth_face_mm=None, truth_materials="cells"):
     """Run ``n`` seeded cohort patients through both input modes, twice (cold, warm).
 
     Both runs use one cache folder (``cache_dir``, default a new temporary one, so the cold
@@ -166,7 +171,9 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fi
     compared bit for bit with the cold ones (``identical``).
     ``checkpoint(results, status)`` is called with the results so far after every
     ``every`` cold patients and after the cold run, so a run stopped early leaves a
-    labelled page. ``warm``: how many patients the warm run repeats (default all)."""
+    labelled page. ``warm``: how many patients the warm run repeats (default all).
+    ``truth_mesher``, ``truth_face_mm``, ``truth_materials``: the independent truth's
+    options (``study_predictor``)."""
     tmp = None if cache_dir else tempfile.TemporaryDirectory(prefix="pvcmf_cohort_")
     cache_dir = cache_dir or tmp.name
     draw = cohort_parameters(n, seed)
@@ -185,7 +192,9 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fi
             predict = study_predictor(spacing=spacing, n_tets=n_tets, truth_tets=truth_tets,
                                       truth=None if truth == "reference" else truth,
                                       cases={p: case}, cache_dir=cache_dir,
-                                      prediction_cache=True, fine_tets=fine_tets)
+                                      prediction_cache=True, fine_tets=fine_tets,
+                                      truth_mesher=truth_mesher, truth_face_mm=truth_face_mm,
+                                      truth_materials=truth_materials)
             s, _, tab = run_study(predict, patients=(p,), methods=methods, regions=False)
             timing.append({"run": run, "patient": p, "seconds": time.perf_counter() - t,
                            "p90_change_mm": np.nan, "identical": None})
@@ -253,47 +262,6 @@ def _nu_pivot(nu_table):
     return wide.reset_index()
 
 
-def _span(values, fmt):
-    lo, hi = min(values), max(values)
-    return f"{lo:{fmt}}" if lo == hi else f"{lo:{fmt}}-{hi:{fmt}}"
-
-
-def truth_note(truth, truth_tets, page=PAGE):
-    """What the refinement page measured of the truth, read from its table: the sentence
-    of the cohort page on how far the truth has converged."""
-    mesher = "lattice" if truth == "independent" else None
-    this = (f"the {truth} truth (mesher ``{mesher}``) of {truth_tets} tetrahedra" if mesher
-            else f"the {truth} truth of {truth_tets} tetrahedra")
-    ref = refinement_rows(page) if truth == "independent" else None
-    if ref is None:
-        return (f"The truth of this run is {this}; ``truth_refinement.md`` holds no "
-                "refinement of it, so how far it has converged is not measured: the errors "
-                "below bound how far the models and this truth agree, not how accurate "
-                "either is; a paired difference between two models is measured against the "
-                "same truth and is the better-founded number.")
-    pats = ref["patients"]
-    p90 = [r["p90"] for r in pats.values()]
-    coarse = [r["coarse"] for r in pats.values()]
-    fine = [r["fine"] for r in pats.values()]
-    converged = max(p90) <= 0.1
-    other = []
-    if ref["mesher"] != mesher:
-        other.append(f"measured with mesher ``{ref['mesher']}``, not this run's")
-    if truth_tets < min(coarse):
-        other.append(f"on meshes finer than this run's {truth_tets} tetrahedra")
-    return (f"The truth of this run is {this}. Its refinement (``truth_refinement.md``, "
-            f"patients {', '.join(pats)} of ``pvcmf.datasets.phantom``"
-            + (f"; {', and '.join(other)}" if other else "") + "): between the two finest "
-            f"truths of each patient ({_span(coarse, 'd')} and {_span(fine, 'd')} "
-            f"tetrahedra) the skin changes by p90 {_span(p90, '.2f')} mm, median "
-            f"{_span([r['p50'] for r in pats.values()], '.3f')} mm; "
-            + ("it has converged there (p90 <= 0.1 mm)." if converged else
-               "it has not converged there (p90 above 0.1 mm), so the errors below bound "
-               "how far the models and this truth agree, not how accurate either is; a "
-               "paired difference between two models is measured against the same truth "
-               "and is the better-founded number."))
-
-
 def _mesh_rows(paper001):
     """The four rows of ``pvcmf.study.claims.mesh_size_claims`` in a paper 001 table:
     paired error, |change| below the clinical tolerance, |change| below paper 001's,
@@ -304,11 +272,12 @@ def _mesh_rows(paper001):
     return list(rows.itertuples(index=False))
 
 
-def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets):
+def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets, truth_face_mm=None):
     """The cohort page's section on paper 001's mesh-size claim: what the claim says,
     the equivalence of the two meshes' skins (independent of the truth), the paired error
     (against the truth), and the verdict, read from ``mesh`` (``mesh_size_table``) and the
-    rows of ``paper001``."""
+    rows of ``paper001``. ``truth_face_mm``: the face size of a graded truth
+    (``truth_tets`` then sets its size elsewhere only)."""
     paired, clinical, paper, skin = _mesh_rows(paper001)
     tol = CLINICAL_TOLERANCE_MM
 
@@ -328,6 +297,11 @@ def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets):
     coarser = ("coarser than either model mesh" if truth_tets < n_tets else
                "finer than the coarser model mesh" if truth_tets > n_tets else
                "as fine as the coarser model mesh")
+    truth = (f"The truth of this run has {truth_tets} tetrahedra, {coarser}."
+             if truth_face_mm is None else
+             f"The truth of this run is graded: {truth_face_mm:g} mm in the face, the "
+             f"conforming spacing of {truth_tets} tetrahedra elsewhere (more tetrahedra "
+             "than that in all).")
     return [
         f"Paper 001 (sec. 3.2): about 30 000 tetrahedra are enough, a much denser mesh "
         f"changing the p90 error by less than {MESH_TOLERANCE_MM:g} mm. Tested here with "
@@ -357,12 +331,11 @@ def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets):
         f"{above(sp90, tol)}); "
         f"paper 001's own criterion (p90 error within {MESH_TOLERANCE_MM:g} mm) "
         f"{'holds' if paper.holds else 'does not hold'}.", "",
-        f"The truth of this run has {truth_tets} tetrahedra, {coarser}. The skin "
-        "difference between the two model meshes does not depend on the truth. The error "
-        "comparison does: both meshes are judged against this one truth, so a paired "
-        "error difference smaller than the truth's own discretisation error is not "
-        "resolved by it, and a finer model mesh need not err less against a coarser "
-        "truth.", "",
+        f"{truth} The skin difference between the two model meshes does not depend on "
+        "the truth. The error comparison does: both meshes are judged against this one "
+        "truth, so a paired error difference smaller than the truth's own "
+        "discretisation error is not resolved by it, and a finer model mesh need not err "
+        "less against a coarser truth.", "",
         _markdown(mesh.round(3)), ""]
 
 
@@ -370,6 +343,7 @@ def cohort_page(args, res, command, status="complete"):
     from pvcmf.study.validation import JUDGE_LIMIT
 
     table, claims, cost, paper001 = res["table"], res["claims"], res["cost"], res["paper001"]
+    options = (args.truth_mesher, args.truth_face_mm, args.truth_materials)  # the truth's
     spread, fine_tets = res["spread"], res["fine_tets"]
     cold = cost[cost.run == "cold"].seconds
     warm = cost[cost.run == "warm"].seconds
@@ -393,8 +367,9 @@ def cohort_page(args, res, command, status="complete"):
         f"{sys.version.split()[0]}, pvcmf {pvcmf.__version__}. Run: {status}.", "",
         f"{n_pat} patients of ``pvcmf.study.cohort.cohort({args.cohort}, "
         f"seed={args.seed})`` at {args.spacing} mm, MTM meshes of {args.n_tets} "
-        f"tetrahedra (the finer mesh: {fine_tets}), truth ``{args.truth}`` of "
-        f"{args.truth_tets} tetrahedra. Paper 000's models: "
+        f"tetrahedra (the finer mesh: {fine_tets}), truth: "
+        f"{_truth_name(args.truth, args.truth_tets, *options)}. "
+        "Paper 000's models: "
         "``proposed`` (muscle-embedded conforming mesh) / ``state_of_the_art`` (the same "
         "mesh without muscle surfaces, the muscles sampled onto it by random points) with "
         "oracle inputs (true bone labels and landmarks) and ``proposed_auto`` / "
@@ -413,7 +388,7 @@ def cohort_page(args, res, command, status="complete"):
         "skin points of the judged face left out of every method because the "
         f"post-operative CT shows no skin within ``JUDGE_LIMIT`` ({JUDGE_LIMIT:g} mm) of "
         "where the truth puts it, ``pvcmf.study.validation.study_predictor``).", "",
-        truth_note(args.truth, args.truth_tets), "",
+        truth_note(args.truth, args.truth_tets, PAGE, *options), "",
         "## Verdicts", "",
         "Each claim tested over the patients: Wilcoxon signed-rank test of the per-patient "
         "statistic, Hodges-Lehmann difference (a - b, mm; for a tolerance: value - "
@@ -443,7 +418,8 @@ def cohort_page(args, res, command, status="complete"):
         f"are tested at {args.n_tets} against {fine_tets} tetrahedra (paper 001: 30 000 "
         "against 200 000; section \"Mesh size\" below).", "",
         "## Mesh size", "",
-        *mesh_note(res["mesh"], paper001, args.n_tets, fine_tets, args.truth_tets),
+        *mesh_note(res["mesh"], paper001, args.n_tets, fine_tets, args.truth_tets,
+                   args.truth_face_mm if args.truth_mesher == "graded" else None),
         "## Errors per patient and method", "",
         _markdown(errors[keep].round(3)), "",
         "## Paper 000's claims, paired over the patients", "",
@@ -500,6 +476,12 @@ def cohort_page(args, res, command, status="complete"):
     return "\n".join(lines)
 
 
+def _truth_options(args):
+    """The independent truth's options of the command line (``study_predictor``'s names)."""
+    return {"truth_mesher": args.truth_mesher, "truth_face_mm": args.truth_face_mm,
+            "truth_materials": args.truth_materials}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--refinement", action="store_true")
@@ -545,6 +527,15 @@ def main(argv=None):
                     help="solve every truth again (default: reuse the on-disk cache)")
     ap.add_argument("--n-tets", type=int, default=30_000)
     ap.add_argument("--truth-tets", type=int, default=30_000)
+    ap.add_argument("--truth-mesher", default="lattice",
+                    choices=["lattice", "conforming", "graded"],
+                    help="cohort, --compare: the independent truth's mesher (graded and "
+                         "conforming solve as the refinement study does)")
+    ap.add_argument("--truth-face-mm", type=float, default=None, metavar="MM",
+                    help="cohort, --compare, with --truth-mesher graded: the face size (mm); "
+                         "--truth-tets sets the size elsewhere")
+    ap.add_argument("--truth-materials", default="cells", choices=["cells", "field"],
+                    help="cohort, --compare: the independent truth's materials")
     ap.add_argument("-v", "--verbose", action="store_true", help="log the steps")
     args = ap.parse_args(argv)
     if args.verbose:
@@ -567,7 +558,7 @@ def main(argv=None):
                                          mesher=args.mesher, materials=args.materials)
     if args.compare:
         parts.append(compare(args.patients, args.truth, args.spacing, args.n_tets,
-                             args.truth_tets))
+                             args.truth_tets, **_truth_options(args)))
     if args.cohort:
         command = "python benchmarks/study.py " + " ".join(sys.argv[1:] if argv is None else argv)
 
@@ -580,7 +571,7 @@ def main(argv=None):
         res = cohort_study(args.cohort, args.seed, args.spacing, args.n_tets,
                            args.truth_tets, args.truth, args.cache_dir,
                            fine_tets=args.fine_tets, nus=tuple(args.nu_grid), checkpoint=write,
-                           warm=args.warm)
+                           warm=args.warm, **_truth_options(args))
         write(res)
         print(COHORT_PAGE.read_text())
         if not (args.refinement or args.compare):

@@ -5,8 +5,9 @@ requested counts (P2; ``mesher="graded"``: at the finest count, refined in the f
 each of the face sizes), each solve's cost (dofs, Newton iterations, factorisations,
 seconds); the exact skin moved by each truth (:mod:`pvcmf.truth.refinement`), and the
 p50 / p90 / max of its change between successive counts. Converged when the p90 between
-the two finest is <= 0.1 mm. :func:`refinement_rows` reads the table back (the cohort
-page quotes it). Run through ``benchmarks/study.py --refinement``.
+the two finest is <= 0.1 mm. :func:`refinement_rows` reads the table back and
+:func:`truth_note` says on the cohort page what it measured of the cohort's truth.
+Run through ``benchmarks/study.py --refinement``.
 """
 
 from __future__ import annotations
@@ -309,15 +310,18 @@ def change_picture(points, change, path):
 
 def refinement_rows(page=PAGE):
     """The refinement table of ``truth_refinement.md`` (written by :func:`refinement`):
-    its mesher and, per patient, the tetrahedra of its two finest truths and the skin
-    change between them (p50, p90 mm), a finer truth's paragraph ("A finer truth, patient
-    ...") taking over from the table's rows. None when the page or its table is missing."""
+    its mesher, materials and finest count (``--counts`` of its command; None when the
+    page does not give it) and, per patient, the tetrahedra and face sizes (mm; None
+    without a ``face mm`` column) of its two finest truths and the skin change between
+    them (p50, p90 mm), a finer truth's paragraph ("A finer truth, patient ...") taking
+    over from the table's rows. None when the page or its table is missing."""
     if not Path(page).exists():
         return None
     text = Path(page).read_text()
-    head = "| patient | tetrahedra |"  # (graded sequences add a face mm column)
     lines = text.splitlines()
-    start = next((i for i, line in enumerate(lines) if line.startswith(head)), None)
+    start = next((i for i, line in enumerate(lines)  # with or without a face mm column
+                  if line.startswith("| patient | tetrahedra |") and "| edge mm |" in line),
+                 None)
     if start is None:
         return None
     cols = [c.strip() for c in lines[start].strip("|").split("|")]
@@ -331,6 +335,7 @@ def refinement_rows(page=PAGE):
         if prev["patient"] == row["patient"] and row["p90 mm"] != "nan":
             finest[row["patient"]] = {"coarse": int(prev["tetrahedra"]),
                                       "fine": int(row["tetrahedra"]),
+                                      "coarse_face": _face(prev), "fine_face": _face(row),
                                       "p50": float(row["change p50 mm"]),
                                       "p90": float(row["p90 mm"])}
     last = {r["patient"]: int(r["tetrahedra"]) for r in rows}
@@ -338,10 +343,105 @@ def refinement_rows(page=PAGE):
             r"A finer truth, patient (\d+) \(.*?\): (\d+) tetrahedra .*?skin change from the "
             r"\d+ truth above [^:]*: p50 ([\d.]+) mm, p90 ([\d.]+) mm", text):
         if pat in last:
-            finest[pat] = {"coarse": last[pat], "fine": int(tets), "p50": float(p50),
-                           "p90": float(p90)}
+            finest[pat] = {"coarse": last[pat], "fine": int(tets), "coarse_face": None,
+                           "fine_face": None, "p50": float(p50), "p90": float(p90)}
     if not finest:
         return None
     mesher = ("graded" if "Mesher ``graded``" in text else
               "conforming" if "Mesher ``conforming``" in text else "lattice")
-    return {"mesher": mesher, "patients": finest}
+    materials = "field" if "materials ``field``" in text else "cells"
+    command = re.search(r"Command: `[^`]*--counts((?: \d+)+)", text)
+    count = int(command.group(1).split()[-1]) if command else None
+    return {"mesher": mesher, "materials": materials, "count": count, "patients": finest}
+
+
+def _face(row):
+    """A table row's face size (mm), None without one."""
+    value = row.get("face mm", "-")
+    return None if value in ("-", "", "None") else float(value)
+
+
+def _span(values, fmt):
+    lo, hi = min(values), max(values)
+    return f"{lo:{fmt}}" if lo == hi else f"{lo:{fmt}}-{hi:{fmt}}"
+
+
+def _truth_name(truth, truth_tets, mesher, face_mm, materials):
+    """The truth of a run, in words."""
+    if truth != "independent":
+        return f"the {truth} truth of {truth_tets} tetrahedra"
+    face = (f", face {face_mm:g} mm (the conforming spacing of {truth_tets} tetrahedra "
+            "elsewhere)" if mesher == "graded" else f" of {truth_tets} tetrahedra")
+    return f"the {truth} truth (mesher ``{mesher}``{face}, materials ``{materials}``)"
+
+
+def _truth_mismatch(ref, truth_tets, mesher, face_mm, materials):
+    """How the refinement page's truths differ from this run's (phrases; none: the same
+    options, this run's truth one of the two finest of each patient)."""
+    pats = ref["patients"].values()
+    other = []
+    if ref["mesher"] != mesher:
+        other.append(f"measured with mesher ``{ref['mesher']}``, not this run's")
+    if ref.get("materials", "cells") != materials:
+        other.append(f"with materials ``{ref.get('materials', 'cells')}``, not this run's")
+    if mesher != "graded":
+        if truth_tets < min(r["coarse"] for r in pats):
+            other.append(f"on meshes finer than this run's {truth_tets} tetrahedra")
+        return other
+    if ref.get("count") != truth_tets:
+        other.append(f"with the conforming spacing of {ref.get('count')} tetrahedra outside "
+                     f"the face, not this run's {truth_tets}")
+    faces = {(r.get("coarse_face"), r.get("fine_face")) for r in pats}
+    if any(face_mm not in pair for pair in faces):
+        other.append("with face sizes " + ", ".join(
+            f"{a} -> {b} mm" for a, b in sorted(faces, key=str)) + f", not this run's "
+            f"{face_mm:g} mm")
+    return other
+
+
+def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
+               materials="cells"):
+    """What the refinement page measured of the truth, read from its table: the sentence
+    of the cohort page on how far the truth has converged. ``mesher``, ``face_mm``,
+    ``materials``: the independent truth's options (``study_predictor``'s
+    ``truth_mesher``, ``truth_face_mm``, ``truth_materials``); the refinement is this
+    truth's only when the page used the same ones (and, for ``graded``, the same count
+    outside the face and this run's face size as one of its two finest)."""
+    this = _truth_name(truth, truth_tets, mesher, face_mm, materials)
+    ref = refinement_rows(page) if truth == "independent" else None
+    caveat = ("the errors below bound how far the models and this truth agree, not how "
+              "accurate either is; a paired difference between two models is measured "
+              "against the same truth and is the better-founded number.")
+    if ref is None:
+        return (f"The truth of this run is {this}; ``truth_refinement.md`` holds no "
+                "refinement of it, so how far it has converged is not measured: " + caveat)
+    pats = ref["patients"]
+    p90 = [r["p90"] for r in pats.values()]
+    coarse = [r["coarse"] for r in pats.values()]
+    fine = [r["fine"] for r in pats.values()]
+    other = _truth_mismatch(ref, truth_tets, mesher, face_mm, materials)
+    faces = ""
+    if mesher == "graded" and not other:
+        which = {"coarser" if face_mm == r["coarse_face"] else "finer"
+                 for r in pats.values()}
+        faces = (f"; face {_span([r['coarse_face'] for r in pats.values()], 'g')} and "
+                 f"{_span([r['fine_face'] for r in pats.values()], 'g')} mm, this run's "
+                 f"truth has the options of the {' and '.join(sorted(which))}")
+    done = [p for p, r in pats.items() if r["p90"] <= 0.1]
+    if len(done) == len(pats):
+        verdict = "it has converged there (p90 <= 0.1 mm)."
+    elif not done:
+        verdict = "it has not converged there (p90 above 0.1 mm), so " + caveat
+    else:
+        verdict = (f"it has converged there (p90 <= 0.1 mm) for patient(s) "
+                   f"{', '.join(done)}, not for patient(s) "
+                   f"{', '.join(p for p in pats if p not in done)} (p90 above 0.1 mm), so "
+                   + caveat)
+    return (f"The truth of this run is {this}. "
+            + ("Its refinement" if not other else "A refinement of the independent truth")
+            + f" (``truth_refinement.md``, patients {', '.join(pats)} of "
+            "``pvcmf.datasets.phantom``, not this run's patients"
+            + (f"; {', and '.join(other)}" if other else "") + "): between the two finest "
+            f"truths of each patient ({_span(coarse, 'd')} and {_span(fine, 'd')} "
+            f"tetrahedra{faces}) the skin changes by p90 {_span(p90, '.2f')} mm, median "
+            f"{_span([r['p50'] for r in pats.values()], '.3f')} mm; " + verdict)

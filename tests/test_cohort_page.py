@@ -31,7 +31,7 @@ def _skin(err, shift, n=60):
     return s
 
 
-def _section(shift, n_patients=10, truth_tets=2000, edit=None):
+def _section(shift, n_patients=10, truth_tets=2000, edit=None, truth_face_mm=None):
     """The mesh-size section for synthetic skins ``shift`` mm (plus 0.01 mm per patient)
     apart; ``edit(table)`` changes the per-patient table before the section is written."""
     skins = {101 + p: {"homogeneous": _skin(1.0 + 0.002 * p, shift + 0.01 * p),
@@ -42,7 +42,7 @@ def _section(shift, n_patients=10, truth_tets=2000, edit=None):
     rows = pd.DataFrame(mesh_size_claims(skins, sizes=(30000, 60000), n_boot=200))
     other = pd.DataFrame([{"claim": "the inhomogeneous model is not better", "holds": True}])
     text = "\n".join(_benchmark().mesh_note(table, pd.concat([other, rows]), 30000, 60000,
-                                             truth_tets))
+                                             truth_tets, truth_face_mm))
     return text, table
 
 
@@ -55,6 +55,9 @@ def test_mesh_section_reports_an_equivalence_it_shows():
     assert "2000 tetrahedra, coarser than either model mesh" in text
     assert "| 110 |" in text  # the per-patient table
     assert "0 of 10 patients above 0.5 mm" in text
+    graded = _section(0.1, truth_tets=30000, truth_face_mm=4.0)[0]
+    assert "graded: 4 mm in the face, the conforming spacing of 30000 tetrahedra" in graded
+    assert "as fine as the coarser model mesh" not in graded
 
 
 def test_mesh_section_names_the_patients_above_the_tolerance():

@@ -152,7 +152,10 @@ def test_second_study_reads_judged_skins_and_changes_judge_again(tmp_path, monke
             np.testing.assert_array_equal(a.field_data[name], b.field_data[name])
     # every option of the truth and the judging, and the code, judge again
     for options in (dict(truth_tets=3000), dict(noise_hu=10.0), dict(ct_spacing=2.0),
-                    dict(truth=None), dict(n_tets=6000), dict(sigma=3.0)):
+                    dict(truth=None), dict(n_tets=6000), dict(sigma=3.0),
+                    dict(truth_mesher="conforming"), dict(truth_materials="field"),
+                    dict(truth_mesher="graded", truth_face_mm=4.0),
+                    dict(truth_mesher="graded", truth_face_mm=3.2)):
         n = calls["judge"]
         run(**options)
         assert calls["judge"] == n + 2, options
@@ -256,3 +259,138 @@ def test_cohort_page_quotes_the_refinement_page_it_reads(tmp_path):
     assert "66000 and 99000 tetrahedra" in text and "p90 0.08 mm" in text, text
     missing = bench.truth_note("independent", 2000, page=tmp_path / "none.md")
     assert "not measured" in missing and "p90" not in missing
+
+
+# -------------------------------------------------------------- the independent truth
+def _recorded_truth(monkeypatch):
+    """``independent_truth_grid`` replaced by one that records the options it gets."""
+    received = []
+
+    def truth(case, **options):
+        received.append(options)
+        return None
+
+    monkeypatch.setattr(validation, "independent_truth_grid", truth)
+    return received
+
+
+def test_independent_truth_gets_the_options_of_the_refinement_study(tmp_path, monkeypatch):
+    """The graded truth is solved with the options the refinement study solves it with
+    (mesher, materials, face size, reuse_factor), the default one as before."""
+    received = _recorded_truth(monkeypatch)
+
+    def scan(case, patient, truth, *args):  # the truth is solved, nothing judged
+        truth(case)
+        raise StopIteration
+
+    monkeypatch.setattr(validation, "_scan", scan)
+    cases = {101: _case()}
+    for options, expected in (
+            ({}, {"mesher": "lattice", "materials": "cells"}),
+            ({"truth_mesher": "graded", "truth_face_mm": 4.0, "truth_materials": "field"},
+             {"mesher": "graded", "materials": "field", "face_mm": 4.0,
+              "reuse_factor": True}),
+            ({"truth_mesher": "conforming"},
+             {"mesher": "conforming", "materials": "cells", "reuse_factor": True})):
+        predict = validation.study_predictor(spacing=3.0, n_tets=5000, truth_tets=30000,
+                                             truth="independent", cases=cases,
+                                             cache_dir=tmp_path, **options)
+        with pytest.raises(StopIteration):
+            predict(101, "proposed")
+        assert received[-1] == {"n_tets": 30000, "cache": True, "cache_dir": tmp_path,
+                                **expected}, options
+    assert len(received) == 3
+
+
+def test_judged_skins_of_one_truth_are_not_read_for_another(tmp_path, monkeypatch,
+                                                             fixed_code):
+    """The cache key of a judged skin holds the truth's mesher, face size and materials."""
+    keys = []
+    monkeypatch.setattr(validation, "cached_judged",
+                        lambda judge, case, method, options, **k: keys.append(options))
+    cases = {101: _case()}
+    for options in ({}, {"truth_mesher": "conforming"},
+                    {"truth_mesher": "graded", "truth_face_mm": 4.0},
+                    {"truth_mesher": "graded", "truth_face_mm": 3.2},
+                    {"truth_mesher": "graded", "truth_face_mm": 3.2, "truth_materials": "field"},
+                    {"truth_materials": "field"}):
+        validation.study_predictor(spacing=3.0, truth="independent", cases=cases,
+                                   cache_dir=tmp_path, prediction_cache=True,
+                                   **options)(101, "proposed")
+    assert len({repr(sorted(k.items())) for k in keys}) == len(keys) == 6
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"truth_mesher": "gmsh"}, "truth_mesher must be 'lattice', 'conforming' or 'graded', "
+                               "got 'gmsh'"),
+    ({"truth_materials": "voxels"}, "truth_materials must be 'cells' or 'field', got "
+                                    "'voxels'"),
+    ({"truth_mesher": "graded"}, "truth_face_mm must be a size > 0 mm with truth_mesher "
+                                 "'graded', got None"),
+    ({"truth_mesher": "graded", "truth_face_mm": -1.0}, "got -1.0"),
+    ({"truth_face_mm": 4.0}, "truth_face_mm applies to truth_mesher 'graded' only"),
+    ({"truth": None, "truth_mesher": "graded", "truth_face_mm": 4.0},
+     "apply to truth 'independent' only"),
+])
+def test_independent_truth_options_are_checked(options, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        validation.study_predictor(**{"truth": "independent", **options})
+
+
+def test_cohort_passes_the_truth_options_on(monkeypatch, tmp_path):
+    """``study.py --cohort --truth-mesher graded ...`` reaches ``study_predictor``."""
+    bench = _benchmark()
+    got = {}
+
+    def predictor(**kwargs):
+        got.update(kwargs)
+        raise StopIteration
+
+    monkeypatch.setattr(bench, "study_predictor", predictor)
+    monkeypatch.setattr(bench, "virtual_patient",
+                        lambda *a, **k: type("Case", (), {"patient": 101})())
+    with pytest.raises(StopIteration):
+        bench.main(["--cohort", "1", "--truth-mesher", "graded", "--truth-face-mm", "4.0",
+                    "--truth-materials", "field", "--cache-dir", str(tmp_path)])
+    assert (got["truth"], got["truth_mesher"], got["truth_face_mm"],
+            got["truth_materials"]) == ("independent", "graded", 4.0, "field")
+    got.clear()
+    with pytest.raises(StopIteration):
+        bench.main(["--cohort", "1", "--cache-dir", str(tmp_path)])
+    assert (got["truth_mesher"], got["truth_face_mm"], got["truth_materials"]) == (
+        "lattice", None, "cells")
+
+
+def test_cohort_page_says_whether_the_refinement_is_of_its_graded_truth(tmp_path):
+    """A graded truth's refinement is quoted as this truth's only for the same mesher,
+    materials, count outside the face and a face size of the two finest truths; patients
+    that converged and those that did not are told apart."""
+    bench = _benchmark()
+    page = tmp_path / "truth_refinement.md"
+    page.write_text(
+        "Command: `python benchmarks/study.py --refinement --mesher graded --materials field "
+        "--patients 1 3 --spacing 3 --counts 30000 --face-mm 4.0 3.2 -v`\n\n"
+        "Model ...; materials ``field`` (...). Mesher ``conforming`` ... Mesher ``graded`` "
+        "...\n\n| patient | tetrahedra | face mm | edge mm | dofs | Newton | factorisations "
+        "| solve s | released | skin compared | change p50 mm | p90 mm | max mm "
+        "| p90 mm, any closest triangle |\n" + "|---" * 14 + "|\n"
+        "| 1 | 44294 | 4.0 | 5.9 | 1 | 1 | 1 | 1 | 0 | nan % | nan | nan | nan | nan |\n"
+        "| 1 | 66484 | 3.2 | 5.1 | 1 | 1 | 1 | 1 | 0 | 99 % | 0.009 | 0.174 | 1.8 | 0.2 |\n"
+        "| 3 | 64494 | 4.0 | 5.8 | 1 | 1 | 1 | 1 | 0 | nan % | nan | nan | nan | nan |\n"
+        "| 3 | 108055 | 3.2 | 4.8 | 1 | 1 | 1 | 1 | 0 | 99 % | 0.003 | 0.054 | 0.6 | 0.1 |\n")
+    text = bench.truth_note("independent", 30000, page, "graded", 4.0, "field")
+    assert "mesher ``graded``, face 4 mm" in text and "materials ``field``" in text
+    assert text.count("not this run's") == 1  # only "not this run's patients"
+    assert "Its refinement" in text and "options of the coarser" in text
+    assert "converged there (p90 <= 0.1 mm) for patient(s) 3, not for patient(s) 1" in text
+    assert "p90 0.05-0.17 mm" in text
+    assert "options of the finer" in bench.truth_note("independent", 30000, page, "graded",
+                                                      3.2, "field")
+    for args, phrase in (((30000, page, "graded", 3.0, "field"), "not this run's 3 mm"),
+                         ((20000, page, "graded", 4.0, "field"), "not this run's 20000"),
+                         ((30000, page, "graded", 4.0, "cells"), "materials ``field``, not"),
+                         ((30000, page, "conforming", None, "field"), "mesher ``graded``, "
+                                                                      "not this run's")):
+        text = bench.truth_note("independent", *args)
+        assert phrase in text and "Its refinement" not in text, args
+        assert "A refinement of the independent truth" in text

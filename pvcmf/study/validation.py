@@ -117,7 +117,8 @@ JUDGE_LIMIT = 3.0
 
 def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                     truth_cache=True, cache_dir=None, truth=None, noise_hu=18.0,
-                    ct_spacing=None, cases=None, prediction_cache=False, fine_tets=None):
+                    ct_spacing=None, cases=None, prediction_cache=False, fine_tets=None,
+                    truth_mesher="lattice", truth_face_mm=None, truth_materials="cells"):
     """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
 
     The study runs the path of a real post-operative scan. For virtual patient ``patient``
@@ -184,8 +185,20 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         pre-operative frame, instead of the reference model (e.g. a synthetic truth in
         tests, where NGSolve is not installed); ``'independent'``:
         :func:`pvcmf.truth.independent.independent_truth_grid` (own mesher, exact anatomy,
-        own boundary model; ``truth_tets`` tetrahedra). Default: the reference model of
+        own boundary model; ``truth_tets`` tetrahedra; ``truth_mesher``,
+        ``truth_face_mm``, ``truth_materials``). Default: the reference model of
         :func:`pvcmf.truth.truth_grid`.
+    truth_mesher : {'lattice', 'conforming', 'graded'}, default 'lattice'
+        With ``truth='independent'``: its mesher (``independent_truth_grid(mesher=...)``).
+        ``'conforming'`` and ``'graded'`` solve with ``reuse_factor=True``, as the
+        refinement study (``benchmarks/truth_refinement.py``) does, so that the truth is
+        the one whose convergence it measures.
+    truth_face_mm : float, optional
+        With ``truth_mesher='graded'`` (and only then; required there): the size (mm) of
+        the surface sampling in the face (``independent_truth_grid(face_mm=...)``);
+        ``truth_tets`` sets the conforming spacing elsewhere.
+    truth_materials : {'cells', 'field'}, default 'cells'
+        With ``truth='independent'``: its materials (``independent_truth_grid(materials=...)``).
     noise_hu : float, default 18.0
         Noise of the post-operative CT (HU).
     ct_spacing : float, optional
@@ -229,14 +242,16 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                         ("fine_tets", fine_tets)):
         if int(value) < 100:
             raise ValueError(f"{name} must be an integer >= 100, got {value!r}")
+    independent = _independent_options(truth, truth_mesher, truth_face_mm, truth_materials)
     # a named truth is known by its options and code, so its judged skins can be cached
     named = {"truth": truth or "reference", "truth_tets": int(truth_tets),
              "noise_hu": float(noise_hu), "ct_spacing": ct_spacing,
              "reach": TRUTH_REACH, "judge_limit": JUDGE_LIMIT} if truth in (
                  None, "independent") else None
     if truth == "independent":
+        named.update({f"truth_{k}": v for k, v in independent.items()})
         truth = functools.partial(independent_truth_grid, n_tets=truth_tets,
-                                  cache=truth_cache, cache_dir=cache_dir)
+                                  cache=truth_cache, cache_dir=cache_dir, **independent)
     if truth is not None and not callable(truth):
         raise TypeError(f"truth must be callable(case) -> grid or 'independent', got "
                         f"{type(truth).__name__}")
@@ -289,6 +304,33 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         return judge()
 
     return predict
+
+
+def _independent_options(truth, mesher, face_mm, materials):
+    """The options of ``independent_truth_grid`` for the study's independent truth
+    (validated; those of the refinement study for the conforming and graded meshers)."""
+    if mesher not in ("lattice", "conforming", "graded"):
+        raise ValueError(f"truth_mesher must be 'lattice', 'conforming' or 'graded', got "
+                         f"{mesher!r}")
+    if materials not in ("cells", "field"):
+        raise ValueError(f"truth_materials must be 'cells' or 'field', got {materials!r}")
+    if mesher == "graded" and not (isinstance(face_mm, (int, float, np.number))
+                                   and face_mm > 0):
+        raise ValueError(f"truth_face_mm must be a size > 0 mm with truth_mesher 'graded', "
+                         f"got {face_mm!r}")
+    if mesher != "graded" and face_mm is not None:
+        raise ValueError(f"truth_face_mm applies to truth_mesher 'graded' only (None with "
+                         f"truth_mesher {mesher!r}), got {face_mm!r}")
+    if truth != "independent" and (mesher, materials) != ("lattice", "cells"):
+        raise ValueError(f"truth_mesher and truth_materials apply to truth 'independent' "
+                         f"only (defaults 'lattice', 'cells' otherwise), got {mesher!r}, "
+                         f"{materials!r} with truth {truth!r}")
+    options = {"mesher": mesher, "materials": materials}
+    if mesher != "lattice":
+        options["reuse_factor"] = True
+    if mesher == "graded":
+        options["face_mm"] = float(face_mm)
+    return options
 
 
 def _reference_truth(case, *, truth_tets, cache, cache_dir):
