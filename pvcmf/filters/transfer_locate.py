@@ -110,7 +110,7 @@ class _TriangleSet:
         corners = points[tri]
         centre = corners.mean(axis=1)
         self.radius = np.linalg.norm(corners - centre[:, None, :], axis=2).max(axis=1)
-        self.tree = cKDTree(centre, balanced_tree=False, compact_nodes=False)
+        self.tree = cKDTree(centre, balanced_tree=False)
         e = corners[:, [0, 1, 2]] - corners[:, [1, 2, 0]]
         self.h = float(np.median(np.linalg.norm(e, axis=2)))
         self.frames = _Triangles(corners)
@@ -138,7 +138,7 @@ class MeshIndex:
         src = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, pts)
         self.tri = tri = _boundary_faces(src)
         self.boundary = np.unique(tri)
-        self.btree = cKDTree(pts[self.boundary], balanced_tree=False, compact_nodes=False)
+        self.btree = cKDTree(pts[self.boundary], balanced_tree=False)
         e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
         self.h_max = float(np.linalg.norm(e, axis=2).max()) if len(tri) else 0.0
         self._triangles = self._median = None
