@@ -10,8 +10,9 @@ its known row structure; scipy's sparse product sums each node's entries in the 
 order and drops zeros, so the only sort left is the one of each row's indices. The
 compiled kernels are called directly where scipy provides them (the sum of the feet's
 duplicates, the product into arrays sized by a bound read off the row lengths instead
-of a counting pass, the sort): the same kernels as the operators ``+`` and ``@``, so the
-same sums, without the index conversions and checks around them.
+of a counting pass): the same kernels as the operators ``+`` and ``@``, so the same
+sums, without the index conversions and checks around them; each row's indices are
+then sorted by transposing the product twice (two linear passes; the values only move).
 """
 
 import numpy as np
@@ -20,9 +21,9 @@ import scipy.sparse as sp
 from .transfer_locate import stacked_gradients
 
 try:  # scipy's compiled CSR kernels (the ones its operators call)
-    from scipy.sparse._sparsetools import csr_matmat, csr_plus_csr, csr_sort_indices
+    from scipy.sparse._sparsetools import csr_matmat, csr_plus_csr, csr_tocsc
 except ImportError:  # pragma: no cover - other scipy layouts: the operators instead
-    csr_matmat = csr_plus_csr = csr_sort_indices = None
+    csr_matmat = csr_plus_csr = csr_tocsc = None
 
 __all__ = ["rows_operator"]
 
@@ -135,7 +136,13 @@ class _Kernels:
         return _Kernels((val[:ptr[-1]], idx[:ptr[-1]], ptr), (n, other.shape[1]))
 
     def sort_indices(self):
-        csr_sort_indices(self.shape[0], self.indptr, self.indices, self.data)
+        """Each row's indices sorted: the matrix transposed twice (two counting passes,
+        which list each row's entries by column; no entry repeats)."""
+        n, m = self.shape
+        nnz = self.nnz
+        ptr, idx, val = np.empty(m + 1, np.int32), np.empty(nnz, np.int32), np.empty(nnz)
+        csr_tocsc(n, m, self.indptr, self.indices, self.data, ptr, idx, val)
+        csr_tocsc(m, n, ptr, idx, val, self.indptr, self.indices, self.data)
 
     def csr(self):
         """A :class:`scipy.sparse.csr_matrix` of its own copies (sorted indices)."""
