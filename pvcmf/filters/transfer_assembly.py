@@ -69,7 +69,8 @@ def rows_operator(loc, scale, offsets):
     # of [I; D] bounds the product's)
     entries = 3 * len(loc.pair_row) + 4 * n + 3 * loc.near.shape[1] * len(loc.outside)
     top = max(m + 3 * nb, S.nnz, entries * int(np.diff(S.indptr).max(initial=1)))
-    if csr_matmat is None or top >= 2**31 or S.indices.dtype != np.int32:
+    if (csr_matmat is None or top >= 2**31 or S.indices.dtype != np.int32
+            or S.indptr.dtype != np.int32):
         return _rows_operator(loc, scale, offsets, S, sp.csr_matrix, np.int64)
     return _rows_operator(loc, scale, offsets, S, _Kernels, np.int32)
 
