@@ -188,3 +188,37 @@ def test_unavoidable_crumples_across_a_gap():
         assert c["points"].any() == forced
         m = crumple_metric(plate, transfer_operator(grid, plate) @ u, grid, u)
         assert m[arrays.CRUMPLE_VIOLATIONS] >= c[arrays.CRUMPLE_UNAVOIDABLE]
+
+
+def test_rows_kernels_and_bin_table_equal_the_plain_paths(ball, monkeypatch):
+    """The rows' assembly on scipy's kernels (int32, bounded product, sort by double
+    transpose) equals the one on scipy's operators bit for bit, and the boxes' bin table
+    lists the same boxes as binary searches of the sorted bins."""
+    from pvcmf.filters import transfer_assembly
+    from pvcmf.filters.surface_mapping import _decay, _fit_weights
+    from pvcmf.filters.transfer_locate import Located
+
+    grid, skin = ball
+    pts = np.vstack([np.asarray(skin.points) * np.r_[1.0, 1.1, 1.3],
+                     np.asarray(grid.points)[::7] * 0.9])  # outside and inside
+    loc = Located(grid, pts, reach=8.0)
+    alpha, offset = _fit_weights(loc)
+    decay = _decay(loc.dist, 4.0)
+    args = (loc, alpha * decay[loc.pair_row], offset * decay[loc.outside][:, None])
+    fast = transfer_assembly.rows_operator(*args)
+    monkeypatch.setattr(transfer_assembly, "csr_matmat", None)
+    plain = transfer_assembly.rows_operator(*args)
+    assert fast.nnz > 10 * len(pts) and fast.has_sorted_indices
+    within = np.ones(fast.nnz, dtype=bool)  # entries after the first of their row
+    within[fast.indptr[:-1][np.diff(fast.indptr) > 0]] = False
+    assert (np.diff(fast.indices)[within[1:]] > 0).all()  # each row's indices increase
+    for a in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(fast, a), getattr(plain, a)), a
+    bins = loc.index.bins
+    probe = np.vstack([pts, np.random.default_rng(0).uniform(-15, 15, (500, 3))])
+    table = bins.of(probe)
+    monkeypatch.setattr(bins, "_first", lambda: None)
+    searched = bins.of(probe)
+    assert table[1].size and (table[2] > table[1]).any() and (table[2] == table[1]).any()
+    for a, b in zip(table, searched):
+        assert np.array_equal(a, b)

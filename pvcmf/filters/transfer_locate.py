@@ -110,7 +110,7 @@ class _TriangleSet:
         corners = points[tri]
         centre = corners.mean(axis=1)
         self.radius = np.linalg.norm(corners - centre[:, None, :], axis=2).max(axis=1)
-        self.tree = cKDTree(centre, balanced_tree=False, compact_nodes=False)
+        self.tree = cKDTree(centre, balanced_tree=False)
         e = corners[:, [0, 1, 2]] - corners[:, [1, 2, 0]]
         self.h = float(np.median(np.linalg.norm(e, axis=2)))
         self.frames = _Triangles(corners)
@@ -138,7 +138,7 @@ class MeshIndex:
         src = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, pts)
         self.tri = tri = _boundary_faces(src)
         self.boundary = np.unique(tri)
-        self.btree = cKDTree(pts[self.boundary], balanced_tree=False, compact_nodes=False)
+        self.btree = cKDTree(pts[self.boundary], balanced_tree=False)
         e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
         self.h_max = float(np.linalg.norm(e, axis=2).max()) if len(tri) else 0.0
         self._triangles = self._median = None
@@ -498,6 +498,22 @@ class _BoxBins:
         valid = ((ip >= 0) & (ip < dims)).all(axis=1)
         ip = np.where(valid[:, None], ip, 0).astype(np.int64)
         pkey = np.where(valid, (ip[:, 2] * dims[1] + ip[:, 1]) * dims[0] + ip[:, 0], -1)
-        start = np.searchsorted(key, pkey, side="left")
-        stop = np.where(valid, np.searchsorted(key, pkey, side="right"), start)
+        first = self._first()
+        if first is None:
+            start = np.searchsorted(key, pkey, side="left")
+            stop = np.where(valid, np.searchsorted(key, pkey, side="right"), start)
+        else:  # (the keys are integers: a bin's boxes end where the next bin's begin)
+            at = np.where(valid, pkey, 0)
+            start = np.where(valid, first[at], 0)
+            stop = np.where(valid, first[at + 1], start)
         return self.box, start, stop, pkey
+
+    def _first(self):
+        """Per bin, where its boxes begin in the sorted list (and the end after the last
+        bin), made on first use where the grid has at most a few bins per box entry
+        (else None: binary searches instead)."""
+        first = getattr(self, "_first_box", None)
+        n_bins = int(np.prod(self.dims.astype(float)))
+        if first is None and n_bins <= 4 * len(self.key) + 1024:
+            first = self._first_box = np.searchsorted(self.key, np.arange(n_bins + 1))
+        return first
