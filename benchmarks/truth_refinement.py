@@ -299,8 +299,8 @@ def change_picture(points, change, path):
         pl.add_points(pv.PolyData(points[ok]), scalars=change[ok], clim=[0, 0.5],
                       cmap="viridis", point_size=5,
                       scalar_bar_args={"title": "skin change mm", "vertical": True,
-                                       "position_x": 0.84, "position_y": 0.15,
-                                       "height": 0.7, "width": 0.1})
+                                       "position_x": 0.76, "position_y": 0.15,
+                                       "height": 0.7, "width": 0.08})
         if note and i == 0:
             pl.add_text(note, position="upper_left", font_size=10, color="black")
         pl.view_vector(view, viewup=up)
