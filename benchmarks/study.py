@@ -36,7 +36,7 @@ Run::
     python benchmarks/study.py --refinement --patients 1 2 3 4 --spacing 3 \
         --counts 4000 8000 16000 --order-check --fine 40000
     python benchmarks/study.py --refinement --mesher graded --materials field \
-        --patients 1 2 3 4 --spacing 3 --counts 30000 --face-mm 4.0 3.2
+        --patients 1 2 3 4 --spacing 3 --counts 30000 --face-mm 4.0 3.2 2.56 --until-converged
     python benchmarks/study.py --compare --truth independent --patients 1 2 3 4
     python benchmarks/study.py --cohort 2 --spacing 3 --n-tets 8000 --truth-tets 4000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 2000 \

@@ -392,11 +392,25 @@ def _truth_mismatch(ref, truth_tets, mesher, face_mm, materials):
         other.append(f"with the conforming spacing of {ref.get('count')} tetrahedra outside "
                      f"the face, not this run's {truth_tets}")
     faces = {(r.get("coarse_face"), r.get("fine_face")) for r in pats}
-    if any(face_mm not in pair for pair in faces):
-        other.append("with face sizes " + ", ".join(
-            f"{a} -> {b} mm" for a, b in sorted(faces, key=str)) + f", not this run's "
-            f"{face_mm:g} mm")
+    if any(a is None or b is None for a, b in faces):
+        other.append("without face sizes")
     return other
+
+
+def _face_relation(pats, face_mm):
+    """Where this run's face size lies against each patient's two finest truths: a phrase
+    naming the patients of each relation (the coarser / finer of the two, coarser than
+    both, finer than both, between them)."""
+    groups = {}
+    for p, r in pats.items():
+        a, b = float(r["coarse_face"]), float(r["fine_face"])
+        rel = ("the coarser of the two finest" if np.isclose(face_mm, a) else
+               "the finer of the two finest" if np.isclose(face_mm, b) else
+               "coarser than the two finest" if face_mm > a else
+               "finer than the two finest" if face_mm < b else
+               "between the two finest")
+        groups.setdefault(rel, []).append(p)
+    return "; ".join(f"{rel} for patient(s) {', '.join(ps)}" for rel, ps in groups.items())
 
 
 def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
@@ -422,11 +436,9 @@ def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
     other = _truth_mismatch(ref, truth_tets, mesher, face_mm, materials)
     faces = ""
     if mesher == "graded" and not other:
-        which = {"coarser" if face_mm == r["coarse_face"] else "finer"
-                 for r in pats.values()}
-        faces = (f"; face {_span([r['coarse_face'] for r in pats.values()], 'g')} and "
-                 f"{_span([r['fine_face'] for r in pats.values()], 'g')} mm, this run's "
-                 f"truth has the options of the {' and '.join(sorted(which))}")
+        faces = (f"; face {_span([float(r['coarse_face']) for r in pats.values()], 'g')} "
+                 f"and {_span([float(r['fine_face']) for r in pats.values()], 'g')} mm; "
+                 f"this run's face {face_mm:g} mm is " + _face_relation(pats, face_mm))
     done = [p for p, r in pats.items() if r["p90"] <= 0.1]
     if len(done) == len(pats):
         verdict = "it has converged there (p90 <= 0.1 mm)."

@@ -381,13 +381,22 @@ def test_cohort_page_says_whether_the_refinement_is_of_its_graded_truth(tmp_path
     text = bench.truth_note("independent", 30000, page, "graded", 4.0, "field")
     assert "mesher ``graded``, face 4 mm" in text and "materials ``field``" in text
     assert text.count("not this run's") == 1  # only "not this run's patients"
-    assert "Its refinement" in text and "options of the coarser" in text
+    assert "Its refinement" in text
+    assert "face 4 mm is the coarser of the two finest for patient(s) 1, 3" in text
     assert "converged there (p90 <= 0.1 mm) for patient(s) 3, not for patient(s) 1" in text
     assert "p90 0.05-0.17 mm" in text
-    assert "options of the finer" in bench.truth_note("independent", 30000, page, "graded",
-                                                      3.2, "field")
-    for args, phrase in (((30000, page, "graded", 3.0, "field"), "not this run's 3 mm"),
-                         ((20000, page, "graded", 4.0, "field"), "not this run's 20000"),
+    assert "the finer of the two finest" in bench.truth_note("independent", 30000, page,
+                                                             "graded", 3.2, "field")
+    between = bench.truth_note("independent", 30000, page, "graded", 3.5, "field")
+    assert "3.5 mm is between the two finest for patient(s) 1, 3" in between
+    mixed = page.read_text().replace("| 1 | 44294 | 4.0 |", "| 1 | 44294 | 3.2 |").replace(
+        "| 1 | 66484 | 3.2 |", "| 1 | 66484 | 2.56 |")
+    mixed_page = page.with_name("mixed.md")
+    mixed_page.write_text(mixed)
+    text = bench.truth_note("independent", 30000, mixed_page, "graded", 4.0, "field")
+    assert ("coarser than the two finest for patient(s) 1; the coarser of the two finest "
+            "for patient(s) 3") in text, text
+    for args, phrase in (((20000, page, "graded", 4.0, "field"), "not this run's 20000"),
                          ((30000, page, "graded", 4.0, "cells"), "materials ``field``, not"),
                          ((30000, page, "conforming", None, "field"), "mesher ``graded``, "
                                                                       "not this run's")):
