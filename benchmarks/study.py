@@ -22,6 +22,10 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    two meshes' skins, :func:`mesh_note`), cost per patient cold and warm (warm:
    the patients and the judged skins read from the cache, checked bit for bit against
    the cold run, and the claims computed again): writes ``docs/benchmarks/cohort.md``.
+4. ``--blend-mm B B ...``: the first of ``--patients`` at the face sizes ``--face-mm``
+   (graded, the last of ``--counts`` elsewhere) and each blend width of the truth's
+   osteotomy blend (:mod:`truth_blend`): the refinement change per blend and the skin's
+   change between blends; writes ``docs/benchmarks/truth_blend.md``.
    Its sentence on the truth's convergence is read from the table of
    ``truth_refinement.md`` (``truth_refinement.truth_note``). ``--truth-mesher``,
    ``--truth-face-mm``, ``--truth-materials``: the independent truth's options (``graded``,
@@ -43,6 +47,8 @@ Run::
         --fine-tets 60000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 30000 \
         --truth-mesher graded --truth-face-mm 4.0 --truth-materials field --fine-tets 60000
+    python benchmarks/study.py --blend-mm 4 8 2 --patients 1 --spacing 3 --counts 30000 \
+        --face-mm 4.0 3.2 --materials field
 """
 
 from __future__ import annotations
@@ -76,6 +82,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from truth_refinement import (  # noqa: E402 (the refinement study: benchmarks/truth_refinement.py)
     PAGE, _truth_name, fine_truth_cost, order_check, refinement, truth_note,
 )
+import truth_blend  # noqa: E402 (the truth's blend width: benchmarks/truth_blend.py)
 
 
 def compare(patients, truth, spacing, n_tets, truth_tets, **truth_options):
@@ -520,6 +527,9 @@ def main(argv=None):
     ap.add_argument("--until-converged", action="store_true",
                     help="refinement: stop a patient's sequence once its skin changes by "
                          "p90 <= 0.1 mm from the level before")
+    ap.add_argument("--blend-mm", type=float, nargs="+", default=None, metavar="MM",
+                    help="the truth's osteotomy blend widths to compare (the first is the "
+                         "reference; needs two --face-mm): writes truth_blend.md")
     ap.add_argument("--materials", default="cells", choices=["cells", "field"],
                     help="with --refinement: the independent truth's materials (per "
                          "tetrahedron, or a field of the position)")
@@ -544,6 +554,17 @@ def main(argv=None):
              f"Command: `python benchmarks/study.py {' '.join(sys.argv[1:] if argv is None else argv)}`  ",
              f"Machine: {platform.machine()}, Python {sys.version.split()[0]}, "
              f"pvcmf {pvcmf.__version__}.", ""]
+    if args.blend_mm:
+        command = "python benchmarks/study.py " + " ".join(sys.argv[1:] if argv is None else argv)
+        rows = truth_blend.blend_rows(args.patients[0], args.spacing, args.counts[-1],
+                                      args.face_mm or [], args.blend_mm,
+                                      materials=args.materials, cache=not args.no_cache)
+        truth_blend.PAGE.write_text(truth_blend.blend_page(
+            *rows, command, f"{platform.machine()}, Python {sys.version.split()[0]}, "
+            f"pvcmf {pvcmf.__version__}"))
+        print(truth_blend.PAGE.read_text())
+        if not (args.refinement or args.compare or args.cohort):
+            return
     if args.refinement:
         parts.append(refinement(args.patients, args.counts, args.spacing,
                                 cache=not args.no_cache, mesher=args.mesher,

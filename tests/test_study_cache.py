@@ -403,3 +403,58 @@ def test_cohort_page_says_whether_the_refinement_is_of_its_graded_truth(tmp_path
         text = bench.truth_note("independent", *args)
         assert phrase in text and "Its refinement" not in text, args
         assert "A refinement of the independent truth" in text
+
+
+def _blend_rows(p90_ref, p90_wide, spread):
+    refinement = [{"patient": 1, "blend": b, "faces": (4.0, 3.2), "tets": (44000, 66000),
+                   "folded": (28, 26), "p50": 0.01, "p90": p, "max": 1.0}
+                  for b, p in ((4.0, p90_ref), (8.0, p90_wide))]
+    cross = [{"patient": 1, "face": f, "blends": (4.0, 8.0), "p50": 0.01, "p90": s,
+              "max": 1.0} for f, s in ((4.0, spread - 0.01), (3.2, spread))]
+    return refinement, cross
+
+
+def test_blend_page_says_what_its_numbers_say():
+    """The truth-blend page's verdict is made from its rows: whether a blend converges,
+    and whether the blend moves the skin more than the refinement does."""
+    bench = _benchmark()
+    ref, cross = _blend_rows(0.174, 0.166, 0.267)
+    text = bench.truth_blend.verdict(ref, cross)
+    assert "No blend width tried brings the truth under 0.1 mm" in text
+    assert "p90 0.267 mm, more than refining the face at blend 4 mm (0.174 mm)" in text
+    ref, cross = _blend_rows(0.174, 0.06, 0.05)
+    text = bench.truth_blend.verdict(ref, cross)
+    assert "converges with blend width(s) 8 mm only" in text and "No blend" not in text
+    assert "p90 0.050 mm, less than refining" in text
+    page = bench.truth_blend.blend_page(ref, cross, "python benchmarks/study.py --blend-mm 4 8",
+                                        "x86_64")
+    assert "| 1 | 8 | 4 -> 3.2 | 44000 -> 66000 | 28 -> 26 | 0.010 | 0.060 | 1.000 |" in page
+    assert "| 1 | 3.2 | 4 -> 8 | 0.010 | 0.050 | 1.000 |" in page
+
+
+@pytest.mark.parametrize("blend", [0.0, -1.0, float("nan"), float("inf"), "wide", True, None])
+def test_truth_rejects_a_bad_blend_width(blend):
+    from pvcmf.truth.independent import independent_truth_grid
+
+    with pytest.raises(ValueError, match="blend_mm must be a positive finite width"):
+        independent_truth_grid(object(), blend_mm=blend)
+
+
+def test_truth_ties_the_bone_with_the_blend_width_asked(monkeypatch):
+    """``blend_mm`` reaches the truth's boundary model (not its default)."""
+    from pvcmf.truth import independent
+
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def boundary(case, grid, blend=None, **_):
+        seen["blend"] = blend
+        raise Stop
+
+    monkeypatch.setattr(independent, "soft_tissue_mesh", lambda case, **_: "grid")
+    monkeypatch.setattr(independent, "_boundary_conditions", boundary)
+    with pytest.raises(Stop):
+        independent.independent_truth_grid(object(), blend_mm=7.5)
+    assert seen["blend"] == 7.5

@@ -360,7 +360,8 @@ def _boundary_conditions(case, grid, blend=BLEND_MM, clearance=CLEARANCE_MM):
 
 def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fraction=0.5,
                            cache=True, cache_dir=None, mesher="lattice", reuse_factor=False,
-                           materials="cells", face_mm=3.0, progress_bar=False):
+                           materials="cells", face_mm=3.0, blend_mm=BLEND_MM,
+                           progress_bar=False):
     """The solved independent truth of a virtual patient (module docstring).
 
     Parameters
@@ -392,6 +393,10 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         evaluated at the quadrature points: the same material on every mesh.
     face_mm : float, default 3.0
         With ``mesher='graded'``: the size (mm) of the surface sampling in the face.
+    blend_mm : float, default :data:`BLEND_MM`
+        Width (mm, Gaussian sigma) over which the tied bone surface's data blends from one
+        segment's move to the next across an osteotomy (a modelling choice of the truth:
+        ``benchmarks/study.py --blend-mm`` measures how far the skin depends on it).
     reuse_factor : bool, default False
         Passed to :func:`pvcmf.truth.solver.solve_reference` (conjugate gradients
         preconditioned by the last factorisation between refactorisations; the same
@@ -412,6 +417,12 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
     """
     if materials not in ("cells", "field"):
         raise ValueError(f"materials must be 'cells' or 'field', got {materials!r}")
+    try:
+        blend = float(blend_mm) if not isinstance(blend_mm, bool) else np.nan
+    except (TypeError, ValueError):
+        blend = np.nan
+    if not (np.isfinite(blend) and blend > 0):
+        raise ValueError(f"blend_mm must be a positive finite width in mm, got {blend_mm!r}")
     if mesher == "lattice":
         grid = soft_tissue_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
     elif mesher == "conforming":
@@ -420,7 +431,7 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         grid = graded_mesh(case, n_tets=n_tets, face_mm=face_mm, face_fraction=face_fraction)
     else:
         raise ValueError(f"mesher must be 'lattice', 'conforming' or 'graded', got {mesher!r}")
-    grid = _boundary_conditions(case, grid)
+    grid = _boundary_conditions(case, grid, blend=blend)
     # Table I; the fibre direction is immaterial to the truth's law for Table I (its fibre
     # term vanishes where the muscle is softer along the fibre than across)
     grid = filters.assign_materials(grid, default_fiber=(0.0, 0.0, 1.0))
