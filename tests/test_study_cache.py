@@ -458,3 +458,11 @@ def test_truth_ties_the_bone_with_the_blend_width_asked(monkeypatch):
     with pytest.raises(Stop):
         independent.independent_truth_grid(object(), blend_mm=7.5)
     assert seen["blend"] == 7.5
+
+
+def test_blend_study_needs_two_widths_and_two_face_sizes():
+    bench = _benchmark()
+    with pytest.raises(ValueError, match="need two blend widths and two face sizes"):
+        bench.truth_blend.blend_rows(1, 3.0, 30000, [4.0], [4.0, 8.0])
+    with pytest.raises(ValueError, match="need two blend widths and two face sizes"):
+        bench.truth_blend.blend_rows(1, 3.0, 30000, [4.0, 3.2], [4.0])
