@@ -8,7 +8,9 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    (:mod:`pvcmf.truth.refinement`), and the p50 / p90 / max of its change between
    successive counts. Converged when the p90 between the two finest is <= 0.1 mm.
    With ``--mesher graded`` the sequence is the face sizes ``--face-mm`` (coarse to
-   fine), the finest count setting the size elsewhere.
+   fine), the finest count setting the size elsewhere; ``--face-margin-mm M`` grows the
+   fine ball to hold the soft tissue within M mm of the moved bones
+   (:func:`pvcmf.truth.graded.face_ball`).
 2. ``--compare``: the study (``study_predictor(truth=...)``) of "proposed",
    "state_of_the_art" and the controls, and :func:`pvcmf.study.inference.compare_methods`
    per patient and over the patients.
@@ -22,14 +24,15 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    two meshes' skins, :func:`mesh_note`), cost per patient cold and warm (warm:
    the patients and the judged skins read from the cache, checked bit for bit against
    the cold run, and the claims computed again): writes ``docs/benchmarks/cohort.md``.
+   Its sentence on the truth's convergence is read from the table of
+   ``truth_refinement.md`` (``truth_refinement.truth_note``). ``--truth-mesher``,
+   ``--truth-face-mm``, ``--truth-materials``, ``--truth-face-margin-mm``: the independent
+   truth's options (``graded``, a face size, ``field``, a margin: the truth of the
+   refinement study, solved as it solves it).
 4. ``--blend-mm B B ...``: the first of ``--patients`` at the face sizes ``--face-mm``
    (graded, the last of ``--counts`` elsewhere) and each blend width of the truth's
    osteotomy blend (:mod:`truth_blend`): the refinement change per blend and the skin's
    change between blends; writes ``docs/benchmarks/truth_blend.md``.
-   Its sentence on the truth's convergence is read from the table of
-   ``truth_refinement.md`` (``truth_refinement.truth_note``). ``--truth-mesher``,
-   ``--truth-face-mm``, ``--truth-materials``: the independent truth's options (``graded``,
-   a face size, ``field``: the truth of the refinement study, solved as it solves it).
 
 Writes markdown tables to ``docs/benchmarks/truth_refinement.md`` (1, 2) with the command
 and machine.
@@ -41,6 +44,9 @@ Run::
         --counts 4000 8000 16000 --order-check --fine 40000
     python benchmarks/study.py --refinement --mesher graded --materials field \
         --patients 1 2 3 4 --spacing 3 --counts 30000 --face-mm 4.0 3.2 2.56 --until-converged
+    python benchmarks/study.py --refinement --mesher graded --materials field \
+        --patients 1 2 3 4 --spacing 3 --counts 30000 --face-mm 4.0 3.2 2.56 \
+        --face-margin-mm 30 --until-converged
     python benchmarks/study.py --compare --truth independent --patients 1 2 3 4
     python benchmarks/study.py --cohort 2 --spacing 3 --n-tets 8000 --truth-tets 4000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 2000 \
@@ -167,7 +173,7 @@ def _same_skins(cold, warm):
 
 def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fine_tets=None,
                  nus=NU_GRID, checkpoint=None, every=4, warm=None, truth_mesher="lattice",
-                 truth_face_mm=None, truth_materials="cells"):
+                 truth_face_mm=None, truth_materials="cells", truth_face_margin_mm=0.0):
     """Run ``n`` seeded cohort patients through both input modes, twice (cold, warm).
 
     Both runs use one cache folder (``cache_dir``, default a new temporary one, so the cold
@@ -179,8 +185,8 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fi
     ``checkpoint(results, status)`` is called with the results so far after every
     ``every`` cold patients and after the cold run, so a run stopped early leaves a
     labelled page. ``warm``: how many patients the warm run repeats (default all).
-    ``truth_mesher``, ``truth_face_mm``, ``truth_materials``: the independent truth's
-    options (``study_predictor``)."""
+    ``truth_mesher``, ``truth_face_mm``, ``truth_materials``, ``truth_face_margin_mm``:
+    the independent truth's options (``study_predictor``)."""
     tmp = None if cache_dir else tempfile.TemporaryDirectory(prefix="pvcmf_cohort_")
     cache_dir = cache_dir or tmp.name
     draw = cohort_parameters(n, seed)
@@ -201,7 +207,8 @@ def cohort_study(n, seed, spacing, n_tets, truth_tets, truth, cache_dir=None, fi
                                       cases={p: case}, cache_dir=cache_dir,
                                       prediction_cache=True, fine_tets=fine_tets,
                                       truth_mesher=truth_mesher, truth_face_mm=truth_face_mm,
-                                      truth_materials=truth_materials)
+                                      truth_materials=truth_materials,
+                                      truth_face_margin_mm=truth_face_margin_mm)
             s, _, tab = run_study(predict, patients=(p,), methods=methods, regions=False)
             timing.append({"run": run, "patient": p, "seconds": time.perf_counter() - t,
                            "p90_change_mm": np.nan, "identical": None})
@@ -279,12 +286,14 @@ def _mesh_rows(paper001):
     return list(rows.itertuples(index=False))
 
 
-def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets, truth_face_mm=None):
+def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets, truth_face_mm=None,
+              truth_face_margin_mm=0.0):
     """The cohort page's section on paper 001's mesh-size claim: what the claim says,
     the equivalence of the two meshes' skins (independent of the truth), the paired error
     (against the truth), and the verdict, read from ``mesh`` (``mesh_size_table``) and the
     rows of ``paper001``. ``truth_face_mm``: the face size of a graded truth
-    (``truth_tets`` then sets its size elsewhere only)."""
+    (``truth_tets`` then sets its size elsewhere only), ``truth_face_margin_mm`` its
+    margin around the moved bones."""
     paired, clinical, paper, skin = _mesh_rows(paper001)
     tol = CLINICAL_TOLERANCE_MM
 
@@ -306,7 +315,9 @@ def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets, truth_face_mm=None)
                "as fine as the coarser model mesh")
     truth = (f"The truth of this run has {truth_tets} tetrahedra, {coarser}."
              if truth_face_mm is None else
-             f"The truth of this run is graded: {truth_face_mm:g} mm in the face, the "
+             f"The truth of this run is graded: {truth_face_mm:g} mm in the face"
+             + (f" and within {truth_face_margin_mm:g} mm of the moved bones"
+                if truth_face_margin_mm else "") + ", the "
              f"conforming spacing of {truth_tets} tetrahedra elsewhere (more tetrahedra "
              "than that in all).")
     return [
@@ -350,7 +361,8 @@ def cohort_page(args, res, command, status="complete"):
     from pvcmf.study.validation import JUDGE_LIMIT
 
     table, claims, cost, paper001 = res["table"], res["claims"], res["cost"], res["paper001"]
-    options = (args.truth_mesher, args.truth_face_mm, args.truth_materials)  # the truth's
+    options = (args.truth_mesher, args.truth_face_mm, args.truth_materials,  # the truth's
+               args.truth_face_margin_mm)
     spread, fine_tets = res["spread"], res["fine_tets"]
     cold = cost[cost.run == "cold"].seconds
     warm = cost[cost.run == "warm"].seconds
@@ -426,7 +438,8 @@ def cohort_page(args, res, command, status="complete"):
         "against 200 000; section \"Mesh size\" below).", "",
         "## Mesh size", "",
         *mesh_note(res["mesh"], paper001, args.n_tets, fine_tets, args.truth_tets,
-                   args.truth_face_mm if args.truth_mesher == "graded" else None),
+                   args.truth_face_mm if args.truth_mesher == "graded" else None,
+                   args.truth_face_margin_mm),
         "## Errors per patient and method", "",
         _markdown(errors[keep].round(3)), "",
         "## Paper 000's claims, paired over the patients", "",
@@ -486,7 +499,8 @@ def cohort_page(args, res, command, status="complete"):
 def _truth_options(args):
     """The independent truth's options of the command line (``study_predictor``'s names)."""
     return {"truth_mesher": args.truth_mesher, "truth_face_mm": args.truth_face_mm,
-            "truth_materials": args.truth_materials}
+            "truth_materials": args.truth_materials,
+            "truth_face_margin_mm": args.truth_face_margin_mm}
 
 
 def main(argv=None):
@@ -524,6 +538,9 @@ def main(argv=None):
                     help="with --refinement --mesher graded: the face sizes (mm) of the "
                          "sequence, coarse to fine (the finest --counts sets the size "
                          "elsewhere)")
+    ap.add_argument("--face-margin-mm", type=float, default=0.0, metavar="MM",
+                    help="with --refinement --mesher graded: the fine ball also holds the "
+                         "soft tissue within MM of the moved bones")
     ap.add_argument("--until-converged", action="store_true",
                     help="refinement: stop a patient's sequence once its skin changes by "
                          "p90 <= 0.1 mm from the level before")
@@ -544,6 +561,9 @@ def main(argv=None):
     ap.add_argument("--truth-face-mm", type=float, default=None, metavar="MM",
                     help="cohort, --compare, with --truth-mesher graded: the face size (mm); "
                          "--truth-tets sets the size elsewhere")
+    ap.add_argument("--truth-face-margin-mm", type=float, default=0.0, metavar="MM",
+                    help="cohort, --compare, with --truth-mesher graded: the fine ball also "
+                         "holds the soft tissue within MM of the moved bones")
     ap.add_argument("--truth-materials", default="cells", choices=["cells", "field"],
                     help="cohort, --compare: the independent truth's materials")
     ap.add_argument("-v", "--verbose", action="store_true", help="log the steps")
@@ -569,7 +589,8 @@ def main(argv=None):
         parts.append(refinement(args.patients, args.counts, args.spacing,
                                 cache=not args.no_cache, mesher=args.mesher,
                                 materials=args.materials, face_mm=args.face_mm,
-                                until=0.1 if args.until_converged else None))
+                                until=0.1 if args.until_converged else None,
+                                face_margin_mm=args.face_margin_mm))
         if args.order_check:
             parts[-1] += order_check(args.patients[0], args.counts[-1], args.spacing,
                                      args.mesher)

@@ -149,9 +149,15 @@ def _levels(counts, mesher, face_mm):
         return [(counts[-1], f) for f in face_mm]
     return [(n, None) for n in counts]
 
+_MARGIN = (" With ``--face-margin-mm {0:g}`` the ball also holds every soft-tissue voxel "
+           "within {0:g} mm of a moved bone voxel (its radius: the farthest such voxel from "
+           "the centre; ``face_ball``): around a compact moved segment (a maxilla) the "
+           "tissue the move carries, the upper cheeks, reaches beyond the ball of the bone "
+           "itself.")
+
 
 def refinement(patients, counts, spacing, cache=True, mesher="lattice", materials="cells",
-               face_mm=None, until=None):
+               face_mm=None, until=None, face_margin_mm=0.0):
     """The refinement sequence of each patient (``_levels``), coarse to fine; with
     ``until`` (mm), a patient's sequence stops at the first level whose skin change p90
     from the one before is at most ``until`` (its finer levels are not solved)."""
@@ -165,7 +171,8 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
         for n, face in levels:
             grid = independent_truth_grid(case, n_tets=n, cache=cache, mesher=mesher,
                                           materials=materials, reuse_factor=True,
-                                          **({"face_mm": face} if face else {}))
+                                          **({"face_mm": face, "face_margin_mm": face_margin_mm}
+                                             if face else {}))
             row = _row(p, grid)
             row["face"] = face
             if prev is not None:
@@ -214,7 +221,8 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
             "(``BLEND_MM``); the posterior plane is held except within ``CLEARANCE_MM`` of "
             "a moved bone; the tongue is not meshed (free, as the oral air); "
             + (_FIELD if materials == "field" else _CELLS) + " "
-            + {"conforming": _CONFORMING, "graded": _CONFORMING + " " + _GRADED}.get(
+            + {"conforming": _CONFORMING, "graded": _CONFORMING + " " + _GRADED
+               + (_MARGIN.format(face_margin_mm) if face_margin_mm else "")}.get(
                 mesher, _LATTICE) + "\n\n")
     fits = []
     for p in patients:  # cost ~ tets^k from this patient's solves, projected to 30k and 60k
@@ -310,7 +318,8 @@ def change_picture(points, change, path):
 
 def refinement_rows(page=PAGE):
     """The refinement table of ``truth_refinement.md`` (written by :func:`refinement`):
-    its mesher, materials and finest count (``--counts`` of its command; None when the
+    its mesher, materials, face margin (``--face-margin-mm`` of its command, 0 without)
+    and finest count (``--counts`` of its command; None when the
     page does not give it) and, per patient, the tetrahedra and face sizes (mm; None
     without a ``face mm`` column) of its two finest truths and the skin change between
     them (p50, p90 mm), a finer truth's paragraph ("A finer truth, patient ...") taking
@@ -352,7 +361,9 @@ def refinement_rows(page=PAGE):
     materials = "field" if "materials ``field``" in text else "cells"
     command = re.search(r"Command: `[^`]*--counts((?: \d+)+)", text)
     count = int(command.group(1).split()[-1]) if command else None
-    return {"mesher": mesher, "materials": materials, "count": count, "patients": finest}
+    margin = re.search(r"Command: `[^`]*--face-margin-mm ([\d.]+)", text)
+    return {"mesher": mesher, "materials": materials, "count": count, "patients": finest,
+            "margin": float(margin.group(1)) if margin else 0.0}
 
 
 def _face(row):
@@ -366,16 +377,18 @@ def _span(values, fmt):
     return f"{lo:{fmt}}" if lo == hi else f"{lo:{fmt}}-{hi:{fmt}}"
 
 
-def _truth_name(truth, truth_tets, mesher, face_mm, materials):
+def _truth_name(truth, truth_tets, mesher, face_mm, materials, margin=0.0):
     """The truth of a run, in words."""
     if truth != "independent":
         return f"the {truth} truth of {truth_tets} tetrahedra"
-    face = (f", face {face_mm:g} mm (the conforming spacing of {truth_tets} tetrahedra "
-            "elsewhere)" if mesher == "graded" else f" of {truth_tets} tetrahedra")
+    face = (f", face {face_mm:g} mm" + (f" within {margin:g} mm of the moved bones"
+                                        if margin else "")
+            + f" (the conforming spacing of {truth_tets} tetrahedra elsewhere)"
+            if mesher == "graded" else f" of {truth_tets} tetrahedra")
     return f"the {truth} truth (mesher ``{mesher}``{face}, materials ``{materials}``)"
 
 
-def _truth_mismatch(ref, truth_tets, mesher, face_mm, materials):
+def _truth_mismatch(ref, truth_tets, mesher, face_mm, materials, margin=0.0):
     """How the refinement page's truths differ from this run's (phrases; none: the same
     options, this run's truth one of the two finest of each patient)."""
     pats = ref["patients"].values()
@@ -391,6 +404,9 @@ def _truth_mismatch(ref, truth_tets, mesher, face_mm, materials):
     if ref.get("count") != truth_tets:
         other.append(f"with the conforming spacing of {ref.get('count')} tetrahedra outside "
                      f"the face, not this run's {truth_tets}")
+    if not np.isclose(ref.get("margin", 0.0), margin):
+        other.append(f"with a face margin of {ref.get('margin', 0.0):g} mm, not this run's "
+                     f"{margin:g} mm")
     faces = {(r.get("coarse_face"), r.get("fine_face")) for r in pats}
     if any(a is None or b is None for a, b in faces):
         other.append("without face sizes")
@@ -414,14 +430,15 @@ def _face_relation(pats, face_mm):
 
 
 def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
-               materials="cells"):
+               materials="cells", face_margin_mm=0.0):
     """What the refinement page measured of the truth, read from its table: the sentence
     of the cohort page on how far the truth has converged. ``mesher``, ``face_mm``,
-    ``materials``: the independent truth's options (``study_predictor``'s
-    ``truth_mesher``, ``truth_face_mm``, ``truth_materials``); the refinement is this
-    truth's only when the page used the same ones (and, for ``graded``, the same count
+    ``materials``, ``face_margin_mm``: the independent truth's options
+    (``study_predictor``'s ``truth_mesher``, ``truth_face_mm``, ``truth_materials``,
+    ``truth_face_margin_mm``); the refinement is this truth's only when the page used the
+    same ones (and, for ``graded``, the same count
     outside the face and this run's face size as one of its two finest)."""
-    this = _truth_name(truth, truth_tets, mesher, face_mm, materials)
+    this = _truth_name(truth, truth_tets, mesher, face_mm, materials, face_margin_mm)
     ref = refinement_rows(page) if truth == "independent" else None
     caveat = ("the errors below bound how far the models and this truth agree, not how "
               "accurate either is; a paired difference between two models is measured "
@@ -433,7 +450,7 @@ def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
     p90 = [r["p90"] for r in pats.values()]
     coarse = [r["coarse"] for r in pats.values()]
     fine = [r["fine"] for r in pats.values()]
-    other = _truth_mismatch(ref, truth_tets, mesher, face_mm, materials)
+    other = _truth_mismatch(ref, truth_tets, mesher, face_mm, materials, face_margin_mm)
     faces = ""
     if mesher == "graded" and not other:
         faces = (f"; face {_span([float(r['coarse_face']) for r in pats.values()], 'g')} "

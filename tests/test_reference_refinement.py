@@ -319,3 +319,64 @@ def test_graded_mesh_is_fine_in_the_face_and_keeps_the_vault_shell(case):
         return np.mean(skin_displacement(grid, vault)[1] < reach)
 
     assert reached(graded) >= 0.95 * reached(uniform) > 0.5
+
+
+def _moved_and_soft(case):
+    from pvcmf.filters.osteotomy import cut_bones, segment_transforms, voxel_points
+
+    labels = cut_bones(case.truth, case.plan)
+    moved = [s for s, m in segment_transforms(labels, case.plan).items()
+             if not np.allclose(m, np.eye(4))]
+    bone = np.asarray(labels[arrays.BONE])
+    soft = np.isin(np.asarray(case.truth[arrays.TISSUE]), arrays.SOFT_LABELS)
+    return (voxel_points(labels, np.flatnonzero(np.isin(bone, moved))),
+            voxel_points(case.truth, np.flatnonzero(soft)))
+
+
+def test_face_ball_margin_holds_the_soft_tissue_near_the_moved_bone(case):
+    from scipy.spatial import cKDTree
+
+    from pvcmf.truth.graded import face_ball
+
+    centre, radius = face_ball(case)
+    grown_centre, grown = face_ball(case, 20.0)
+    np.testing.assert_array_equal(grown_centre, centre)
+    assert face_ball(case, 0.0)[1] == radius
+    bone, soft = _moved_and_soft(case)
+    near = soft[cKDTree(bone).query(soft)[0] <= 20.0]
+    dist = np.linalg.norm(near - centre, axis=1)
+    # the maxilla is compact: much of the tissue it carries lies outside its own ball
+    assert np.mean(dist > radius) > 0.2
+    assert dist.max() <= grown + 1e-9
+    assert radius + 5.0 < grown <= radius + 20.0 + 1e-9  # every such voxel is that close
+    for bad in (-1.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="margin_mm must be a non-negative"):
+            face_ball(case, bad)
+
+
+def test_graded_mesh_margin_refines_the_tissue_around_the_moved_bone(case):
+    from pvcmf.truth.graded import face_ball, graded_mesh
+
+    face, n, margin = 4.0, 8000, 20.0
+    centre, radius = face_ball(case)
+    grown = face_ball(case, margin)[1]
+
+    def shell_edges(grid):
+        """Lengths (mm) of the skin's boundary edges between the plain and the grown ball."""
+        kind = np.asarray(grid["boundary"])
+        surf = grid.extract_surface(pass_pointid=True, algorithm="dataset_surface")
+        e = surf.extract_all_edges()
+        ids = np.asarray(surf.point_data[arrays.ORIGINAL_POINT_IDS])[
+            e.lines.reshape(-1, 3)[:, 1:]]
+        x = np.asarray(grid.points)[ids[(kind[ids] == 1).all(axis=1)]]
+        d = np.linalg.norm(x.mean(axis=1) - centre, axis=1)
+        shell = (d > radius + face) & (d < grown - face)
+        assert shell.sum() > 100
+        return np.linalg.norm(x[shell, 0] - x[shell, 1], axis=1)
+
+    plain = shell_edges(graded_mesh(case, n_tets=n, face_mm=face))
+    wide = shell_edges(graded_mesh(case, n_tets=n, face_mm=face, face_margin_mm=margin))
+    # sampled at the face size (edges up to its diagonal) where the plain mesh grows coarser
+    assert np.percentile(wide, 99) < np.sqrt(2) * face * 1.1
+    assert np.percentile(wide, 75) < 0.9 * np.percentile(plain, 75)
+    assert len(wide) > 1.15 * len(plain)

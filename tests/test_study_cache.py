@@ -14,6 +14,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 import pyvista as pv
@@ -290,6 +292,9 @@ def test_independent_truth_gets_the_options_of_the_refinement_study(tmp_path, mo
             ({"truth_mesher": "graded", "truth_face_mm": 4.0, "truth_materials": "field"},
              {"mesher": "graded", "materials": "field", "face_mm": 4.0,
               "reuse_factor": True}),
+            ({"truth_mesher": "graded", "truth_face_mm": 4.0, "truth_face_margin_mm": 30},
+             {"mesher": "graded", "materials": "cells", "face_mm": 4.0,
+              "face_margin_mm": 30.0, "reuse_factor": True}),
             ({"truth_mesher": "conforming"},
              {"mesher": "conforming", "materials": "cells", "reuse_factor": True})):
         predict = validation.study_predictor(spacing=3.0, n_tets=5000, truth_tets=30000,
@@ -299,7 +304,7 @@ def test_independent_truth_gets_the_options_of_the_refinement_study(tmp_path, mo
             predict(101, "proposed")
         assert received[-1] == {"n_tets": 30000, "cache": True, "cache_dir": tmp_path,
                                 **expected}, options
-    assert len(received) == 3
+    assert len(received) == 4
 
 
 def test_judged_skins_of_one_truth_are_not_read_for_another(tmp_path, monkeypatch,
@@ -313,11 +318,15 @@ def test_judged_skins_of_one_truth_are_not_read_for_another(tmp_path, monkeypatc
                     {"truth_mesher": "graded", "truth_face_mm": 4.0},
                     {"truth_mesher": "graded", "truth_face_mm": 3.2},
                     {"truth_mesher": "graded", "truth_face_mm": 3.2, "truth_materials": "field"},
+                    {"truth_mesher": "graded", "truth_face_mm": 3.2, "truth_materials": "field",
+                     "truth_face_margin_mm": 30.0},
                     {"truth_materials": "field"}):
         validation.study_predictor(spacing=3.0, truth="independent", cases=cases,
                                    cache_dir=tmp_path, prediction_cache=True,
                                    **options)(101, "proposed")
-    assert len({repr(sorted(k.items())) for k in keys}) == len(keys) == 6
+    assert len({repr(sorted(k.items())) for k in keys}) == len(keys) == 7
+    # no margin: the key of the judged skins cached before the option existed
+    assert not any("truth_face_margin_mm" in k for k in keys[:5])
 
 
 @pytest.mark.parametrize("options, message", [
@@ -331,6 +340,12 @@ def test_judged_skins_of_one_truth_are_not_read_for_another(tmp_path, monkeypatc
     ({"truth_face_mm": 4.0}, "truth_face_mm applies to truth_mesher 'graded' only"),
     ({"truth": None, "truth_mesher": "graded", "truth_face_mm": 4.0},
      "apply to truth 'independent' only"),
+    ({"truth_face_margin_mm": 30.0}, "truth_face_margin_mm applies to truth_mesher 'graded' "
+                                     "only (0 with truth_mesher 'lattice'), got 30.0"),
+    ({"truth_mesher": "graded", "truth_face_mm": 4.0, "truth_face_margin_mm": -5.0},
+     "truth_face_margin_mm must be a distance >= 0 mm, got -5.0"),
+    ({"truth_mesher": "graded", "truth_face_mm": 4.0, "truth_face_margin_mm": float("nan")},
+     "truth_face_margin_mm must be a distance >= 0 mm, got nan"),
 ])
 def test_independent_truth_options_are_checked(options, message):
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
@@ -351,14 +366,15 @@ def test_cohort_passes_the_truth_options_on(monkeypatch, tmp_path):
                         lambda *a, **k: type("Case", (), {"patient": 101})())
     with pytest.raises(StopIteration):
         bench.main(["--cohort", "1", "--truth-mesher", "graded", "--truth-face-mm", "4.0",
-                    "--truth-materials", "field", "--cache-dir", str(tmp_path)])
-    assert (got["truth"], got["truth_mesher"], got["truth_face_mm"],
-            got["truth_materials"]) == ("independent", "graded", 4.0, "field")
+                    "--truth-materials", "field", "--truth-face-margin-mm", "30",
+                    "--cache-dir", str(tmp_path)])
+    assert (got["truth"], got["truth_mesher"], got["truth_face_mm"], got["truth_materials"],
+            got["truth_face_margin_mm"]) == ("independent", "graded", 4.0, "field", 30.0)
     got.clear()
     with pytest.raises(StopIteration):
         bench.main(["--cohort", "1", "--cache-dir", str(tmp_path)])
-    assert (got["truth_mesher"], got["truth_face_mm"], got["truth_materials"]) == (
-        "lattice", None, "cells")
+    assert (got["truth_mesher"], got["truth_face_mm"], got["truth_materials"],
+            got["truth_face_margin_mm"]) == ("lattice", None, "cells", 0.0)
 
 
 def test_cohort_page_says_whether_the_refinement_is_of_its_graded_truth(tmp_path):
@@ -403,6 +419,19 @@ def test_cohort_page_says_whether_the_refinement_is_of_its_graded_truth(tmp_path
         text = bench.truth_note("independent", *args)
         assert phrase in text and "Its refinement" not in text, args
         assert "A refinement of the independent truth" in text
+    # a page refined with a face margin is this truth's only with the same margin
+    text = bench.truth_note("independent", 30000, page, "graded", 4.0, "field", 30.0)
+    assert "face margin of 0 mm, not this run's 30 mm" in text
+    assert "face 4 mm within 30 mm of the moved bones" in text
+    wide = page.with_name("wide.md")
+    wide.write_text(page.read_text().replace("--face-mm 4.0 3.2", "--face-mm 4.0 3.2 "
+                                             "--face-margin-mm 30"))
+    rows = sys.modules["truth_refinement"].refinement_rows
+    assert (rows(wide)["margin"], rows(page)["margin"]) == (30.0, 0.0)
+    assert "Its refinement" in bench.truth_note("independent", 30000, wide, "graded", 4.0,
+                                                "field", 30.0)
+    assert "not this run's 0 mm" in bench.truth_note("independent", 30000, wide, "graded",
+                                                     4.0, "field")
 
 
 def _blend_rows(p90_ref, p90_wide, spread):
@@ -466,3 +495,26 @@ def test_blend_study_needs_two_widths_and_two_face_sizes():
         bench.truth_blend.blend_rows(1, 3.0, 30000, [4.0], [4.0, 8.0])
     with pytest.raises(ValueError, match="need two blend widths and two face sizes"):
         bench.truth_blend.blend_rows(1, 3.0, 30000, [4.0, 3.2], [4.0])
+
+
+def test_refinement_passes_the_face_margin_on(monkeypatch):
+    """``study.py --refinement --mesher graded --face-margin-mm M`` reaches the truth."""
+    bench = _benchmark()
+    module = sys.modules["truth_refinement"]
+    got = []
+
+    def truth(case, **kwargs):
+        got.append(kwargs)
+        raise StopIteration
+
+    monkeypatch.setattr(module, "independent_truth_grid", truth)
+    monkeypatch.setattr(module, "exact_skin_samples", lambda case: np.zeros((1, 3)))
+    monkeypatch.setattr(module, "exact_skin_normals", lambda case, p: np.zeros((1, 3)))
+    monkeypatch.setattr(module.pvcmf.datasets, "phantom", lambda p, spacing: object())
+    for extra, margin in ((["--face-margin-mm", "30"], 30.0), ([], 0.0)):
+        with pytest.raises(StopIteration):
+            bench.main(["--refinement", "--mesher", "graded", "--materials", "field",
+                        "--patients", "1", "--spacing", "3", "--counts", "30000",
+                        "--face-mm", "4.0", "3.2", *extra])
+        assert (got[-1]["mesher"], got[-1]["face_mm"], got[-1]["face_margin_mm"],
+                got[-1]["n_tets"]) == ("graded", 4.0, margin, 30000)

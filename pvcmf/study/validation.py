@@ -118,7 +118,8 @@ JUDGE_LIMIT = 3.0
 def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                     truth_cache=True, cache_dir=None, truth=None, noise_hu=18.0,
                     ct_spacing=None, cases=None, prediction_cache=False, fine_tets=None,
-                    truth_mesher="lattice", truth_face_mm=None, truth_materials="cells"):
+                    truth_mesher="lattice", truth_face_mm=None, truth_materials="cells",
+                    truth_face_margin_mm=0.0):
     """The ``predict(patient, method)`` of paper 000's study on the virtual patients.
 
     The study runs the path of a real post-operative scan. For virtual patient ``patient``
@@ -199,6 +200,9 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         ``truth_tets`` sets the conforming spacing elsewhere.
     truth_materials : {'cells', 'field'}, default 'cells'
         With ``truth='independent'``: its materials (``independent_truth_grid(materials=...)``).
+    truth_face_margin_mm : float, default 0.0
+        With ``truth_mesher='graded'``: the fine ball also holds the soft tissue within this
+        distance (mm) of the moved bones (``independent_truth_grid(face_margin_mm=...)``).
     noise_hu : float, default 18.0
         Noise of the post-operative CT (HU).
     ct_spacing : float, optional
@@ -242,7 +246,8 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
                         ("fine_tets", fine_tets)):
         if int(value) < 100:
             raise ValueError(f"{name} must be an integer >= 100, got {value!r}")
-    independent = _independent_options(truth, truth_mesher, truth_face_mm, truth_materials)
+    independent = _independent_options(truth, truth_mesher, truth_face_mm, truth_materials,
+                                       truth_face_margin_mm)
     # a named truth is known by its options and code, so its judged skins can be cached
     named = {"truth": truth or "reference", "truth_tets": int(truth_tets),
              "noise_hu": float(noise_hu), "ct_spacing": ct_spacing,
@@ -306,7 +311,7 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
     return predict
 
 
-def _independent_options(truth, mesher, face_mm, materials):
+def _independent_options(truth, mesher, face_mm, materials, margin=0.0):
     """The options of ``independent_truth_grid`` for the study's independent truth
     (validated; those of the refinement study for the conforming and graded meshers)."""
     if mesher not in ("lattice", "conforming", "graded"):
@@ -321,6 +326,12 @@ def _independent_options(truth, mesher, face_mm, materials):
     if mesher != "graded" and face_mm is not None:
         raise ValueError(f"truth_face_mm applies to truth_mesher 'graded' only (None with "
                          f"truth_mesher {mesher!r}), got {face_mm!r}")
+    if not (isinstance(margin, (int, float, np.number)) and not isinstance(margin, bool)
+            and np.isfinite(margin) and margin >= 0):
+        raise ValueError(f"truth_face_margin_mm must be a distance >= 0 mm, got {margin!r}")
+    if margin and mesher != "graded":
+        raise ValueError(f"truth_face_margin_mm applies to truth_mesher 'graded' only (0 with "
+                         f"truth_mesher {mesher!r}), got {margin!r}")
     if truth != "independent" and (mesher, materials) != ("lattice", "cells"):
         raise ValueError(f"truth_mesher and truth_materials apply to truth 'independent' "
                          f"only (defaults 'lattice', 'cells' otherwise), got {mesher!r}, "
@@ -330,6 +341,8 @@ def _independent_options(truth, mesher, face_mm, materials):
         options["reuse_factor"] = True
     if mesher == "graded":
         options["face_mm"] = float(face_mm)
+        if margin:  # (absent at 0: the judged skins cached before the option keep their keys)
+            options["face_margin_mm"] = float(margin)
     return options
 
 

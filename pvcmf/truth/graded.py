@@ -18,8 +18,12 @@ count asked (so the rest of the head, the thin tissue over the skull vault inclu
 meshed at least as finely as by the conforming mesh of that count: along the sphere the
 grid is finer than along the radius). ``c`` and ``R`` come from the plan: the centroid of
 the moved bone segments and the largest distance of their voxels from it, so the ball
-holds all the moved bone and the tissue it carries (lips, chin, cheeks, and for a moved
-maxilla the nose). gmsh fills the contour with tetrahedra (sizes from the surface
+holds all the moved bone and the tissue next to it (lips, chin, and for a moved maxilla
+the nose). The tissue a bone move carries reaches farther than that ball where the moved
+segment is compact: around a moved maxilla most of the skin 10-30 mm from the bone (the
+upper cheeks) lies outside it, around a mandible almost none. ``face_margin_mm`` grows
+the ball to hold every soft-tissue voxel within that distance of a moved bone voxel.
+gmsh fills the contour with tetrahedra (sizes from the surface
 inwards), the boundary nodes are projected onto the exact surfaces and labelled as in
 :mod:`pvcmf.truth.conform`.
 
@@ -32,6 +36,7 @@ import logging
 
 import numpy as np
 import pyvista as pv
+from scipy.spatial import cKDTree
 
 from .. import arrays
 from ..filters.model_region import face_box
@@ -48,9 +53,14 @@ __all__ = ["face_ball", "graded_mesh", "radial_map"]
 GRADING = 0.25
 
 
-def face_ball(case):
+def face_ball(case, margin_mm=0.0, soft=None):
     """Centre (3,) and radius (mm) of the ball holding the plan's moved bone segments:
-    the centroid of their voxels and the largest distance of a voxel from it."""
+    the centroid of their voxels and the largest distance of a voxel from it; with
+    ``margin_mm`` > 0, grown to hold also the soft tissue within ``margin_mm`` of a moved
+    bone voxel (``soft``: the soft-tissue points (n, 3) to consider; default every soft
+    tissue voxel of ``case.truth``)."""
+    if not (np.isfinite(margin_mm) and margin_mm >= 0):
+        raise ValueError(f"margin_mm must be a non-negative distance in mm, got {margin_mm!r}")
     labels = cut_bones(case.truth, case.plan)
     moves = segment_transforms(labels, case.plan)
     moved = [s for s, m in moves.items() if not np.allclose(m, np.eye(4))]
@@ -60,7 +70,16 @@ def face_ball(case):
     ids = np.flatnonzero(np.isin(bone, moved))
     p = voxel_points(labels, ids)
     c = p.mean(axis=0)
-    return c, float(np.linalg.norm(p - c, axis=1).max())
+    radius = float(np.linalg.norm(p - c, axis=1).max())
+    if margin_mm > 0:
+        if soft is None:
+            tissue = np.asarray(case.truth[arrays.TISSUE])
+            soft = voxel_points(case.truth, np.flatnonzero(np.isin(tissue, arrays.SOFT_LABELS)))
+        soft = np.asarray(soft, dtype=float)
+        near = cKDTree(p).query(soft, distance_upper_bound=margin_mm)[0] <= margin_mm
+        if near.any():
+            radius = max(radius, float(np.linalg.norm(soft[near] - c, axis=1).max()))
+    return c, radius
 
 
 def radial_map(centre, radius, h_face, h_base, grading=GRADING, extent=1000.0):
@@ -127,7 +146,8 @@ def _graded_surface(warp, lo, hi, y0, phi, h_face):
     return pv.PolyData(phi(np.asarray(surf.points)), faces=surf.faces)
 
 
-def graded_mesh(case, *, n_tets=30_000, face_mm=3.0, face_fraction=0.5, progress_bar=False):
+def graded_mesh(case, *, n_tets=30_000, face_mm=3.0, face_fraction=0.5, face_margin_mm=0.0,
+                progress_bar=False):
     """The patient's true soft tissue meshed conforming to its surfaces, ``face_mm`` fine
     in the ball of the moved bones (module doc).
 
@@ -142,6 +162,10 @@ def graded_mesh(case, *, n_tets=30_000, face_mm=3.0, face_fraction=0.5, progress
         Size (mm) of the surface sampling in the ball; at most the size outside it.
     face_fraction : float, default 0.5
         Anterior share of the head that is meshed.
+    face_margin_mm : float, default 0.0
+        The ball also holds the soft tissue within this distance (mm) of the moved bones
+        (:func:`face_ball`): the tissue a small bone segment carries reaches beyond the
+        ball of the segment itself.
     progress_bar : bool, default False
         Unused (a few vectorised passes); kept for the common signature.
 
@@ -157,7 +181,7 @@ def graded_mesh(case, *, n_tets=30_000, face_mm=3.0, face_fraction=0.5, progress
     if not 0 < face_mm <= h_base:
         raise ValueError(f"face_mm must be in (0, {h_base:.2f}] (the size outside the "
                          f"face at n_tets={n_tets}), got {face_mm!r}")
-    centre, radius = face_ball(case)
+    centre, radius = face_ball(case, face_margin_mm, pts)
     phi, _ = radial_map(centre, radius, face_mm, h_base)
     lo, hi = pts.min(axis=0) - h_base, pts.max(axis=0) + h_base
     lo[1] = box[2] - 0.5 * h_base

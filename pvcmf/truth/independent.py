@@ -361,7 +361,7 @@ def _boundary_conditions(case, grid, blend=BLEND_MM, clearance=CLEARANCE_MM):
 def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fraction=0.5,
                            cache=True, cache_dir=None, mesher="lattice", reuse_factor=False,
                            materials="cells", face_mm=3.0, blend_mm=BLEND_MM,
-                           progress_bar=False):
+                           face_margin_mm=0.0, progress_bar=False):
     """The solved independent truth of a virtual patient (module docstring).
 
     Parameters
@@ -393,6 +393,9 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         evaluated at the quadrature points: the same material on every mesh.
     face_mm : float, default 3.0
         With ``mesher='graded'``: the size (mm) of the surface sampling in the face.
+    face_margin_mm : float, default 0.0
+        With ``mesher='graded'``: the fine ball also holds the soft tissue within this
+        distance (mm) of the moved bones (:func:`pvcmf.truth.graded.face_ball`).
     blend_mm : float, default :data:`BLEND_MM`
         Width (mm, Gaussian sigma) over which the tied bone surface's data blends from one
         segment's move to the next across an osteotomy (a modelling choice of the truth:
@@ -428,7 +431,8 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
     elif mesher == "conforming":
         grid = conforming_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
     elif mesher == "graded":
-        grid = graded_mesh(case, n_tets=n_tets, face_mm=face_mm, face_fraction=face_fraction)
+        grid = graded_mesh(case, n_tets=n_tets, face_mm=face_mm, face_fraction=face_fraction,
+                           face_margin_mm=face_margin_mm)
     else:
         raise ValueError(f"mesher must be 'lattice', 'conforming' or 'graded', got {mesher!r}")
     grid = _boundary_conditions(case, grid, blend=blend)
