@@ -457,12 +457,15 @@ def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
                  f"and {_span([float(r['fine_face']) for r in pats.values()], 'g')} mm; "
                  f"this run's face {face_mm:g} mm is " + _face_relation(pats, face_mm))
     done = [p for p, r in pats.items() if r["p90"] <= 0.1]
+    it = "that truth" if other else "it"  # a refinement of another truth than this run's
     if len(done) == len(pats):
-        verdict = "it has converged there (p90 <= 0.1 mm)."
+        verdict = f"{it} has converged there (p90 <= 0.1 mm)" + (
+            "; this run's truth is not that one, so how far it has converged is not "
+            "measured: " + caveat if other else ".")
     elif not done:
-        verdict = "it has not converged there (p90 above 0.1 mm), so " + caveat
+        verdict = f"{it} has not converged there (p90 above 0.1 mm), so " + caveat
     else:
-        verdict = (f"it has converged there (p90 <= 0.1 mm) for patient(s) "
+        verdict = (f"{it} has converged there (p90 <= 0.1 mm) for patient(s) "
                    f"{', '.join(done)}, not for patient(s) "
                    f"{', '.join(p for p in pats if p not in done)} (p90 above 0.1 mm), so "
                    + caveat)

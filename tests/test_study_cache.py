@@ -430,6 +430,14 @@ def test_cohort_page_says_whether_the_refinement_is_of_its_graded_truth(tmp_path
     assert (rows(wide)["margin"], rows(page)["margin"]) == (30.0, 0.0)
     assert "Its refinement" in bench.truth_note("independent", 30000, wide, "graded", 4.0,
                                                 "field", 30.0)
+    # every patient converged, but in another truth than this run's: said so, with the caveat
+    done = wide.with_name("done.md")
+    done.write_text(wide.read_text().replace("| 0.174 | 1.8 |", "| 0.074 | 1.8 |"))
+    own = bench.truth_note("independent", 30000, done, "graded", 4.0, "field", 30.0)
+    assert own.endswith("it has converged there (p90 <= 0.1 mm).")
+    other = bench.truth_note("independent", 30000, done, "graded", 4.0, "field")
+    assert ("that truth has converged there (p90 <= 0.1 mm); this run's truth is not that "
+            "one, so how far it has converged is not measured: the errors below") in other
     assert "not this run's 0 mm" in bench.truth_note("independent", 30000, wide, "graded",
                                                      4.0, "field")
 
