@@ -149,6 +149,7 @@ def _levels(counts, mesher, face_mm):
         return [(counts[-1], f) for f in face_mm]
     return [(n, None) for n in counts]
 
+
 _MARGIN = (" With ``--face-margin-mm {0:g}`` the ball also holds every soft-tissue voxel "
            "within {0:g} mm of a moved bone voxel (its radius: the farthest such voxel from "
            "the centre; ``face_ball``): around a compact moved segment (a maxilla) the "

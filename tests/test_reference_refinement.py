@@ -350,9 +350,21 @@ def test_face_ball_margin_holds_the_soft_tissue_near_the_moved_bone(case):
     assert np.mean(dist > radius) > 0.2
     assert dist.max() <= grown + 1e-9
     assert radius + 5.0 < grown <= radius + 20.0 + 1e-9  # every such voxel is that close
-    for bad in (-1.0, np.nan, np.inf):
+    for bad in (-1.0, np.nan, np.inf, "30", True):
         with pytest.raises(ValueError, match="margin_mm must be a non-negative"):
             face_ball(case, bad)
+
+
+def test_face_margin_is_checked_before_anything_is_meshed(case):
+    from pvcmf.truth.graded import graded_mesh
+    from pvcmf.truth.independent import independent_truth_grid
+
+    with pytest.raises(ValueError, match="face_margin_mm must be a non-negative distance "
+                                         "in mm, got -1.0"):
+        graded_mesh(case, face_mm=4.0, face_margin_mm=-1.0)
+    with pytest.raises(ValueError, match="face_margin_mm applies to mesher 'graded' only "
+                                         r"\(0 with mesher 'conforming'\), got 30"):
+        independent_truth_grid(case, mesher="conforming", face_margin_mm=30, cache=False)
 
 
 def test_graded_mesh_margin_refines_the_tissue_around_the_moved_bone(case):

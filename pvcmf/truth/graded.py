@@ -59,8 +59,7 @@ def face_ball(case, margin_mm=0.0, soft=None):
     ``margin_mm`` > 0, grown to hold also the soft tissue within ``margin_mm`` of a moved
     bone voxel (``soft``: the soft-tissue points (n, 3) to consider; default every soft
     tissue voxel of ``case.truth``)."""
-    if not (np.isfinite(margin_mm) and margin_mm >= 0):
-        raise ValueError(f"margin_mm must be a non-negative distance in mm, got {margin_mm!r}")
+    _check_margin(margin_mm, "margin_mm")
     labels = cut_bones(case.truth, case.plan)
     moves = segment_transforms(labels, case.plan)
     moved = [s for s, m in moves.items() if not np.allclose(m, np.eye(4))]
@@ -80,6 +79,13 @@ def face_ball(case, margin_mm=0.0, soft=None):
         if near.any():
             radius = max(radius, float(np.linalg.norm(soft[near] - c, axis=1).max()))
     return c, radius
+
+
+def _check_margin(value, name):
+    """Raise unless ``value`` is a finite distance >= 0 mm (``name``: the parameter)."""
+    ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+    if not (ok and np.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} must be a non-negative distance in mm, got {value!r}")
 
 
 def radial_map(centre, radius, h_face, h_base, grading=GRADING, extent=1000.0):
@@ -174,6 +180,7 @@ def graded_mesh(case, *, n_tets=30_000, face_mm=3.0, face_fraction=0.5, face_mar
     pyvista.UnstructuredGrid
         As :func:`pvcmf.truth.conform.conforming_mesh`.
     """
+    _check_margin(face_margin_mm, "face_margin_mm")
     warp = _warp(case)
     box = face_box(case.truth, face_fraction)
     pts, volume = _soft_points(case, box)

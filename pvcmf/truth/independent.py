@@ -427,6 +427,9 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         blend = np.nan
     if not (np.isfinite(blend) and blend > 0):
         raise ValueError(f"blend_mm must be a positive finite width in mm, got {blend_mm!r}")
+    if face_margin_mm and mesher != "graded":
+        raise ValueError(f"face_margin_mm applies to mesher 'graded' only (0 with mesher "
+                         f"{mesher!r}), got {face_margin_mm!r}")
     if mesher == "lattice":
         grid = soft_tissue_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
     elif mesher == "conforming":
