@@ -324,7 +324,9 @@ def refinement_rows(page=PAGE):
     page does not give it) and, per patient, the tetrahedra and face sizes (mm; None
     without a ``face mm`` column) of its two finest truths and the skin change between
     them (p50, p90 mm), a finer truth's paragraph ("A finer truth, patient ...") taking
-    over from the table's rows. None when the page or its table is missing."""
+    over from the table's rows (``patients``); ``steps``: per patient, every change
+    between consecutive rows of its table, coarsest first. None when the page or its
+    table is missing."""
     if not Path(page).exists():
         return None
     text = Path(page).read_text()
@@ -340,7 +342,7 @@ def refinement_rows(page=PAGE):
         if not line.startswith("|"):
             break
         rows.append(dict(zip(cols, (c.strip() for c in line.strip("|").split("|")))))
-    finest = {}
+    finest, steps = {}, {}
     for prev, row in zip(rows, rows[1:]):  # consecutive rows of one patient: a change
         if prev["patient"] == row["patient"] and row["p90 mm"] != "nan":
             finest[row["patient"]] = {"coarse": int(prev["tetrahedra"]),
@@ -348,6 +350,7 @@ def refinement_rows(page=PAGE):
                                       "coarse_face": _face(prev), "fine_face": _face(row),
                                       "p50": float(row["change p50 mm"]),
                                       "p90": float(row["p90 mm"])}
+            steps.setdefault(row["patient"], []).append(finest[row["patient"]])
     last = {r["patient"]: int(r["tetrahedra"]) for r in rows}
     for pat, tets, p50, p90 in re.findall(  # a finer truth's paragraph supersedes the table
             r"A finer truth, patient (\d+) \(.*?\): (\d+) tetrahedra .*?skin change from the "
@@ -364,7 +367,7 @@ def refinement_rows(page=PAGE):
     count = int(command.group(1).split()[-1]) if command else None
     margin = re.search(r"Command: `[^`]*--face-margin-mm ([\d.]+)", text)
     return {"mesher": mesher, "materials": materials, "count": count, "patients": finest,
-            "margin": float(margin.group(1)) if margin else 0.0}
+            "steps": steps, "margin": float(margin.group(1)) if margin else 0.0}
 
 
 def _face(row):
@@ -430,6 +433,44 @@ def _face_relation(pats, face_mm):
     return "; ".join(f"{rel} for patient(s) {', '.join(ps)}" for rel, ps in groups.items())
 
 
+def _then(phrase):
+    """``"; phrase"``, or nothing for an empty one."""
+    return f"; {phrase}" if phrase else ""
+
+
+def _run_level(steps, face_mm):
+    """How far a truth of face ``face_mm`` is from the next finer truth of each patient of
+    the refinement (``steps``: :func:`refinement_rows`'s): ``(phrase, within)``, ``within``
+    True when every patient's refinement measured that change and it is at most 0.1 mm
+    p90, or this face size is the patient's finest."""
+    near, far, finest, unmeasured = {}, {}, [], []
+    for p, rows in steps.items():
+        step = next((r for r in rows if r["coarse_face"] is not None
+                     and np.isclose(face_mm, r["coarse_face"])), None)
+        if step is not None:
+            (near if step["p90"] <= 0.1 else far)[p] = step["p90"]
+        elif rows and rows[-1]["fine_face"] is not None and (
+                face_mm < rows[-1]["fine_face"] or np.isclose(face_mm, rows[-1]["fine_face"])):
+            finest.append(p)
+        else:
+            unmeasured.append(p)
+    parts = [f"by p90 {_span(list(g.values()), '.2f')} mm for patient(s) {', '.join(g)} "
+             f"({why})" for g, why in ((near, "within 0.1 mm"),
+                                       (far, "more: there this run's truth is coarser than "
+                                             "the converged one")) if g]
+    phrase = ("" if not parts else f"a truth of this run's face {face_mm:g} mm changes the "
+              "skin from the next finer one " + ", and ".join(parts))
+    if finest:
+        phrase += ("; " if phrase else "") + (f"this run's face {face_mm:g} mm is as fine as "
+                                              f"the finest truth or finer for patient(s) "
+                                              f"{', '.join(finest)}")
+    if unmeasured:
+        phrase += ("; " if phrase else "") + (f"the change from a truth of face {face_mm:g} "
+                                              f"mm is not measured for patient(s) "
+                                              f"{', '.join(unmeasured)}")
+    return phrase, not far and not unmeasured
+
+
 def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
                materials="cells", face_margin_mm=0.0):
     """What the refinement page measured of the truth, read from its table: the sentence
@@ -459,17 +500,21 @@ def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
                  f"this run's face {face_mm:g} mm is " + _face_relation(pats, face_mm))
     done = [p for p, r in pats.items() if r["p90"] <= 0.1]
     it = "that truth" if other else "it"  # a refinement of another truth than this run's
-    if len(done) == len(pats):
+    level, level_ok = ("", True) if faces == "" else _run_level(ref.get("steps", {}), face_mm)
+    if len(done) == len(pats) and not level_ok:
+        verdict = (f"{it} has converged there (p90 <= 0.1 mm) at its finest truths"
+                   f"{_then(level)}, so " + caveat)
+    elif len(done) == len(pats):
         verdict = f"{it} has converged there (p90 <= 0.1 mm)" + (
             "; this run's truth is not that one, so how far it has converged is not "
-            "measured: " + caveat if other else ".")
+            "measured: " + caveat if other else f"{_then(level)}.")
     elif not done:
-        verdict = f"{it} has not converged there (p90 above 0.1 mm), so " + caveat
+        verdict = f"{it} has not converged there (p90 above 0.1 mm){_then(level)}, so " + caveat
     else:
         verdict = (f"{it} has converged there (p90 <= 0.1 mm) for patient(s) "
                    f"{', '.join(done)}, not for patient(s) "
-                   f"{', '.join(p for p in pats if p not in done)} (p90 above 0.1 mm), so "
-                   + caveat)
+                   f"{', '.join(p for p in pats if p not in done)} (p90 above 0.1 mm)"
+                   f"{_then(level)}, so " + caveat)
     return (f"The truth of this run is {this}. "
             + ("Its refinement" if not other else "A refinement of the independent truth")
             + f" (``truth_refinement.md``, patients {', '.join(pats)} of "

@@ -434,7 +434,26 @@ def test_cohort_page_says_whether_the_refinement_is_of_its_graded_truth(tmp_path
     done = wide.with_name("done.md")
     done.write_text(wide.read_text().replace("| 0.174 | 1.8 |", "| 0.074 | 1.8 |"))
     own = bench.truth_note("independent", 30000, done, "graded", 4.0, "field", 30.0)
-    assert own.endswith("it has converged there (p90 <= 0.1 mm).")
+    assert own.endswith("it has converged there (p90 <= 0.1 mm); a truth of this run's face "
+                        "4 mm changes the skin from the next finer one by p90 0.05-0.07 mm "
+                        "for patient(s) 1, 3 (within 0.1 mm)."), own
+    finest = bench.truth_note("independent", 30000, done, "graded", 3.2, "field", 30.0)
+    assert finest.endswith("as fine as the finest truth or finer for patient(s) 1, 3."), finest
+    # every patient's finest truths converged, but this run's face is a coarser level of
+    # one patient whose step from it is not: the errors are not called converged
+    deep = wide.with_name("deep.md")
+    deep.write_text(done.read_text().replace("--face-mm 4.0 3.2", "--face-mm 4.8 4.0 3.2")
+                    .replace("| 1 | 44294 | 4.0 | 5.9 | 1 | 1 | 1 | 1 | 0 | nan % | nan | nan "
+                             "| nan | nan |\n",
+                             "| 1 | 30000 | 4.8 | 6.9 | 1 | 1 | 1 | 1 | 0 | nan % | nan | nan "
+                             "| nan | nan |\n| 1 | 44294 | 4.0 | 5.9 | 1 | 1 | 1 | 1 | 0 | 99 % "
+                             "| 0.02 | 0.25 | 2.0 | 0.3 |\n"))
+    coarse = bench.truth_note("independent", 30000, deep, "graded", 4.8, "field", 30.0)
+    assert ("converged there (p90 <= 0.1 mm) at its finest truths; a truth of this run's face "
+            "4.8 mm changes the skin from the next finer one by p90 0.25 mm for patient(s) 1 "
+            "(more: there this run's truth is coarser than the converged one); the change "
+            "from a truth of face 4.8 mm is not measured for patient(s) 3, so the errors "
+            "below") in coarse, coarse
     other = bench.truth_note("independent", 30000, done, "graded", 4.0, "field")
     assert ("that truth has converged there (p90 <= 0.1 mm); this run's truth is not that "
             "one, so how far it has converged is not measured: the errors below") in other
