@@ -52,7 +52,8 @@ Run::
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 2000 \
         --fine-tets 60000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 30000 \
-        --truth-mesher graded --truth-face-mm 4.0 --truth-materials field --fine-tets 60000
+        --truth-mesher graded --truth-face-mm 4.0 --truth-face-margin-mm 30 \
+        --truth-materials field --fine-tets 60000
     python benchmarks/study.py --blend-mm 4 8 2 --patients 1 --spacing 3 --counts 30000 \
         --face-mm 4.0 3.2 --materials field
 """
