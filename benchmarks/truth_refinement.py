@@ -458,16 +458,15 @@ def _run_level(steps, face_mm):
              f"({why})" for g, why in ((near, "within 0.1 mm"),
                                        (far, "more: there this run's truth is coarser than "
                                              "the converged one")) if g]
-    phrase = ("" if not parts else f"a truth of this run's face {face_mm:g} mm changes the "
-              "skin from the next finer one " + ", and ".join(parts))
+    phrases = [f"a truth of this run's face {face_mm:g} mm changes the skin from the next "
+               "finer one " + ", and ".join(parts)] if parts else []
     if finest:
-        phrase += ("; " if phrase else "") + (f"this run's face {face_mm:g} mm is as fine as "
-                                              f"the finest truth or finer for patient(s) "
-                                              f"{', '.join(finest)}")
+        phrases.append(f"this run's face {face_mm:g} mm is as fine as the finest truth or "
+                       f"finer for patient(s) {', '.join(finest)}")
     if unmeasured:
-        phrase += ("; " if phrase else "") + (f"the change from a truth of face {face_mm:g} "
-                                              f"mm is not measured for patient(s) "
-                                              f"{', '.join(unmeasured)}")
+        phrases.append(f"the change from a truth of face {face_mm:g} mm is not measured for "
+                       f"patient(s) {', '.join(unmeasured)}")
+    phrase = "; ".join(phrases)
     return phrase, not far and not unmeasured
 
 
