@@ -84,6 +84,7 @@ from pvcmf.study.inference import (
 )
 from pvcmf.study.paper001 import FINE_METHOD, NU_GRID, PAPER001_AUTO_METHODS, PAPER_NU, nu_method
 from pvcmf.study.validation import run_study, study_predictor
+from pvcmf.truth.graded import check_face_size, face_size_text
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from truth_refinement import (  # noqa: E402 (the refinement study: benchmarks/truth_refinement.py)
@@ -316,7 +317,7 @@ def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets, truth_face_mm=None,
                "as fine as the coarser model mesh")
     truth = (f"The truth of this run has {truth_tets} tetrahedra, {coarser}."
              if truth_face_mm is None else
-             f"The truth of this run is graded: {truth_face_mm:g} mm in the face"
+             f"The truth of this run is graded: {face_size_text(truth_face_mm)} in the face"
              + (f" and within {truth_face_margin_mm:g} mm of the moved bones"
                 if truth_face_margin_mm else "") + ", the "
              f"conforming spacing of {truth_tets} tetrahedra elsewhere (more tetrahedra "
@@ -497,6 +498,20 @@ def cohort_page(args, res, command, status="complete"):
     return "\n".join(lines)
 
 
+def _face_size(text):
+    """``--truth-face-mm``: a size (``4.0``) or sizes per segment
+    (``maxilla=3.2,mandible=4.0``), checked by :func:`pvcmf.truth.graded.check_face_size`."""
+    try:
+        if "=" not in text:
+            return check_face_size(float(text))
+        pairs = [item.split("=") for item in text.split(",")]
+        return check_face_size({k.strip(): float(v) for k, v in pairs})
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(
+            f"a size in mm (4.0) or sizes per segment (maxilla=3.2,mandible=4.0), got "
+            f"{text!r} ({exc})") from None
+
+
 def _truth_options(args):
     """The independent truth's options of the command line (``study_predictor``'s names)."""
     return {"truth_mesher": args.truth_mesher, "truth_face_mm": args.truth_face_mm,
@@ -559,9 +574,11 @@ def main(argv=None):
                     choices=["lattice", "conforming", "graded"],
                     help="cohort, --compare: the independent truth's mesher (graded and "
                          "conforming solve as the refinement study does)")
-    ap.add_argument("--truth-face-mm", type=float, default=None, metavar="MM",
-                    help="cohort, --compare, with --truth-mesher graded: the face size (mm); "
-                         "--truth-tets sets the size elsewhere")
+    ap.add_argument("--truth-face-mm", type=_face_size, default=None, metavar="MM",
+                    help="cohort, --compare, with --truth-mesher graded: the face size (mm), "
+                         "or one per moved segment (maxilla=3.2,mandible=4.0: each "
+                         "patient's truth takes the smallest of the segments its plan "
+                         "moves); --truth-tets sets the size elsewhere")
     ap.add_argument("--truth-face-margin-mm", type=float, default=0.0, metavar="MM",
                     help="cohort, --compare, with --truth-mesher graded: the fine ball also "
                          "holds the soft tissue within MM of the moved bones")

@@ -19,6 +19,8 @@ import numpy as np
 
 import pvcmf
 from pvcmf import arrays, filters
+from pvcmf.plan import TABLE_II
+from pvcmf.truth.graded import face_size, face_size_text
 from pvcmf.truth.independent import independent_truth_grid
 from pvcmf.truth.refinement import (exact_skin_normals, exact_skin_samples,
                                     refinement_change)
@@ -385,10 +387,15 @@ def _truth_name(truth, truth_tets, mesher, face_mm, materials, margin=0.0):
     """The truth of a run, in words."""
     if truth != "independent":
         return f"the {truth} truth of {truth_tets} tetrahedra"
-    face = (f", face {face_mm:g} mm" + (f" within {margin:g} mm of the moved bones"
-                                        if margin else "")
-            + f" (the conforming spacing of {truth_tets} tetrahedra elsewhere)"
-            if mesher == "graded" else f" of {truth_tets} tetrahedra")
+    if mesher != "graded":
+        return (f"the {truth} truth (mesher ``{mesher}`` of {truth_tets} tetrahedra, "
+                f"materials ``{materials}``)")
+    within = ""
+    if margin:
+        within = ("," if isinstance(face_mm, dict) else "") + \
+            f" within {margin:g} mm of the moved bones"
+    face = (f", face {face_size_text(face_mm)}{within} (the conforming spacing of "
+            f"{truth_tets} tetrahedra elsewhere)")
     return f"the {truth} truth (mesher ``{mesher}``{face}, materials ``{materials}``)"
 
 
@@ -417,12 +424,21 @@ def _truth_mismatch(ref, truth_tets, mesher, face_mm, materials, margin=0.0):
     return other
 
 
-def _face_relation(pats, face_mm):
+def _patient_face(face_mm, patient):
+    """This run's face size (mm) for refinement patient ``patient`` (of
+    ``pvcmf.datasets.phantom``, plan ``TABLE_II``): ``face_mm``, or its size for the
+    segment that patient's plan moves."""
+    return face_size(face_mm, TABLE_II.get(int(patient)) if isinstance(face_mm, dict)
+                     else None)
+
+
+def _face_relation(pats, face_mm_of):
     """Where this run's face size lies against each patient's two finest truths: a phrase
     naming the patients of each relation (the coarser / finer of the two, coarser than
     both, finer than both, between them)."""
     groups = {}
     for p, r in pats.items():
+        face_mm = _patient_face(face_mm_of, p)
         a, b = float(r["coarse_face"]), float(r["fine_face"])
         rel = ("the coarser of the two finest" if np.isclose(face_mm, a) else
                "the finer of the two finest" if np.isclose(face_mm, b) else
@@ -438,13 +454,15 @@ def _then(phrase):
     return f"; {phrase}" if phrase else ""
 
 
-def _run_level(steps, face_mm):
-    """How far a truth of face ``face_mm`` is from the next finer truth of each patient of
-    the refinement (``steps``: :func:`refinement_rows`'s): ``(phrase, within)``, ``within``
-    True when every patient's refinement measured that change and it is at most 0.1 mm
+def _run_level(steps, face_mm_of):
+    """How far a truth of face ``face_mm_of`` (a size, or sizes per moved segment) is from
+    the next finer truth of each patient of the refinement (``steps``:
+    :func:`refinement_rows`'s): ``(phrase, within)``, ``within`` True when every patient's refinement measured that change and it is at most 0.1 mm
     p90, or this face size is the patient's finest."""
     near, far, finest, unmeasured = {}, {}, [], []
+    text = face_size_text(face_mm_of)
     for p, rows in steps.items():
+        face_mm = _patient_face(face_mm_of, p)
         step = next((r for r in rows if r["coarse_face"] is not None
                      and np.isclose(face_mm, r["coarse_face"])), None)
         if step is not None:
@@ -458,13 +476,13 @@ def _run_level(steps, face_mm):
              f"({why})" for g, why in ((near, "within 0.1 mm"),
                                        (far, "more: there this run's truth is coarser than "
                                              "the converged one")) if g]
-    phrases = [f"a truth of this run's face {face_mm:g} mm changes the skin from the next "
+    phrases = [f"a truth of this run's face {text} changes the skin from the next "
                "finer one " + ", and ".join(parts)] if parts else []
     if finest:
-        phrases.append(f"this run's face {face_mm:g} mm is as fine as the finest truth or "
+        phrases.append(f"this run's face {text} is as fine as the finest truth or "
                        f"finer for patient(s) {', '.join(finest)}")
     if unmeasured:
-        phrases.append(f"the change from a truth of face {face_mm:g} mm is not measured for "
+        phrases.append(f"the change from a truth of face {text} is not measured for "
                        f"patient(s) {', '.join(unmeasured)}")
     phrase = "; ".join(phrases)
     return phrase, not far and not unmeasured
@@ -496,7 +514,8 @@ def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
     if mesher == "graded" and not other:
         faces = (f"; face {_span([float(r['coarse_face']) for r in pats.values()], 'g')} "
                  f"and {_span([float(r['fine_face']) for r in pats.values()], 'g')} mm; "
-                 f"this run's face {face_mm:g} mm is " + _face_relation(pats, face_mm))
+                 f"this run's face {face_size_text(face_mm)} is "
+                 + _face_relation(pats, face_mm))
     done = [p for p, r in pats.items() if r["p90"] <= 0.1]
     it = "that truth" if other else "it"  # a refinement of another truth than this run's
     level, level_ok = ("", True) if faces == "" else _run_level(ref.get("steps", {}), face_mm)

@@ -295,6 +295,9 @@ def test_independent_truth_gets_the_options_of_the_refinement_study(tmp_path, mo
             ({"truth_mesher": "graded", "truth_face_mm": 4.0, "truth_face_margin_mm": 30},
              {"mesher": "graded", "materials": "cells", "face_mm": 4.0,
               "face_margin_mm": 30.0, "reuse_factor": True}),
+            ({"truth_mesher": "graded", "truth_face_mm": {"mandible": 4, "maxilla": 3.2}},
+             {"mesher": "graded", "materials": "cells", "reuse_factor": True,
+              "face_mm": {"mandible": 4.0, "maxilla": 3.2}}),
             ({"truth_mesher": "conforming"},
              {"mesher": "conforming", "materials": "cells", "reuse_factor": True})):
         predict = validation.study_predictor(spacing=3.0, n_tets=5000, truth_tets=30000,
@@ -304,7 +307,7 @@ def test_independent_truth_gets_the_options_of_the_refinement_study(tmp_path, mo
             predict(101, "proposed")
         assert received[-1] == {"n_tets": 30000, "cache": True, "cache_dir": tmp_path,
                                 **expected}, options
-    assert len(received) == 4
+    assert len(received) == 5
 
 
 def test_judged_skins_of_one_truth_are_not_read_for_another(tmp_path, monkeypatch,
@@ -320,11 +323,14 @@ def test_judged_skins_of_one_truth_are_not_read_for_another(tmp_path, monkeypatc
                     {"truth_mesher": "graded", "truth_face_mm": 3.2, "truth_materials": "field"},
                     {"truth_mesher": "graded", "truth_face_mm": 3.2, "truth_materials": "field",
                      "truth_face_margin_mm": 30.0},
-                    {"truth_materials": "field"}):
+                    {"truth_materials": "field"},
+                    {"truth_mesher": "graded", "truth_face_mm": {"maxilla": 3.2, "mandible": 4}},
+                    {"truth_mesher": "graded", "truth_face_mm": {"maxilla": 3.2,
+                                                                  "mandible": 3.2}}):
         validation.study_predictor(spacing=3.0, truth="independent", cases=cases,
                                    cache_dir=tmp_path, prediction_cache=True,
                                    **options)(101, "proposed")
-    assert len({repr(sorted(k.items())) for k in keys}) == len(keys) == 7
+    assert len({repr(sorted(k.items())) for k in keys}) == len(keys) == 9
     # no margin: the key of the judged skins cached before the option existed
     assert not any("truth_face_margin_mm" in k for k in keys[:5])
 
@@ -334,8 +340,12 @@ def test_judged_skins_of_one_truth_are_not_read_for_another(tmp_path, monkeypatc
                                "got 'gmsh'"),
     ({"truth_materials": "voxels"}, "truth_materials must be 'cells' or 'field', got "
                                     "'voxels'"),
-    ({"truth_mesher": "graded"}, "truth_face_mm must be a size > 0 mm with truth_mesher "
-                                 "'graded', got None"),
+    ({"truth_mesher": "graded"}, "truth_face_mm must be a size > 0 mm, or a mapping of the "
+                                 "moved segments to sizes, with truth_mesher 'graded', got "
+                                 "None"),
+    ({"truth_mesher": "graded", "truth_face_mm": {"maxilla": 3.2, "chin": 4.0}},
+     "got {'maxilla': 3.2, 'chin': 4.0}"),
+    ({"truth_mesher": "graded", "truth_face_mm": {"maxilla": 0.0}}, "got {'maxilla': 0.0}"),
     ({"truth_mesher": "graded", "truth_face_mm": -1.0}, "got -1.0"),
     ({"truth_face_mm": 4.0}, "truth_face_mm applies to truth_mesher 'graded' only"),
     ({"truth": None, "truth_mesher": "graded", "truth_face_mm": 4.0},
@@ -370,6 +380,14 @@ def test_cohort_passes_the_truth_options_on(monkeypatch, tmp_path):
                     "--cache-dir", str(tmp_path)])
     assert (got["truth"], got["truth_mesher"], got["truth_face_mm"], got["truth_materials"],
             got["truth_face_margin_mm"]) == ("independent", "graded", 4.0, "field", 30.0)
+    got.clear()
+    with pytest.raises(StopIteration):
+        bench.main(["--cohort", "1", "--truth-mesher", "graded", "--truth-face-mm",
+                    "maxilla=3.2, mandible=4", "--cache-dir", str(tmp_path)])
+    assert got["truth_face_mm"] == {"mandible": 4.0, "maxilla": 3.2}
+    for bad in ("chin=3", "maxilla=-1", "maxilla:3", "maxilla=3=4", "thin"):
+        with pytest.raises(SystemExit):
+            bench.main(["--cohort", "1", "--truth-mesher", "graded", "--truth-face-mm", bad])
     got.clear()
     with pytest.raises(StopIteration):
         bench.main(["--cohort", "1", "--cache-dir", str(tmp_path)])
@@ -459,6 +477,53 @@ def test_cohort_page_says_whether_the_refinement_is_of_its_graded_truth(tmp_path
             "one, so how far it has converged is not measured: the errors below") in other
     assert "not this run's 0 mm" in bench.truth_note("independent", 30000, wide, "graded",
                                                      4.0, "field")
+
+
+def test_cohort_page_judges_a_face_size_per_moved_segment_per_patient(tmp_path):
+    """With a face size per moved segment, each refinement patient is read at the size of
+    the segment its plan moves (patient 1: the maxilla, patient 3: the mandible)."""
+    bench = _benchmark()
+    row = "| {} | {} | {} | 5 | 1 | 1 | 1 | 1 | 0 | {} | {} | {} | 1.0 | {} |\n"
+    page = tmp_path / "truth_refinement.md"
+    page.write_text(
+        "Command: `python benchmarks/study.py --refinement --mesher graded --materials field "
+        "--patients 1 3 --spacing 3 --counts 30000 --face-mm 4.8 4.0 3.2 --face-margin-mm 30 "
+        "-v`\n\nModel ...; materials ``field`` (...). Mesher ``graded`` ...\n\n"
+        "| patient | tetrahedra | face mm | edge mm | dofs | Newton | factorisations "
+        "| solve s | released | skin compared | change p50 mm | p90 mm | max mm "
+        "| p90 mm, any closest triangle |\n" + "|---" * 14 + "|\n"
+        + row.format(1, 30000, 4.8, "nan %", "nan", "nan", "nan")
+        + row.format(1, 44000, 4.0, "99 %", 0.02, 0.25, 0.25)
+        + row.format(1, 66000, 3.2, "99 %", 0.01, 0.074, 0.074)
+        + row.format(3, 30000, 4.8, "nan %", "nan", "nan", "nan")
+        + row.format(3, 44000, 4.0, "99 %", 0.01, 0.054, 0.054))
+    per_segment = {"maxilla": 4.0, "mandible": 4.8}
+    text = bench.truth_note("independent", 30000, page, "graded", per_segment, "field", 30.0)
+    assert "face 4 mm where the maxilla moves, 4.8 mm where the mandible moves, within 30 mm" \
+        in text, text
+    assert "the coarser of the two finest for patient(s) 1, 3" in text, text
+    assert text.endswith("it has converged there (p90 <= 0.1 mm); a truth of this run's face "
+                         "4 mm where the maxilla moves, 4.8 mm where the mandible moves "
+                         "changes the skin from the next finer one by p90 0.05-0.07 mm for "
+                         "patient(s) 1, 3 (within 0.1 mm)."), text
+    uniform = bench.truth_note("independent", 30000, page, "graded", 4.8, "field", 30.0)
+    assert "by p90 0.25 mm for patient(s) 1 (more:" in uniform, uniform
+
+
+def test_face_size_per_moved_segment():
+    from pvcmf.plan import Osteotomy, Plan
+    from pvcmf.truth.graded import face_size
+
+    both = Plan([Osteotomy("maxilla", translation=(0, 0, 3)),
+                 Osteotomy("mandible", translation=(0, 0, -2))])
+    sizes = {"maxilla": 3.2, "mandible": 4.0}
+    assert face_size(sizes, both) == 3.2
+    assert face_size(sizes, Plan([Osteotomy("mandible", translation=(0, 0, 2))])) == 4.0
+    assert face_size(4, both) == 4.0
+    with pytest.raises(ValueError, match="a size for every segment the plan moves"):
+        face_size({"maxilla": 3.2}, both)
+    with pytest.raises(ValueError, match="a size for every segment the plan moves"):
+        face_size(sizes, None)
 
 
 def _blend_rows(p90_ref, p90_wide, spread):

@@ -21,6 +21,7 @@ from .. import arrays, filters, mtm
 from ..datasets import phantom
 from ..filters.osteotomy import cut_bones
 from ..pipeline import DEFAULT_FACE_FRACTION, face_box, simulate
+from ..truth.graded import check_face_size
 from ..truth.grid import _skin_of, truth_grid
 from ..truth.independent import independent_truth_grid
 from ..truth.postop import postop_ct
@@ -194,9 +195,11 @@ def study_predictor(*, spacing=2.0, n_tets=30_000, truth_tets=16_000, sigma=2.0,
         ``'conforming'`` and ``'graded'`` solve with ``reuse_factor=True``, as the
         refinement study (``benchmarks/truth_refinement.py``) does, so that the truth is
         the one whose convergence it measures.
-    truth_face_mm : float, optional
+    truth_face_mm : float or dict, optional
         With ``truth_mesher='graded'`` (and only then; required there): the size (mm) of
-        the surface sampling in the face (``independent_truth_grid(face_mm=...)``);
+        the surface sampling in the face (``independent_truth_grid(face_mm=...)``), or a
+        size per moved segment (``{"maxilla": 3.2, "mandible": 4.0}``: each patient's
+        truth takes the smallest of the segments its plan moves);
         ``truth_tets`` sets the conforming spacing elsewhere.
     truth_materials : {'cells', 'field'}, default 'cells'
         With ``truth='independent'``: its materials (``independent_truth_grid(materials=...)``).
@@ -319,10 +322,13 @@ def _independent_options(truth, mesher, face_mm, materials, margin=0.0):
                          f"{mesher!r}")
     if materials not in ("cells", "field"):
         raise ValueError(f"truth_materials must be 'cells' or 'field', got {materials!r}")
-    if mesher == "graded" and not (isinstance(face_mm, (int, float, np.number))
-                                   and face_mm > 0):
-        raise ValueError(f"truth_face_mm must be a size > 0 mm with truth_mesher 'graded', "
-                         f"got {face_mm!r}")
+    if mesher == "graded":
+        try:
+            face_mm = check_face_size(face_mm)
+        except ValueError:
+            raise ValueError(f"truth_face_mm must be a size > 0 mm, or a mapping of the "
+                             f"moved segments to sizes, with truth_mesher 'graded', got "
+                             f"{face_mm!r}") from None
     if mesher != "graded" and face_mm is not None:
         raise ValueError(f"truth_face_mm applies to truth_mesher 'graded' only (None with "
                          f"truth_mesher {mesher!r}), got {face_mm!r}")
@@ -340,7 +346,7 @@ def _independent_options(truth, mesher, face_mm, materials, margin=0.0):
     if mesher != "lattice":
         options["reuse_factor"] = True
     if mesher == "graded":
-        options["face_mm"] = float(face_mm)
+        options["face_mm"] = face_mm
         if margin:  # (absent at 0: the judged skins cached before the option keep their keys)
             options["face_margin_mm"] = float(margin)
     return options

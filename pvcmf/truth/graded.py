@@ -47,10 +47,71 @@ from .exact import _fields, _labelled_grid, _region, _volumes
 
 log = logging.getLogger("pvcmf.reference")
 
-__all__ = ["face_ball", "graded_mesh", "radial_map"]
+__all__ = ["face_ball", "face_size", "face_size_text", "graded_mesh", "radial_map"]
 
 #: growth (mm of element size per mm of distance) of the size beyond the refined ball
 GRADING = 0.25
+
+
+def face_size(face_mm, plan=None):
+    """The face size (mm) of a graded truth for ``plan``: ``face_mm`` itself, or, for a
+    mapping ``{segment: mm}`` (a size per moved segment: a truth converges at a coarser
+    face where the mandible moves than where the maxilla does, ``truth_refinement.md``),
+    the smallest size of the segments the plan moves.
+
+    Examples
+    --------
+    >>> from pvcmf.plan import TABLE_II
+    >>> from pvcmf.truth.graded import face_size
+    >>> face_size(4.0), face_size({"maxilla": 3.2, "mandible": 4.0}, TABLE_II[3])
+    (4.0, 4.0)
+    """
+    if not isinstance(face_mm, dict):
+        return float(check_face_size(face_mm))
+    sizes = check_face_size(face_mm)
+    moved = sorted({o.segment for o in getattr(plan, "osteotomies", ())})
+    missing = [s for s in moved if s not in sizes]
+    if not moved or missing:
+        raise ValueError(f"face_mm must give a size for every segment the plan moves "
+                         f"({moved}), got {face_mm!r}")
+    return min(sizes[s] for s in moved)
+
+
+def check_face_size(face_mm):
+    """``face_mm`` checked: a size > 0 mm, or a non-empty mapping of movable segments
+    (:data:`pvcmf.plan.MOVABLE_SEGMENTS`) to sizes > 0 mm (returned as floats, sorted)."""
+    from ..plan import MOVABLE_SEGMENTS
+
+    def size(value):
+        ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) \
+            and np.isfinite(value) and value > 0
+        if not ok:
+            raise ValueError(f"face_mm must be a size > 0 mm or a mapping of segments "
+                             f"{list(MOVABLE_SEGMENTS)} to sizes > 0 mm, got {face_mm!r}")
+        return float(value)
+
+    if not isinstance(face_mm, dict):
+        return size(face_mm)
+    if not face_mm or any(k not in MOVABLE_SEGMENTS for k in face_mm):
+        raise ValueError(f"face_mm must be a size > 0 mm or a mapping of segments "
+                         f"{list(MOVABLE_SEGMENTS)} to sizes > 0 mm, got {face_mm!r}")
+    return {k: size(face_mm[k]) for k in sorted(face_mm)}
+
+
+def face_size_text(face_mm):
+    """A face size, or one per moved segment, in words.
+
+    Examples
+    --------
+    >>> from pvcmf.truth.graded import face_size_text
+    >>> face_size_text(4.0), face_size_text({"mandible": 4, "maxilla": 3.2})
+    ('4 mm', '3.2 mm where the maxilla moves, 4 mm where the mandible moves')
+    """
+    sizes = check_face_size(face_mm)
+    if not isinstance(sizes, dict):
+        return f"{sizes:g} mm"
+    order = sorted(sizes, key=lambda k: (sizes[k], k))
+    return ", ".join(f"{sizes[k]:g} mm where the {k} moves" for k in order)
 
 
 def face_ball(case, margin_mm=0.0, soft=None):

@@ -70,7 +70,7 @@ from ..filters.osteotomy import cut_bones, segment_transforms, voxel_points
 from .anatomy import _warp
 from .conform import conforming_mesh
 from .exact import _BOUNDARY, _fields, _labelled_grid, _materials, _project, _region, _volumes  # noqa: F401,E501 (re-exported)
-from .graded import graded_mesh
+from .graded import face_size, graded_mesh
 from .grid import cached, grid_hash
 from .solver import solve_reference
 
@@ -392,8 +392,10 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         ``'cells'``: each tetrahedron mixes fat and muscle by its sampled muscle fraction;
         ``'field'``: the mixture is a field of the position (:func:`material_field`)
         evaluated at the quadrature points: the same material on every mesh.
-    face_mm : float, default 3.0
-        With ``mesher='graded'``: the size (mm) of the surface sampling in the face.
+    face_mm : float or dict, default 3.0
+        With ``mesher='graded'``: the size (mm) of the surface sampling in the face, or a
+        size per moved segment (``{"maxilla": 3.2, "mandible": 4.0}``: the smallest of the
+        segments the plan moves, :func:`pvcmf.truth.graded.face_size`).
     face_margin_mm : float, default 0.0
         With ``mesher='graded'``: the fine ball also holds the soft tissue within this
         distance (mm) of the moved bones (:func:`pvcmf.truth.graded.face_ball`).
@@ -435,8 +437,8 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
     elif mesher == "conforming":
         grid = conforming_mesh(case, n_tets=n_tets, face_fraction=face_fraction)
     elif mesher == "graded":
-        grid = graded_mesh(case, n_tets=n_tets, face_mm=face_mm, face_fraction=face_fraction,
-                           face_margin_mm=face_margin_mm)
+        grid = graded_mesh(case, n_tets=n_tets, face_mm=face_size(face_mm, case.plan),
+                           face_fraction=face_fraction, face_margin_mm=face_margin_mm)
     else:
         raise ValueError(f"mesher must be 'lattice', 'conforming' or 'graded', got {mesher!r}")
     grid = _boundary_conditions(case, grid, blend=blend)
