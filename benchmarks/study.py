@@ -10,7 +10,9 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    With ``--mesher graded`` the sequence is the face sizes ``--face-mm`` (coarse to
    fine), the finest count setting the size elsewhere; ``--face-margin-mm M`` grows the
    fine ball to hold the soft tissue within M mm of the moved bones
-   (:func:`pvcmf.truth.graded.face_ball`).
+   (:func:`pvcmf.truth.graded.face_ball`). ``--patients``: the phantoms 1-4 of
+   :func:`pvcmf.datasets.phantom`, and from 101 on the cohort's patients (seed 0, as the
+   cohort study builds them: ``truth_refinement.refinement_case``).
 2. ``--compare``: the study (``study_predictor(truth=...)``) of "proposed",
    "state_of_the_art" and the controls, and :func:`pvcmf.study.inference.compare_methods`
    per patient and over the patients.
@@ -27,7 +29,9 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    Its sentence on the truth's convergence is read from the table of
    ``truth_refinement.md`` (``truth_refinement.truth_note``). ``--truth-mesher``,
    ``--truth-face-mm``, ``--truth-materials``, ``--truth-face-margin-mm``: the independent
-   truth's options (``graded``, a face size, ``field``, a margin: the truth of the
+   truth's options (``graded``, a face size or one per moved segment
+   (``maxilla=3.2,mandible=4.0``: each patient's truth at the size where the refinement
+   converged for the segment its plan moves), ``field``, a margin: the truth of the
    refinement study, solved as it solves it).
 4. ``--blend-mm B B ...``: the first of ``--patients`` at the face sizes ``--face-mm``
    (graded, the last of ``--counts`` elsewhere) and each blend width of the truth's
@@ -47,13 +51,16 @@ Run::
     python benchmarks/study.py --refinement --mesher graded --materials field \
         --patients 1 2 3 4 --spacing 3 --counts 30000 --face-mm 4.0 3.2 2.56 \
         --face-margin-mm 30 --until-converged
+    python benchmarks/study.py --refinement --mesher graded --materials field \
+        --patients 1 2 3 4 102 103 --spacing 3 --counts 30000 --face-mm 4.0 3.2 2.56 \
+        --face-margin-mm 30 --until-converged
     python benchmarks/study.py --compare --truth independent --patients 1 2 3 4
     python benchmarks/study.py --cohort 2 --spacing 3 --n-tets 8000 --truth-tets 4000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 2000 \
         --fine-tets 60000
     python benchmarks/study.py --cohort 16 --spacing 3 --n-tets 30000 --truth-tets 30000 \
-        --truth-mesher graded --truth-face-mm 4.0 --truth-face-margin-mm 30 \
-        --truth-materials field --fine-tets 60000
+        --truth-mesher graded --truth-face-mm maxilla=3.2,mandible=4.0 \
+        --truth-face-margin-mm 30 --truth-materials field --fine-tets 60000
     python benchmarks/study.py --blend-mm 4 8 2 --patients 1 --spacing 3 --counts 30000 \
         --face-mm 4.0 3.2 --materials field
 """
@@ -537,7 +544,9 @@ def main(argv=None):
     ap.add_argument("--nu-grid", type=float, nargs="+", default=list(NU_GRID),
                     help="cohort: Poisson ratios of the homogeneous model's sweep")
     ap.add_argument("--truth", default="independent", choices=["independent", "reference"])
-    ap.add_argument("--patients", type=int, nargs="+", default=[1])
+    ap.add_argument("--patients", type=int, nargs="+", default=[1],
+                    help="refinement: phantoms 1-4 and, from 101 on, the cohort's patients "
+                         "(seed 0)")
     ap.add_argument("--counts", type=int, nargs="+", default=[8000, 16000, 32000])
     ap.add_argument("--spacing", type=float, default=2.0)
     ap.add_argument("--order-check", action="store_true",

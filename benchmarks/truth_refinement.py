@@ -20,12 +20,48 @@ import numpy as np
 import pvcmf
 from pvcmf import arrays, filters
 from pvcmf.plan import TABLE_II
+from pvcmf.study.cohort import cohort_parameters, virtual_patient
 from pvcmf.truth.graded import face_size, face_size_text
 from pvcmf.truth.independent import independent_truth_grid
 from pvcmf.truth.refinement import (exact_skin_normals, exact_skin_samples,
                                     refinement_change)
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "truth_refinement.md"
+#: the seed of the cohort whose patients (numbered from :data:`FIRST_COHORT` on) a
+#: refinement also takes: those of ``pvcmf.study.cohort.cohort(n, seed=0)``
+COHORT_SEED = 0
+FIRST_COHORT = 101
+
+
+def _draw(patient):
+    """Parameters and plan of cohort patient ``patient`` (the draw of a cohort is the same
+    for its first patients whatever its size)."""
+    i = int(patient) - FIRST_COHORT
+    return cohort_parameters(i + 1, COHORT_SEED)[i]
+
+
+def refinement_case(patient, spacing):
+    """Patient ``patient`` of a refinement: a phantom of ``pvcmf.datasets.phantom`` (1-4)
+    or, from :data:`FIRST_COHORT` on, that patient of the cohort (seed
+    :data:`COHORT_SEED`), as the cohort study builds it."""
+    if int(patient) >= FIRST_COHORT:
+        params, plan = _draw(patient)
+        return virtual_patient(params, plan, spacing=spacing, number=int(patient), cache=True)
+    return pvcmf.datasets.phantom(patient, spacing=spacing)
+
+
+def patient_plan(patient):
+    """The plan of refinement patient ``patient`` (``TABLE_II`` or the cohort's draw)."""
+    return _draw(patient)[1] if int(patient) >= FIRST_COHORT else TABLE_II[int(patient)]
+
+
+def patients_text(patients):
+    """Refinement patients in words: the phantoms and the cohort's patients."""
+    ph = [str(p) for p in patients if int(p) < FIRST_COHORT]
+    co = [str(p) for p in patients if int(p) >= FIRST_COHORT]
+    parts = ([f"patients {', '.join(ph)} of ``pvcmf.datasets.phantom``"] if ph else []) + (
+        [f"patients {', '.join(co)} of the cohort (seed {COHORT_SEED})"] if co else [])
+    return " and ".join(parts)
 
 
 def _row(p, grid):
@@ -43,7 +79,7 @@ def fine_truth_cost(patient, counts, fine, spacing, cache=True, mesher="lattice"
                     materials="cells"):
     """One finer truth of ``patient`` (``fine`` tetrahedra asked): its cost and the change
     of its skin from the finest truth of the table (``counts[-1]``)."""
-    case = pvcmf.datasets.phantom(patient, spacing=spacing)
+    case = refinement_case(patient, spacing)
     points = exact_skin_samples(case)
     coarse = independent_truth_grid(case, n_tets=counts[-1], cache=cache, mesher=mesher,
                                     materials=materials, reuse_factor=True)
@@ -89,7 +125,7 @@ def order_check(patient, count, spacing, mesher="lattice"):
     from pvcmf.truth.independent import _boundary_conditions, soft_tissue_mesh
     from pvcmf.truth.solver import solve_reference
 
-    case = pvcmf.datasets.phantom(patient, spacing=spacing)
+    case = refinement_case(patient, spacing)
     points = exact_skin_samples(case)
     mesh = conforming_mesh if mesher == "conforming" else soft_tissue_mesh
     grid = _boundary_conditions(case, mesh(case, n_tets=count))
@@ -167,7 +203,7 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
     rows = []
     levels = _levels(counts, mesher, face_mm)
     for p in patients:
-        case = pvcmf.datasets.phantom(p, spacing=spacing)
+        case = refinement_case(p, spacing)
         points = exact_skin_samples(case)
         normals = exact_skin_normals(case, points)
         prev = None
@@ -426,10 +462,9 @@ def _truth_mismatch(ref, truth_tets, mesher, face_mm, materials, margin=0.0):
 
 def _patient_face(face_mm, patient):
     """This run's face size (mm) for refinement patient ``patient`` (of
-    ``pvcmf.datasets.phantom``, plan ``TABLE_II``): ``face_mm``, or its size for the
+    :func:`refinement_case`, plan :func:`patient_plan`): ``face_mm``, or its size for the
     segment that patient's plan moves."""
-    return face_size(face_mm, TABLE_II.get(int(patient)) if isinstance(face_mm, dict)
-                     else None)
+    return face_size(face_mm, patient_plan(patient) if isinstance(face_mm, dict) else None)
 
 
 def _face_relation(pats, face_mm_of):
@@ -535,8 +570,9 @@ def truth_note(truth, truth_tets, page=PAGE, mesher="lattice", face_mm=None,
                    f"{_then(level)}, so " + caveat)
     return (f"The truth of this run is {this}. "
             + ("Its refinement" if not other else "A refinement of the independent truth")
-            + f" (``truth_refinement.md``, patients {', '.join(pats)} of "
-            "``pvcmf.datasets.phantom``, not this run's patients"
+            + f" (``truth_refinement.md``, {patients_text(pats)}"
+            + ("" if any(int(p) >= FIRST_COHORT for p in pats)
+               else ", not this run's patients")
             + (f"; {', and '.join(other)}" if other else "") + "): between the two finest "
             f"truths of each patient ({_span(coarse, 'd')} and {_span(fine, 'd')} "
             f"tetrahedra{faces}) the skin changes by p90 {_span(p90, '.2f')} mm, median "

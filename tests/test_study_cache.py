@@ -510,6 +510,21 @@ def test_cohort_page_judges_a_face_size_per_moved_segment_per_patient(tmp_path):
     assert "by p90 0.25 mm for patient(s) 1 (more:" in uniform, uniform
 
 
+def test_refinement_takes_cohort_patients_with_their_own_plans():
+    """Patients from 101 on are the cohort's (seed 0): their plans decide their face size,
+    and the cohort page names them as the cohort's."""
+    _benchmark()
+    refine = sys.modules["truth_refinement"]
+    draw = cohort.cohort_parameters(4, seed=0)
+    assert refine.patient_plan(102) == draw[1][1] and refine.patient_plan(103) == draw[2][1]
+    assert refine.patient_plan(1) is refine.TABLE_II[1]
+    sizes = {"maxilla": 3.2, "mandible": 4.0}
+    assert [refine._patient_face(sizes, p) for p in ("1", "3", "102", "103")] == [
+        3.2, 4.0, 3.2, 4.0]
+    assert refine.patients_text(["1", "102"]) == (
+        "patients 1 of ``pvcmf.datasets.phantom`` and patients 102 of the cohort (seed 0)")
+
+
 def test_face_size_per_moved_segment():
     from pvcmf.plan import Osteotomy, Plan
     from pvcmf.truth.graded import face_size
