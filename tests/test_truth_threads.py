@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from pvcmf.truth import solver
+from pvcmf.truth import linear as solver
 
 
 @pytest.mark.parametrize("pressure, free", [(0.0, True), (5.0, True), (20.0, False),
@@ -24,3 +24,4 @@ def test_without_pressure_information_the_load_counts_this_process(monkeypatch, 
     monkeypatch.setattr(solver.os, "getloadavg", lambda: (load, load, load))
     monkeypatch.setattr(solver.os, "cpu_count", lambda: 2)
     assert solver.cores_free() is free
+
