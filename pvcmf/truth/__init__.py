@@ -22,6 +22,8 @@ Modules:
 
 * :mod:`pvcmf.truth.solver` - :func:`solve_reference` (NGSolve, ``pip install
   pvcmf[reference]``);
+* :mod:`pvcmf.truth.linear` - its Newton systems' linear solves, and whether the cores
+  are free for NGSolve's threads (:func:`~pvcmf.truth.linear.cores_free`);
 * :mod:`pvcmf.truth.grid` - :func:`truth_grid` (the patient's true labels -> fine planned
   grid -> solve, cached on disk by :func:`grid_hash` through :mod:`pvcmf.cache`) and
   :func:`postop_skin`;

@@ -5,8 +5,7 @@ sparse systems of each Newton step.
 on contended cores they cost CPU time without a speed-up); :class:`_Linear` solves the
 Newton systems with a sparse direct factorisation, reused as the preconditioner of
 conjugate gradients between refactorisations. Delegates to NGSolve (sparse direct
-solvers, ``ngsolve.krylovspace.CGSolver``) and Linux's CPU pressure information
-(:func:`pvcmf.mtm.response_transfer.cpu_pressure`).
+solvers, ``ngsolve.krylovspace.CGSolver``) and Linux's CPU accounting (``/proc/stat``).
 """
 
 from __future__ import annotations
@@ -17,19 +16,55 @@ import time
 
 import numpy as np
 
-from ..mtm.response_transfer import CPU_PRESSURE_LIMIT, cpu_pressure
-
 log = logging.getLogger("pvcmf.reference")
 
-__all__ = ["cores_free"]
+__all__ = ["cores_free", "others_busy"]
+
+
+#: other processes may use up to this many cores for the cores to count as free
+OTHERS_LIMIT = 0.5
+#: how long (s) :func:`others_busy` watches the cores
+WATCH_S = 0.25
+
+
+def _snapshot():
+    """The machine's busy CPU time and this process's own (s), from ``/proc/stat`` (all
+    cores: user, nice, system, irq, softirq, steal) and :func:`os.times`."""
+    with open("/proc/stat", encoding="ascii") as fh:
+        ticks = [float(x) for x in fh.readline().split()[1:9]]
+    own = os.times()
+    busy = (sum(ticks) - ticks[3] - ticks[4]) / float(os.sysconf("SC_CLK_TCK"))
+    return busy, own.user + own.system
+
+
+def others_busy(interval=WATCH_S):
+    """Cores (a float) that other processes kept busy over ``interval`` seconds: the
+    machine's busy time less this process's own CPU time (all its threads), or None where
+    ``/proc/stat`` cannot be read. Unlike the load average or the CPU pressure, it does
+    not count the load this process makes itself (its own threads waiting for each
+    other's core).
+
+    Examples
+    --------
+    >>> from pvcmf.truth.linear import others_busy
+    >>> b = others_busy(0.05)
+    >>> b is None or b >= -0.5
+    True
+    """
+    try:
+        busy0, own0 = _snapshot()
+        time.sleep(interval)
+        busy1, own1 = _snapshot()
+    except (OSError, ValueError, IndexError):
+        return None
+    return ((busy1 - busy0) - (own1 - own0)) / interval
 
 
 def cores_free():
-    """Whether the cores are free for NGSolve's threads: runnable tasks waited for a core
-    less than :data:`~pvcmf.mtm.response_transfer.CPU_PRESSURE_LIMIT` percent of the last
-    ten seconds (:func:`~pvcmf.mtm.response_transfer.cpu_pressure`), or, where the kernel
-    gives no pressure information, the 1-minute load average (which counts this process
-    too) is below the number of cores.
+    """Whether the cores are free for NGSolve's threads: other processes keep less than
+    :data:`OTHERS_LIMIT` of a core busy (:func:`others_busy`), or, where that cannot be
+    measured, the 1-minute load average (which counts this process too) is below the
+    number of cores.
 
     Examples
     --------
@@ -37,9 +72,9 @@ def cores_free():
     >>> isinstance(cores_free(), bool)
     True
     """
-    pressure = cpu_pressure()
-    if pressure is not None:
-        return bool(pressure < CPU_PRESSURE_LIMIT)
+    busy = others_busy()
+    if busy is not None:
+        return bool(busy < OTHERS_LIMIT)
     return bool(os.getloadavg()[0] < (os.cpu_count() or 1))
 
 
