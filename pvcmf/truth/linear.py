@@ -29,11 +29,13 @@ WATCH_S = 0.25
 
 def _snapshot():
     """The machine's busy CPU time and this process's own (s), from ``/proc/stat`` (all
-    cores: user, nice, system, irq, softirq, steal) and :func:`os.times`."""
+    cores: user, nice, system, irq, softirq; not the time a hypervisor gave to other
+    machines, which the threads do not take from anyone here) and :func:`os.times`."""
     with open("/proc/stat", encoding="ascii") as fh:
-        ticks = [float(x) for x in fh.readline().split()[1:9]]
+        user, nice, system, _idle, _iowait, irq, softirq = (
+            float(x) for x in fh.readline().split()[1:8])
     own = os.times()
-    busy = (sum(ticks) - ticks[3] - ticks[4]) / float(os.sysconf("SC_CLK_TCK"))
+    busy = (user + nice + system + irq + softirq) / float(os.sysconf("SC_CLK_TCK"))
     return busy, own.user + own.system
 
 
