@@ -76,8 +76,15 @@ def cores_free():
     """
     busy = others_busy()
     if busy is not None:
-        return bool(busy < OTHERS_LIMIT)
-    return bool(os.getloadavg()[0] < (os.cpu_count() or 1))
+        free = bool(busy < OTHERS_LIMIT)
+        log.info("reference: other processes kept %.2f cores busy: NGSolve threads %s", busy,
+                 "on" if free else "off")
+        return free
+    load = os.getloadavg()[0]
+    free = bool(load < (os.cpu_count() or 1))
+    log.info("reference: load average %.2f on %s cores: NGSolve threads %s", load,
+             os.cpu_count(), "on" if free else "off")
+    return free
 
 
 class _Linear:
