@@ -264,14 +264,14 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
         newton_its = _load_steps(ngs, model, linear, steps=steps, tol=tol,
                                  max_newton=max_newton, predictor=predictor,
                                  progress_bar=progress_bar)
-    disp = model["gfu"].vec.FV().NumPy().reshape(-1, 3)[: model["mesh"].nv]
+    disp = _by_point(model["gfu"].vec.FV().NumPy())[: model["mesh"].nv]
     log.info("reference: %d dofs solved in %.1f s: %d Newton iterations, %d linear solves "
              "with %d %s factorisations (%.1f s) and %d CG iterations (solves %.1f s), "
-             "assembly %.1f s, energy %.1f s", 3 * model["fes"].ndof,
+             "assembly %.1f s, energy %.1f s", len(model["gfu"].vec.FV()),
              time.perf_counter() - start, newton_its, linear.solves, linear.factorizations,
              inverse, linear.times["factor"], linear.cg_iterations, linear.times["solve"],
              linear.times["assemble"], linear.times["energy"])
-    stats = [3 * model["fes"].ndof, newton_its, linear.factorizations,
+    stats = [len(model["gfu"].vec.FV()), newton_its, linear.factorizations,
              time.perf_counter() - start]
     out = _result(grid, inp, disp, released, stats)
     if order > 1:
@@ -283,6 +283,14 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
 
 #: strain energies of :func:`solve_reference` (``law``)
 _LAWS = ("neo-hookean", "linear")
+
+
+def _by_point(values):
+    """A (dofs, 3) view of the flat values of a ``VectorH1`` vector: one scalar space after
+    another, each with the vertex dofs first, in vertex order."""
+    return values.reshape(3, -1).T
+
+
 #: polynomial order per element of a ``materials`` field (:func:`_material_fields`)
 MATERIAL_ORDER = 2
 
@@ -345,7 +353,11 @@ def _release(inp, release_below):
 
 
 def _model(ngm, ngs, inp, order, penalty, law="neo-hookean", materials=None):
-    """The NGSolve mesh, space, energy form and prescribed data of the truth."""
+    """The NGSolve mesh, space, energy form and prescribed data of the truth.
+
+    The space is ``VectorH1`` (one scalar H1 space per component, a scalar sparse matrix):
+    NGSolve's sparse Cholesky factorises its Hessian in about half the time of the same
+    Hessian in ``H1(dim=3)``'s 3x3 blocks (36.6 s against 65-77 s for 362k free dofs)."""
     points, tets, faces, constrained = inp["points"], inp["tets"], inp["faces"], inp["constrained"]
     sliding = inp["bc"] == arrays.BC_SLIDING
     region = np.full(len(faces), 3)
@@ -369,7 +381,7 @@ def _model(ngm, ngs, inp, order, penalty, law="neo-hookean", materials=None):
         e_f, nu_f = _material_fields(ngs, mesh, materials)
         mu = e_f / (2 * (1 + nu_f))
         lam = e_f * nu_f / ((1 + nu_f) * (1 - 2 * nu_f))
-    fes = ngs.H1(mesh, order=order, dim=3, dirichlet="dirichlet")
+    fes = ngs.VectorH1(mesh, order=order, dirichlet="dirichlet")
     u = fes.TrialFunction()
     if law == "linear":  # small strain: the control the large-deformation tests reject
         eps = ngs.Sym(ngs.Grad(u))
@@ -443,10 +455,10 @@ def _prescribed(ngs, mesh, fes, g_p1, inp):
     prescribed = ngs.GridFunction(fes)
     prescribed.Set(g_p1, definedon=mesh.Boundaries("dirichlet"))
     free = np.array(fes.FreeDofs(), dtype=bool)
-    free[: mesh.nv][constrained] = False
+    _by_point(free)[: mesh.nv][constrained] = False
     fixed = ~free
-    pres = prescribed.vec.FV().NumPy().reshape(-1, 3)
-    pres[: mesh.nv][constrained] = g[constrained]
+    pres = prescribed.vec.FV().NumPy()
+    _by_point(pres)[: mesh.nv][constrained] = g[constrained]
     size = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) or 1.0
     volume = float(np.abs(inp["vol"]).sum()) / 6.0
     g_max = float(np.abs(g).max()) or 1.0
@@ -461,7 +473,7 @@ def _load_steps(ngs, model, linear, *, steps, tol, max_newton, predictor, progre
     maxerr = tol * model["scale"]
     values = gfu.vec.FV().NumPy()
     step = gfu.vec.CreateVector()
-    step_np = step.FV().NumPy().reshape(-1, 3)
+    step_np = step.FV().NumPy()
     done, step_size, newton_its = 0.0, 1.0 / steps, 0
     with Progress(total=None, desc="reference load steps", enabled=progress_bar,
                   logger=log) as bar:
@@ -479,7 +491,7 @@ def _load_steps(ngs, model, linear, *, steps, tol, max_newton, predictor, progre
                 # boundary moved alone; also the fallback where the tangent predictor
                 # inverts an element (close to a buckled state its linearisation overshoots)
                 values[:] = saved * (t / done if done > 0 else 0.0)
-                values.reshape(-1, 3)[fixed] = t * target
+                values[fixed] = t * target
                 status = 0 if np.isfinite(linear.timed("energy", form.Energy, gfu.vec)) else 1
             if status == 0:
                 status, its = _damped_newton(ngs, form, gfu, maxerr, max_newton, linear)
