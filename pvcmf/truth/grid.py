@@ -35,7 +35,8 @@ MODEL_VERSION = "2"
 #: the solver's code, hashed (docstrings and comments left out) into the truth's cache key
 _SOLVER_CODE = ("_boundary_faces", "_netgen_mesh", "_released_nodes", "_Linear", "_predictor",
                 "_damped_newton", "solve_reference", "_inputs", "_release", "_model",
-                "_prescribed", "_load_steps", "_result", "_midpoint_values", "_material_fields")
+                "_prescribed", "_load_steps", "_result", "_midpoint_values", "_material_fields",
+                "_by_point")
 _CODE_HASH = []
 
 

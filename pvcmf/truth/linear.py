@@ -5,7 +5,10 @@ sparse systems of each Newton step.
 on contended cores they cost CPU time without a speed-up); :class:`_Linear` solves the
 Newton systems with a sparse direct factorisation, reused as the preconditioner of
 conjugate gradients between refactorisations. Delegates to NGSolve (sparse direct
-solvers, ``ngsolve.krylovspace.CGSolver``) and Linux's CPU accounting (``/proc/stat``).
+solvers, ``ngsolve.krylovspace.CGSolver``), MKL PARDISO through
+:class:`pvcmf.mtm.backends.pardiso.Pardiso` (``inverse='mkl'``: METIS ordering, the
+analysis done once per pattern, a numeric factorisation per system) and Linux's CPU
+accounting (``/proc/stat``).
 """
 
 from __future__ import annotations
@@ -98,8 +101,11 @@ class _Linear:
     iterations (a fresh factor also speeds up the solves after it: letting CG run as
     long as a factorisation would take made a 379k-dof truth 1.6 times slower)."""
 
-    def __init__(self, ngs, form, freedofs, inverse, reuse=True, max_cg=25, cg_tol=1e-8):
+    def __init__(self, ngs, form, freedofs, inverse, reuse=True, max_cg=25, cg_tol=1e-8,
+                 threads=1):
         self.ngs, self.form, self.freedofs, self.inverse = ngs, form, freedofs, inverse
+        self.threads = threads
+        self.mkl = None
         self.reuse, self.max_cg, self.cg_tol = reuse, max_cg, cg_tol
         self.times = {"energy": 0.0, "assemble": 0.0, "factor": 0.0, "solve": 0.0}
         self.factorizations = self.solves = self.cg_iterations = 0
@@ -116,8 +122,19 @@ class _Linear:
         self.fresh = False
 
     def _factorize(self):
-        self.factor = self.timed("factor", self.form.mat.Inverse, self.freedofs,
-                                 self.inverse)
+        if self.inverse == "mkl":
+            if self.mkl is None:
+                self.mkl = _MklFactor(self.ngs, self.form.mat, self.freedofs, self.threads)
+            try:
+                self.factor = self.timed("factor", self.mkl.factor, self.form.mat)
+            except np.linalg.LinAlgError:  # PARDISO's SPD factorisation refuses a Hessian
+                # that is indefinite away from equilibrium: NGSolve's LDL^T takes it
+                log.debug("reference: indefinite Hessian, factorised by sparsecholesky")
+                self.factor = self.timed("factor", self.form.mat.Inverse, self.freedofs,
+                                         "sparsecholesky")
+        else:
+            self.factor = self.timed("factor", self.form.mat.Inverse, self.freedofs,
+                                     self.inverse)
         self.factorizations += 1
         self.fresh = True
 
@@ -141,3 +158,70 @@ class _Linear:
         t = time.perf_counter()
         out.data = self.factor * rhs
         self.times["solve"] += time.perf_counter() - t
+
+
+class _MklFactor:
+    """MKL PARDISO on the free block of an NGSolve sparse matrix of fixed pattern: the
+    upper triangle of the free rows and columns is gathered from NGSolve's CSR by an index
+    computed once, analysed (METIS) once, and factorised numerically per matrix;
+    :meth:`factor` returns an NGSolve operator (free dofs solved, the others zero) for
+    ``*`` and for ``ngsolve.krylovspace.CGSolver``."""
+
+    def __init__(self, ngs, mat, freedofs, threads):
+        import scipy.sparse as sp
+
+        from ..mtm.backends.pardiso import Pardiso
+
+        _values, cols, indptr = mat.CSR()
+        cols = np.asarray(cols, dtype=np.int64)
+        indptr = np.asarray(indptr, dtype=np.int64)
+        self.free = np.array(freedofs, dtype=bool)
+        rows = np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
+        keep = self.free[rows] & self.free[cols] & (cols >= rows)
+        number = np.cumsum(self.free) - 1  # free dof -> row of the free block
+        r, c = number[rows[keep]], number[cols[keep]]
+        order = np.lexsort((c, r))  # CSR order, sorted columns
+        self.take = np.flatnonzero(keep)[order]
+        m = int(self.free.sum())
+        start = np.searchsorted(r[order], np.arange(m + 1))
+        self.pattern = sp.csr_matrix((np.ones(len(order)), c[order], start), shape=(m, m))
+        self.solver = Pardiso(self.pattern, threads=threads) if m else None  # m = 0: all prescribed
+        self.ngs = ngs
+
+    def factor(self, mat):
+        if self.solver is None:
+            return _operator(self.ngs, self.free, np.zeros_like, mat.CreateColVector)
+        upper = self.pattern.copy()
+        upper.data = np.asarray(mat.CSR()[0])[self.take]
+        self.solver.factor(upper)
+        return _operator(self.ngs, self.free, self.solver.solve, mat.CreateColVector)
+
+
+def _operator(ngs, free, solve, create):
+    """An NGSolve operator that applies ``solve`` to the free values of a vector."""
+
+    class FreeSolve(ngs.BaseMatrix):
+        def __init__(self):
+            super().__init__()
+
+        def IsComplex(self):
+            return False
+
+        def Height(self):
+            return len(free)
+
+        def Width(self):
+            return len(free)
+
+        def CreateRowVector(self):
+            return create()
+
+        def CreateColVector(self):
+            return create()
+
+        def Mult(self, x, y):
+            out = np.zeros(len(free))
+            out[free] = solve(x.FV().NumPy()[free])
+            y.FV().NumPy()[:] = out
+
+    return FreeSolve()
