@@ -278,3 +278,20 @@ def test_independent_truth_mesh_is_one_face_connected_solid(independent_mesh):
                        shape=(len(tets), len(tets)))
     _, part = connected_components(graph, directed=False)
     assert np.bincount(part).min() >= 0.02 * len(tets)
+
+
+def test_truth_problem_is_the_unsolved_truth(independent_mesh):
+    """What independent_truth_grid solves, from the same mesher and boundary model: the
+    planned grid with materials and no solution; a material field only with 'field'."""
+    from pvcmf.truth.independent import truth_problem
+
+    case, planned = independent_mesh
+    grid, field, params = truth_problem(case, n_tets=8000)
+    assert field is None and params.startswith("independent|order=2|steps=4")
+    assert arrays.DISPLACEMENT not in grid.point_data
+    np.testing.assert_array_equal(grid.points, planned.points)
+    np.testing.assert_array_equal(grid[arrays.BC], planned[arrays.BC])
+    np.testing.assert_allclose(grid[arrays.BC_DISPLACEMENT], planned[arrays.BC_DISPLACEMENT])
+    assert np.all(grid.cell_data[arrays.E_CROSS] > 0)
+    with pytest.raises(ValueError, match="materials must be 'cells' or 'field', got 'voxels'"):
+        truth_problem(case, materials="voxels")

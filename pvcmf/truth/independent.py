@@ -76,7 +76,7 @@ from .solver import solve_reference
 
 log = logging.getLogger("pvcmf.reference")
 
-__all__ = ["independent_truth_grid", "soft_tissue_mesh"]
+__all__ = ["independent_truth_grid", "soft_tissue_mesh", "truth_problem"]
 
 #: width (mm, Gaussian sigma) over which the tied bone surface's data blends from one
 #: segment's rigid move to the next across an osteotomy (a field of the position, the same
@@ -421,6 +421,30 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
     >>> from pvcmf.truth.independent import independent_truth_grid              # doctest: +SKIP
     >>> g = independent_truth_grid(pvcmf.datasets.phantom(1, spacing=2.0))      # doctest: +SKIP
     """
+    grid, field, params = truth_problem(case, n_tets=n_tets, order=order, steps=steps,
+                                        face_fraction=face_fraction, mesher=mesher,
+                                        materials=materials, face_mm=face_mm,
+                                        blend_mm=blend_mm, face_margin_mm=face_margin_mm)
+    key = grid_hash(grid, params)
+    path = cache_root("reference", cache_dir) / f"independent_{key}.vtu"
+    return cached(path, lambda: solve_reference(grid, order=order, steps=steps,
+                                                reuse_factor=reuse_factor, materials=field,
+                                                progress_bar=progress_bar), cache=cache)
+
+
+def truth_problem(case, *, n_tets=30_000, order=2, steps=4, face_fraction=0.5,
+                  mesher="lattice", materials="cells", face_mm=3.0, blend_mm=BLEND_MM,
+                  face_margin_mm=0.0):
+    """What :func:`independent_truth_grid` solves, unsolved: the planned grid with its
+    materials, the material field (None with ``materials='cells'``) and the solver
+    parameters of the cache key (the options are :func:`independent_truth_grid`'s).
+
+    Examples
+    --------
+    >>> import pvcmf                                                            # doctest: +SKIP
+    >>> from pvcmf.truth.independent import truth_problem                       # doctest: +SKIP
+    >>> grid, field, _ = truth_problem(pvcmf.datasets.phantom(1, spacing=3.0))  # doctest: +SKIP
+    """
     if materials not in ("cells", "field"):
         raise ValueError(f"materials must be 'cells' or 'field', got {materials!r}")
     try:
@@ -451,8 +475,4 @@ def independent_truth_grid(case, *, n_tets=30_000, order=2, steps=4, face_fracti
         params += "|materials=" + hashlib.sha256(
             np.ascontiguousarray(field["fraction"]).tobytes()
             + np.asarray(field["origin"] + field["end"]).tobytes()).hexdigest()[:16]
-    key = grid_hash(grid, params)
-    path = cache_root("reference", cache_dir) / f"independent_{key}.vtu"
-    return cached(path, lambda: solve_reference(grid, order=order, steps=steps,
-                                                reuse_factor=reuse_factor, materials=field,
-                                                progress_bar=progress_bar), cache=cache)
+    return grid, field, params

@@ -182,7 +182,7 @@ def solve_reference(grid, *, order=2, steps=4, penalty=1e3, tol=1e-6, max_newton
         :class:`pvcmf.mtm.backends.pardiso.Pardiso` (needs pypardiso; the METIS analysis
         once, a numeric factorisation per Newton system, on the cores of ``threads``).
         Default: "mkl" where pypardiso imports, else "sparsecholesky" (the same solution
-        to round-off; "mkl" solved a 472k-dof truth in 228 s against 413 s).
+        to round-off; their costs on a cohort truth: ``benchmarks/truth_solver.py``).
     reuse_factor : bool, default False
         Solve a Newton system by conjugate gradients preconditioned with the last
         factorisation, refactoring only when that takes more than 25 iterations (False:
@@ -363,9 +363,9 @@ def _release(inp, release_below):
 def _model(ngm, ngs, inp, order, penalty, law="neo-hookean", materials=None):
     """The NGSolve mesh, space, energy form and prescribed data of the truth.
 
-    The space is ``VectorH1`` (one scalar H1 space per component, a scalar sparse matrix):
-    NGSolve's sparse Cholesky factorises its Hessian in about half the time of the same
-    Hessian in ``H1(dim=3)``'s 3x3 blocks (36.6 s against 65-77 s for 362k free dofs)."""
+    The space is ``VectorH1`` (one scalar H1 space per component): its Hessian is a scalar
+    sparse matrix, which MKL PARDISO reads, and which NGSolve's sparse Cholesky factorises
+    in about half the time of the same Hessian in ``H1(dim=3)``'s 3x3 blocks."""
     points, tets, faces, constrained = inp["points"], inp["tets"], inp["faces"], inp["constrained"]
     sliding = inp["bc"] == arrays.BC_SLIDING
     region = np.full(len(faces), 3)
