@@ -191,9 +191,8 @@ class _MklFactor:
     def factor(self, mat):
         if self.solver is None:
             return _operator(self.ngs, self.free, np.zeros_like, mat.CreateColVector)
-        upper = self.pattern.copy()
-        upper.data = np.asarray(mat.CSR()[0])[self.take]
-        self.solver.factor(upper)
+        self.pattern.data = np.asarray(mat.CSR()[0])[self.take]  # the new values, in place
+        self.solver.factor(self.pattern)
         return _operator(self.ngs, self.free, self.solver.solve, mat.CreateColVector)
 
 
@@ -201,9 +200,6 @@ def _operator(ngs, free, solve, create):
     """An NGSolve operator that applies ``solve`` to the free values of a vector."""
 
     class FreeSolve(ngs.BaseMatrix):
-        def __init__(self):
-            super().__init__()
-
         def IsComplex(self):
             return False
 
