@@ -38,8 +38,8 @@ Not run by CI. Heavy (NGSolve P2 solves of minutes each): run on a quiet machine
    osteotomy blend (:mod:`truth_blend`): the refinement change per blend and the skin's
    change between blends; writes ``docs/benchmarks/truth_blend.md``.
 
-Writes markdown tables to ``docs/benchmarks/truth_refinement.md`` (1, 2) with the command
-and machine.
+Writes markdown tables to ``docs/benchmarks/truth_refinement.md`` (1, 2; ``--page`` another
+file) with the command and machine.
 
 Run::
 
@@ -575,6 +575,9 @@ def main(argv=None):
     ap.add_argument("--materials", default="cells", choices=["cells", "field"],
                     help="with --refinement: the independent truth's materials (per "
                          "tetrahedron, or a field of the position)")
+    ap.add_argument("--page", type=Path, default=PAGE,
+                    help="with --refinement or --compare: the page to write (default "
+                         "docs/benchmarks/truth_refinement.md, which the cohort page reads)")
     ap.add_argument("--no-cache", action="store_true",
                     help="solve every truth again (default: reuse the on-disk cache)")
     ap.add_argument("--n-tets", type=int, default=30_000)
@@ -645,7 +648,7 @@ def main(argv=None):
         print(COHORT_PAGE.read_text())
         if not (args.refinement or args.compare):
             return
-    PAGE.write_text("\n".join(parts) + "\n")
+    args.page.write_text("\n".join(parts) + "\n")
     print("\n".join(parts))
 
 
