@@ -191,7 +191,7 @@ class _MklFactor:
     def factor(self, mat):
         if self.solver is None:
             return _operator(self.ngs, self.free, np.zeros_like, mat.CreateColVector)
-        self.pattern.data = np.asarray(mat.CSR()[0])[self.take]  # the new values, in place
+        self.pattern.data = np.asarray(mat.CSR()[0])[self.take]  # the new values, same pattern
         self.solver.factor(self.pattern)
         return _operator(self.ngs, self.free, self.solver.solve, mat.CreateColVector)
 
