@@ -37,7 +37,7 @@ from .filters.segmentation import tissue_volumes
 from .filters.skin import NECK_BELOW_BOX, head_skin  # noqa: F401 (public here too)
 from .filters.skin_prediction import (FAR_REDUCTION, TRANSFER_REACH,  # noqa: F401 (public)
                                       SKIN_SUMMARY, near_box, predict_skin)
-from .filters.surface_mapping import DEFAULT_BAND
+from .filters.surface_mapping import mesh_band
 from .io import read_ct
 from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
@@ -243,7 +243,7 @@ def _fit_skin(grid, labels, box, options):
     """Step "skin fit": the mesh fitted to the dense skin within the transfer's reach of the
     box (not to bare bone); returns the fitted mesh and the head's skin (:func:`head_skin`)."""
     skin = head_skin(labels, box)
-    near = near_box(skin.points, box, 2 * DEFAULT_BAND)  # all the transfer reaches
+    near = near_box(skin.points, box, 2 * mesh_band(grid))  # all the transfer reaches
     cloud = skin.extract_points(near & ~on_hard_tissue(skin.points, labels), adjacent_cells=False)
     return filters.fit_to_skin(grid, cloud, labels=labels, box=box, **options), skin
 

@@ -8,8 +8,8 @@ import pytest
 import pyvista as pv
 
 from pvcmf import arrays
-from pvcmf.filters.skin_prediction import near_box
-from pvcmf.filters.surface_mapping import Transfer
+from pvcmf.filters.skin_prediction import near_box, transfer_reach
+from pvcmf.filters.surface_mapping import DEFAULT_BAND, Transfer, mesh_band
 from pvcmf.pipeline import NECK_BELOW_BOX, TRANSFER_REACH, _skin, head_skin
 
 RADII = np.array([60.0, 80.0, 90.0])
@@ -56,9 +56,12 @@ def test_head_skin_is_the_whole_head_open_at_the_scan_end(labels):
 def test_skin_moves_as_the_transfer_over_the_whole_head(labels, post):
     pre, moved = _skin(labels, post, None, BOX)
     whole = head_skin(labels, BOX)
+    # the model's 10 mm mesh models the skin farther out than the smallest band
+    band = mesh_band(post)
+    assert band == pytest.approx(10.0) and TRANSFER_REACH == transfer_reach(DEFAULT_BAND)
     # the skin within reach of the model is the head's, point for point; farther, coarser
     tri = whole.faces.reshape(-1, 4)[:, 1:]
-    near = near_box(whole.points, BOX, TRANSFER_REACH)
+    near = near_box(whole.points, BOX, transfer_reach(band))
     reach = np.asarray(whole.points)[np.unique(tri[near[tri].all(axis=1)])]
     pts = {tuple(x) for x in np.asarray(pre.points).round(6)}
     assert all(tuple(x) in pts for x in reach.round(6))
@@ -74,7 +77,7 @@ def test_skin_moves_as_the_transfer_over_the_whole_head(labels, post):
     assert np.array_equal(pre.point_data[arrays.SKIN_MODELLED].astype(bool), full.modelled)
     assert np.allclose(np.asarray(moved.points), np.asarray(pre.points) + u)
     # the back of the head does not move and is not modelled
-    back = np.asarray(pre.points)[:, 1] < BOX[2] - TRANSFER_REACH
+    back = np.asarray(pre.points)[:, 1] < BOX[2] - transfer_reach(band)
     assert back.sum() > 100
     assert not u[back].any() and not pre.point_data[arrays.SKIN_MODELLED][back].any()
     # the face moves (2 mm forward at x = 0)

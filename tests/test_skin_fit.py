@@ -220,7 +220,9 @@ def test_simulate_fits_the_mesh_on_request(tmp_path):
     import json
 
     from pvcmf import datasets
-    from pvcmf.pipeline import TRANSFER_REACH, face_box, simulate
+    from pvcmf.filters.skin_prediction import transfer_reach
+    from pvcmf.filters.surface_mapping import mesh_band
+    from pvcmf.pipeline import face_box, simulate
 
     case = datasets.phantom(patient=3, spacing=3.0)
     with warnings.catch_warnings():
@@ -234,6 +236,7 @@ def test_simulate_fits_the_mesh_on_request(tmp_path):
     assert summary[arrays.SKIN_FIT_NODES] == res.skin_fit[arrays.SKIN_FIT_NODES] > 0
     assert arrays.SKIN_FIT_PUSH in res.mesh.point_data
     box = face_box(res.labels, 0.5)
-    back = res.skin_pre.points[:, 1] < box[2] - TRANSFER_REACH  # beyond what Transfer reaches
+    reach = transfer_reach(mesh_band(res.mesh))  # beyond what the mesh's transfer reaches
+    back = res.skin_pre.points[:, 1] < box[2] - reach
     assert back.any() and not np.asarray(res.skin_pre[arrays.DISPLACEMENT])[back].any()
     assert arrays.NORMALS not in res.skin_post.point_data

@@ -9,9 +9,11 @@ import pyvista as pv
 from pvcmf import arrays
 from pvcmf.filters import map_to_surface
 from pvcmf.filters.surface_mapping import (
+    DEFAULT_BAND,
     SurfaceMapping,
     Transfer,
     crumple_metric,
+    mesh_band,
     transfer_operator,
 )
 from pvcmf.filters.crumple_bound import unavoidable_crumples
@@ -145,6 +147,34 @@ def test_modelled_skin_affine_and_unmodelled_decays(ball):
     g[arrays.DISPLACEMENT] = grid.points @ B.T + c
     out = map_to_surface(g, pv.PolyData(pts), band=3.0)
     assert np.array_equal(out[arrays.SKIN_MODELLED].astype(bool), tr.modelled)
+
+
+def test_coarse_mesh_models_skin_one_boundary_edge_out():
+    """The band is the mesh's: a coarse mesh (8 mm boundary edges) that cuts the skin's
+    bumps by 5-7 mm still models them (an affine field exactly), where the smallest band
+    (4 mm) would fade them toward zero: dents in the predicted face."""
+    grid = pv.ImageData(dimensions=(9, 9, 9), spacing=(8.0, 8.0, 8.0)).triangulate()
+    fine = pv.ImageData(dimensions=(9, 9, 9), spacing=(2.0, 2.0, 2.0)).triangulate()
+    band = mesh_band(grid)
+    assert band == pytest.approx(8.0)  # the median boundary edge
+    assert mesh_band(fine) == DEFAULT_BAND  # never below the smallest band
+    xy = np.random.default_rng(5).uniform(8.0, 56.0, size=(300, 2))
+    pts = np.column_stack([xy, 64.0 + np.linspace(5.0, 7.0, 300)])  # a bump over the top
+    B, c = np.diag([0.02, -0.01, 0.03]), np.array([0.0, 4.0, 1.0])
+    u = grid.points @ B.T + c
+    want = pts @ B.T + c
+    tr = Transfer(grid, pts)
+    assert tr.band == band and tr.modelled.all()
+    assert np.abs(tr(u) - want).max() < 1e-9
+    narrow = Transfer(grid, pts, band=DEFAULT_BAND)  # faded: the dent
+    assert not narrow.modelled.any()
+    assert np.linalg.norm(narrow(u) - want, axis=1).max() > 3.0
+    g = grid.copy()
+    g[arrays.DISPLACEMENT] = u
+    assert map_to_surface(g, pv.PolyData(pts))[arrays.SKIN_MODELLED].all()
+    for bad in (0.0, -1.0, True):
+        with pytest.raises(ValueError, match="band must be > 0"):
+            Transfer(grid, pts, band=bad)
 
 
 def test_pruned_feet_equal_every_candidate_measured(ball):

@@ -17,12 +17,12 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from .. import arrays
-from .surface_mapping import DEFAULT_BAND, DEFAULT_FLOOR, DEFAULT_K, Transfer, _edge_limits
+from .surface_mapping import DEFAULT_FLOOR, DEFAULT_K, Transfer, _edge_limits
 
 __all__ = ["unavoidable_crumples"]
 
 
-def unavoidable_crumples(skin_pre, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT_BAND, slack=0.1,
+def unavoidable_crumples(skin_pre, grid, u_nodes, *, k=DEFAULT_K, band=None, slack=0.1,
                          floor=DEFAULT_FLOOR, transfer=None, modelled=None):
     """A lower bound on the crumple violations of *any* extension of the mesh's field.
 

@@ -2,10 +2,12 @@
 
 :func:`predict_skin` takes the head's skin (:func:`pvcmf.filters.skin.head_skin`: the
 whole head as the scan has it, open where its field of view ends), keeps a quarter of the
-triangles beyond :data:`TRANSFER_REACH` of the model's box (they do not move:
+triangles beyond :func:`transfer_reach` of the model's box (they do not move:
 :func:`pvcmf.filters.skin.coarsen_outside`), and carries the solved mesh's displacement
 onto the rest with :class:`pvcmf.filters.surface_mapping.Transfer` (zero farther out, as
-the transfer itself is beyond ``2 band``). Skin on bare teeth or bone is not modelled
+the transfer itself is beyond ``2 band``; the band is the mesh's,
+:func:`pvcmf.filters.surface_mapping.mesh_band`: a coarse mesh models the skin farther
+from its surface). Skin on bare teeth or bone is not modelled
 (:func:`pvcmf.filters.meshing.skin_fit.on_hard_tissue`); the crumple metric
 (:func:`pvcmf.filters.surface_mapping.crumple_metric`) is taken over the modelled skin.
 """
@@ -19,18 +21,18 @@ import numpy as np
 from .. import arrays
 from .meshing.skin_fit import DEFAULT_REACH, on_hard_tissue
 from .skin import coarsen_outside, head_skin, sub_surface
-from .surface_mapping import DEFAULT_BAND, Transfer, crumple_metric
+from .surface_mapping import DEFAULT_BAND, Transfer, crumple_metric, mesh_band
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TRANSFER_REACH", "FAR_REDUCTION", "SKIN_SUMMARY", "near_box", "predict_skin"]
+__all__ = ["TRANSFER_REACH", "FAR_REDUCTION", "SKIN_SUMMARY", "near_box", "predict_skin",
+           "transfer_reach"]
 
 #: the crumple metric's fields that go to the predicted skin's field data
 SKIN_SUMMARY = (arrays.SKIN_MODELLED_POINTS, arrays.CRUMPLE_EDGES, arrays.CRUMPLE_VIOLATIONS,
                 arrays.CRUMPLE_MAX_RATIO)
 
-#: mm beyond the model's box within which the skin takes the transfer; beyond it the mesh
-#: (within ``DEFAULT_REACH`` of the box) is farther than ``2 band``: zero displacement
+#: :func:`transfer_reach` of the smallest band (the skin drawn without a solved mesh)
 TRANSFER_REACH = 2 * DEFAULT_BAND + DEFAULT_REACH + 1.0
 #: share of the skin's triangles beyond TRANSFER_REACH removed (it does not move; drawn)
 FAR_REDUCTION = 0.75
@@ -51,10 +53,21 @@ def near_box(points, box, grow):
     return ((p >= b[0::2]) & (p <= b[1::2])).all(axis=1)
 
 
+def transfer_reach(band):
+    """mm beyond the model's box within which the skin takes a transfer of band ``band``:
+    beyond it the mesh (within the skin fit's ``DEFAULT_REACH`` of the box) is farther
+    than ``2 band``, where the transfer is zero.
+
+    >>> transfer_reach(4.0)
+    13.0
+    """
+    return 2.0 * float(band) + DEFAULT_REACH + 1.0
+
+
 def predict_skin(labels, post, pre=None, box=None):
     """Pre-operative skin (``pre`` or :func:`head_skin`) and, with a solved mesh, the
     predicted skin: :class:`~pvcmf.filters.surface_mapping.Transfer` of the mesh
-    displacement onto the skin within :data:`TRANSFER_REACH` of the box (farther, zero
+    displacement onto the skin within :func:`transfer_reach` of the box (farther, zero
     displacement: the transfer is zero there anyway, and the skin there keeps a quarter of
     its triangles, :data:`FAR_REDUCTION`). Skin beyond the transfer's band or on
     bare teeth or bone is not modelled (``arrays.SKIN_MODELLED``); the crumple metric over
@@ -78,14 +91,16 @@ def predict_skin(labels, post, pre=None, box=None):
         and the predicted skin (None without ``post``).
     """
     pre = head_skin(labels, box) if pre is None else pre
-    pre = coarsen_outside(pre, near_box(pre.points, box, TRANSFER_REACH), FAR_REDUCTION)
+    band = DEFAULT_BAND if post is None else mesh_band(post)
+    near = near_box(pre.points, box, transfer_reach(band))
+    pre = coarsen_outside(pre, near, FAR_REDUCTION)
     if post is None:
         return pre, None
-    near = near_box(pre.points, box, TRANSFER_REACH)
+    near = near_box(pre.points, box, transfer_reach(band))
     tri = pre.faces.reshape(-1, 4)[:, 1:]
     part, ids = sub_surface(pre, tri[near[tri].all(axis=1)])
     u_nodes = np.asarray(post[arrays.DISPLACEMENT], dtype=np.float64)
-    transfer = Transfer(post, part)
+    transfer = Transfer(post, part, band=band)
     disp_part = transfer(u_nodes)
     modelled_part = transfer.modelled & ~on_hard_tissue(part.points, labels)
     metric = crumple_metric(part, disp_part, post, u_nodes, transfer=transfer,

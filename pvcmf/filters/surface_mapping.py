@@ -77,6 +77,8 @@ from ..progress import Progress
 from .gaussian_mapping import SurfaceMapping  # noqa: F401  (re-exported)
 from .transfer_assembly import rows_operator
 from .transfer_locate import Located as _Located
+from .transfer_locate import DEFAULT_BAND, MeshIndex, mesh_band  # noqa: F401  (re-exported)
+from .transfer_locate import resolve_band as _resolve_band
 from .transfer_locate import gradient_operators as _gradient_operators  # noqa: F401
 from .transfer_locate import stacked_gradients as _stacked_gradients
 from .transfer_smoothing import DEFAULT_ITERATIONS, smoothing_steps
@@ -92,9 +94,6 @@ SUPPORT = arrays.MAPPING_SUPPORT
 METHODS = ("interpolate", "gaussian")
 #: default number of boundary nodes whose gradients extend the field outside the mesh
 DEFAULT_K = 8
-#: default distance (mm) from the mesh within which the extension is exactly affine (the
-#: modelled skin); beyond it the extension falls smoothly to zero at twice this
-DEFAULT_BAND = 4.0
 #: weight of the nodal gradients against the feet's values in the extension's affine fit
 #: (:func:`_fit_weights`): a length in units of the distance plus the mesh's edge
 FIT_STIFFNESS = 0.2
@@ -104,7 +103,7 @@ FIT_STIFFNESS = 0.2
 DEFAULT_FLOOR = 1e-4
 
 
-def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND,
+def transfer_operator(grid, points, *, k=DEFAULT_K, band=None,
                       smoothing=DEFAULT_ITERATIONS, progress_bar=False):
     """Sparse operator ``T`` (points x grid points) with ``u_points = T @ u_nodes``.
 
@@ -121,9 +120,10 @@ def transfer_operator(grid, points, *, k=DEFAULT_K, band=DEFAULT_BAND,
         ``(n, 3)`` points (e.g. a dense skin's points) in the grid's frame.
     k : int, default 8
         Boundary nodes whose gradients extend the field outside the mesh.
-    band : float, default 4.0
+    band : float, optional
         Distance (mm) from the mesh within which the extension is exactly affine: the
-        *modelled* skin (the skin the mesh models lies within a voxel or two of it).
+        *modelled* skin (default :func:`mesh_band`: the larger of 4 mm and the mesh's
+        median boundary edge, as far as the mesh's surface strays from the skin).
         Farther points (skin that is not simulated, e.g. behind a face model's posterior
         cut) take the extension times a smooth step that falls to zero at ``2 band``, the
         value on the fixed posterior plane; beyond ``2 band`` their rows are empty.
@@ -299,21 +299,20 @@ class Transfer:
         Smoothing steps outside the mesh (:func:`transfer_operator`).
     """
 
-    def __init__(self, grid, points, k=DEFAULT_K, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATIONS,
+    def __init__(self, grid, points, k=DEFAULT_K, band=None, smoothing=DEFAULT_ITERATIONS,
                  progress_bar=False):
         pts = np.asarray(points.points if isinstance(points, pv.DataSet) else points, dtype=float)
         if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
             raise ValueError(f"points must have shape (n, 3) with n > 0, got {pts.shape}")
         if isinstance(k, bool) or int(k) != k or k < 1:
             raise ValueError(f"k must be a positive integer, got {k!r}")
-        if not float(band) > 0:
-            raise ValueError(f"band must be > 0 mm (or numpy.inf), got {band!r}")
         if isinstance(smoothing, bool) or int(smoothing) != smoothing or smoothing < 0:
             raise ValueError(f"smoothing must be an integer >= 0, got {smoothing!r}")
-        self.band = float(band)
         self.smoothing = int(smoothing)
         with Progress(total=2, desc="transfer_operator", enabled=progress_bar, logger=log) as bar:
-            self._loc = loc = _Located(grid, pts, int(k), reach=2.0 * self.band)
+            index = MeshIndex(grid)
+            self.band = _resolve_band(band, index)
+            self._loc = loc = _Located(grid, pts, int(k), reach=2.0 * self.band, index=index)
             bar.step(f"{int(loc.inside.sum())} of {len(pts)} points inside the mesh")
             self.W0, self.steps = _assemble_parts(loc, self.band, self.smoothing)
             self._W = None if self.steps is not None else self.W0
@@ -337,7 +336,7 @@ class Transfer:
 
 
 def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, k=DEFAULT_K,
-                   band=DEFAULT_BAND, warp=True, progress_bar=False):
+                   band=None, warp=True, progress_bar=False):
     """Map the grid's point ``displacement`` onto a dense skin surface.
 
     Parameters
@@ -358,9 +357,9 @@ def map_to_surface(grid, skin, *, method="interpolate", sigma=2.0, radius=None, 
         ``'gaussian'`` only: neighbourhood radius (mm); default ``3 * sigma``.
     k : int, default 8
         ``'interpolate'`` only: boundary nodes of the extension outside the mesh.
-    band : float, default 4.0
-        ``'interpolate'`` only: the modelled skin's distance from the mesh (see
-        :func:`transfer_operator`).
+    band : float, optional
+        ``'interpolate'`` only: the modelled skin's distance from the mesh (default
+        :func:`mesh_band`; see :func:`transfer_operator`).
     warp : bool, default True
         Move the skin points by the mapped displacement (the predicted dense skin).
     progress_bar : bool, default False
@@ -459,7 +458,7 @@ def _edges(surface):
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
-def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT_BAND,
+def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=None,
                    slack=0.1, floor=DEFAULT_FLOOR, transfer=None, modelled=None):
     """Check that a skin displacement stretches no skin edge beyond the mesh's gradients.
 
@@ -485,8 +484,9 @@ def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=DEFAULT
         The mesh displacement (mm).
     k : int, default 8
         Boundary nodes around an outside point (as :func:`transfer_operator`).
-    band : float, default 4.0
-        Modelled skin: within this distance (mm) of the mesh (as :func:`transfer_operator`).
+    band : float, optional
+        Modelled skin: within this distance (mm) of the mesh (as :func:`transfer_operator`;
+        default :func:`mesh_band`).
     slack : float, default 0.1
         An edge violates the bound when its stretch exceeds ``(1 + slack)`` times it.
     floor : float, default 1e-4

@@ -9,7 +9,8 @@ all candidates at once, :class:`scipy.spatial.cKDTree` nearest-neighbour queries
 boundary triangles and boundary nodes, and the
 closest points on the candidate triangles are computed for all (point, triangle) pairs at
 once (Ericson's region test, vectorised: two dot products per pair with each triangle's
-Gram entries, in cache-sized chunks).
+Gram entries, in cache-sized chunks). :func:`mesh_band` gives the distance from the mesh
+within which it models a skin (its surface spacing).
 """
 
 from __future__ import annotations
@@ -21,13 +22,16 @@ from scipy.spatial import cKDTree
 
 from .skin import _boundary_faces
 
-__all__ = ["Located", "MeshIndex", "closest_on_triangles", "gradient_operators",
-           "stacked_gradients", "tetra", "tet_gradients"]
+__all__ = ["DEFAULT_BAND", "Located", "MeshIndex", "closest_on_triangles", "gradient_operators",
+           "mesh_band", "resolve_band", "stacked_gradients", "tetra", "tet_gradients"]
 
 #: barycentric coordinates down to this (negative) value still count as inside a tetrahedron
 INSIDE_TOL = 1e-6
 #: width of the foot blend (in units of d h / (d + h), d the distance, h the median boundary edge)
 WINDOW = 10.0
+#: smallest distance (mm) from the mesh within which the extension is exactly affine (the
+#: modelled skin; :func:`mesh_band`); beyond the band it falls smoothly to zero at twice it
+DEFAULT_BAND = 4.0
 
 
 def tetra(grid):
@@ -116,11 +120,43 @@ class _TriangleSet:
         self.frames = _Triangles(corners)
 
 
+def mesh_band(grid):
+    """The band (mm) within which a mesh models the skin: the larger of
+    :data:`DEFAULT_BAND` (a voxel or two of the scan) and the median edge of the mesh's
+    boundary triangles. A mesh follows the skin at its surface spacing: it cuts bumps and
+    loses tissue thinner than about an edge (the forehead over a coarse mesh), leaving
+    skin up to about an edge outside it, which the mesh still models.
+
+    ``grid``: a tetrahedral mesh or its :class:`~pvcmf.filters.transfer_locate.MeshIndex`.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> from pvcmf.filters.transfer_locate import mesh_band
+    >>> mesh_band(pv.ImageData(dimensions=(4, 4, 4), spacing=(1, 1, 1)).triangulate())
+    4.0
+    >>> round(mesh_band(pv.ImageData(dimensions=(4, 4, 4), spacing=(6, 6, 6)).triangulate()), 3)
+    6.0
+    """
+    index = grid if isinstance(grid, MeshIndex) else MeshIndex(grid)
+    return max(DEFAULT_BAND, index.boundary_edge)
+
+
+def resolve_band(band, index):
+    """``band`` as a float (None: :func:`mesh_band` of ``index``), validated."""
+    if band is None:
+        return mesh_band(index)
+    if isinstance(band, bool) or not float(band) > 0:
+        raise ValueError(f"band must be > 0 mm, numpy.inf or None (from the mesh), got {band!r}")
+    return float(band)
+
+
 class MeshIndex:
     """The mesh's half of :class:`Located`, made once and shared by the point sets located
     against it (``Located(grid, points, index=index)``): the tetrahedra's
     :func:`tet_gradients`, their bounding boxes binned on a grid, the boundary triangles
-    and nodes and a :class:`~scipy.spatial.cKDTree` of the nodes; the triangles' own tree
+    and nodes (``boundary_edge``: their median edge) and a
+    :class:`~scipy.spatial.cKDTree` of the nodes; the triangles' own tree
     (:class:`_TriangleSet`) and the median tetrahedron edge on first use. Points located
     with one index, in any split, get the same answers as all of them at once."""
 
@@ -140,7 +176,10 @@ class MeshIndex:
         self.boundary = np.unique(tri)
         self.btree = cKDTree(pts[self.boundary], balanced_tree=False)
         e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
-        self.h_max = float(np.linalg.norm(e, axis=2).max()) if len(tri) else 0.0
+        length = np.linalg.norm(e, axis=2)
+        self.h_max = float(length.max()) if len(tri) else 0.0
+        #: median edge of the boundary triangles (mm; 0 without a boundary)
+        self.boundary_edge = float(np.median(length)) if len(tri) else 0.0
         self._triangles = self._median = None
 
     @property

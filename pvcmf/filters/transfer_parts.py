@@ -23,8 +23,8 @@ from types import SimpleNamespace
 import numpy as np
 import scipy.sparse as sp
 
-from .surface_mapping import DEFAULT_BAND, DEFAULT_K, _assemble_parts, _guided, _stacked_gradients
-from .transfer_locate import Located, MeshIndex
+from .surface_mapping import DEFAULT_K, _assemble_parts, _guided, _stacked_gradients
+from .transfer_locate import Located, MeshIndex, resolve_band
 from .transfer_smoothing import DEFAULT_ITERATIONS, rows_product, smoothing_steps
 
 __all__ = ["MeshIndex", "Rows", "Joined", "ranges", "prepared_index", "transfer_rows",
@@ -79,14 +79,15 @@ class Rows:
         self.outside, self.near, self.near_w = outside, near, near_w
 
 
-def transfer_rows(index, points, k=DEFAULT_K, band=DEFAULT_BAND):
+def transfer_rows(index, points, k=DEFAULT_K, band=None):
     """:class:`Rows` of ``points`` (``(n, 3)``) against ``index`` (a
     :class:`~pvcmf.filters.transfer_locate.MeshIndex`): the rows
     :class:`~pvcmf.filters.surface_mapping.Transfer` gives these points before its
-    smoothing steps, with its ``k`` and ``band``."""
+    smoothing steps, with its ``k`` and ``band`` (None: :func:`~pvcmf.filters.transfer_locate.mesh_band` of ``index``)."""
     p = np.asarray(points, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3:
         raise ValueError(f"points must have shape (n, 3), got {p.shape}")
+    band = resolve_band(band, index)
     loc = Located(None, p, int(k), reach=2.0 * float(band), index=index)
     W0, _ = _assemble_parts(loc, float(band), 0)
     return Rows(W0, loc.inside, loc.dist, loc.outside, loc.near, loc.near_w)
@@ -112,7 +113,7 @@ class Joined:
         return self._W
 
 
-def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATIONS, threads=1,
+def join_rows(index, points, parts, band=None, smoothing=DEFAULT_ITERATIONS, threads=1,
               right=None):
     """The transfer of ``points`` from the :class:`Rows` of consecutive ranges ``parts``
     (in order, covering every point): ``W0`` stacked, and the smoothing steps made once
@@ -120,8 +121,9 @@ def join_rows(index, points, parts, band=DEFAULT_BAND, smoothing=DEFAULT_ITERATI
     neighbour search). ``right``: a list of dense ``(n_mesh_points, c)`` arrays (column
     blocks); ``W0 @`` each (:func:`~pvcmf.filters.transfer_smoothing.rows_product`) is
     made on a second thread while the steps are made (``Joined.product``, a list).
-    Returns :class:`Joined`."""
+    ``band``: as :func:`transfer_rows`'s. Returns :class:`Joined`."""
     p = np.asarray(points, dtype=float)
+    band = resolve_band(band, index)
     sizes = [len(r.inside) for r in parts]
     if sum(sizes) != len(p):
         raise ValueError(f"parts must cover the {len(p)} points, got {sum(sizes)} rows")

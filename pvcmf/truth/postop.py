@@ -197,7 +197,7 @@ def postop_ct(case, displacement_grid=None, *, noise_hu=18.0, pose=None, seed=0,
         by the plan with :func:`pvcmf.filters.cut_bones`).
     extrapolate : float, default 4.0
         Reach (mm) of the grid's displacement outside the grid (step 3; the transfer's
-        ``band``, default that of :func:`pvcmf.pipeline.simulate`'s skin); 0 for none.
+        ``band``, default its smallest, ``DEFAULT_BAND``); 0 for none.
     extension : {'transfer', 'nearest'}, default 'transfer'
         How the displacement is extended outside the grid (step 3): ``'transfer'`` as the
         predicted skin (a CT warped by a model's own displacement then matches that
