@@ -600,7 +600,11 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.verbose:
         logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    parts = ["# Validation study: the truth's convergence and the paired inference", "",
+    title = ("Validation study: the truth's convergence and the paired inference"
+             if args.compare or args.cohort or not args.refinement else
+             "The independent truth's convergence: patients "
+             + ", ".join(str(p) for p in args.patients))
+    parts = [f"# {title}", "",
              f"Command: `python benchmarks/study.py {' '.join(sys.argv[1:] if argv is None else argv)}`  ",
              f"Machine: {platform.machine()}, Python {sys.version.split()[0]}, "
              f"pvcmf {pvcmf.__version__}.", ""]
