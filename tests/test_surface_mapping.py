@@ -172,7 +172,7 @@ def test_coarse_mesh_models_skin_one_boundary_edge_out():
     g = grid.copy()
     g[arrays.DISPLACEMENT] = u
     assert map_to_surface(g, pv.PolyData(pts))[arrays.SKIN_MODELLED].all()
-    for bad in (0.0, -1.0, True):
+    for bad in (0.0, -1.0, True, "x"):
         with pytest.raises(ValueError, match="band must be > 0"):
             Transfer(grid, pts, band=bad)
 

@@ -138,17 +138,32 @@ def mesh_band(grid):
     >>> round(mesh_band(pv.ImageData(dimensions=(4, 4, 4), spacing=(6, 6, 6)).triangulate()), 3)
     6.0
     """
-    index = grid if isinstance(grid, MeshIndex) else MeshIndex(grid)
-    return max(DEFAULT_BAND, index.boundary_edge)
+    if isinstance(grid, MeshIndex):
+        return max(DEFAULT_BAND, grid.boundary_edge)
+    pts, tets = tetra(grid)  # the boundary only: no need for a whole MeshIndex
+    src = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, pts)
+    return max(DEFAULT_BAND, _triangle_edges(pts, _boundary_faces(src))[0])
+
+
+def _triangle_edges(pts, tri):
+    """``(median, max)`` edge length of the triangles ``tri`` (0 without any)."""
+    if not len(tri):
+        return 0.0, 0.0
+    length = np.linalg.norm(pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]], axis=2)
+    return float(np.median(length)), float(length.max())
 
 
 def resolve_band(band, index):
     """``band`` as a float (None: :func:`mesh_band` of ``index``), validated."""
     if band is None:
         return mesh_band(index)
-    if isinstance(band, bool) or not float(band) > 0:
+    try:
+        value = None if isinstance(band, bool) else float(band)
+    except (TypeError, ValueError):
+        value = None
+    if value is None or not value > 0:
         raise ValueError(f"band must be > 0 mm, numpy.inf or None (from the mesh), got {band!r}")
-    return float(band)
+    return value
 
 
 class MeshIndex:
@@ -175,11 +190,8 @@ class MeshIndex:
         self.tri = tri = _boundary_faces(src)
         self.boundary = np.unique(tri)
         self.btree = cKDTree(pts[self.boundary], balanced_tree=False)
-        e = pts[tri[:, [0, 1, 2]]] - pts[tri[:, [1, 2, 0]]]
-        length = np.linalg.norm(e, axis=2)
-        self.h_max = float(length.max()) if len(tri) else 0.0
         #: median edge of the boundary triangles (mm; 0 without a boundary)
-        self.boundary_edge = float(np.median(length)) if len(tri) else 0.0
+        self.boundary_edge, self.h_max = _triangle_edges(pts, tri)
         self._triangles = self._median = None
 
     @property
