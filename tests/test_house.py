@@ -4,7 +4,8 @@ Three families of checks, each cheap (no pvcmf import, only the files and their 
 
 * wording: the tracked text files speak of the product only, never of how it was made
   (see the pattern list below);
-* size: every module of ``pvcmf/`` stays under 600 lines and every function under 100 lines
+* size: every module of ``pvcmf/`` (and every benchmark and gallery script) stays under
+  600 lines and every function of ``pvcmf/`` under 100 lines
   of code (docstring, comments and blank lines excluded);
 * layers: the package's modules import only from their own or lower layers, and never in a
   cycle (top-level and function-level imports both count).
@@ -156,6 +157,15 @@ def test_modules_are_short():
     long = [f"{path.relative_to(ROOT)}: {n} lines" for _, path in _modules()
             if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES]
     assert not long, f"modules over {MAX_MODULE_LINES} lines (split them):\n" + "\n".join(long)
+
+
+def test_scripts_are_short():
+    """The benchmark and gallery scripts follow the same module size as the package."""
+    paths = sorted((ROOT / "benchmarks").glob("*.py")) + sorted((ROOT / "gallery").glob("*.py"))
+    assert paths
+    long = [f"{path.relative_to(ROOT)}: {n} lines" for path in paths
+            if (n := len(path.read_text(encoding="utf-8").splitlines())) > MAX_MODULE_LINES]
+    assert not long, f"scripts over {MAX_MODULE_LINES} lines (split them):\n" + "\n".join(long)
 
 
 def _code_lines(source):
