@@ -17,7 +17,8 @@ and measures, for a two-segment template (maxilla and mandible):
   their own in the same run (nothing else running in the process; the build's double
   factor, with and without the per-solve solution checks, which the build skips), in
   wall-clock and CPU time (the process's and its child's), medians of ``--repeat`` rounds
-  that time the four in turn (the fourth: the build with the transfer on a second thread);
+  that time the five in turn (the fourth: the build with the transfer on a second thread;
+  the fifth: the build without a dense skin, the operator of the mesh's own nodes);
 * ``predict``: one plan's dense-skin displacement (new array, or written into a kept one),
   its breakdown (parameters; the product on one BLAS thread: nodal displacement of the
   nodes the few-weight rows use, dense rows, one CSR product into the output; the new
@@ -132,7 +133,8 @@ def build_rows(mesh, labels, skin, template, rows, repeat, build_in="auto"):
     partner runs, :data:`pvcmf.mtm.response_transfer.BUILD_IN`)."""
     from pvcmf.mtm import response_transfer
 
-    keys = ("ref", "ref_cpu", "bare", "bare_cpu", "build", "build_cpu", "thread", "thread_cpu")
+    keys = ("ref", "ref_cpu", "bare", "bare_cpu", "build", "build_cpu", "thread", "thread_cpu",
+            "nodes", "nodes_cpu")
     times = {key: [] for key in keys}
     parts = []  # the build's own timings, per round
     op = None
@@ -153,6 +155,10 @@ def build_rows(mesh, labels, skin, template, rows, repeat, build_in="auto"):
                 parts.append({**op.timings, **{f"ranges {k}": v for k, v in
                                                (op.transfer_ranges or {}).items()}})
         response_transfer.BUILD_IN = "auto"
+        t, c = time.perf_counter(), cpu_now()  # the operator alone: the mesh's own nodes
+        plan_response(mesh, labels, plan=template)
+        times["nodes"].append(time.perf_counter() - t)
+        times["nodes_cpu"].append(cpu_now() - c)
     med = {key: statistics.median(v) for key, v in times.items()}
     rows["build (s)"] = med["build"]
     for key in parts[-1]:  # medians over the rounds, like the rest
@@ -163,6 +169,9 @@ def build_rows(mesh, labels, skin, template, rows, repeat, build_in="auto"):
             rows[f"build: {key} (s)"] = value
     rows["factorisation + solves on their own (s)"] = med["ref"]
     rows["build / (factorisation + solves)"] = med["build"] / med["ref"]
+    rows["build without a dense skin (the mesh's nodes) (s)"] = med["nodes"]
+    rows["build without a dense skin / (factorisation + solves)"] = med["nodes"] / med["ref"]
+    rows["build without a dense skin, CPU time (s)"] = med["nodes_cpu"]
     rows["build, CPU time of the process and its child (s)"] = med["build_cpu"]
     rows["factorisation + solves on their own, CPU time (s)"] = med["ref_cpu"]
     rows["build / (factorisation + solves), CPU time"] = med["build_cpu"] / med["ref_cpu"]
@@ -333,7 +342,9 @@ def main(argv=None):
                 "The build's ratio divides by a factorisation plus the same solves timed on "
                 "their own (the build's double factor; with the solution checks that "
                 "`Solver.solve` runs by default, and without them as the build solves), "
-                "medians of rounds that time the three in turn; "
+                "medians of rounds that time them in turn with the build and the build "
+                "without a dense skin (the operator of the mesh's own nodes: boundary "
+                "conditions, factorisation and solves; the dense skin adds its transfer); "
                 "the skin transfer's rows are built in ranges of skin points on both "
                 "cores: a partner starts on them beside the factorisation and solves, the "
                 "calling thread takes the ranges left after its solves (the timings name "
