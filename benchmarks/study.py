@@ -343,7 +343,8 @@ def main(argv=None):
         command = "python benchmarks/study.py " + " ".join(sys.argv[1:] if argv is None else argv)
         rows = truth_blend.blend_rows(args.patients[0], args.spacing, args.counts[-1],
                                       args.face_mm or [], args.blend_mm,
-                                      materials=args.materials, cache=not args.no_cache)
+                                      materials=args.materials, cache=not args.no_cache,
+                                      face_margin_mm=args.face_margin_mm)
         truth_blend.PAGE.write_text(truth_blend.blend_page(
             *rows, command, f"{platform.machine()}, Python {sys.version.split()[0]}, "
             f"pvcmf {pvcmf.__version__}"))

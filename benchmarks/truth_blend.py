@@ -32,9 +32,11 @@ def _stats(change):
     return {k: float(change[k]) for k in ("p50", "p90", "max")}
 
 
-def blend_rows(patient, spacing, count, face_mm, blends, materials="field", cache=True):
+def blend_rows(patient, spacing, count, face_mm, blends, materials="field", cache=True,
+               face_margin_mm=0.0):
     """The truths of ``patient`` at each face size (graded mesher, ``count`` tetrahedra
-    outside the face) and blend width; returns ``(refinement, cross)``: per blend and
+    outside the face, the face ball grown by ``face_margin_mm`` as the refinement grows
+    it) and blend width; returns ``(refinement, cross)``: per blend and
     successive face sizes, the skin change between them (with each truth's size and its
     folded elements); per face size and blend after the first, the skin change from the
     first blend."""
@@ -46,6 +48,7 @@ def blend_rows(patient, spacing, count, face_mm, blends, materials="field", cach
     normals = exact_skin_normals(case, points)
     grids = {(b, f): independent_truth_grid(case, n_tets=count, mesher="graded",
                                             materials=materials, face_mm=f, blend_mm=b,
+                                            face_margin_mm=face_margin_mm,
                                             reuse_factor=True, cache=cache)
              for b in blends for f in face_mm}
     refinement = []
