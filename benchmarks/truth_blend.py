@@ -21,7 +21,8 @@ import numpy as np
 import pvcmf
 from pvcmf import arrays
 from pvcmf.truth.independent import independent_truth_grid
-from pvcmf.truth.refinement import exact_skin_normals, exact_skin_samples, refinement_change
+from pvcmf.truth.refinement import (exact_skin_normals, exact_skin_samples, refinement_change,
+                                    skin_state)
 
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "benchmarks" / "truth_blend.md"
 #: skin change (p90, mm) between the two finest truths below which a truth has converged
@@ -46,23 +47,27 @@ def blend_rows(patient, spacing, count, face_mm, blends, materials="field", cach
     case = pvcmf.datasets.phantom(patient, spacing=spacing)
     points = exact_skin_samples(case)
     normals = exact_skin_normals(case, points)
-    grids = {(b, f): independent_truth_grid(case, n_tets=count, mesher="graded",
-                                            materials=materials, face_mm=f, blend_mm=b,
-                                            face_margin_mm=face_margin_mm,
-                                            reuse_factor=True, cache=cache)
-             for b in blends for f in face_mm}
+    states = {}  # one truth's mesh at a time: the finest ones are 100k+ P2 tetrahedra
+    for b in blends:
+        for f in face_mm:
+            grid = independent_truth_grid(case, n_tets=count, mesher="graded",
+                                          materials=materials, face_mm=f, blend_mm=b,
+                                          face_margin_mm=face_margin_mm,
+                                          reuse_factor=True, cache=cache)
+            states[b, f] = {**skin_state(grid, points, normals), "tets": grid.n_cells,
+                            "folded": len(grid.field_data[arrays.REFERENCE_FOLDED])}
+            del grid
     refinement = []
     for b in blends:
         for f0, f1 in zip(face_mm[:-1], face_mm[1:]):
-            coarse, fine = grids[b, f0], grids[b, f1]
+            coarse, fine = states[b, f0], states[b, f1]
             refinement.append({
                 "patient": patient, "blend": b, "faces": (f0, f1),
-                "tets": (coarse.n_cells, fine.n_cells),
-                "folded": tuple(len(g.field_data[arrays.REFERENCE_FOLDED]) for g in (coarse, fine)),
-                **_stats(refinement_change(coarse, fine, points, normals=normals))})
+                "tets": (coarse["tets"], fine["tets"]),
+                "folded": (coarse["folded"], fine["folded"]),
+                **_stats(refinement_change(coarse, fine, points))})
     cross = [{"patient": patient, "face": f, "blends": (blends[0], b),
-              **_stats(refinement_change(grids[blends[0], f], grids[b, f], points,
-                                         normals=normals))}
+              **_stats(refinement_change(states[blends[0], f], states[b, f], points))}
              for f in face_mm for b in blends[1:]]
     return refinement, cross
 

@@ -56,6 +56,31 @@ def test_skin_displacement_is_exact_for_an_affine_field():
     np.testing.assert_allclose(u, foot @ a.T + [1.0, 2.0, 3.0], atol=1e-9)
 
 
+def test_refinement_change_of_skin_states_equals_that_of_the_grids():
+    """A study may keep each truth's skin state and drop its mesh: same change, same reach."""
+    from pvcmf.truth.refinement import refinement_change, skin_state
+
+    coarse = pv.ImageData(dimensions=(3, 3, 3), spacing=(5.0,) * 3).cast_to_unstructured_grid()
+    fine = pv.ImageData(dimensions=(5, 5, 5), spacing=(2.5,) * 3).cast_to_unstructured_grid()
+    coarse, fine = coarse.triangulate(), fine.triangulate()
+    coarse[arrays.DISPLACEMENT] = 0.1 * coarse.points
+    fine[arrays.DISPLACEMENT] = 0.1 * fine.points + np.sin(fine.points)
+    rng = np.random.default_rng(1)
+    # on the top face, and some above it by more than the default reach (1.25 mm)
+    pts = np.column_stack([rng.uniform(0.5, 9.5, (60, 2)), np.r_[np.full(40, 10.0),
+                                                                  np.full(20, 12.0)]])
+    by_grid = refinement_change(coarse, fine, pts)
+    states = [skin_state(g, pts) for g in (coarse, fine)]
+    by_state = refinement_change(*states, pts)
+    assert states[0]["edge"] == pytest.approx(5.0)
+    assert by_grid["compared"] == pytest.approx(40 / 60)
+    for key in ("change", "fine"):
+        np.testing.assert_array_equal(by_state[key], by_grid[key])
+    assert (by_state["p90"], by_state["compared"]) == (by_grid["p90"], by_grid["compared"])
+    with pytest.raises(ValueError, match="coarse skin state has 60 points, expected the 10"):
+        refinement_change(states[0], fine, pts[:10])
+
+
 def test_skin_displacement_is_exact_for_a_quadratic_field_with_midpoint_values():
     from pvcmf.truth.refinement import skin_displacement
 

@@ -604,6 +604,44 @@ def test_blend_study_needs_two_widths_and_two_face_sizes():
         bench.truth_blend.blend_rows(1, 3.0, 30000, [4.0, 3.2], [4.0])
 
 
+def test_blend_study_holds_one_truth_mesh_at_a_time(monkeypatch):
+    """Nine fine truths do not fit in memory together: each is measured, then let go."""
+    import gc
+    import weakref
+
+    bench = _benchmark()
+    module = sys.modules["truth_blend"]
+    alive, most = set(), [0]
+
+    def truth(case, *, face_mm, blend_mm, **_):
+        grid = pv.ImageData(dimensions=(4, 4, 4), spacing=(3.0,) * 3)
+        grid = grid.cast_to_unstructured_grid().triangulate()
+        grid[arrays.DISPLACEMENT] = 0.01 * blend_mm * grid.points
+        grid.field_data[arrays.REFERENCE_FOLDED] = np.arange(int(blend_mm))
+        gc.collect()
+        alive.add(id(grid))
+        weakref.finalize(grid, alive.discard, id(grid))
+        most[0] = max(most[0], len(alive))
+        return grid
+
+    top = np.column_stack([np.linspace(1.0, 8.0, 30), np.full(30, 5.0), np.full(30, 9.0)])
+    monkeypatch.setattr(module.pvcmf.datasets, "phantom", lambda *a, **k: object())
+    monkeypatch.setattr(module, "exact_skin_samples", lambda case: top)
+    monkeypatch.setattr(module, "exact_skin_normals", lambda case, p: np.tile([0, 0, 1.0],
+                                                                              (len(p), 1)))
+    monkeypatch.setattr(module, "independent_truth_grid", truth)
+    refinement, cross = module.blend_rows(1, 3.0, 1000, [4.0, 3.2], [4.0, 8.0, 2.0])
+    assert most[0] == 1
+    assert [r["folded"] for r in refinement] == [(4, 4), (8, 8), (2, 2)]
+    assert [r["tets"] for r in refinement] == [(162, 162)] * 3
+    # same field at both sizes: no refinement change; the blends differ by 0.01 mm/mm
+    assert max(r["p90"] for r in refinement) < 1e-12
+    assert [c["blends"] for c in cross] == [(4.0, 8.0), (4.0, 2.0)] * 2
+    np.testing.assert_allclose([c["p50"] for c in cross],
+                               0.04 * np.median(np.linalg.norm(top, axis=1)) *
+                               np.array([1, 0.5, 1, 0.5]), rtol=1e-9)
+
+
 def test_refinement_passes_the_face_margin_on(monkeypatch):
     """``study.py --refinement --mesher graded --face-margin-mm M`` reaches the truth."""
     bench = _benchmark()

@@ -12,6 +12,8 @@ where it happens to fall inside both):
   point of the truth's boundary triangles (VTK cell locator), its displacement the P2
   field there (quadratic on the triangle: vertex and edge-midpoint values; the linear
   interpolation of the vertex values of a truth without midpoint values);
+* :func:`skin_state` - what the comparison needs of one truth (its skin displacement and
+  distances, its median edge), so that a study of many truths need not hold their meshes;
 * :func:`refinement_change` - the per-point change of that displacement between two
   truths (p50 / p90 / max), over the points both meshes reach within a tolerance.
 
@@ -37,7 +39,7 @@ from .anatomy import _warp
 from .exact import _BOUNDARY, _fields, _project, _region
 
 __all__ = ["exact_skin_normals", "exact_skin_samples", "refinement_change",
-           "skin_displacement"]
+           "skin_displacement", "skin_state"]
 
 
 def exact_skin_samples(case, *, face_fraction=0.5, tol=0.05):
@@ -226,13 +228,40 @@ def _midpoints(grid, tri):
     return values[pos]
 
 
+def skin_state(grid, points, normals=None):
+    """What :func:`refinement_change` needs of one solved truth, without the truth.
+
+    A truth's mesh can hold hundreds of thousands of quadratic tetrahedra; a study that
+    compares many truths keeps these few arrays per truth instead and lets each mesh go
+    as soon as it is measured.
+
+    Parameters
+    ----------
+    grid : pyvista.UnstructuredGrid
+        Solved truth (:func:`pvcmf.truth.independent.independent_truth_grid`).
+    points, normals : array_like, shape (n, 3)
+        Exact skin points and, optionally, their outward normals (:func:`skin_displacement`).
+
+    Returns
+    -------
+    dict
+        ``displacement`` (n, 3) and ``distance`` (n,) of :func:`skin_displacement`, and
+        ``edge`` the median edge length of the grid (mm).
+    """
+    u, d = skin_displacement(grid, points, normals)
+    e = grid.extract_all_edges().compute_cell_sizes(length=True, area=False,
+                                                    volume=False)["Length"]
+    return {"displacement": u, "distance": d, "edge": float(np.median(e))}
+
+
 def refinement_change(coarse, fine, points, *, reach=None, normals=None):
     """Per-point change of the skin displacement between two solved truths.
 
     Parameters
     ----------
-    coarse, fine : pyvista.UnstructuredGrid
-        Solved truths (:func:`pvcmf.truth.independent.independent_truth_grid`).
+    coarse, fine : pyvista.UnstructuredGrid or dict
+        Solved truths (:func:`pvcmf.truth.independent.independent_truth_grid`), or their
+        :func:`skin_state` at the same ``points`` (and normals).
     points : array_like, shape (n, 3)
         Exact skin points (:func:`exact_skin_samples`).
     reach : float, optional
@@ -250,12 +279,15 @@ def refinement_change(coarse, fine, points, *, reach=None, normals=None):
         truth's displacement (n, 3).
     """
     points = np.atleast_2d(np.asarray(points, dtype=float))
+    sc, sf = (s if isinstance(s, dict) else skin_state(s, points, normals)
+              for s in (coarse, fine))
+    for name, s in (("coarse", sc), ("fine", sf)):
+        if len(s["distance"]) != len(points):
+            raise ValueError(f"{name} skin state has {len(s['distance'])} points, expected "
+                             f"the {len(points)} of points")
     if reach is None:
-        e = coarse.extract_all_edges().compute_cell_sizes(length=True, area=False,
-                                                          volume=False)["Length"]
-        reach = 0.25 * float(np.median(e))
-    uc, dc = skin_displacement(coarse, points, normals)
-    uf, df = skin_displacement(fine, points, normals)
+        reach = 0.25 * sc["edge"]
+    uc, dc, uf, df = sc["displacement"], sc["distance"], sf["displacement"], sf["distance"]
     ok = (dc <= reach) & (df <= reach)
     change = np.full(len(points), np.nan)
     change[ok] = np.linalg.norm(uf[ok] - uc[ok], axis=1)
