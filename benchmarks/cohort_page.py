@@ -147,28 +147,14 @@ def mesh_note(mesh, paper001, n_tets, fine_tets, truth_tets, truth_face_mm=None,
         _markdown(mesh.round(3)), ""]
 
 
-def cohort_page(args, res, command, status="complete"):
+def _intro(args, res, command, status):
+    """The page's title, run and models paragraphs and the truth's note."""
     from pvcmf.study.validation import JUDGE_LIMIT
 
-    table, claims, cost, paper001 = res["table"], res["claims"], res["cost"], res["paper001"]
     options = (args.truth_mesher, args.truth_face_mm, args.truth_materials,  # the truth's
                args.truth_face_margin_mm)
-    spread, fine_tets = res["spread"], res["fine_tets"]
-    cold = cost[cost.run == "cold"].seconds
-    warm = cost[cost.run == "warm"].seconds
-    per_cold, per_warm = float(cold.mean()), float(warm.mean())
-    # the claims over every patient of the run, timed on the cold run's skins (the warm
-    # ones are the same, bit for bit); scaled to 16 patients when the run has fewer
-    claims_s = res["claims_seconds"]
-    warm16 = 16 * per_warm + claims_s * max(16 / res["n_patients"], 1.0)
-    keep = [c for c in ("patient", "method", "n", "excluded", "median", "p90", "p95",
-                        "within_1mm", "within_2mm") if c in table.columns]
-    main_methods = (COHORT_METHODS + ("homogeneous", "inhomogeneous") + PAPER001_AUTO_METHODS
-                    + (FINE_METHOD,))
-    errors = table[table["method"].isin(main_methods)]
-    n_pat = res["n_patients"]
-    few = n_pat < 6
-    lines = [
+    fine_tets, n_pat = res["fine_tets"], res["n_patients"]
+    return [
         "# Cohort study: paper 000's and paper 001's claims on seeded virtual patients", "",
         f"Command: `{command}`  ",
         f"Date: {datetime.date.today().isoformat()}; machine: {platform.machine()}, "
@@ -198,6 +184,14 @@ def cohort_page(args, res, command, status="complete"):
         f"post-operative CT shows no skin within ``JUDGE_LIMIT`` ({JUDGE_LIMIT:g} mm) of "
         "where the truth puts it, ``pvcmf.study.validation.study_predictor``).", "",
         truth_note(args.truth, args.truth_tets, PAGE, *options), "",
+    ]
+
+
+def _verdicts(args, res):
+    """The verdicts of both papers' claims, the Poisson-ratio optimum and the tolerances."""
+    claims, paper001, spread = res["claims"], res["paper001"], res["spread"]
+    few, fine_tets = res["n_patients"] < 6, res["fine_tets"]
+    return [
         "## Verdicts", "",
         "Each claim tested over the patients: Wilcoxon signed-rank test of the per-patient "
         "statistic, Hodges-Lehmann difference (a - b, mm; for a tolerance: value - "
@@ -226,26 +220,19 @@ def cohort_page(args, res, command, status="complete"):
         "of the 2 mm within which paper 000 counts a prediction accurate). The mesh claims "
         f"are tested at {args.n_tets} against {fine_tets} tetrahedra (paper 001: 30 000 "
         "against 200 000; section \"Mesh size\" below).", "",
-        "## Mesh size", "",
-        *mesh_note(res["mesh"], paper001, args.n_tets, fine_tets, args.truth_tets,
-                   args.truth_face_mm if args.truth_mesher == "graded" else None,
-                   args.truth_face_margin_mm),
-        "## Errors per patient and method", "",
-        _markdown(errors[keep].round(3)), "",
-        "## Paper 000's claims, paired over the patients", "",
-        _markdown(claims.round(4)), "",
-        "## Paper 001's claims, paired over the patients", "",
-        _markdown(paper001.round(4)), "",
-        "p90 |error| (mm) of the homogeneous model per Poisson ratio, and each patient's "
-        "optimum (``pvcmf.study.claims.nu_optimum``):", "",
-        _markdown(_nu_pivot(res["nu"])), "",
-        "## Errors per face region", "",
-        f"p50 and p90 of |error| (mm) per patient and face region (regions of "
-        f"``pvcmf.study.statistics.label_face_regions``: lips = upper and lower lip, cheeks "
-        f"= both cheeks; NaN: fewer than {MIN_REGION_POINTS} judged points; "
-        "``pvcmf.study.claims.region_table``). The per-region claims of paper 000 are in "
-        "its table above.", "",
-        _markdown(_region_pivot(res["regions"]).round(3)), "",
+    ]
+
+
+def _cost(res):
+    """The cost section: seconds per patient, cold and warm, against the targets."""
+    cost, n_pat, claims_s = res["cost"], res["n_patients"], res["claims_seconds"]
+    cold = cost[cost.run == "cold"].seconds
+    warm = cost[cost.run == "warm"].seconds
+    per_cold, per_warm = float(cold.mean()), float(warm.mean())
+    # the claims over every patient of the run, timed on the cold run's skins (the warm
+    # ones are the same, bit for bit); scaled to 16 patients when the run has fewer
+    warm16 = 16 * per_warm + claims_s * max(16 / n_pat, 1.0)
+    return [
         "## Cost", "",
         "Wall seconds per patient (the patient built, its truth, post-operative CT, "
         "registration and every method judged); cold: empty caches (a new cache folder: "
@@ -282,5 +269,39 @@ def cohort_page(args, res, command, status="complete"):
         "pipeline: what is left is reading the patients and the judged skins, the "
         "statistics and the claims (a run in a new process also hashes the code that keys "
         "the cache once, ``pvcmf.study.predictions.judged_code_hash``: seconds, in the "
-        "first warm patient's time when the cold run did not hash it).", ""]
+        "first warm patient's time when the cold run did not hash it).", ""
+    ]
+
+
+def cohort_page(args, res, command, status="complete"):
+    """The cohort page (markdown) of :func:`study.cohort_study`'s result ``res``."""
+    table, claims, paper001 = res["table"], res["claims"], res["paper001"]
+    fine_tets = res["fine_tets"]
+    keep = [c for c in ("patient", "method", "n", "excluded", "median", "p90", "p95",
+                        "within_1mm", "within_2mm") if c in table.columns]
+    main_methods = (COHORT_METHODS + ("homogeneous", "inhomogeneous") + PAPER001_AUTO_METHODS
+                    + (FINE_METHOD,))
+    errors = table[table["method"].isin(main_methods)]
+    lines = [*_intro(args, res, command, status), *_verdicts(args, res),
+        "## Mesh size", "",
+        *mesh_note(res["mesh"], paper001, args.n_tets, fine_tets, args.truth_tets,
+                   args.truth_face_mm if args.truth_mesher == "graded" else None,
+                   args.truth_face_margin_mm),
+        "## Errors per patient and method", "",
+        _markdown(errors[keep].round(3)), "",
+        "## Paper 000's claims, paired over the patients", "",
+        _markdown(claims.round(4)), "",
+        "## Paper 001's claims, paired over the patients", "",
+        _markdown(paper001.round(4)), "",
+        "p90 |error| (mm) of the homogeneous model per Poisson ratio, and each patient's "
+        "optimum (``pvcmf.study.claims.nu_optimum``):", "",
+        _markdown(_nu_pivot(res["nu"])), "",
+        "## Errors per face region", "",
+        f"p50 and p90 of |error| (mm) per patient and face region (regions of "
+        f"``pvcmf.study.statistics.label_face_regions``: lips = upper and lower lip, cheeks "
+        f"= both cheeks; NaN: fewer than {MIN_REGION_POINTS} judged points; "
+        "``pvcmf.study.claims.region_table``). The per-region claims of paper 000 are in "
+        "its table above.", "",
+        _markdown(_region_pivot(res["regions"]).round(3)), "",
+        *_cost(res)]
     return "\n".join(lines)
