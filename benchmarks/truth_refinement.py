@@ -271,9 +271,8 @@ def refinement(patients, counts, spacing, cache=True, mesher="lattice", material
             fits.append(f"patient {p}: solve s ~ tetrahedra^{k:.2f}; projected "
                         f"{np.exp(c) * 30_000 ** k / 60:.0f} min at 30k and "
                         f"{np.exp(c) * 60_000 ** k / 60:.0f} min at 60k tetrahedra "
-                        "(extrapolated from the rows above, not measured; wall seconds on a "
-                        "2-core machine shared with other jobs, so the exponent varies with "
-                        "the load)")
+                        "(extrapolated from the rows above, not measured; from wall seconds "
+                        "on a 2-core machine, whose timing noise the exponent carries)")
     tail = "\n\nCost scaling:\n\n" + "\n".join(f"- {f}" for f in fits) if fits else ""
     tail += _verdict(rows, patients) if len(levels) > 1 else ""
     if len(levels) > 1:
