@@ -423,6 +423,10 @@ def _report(result):
     else:
         print("\nno prediction (meshing / materials / solver not available): "
               "segmentation and figures only")
+    if result.warnings:
+        print(f"\n{len(result.warnings)} warning(s), also in summary.json and report.html:")
+        for message in result.warnings:
+            print(f"  {message}")
     print("\nwrote:")
     for path in result.files.values():
         print(f"  {path}")

@@ -244,7 +244,8 @@ def write_outputs(result, out, images=None):
     Files: ``predicted_skin.vtp`` (predicted skin with ``displacement``),
     ``deformed_mesh.vtu`` (the mesh at its predicted position, with ``displacement`` and
     the ``bc`` arrays), ``skin_pre.vtp``, the PNGs in ``images`` and ``summary.json``
-    (seconds per step, skipped steps, the plan, tissue and bone segment volumes in mL).
+    (seconds per step, skipped steps, what the run warned about, the plan, tissue and
+    bone segment volumes in mL).
     Returns ``result.files``. The command line adds ``report.html``
     (:func:`pvcmf.report.write_report`, a layer above the pipeline).
     """
@@ -265,6 +266,7 @@ def write_outputs(result, out, images=None):
         files[Path(name).stem] = out / name
     summary = {"plan": result.plan.to_dict(), "seconds": result.timings,
                "skipped": result.skipped, "complete": result.complete,
+               "warnings": list(getattr(result, "warnings", [])),
                "files": {k: Path(v).name for k, v in files.items()}}
     if result.ct_report:
         summary["ct"] = result.ct_report

@@ -39,11 +39,13 @@ from .filters.skin_prediction import (FAR_REDUCTION, TRANSFER_REACH,  # noqa: F4
                                       SKIN_SUMMARY, near_box, predict_skin)
 from .filters.surface_mapping import mesh_band
 from .io import read_ct
+from .io.ct import flip_axes  # noqa: F401 (public here too)
 from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
 from .plan import Plan, read_plan
 from .progress import Progress
+from .run_warnings import capture_warnings
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +101,8 @@ class Result:
     skin_fit : dict
         ``arrays.SKIN_FIT_FIELDS`` -> value: what :func:`pvcmf.filters.meshing.fit_to_skin`
         did to the mesh; empty when it was not fitted.
+    warnings : list of str
+        What the run warned about (:func:`pvcmf.run_warnings.capture_warnings`), in order.
     files : dict
         Output name -> written path.
     """
@@ -116,6 +120,7 @@ class Result:
     ct_report: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
     skin_fit: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
     files: dict = field(default_factory=dict)
 
     @property
@@ -137,6 +142,7 @@ class Result:
             u = np.linalg.norm(np.asarray(self.post[arrays.DISPLACEMENT]), axis=1)
             lines.append(f"max displacement {u.max():.2f} mm, mesh {self.post.n_cells} tetrahedra, "
                          f"{self.post.n_points} points")
+        lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
 
@@ -293,50 +299,6 @@ def _write_outputs(result, out, images=None):
     return files
 
 
-def flip_axes(image, axes):
-    """Mirror an image along some of its axes, in place of a reorientation.
-
-    Flipping two axes is a 180 degree rotation (patient left/right kept): use it to bring
-    a scan whose superior is -z and anterior -y (VTK's headsq) into pvcmf's patient frame
-    (x left, y anterior, z superior). Every point array is flipped; bounds are unchanged.
-
-    Parameters
-    ----------
-    image : pyvista.ImageData
-    axes : str or sequence of str
-        Subset of ``"xyz"``, e.g. ``"yz"``.
-
-    Returns
-    -------
-    pyvista.ImageData
-        A new image.
-
-    Examples
-    --------
-    >>> import numpy as np, pyvista as pv
-    >>> from pvcmf.pipeline import flip_axes
-    >>> img = pv.ImageData(dimensions=(2, 3, 4))
-    >>> img["z"] = img.points[:, 2].copy()
-    >>> flip_axes(img, "z")["z"][:3].tolist()
-    [3.0, 3.0, 3.0]
-    """
-    axes = "".join(axes)
-    if not isinstance(image, pv.ImageData):
-        raise TypeError(f"image must be a pyvista.ImageData, got {type(image).__name__}")
-    bad = set(axes) - set("xyz")
-    if bad or len(set(axes)) != len(axes):
-        raise ValueError(f"axes must be distinct letters of 'xyz', got {axes!r}")
-    out = image.copy()
-    dims = tuple(image.dimensions)
-    for name in image.point_data.keys():
-        data = np.asarray(image.point_data[name])
-        vol = data.reshape(dims + data.shape[1:], order="F")
-        for axis in axes:
-            vol = np.flip(vol, "xyz".index(axis))
-        out.point_data[name] = vol.reshape(data.shape, order="F").copy()
-    return out
-
-
 # --------------------------------------------------------------------------- main entry
 def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              n_tets=DEFAULT_N_TETS, segment_options=None, mesh_options=None,
@@ -440,7 +402,8 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     opts["fit_options"] = dict(fit_skin) if isinstance(fit_skin, dict) else ({} if fit_skin else None)
     out = None if out is None else check_output_dir(out)  # before any work
     result = Result(plan=plan)
-    with run_lock(out), Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
+    with run_lock(out), capture_warnings(result.warnings), \
+            Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
         run = _Runner(result, bar)
         ct = _read_step(run, ct, units, orient)
         labels = _label_steps(run, ct, labels, bones, plan, opts, classify)

@@ -51,8 +51,9 @@ ALLOWED = [
 
 # Layers, lowest first: a module may import from its own layer and the ones below it only.
 LAYERS = [
-    ("model", ("pvcmf.arrays", "pvcmf.progress", "pvcmf._atomic", "pvcmf.cache",
-               "pvcmf._version", "pvcmf.plan", "pvcmf.tps", "pvcmf.mtm.materials")),
+    ("model", ("pvcmf.arrays", "pvcmf.progress", "pvcmf.run_warnings", "pvcmf._atomic",
+               "pvcmf.cache", "pvcmf._version", "pvcmf.plan", "pvcmf.tps",
+               "pvcmf.mtm.materials")),
     ("io/datasets/atlas", ("pvcmf.io", "pvcmf.datasets", "pvcmf.atlas")),
     ("filters", ("pvcmf.filters",)),
     ("mtm", ("pvcmf.mtm",)),

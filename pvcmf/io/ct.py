@@ -47,7 +47,8 @@ Values
 ------
 ``ct = scale * value + offset``, where ``value`` already includes the file's own rescale
 (DICOM RescaleSlope/Intercept, NIfTI scl_slope/scl_inter). Use ``offset``/``scale`` for
-scanner units that are not HU (e.g. :func:`pvcmf.datasets.headsq`).
+scanner units that are not HU (e.g. :func:`pvcmf.datasets.headsq`). :func:`flip_axes`
+mirrors a read image along some of its axes (``pvcmf simulate --flip``).
 """
 
 from __future__ import annotations
@@ -533,3 +534,47 @@ def _read_nrrd(path):
     image = pv.ImageData(dimensions=sizes, spacing=spacing, origin=origin)
     image.direction_matrix = direction
     return image, values.astype(np.float32) if values.dtype == np.float64 else values
+
+
+def flip_axes(image, axes):
+    """Mirror an image along some of its axes, in place of a reorientation.
+
+    Flipping two axes is a 180 degree rotation (patient left/right kept): use it to bring
+    a scan whose superior is -z and anterior -y (VTK's headsq) into pvcmf's patient frame
+    (x left, y anterior, z superior). Every point array is flipped; bounds are unchanged.
+
+    Parameters
+    ----------
+    image : pyvista.ImageData
+    axes : str or sequence of str
+        Subset of ``"xyz"``, e.g. ``"yz"``.
+
+    Returns
+    -------
+    pyvista.ImageData
+        A new image.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf.io.ct import flip_axes
+    >>> img = pv.ImageData(dimensions=(2, 3, 4))
+    >>> img["z"] = img.points[:, 2].copy()
+    >>> flip_axes(img, "z")["z"][:3].tolist()
+    [3.0, 3.0, 3.0]
+    """
+    axes = "".join(axes)
+    if not isinstance(image, pv.ImageData):
+        raise TypeError(f"image must be a pyvista.ImageData, got {type(image).__name__}")
+    bad = set(axes) - set("xyz")
+    if bad or len(set(axes)) != len(axes):
+        raise ValueError(f"axes must be distinct letters of 'xyz', got {axes!r}")
+    out = image.copy()
+    dims = tuple(image.dimensions)
+    for name in image.point_data.keys():
+        data = np.asarray(image.point_data[name])
+        vol = data.reshape(dims + data.shape[1:], order="F")
+        for axis in axes:
+            vol = np.flip(vol, "xyz".index(axis))
+        out.point_data[name] = vol.reshape(data.shape, order="F").copy()
+    return out

@@ -149,6 +149,7 @@ def write_report(folder, *, result=None, path=None, title=None,
     regions, caption = _regions(summary, skins)
     plan = result.plan.to_dict() if result is not None else summary.get("plan")
     timings = dict(result.timings) if result is not None else summary.get("seconds")
+    notes = list(result.warnings) if result is not None else summary.get("warnings", [])
     images = {p.name: p.read_bytes() for p in sorted(folder.glob("*.png"))}
     extra = {}
     if summary.get("registration"):
@@ -163,7 +164,7 @@ def write_report(folder, *, result=None, path=None, title=None,
     page = report_html(title=title, scene=scene, colourbars=bars or (), skins_ui=skins_ui or (),
                        colourings_ui=colourings_ui or (), regions=regions,
                        regions_caption=caption, plan=plan, timings=timings, images=images,
-                       extra=extra)
+                       extra=extra, warnings=notes)
     out = write_text(path or folder / REPORT_NAME, page)
     log.info("report: %s (%.1f MB)", out, out.stat().st_size / 1e6)
     return out

@@ -191,18 +191,20 @@ text-align:right}td:first-child,th:first-child{text-align:left}
 .cb-ticks{display:flex;justify-content:space-between;width:244px;font-size:.8em}
 .figures{display:flex;flex-wrap:wrap;gap:.5em}.figures figure{margin:0}
 .figures img{max-width:560px;max-height:460px;border:1px solid #eee}.note{color:dimgray;font-size:.9em}
+.warnings{background:rgb(255,243,205);border:1px solid rgb(224,190,90);padding:.5em 1em .5em 2em}
 """
 
 
 def report_html(*, title, scene=None, colourbars=(), skins_ui=(), colourings_ui=(),
                 regions=None, regions_caption="", plan=None, timings=None, images=None,
-                extra=None):
+                extra=None, warnings=()):
     """The report page as a string (see :func:`write_report` for what goes in).
 
     ``scene`` is :func:`pvcmf.report.scene.scene_json`'s text; ``skins_ui`` (name, label,
     shown) and ``colourings_ui`` (key, label) make the viewer's controls; ``regions`` the
     rows of :func:`region_rows`; ``timings`` step -> seconds; ``images`` name -> PNG bytes;
-    ``extra`` (heading, key -> value) rows shown after the plan.
+    ``extra`` (heading, key -> value) rows shown after the plan; ``warnings`` what the
+    run warned about (shown first).
     """
     parts = [f"<!doctype html><html lang='en'><head><meta charset='utf-8'>"
              f"<title>{html.escape(title)}</title><script>{ERROR_HOOK_JS}</script>"
@@ -210,6 +212,9 @@ def report_html(*, title, scene=None, colourbars=(), skins_ui=(), colourings_ui=
              f"<h1>{html.escape(title)}</h1><p class='note'>pvcmf {_pvcmf_version()}, written "
              f"{datetime.datetime.now().isoformat(timespec='seconds')}. This page works "
              f"offline: data and viewer are inside it.</p>"]
+    if warnings:
+        items = "".join(f"<li>{html.escape(str(w))}</li>" for w in warnings)
+        parts.append(f"<h2>Warnings</h2><ul id='warnings' class='warnings'>{items}</ul>")
     if scene is not None:
         boxes = "".join(f"<label><input type='checkbox' data-skin='{n}'"
                         f"{' checked' if shown else ''}> {html.escape(lab)}</label>"
