@@ -33,6 +33,34 @@ def test_capture_ends_with_the_run():
     assert found == []
 
 
+def test_runs_in_other_threads_keep_their_own_warnings():
+    """Two runs at once (a sweep on threads): each keeps what its own thread warned about,
+    and the hook goes when the last one ends."""
+    import threading
+
+    shown = warnings.showwarning
+    started, finish, sinks = threading.Barrier(2), threading.Barrier(2), {}
+
+    def run(name):
+        with capture_warnings(sinks.setdefault(name, [])):
+            started.wait()
+            logging.getLogger("pvcmf.run").warning("log of %s", name)
+            warnings.warn(f"warning of {name}", UserWarning)
+            finish.wait()
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        threads = [threading.Thread(target=run, args=(n,)) for n in ("a", "b")]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    assert sinks["a"] == ["log of a", "UserWarning: warning of a"]
+    assert sinks["b"] == ["log of b", "UserWarning: warning of b"]
+    assert sorted(str(w.message) for w in seen) == ["warning of a", "warning of b"]  # shown
+    assert warnings.showwarning is shown
+
+
 def test_sink_must_be_a_list():
     with pytest.raises(TypeError, match="sink must be a list, got tuple"):
         with capture_warnings(()):
