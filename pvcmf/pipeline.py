@@ -276,7 +276,7 @@ def _skin(labels, post, pre=None, box=None):
     return predict_skin(labels, post, pre, box)
 
 
-_SKIN_SUMMARY = SKIN_SUMMARY
+_SKIN_SUMMARY = SKIN_SUMMARY + (arrays.SKIN_CUT_POINTS,)
 
 
 def _write_outputs(result, out, images=None):

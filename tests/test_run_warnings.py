@@ -4,7 +4,6 @@ import json
 import logging
 import warnings
 
-import numpy as np
 import pytest
 
 from pvcmf.run_warnings import capture_warnings
@@ -65,28 +64,6 @@ def test_sink_must_be_a_list():
     with pytest.raises(TypeError, match="sink must be a list, got tuple"):
         with capture_warnings(()):
             pass
-
-
-def test_a_face_cut_by_the_field_of_view_is_in_the_summary_and_the_report(tmp_path):
-    """The segmentation's warning about a face cut flat reaches the run's files."""
-    import pvcmf
-    from pvcmf.pipeline import simulate
-
-    case = pvcmf.datasets.phantom(patient=1, spacing=3.0)
-    ct = case.ct
-    y = np.asarray(ct.points)[:, 1]
-    front = float(np.percentile(y[np.asarray(ct["ct"]) > -300], 99)) - 20.0  # 20 mm off the face
-    voi = [0, ct.dimensions[0] - 1, 0, int((front - ct.origin[1]) / ct.spacing[1]),
-           0, ct.dimensions[2] - 1]
-    res = simulate(ct.extract_subset(voi), case.plan, tmp_path, predict=False, figures=False)
-    flat = [w for w in res.warnings if "cut flat on the anterior" in w]
-    assert len(flat) == 1, res.warnings
-    summary = json.loads((tmp_path / "summary.json").read_text())
-    assert flat[0] in summary["warnings"]
-    from pvcmf.report import write_report
-
-    page = write_report(tmp_path, result=res).read_text()
-    assert "<h2>Warnings</h2>" in page and "cut flat on the anterior" in page
 
 
 def test_the_command_line_recaps_the_warnings_at_the_end(capsys):

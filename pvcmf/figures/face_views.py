@@ -34,10 +34,11 @@ from .. import arrays
 from .framing import (FRAME_MARGIN, FRAME_SLAB, FRAME_TITLE, FRAME_WIDEN,  # noqa: F401
                       fit_aspect, fit_parallel, frame_bounds, frame_skins)
 from .profiles import POST_LABEL, PRE_LABEL, anterior_profile, profile_overlay  # noqa: F401
+from .skin_marks import CUT_COLOR, cut_points, modelled_points
 
 __all__ = ["VIEWS", "to_display", "display_bounds", "frame_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
            "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "modelled_points", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
-           "prediction_summary", "carry_to_skin", "UNMODELLED_COLOR", "fit_parallel",
+           "prediction_summary", "carry_to_skin", "UNMODELLED_COLOR", "CUT_COLOR", "fit_parallel",
            "displacement_views", "saturation_note"]
 
 SKIN_COLOR = "peachpuff"
@@ -298,15 +299,26 @@ def symmetric_limit(values, visible, percentile=99.0, floor=0.1):
 
 
 def _add_skin(plotter, skin, color, unmodelled):
-    """The skin in ``color``; with ``unmodelled`` (a colour), its points outside the model
-    (:func:`modelled_points`) in that colour."""
-    if unmodelled is None or arrays.SKIN_MODELLED not in skin.point_data:
+    """Add ``skin`` to ``plotter`` in ``color``; with ``unmodelled`` (a colour), its points
+    outside the model (:func:`modelled_points`) in that colour; its points on a cut of the
+    scan (:func:`cut_points`) in :data:`CUT_COLOR`. Returns the actor."""
+    cut = cut_points(skin)
+    grey = unmodelled is not None and arrays.SKIN_MODELLED in skin.point_data
+    if not (grey or cut.any()):
         return add_patient_mesh(plotter, skin, color=color, specular=0.2)
     shown = skin.copy(deep=False)
     shown.clear_data()
-    shown.point_data["modelled"] = modelled_points(skin).astype(np.float64)
-    return add_patient_mesh(plotter, shown, scalars="modelled", cmap=[unmodelled, color],
-                            clim=(0.0, 1.0), show_scalar_bar=False, specular=0.2)
+    if not cut.any():
+        shown.point_data["modelled"] = modelled_points(skin).astype(np.float64)
+        return add_patient_mesh(plotter, shown, scalars="modelled", cmap=[unmodelled, color],
+                                clim=(0.0, 1.0), show_scalar_bar=False, specular=0.2)
+    # 0 outside the model, 1 skin, 2 on a cut: the cut borders the modelled skin
+    shade = np.where(modelled_points(skin) | (not grey), 1.0, 0.0)
+    shade[cut] = 2.0
+    shown.point_data["shade"] = shade
+    return add_patient_mesh(plotter, shown, scalars="shade",
+                            cmap=[unmodelled or color, color, CUT_COLOR], clim=(0.0, 2.0),
+                            show_scalar_bar=False, specular=0.2)
 
 
 def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
@@ -325,6 +337,8 @@ def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
         Draw the predicted skin's points the model does not reach (its
         ``arrays.SKIN_MODELLED`` array is 0: the back of the head, the neck, whose
         displacement is an extension fading to zero) in this colour, e.g. ``"0.78"``.
+        Both skins' points on a cut of the scan (``arrays.SKIN_CUT``) are drawn in
+        :data:`~pvcmf.figures.skin_marks.CUT_COLOR`.
     font_size : int
         Of the panel titles.
 
@@ -359,26 +373,6 @@ def visible_in_views(surface, views=("frontal", "profile")):
     for v in views:
         seen |= visible_points(surface, v)
     return seen
-
-
-def modelled_points(skin):
-    """The points of ``skin`` the model predicts: its ``arrays.SKIN_MODELLED`` array, all
-    points without it. The rest of a head's skin (the back of the head, the neck) keeps
-    zero displacement and sets no colour range.
-
-    Examples
-    --------
-    >>> import numpy as np, pyvista as pv
-    >>> skin = pv.PolyData(np.zeros((3, 3)))
-    >>> modelled_points(skin).tolist()
-    [True, True, True]
-    >>> skin.point_data[arrays.SKIN_MODELLED] = np.array([1, 0, 1], np.uint8)
-    >>> modelled_points(skin).tolist()
-    [True, False, True]
-    """
-    if arrays.SKIN_MODELLED in skin.point_data:
-        return np.asarray(skin.point_data[arrays.SKIN_MODELLED]).astype(bool)
-    return np.ones(skin.n_points, dtype=bool)
 
 
 def displacement_limit(skin, component="ap", views=("frontal", "profile"), percentile=99.0,
@@ -537,7 +531,7 @@ def prediction_summary(pre, post, panel=(380, 440), unmodelled=UNMODELLED_COLOR)
     numpy.ndarray
         (h, w, 3) uint8 RGB image: a 2 x 2 block (rows frontal, profile; columns
         pre-operative, predicted) then the overlay (:func:`profile_overlay`), with a note
-        under it naming the grey.
+        under it naming the grey skin and the skin on a cut of the scan.
     """
     views = ("frontal", "profile")
     h = int(panel[1])
@@ -549,13 +543,16 @@ def prediction_summary(pre, post, panel=(380, 440), unmodelled=UNMODELLED_COLOR)
     height = faces.shape[0]
     # at least 420 pixels wide: the title and the note fit at any height
     fig = profile_overlay(pre, post, figsize=(max(0.5 * height, 420) / 100, height / 100))
-    grey = (unmodelled is not None and arrays.SKIN_MODELLED in post.point_data
-            and not modelled_points(post).all())
-    if grey:
-        fig.subplots_adjust(bottom=0.12 + 40.0 / height)  # 40 pixels for the note
-        fig.text(0.5, 0.015, "grey skin: beyond the mesh's reach;\nits move is extrapolated, "
-                 "fading to none",
-                 ha="center", va="bottom", fontsize=9, color="0.3")
+    notes = []
+    if (unmodelled is not None and arrays.SKIN_MODELLED in post.point_data
+            and not modelled_points(post).all()):
+        notes.append("grey skin: beyond the mesh's reach;\nits move is extrapolated, fading to none")
+    if cut_points(pre).any() or cut_points(post).any():
+        notes.append("blue skin: where the scan cut the head;\nthe scan's edge, not the patient's")
+    if notes:
+        fig.subplots_adjust(bottom=0.12 + 40.0 * len(notes) / height)  # 40 pixels a note
+        fig.text(0.5, 0.015, "\n".join(notes), ha="center", va="bottom", fontsize=9,
+                 color="0.3")
     chart = chart_image(fig)[:height]
     pad = np.full((height - chart.shape[0], chart.shape[1], 3), 255, np.uint8)
     return np.concatenate([faces, np.concatenate([chart, pad])], axis=1)

@@ -37,7 +37,8 @@ refused first, on the measurements of :func:`pvcmf.io.orientation.standardize`
 (:func:`pvcmf.io.head_check.check_head`; ``check=False`` skips it).
 
 A head cut flat by the field of view (nose, forehead, vertex) is reported by a warning that
-names the side and the extent (:func:`clipped_sides`). Index axis 2 is the axial axis; the
+names the side and the extent, and the planes are kept in the field data ``scan_cuts``
+(:func:`pvcmf.filters.field_of_view.cut_planes`). Index axis 2 is the axial axis; the
 patient frame (x left, y anterior, z superior) is assumed for the side names.
 """
 
@@ -58,7 +59,7 @@ from .morphology import (MIN_BALL_VOXELS, _beyond, _box, _c_copy, _closing,  # n
 from ..progress import Progress
 from . import metal as _metal
 from .surface_objects import DENSE_STEPS, drop_film, drop_surface_objects
-from .field_of_view import clipped_sides
+from .field_of_view import cut_planes, cuts_array
 
 log = logging.getLogger(__name__)
 
@@ -201,8 +202,9 @@ def segment(
     pyvista.ImageData
         A deep copy of ``ct`` (``ct`` kept) with point arrays ``tissue`` (uint8: AIR, FAT,
         BONE_TISSUE, TEETH, INTRACRANIAL, METAL) and ``bone`` (uint8: CRANIUM on hard tissue),
-        and field data ``thresholds`` (skin, bone, teeth, metal) and ``warnings``
-        (one string per warning, e.g. a face clipped by the field of view).
+        and field data ``thresholds`` (skin, bone, teeth, metal), ``warnings``
+        (one string per warning, e.g. a face clipped by the field of view) and, where the
+        scan cut the head flat, ``arrays.SCAN_CUTS`` (the planes).
 
     Raises
     ------
@@ -283,7 +285,8 @@ def segment(
         raise ValueError("segment: no extra-cranial soft tissue left between skin_threshold="
                          f"{thr['skin']:.0f} and bone_threshold={thr['bone']:.0f}")
     corner = np.asarray(ct.origin) + spacing * [b.start for b in box]
-    for message in clipped_sides(head, spacing, corner, vol=sub):
+    cuts = cut_planes(head, spacing, corner, vol=sub)
+    for message in (c["message"] for c in cuts):
         log.warning("segment: %s", message)
         warnings.append(message)
     bar.step()
@@ -291,6 +294,8 @@ def segment(
     out = _write(ct, vol.shape, box, soft, hard, teeth, metal, intracranial)
     out.field_data["thresholds"] = np.array([thr[k] for k in ("skin", "bone", "teeth", "metal")])
     out.field_data["warnings"] = np.array(warnings if warnings else [""], dtype=str)
+    if cuts:
+        out.field_data[arrays.SCAN_CUTS] = cuts_array(cuts)
     if log.isEnabledFor(logging.INFO if progress_bar else logging.DEBUG):
         volumes = tissue_volumes(out)
         say("segment: volumes (mL) %s", ", ".join(f"{k} {v:.1f}" for k, v in volumes.items()))

@@ -10,6 +10,9 @@ the transfer itself is beyond ``2 band``; the band is the mesh's,
 from its surface). Skin on bare teeth or bone is not modelled
 (:func:`pvcmf.filters.meshing.skin_fit.on_hard_tissue`); the crumple metric
 (:func:`pvcmf.filters.surface_mapping.crumple_metric`) is taken over the modelled skin.
+Where the scan cut the head flat (the labels' ``arrays.SCAN_CUTS``), the skin points on
+the cut get ``arrays.SKIN_CUT`` = 1 (:func:`pvcmf.filters.field_of_view.on_scan_cuts`):
+the scan's edge, not the patient's skin, which the figures draw apart.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import logging
 import numpy as np
 
 from .. import arrays
+from .field_of_view import on_scan_cuts
 from .meshing.skin_fit import DEFAULT_REACH, on_hard_tissue
 from .skin import coarsen_outside, head_skin, sub_surface
 from .surface_mapping import DEFAULT_BAND, Transfer, crumple_metric, mesh_band
@@ -87,13 +91,16 @@ def predict_skin(labels, post, pre=None, box=None):
     Returns
     -------
     (pyvista.PolyData, pyvista.PolyData or None)
-        The pre-operative skin (with ``displacement`` and ``skin_modelled`` given ``post``)
-        and the predicted skin (None without ``post``).
+        The pre-operative skin (with ``displacement`` and ``skin_modelled`` given ``post``;
+        ``skin_cut`` where the labels have ``scan_cuts``) and the predicted skin (None
+        without ``post``).
     """
     pre = head_skin(labels, box) if pre is None else pre
     band = DEFAULT_BAND if post is None else mesh_band(post)
     near = near_box(pre.points, box, transfer_reach(band))
     pre = coarsen_outside(pre, near, FAR_REDUCTION)
+    if arrays.SCAN_CUTS in labels.field_data:
+        pre.point_data[arrays.SKIN_CUT] = on_scan_cuts(pre.points, labels).astype(np.uint8)
     if post is None:
         return pre, None
     near = near_box(pre.points, box, transfer_reach(band))
@@ -119,4 +126,6 @@ def predict_skin(labels, post, pre=None, box=None):
     moved.points = np.asarray(pre.points) + disp
     for name in SKIN_SUMMARY:
         moved.field_data[name] = np.array([metric[name]])
+    if arrays.SKIN_CUT in pre.point_data:
+        moved.field_data[arrays.SKIN_CUT_POINTS] = np.array([int(pre[arrays.SKIN_CUT].sum())])
     return pre, moved

@@ -1,0 +1,61 @@
+"""Which skin points the face figures draw apart, and in what colour.
+
+Two kinds of skin are not what they seem and are drawn in their own colour over the skin
+colour: the predicted skin the model does not reach (``arrays.SKIN_MODELLED`` is 0: the
+back of the head, the neck; its move is an extension fading to none), in the colour the
+caller gives (:data:`pvcmf.figures.face_views.UNMODELLED_COLOR`), and the skin on a plane
+where the scan cut the head (``arrays.SKIN_CUT``: a face cut by the field of view, a
+vertex cut by the scan's end; the scan's edge, not the patient's skin), in
+:data:`CUT_COLOR`, on the pre-operative and the predicted skin alike
+(:func:`pvcmf.figures.face_views.face_comparison` draws them).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import arrays
+
+__all__ = ["CUT_COLOR", "cut_points", "modelled_points"]
+
+#: colour of the skin on a cut of the scan (``arrays.SKIN_CUT``)
+CUT_COLOR = "lightsteelblue"
+
+
+def modelled_points(skin):
+    """The points of ``skin`` the model predicts: its ``arrays.SKIN_MODELLED`` array, all
+    points without it. The rest of a head's skin (the back of the head, the neck) keeps
+    zero displacement and sets no colour range.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> skin = pv.PolyData(np.zeros((3, 3)))
+    >>> modelled_points(skin).tolist()
+    [True, True, True]
+    >>> skin.point_data[arrays.SKIN_MODELLED] = np.array([1, 0, 1], np.uint8)
+    >>> modelled_points(skin).tolist()
+    [True, False, True]
+    """
+    if arrays.SKIN_MODELLED in skin.point_data:
+        return np.asarray(skin.point_data[arrays.SKIN_MODELLED]).astype(bool)
+    return np.ones(skin.n_points, dtype=bool)
+
+
+def cut_points(skin):
+    """The points of ``skin`` on a cut of the scan: its ``arrays.SKIN_CUT`` array, none
+    without it.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> skin = pv.PolyData(np.zeros((3, 3)))
+    >>> cut_points(skin).tolist()
+    [False, False, False]
+    >>> skin.point_data[arrays.SKIN_CUT] = np.array([0, 1, 0], np.uint8)
+    >>> cut_points(skin).tolist()
+    [False, True, False]
+    """
+    if arrays.SKIN_CUT in skin.point_data:
+        return np.asarray(skin.point_data[arrays.SKIN_CUT]).astype(bool)
+    return np.zeros(skin.n_points, dtype=bool)
