@@ -293,9 +293,10 @@ CRUMPLE_EDGES = "crumple_edges"  #: summary / field data: number of skin edges c
 SKIN_MODELLED = "skin_modelled"
 #: summary / field data: skin points the mesh models (:data:`SKIN_MODELLED`)
 SKIN_MODELLED_POINTS = "skin_modelled_points"
-#: field (labels of ``segment``), float64, 7 per plane where the scan cut the head flat (the
-#: field of view's edge, the scan's end): axis, sign, coordinate (mm), then the cut's extent
-#: (mm) along the two other axes (:func:`pvcmf.filters.field_of_view.cuts_array`)
+#: field (labels of ``segment``), float64, 8 per plane where the scan cut the head flat (the
+#: field of view's edge, the scan's end): axis, sign, coordinate (mm), the cut's extent (mm)
+#: along the two other axes, 1 for the field of view's edge or 0 for the image's end
+#: (:func:`pvcmf.filters.field_of_view.cuts_array`)
 SCAN_CUTS = "scan_cuts"
 #: point (skin), uint8, 1 where the skin lies on such a cut, the scan's edge and not the
 #: patient's skin (present when the labels have ``SCAN_CUTS``)

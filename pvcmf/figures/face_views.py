@@ -313,7 +313,9 @@ def _add_skin(plotter, skin, color, unmodelled):
         return add_patient_mesh(plotter, shown, scalars="modelled", cmap=[unmodelled, color],
                                 clim=(0.0, 1.0), show_scalar_bar=False, specular=0.2)
     # 0 outside the model, 1 skin, 2 on a cut: the cut borders the modelled skin
-    shade = np.where(modelled_points(skin) | (not grey), 1.0, 0.0)
+    shade = np.ones(skin.n_points)
+    if grey:
+        shade[~modelled_points(skin)] = 0.0
     shade[cut] = 2.0
     shown.point_data["shade"] = shade
     return add_patient_mesh(plotter, shown, scalars="shade",

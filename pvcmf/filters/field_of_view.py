@@ -129,9 +129,8 @@ def on_scan_cuts(points, labels):
     """Which ``points`` (a skin) lie on a plane where the scan cut the head.
 
     A point is on a cut when it lies within one and a half voxels inside the cut's plane
-    (or beyond it) and of the cut's extent: the skin there is the scan's
-    edge, not the patient's (a face cut by the field of view, a vertex cut by the scan's
-    end). A circular field of view cuts a face along a cylinder that is flat only at its
+    (or beyond it) and of the cut's extent: the skin there is the scan's edge, not the
+    patient's (a face cut by the field of view, a vertex cut by the scan's end). A circular field of view cuts a face along a cylinder that is flat only at its
     front: the cut's part that curves back more than that from the plane is not marked
     (a scan's padding outside its field of view often has the value of its clipped air,
     so it does not tell the two apart either).
@@ -166,13 +165,12 @@ def on_scan_cuts(points, labels):
     on = np.zeros(len(p), dtype=bool)
     if arrays.SCAN_CUTS not in labels.field_data:
         return on
-    spacing = np.asarray(labels.spacing, dtype=np.float64)
+    reach = 1.5 * np.asarray(labels.spacing, dtype=np.float64)  # voxels and a half, mm
     cuts = np.asarray(labels.field_data[arrays.SCAN_CUTS], dtype=np.float64).reshape(-1, 8)
     for axis, sign, at, lo1, hi1, lo2, hi2, _ in cuts:
         a = int(axis)
         b, c = (k for k in range(3) if k != a)
-        near = sign * (p[:, a] - at) >= -1.5 * spacing[a]
-        reach = 1.5 * spacing
+        near = sign * (p[:, a] - at) >= -reach[a]
         within = ((p[:, b] >= lo1 - reach[b]) & (p[:, b] <= hi1 + reach[b])
                   & (p[:, c] >= lo2 - reach[c]) & (p[:, c] <= hi2 + reach[c]))
         on |= near & within
