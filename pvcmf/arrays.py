@@ -298,8 +298,11 @@ SKIN_MODELLED_POINTS = "skin_modelled_points"
 #: along the two other axes, 1 for the field of view's edge or 0 for the image's end
 #: (:func:`pvcmf.filters.field_of_view.cuts_array`)
 SCAN_CUTS = "scan_cuts"
+#: field (labels), float64: the round field of view where it cuts the head, per axial slice
+#: ``z, centre x, centre y, radius`` (mm; :func:`pvcmf.filters.field_of_view.fov_cuts`)
+SCAN_FOV = "scan_fov"
 #: point (skin), uint8, 1 where the skin lies on such a cut, the scan's edge and not the
-#: patient's skin (present when the labels have ``SCAN_CUTS``)
+#: patient's skin (present when the labels have ``SCAN_CUTS`` or ``SCAN_FOV``)
 SKIN_CUT = "skin_cut"
 #: summary / field data: skin points on a cut of the scan (:data:`SKIN_CUT`)
 SKIN_CUT_POINTS = "skin_cut_points"

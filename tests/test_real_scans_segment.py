@@ -111,6 +111,22 @@ def test_male_metal_and_clipped_face(male):
     assert np.count_nonzero(t == arrays.METAL) > 0
     warnings = " ".join(lab.field_data["warnings"])
     assert "anterior" in warnings and "field of view" in warnings
+    assert "round field of view" not in warnings and arrays.SCAN_FOV not in lab.field_data
+
+
+def test_female_nose_cut_by_the_round_field_of_view(female):
+    """The female scan's reconstruction circle (125 mm across its face slices) clips the tip
+    of the nose over a few centimetres of height; the male's head lies inside its circles."""
+    ct, lab = female
+    assert "round field of view" in " ".join(lab.field_data["warnings"])
+    rows = np.asarray(lab.field_data[arrays.SCAN_FOV]).reshape(-1, 4)
+    nose = rows[np.abs(rows[:, 3] - 125.0) < 2.0]
+    assert len(nose) >= 15  # slices (1 mm)
+    # the circle's front: the tip of the nose, the face's most anterior skin
+    v = _vol(lab)
+    face = np.argwhere(v != arrays.AIR)
+    front = ct.origin[1] + ct.spacing[1] * face[:, 1].max()
+    assert np.all(np.abs(nose[:, 2] + nose[:, 3] - front) < 3.0)
 
 
 def test_male_no_hard_tissue_from_metal_streaks(male):

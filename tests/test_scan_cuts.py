@@ -1,5 +1,5 @@
-"""A head cut flat by the scan: found, warned about, kept with the run, marked on the skin
-and drawn apart in the face figures."""
+"""A head cut by the scan (flat, or by the round field of view): found, warned about, kept
+with the run, marked on the skin and drawn apart in the face figures."""
 
 import json
 
@@ -8,7 +8,8 @@ import pytest
 import pyvista as pv
 
 from pvcmf import arrays
-from pvcmf.filters.field_of_view import cut_planes, cuts_array, on_scan_cuts
+from pvcmf.filters.field_of_view import (cut_planes, cuts_array, fov_circles, fov_cuts,
+                                         on_scan_cuts)
 
 
 @pytest.fixture(scope="module")
@@ -91,3 +92,89 @@ def test_face_views_draw_the_cut_skin_in_its_own_colour():
     p.close()
     bluish = lambda img: int(((img[..., 2] - img[..., 0]) > 20).sum())  # noqa: E731
     assert bluish(before) == 0 and bluish(after) > 500
+
+
+def _padded_slices(n=96, centre=(45.0, 50.0), radius=40.0, nz=5, seed=0):
+    """CT slices of noisy air clipped at -1024 inside a circle, -1024 padding outside."""
+    i, j = np.mgrid[:n, :n]
+    inside = (i - centre[0]) ** 2 + (j - centre[1]) ** 2 <= radius ** 2
+    noise = np.random.default_rng(seed).normal(-1000.0, 25.0, (n, n, nz))
+    return np.where(inside[:, :, None], np.maximum(noise, -1024.0), -1024.0), i, j
+
+
+def test_fov_circles_find_the_reconstruction_circle_in_clipped_air():
+    vol, _, _ = _padded_slices()
+    c = fov_circles(vol, -400.0, spacing=(0.5, 0.5, 2.0))
+    assert np.allclose(c[:, :2], [22.5, 25.0], atol=0.1)  # mm
+    assert np.allclose(c[:, 2], 20.0, atol=0.1)  # the boundary, half a voxel beyond the rim
+    vol[:, :, 2] = np.maximum(np.random.default_rng(1).normal(-1000.0, 25.0, vol.shape[:2]),
+                              -1024.0)  # a slice without padding: its clipped air is no circle
+    assert np.isnan(fov_circles(vol, -400.0)[2]).all()
+    vol[:, 80:, 3] = -1024.0  # padding beyond a straight edge: no circle, and no error
+    vol[:, :80, 3] = np.maximum(vol[:, :80, 3], -1023.0)
+    assert np.isnan(fov_circles(vol, -400.0)[3]).all()
+
+
+def test_a_head_outlined_on_padding_valued_air_is_no_field_of_view():
+    """Uniform air at the image's minimum around a round head: the rim is all head."""
+    _, i, j = _padded_slices()
+    ball = np.hypot(i - 48.0, j - 48.0) < 30.0
+    vol = np.where(ball[:, :, None], 40.0, -1000.0) * np.ones((1, 1, 4))
+    assert np.isnan(fov_circles(vol, -400.0)).all()
+
+
+def test_fov_cuts_keep_the_slices_whose_circle_cuts_the_head_and_mark_their_skin():
+    vol, i, j = _padded_slices(nz=6)
+    circles = fov_circles(vol, -400.0)  # centre (45, 50), radius 40 voxels, 1 mm
+    head = np.zeros(vol.shape, bool)
+    head[:, :, 1:5] = (np.hypot(i - 45.0, j - 70.0) < 25.0)[:, :, None]  # out to j = 95
+    head &= vol > -1024.0  # the scan holds only what lies inside its circle
+    rows, message = fov_cuts(circles, head, (1.0, 1.0, 1.0), origin=(0.0, 0.0, 10.0))
+    assert rows[:, 0].tolist() == [11.0, 12.0, 13.0, 14.0]  # z of the slices 1-4
+    assert np.allclose(rows[:, 1:], [45.0, 50.0, 40.0], atol=0.5)
+    assert "round field of view (radius 40 mm) from z = 11 to 14 mm" in message
+    assert fov_cuts(circles, head & (np.hypot(i - 45.0, j - 50.0) < 30.0)[:, :, None],
+                    (1.0, 1.0, 1.0))[1] is None  # the head inside the circle: no cut
+    labels = pv.ImageData(dimensions=vol.shape, origin=(0.0, 0.0, 10.0))
+    labels.field_data[arrays.SCAN_FOV] = rows.ravel()
+    on = on_scan_cuts([[45, 89.5, 12], [45, 88.0, 12.4], [45, 89.5, 16], [45, 70, 12],
+                       [45, 88.8, 14.5]], labels)
+    assert on.tolist() == [True, False, False, False, True]
+
+
+@pytest.fixture(scope="module")
+def round_fov_run(tmp_path_factory):
+    """A virtual patient's CT whose round field of view cuts 15 mm into the nose."""
+    import pvcmf
+    from pvcmf.pipeline import simulate
+
+    case = pvcmf.datasets.phantom(patient=1, spacing=3.0)
+    ct = case.ct.copy()
+    pts = np.asarray(ct.points)
+    values = np.asarray(ct[arrays.CT]).copy()
+    body = pts[values > -300]
+    # a circle 20 mm behind the middle of the head, through a point 15 mm behind its front
+    centre = np.array([0.5 * (body[:, 0].min() + body[:, 0].max()),
+                       0.5 * (body[:, 1].min() + body[:, 1].max()) - 20.0])
+    radius = float(body[:, 1].max() - centre[1]) - 15.0
+    values[np.hypot(*(pts[:, :2] - centre).T) > radius] = -2048.0
+    ct[arrays.CT] = values
+    res = simulate(ct, case.plan, tmp_path_factory.mktemp("round"), predict=False,
+                   figures=False)
+    return res, centre, radius
+
+
+def test_a_face_cut_by_the_round_field_of_view_is_warned_about_and_marked(round_fov_run):
+    res, centre, radius = round_fov_run
+    assert any("round field of view" in w for w in res.warnings), res.warnings
+    rows = np.asarray(res.labels.field_data[arrays.SCAN_FOV]).reshape(-1, 4)
+    assert np.allclose(rows[:, 1:3], centre, atol=1.0) and np.allclose(rows[:, 3], radius, atol=1.5)
+    skin = res.skin_pre
+    cut = np.asarray(skin[arrays.SKIN_CUT]).astype(bool)
+    rho = np.hypot(*(np.asarray(skin.points)[:, :2] - centre).T)
+    assert cut.sum() > 50
+    reach = 1.5 * res.labels.spacing[0]
+    assert rho[cut].min() >= radius - reach - 1.5  # (the circle fitted to within a voxel)
+    z = np.asarray(skin.points)[:, 2]
+    in_cut_slices = (z >= rows[:, 0].min()) & (z <= rows[:, 0].max())
+    assert np.all(cut[(rho >= radius - 0.5) & in_cut_slices])  # the skin on the circle

@@ -38,7 +38,9 @@ refused first, on the measurements of :func:`pvcmf.io.orientation.standardize`
 
 A head cut flat by the field of view (nose, forehead, vertex) is reported by a warning that
 names the side and the extent, and the planes are kept in the field data ``scan_cuts``
-(:func:`pvcmf.filters.field_of_view.cut_planes`). Index axis 2 is the axial axis; the
+(:func:`pvcmf.filters.field_of_view.cut_planes`); a head cut by the round field of view
+(the cheeks, the brow), likewise, with the circle of each slice it cuts in ``scan_fov``
+(:func:`pvcmf.filters.field_of_view.fov_circles`). Index axis 2 is the axial axis; the
 patient frame (x left, y anterior, z superior) is assumed for the side names.
 """
 
@@ -59,7 +61,7 @@ from .morphology import (MIN_BALL_VOXELS, _beyond, _box, _c_copy, _closing,  # n
 from ..progress import Progress
 from . import metal as _metal
 from .surface_objects import DENSE_STEPS, drop_film, drop_surface_objects
-from .field_of_view import cut_planes, cuts_array
+from .field_of_view import cut_planes, cuts_array, fov_circles, fov_cuts
 
 log = logging.getLogger(__name__)
 
@@ -204,7 +206,8 @@ def segment(
         BONE_TISSUE, TEETH, INTRACRANIAL, METAL) and ``bone`` (uint8: CRANIUM on hard tissue),
         and field data ``thresholds`` (skin, bone, teeth, metal), ``warnings``
         (one string per warning, e.g. a face clipped by the field of view) and, where the
-        scan cut the head flat, ``arrays.SCAN_CUTS`` (the planes).
+        scan cut the head flat, ``arrays.SCAN_CUTS`` (the planes), and where the round
+        field of view cut it, ``arrays.SCAN_FOV`` (its circle per slice).
 
     Raises
     ------
@@ -286,7 +289,9 @@ def segment(
                          f"{thr['skin']:.0f} and bone_threshold={thr['bone']:.0f}")
     corner = np.asarray(ct.origin) + spacing * [b.start for b in box]
     cuts = cut_planes(head, spacing, corner, vol=sub)
-    for message in (c["message"] for c in cuts):
+    fov, fov_message = fov_cuts(fov_circles(vol, thr["skin"], spacing), head, spacing, corner,
+                                [b.start for b in box])
+    for message in [c["message"] for c in cuts] + ([fov_message] if fov_message else []):
         log.warning("segment: %s", message)
         warnings.append(message)
     bar.step()
@@ -296,6 +301,8 @@ def segment(
     out.field_data["warnings"] = np.array(warnings if warnings else [""], dtype=str)
     if cuts:
         out.field_data[arrays.SCAN_CUTS] = cuts_array(cuts)
+    if len(fov):
+        out.field_data[arrays.SCAN_FOV] = fov.ravel()
     if log.isEnabledFor(logging.INFO if progress_bar else logging.DEBUG):
         volumes = tissue_volumes(out)
         say("segment: volumes (mL) %s", ", ".join(f"{k} {v:.1f}" for k, v in volumes.items()))

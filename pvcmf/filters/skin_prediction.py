@@ -10,8 +10,8 @@ the transfer itself is beyond ``2 band``; the band is the mesh's,
 from its surface). Skin on bare teeth or bone is not modelled
 (:func:`pvcmf.filters.meshing.skin_fit.on_hard_tissue`); the crumple metric
 (:func:`pvcmf.filters.surface_mapping.crumple_metric`) is taken over the modelled skin.
-Where the scan cut the head flat (the labels' ``arrays.SCAN_CUTS``), the skin points on
-the cut get ``arrays.SKIN_CUT`` = 1 (:func:`pvcmf.filters.field_of_view.on_scan_cuts`):
+Where the scan cut the head (flat: the labels' ``arrays.SCAN_CUTS``; by its round field
+of view: ``arrays.SCAN_FOV``), the skin points on the cut get ``arrays.SKIN_CUT`` = 1 (:func:`pvcmf.filters.field_of_view.on_scan_cuts`):
 the scan's edge, not the patient's skin, which the figures draw apart.
 """
 
@@ -99,7 +99,7 @@ def predict_skin(labels, post, pre=None, box=None):
     band = DEFAULT_BAND if post is None else mesh_band(post)
     near = near_box(pre.points, box, transfer_reach(band))
     pre = coarsen_outside(pre, near, FAR_REDUCTION)
-    if arrays.SCAN_CUTS in labels.field_data:
+    if arrays.SCAN_CUTS in labels.field_data or arrays.SCAN_FOV in labels.field_data:
         pre.point_data[arrays.SKIN_CUT] = on_scan_cuts(pre.points, labels).astype(np.uint8)
     if post is None:
         return pre, None
