@@ -178,3 +178,29 @@ def test_a_face_cut_by_the_round_field_of_view_is_warned_about_and_marked(round_
     z = np.asarray(skin.points)[:, 2]
     in_cut_slices = (z >= rows[:, 0].min()) & (z <= rows[:, 0].max())
     assert np.all(cut[(rho >= radius - 0.5) & in_cut_slices])  # the skin on the circle
+
+
+def test_skin_seen_through_an_opening_of_a_flat_cut_is_marked():
+    """A sinus the cut opened: its walls are the scan's edge seen through the cut, not the
+    patient's skin; a closed pocket behind the cut and the skin beside it are not."""
+    head = np.zeros((40, 40, 40), bool)
+    head[5:35, 5:30, 5:35] = True  # cut flat at y = 29
+    head[15:25, 20:30, 15:25] = False  # a sinus open at the cut
+    head[8:12, 18:25, 8:12] = False  # a pocket closed by 4 voxels of tissue
+    head[18:22, 10:14, 18:22] = False  # a pocket behind the sinus' back wall
+    vol = np.where(head, 0.0, -1000.0)
+    vol[:, 30:, :] = -3024.0
+    c, = cut_planes(head, (1.0, 1.0, 1.0), vol=vol)
+    labels = pv.ImageData(dimensions=head.shape)
+    labels.field_data[arrays.SCAN_CUTS] = cuts_array([c])
+    labels.point_data[arrays.TISSUE] = np.where(head, arrays.FAT, arrays.AIR).astype(
+        np.uint8).ravel(order="F")
+    points = [[20, 19.5, 20],  # the sinus' back wall, facing the opening
+              [15.5, 24, 17],  # its side wall: looks out along the cut's normal
+              [10, 17.5, 10],  # the closed pocket's back wall
+              [4.5, 20, 20],  # the head's side, beside the cut
+              [20, 9.5, 20]]  # behind the sinus, its ray blocked by the back wall
+    on = on_scan_cuts(points, labels)
+    assert on.tolist() == [True, True, False, False, False]
+    del labels.point_data[arrays.TISSUE]  # without the labels' tissue: the plane alone
+    assert not on_scan_cuts(points, labels)[:2].any()

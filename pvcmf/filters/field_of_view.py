@@ -298,8 +298,9 @@ def on_scan_cuts(points, labels):
     the cut's plane (or beyond it) and of the cut's extent, or within as much inside the
     round field of view of its axial slice where that circle cuts the head
     (``arrays.SCAN_FOV``, :func:`fov_cuts`): the skin there is the scan's edge, not the
-    patient's (a face cut by the field of view, a vertex cut by the scan's end). Skin seen
-    through a cut (a sinus the cut opened) is not on it and is not marked.
+    patient's (a face cut by the field of view, a vertex cut by the scan's end). With the
+    labels' ``arrays.TISSUE``, skin behind a flat cut that looks out through an opening in
+    it (a sinus or a nostril the cut opened) is marked too.
 
     Parameters
     ----------
@@ -343,7 +344,42 @@ def on_scan_cuts(points, labels):
         within = ((p[:, b] >= lo1 - reach[b]) & (p[:, b] <= hi1 + reach[b])
                   & (p[:, c] >= lo2 - reach[c]) & (p[:, c] <= hi2 + reach[c]))
         on |= near & within
+        if arrays.TISSUE in labels.point_data:
+            on |= _seen_through(p, labels, a, sign, at) & ~on
     return on
+
+
+def _seen_through(p, labels, axis, sign, at):
+    """Points behind a flat cut that look out through an opening in it (a sinus or a
+    nostril the cut opened): the ray from the point along the cut's outward normal meets
+    no head voxel up to the plane and crosses it in a hole of the cut face (the head
+    voxels of the plane's slice, holes filled: ``scipy.ndimage.binary_fill_holes``)."""
+    sign = int(sign)
+    head = (np.asarray(labels.point_data[arrays.TISSUE]) != arrays.AIR).reshape(
+        labels.dimensions, order="F")
+    origin, h = np.asarray(labels.origin, float), np.asarray(labels.spacing, float)
+    n = head.shape[axis]
+    plane = int(np.clip(np.rint((at - origin[axis]) / h[axis]), 0, n - 1))
+    face = np.take(head, plane, axis=axis)
+    hole = ndimage.binary_fill_holes(face) & ~face
+    out = np.zeros(len(p), dtype=bool)
+    ijk = np.rint((p - origin) / h).astype(np.int64)
+    other = [k for k in range(3) if k != axis]
+    inside = np.all((ijk[:, other] >= 0) & (ijk[:, other] < np.asarray(head.shape)[other]), axis=1)
+    depth = sign * (plane - ijk[:, axis])  # voxels from the point to the plane
+    cand = np.flatnonzero(inside & (depth > 0))
+    cand = cand[hole[ijk[cand, other[0]], ijk[cand, other[1]]]]
+    if not cand.size:
+        return out
+    steps = np.arange(1, int(depth[cand].max()) + 1)
+    along = ijk[cand, axis][:, None] + sign * steps[None, :]  # (points, steps)
+    idx = [None] * 3
+    idx[axis] = np.clip(along, 0, n - 1)
+    for k in other:
+        idx[k] = np.broadcast_to(ijk[cand, k][:, None], along.shape)
+    blocked = head[tuple(idx)] & (steps[None, :] < depth[cand][:, None])
+    out[cand[~blocked.any(axis=1)]] = True
+    return out
 
 
 def _on_circles(p, rows, spacing, reach):
