@@ -1,4 +1,4 @@
-"""A head cut flat by the field of view or the scan's end: which sides, and where.
+"""A head cut by the scan (flat, or along its round field of view): where, and which skin.
 
 :func:`cut_planes` counts, per image plane, the head voxels whose outward neighbour is not
 head (numpy counts along each axis, no loop over voxels) and reports a side whose plane
@@ -6,14 +6,15 @@ holds more of that exposed surface than the pole of a sphere of the head's volum
 with the plane and the extent of the cut; :func:`clipped_sides` gives their messages.
 :func:`pvcmf.filters.segment` warns with them and keeps the planes in the labels' field
 data (``arrays.SCAN_CUTS``, :func:`cuts_array`); :func:`on_scan_cuts` marks the skin
-points that lie on a cut (the skin there is the scan's edge, not the patient's), which
-:func:`pvcmf.filters.skin_prediction.predict_skin` writes as ``arrays.SKIN_CUT``.
+points that lie on a cut (the skin there is the scan's edge, not the patient's), and
+those behind a flat cut that look out through an opening in it (a sinus or a nostril the
+cut opened), which :func:`pvcmf.filters.skin_prediction.predict_skin` writes as
+``arrays.SKIN_CUT``.
 
 A scanner reconstructs a round field of view and pads the corners of every slice with
 one value, often that of its clipped air. :func:`fov_circles` finds that circle in every
-axial slice from the image alone (about 2.5 s for 512 x 512 x 245 voxels): the voxels at
-the image's minimum that a 3x3 opening keeps (clipped-air speckle does not survive it)
-and that connect to the slice's border,
+axial slice from the image alone: the voxels at the image's minimum that a 3x3 opening
+keeps (clipped-air speckle does not survive it) and that connect to the slice's border,
 a circle fitted to the rim of that region (an algebraic least-squares fit, all slices at
 once), kept where it fits within a voxel and most of its rim is air (a head outlined on
 padding-valued air is all head). :func:`fov_cuts` keeps the slices whose circle cuts the
