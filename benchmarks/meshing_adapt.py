@@ -15,7 +15,7 @@ regions (fat, muscle tissue, each named muscle) are kept as Mmg references. One 
 remesh asks for ``--far-mm`` everywhere: the smallest mesh these surfaces allow. Each
 mesh is judged as ``benchmarks/meshing_accuracy.py`` judges ``tetrahedralize``
 (:mod:`pvcmf.truth.anatomy`), next to a uniform ``tetrahedralize(subvoxel=True)`` mesh
-of the same count made in the same run, with its worst dihedral angle and how far its
+of that count requested in the same run, with its worst dihedral angle and how far its
 outer surface left the fine mesh's.
 
 Needs ``pip install mmgpy`` (not a pvcmf dependency). Writes
@@ -156,14 +156,14 @@ def main(argv=None):
         print(rows[-1], flush=True)
         if h is not None:
             same, t_same = uniform(case, grid.n_cells, roi)
-            rows.append(dict(judge(same, case), mesh="uniform, same count", s=t_same))
+            rows.append(dict(judge(same, case), mesh="uniform, that count requested", s=t_same))
             print(rows[-1], flush=True)
     lines = [
         "# Meshing accuracy: a fine mesh adapted to the muscles", "",
         "A fine conforming mesh with sub-voxel muscle interfaces, remeshed by Mmg (`mmg3d`,",
         "the `mmgpy` wheel) to a size field that is fine at the facial-muscle interfaces and",
         "coarse elsewhere, against a uniform `tetrahedralize(subvoxel=True)` mesh of the same",
-        "count made in the same run; both judged against virtual patient "
+        "count requested in the same run; both judged against virtual patient "
         f"{args.patient}'s true (analytic) anatomy ({args.spacing:g} mm labels, the anterior",
         "half of the head; :mod:`pvcmf.truth.anatomy`, as in `meshing_accuracy.md`). Goal of the",
         f"interface p90: half a voxel ({args.spacing / 2:g} mm). Not a pvcmf feature: a measurement of",
