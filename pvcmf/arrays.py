@@ -298,8 +298,9 @@ SKIN_MODELLED_POINTS = "skin_modelled_points"
 #: along the two other axes, 1 for the field of view's edge or 0 for the image's end
 #: (:func:`pvcmf.filters.field_of_view.cuts_array`)
 SCAN_CUTS = "scan_cuts"
-#: field (labels), float64: the round field of view where it cuts the head, per axial slice
-#: ``z, centre x, centre y, radius`` (mm; :func:`pvcmf.filters.field_of_view.fov_cuts`)
+#: field (labels of ``segment``), float64, 4 per axial slice where the round field of view
+#: cuts the head: z, the circle's centre x and y, its radius (mm)
+#: (:func:`pvcmf.filters.field_of_view.fov_cuts`)
 SCAN_FOV = "scan_fov"
 #: point (skin), uint8, 1 where the skin lies on such a cut, the scan's edge and not the
 #: patient's skin (present when the labels have ``SCAN_CUTS`` or ``SCAN_FOV``)
