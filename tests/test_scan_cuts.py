@@ -204,3 +204,32 @@ def test_skin_seen_through_an_opening_of_a_flat_cut_is_marked():
     assert on.tolist() == [True, True, False, False, False]
     del labels.point_data[arrays.TISSUE]  # without the labels' tissue: the plane alone
     assert not on_scan_cuts(points, labels)[:2].any()
+
+
+def test_the_profile_overlay_marks_the_silhouette_on_the_scan_s_edge():
+    """The midsagittal silhouette over skin marked as cut gets a band of the cut colour;
+    the skin itself keeps its arrays."""
+    import matplotlib.colors as mcolors
+
+    from pvcmf.figures.profiles import anterior_profile, profile_overlay
+    from pvcmf.figures.skin_marks import CUT_COLOR
+
+    skin = pv.Sphere(radius=80.0, theta_resolution=90, phi_resolution=90)
+    marked = skin.copy()
+    marked.point_data[arrays.SKIN_CUT] = (np.asarray(skin.points)[:, 2] > 40).astype(np.uint8)
+    line, on = anterior_profile(marked, 0.0, on_cut=True)
+    assert on.any() and np.all(line[on, 1] > 36.0) and np.all(on[line[:, 1] > 44.0])
+    assert "_on_cut" not in marked.point_data
+    assert not anterior_profile(skin, 0.0, on_cut=True)[1].any()
+    rgb = np.array(mcolors.to_rgb(CUT_COLOR)) * 255
+
+    def cut_pixels(fig):
+        fig.canvas.draw()
+        img = np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(float)
+        return int((np.abs(img - rgb).max(axis=2) < 12).sum())
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    plain, cut = profile_overlay(skin, skin), profile_overlay(marked, marked)
+    FigureCanvasAgg(plain), FigureCanvasAgg(cut)
+    assert cut_pixels(plain) == 0 and cut_pixels(cut) > 200
+    assert "the scan's edge (cut)" in [t.get_text() for t in cut.axes[0].get_legend().get_texts()]

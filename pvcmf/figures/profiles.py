@@ -1,5 +1,8 @@
 """Midsagittal profiles: the face's anterior silhouette in the plane x = const, and the
 pre-operative and predicted silhouettes overlaid, the outline a surgeon compares first.
+Where the silhouette runs over skin on a cut of the scan (``arrays.SKIN_CUT``: the
+scan's edge, not the patient's skin), the overlay draws a band of
+:data:`pvcmf.figures.skin_marks.CUT_COLOR` under it, as the face views colour that skin.
 
 Delegates the cut to PyVista (``slice``) and the plot to matplotlib
 (:class:`matplotlib.figure.Figure`, no pyplot state).
@@ -10,15 +13,18 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
+from .. import arrays
 from .framing import frame_bounds
+from .skin_marks import CUT_COLOR
 
-__all__ = ["anterior_profile", "profile_overlay", "PRE_LABEL", "POST_LABEL"]
+__all__ = ["anterior_profile", "profile_overlay", "PRE_LABEL", "POST_LABEL", "CUT_LABEL"]
 
 PRE_LABEL = "pre-operative"
 POST_LABEL = "predicted"
+CUT_LABEL = "the scan's edge (cut)"
 
 
-def anterior_profile(skin, x, step=0.5):
+def anterior_profile(skin, x, step=0.5, on_cut=False):
     """The anterior silhouette of the cut of ``skin`` by the plane x = ``x``.
 
     For each ``step`` mm band of z, the most anterior (largest y) point of the cut: the
@@ -28,7 +34,9 @@ def anterior_profile(skin, x, step=0.5):
     Returns
     -------
     numpy.ndarray
-        (n, 2) array of (y, z) in mm, z increasing.
+        (n, 2) array of (y, z) in mm, z increasing; with ``on_cut``, also an (n,) bool
+        array: the point lies on skin marked ``arrays.SKIN_CUT`` (interpolated along the
+        cut, at least one half; all False without the array).
 
     Examples
     --------
@@ -37,7 +45,11 @@ def anterior_profile(skin, x, step=0.5):
     >>> round(float(line[:, 0].max()), 1)
     10.0
     """
-    cut = skin.slice(normal=(1.0, 0.0, 0.0), origin=(float(x), 0.0, 0.0))
+    src = skin.copy(deep=False)  # (a float mark to interpolate; the input keeps its arrays)
+    has_marks = arrays.SKIN_CUT in skin.point_data
+    src.point_data["_on_cut"] = (np.asarray(skin.point_data[arrays.SKIN_CUT], float) if has_marks
+                                 else np.zeros(skin.n_points))
+    cut = src.slice(normal=(1.0, 0.0, 0.0), origin=(float(x), 0.0, 0.0))
     if cut.n_lines == 0:
         raise ValueError(f"the plane x = {x} does not cut the skin (x bounds "
                          f"{skin.bounds[0]:.1f}..{skin.bounds[1]:.1f} mm)")
@@ -53,7 +65,11 @@ def anterior_profile(skin, x, step=0.5):
     order = np.lexsort((-pts[:, 1], band))
     first = np.r_[True, band[order][1:] != band[order][:-1]]
     best = pts[order[first]]
-    return best[:, 1:].copy()
+    if not on_cut:
+        return best[:, 1:].copy()
+    mark = np.asarray(cut.point_data["_on_cut"])[np.asarray(cut.lines).reshape(-1, 3)[:, 1:]]
+    mark = mark[which, 0] * (1.0 - t[:, 0]) + mark[which, 1] * t[:, 0]
+    return best[:, 1:].copy(), mark[order[first]] >= 0.5
 
 
 def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
@@ -79,12 +95,16 @@ def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
     fig = Figure(figsize=figsize)  # fixed layout: every draw gives the same image
     ax = fig.add_subplot()
     fig.subplots_adjust(left=0.2, right=0.96, bottom=0.12, top=0.93)
-    lines = []
+    lines, cut_label = [], CUT_LABEL
     for skin, label, style in ((pre, PRE_LABEL, dict(color="0.35", lw=2.2, ls="--")),
                                (post, POST_LABEL, dict(color="tab:red", lw=1.6))):
-        line = anterior_profile(skin, x)
+        line, on = anterior_profile(skin, x, on_cut=True)
         lines.append(line)
-        ax.plot(line[:, 0], line[:, 1], label=label, **style)
+        if on.any():  # a band under the line where it runs over the scan's edge
+            ax.plot(np.where(on, line[:, 0], np.nan), np.where(on, line[:, 1], np.nan),
+                    color=CUT_COLOR, lw=7, solid_capstyle="butt", zorder=1, label=cut_label)
+            cut_label = None
+        ax.plot(line[:, 0], line[:, 1], label=label, zorder=2, **style)
     y, z = np.concatenate(lines).T
     ax.set_xlim(y.max() - 0.5 * np.ptp(z), y.max() + 0.08 * np.ptp(z))
     ax.set_ylim(z.min() - 0.04 * np.ptp(z), z.max() + 0.04 * np.ptp(z))

@@ -7,7 +7,9 @@ caller gives (:data:`pvcmf.figures.face_views.UNMODELLED_COLOR`), and the skin o
 where the scan cut the head (``arrays.SKIN_CUT``: a face cut by the field of view, a
 vertex cut by the scan's end; the scan's edge, not the patient's skin), in
 :data:`CUT_COLOR`, on the pre-operative and the predicted skin alike
-(:func:`pvcmf.figures.face_views.face_comparison` draws them).
+(:func:`pvcmf.figures.face_views.face_comparison` draws them;
+:func:`pvcmf.figures.profiles.profile_overlay` lays a band of that colour under a
+silhouette where it runs over the cut).
 """
 
 from __future__ import annotations
