@@ -45,10 +45,12 @@ def anterior_profile(skin, x, step=0.5, on_cut=False):
     >>> round(float(line[:, 0].max()), 1)
     10.0
     """
-    src = skin.copy(deep=False)  # (a float mark to interpolate; the input keeps its arrays)
-    has_marks = arrays.SKIN_CUT in skin.point_data
-    src.point_data["_on_cut"] = (np.asarray(skin.point_data[arrays.SKIN_CUT], float) if has_marks
-                                 else np.zeros(skin.n_points))
+    src = skin
+    if on_cut:  # a float mark to interpolate, on a shallow copy: the input keeps its arrays
+        src = skin.copy(deep=False)
+        src.point_data["_on_cut"] = (np.asarray(skin.point_data[arrays.SKIN_CUT], float)
+                                     if arrays.SKIN_CUT in skin.point_data
+                                     else np.zeros(skin.n_points))
     cut = src.slice(normal=(1.0, 0.0, 0.0), origin=(float(x), 0.0, 0.0))
     if cut.n_lines == 0:
         raise ValueError(f"the plane x = {x} does not cut the skin (x bounds "

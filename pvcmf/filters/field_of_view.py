@@ -346,6 +346,10 @@ def on_scan_cuts(points, labels):
     if arrays.SCAN_CUTS not in labels.field_data:
         return on
     cuts = np.asarray(labels.field_data[arrays.SCAN_CUTS], dtype=np.float64).reshape(-1, 8)
+    head = None  # the labels' head mask, made once for every cut
+    if arrays.TISSUE in labels.point_data:
+        head = (np.asarray(labels.point_data[arrays.TISSUE]) != arrays.AIR).reshape(
+            labels.dimensions, order="F")
     for axis, sign, at, lo1, hi1, lo2, hi2, _ in cuts:
         a = int(axis)
         b, c = (k for k in range(3) if k != a)
@@ -353,19 +357,18 @@ def on_scan_cuts(points, labels):
         within = ((p[:, b] >= lo1 - reach[b]) & (p[:, b] <= hi1 + reach[b])
                   & (p[:, c] >= lo2 - reach[c]) & (p[:, c] <= hi2 + reach[c]))
         on |= near & within
-        if arrays.TISSUE in labels.point_data:
-            on |= _seen_through(p, labels, a, sign, at) & ~on
+        if head is not None:
+            on |= _seen_through(p, head, labels, a, sign, at)
     return on
 
 
-def _seen_through(p, labels, axis, sign, at):
+def _seen_through(p, head, labels, axis, sign, at):
     """Points behind a flat cut that look out through an opening in it (a sinus or a
     nostril the cut opened): the ray from the point along the cut's outward normal meets
     no head voxel up to the plane and crosses it in a hole of the cut face (the head
-    voxels of the plane's slice, holes filled: ``scipy.ndimage.binary_fill_holes``)."""
+    voxels of the plane's slice, holes filled: ``scipy.ndimage.binary_fill_holes``);
+    ``head``: the labels' non-air voxels, index order x, y, z."""
     sign = int(sign)
-    head = (np.asarray(labels.point_data[arrays.TISSUE]) != arrays.AIR).reshape(
-        labels.dimensions, order="F")
     origin, h = np.asarray(labels.origin, float), np.asarray(labels.spacing, float)
     n = head.shape[axis]
     plane = int(np.clip(np.rint((at - origin[axis]) / h[axis]), 0, n - 1))
