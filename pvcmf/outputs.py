@@ -232,7 +232,7 @@ def _row(skin, views, label):
     for col, view in enumerate(views):
         p.subplot(0, col)
         p.set_background("white", all_renderers=False)
-        face_views.add_patient_mesh(p, skin, color=face_views.SKIN_COLOR, specular=0.2)
+        face_views.add_skin(p, skin, face_views.SKIN_COLOR)  # the scan's cuts apart
         face_views.set_view(p, bounds, view, points=points)
         p.add_text(f"{label}, {face_views.VIEW_TITLES[view]}", font_size=10, color="black")
     return p

@@ -233,3 +233,19 @@ def test_the_profile_overlay_marks_the_silhouette_on_the_scan_s_edge():
     FigureCanvasAgg(plain), FigureCanvasAgg(cut)
     assert cut_pixels(plain) == 0 and cut_pixels(cut) > 200
     assert "the scan's edge (cut)" in [t.get_text() for t in cut.axes[0].get_legend().get_texts()]
+
+
+def test_the_run_s_pre_operative_faces_draw_the_cut_skin_in_its_own_colour():
+    """``face_pre.png`` (written with or without a prediction) colours the cut as the
+    comparisons do."""
+    from types import SimpleNamespace
+
+    from pvcmf.outputs import render
+
+    skin = pv.Sphere(radius=80.0, theta_resolution=60, phi_resolution=60)
+    marked = skin.copy()
+    marked.point_data[arrays.SKIN_CUT] = (np.asarray(skin.points)[:, 1] > 30).astype(np.uint8)
+    bluish = lambda img: int(((img[..., 2].astype(int) - img[..., 0]) > 20).sum())  # noqa: E731
+    shots = [render(SimpleNamespace(skin_pre=s, skin_post=None, skeleton=None, labels=None))
+             ["face_pre.png"] for s in (skin, marked)]
+    assert bluish(shots[0]) == 0 and bluish(shots[1]) > 500

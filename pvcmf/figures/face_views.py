@@ -37,7 +37,7 @@ from .profiles import POST_LABEL, PRE_LABEL, anterior_profile, profile_overlay  
 from .skin_marks import CUT_COLOR, cut_points, modelled_points
 
 __all__ = ["VIEWS", "to_display", "display_bounds", "frame_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
-           "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "modelled_points", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
+           "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "modelled_points", "add_skin", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
            "prediction_summary", "carry_to_skin", "UNMODELLED_COLOR", "CUT_COLOR", "fit_parallel",
            "displacement_views", "saturation_note"]
 
@@ -298,7 +298,7 @@ def symmetric_limit(values, visible, percentile=99.0, floor=0.1):
     return max(float(np.percentile(seen, percentile)), float(floor))
 
 
-def _add_skin(plotter, skin, color, unmodelled):
+def add_skin(plotter, skin, color, unmodelled=None):
     """Add ``skin`` to ``plotter`` in ``color``; with ``unmodelled`` (a colour), its points
     outside the model (:func:`modelled_points`) in that colour; its points on a cut of the
     scan (:func:`cut_points`) in :data:`CUT_COLOR`. Returns the actor."""
@@ -363,7 +363,7 @@ def face_comparison(pre, post, views=("frontal", "three_quarter", "profile"),
                                                    (post, POST_LABEL, unmodelled))):
             p.subplot(row, col)
             p.set_background("white", all_renderers=False)
-            _add_skin(p, skin, color, grey)
+            add_skin(p, skin, color, grey)
             set_view(p, bounds, view, points=points)
             p.add_text(f"{label}, {VIEW_TITLES[view]}", font_size=font_size, color="black")
     return p
