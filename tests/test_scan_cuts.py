@@ -249,3 +249,65 @@ def test_the_run_s_pre_operative_faces_draw_the_cut_skin_in_its_own_colour():
     shots = [render(SimpleNamespace(skin_pre=s, skin_post=None, skeleton=None, labels=None))
              ["face_pre.png"] for s in (skin, marked)]
     assert bluish(shots[0]) == 0 and bluish(shots[1]) > 500
+
+
+def test_displacement_maps_draw_the_cut_skin_apart_and_leave_it_out_of_the_range():
+    """The cut's points take the cut colour instead of the map's, set no colour range, and
+    the caption names the colour; a skin without cuts keeps its colours and caption."""
+    from pvcmf.figures import face_views as fv
+
+    skin = pv.Sphere(radius=80.0, theta_resolution=60, phi_resolution=60)
+    pts = np.asarray(skin.points)
+    u = np.zeros_like(pts)
+    u[:, 1] = np.where(pts[:, 2] > 30, 6.0, 0.5 * pts[:, 2] / 80.0)  # the cut moves most
+    skin.point_data[arrays.DISPLACEMENT] = u
+    marked = skin.copy()
+    marked.point_data[arrays.SKIN_CUT] = (pts[:, 2] > 30).astype(np.uint8)
+    assert fv.displacement_limit(skin, "ap") == pytest.approx(6.0)
+    assert fv.displacement_limit(marked, "ap") < 0.6
+
+    def shot(s):
+        p = fv.displacement_views(s, "ap", ("frontal",), window_size=(300, 360), limit=6.0)
+        texts = [t.GetInput() for t in p.renderers[1].GetViewProps()
+                 if t.IsA("vtkTextActor") and t.GetInput()]
+        img = p.screenshot(return_img=True)[:280, :, :3].astype(int)  # the view, not the bar
+        p.close()
+        return img, texts
+
+    (plain, plain_texts), (cut, cut_texts) = shot(skin), shot(marked)
+    red = lambda img: int(((img[..., 0] - img[..., 2]) > 60).sum())  # noqa: E731
+    bluish = lambda img: int((((img[..., 2] - img[..., 0]) > 20)  # noqa: E731
+                              & (img[..., 1] > img[..., 0])).sum())
+    assert red(plain) > 2000 and red(cut) == 0
+    assert bluish(cut) > 2000
+    assert any("blue-grey: the scan's edge" in t for t in cut_texts)
+    assert not any("scan's edge" in t for t in plain_texts)
+
+
+def test_fig6_draws_the_scan_s_edge_apart_and_fig7_8_leave_it_out(tmp_path):
+    """The validation figures of a case: the error map colours the cut in the cut colour
+    (not as a 6 mm error) and says so; the box plot and curve count the rest only."""
+    from pvcmf.figures.validation import fig6_error_maps
+    from pvcmf.report.figures import judged_distances
+
+    skin = pv.Sphere(radius=80.0, theta_resolution=60, phi_resolution=60)
+    pts = np.asarray(skin.points)
+    skin.point_data[arrays.DISTANCE] = np.where(pts[:, 2] > 30, 6.0, 0.0)
+    marked = skin.copy()
+    marked.point_data[arrays.SKIN_CUT] = (pts[:, 2] > 30).astype(np.uint8)
+
+    def shot(s):
+        pl = fig6_error_maps({1: {"proposed": s}}, window_size=(300, 340))
+        texts = [t.GetInput() for t in pl.renderer.GetViewProps()
+                 if t.IsA("vtkTextActor") and t.GetInput()]
+        img = pl.screenshot(return_img=True)[:250, :, :3].astype(int)  # above the bar
+        pl.close()
+        return img, texts
+
+    (plain, plain_texts), (cut, cut_texts) = shot(skin), shot(marked)
+    deep = lambda img: int(((img[..., 2] - img[..., 0]) > 90).sum())  # noqa: E731 (+6 mm)
+    assert deep(plain) > 2000 and deep(cut) == 0
+    assert any("the scan's edge" in t for t in cut_texts)
+    assert not any("the scan's edge" in t for t in plain_texts)
+    assert judged_distances(marked).size == int((pts[:, 2] <= 30).sum())
+    assert judged_distances(skin).size == skin.n_points

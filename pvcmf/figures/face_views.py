@@ -34,6 +34,7 @@ from .. import arrays
 from .framing import (FRAME_MARGIN, FRAME_SLAB, FRAME_TITLE, FRAME_WIDEN,  # noqa: F401
                       fit_aspect, fit_parallel, frame_bounds, frame_skins)
 from .profiles import POST_LABEL, PRE_LABEL, anterior_profile, profile_overlay  # noqa: F401
+from .colour_range import saturation_note, symmetric_limit
 from .skin_marks import CUT_COLOR, cut_points, modelled_points
 
 __all__ = ["VIEWS", "to_display", "display_bounds", "frame_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
@@ -277,27 +278,6 @@ def signed_displacement(skin, component="ap"):
     raise ValueError(f"component must be one of {sorted(COMPONENT_TITLES)}, got {component!r}")
 
 
-def symmetric_limit(values, visible, percentile=99.0, floor=0.1):
-    """Half-width of a symmetric colour range: ``percentile`` of ``|values[visible]|``.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> v = np.r_[np.linspace(-2.0, 2.0, 101), 50.0]
-    >>> symmetric_limit(v, np.r_[np.ones(101, bool), False])
-    2.0
-    """
-    values = np.asarray(values, dtype=np.float64)
-    visible = np.asarray(visible, dtype=bool)
-    if visible.shape != values.shape:
-        raise ValueError(f"visible must have the shape of values {values.shape}, "
-                         f"got {visible.shape}")
-    seen = np.abs(values[visible & np.isfinite(values)])
-    if seen.size == 0:
-        return float(floor)
-    return max(float(np.percentile(seen, percentile)), float(floor))
-
-
 def add_skin(plotter, skin, color, unmodelled=None):
     """Add ``skin`` to ``plotter`` in ``color``; with ``unmodelled`` (a colour), its points
     outside the model (:func:`modelled_points`) in that colour; its points on a cut of the
@@ -383,17 +363,23 @@ def displacement_limit(skin, component="ap", views=("frontal", "profile"), perce
 
     ``percentile`` of ``|value|`` over the modelled points of ``skin``
     (:func:`modelled_points`) visible in any of ``views`` (:func:`visible_in_views`,
-    :func:`symmetric_limit`), or over ``visible`` when given.
+    :func:`symmetric_limit`), or over ``visible`` when given; never over its points on a
+    cut of the scan (:func:`cut_points`).
     """
     values = signed_displacement(skin, component)
     if visible is None:
         visible = visible_in_views(skin, views) & modelled_points(skin)
-    return symmetric_limit(values, visible, percentile)
+    return symmetric_limit(values, np.asarray(visible, dtype=bool) & ~cut_points(skin),
+                           percentile)
 
 
 def displacement_views(skin, component="ap", views=("frontal", "profile"), percentile=99.0,
                        cmap=None, window_size=None, limit=None, visible=None):
     """A signed displacement component on the skin, with a range from its visible points.
+
+    Its points on a cut of the scan (``arrays.SKIN_CUT``, :func:`cut_points`) are drawn in
+    :data:`CUT_COLOR`, not in the map's colours (they are the scan's edge, not the
+    patient's skin), set no range, and the caption says so.
 
     Parameters
     ----------
@@ -420,8 +406,11 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     for v in views:
         _check_view(v)
     values = signed_displacement(skin, component)
+    cut = cut_points(skin)  # the scan's edge: no colour of its own, no say in the range
     if visible is None and limit is None:
         visible = visible_in_views(skin, views) & modelled_points(skin)
+    if visible is not None:
+        visible = np.asarray(visible, dtype=bool) & ~cut
     # displacement_limit, without computing the values twice
     m = symmetric_limit(values, visible, percentile) if limit is None else float(limit)
     clim = (0.0, m) if component == "magnitude" else (-m, m)
@@ -429,8 +418,11 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     shown = skin.copy(deep=True)
     shown.clear_data()
     title = COMPONENT_TITLES[component]
-    shown.point_data[title] = values
-    note = saturation_note(values, m, visible, signed=component != "magnitude")
+    shown.point_data[title] = np.where(cut, np.nan, values)
+    note = saturation_note(values, m, visible if visible is not None else ~cut,
+                           signed=component != "magnitude")
+    if cut.any():
+        note = "; ".join(filter(None, (note, "blue-grey: the scan's edge")))
     n = len(views)
     window_size = window_size or (440 * n, 600)
     p = pv.Plotter(off_screen=True, shape=(2, n), row_weights=[0.84, 0.16],
@@ -441,7 +433,7 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
         p.subplot(0, col)
         p.set_background("white", all_renderers=False)
         actor = add_patient_mesh(p, shown, scalars=title, cmap=cmap, clim=clim,
-                                 show_scalar_bar=False, specular=0.1)
+                                 nan_color=CUT_COLOR, show_scalar_bar=False, specular=0.1)
         set_view(p, bounds, view, points=points)
         p.add_text(VIEW_TITLES[view], font_size=10, color="black")
     p.subplot(1, 0)
@@ -461,32 +453,6 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     else:
         p.add_text(title, position="upper_edge", font_size=11, color="black")
     return p
-
-
-def saturation_note(values, limit, visible=None, signed=True):
-    """Words for the colour bar when some shown values lie beyond its range, else ``""``.
-
-    The colours stop at ``limit`` (a percentile, so a few points saturate): the bar then
-    says so and gives the largest value, over the ``visible`` points (all without it).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> saturation_note(np.array([-0.5, 1.0, 2.7]), 2.2)
-    'colours end at \u00b12.2 mm; largest 2.7 mm'
-    >>> saturation_note(np.array([0.5, 1.0]), 2.2)
-    ''
-    """
-    values = np.asarray(values, dtype=np.float64)
-    shown = values if visible is None else values[np.asarray(visible, dtype=bool)]
-    shown = np.abs(shown[np.isfinite(shown)])
-    if shown.size == 0:
-        return ""
-    largest = float(shown.max())
-    if f"{largest:.1f}" == f"{limit:.1f}" or largest <= limit:  # reads as the bar's end
-        return ""
-    sign = "\u00b1" if signed else ""
-    return f"colours end at {sign}{limit:.1f} mm; largest {largest:.1f} mm"
 
 
 def chart_image(fig, dpi=100):
