@@ -200,3 +200,55 @@ def test_viewer_shows_the_patient_as_a_photograph():
     normal = np.cross(b - a, c - a)
     centre = (a + b + c) / 3.0 - points.mean(axis=0)
     assert (np.einsum("ij,ij->i", normal, centre) > 0).mean() > 0.99  # outward
+
+
+def _cut_case(folder, marked=True):
+    """A predicted head whose upper half moves most and, ``marked``, lies on a cut."""
+    head = _head()
+    z = head.points[:, 2]
+    head[arrays.DISPLACEMENT] = np.c_[0 * z, np.where(z > 40, 8.0, -np.clip(-z / 25, 0, 4)),
+                                      0 * z]
+    if marked:
+        head[arrays.SKIN_CUT] = (z > 40).astype(np.uint8)
+    head.save(folder / "predicted_skin.vtp")
+    return head
+
+
+def test_region_table_leaves_out_the_scan_s_edge(tmp_path):
+    """Skin on a cut of the scan is not the patient's: the table does not count it."""
+    head = _cut_case(tmp_path)
+    rows = {r[0]: r[1:] for r in _cells(write_report(tmp_path).read_text(encoding="utf-8"),
+                                         "regions")[1:]}
+    u = np.linalg.norm(head[arrays.DISPLACEMENT], axis=1)[head.points[:, 2] <= 40]
+    assert rows["modelled skin"][:3] == [str(u.size), *(f"{v:.2f}" for v in
+                                                        np.percentile(u, [50, 90]))]
+
+
+@needs_chromium
+def test_report_view_draws_the_scan_s_edge_in_its_own_colour(tmp_path):
+    """In the 3D view the cut takes the cut colour instead of the displacement map's, the
+    map's range ends at the rest's largest move, and the colour bar names the colour."""
+    import matplotlib.colors as mcolors
+    from PIL import Image
+
+    from pvcmf.figures.skin_marks import CUT_COLOR
+
+    rgb = np.array(mcolors.to_rgb(CUT_COLOR)) * 255
+    near = []
+    for marked in (False, True):
+        folder = tmp_path / str(marked)
+        folder.mkdir()
+        _cut_case(folder, marked)
+        page = write_report(folder)
+        check = check_page(page, folder / "shot.png", size=(1280, 900))
+        assert check.errors == [], check.errors
+        bar = re.search(r'data-colouring="displacement"><div class="cb-title">(.*?)</div>',
+                        check.dom).group(1)
+        assert ("the scan&#x27;s edge" in bar or "the scan's edge" in bar) == marked
+        img = np.asarray(Image.open(folder / "shot.png").convert("RGB"), dtype=float)
+        view = img[200:650, 100:740]
+        # the cut colour's direction in RGB, whatever the shading; bluer than grey
+        cosine = view @ (rgb / np.linalg.norm(rgb)) / np.maximum(
+            np.linalg.norm(view, axis=2), 1.0)
+        near.append(int(((cosine > 0.995) & (view[..., 2] - view[..., 0] > 25)).sum()))
+    assert near[0] < 300 and near[1] > 3000, near

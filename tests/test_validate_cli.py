@@ -87,6 +87,45 @@ def test_validate_judges_only_the_modelled_skin(known):
     assert np.isfinite(v.skin[arrays.DISTANCE]).all()  # the skin itself keeps every distance
 
 
+def test_validate_leaves_out_the_scan_s_edge(known):
+    """Skin on a cut of the pre-operative scan (``skin_cut`` 1: here the brow flattened
+    by the scan's edge) is neither registered on nor judged; unmarked, it biases both."""
+    from pvcmf.study.validate import validate
+
+    folder, pred, delta = known
+    flat = pred.copy()
+    cut = (flat.points[:, 1] > 70.0) & (flat.points[:, 2] > 20.0)
+    pts = np.array(flat.points)
+    pts[cut, 1] = 70.0  # the scan's edge: a plane in front of the face
+    flat.points = pts
+    marked = flat.copy()
+    marked[arrays.SKIN_CUT] = cut.astype(np.uint8)
+    post = pv.read(folder / "post.stl")
+    judged, biased = validate(marked, post), validate(flat, post)
+    face = judged.table.set_index("region").loc["face"]
+    assert face["n"] == int((~cut).sum())
+    a = delta[~cut]
+    np.testing.assert_allclose(face[["p90", "rms"]].to_numpy(float),
+                               [np.percentile(a, 90), np.sqrt(np.mean(a ** 2))], atol=0.05)
+    assert judged.registration["rms_mm"] < 0.05
+    unmarked = biased.table.set_index("region").loc["face"]
+    assert unmarked["n"] == pred.n_points and unmarked["rms"] > face["rms"] + 0.5
+
+
+def test_registration_never_pairs_on_the_target_s_cut():
+    """A region holding only the target's cut skin leaves no pairs; unmarked, it does."""
+    from pvcmf.filters import register
+
+    head = _head()
+    cut = head.points[:, 1] > 60.0
+    marked = head.copy()
+    marked[arrays.SKIN_CUT] = cut.astype(np.uint8)
+    with pytest.raises(ValueError, match="region leaves 0 target points"):
+        register(head, marked, region=cut)
+    moved = register(head.translate((0.5, 0.0, 0.0)), head, region=cut, tol=1e-4)
+    assert np.abs(np.asarray(moved.points) - head.points).max() < 0.05
+
+
 def test_validate_bad_input(known, tmp_path, capsys):
     folder, _, _ = known
     args = ["validate", "--pred", str(folder / "predicted_skin.vtp"), "--out", str(tmp_path)]

@@ -9,7 +9,8 @@ vertex cut by the scan's end; the scan's edge, not the patient's skin), in
 :data:`CUT_COLOR`, on the pre-operative and the predicted skin alike
 (:func:`pvcmf.figures.face_views.face_comparison` draws them;
 :func:`pvcmf.figures.profiles.profile_overlay` lays a band of that colour under a
-silhouette where it runs over the cut).
+silhouette where it runs over the cut). Statistics of a prediction count
+:func:`judged_points` only: the modelled skin off the scan's cuts.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 
 from .. import arrays
 
-__all__ = ["CUT_COLOR", "cut_points", "modelled_points"]
+__all__ = ["CUT_COLOR", "cut_points", "judged_points", "modelled_points"]
 
 #: colour of the skin on a cut of the scan (``arrays.SKIN_CUT``)
 CUT_COLOR = "lightsteelblue"
@@ -61,3 +62,23 @@ def cut_points(skin):
     if arrays.SKIN_CUT in skin.point_data:
         return np.asarray(skin.point_data[arrays.SKIN_CUT]).astype(bool)
     return np.zeros(skin.n_points, dtype=bool)
+
+
+def judged_points(skin):
+    """The points of ``skin`` whose prediction statistics may judge: modelled
+    (:func:`modelled_points`; every point where none is) and not on a cut of the scan
+    (:func:`cut_points`).
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> skin = pv.PolyData(np.zeros((3, 3)))
+    >>> skin.point_data[arrays.SKIN_MODELLED] = np.array([1, 0, 1], np.uint8)
+    >>> skin.point_data[arrays.SKIN_CUT] = np.array([0, 0, 1], np.uint8)
+    >>> judged_points(skin).tolist()
+    [True, False, False]
+    """
+    modelled = modelled_points(skin)
+    if not modelled.any():
+        modelled = np.ones(skin.n_points, dtype=bool)
+    return modelled & ~cut_points(skin)

@@ -25,6 +25,7 @@ from matplotlib.figure import Figure
 
 from .. import arrays
 from .face_views import add_patient_mesh, display_bounds
+from .skin_marks import CUT_COLOR, cut_points
 
 #: drawing order and colours of the methods (paper 000: proposed red, state of the art blue)
 METHOD_COLORS = {"proposed": "tab:red", "state_of_the_art": "tab:blue"}
@@ -146,6 +147,7 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camer
     pl.set_background("white")
     # panel aspect (width / height)
     aspect = (window_size[0] / len(methods)) / (window_size[1] / len(patients))
+    any_cut = False
     for r, patient in enumerate(patients):
         for method in methods:
             arrays.require_array(skins[patient][method], arrays.DISTANCE, "point", dtype="f",
@@ -158,8 +160,10 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camer
         half_w, half_h = max((hi[0] - lo[0]) / 2, 1e-6), max((hi[2] - lo[2]) / 2, 1e-6)
         for c, method in enumerate(methods):
             pl.subplot(r, c)
-            add_patient_mesh(pl, skins[patient][method], scalars=arrays.DISTANCE, cmap=cmap,
-                             clim=(-limit, limit), show_scalar_bar=False)
+            shown, on_cut = _cut_apart(skins[patient][method])
+            any_cut |= on_cut
+            add_patient_mesh(pl, shown, scalars=arrays.DISTANCE, cmap=cmap,
+                             clim=(-limit, limit), nan_color=CUT_COLOR, show_scalar_bar=False)
             label = f"{patient_label(patient)}  {METHOD_LABELS.get(method, method)}"
             pl.add_text(label, position="upper_left", font_size=9, color="black")
             if camera is None:  # front view, the face's box filling the panel
@@ -180,11 +184,25 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camer
     )
     bar.SetTextPositionToPrecedeScalarBar()  # tick labels under the bar
     bar.SetTitle("")  # VTK puts the title on the labels' side, over the middle label
-    text = pl.add_text(f"signed error (mm), white within \u00b1{acceptable:g}",
+    edge = "; blue-grey: the scan's edge" if any_cut else ""
+    text = pl.add_text(f"signed error (mm), white within \u00b1{acceptable:g}{edge}",
                        position=(0.5, 0.1), viewport=True, color="black")
     text.GetTextProperty().SetFontSize(12)  # pixels, as the bar's labels
     text.GetTextProperty().SetJustificationToCentered()
     return pl
+
+
+def _cut_apart(skin):
+    """``(skin to draw, any cut)``: the skin with the distances of its points on a cut of
+    the scan (:func:`~pvcmf.figures.skin_marks.cut_points`) NaN, drawn in
+    :data:`~pvcmf.figures.skin_marks.CUT_COLOR` (the scan's edge, not an error)."""
+    cut = cut_points(skin)
+    if not cut.any():
+        return skin, False
+    shown = skin.copy(deep=False)
+    shown.point_data[arrays.DISTANCE] = np.where(
+        cut, np.nan, np.asarray(skin.point_data[arrays.DISTANCE], dtype=float).reshape(-1))
+    return shown, True
 
 
 def _abs_errors(distances, patient, method):

@@ -8,7 +8,8 @@ closest target vertices with scipy's :class:`scipy.spatial.cKDTree`, target norm
 VTK (``vtkPolyDataNormals`` via :meth:`pyvista.PolyData.compute_normals`), and one 6x6
 linearised least-squares solve (numpy) per iteration; rotations are composed exactly
 (Rodrigues). Correspondences are trimmed (a kept fraction and a distance gate), limited to
-a region the surgery does not change, and never taken on the target's open border.
+a region the surgery does not change, and never taken on the target's open border nor on
+its skin on a cut of the scan (``arrays.SKIN_CUT``: the scan's edge, not the patient's skin).
 
 Result API: :func:`register` returns a transformed copy of ``source``; its field data
 holds ``ICP_MATRIX`` (4x4, maps the input source onto the target), ``ICP_RMS`` (mm,
@@ -51,6 +52,13 @@ def _rotation(omega):
     k = omega / theta
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
+
+
+def _cut_mask(target):
+    """The target's points on a cut of the scan (its ``arrays.SKIN_CUT``; none without)."""
+    if arrays.SKIN_CUT not in target.point_data:
+        return np.zeros(target.n_points, dtype=bool)
+    return np.asarray(target.point_data[arrays.SKIN_CUT]).reshape(-1).astype(bool)
 
 
 def _region_mask(region, points):
@@ -202,6 +210,8 @@ def register(
         target's frame: a boolean mask over the target points, bounds
         ``(xmin, xmax, ymin, ymax, zmin, zmax)``, or a callable ``f(points) -> mask``.
         Only pairs whose closest target point lies in it are used. ``None``: everywhere.
+        Points of the target's open border and of its skin on a cut of the scan (point
+        array ``arrays.SKIN_CUT`` = 1) are never used.
     max_iterations : int, default 60
         Iteration cap; reaching it without meeting ``tol`` means not converged.
     tol : float, default 1e-3
@@ -287,7 +297,7 @@ def register(
     tgt_pts = np.asarray(target.points, dtype=float)
     normals = _target_normals(target)
     tree = cKDTree(tgt_pts)
-    usable = _region_mask(region, tgt_pts) & ~_border_mask(target, tree)
+    usable = _region_mask(region, tgt_pts) & ~_border_mask(target, tree) & ~_cut_mask(target)
     if usable.sum() < min_pairs:
         raise ValueError(
             f"region leaves {int(usable.sum())} target points, fewer than min_pairs={min_pairs}"

@@ -15,9 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import pyvista as pv
+from matplotlib.colors import to_rgb
 
 from .. import arrays
 from .._atomic import write_text
+from ..figures.skin_marks import CUT_COLOR, cut_points, judged_points
 from ..figures.validation import error_colormap
 from .html import _ENABLED, REPORT_NAME, SKIN_FILES, _colourbar, region_rows, report_html
 from .scene import DEFAULT_MAX_POINTS, colormap_stops, pack_skin, scene_json
@@ -60,12 +62,15 @@ def _scene(skins, max_points):
     scalars = {}
     if pred is not None and arrays.DISPLACEMENT in pred.point_data:
         u = np.linalg.norm(np.asarray(pred[arrays.DISPLACEMENT], dtype=float), axis=1)
-        scalars["displacement"] = u
+        cut = cut_points(pred)  # the scan's edge: in its own colour, out of the range
+        scalars["displacement"] = np.where(cut, np.nan, u)
         stops = colormap_stops("viridis")
-        hi = max(float(u.max()), 1e-3)
+        hi = max(float(u[~cut].max(initial=0.0)), 1e-3)
         colourings["displacement"] = {"skin": "predicted", "scalar": "displacement",
-                                      "stops": stops, "range": [0.0, hi]}
-        bars.append(_colourbar("displacement", "|displacement| (mm)", stops, 0.0, hi))
+                                      "stops": stops, "range": [0.0, hi],
+                                      "nan": list(to_rgb(CUT_COLOR))}
+        label = "|displacement| (mm)" + ("; blue-grey: the scan's edge" if cut.any() else "")
+        bars.append(_colourbar("displacement", label, stops, 0.0, hi))
         ui.append(("displacement", "displacement |u| (mm)"))
     if pred is not None and arrays.DISTANCE in pred.point_data:
         scalars["error"] = np.asarray(pred[arrays.DISTANCE], dtype=float)
@@ -95,9 +100,9 @@ def _regions(summary, skins):
     pre = skins.get("pre", (None,))[0]
     where = pre if pre is not None and pre.n_points == pred.n_points else pred
     u = np.linalg.norm(np.asarray(pred[arrays.DISPLACEMENT], dtype=float), axis=1)
-    mask = None
-    if arrays.SKIN_MODELLED in pred.point_data:  # the unmoved back of the head is not counted
-        mask = np.asarray(pred.point_data[arrays.SKIN_MODELLED]).reshape(-1) > 0
+    mask = None  # the unmoved back of the head is not counted, nor the scan's edge
+    if arrays.SKIN_MODELLED in pred.point_data or cut_points(pred).any():
+        mask = judged_points(pred)
     return region_rows(where, u, mask=mask), ("Predicted displacement |u| of the skin (no post-operative "
                                    "scan given): percentiles and share of points that move "
                                    "at most 1 and 2 mm. Regions are labelled on the "

@@ -12,6 +12,7 @@ import pyvista as pv
 
 from .. import arrays
 from .._atomic import atomic_path
+from ..figures.skin_marks import judged_points
 from ..figures.validation import fig6_error_maps, fig7_boxplots, fig8_cumulative
 
 __all__ = ["validation_figures", "judged_distances"]
@@ -33,7 +34,9 @@ def _png(figure_or_plotter, path):
 def judged_distances(skin):
     """The signed distances of ``skin`` the statistics judge: those of the skin the model
     predicts (``arrays.SKIN_MODELLED`` above 0, all points without the array; the back of
-    the head keeps zero displacement and would inflate the shares near zero error), finite.
+    the head keeps zero displacement and would inflate the shares near zero error), off a
+    cut of the scan (``arrays.SKIN_CUT``: :func:`~pvcmf.figures.skin_marks.judged_points`),
+    finite.
 
     Examples
     --------
@@ -45,11 +48,7 @@ def judged_distances(skin):
     [1.0]
     """
     d = np.asarray(arrays.require_array(skin, arrays.DISTANCE, "point", producer="distance_to"),
-                   dtype=float).reshape(-1)
-    if arrays.SKIN_MODELLED in skin.point_data:
-        modelled = np.asarray(skin.point_data[arrays.SKIN_MODELLED]).reshape(-1) > 0
-        if modelled.any():
-            d = d[modelled]
+                   dtype=float).reshape(-1)[judged_points(skin)]
     return d[np.isfinite(d)]
 
 
@@ -57,7 +56,8 @@ def validation_figures(skin, out, *, case="case"):
     """Write ``fig6_error_map.png``, ``fig7_boxplot.png`` and ``fig8_cumulative.png``.
 
     Figs. 7 and 8 count the skin the model predicts only (:func:`judged_distances`), as
-    ``regions.csv`` does; Fig. 6 colours the whole skin.
+    ``regions.csv`` does; Fig. 6 colours the whole skin (a cut of the scan in its own
+    colour).
 
     Parameters
     ----------

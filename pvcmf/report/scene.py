@@ -218,6 +218,7 @@ VIEWER_JS = r"""
         a.pd.getPointData().setScalars(a.arrays[c.scalar]);
         const lut = vtk.Rendering.Core.vtkColorTransferFunction.newInstance();
         for (const s of c.stops) lut.addRGBPoint(c.range[0] + s[0] * (c.range[1] - c.range[0]), s[1], s[2], s[3]);
+        if (c.nan) lut.setNanColor(c.nan[0], c.nan[1], c.nan[2], 1.0);
         a.mapper.setLookupTable(lut);
         a.mapper.setScalarRange(c.range[0], c.range[1]);
         a.mapper.setScalarVisibility(true);

@@ -32,6 +32,7 @@ import pyvista as pv
 
 from .. import arrays, filters
 from .._atomic import atomic_path, write_text
+from ..figures.skin_marks import judged_points
 from ..filters.registration import ICP_ITERATIONS, registration_result
 from ..io import read_ct, read_surface
 from ..io.surfaces import SURFACE_FORMATS
@@ -101,21 +102,22 @@ def _region(region, landmarks):
     return region
 
 
-def _modelled_only(skin, pred):
-    """``skin`` with the distances of skin the model does not predict set to NaN.
+def _judged_only(skin, pred):
+    """``skin`` with the distances the statistics do not judge set to NaN
+    (:func:`pvcmf.figures.skin_marks.judged_points` of ``pred``).
 
     A whole-head prediction carries ``arrays.SKIN_MODELLED``: the back of the head and the
     neck keep zero displacement because the model does not reach them, so their distances
-    say nothing about the model and would dilute the statistics.
+    say nothing about the model and would dilute the statistics. Skin on a cut of the
+    pre-operative scan (``arrays.SKIN_CUT``) is the scan's edge, not the patient's skin:
+    its distance to the post-operative skin says nothing about the model either.
     """
-    if arrays.SKIN_MODELLED not in pred.point_data:
-        return skin
-    modelled = np.asarray(pred.point_data[arrays.SKIN_MODELLED]).reshape(-1) > 0
-    if modelled.all() or not modelled.any():
+    judged_mask = judged_points(pred)
+    if judged_mask.all() or not judged_mask.any():
         return skin
     judged = skin.copy()
     d = np.array(skin.point_data[arrays.DISTANCE], dtype=float)
-    d[~modelled] = np.nan
+    d[~judged_mask] = np.nan
     judged.point_data[arrays.DISTANCE] = d
     return judged
 
@@ -181,7 +183,7 @@ def validate(pred, post, *, pre=None, region=None, landmarks=None, max_distance=
         postop = pv.PolyData(registered.points, faces=registered.faces)
         skin = filters.distance_to(pred, postop, max_distance=max_distance)
         skin = label_face_regions(skin, landmarks=landmarks)
-        table = error_statistics(_modelled_only(skin, pred), regions=True)
+        table = error_statistics(_judged_only(skin, pred), regions=True)
         timings["distances"] = time.perf_counter() - t
         bar.step("distances")
     reg = {"rms_mm": float(rms), "converged": bool(converged),
