@@ -296,6 +296,27 @@ def test_figure_5_osteotomy(head, verify_image_cache):
         figure_5([])
 
 
+def test_osteotomy_panel_draws_the_scan_s_cut_apart(head):
+    """``osteotomy.png``'s face, like the face figures, draws skin on a cut of the scan in
+    the cut colour."""
+    from pvcmf.figures.osteotomy import osteotomy_panel
+    from pvcmf.filters.skin import extract_skin
+    from pvcmf.plan import TABLE_II
+
+    labels, _ = head
+    skin = extract_skin(labels)
+    marked = skin.copy()
+    top = np.asarray(skin.points)[:, 2]
+    marked.point_data[arrays.SKIN_CUT] = (top > np.percentile(top, 60)).astype(np.uint8)
+    bluish = []
+    for s in (skin, marked):
+        p = osteotomy_panel(labels, TABLE_II[1], skin=s, window_size=(600, 300))
+        img = p.screenshot(return_img=True)[:, :300, :3].astype(int)  # the face's panel
+        p.close()
+        bluish.append(int(((img[..., 2] - img[..., 0]) > 20).sum()))
+    assert bluish[0] == 0 and bluish[1] > 300, bluish
+
+
 def test_warns_when_almost_nothing_is_fixed(head):
     """A model whose posterior plane is a small tip (e.g. a whole head) is held almost only
     by the moving bone: apply_plan says so and names the two ways out."""

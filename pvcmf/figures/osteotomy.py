@@ -19,7 +19,7 @@ import pyvista as pv
 from .. import arrays
 from ..filters.osteotomy import move_bones
 from ..filters.skin import extract_skin
-from .face_views import add_patient_mesh, display_bounds, set_view
+from .face_views import add_patient_mesh, add_skin, display_bounds, set_view
 
 __all__ = ["osteotomy_panel", "draw_osteotomy", "figure_5", "plan_lines"]
 
@@ -122,7 +122,7 @@ def _draw_patient(p, first, labels, plan, skin, skeleton, title=""):
     bounds = display_bounds(skin)
     p.subplot(row, col)
     p.set_background("white", all_renderers=False)
-    add_patient_mesh(p, skin, color=SKIN_COLOR, specular=0.2)
+    add_skin(p, skin, SKIN_COLOR)  # the scan's cuts apart, as the face figures draw them
     set_view(p, bounds, "frontal")
     if title:
         p.add_text(title, font_size=12, color="black")
