@@ -133,6 +133,23 @@ def test_scene_shows_the_patient_as_a_photograph():
         Scene(model).set_view("top")
 
 
+def test_scene_draws_the_scan_s_cut_apart():
+    """Skin on a cut of the scan takes the cut colour, not the displacement map's: the
+    bulging right half, marked as cut, shows no red."""
+    from pvcmf.planner.views import Scene
+
+    model = _FakeModel()
+    model.skin.point_data[arrays.SKIN_CUT] = (model.skin.points[:, 0] < -20.0).astype(np.uint8)
+    scene = Scene(model, window_size=(800, 400))
+    img = _scene_image(scene)
+    face = img[40:-60, 400:]
+    red = (face[..., 0] > 150) & (face[..., 0] - face[..., 2] > 60)
+    spread, mean = face.max(axis=2) - face.min(axis=2), face.mean(axis=2)
+    grey = (spread < 12) & (mean > 30) & (mean < 120)  # the maps' cut colour
+    assert red.sum() == 0 and grey.sum() > 200
+    assert scene.on_cut.sum() == int((model.skin.points[:, 0] < -20.0).sum())
+
+
 # --------------------------------------------------------------------------- model
 @pytest.fixture(scope="module")
 def model():

@@ -35,7 +35,7 @@ from .framing import (FRAME_MARGIN, FRAME_SLAB, FRAME_TITLE, FRAME_WIDEN,  # noq
                       fit_aspect, fit_parallel, frame_bounds, frame_skins)
 from .profiles import POST_LABEL, PRE_LABEL, anterior_profile, profile_overlay  # noqa: F401
 from .colour_range import saturation_note, symmetric_limit
-from .skin_marks import CUT_COLOR, cut_points, modelled_points
+from .skin_marks import CUT_COLOR, MAP_CUT_COLOR, MAP_CUT_WORDS, cut_points, modelled_points
 
 __all__ = ["VIEWS", "to_display", "display_bounds", "frame_bounds", "set_view", "add_patient_mesh", "shaded_display", "visible_points",
            "signed_displacement", "symmetric_limit", "visible_in_views", "displacement_limit", "modelled_points", "add_skin", "face_comparison", "anterior_profile", "profile_overlay", "chart_image",
@@ -378,7 +378,7 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     """A signed displacement component on the skin, with a range from its visible points.
 
     Its points on a cut of the scan (``arrays.SKIN_CUT``, :func:`cut_points`) are drawn in
-    :data:`CUT_COLOR`, not in the map's colours (they are the scan's edge, not the
+    :data:`~pvcmf.figures.skin_marks.MAP_CUT_COLOR`, not in the map's colours (they are the scan's edge, not the
     patient's skin), set no range, and the caption says so.
 
     Parameters
@@ -422,7 +422,7 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     note = saturation_note(values, m, visible if visible is not None else ~cut,
                            signed=component != "magnitude")
     if cut.any():
-        note = "; ".join(filter(None, (note, "blue-grey: the scan's edge")))
+        note = "; ".join(filter(None, (note, MAP_CUT_WORDS)))
     n = len(views)
     window_size = window_size or (440 * n, 600)
     p = pv.Plotter(off_screen=True, shape=(2, n), row_weights=[0.84, 0.16],
@@ -433,7 +433,7 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
         p.subplot(0, col)
         p.set_background("white", all_renderers=False)
         actor = add_patient_mesh(p, shown, scalars=title, cmap=cmap, clim=clim,
-                                 nan_color=CUT_COLOR, show_scalar_bar=False, specular=0.1)
+                                 nan_color=MAP_CUT_COLOR, show_scalar_bar=False, specular=0.1)
         set_view(p, bounds, view, points=points)
         p.add_text(VIEW_TITLES[view], font_size=10, color="black")
     p.subplot(1, 0)

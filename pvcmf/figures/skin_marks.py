@@ -9,7 +9,8 @@ vertex cut by the scan's end; the scan's edge, not the patient's skin), in
 :data:`CUT_COLOR`, on the pre-operative and the predicted skin alike
 (:func:`pvcmf.figures.face_views.face_comparison` draws them;
 :func:`pvcmf.figures.profiles.profile_overlay` lays a band of that colour under a
-silhouette where it runs over the cut). Statistics of a prediction count
+silhouette where it runs over the cut); the colour maps draw it in
+:data:`MAP_CUT_COLOR` instead. Statistics of a prediction count
 :func:`judged_points` only: the modelled skin off the scan's cuts.
 """
 
@@ -19,10 +20,16 @@ import numpy as np
 
 from .. import arrays
 
-__all__ = ["CUT_COLOR", "cut_points", "judged_points", "modelled_points"]
+__all__ = ["CUT_COLOR", "MAP_CUT_COLOR", "MAP_CUT_WORDS", "cut_points", "judged_points",
+           "modelled_points"]
 
-#: colour of the skin on a cut of the scan (``arrays.SKIN_CUT``)
+#: colour of the skin on a cut of the scan (``arrays.SKIN_CUT``) in the face figures
 CUT_COLOR = "lightsteelblue"
+#: its colour in the colour maps (displacement, error): a neutral dark grey, which none of
+#: their colour maps holds (their light blues would pass for :data:`CUT_COLOR`)
+MAP_CUT_COLOR = "#4d4d4d"
+#: what a map's caption says of that colour
+MAP_CUT_WORDS = "dark grey: the scan's edge"
 
 
 def modelled_points(skin):

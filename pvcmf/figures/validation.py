@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 
 from .. import arrays
 from .face_views import add_patient_mesh, display_bounds
-from .skin_marks import CUT_COLOR, cut_points
+from .skin_marks import MAP_CUT_COLOR, MAP_CUT_WORDS, cut_points
 
 #: drawing order and colours of the methods (paper 000: proposed red, state of the art blue)
 METHOD_COLORS = {"proposed": "tab:red", "state_of_the_art": "tab:blue"}
@@ -163,7 +163,7 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camer
             shown, on_cut = _cut_apart(skins[patient][method])
             any_cut |= on_cut
             add_patient_mesh(pl, shown, scalars=arrays.DISTANCE, cmap=cmap,
-                             clim=(-limit, limit), nan_color=CUT_COLOR, show_scalar_bar=False)
+                             clim=(-limit, limit), nan_color=MAP_CUT_COLOR, show_scalar_bar=False)
             label = f"{patient_label(patient)}  {METHOD_LABELS.get(method, method)}"
             pl.add_text(label, position="upper_left", font_size=9, color="black")
             if camera is None:  # front view, the face's box filling the panel
@@ -184,7 +184,7 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camer
     )
     bar.SetTextPositionToPrecedeScalarBar()  # tick labels under the bar
     bar.SetTitle("")  # VTK puts the title on the labels' side, over the middle label
-    edge = "; blue-grey: the scan's edge" if any_cut else ""
+    edge = f"; {MAP_CUT_WORDS}" if any_cut else ""
     text = pl.add_text(f"signed error (mm), white within \u00b1{acceptable:g}{edge}",
                        position=(0.5, 0.1), viewport=True, color="black")
     text.GetTextProperty().SetFontSize(12)  # pixels, as the bar's labels
@@ -195,7 +195,7 @@ def fig6_error_maps(skins, *, limit=6.0, acceptable=2.0, window_size=None, camer
 def _cut_apart(skin):
     """``(skin to draw, any cut)``: the skin with the distances of its points on a cut of
     the scan (:func:`~pvcmf.figures.skin_marks.cut_points`) NaN, drawn in
-    :data:`~pvcmf.figures.skin_marks.CUT_COLOR` (the scan's edge, not an error)."""
+    :data:`~pvcmf.figures.skin_marks.MAP_CUT_COLOR` (the scan's edge, not an error)."""
     cut = cut_points(skin)
     if not cut.any():
         return skin, False

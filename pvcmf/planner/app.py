@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 from .. import datasets
+from ..figures.skin_marks import MAP_CUT_WORDS
 from ..plan import read_plan, write_plan
 from .model import prepare_model
 from .state import AXES, KINDS, PlanSliders, slider_key
@@ -73,7 +74,9 @@ class Planner:
         start = time.perf_counter()
         signed = self.scene.update(self.plan)
         seconds = time.perf_counter() - start
-        status = (f"signed displacement {signed.min():+.1f} .. {signed.max():+.1f} mm "
+        skin = signed[~self.scene.on_cut] if not self.scene.on_cut.all() else signed
+        edge = f"; {MAP_CUT_WORDS}" if self.scene.on_cut.any() else ""
+        status = (f"signed displacement {skin.min():+.1f} .. {skin.max():+.1f} mm{edge} "
                   f"({self.model.kind}, {1000 * seconds:.0f} ms)")
         return status, data_url(profile_png(self.model.skin, self.scene.predicted))
 

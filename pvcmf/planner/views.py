@@ -3,7 +3,9 @@
 * :class:`Scene` -- one offscreen :class:`pyvista.Plotter` with two linked views: the
   skeleton (bone at rest in grey, the moved segments in colour) and the predicted face
   coloured by its signed displacement (mm along the outward skin normal: + outward,
-  - inward). :meth:`Scene.update` moves both for a plan, in place.
+  - inward). :meth:`Scene.update` moves both for a plan, in place. Skin on a cut of the
+  scan (``arrays.SKIN_CUT``) is drawn in the colour maps' cut colour
+  (:data:`pvcmf.figures.skin_marks.MAP_CUT_COLOR`), not in the map's colours.
   The scene is drawn as a photograph, like every face figure: the meshes are reflected
   once into the display frame of :mod:`pvcmf.figures.face_views` (x -> -x, triangles
   rewound so that they still face outward), so the frontal view shows the patient's right
@@ -24,6 +26,7 @@ import pyvista as pv
 
 from .. import arrays
 from ..figures.face_views import VIEWS
+from ..figures.skin_marks import MAP_CUT_COLOR, cut_points
 
 __all__ = ["Scene", "data_url", "display_copy", "profile_png", "profile_segments",
            "signed_displacement", "DISPLACEMENT_CLIM", "SCENE_VIEWS", "SIGNED"]
@@ -153,7 +156,9 @@ class Scene:
         self.predicted.point_data[arrays.DISPLACEMENT] = np.zeros((model.skin.n_points, 3))
         #: the predicted skin as drawn, in the display frame (x -> -x)
         self.face = display_copy(model.skin)
-        self.face.point_data[SIGNED] = np.zeros(self.face.n_points)
+        #: the skin's points on a cut of the scan: the scan's edge, not the patient's skin
+        self.on_cut = cut_points(model.skin)
+        self.face.point_data[SIGNED] = np.where(self.on_cut, np.nan, 0.0)
         self.bones = {}
         self.plotter.subplot(0, 0)
         self.plotter.add_text("skeleton: rest (grey), planned (colour)", font_size=9)
@@ -171,7 +176,7 @@ class Scene:
         self.plotter.subplot(0, 1)
         self.plotter.add_text("predicted face", font_size=9)
         self.plotter.add_mesh(self.face, scalars=SIGNED, cmap="coolwarm",
-                              clim=DISPLACEMENT_CLIM, smooth_shading=True,
+                              clim=DISPLACEMENT_CLIM, nan_color=MAP_CUT_COLOR, smooth_shading=True,
                               scalar_bar_args={"title": "mm along normal", "n_labels": 5,
                                                "fmt": "%.0f", "vertical": False})
         self.plotter.link_views()
@@ -193,14 +198,15 @@ class Scene:
         self.plotter.camera.zoom(1.1)
 
     def update(self, plan):
-        """Show ``plan``: move the segments and the face; return the signed displacement."""
+        """Show ``plan``: move the segments and the face; return the signed displacement
+        (every skin point; :attr:`on_cut` marks the scan's edge)."""
         disp = np.asarray(self.model.displacement(plan), dtype=np.float64)
         points = np.asarray(self.model.skin.points, dtype=np.float64) + disp
         self.predicted.points = points
         self.predicted.point_data[arrays.DISPLACEMENT] = disp
         self.face.points = points * _MIRROR
         signed = signed_displacement(self.model.skin, disp)
-        self.face.point_data[SIGNED] = signed
+        self.face.point_data[SIGNED] = np.where(self.on_cut, np.nan, signed)
         moved = self.model.skeleton(plan)
         for name, block in self.bones.items():
             block.points = np.asarray(moved[name].points, dtype=np.float64) * _MIRROR

@@ -19,7 +19,7 @@ from matplotlib.colors import to_rgb
 
 from .. import arrays
 from .._atomic import write_text
-from ..figures.skin_marks import CUT_COLOR, cut_points, judged_points
+from ..figures.skin_marks import MAP_CUT_COLOR, MAP_CUT_WORDS, cut_points, judged_points
 from ..figures.validation import error_colormap
 from .html import _ENABLED, REPORT_NAME, SKIN_FILES, _colourbar, region_rows, report_html
 from .scene import DEFAULT_MAX_POINTS, colormap_stops, pack_skin, scene_json
@@ -68,8 +68,8 @@ def _scene(skins, max_points):
         hi = max(float(u[~cut].max(initial=0.0)), 1e-3)
         colourings["displacement"] = {"skin": "predicted", "scalar": "displacement",
                                       "stops": stops, "range": [0.0, hi],
-                                      "nan": list(to_rgb(CUT_COLOR))}
-        label = "|displacement| (mm)" + ("; blue-grey: the scan's edge" if cut.any() else "")
+                                      "nan": list(to_rgb(MAP_CUT_COLOR))}
+        label = "|displacement| (mm)" + (f"; {MAP_CUT_WORDS}" if cut.any() else "")
         bars.append(_colourbar("displacement", label, stops, 0.0, hi))
         ui.append(("displacement", "displacement |u| (mm)"))
     if pred is not None and arrays.DISTANCE in pred.point_data:
