@@ -487,12 +487,17 @@ class PlanResponse:
         block (plans needing a full solve are solved one by one).
 
         ``modelled=True`` takes the statistics over the modelled skin only (points within
-        the transfer's band of the mesh, :data:`pvcmf.arrays.SKIN_MODELLED`); otherwise over
-        every skin point (the unreached ones count as zero)."""
+        the transfer's band of the mesh, :data:`pvcmf.arrays.SKIN_MODELLED`) off the scan's
+        cuts (the skin's ``arrays.SKIN_CUT`` where it has one: the scan's edge, not the
+        patient's skin); otherwise over every skin point (the unreached ones count as
+        zero)."""
         if self._skin is None:
             raise ValueError("plan_response was built without skin=: no skin statistics")
-        count = int(self.modelled.sum()) if modelled else len(self.modelled)
-        select = self.modelled if modelled else None
+        judged = self.modelled
+        if arrays.SKIN_CUT in self.skin.point_data:
+            judged = judged & ~np.asarray(self.skin.point_data[arrays.SKIN_CUT]).astype(bool)
+        count = max(int(judged.sum()), 1) if modelled else len(self.modelled)
+        select = judged if modelled else None
         params = [self.parameters(p) for p in plans]
         out = np.zeros((len(plans), 3))
         fast = [i for i, a in enumerate(params) if a is not None]
@@ -513,8 +518,9 @@ class PlanResponse:
         for i, a in enumerate(params):
             if a is None:
                 u = self.predict_displacement(plans[i])
-                mag = np.linalg.norm(u[self.modelled] if modelled else u, axis=1)
-                out[i] = mag.max(), mag.mean(), np.sqrt((mag ** 2).mean())
+                mag = np.linalg.norm(u[judged] if modelled else u, axis=1)
+                if mag.size:
+                    out[i] = mag.max(), mag.mean(), np.sqrt((mag ** 2).mean())
         return out
 
     def displacements(self, plans, points=None, chunk=256):
