@@ -409,10 +409,11 @@ def _covered(grid, labels, hard, points, outer, cover):
         return none
     # the nearest node first (a cheap search): only voxels whose nearest node is interior
     # and within ``cover`` can be kept, so only they are located in the tetrahedra
-    dist, node = cKDTree(points).query(at)
-    interior = np.ones(len(points), dtype=bool)
+    dist, node = cKDTree(points).query(at, distance_upper_bound=cover * (1 + 1e-9))
+    interior = np.zeros(len(points) + 1, dtype=bool)  # (the last: no node within cover)
+    interior[:-1] = True
     interior[outer] = False
-    keep = interior[node] & (dist <= cover * (1 + 1e-9))
+    keep = interior[node]
     ids, at, dist, node = ids[keep], at[keep], dist[keep], node[keep]
     if not len(ids):
         return none
