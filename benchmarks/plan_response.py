@@ -1,7 +1,8 @@
 """Speed of the plan response operator against the full solve, in one run.
 
 Not run by CI. ``python benchmarks/plan_response.py --write docs/benchmarks/plan_response.md``
-builds the demo's mesh (virtual patient 1 at 2 mm, muscles embedded, as ``pvcmf demo``),
+builds a mesh of virtual patient 1 at 2 mm (muscles embedded, as ``pvcmf demo``) of about
+``--n-tets`` tetrahedra (default 30k),
 a dense skin of about ``--skin-points`` points (the image skin, subdivided and decimated),
 and measures, for a two-segment template (maxilla and mandible):
 
@@ -9,16 +10,17 @@ and measures, for a two-segment template (maxilla and mandible):
   transfer operator; its build is timed on its own);
 * ``build``: :func:`pvcmf.mtm.response.plan_response` (boundary conditions, one
   factorisation, twelve solves per segment, the transfer's rows built in ranges of skin
-  points by a partner beside them (a forked process unless the cores are contended, or
-  as ``--build-in`` says) and by the calling thread after its solves, joined (the
+  points by a partner beside them (a second thread, as ``plan_response`` does by
+  default, or as ``--build-in`` says) and by the calling thread after its solves, joined (the
   smoothing steps, with the unsmoothed transfer times the nodal response made beside them
   on a second thread) and folded in: the smoothing steps on those dense rows), and its
   ratio to a factorisation plus the same solves timed on
   their own in the same run (nothing else running in the process; the build's double
   factor, with and without the per-solve solution checks, which the build skips), in
   wall-clock and CPU time (the process's and its child's), medians of ``--repeat`` rounds
-  that time the five in turn (the fourth: the build with the transfer on a second thread;
-  the fifth: the build without a dense skin, the operator of the mesh's own nodes);
+  that time the five in turn (the fourth: the build with the other partner, a forked
+  process for a thread and a thread otherwise; the fifth: the build without a dense
+  skin, the operator of the mesh's own nodes);
 * ``predict``: one plan's dense-skin displacement (new array, or written into a kept one),
   its breakdown (parameters; the product on one BLAS thread: nodal displacement of the
   nodes the few-weight rows use, dense rows, one CSR product into the output; the new
@@ -127,13 +129,14 @@ def reference_solves(mesh, labels, template, checks=True):
     return time.perf_counter() - t, cpu_now() - c
 
 
-def build_rows(mesh, labels, skin, template, rows, repeat, build_in="auto"):
+def build_rows(mesh, labels, skin, template, rows, repeat, build_in="thread"):
     """Time the operator's build against a factorisation plus its solves (medians of
     ``repeat`` rounds, each timing the four in turn; ``build_in``: where the build's
     partner runs, :data:`pvcmf.mtm.response_transfer.BUILD_IN`)."""
     from pvcmf.mtm import response_transfer
 
-    keys = ("ref", "ref_cpu", "bare", "bare_cpu", "build", "build_cpu", "thread", "thread_cpu",
+    other = "process" if build_in == "thread" else "thread"  # the other partner, compared
+    keys = ("ref", "ref_cpu", "bare", "bare_cpu", "build", "build_cpu", "other", "other_cpu",
             "nodes", "nodes_cpu")
     times = {key: [] for key in keys}
     parts = []  # the build's own timings, per round
@@ -144,7 +147,7 @@ def build_rows(mesh, labels, skin, template, rows, repeat, build_in="auto"):
         for key, value in zip(("bare", "bare_cpu"),
                               reference_solves(mesh, labels, template, checks=False)):
             times[key].append(value)
-        for key, where in (("thread", "thread"), ("build", build_in)):
+        for key, where in (("other", other), ("build", build_in)):
             response_transfer.BUILD_IN = where
             op = None  # free the previous operator first
             t, c = time.perf_counter(), cpu_now()
@@ -154,7 +157,7 @@ def build_rows(mesh, labels, skin, template, rows, repeat, build_in="auto"):
             if key == "build":
                 parts.append({**op.timings, **{f"ranges {k}": v for k, v in
                                                (op.transfer_ranges or {}).items()}})
-        response_transfer.BUILD_IN = "auto"
+        response_transfer.BUILD_IN = build_in
         t, c = time.perf_counter(), cpu_now()  # the operator alone: the mesh's own nodes
         plan_response(mesh, labels, plan=template)
         times["nodes"].append(time.perf_counter() - t)
@@ -178,9 +181,11 @@ def build_rows(mesh, labels, skin, template, rows, repeat, build_in="auto"):
     rows["factorisation + solves without solution checks, CPU time (s)"] = med["bare_cpu"]
     rows["build / (factorisation + solves without checks), CPU time"] = (med["build_cpu"]
                                                                          / med["bare_cpu"])
-    rows["build, transfer on a second thread instead (s)"] = med["thread"]
-    rows["build, transfer on a second thread / as built"] = med["thread"] / med["build"]
-    rows["build, transfer on a second thread, CPU time (s)"] = med["thread_cpu"]
+    named = {"process": "in a forked process", "thread": "on a second thread",
+             "auto": "as 'auto' chooses"}[other]
+    rows[f"build, transfer {named} instead (s)"] = med["other"]
+    rows[f"build, transfer {named} / as built"] = med["other"] / med["build"]
+    rows[f"build, transfer {named}, CPU time (s)"] = med["other_cpu"]
     skin_op = op.skin_operator
     rows["skin operator dtype ('auto')"] = str(skin_op.dtype)
     rows["float32 rounding bound, plans to 30 deg / 20 mm (mm)"] = op.float32_error
@@ -265,7 +270,7 @@ def predict_rows(op, skin, plans, rows):
 def run(args):
     case = datasets.phantom(patient=1, spacing=2.0)
     res = simulate(case.ct, case.plan, bones=case.truth, landmarks=getattr(case, "landmarks", None),
-                   solve=False, figures=False)
+                   solve=False, figures=False, n_tets=args.n_tets)
     mesh, labels = res.mesh, res.labels
     skin = dense_skin(res.skin_pre, args.skin_points)
     template = Plan(tuple(Osteotomy(s) for s in SEGMENTS))
@@ -317,13 +322,16 @@ def table(rows):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--skin-points", type=int, default=100_000)
+    p.add_argument("--n-tets", type=int, default=30_000,
+                   help="tetrahedra the mesh is asked for (simulate's n_tets)")
     p.add_argument("--plans", type=int, default=50, help="plans timed one by one")
     p.add_argument("--batch", type=int, default=1000, help="plans of the statistics batch")
     p.add_argument("--repeat", type=int, default=3,
                    help="repeats of the full solve and of the build with its reference")
-    p.add_argument("--build-in", choices=("auto", "process", "thread"), default="auto",
-                   help="where the build's transfer partner runs (default: a forked process "
-                        "unless the cores are contended, then a second thread)")
+    p.add_argument("--build-in", choices=("auto", "process", "thread"), default="thread",
+                   help="where the build's transfer partner runs (default: a second thread, "
+                        "as plan_response; the other of thread and process is timed beside "
+                        "it)")
     p.add_argument("--write", metavar="MD", help="write the table as a MyST page")
     args = p.parse_args(argv)
     rows = run(args)
@@ -336,7 +344,8 @@ def main(argv=None):
                 "(:func:`pvcmf.mtm.response.plan_response`: skin points with few transfer "
                 "weights from the nodal displacement, the others from dense rows) "
                 "against apply_plan + solve + "
-                "transfer, on the demo's mesh (virtual patient 1, 2 mm, muscles), in one run. "
+                "transfer, on a mesh of virtual patient 1 (2 mm, muscles) of about 30k "
+                "tetrahedra (`--n-tets`), in one run. "
                 "Times are medians of wall-clock time unless marked CPU time (the calling "
                 "thread's own time, which other processes sharing the cores do not inflate). "
                 "The build's ratio divides by a factorisation plus the same solves timed on "
@@ -348,9 +357,9 @@ def main(argv=None):
                 "the skin transfer's rows are built in ranges of skin points on both "
                 "cores: a partner starts on them beside the factorisation and solves, the "
                 "calling thread takes the ranges left after its solves (the timings name "
-                "the partner: a forked process, or a second thread; `--build-in` chooses, "
-                "`auto` takes the thread when the kernel's pressure stall information "
-                "shows tasks waiting for a core), then joins them (`transfer join`: the "
+                "the partner: a second thread, plan_response's default, or a forked "
+                "process; `--build-in` chooses, and the other is timed beside it), then "
+                "joins them (`transfer join`: the "
                 "smoothing steps, and beside them on a second thread the unsmoothed "
                 "transfer times the nodal response) and folds them in on both cores "
                 "(`build: fold`: the steps on those dense rows); the build's CPU time "

@@ -445,14 +445,14 @@ def test_transfer_in_background_equals_the_transfer(block):
 
     grid, _, skin = block
     here = Transfer(grid, skin.points)
-    chunk = response_transfer.CHUNK
+    chunk, default = response_transfer.CHUNK, response_transfer.BUILD_IN
     for where, size in (("process", chunk), ("thread", chunk), ("process", 37), ("thread", 37)):
         response_transfer.BUILD_IN, response_transfer.CHUNK = where, size
         try:
             pending = response_transfer.transfer_in_background(grid, skin)
             transfer, timings = pending.result()
         finally:
-            response_transfer.BUILD_IN, response_transfer.CHUNK = "auto", chunk
+            response_transfer.BUILD_IN, response_transfer.CHUNK = default, chunk
         assert (pending.where == "second process") == (where == "process" and hasattr(os, "fork"))
         assert (transfer.W != here.W).nnz == 0 and (transfer.W0 != here.W0).nnz == 0
         assert np.array_equal(transfer.W0.data, here.W0.data)
@@ -480,7 +480,7 @@ def test_transfer_in_background_equals_the_transfer(block):
     try:
         pending = response_transfer.transfer_in_background(grid, skin)
     finally:
-        response_transfer.BUILD_IN = "auto"
+        response_transfer.BUILD_IN = default
     pending.cancel()
     if pending.where == "second process":
         with pytest.raises(ChildProcessError):

@@ -27,8 +27,8 @@ the rounding bound of the float32 products (:meth:`SkinOperator.float32_error`, 
 :func:`float32_bound`), over plans with rotation entries up to :data:`FLOAT32_ROTATION` and
 centroid shifts up to :data:`FLOAT32_SHIFT` mm, is within :data:`FLOAT32_TOLERANCE`. On a
 face the bound is far above 1e-6 mm and float64 is kept (docs/benchmarks/plan_response.md
-gives the demo's). The skin transfer is built on both cores: a partner (a forked
-process, or a second thread) starts on its rows beside the factorisation and solves, and
+gives a 30k mesh's). The skin transfer is built on both cores: a partner (a second
+thread, or a forked process) starts on its rows beside the factorisation and solves, and
 the calling thread takes the rows left after them (:mod:`pvcmf.mtm.response_transfer`); the basis
 solves skip the solution checks (unit fields, not motions). Delegates to
 :func:`pvcmf.filters.apply_plan`, :class:`pvcmf.mtm.Solver`, numpy (BLAS), scipy.sparse

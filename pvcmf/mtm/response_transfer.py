@@ -12,18 +12,21 @@ multiplies the joined rows by the nodal response (``right``); the plan response 
 that product in (:class:`pvcmf.mtm.response_operator.SkinOperator`: the smoothing
 steps on its dense rows, on every core, the partner being done).
 
-:class:`pvcmf.filters.surface_mapping.Transfer` runs many small numpy operations that hold
-Python's global interpreter lock; on a second thread they stall the factorisation and solves
-of the calling thread (and those stall it). On Linux, when the calling process runs a single
-Python thread and the cores are not contended (:func:`cpu_pressure`), the partner is
-therefore a forked child process, which shares only the range counters with the parent
+The partner is a second thread by default (:data:`BUILD_IN`): its larger numpy and
+scipy operations release Python's global interpreter lock, and sharing the process's
+memory spares the copy of its rows (tens of megabytes for a 100k-point skin) that a
+child process pickles to its parent; on two cores it builds the operator in less time
+than a forked child (``benchmarks/plan_response.py`` times both in one run). On Linux
+the partner can instead be a forked child process (``"process"``, or ``"auto"``: a
+child where the calling process runs a single Python thread and the cores are not
+contended, :func:`cpu_pressure`), which shares only the range counters with the parent
 after the fork: it first writes its mesh index
 (:class:`~pvcmf.filters.transfer_locate.MeshIndex`, pickled; the parent reads it in
 milliseconds instead of making its own, and the child makes it while the parent runs
 the boundary conditions), then each range's rows to an anonymous temporary file
 (pickle) as soon as it has built it, which the parent reads once the child has exited;
-elsewhere, or when the fork fails, a second thread. If the child dies, the caller builds
-the ranges it had taken and not written. Either way the result is the same transfer.
+where the fork fails, a second thread. If the child dies, the caller builds the ranges
+it had taken and not written. Either way the result is the same transfer.
 
 Delegates to :func:`os.fork`, :mod:`mmap`, :mod:`multiprocessing` (a lock), :mod:`pickle`,
 :mod:`tempfile`, :mod:`concurrent.futures` and :mod:`pvcmf.filters.transfer_parts`.
@@ -52,10 +55,10 @@ log = logging.getLogger(__name__)
 
 __all__ = ["transfer_in_background"]
 
-#: where the partner builds its ranges of the transfer: ``"auto"`` (a forked process where
-#: possible and the cores are not contended, see :func:`cpu_pressure`), ``"process"``
-#: (where possible) or ``"thread"``
-BUILD_IN = "auto"
+#: where the partner builds its ranges of the transfer: ``"thread"`` (a second thread),
+#: ``"process"`` (a forked process where possible) or ``"auto"`` (a forked process where
+#: possible and the cores are not contended, see :func:`cpu_pressure`)
+BUILD_IN = "thread"
 #: ``"auto"`` takes a thread when runnable tasks waited for a core this share (percent) of
 #: the last ten seconds or more: the child then gains no core of its own and only adds
 #: the fork's copy-on-write work
