@@ -224,6 +224,28 @@ def test_region_table_leaves_out_the_scan_s_edge(tmp_path):
                                                         np.percentile(u, [50, 90]))]
 
 
+def test_error_map_leaves_out_the_scan_s_edge(tmp_path):
+    """After ``validate``: the signed error of the cut skin is NaN in the packed scene (the
+    viewer's NaN colour, the maps' cut colour) and its colour bar names that colour."""
+    import base64
+    import gzip
+
+    from pvcmf.report.case import _scene, _skins
+
+    head = _cut_case(tmp_path)
+    head[arrays.DISTANCE] = np.linspace(-3.0, 3.0, head.n_points)
+    (tmp_path / "predicted_skin.vtp").unlink()
+    head.save(tmp_path / "validated_skin.vtp")
+    scene, bars, _, _ = _scene(_skins(tmp_path, None), 10 ** 6)
+    packed = json.loads(scene)
+    values = np.frombuffer(gzip.decompress(base64.b64decode(
+        packed["skins"]["predicted"]["scalars"]["error"]["values"])), np.float32)
+    cut = np.asarray(head[arrays.SKIN_CUT]).astype(bool)
+    assert np.isnan(values).sum() == cut.sum() and cut.sum() > 100
+    assert packed["colourings"]["error"]["nan"] == packed["colourings"]["displacement"]["nan"]
+    assert all("the scan" in b for b in bars)
+
+
 @needs_chromium
 def test_report_view_draws_the_scan_s_edge_in_its_own_colour(tmp_path):
     """In the 3D view the cut takes the cut colour instead of the displacement map's, the

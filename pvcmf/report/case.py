@@ -60,24 +60,26 @@ def _scene(skins, max_points):
     packed, colourings, bars, ui = {}, {}, [], []
     pred = skins.get("predicted", (None,))[0]
     scalars = {}
+    # the scan's edge: in its own colour (NaN), out of the ranges, named under the bars
+    cut = None if pred is None else cut_points(pred)
+    edge = f"; {MAP_CUT_WORDS}" if cut is not None and cut.any() else ""
     if pred is not None and arrays.DISPLACEMENT in pred.point_data:
         u = np.linalg.norm(np.asarray(pred[arrays.DISPLACEMENT], dtype=float), axis=1)
-        cut = cut_points(pred)  # the scan's edge: in its own colour, out of the range
         scalars["displacement"] = np.where(cut, np.nan, u)
         stops = colormap_stops("viridis")
         hi = max(float(u[~cut].max(initial=0.0)), 1e-3)
         colourings["displacement"] = {"skin": "predicted", "scalar": "displacement",
                                       "stops": stops, "range": [0.0, hi],
                                       "nan": list(to_rgb(MAP_CUT_COLOR))}
-        label = "|displacement| (mm)" + (f"; {MAP_CUT_WORDS}" if cut.any() else "")
-        bars.append(_colourbar("displacement", label, stops, 0.0, hi))
+        bars.append(_colourbar("displacement", "|displacement| (mm)" + edge, stops, 0.0, hi))
         ui.append(("displacement", "displacement |u| (mm)"))
     if pred is not None and arrays.DISTANCE in pred.point_data:
-        scalars["error"] = np.asarray(pred[arrays.DISTANCE], dtype=float)
+        scalars["error"] = np.where(cut, np.nan, np.asarray(pred[arrays.DISTANCE], dtype=float))
         stops = colormap_stops(error_colormap(ERROR_LIMIT), 25)
         colourings["error"] = {"skin": "predicted", "scalar": "error", "stops": stops,
-                               "range": [-ERROR_LIMIT, ERROR_LIMIT]}
-        bars.append(_colourbar("error", "signed error (mm), + anterior", stops,
+                               "range": [-ERROR_LIMIT, ERROR_LIMIT],
+                               "nan": list(to_rgb(MAP_CUT_COLOR))}
+        bars.append(_colourbar("error", "signed error (mm), + anterior" + edge, stops,
                                -ERROR_LIMIT, ERROR_LIMIT))
         ui.insert(0, ("error", "error: predicted - post-operative (mm)"))
     for key, (skin, label, color, opacity, shown) in skins.items():
