@@ -77,6 +77,32 @@ def test_signed_displacement_and_profile():
     assert np.allclose(np.linalg.norm(segs.reshape(-1, 2), axis=1), 10.0, atol=0.1)
 
 
+def test_profile_marks_the_scan_s_cut():
+    """The planner's profile lays a band of the cut colour under the silhouette where it
+    runs over skin on a cut of the scan, and none without one."""
+    import io
+
+    import matplotlib.colors as mcolors
+    from PIL import Image
+
+    from pvcmf.figures.skin_marks import CUT_COLOR
+    from pvcmf.planner.views import profile_png, profile_segments
+
+    sphere = pv.Sphere(radius=60.0, theta_resolution=80, phi_resolution=80)
+    marked = sphere.copy()
+    marked.point_data[arrays.SKIN_CUT] = (sphere.points[:, 1] > 40).astype(np.uint8)
+    segs, cut = profile_segments(marked, 0.0, on_cut=True)
+    assert cut.any() and np.all(segs[cut][:, :, 0] > 38.0)
+    assert not profile_segments(sphere, 0.0, on_cut=True)[1].any()
+    rgb = np.array(mcolors.to_rgb(CUT_COLOR)) * 255
+
+    def cut_pixels(skin):
+        img = np.asarray(Image.open(io.BytesIO(profile_png(skin, skin))).convert("RGB"), float)
+        return int((np.abs(img - rgb).max(axis=2) < 12).sum())
+
+    assert cut_pixels(sphere) == 0 and cut_pixels(marked) > 100
+
+
 # --------------------------------------------------------------------------- scene
 class _FakeModel:
     """A head whose right half (patient frame x < 0) bulges out by 4 mm, and a bone block

@@ -26,7 +26,8 @@ import pyvista as pv
 
 from .. import arrays
 from ..figures.face_views import VIEWS
-from ..figures.skin_marks import MAP_CUT_COLOR, cut_points
+from ..figures.profiles import CUT_LABEL
+from ..figures.skin_marks import CUT_COLOR, MAP_CUT_COLOR, cut_points
 
 __all__ = ["Scene", "data_url", "display_copy", "profile_png", "profile_segments",
            "signed_displacement", "DISPLACEMENT_CLIM", "SCENE_VIEWS", "SIGNED"]
@@ -80,23 +81,35 @@ def signed_displacement(skin, displacement):
     return np.einsum("ij,ij->i", disp, normals)
 
 
-def profile_segments(surface, x=None):
+def profile_segments(surface, x=None, on_cut=False):
     """Line segments of the surface's sagittal section at ``x`` as (m, 2, 2) (y, z) mm.
 
     ``x`` defaults to the middle of the surface's x bounds (the midsagittal plane).
+    ``on_cut=True`` also returns, per segment, whether it lies on skin on a cut of the scan
+    (both ends on the surface's ``arrays.SKIN_CUT``, interpolated; none without it).
     """
     if x is None:
         x = 0.5 * (surface.bounds[0] + surface.bounds[1])
-    section = surface.slice(normal="x", origin=(float(x), *surface.center[1:]))
+    src = pv.PolyData(np.asarray(surface.points), faces=surface.faces)
+    if on_cut and arrays.SKIN_CUT in surface.point_data:
+        src.point_data["_on_cut"] = np.asarray(surface.point_data[arrays.SKIN_CUT], float)
+    section = src.slice(normal="x", origin=(float(x), *surface.center[1:]))
     if section.n_points == 0:
-        return np.zeros((0, 2, 2))
+        return (np.zeros((0, 2, 2)), np.zeros(0, bool)) if on_cut else np.zeros((0, 2, 2))
     edges = section.extract_all_edges()
     lines = np.asarray(edges.lines).reshape(-1, 3)[:, 1:]
-    return np.asarray(edges.points)[lines][:, :, 1:]
+    segs = np.asarray(edges.points)[lines][:, :, 1:]
+    if not on_cut:
+        return segs
+    if "_on_cut" not in edges.point_data:
+        return segs, np.zeros(len(segs), dtype=bool)
+    return segs, (np.asarray(edges.point_data["_on_cut"])[lines] >= 0.5).all(axis=1)
 
 
 def profile_png(pre, post, x=None, *, size=(4.0, 4.0), dpi=90):
-    """PNG bytes of the profile before (grey) and after (red), face to the right.
+    """PNG bytes of the profile before (grey) and after (red), face to the right; a band
+    of the face figures' cut colour lies under a line where it runs over skin on a cut of
+    the scan (as :func:`pvcmf.figures.profiles.profile_overlay` draws it).
 
     Parameters
     ----------
@@ -114,9 +127,15 @@ def profile_png(pre, post, x=None, *, size=(4.0, 4.0), dpi=90):
     fig = Figure(figsize=size, dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
+    cut_label = CUT_LABEL
     for surface, colour, label in ((pre, "0.55", "pre-op"), (post, "tab:red", "planned")):
-        segs = profile_segments(surface, x)
-        ax.add_collection(LineCollection(segs, colors=colour, linewidths=1.2, label=label))
+        segs, cut = profile_segments(surface, x, on_cut=True)
+        if cut.any():  # a band under the line where it runs over the scan's edge
+            ax.add_collection(LineCollection(segs[cut], colors=CUT_COLOR, linewidths=6,
+                                             zorder=1, label=cut_label))
+            cut_label = None
+        ax.add_collection(LineCollection(segs, colors=colour, linewidths=1.2, label=label,
+                                         zorder=2))
     b = pre.bounds
     ax.set_xlim(0.5 * (b[2] + b[3]), b[3] + 15)  # the face half
     ax.set_ylim(b[4] - 5, b[5] + 5)
@@ -154,6 +173,9 @@ class Scene:
         self.predicted = pv.PolyData(np.asarray(model.skin.points, dtype=np.float64).copy(),
                                      faces=model.skin.faces)
         self.predicted.point_data[arrays.DISPLACEMENT] = np.zeros((model.skin.n_points, 3))
+        if arrays.SKIN_CUT in model.skin.point_data:  # the profile marks the cut on both
+            self.predicted.point_data[arrays.SKIN_CUT] = np.asarray(
+                model.skin.point_data[arrays.SKIN_CUT]).copy()
         #: the predicted skin as drawn, in the display frame (x -> -x)
         self.face = display_copy(model.skin)
         #: the skin's points on a cut of the scan: the scan's edge, not the patient's skin
