@@ -103,6 +103,22 @@ def test_profile_marks_the_scan_s_cut():
     assert cut_pixels(sphere) == 0 and cut_pixels(marked) > 100
 
 
+def test_profile_cuts_the_head_midline_not_the_shoulders_centre():
+    """As the PNG overlay: with shoulders reaching further to one side, the planner's
+    profile is the head's midsagittal section, not the one through the skin's centre."""
+    from pvcmf.figures.profiles import midline_x
+    from pvcmf.planner.views import profile_png
+
+    head = pv.ParametricEllipsoid(72.0, 95.0, 115.0, u_res=40, v_res=40, w_res=40)
+    shoulders = pv.Cylinder(center=(60.0, -70.0, -150.0), direction=(0.0, 0.0, 1.0),
+                            radius=160.0, height=30.0)
+    skin = pv.merge([m.triangulate().clean() for m in (head, shoulders)])
+    assert abs(midline_x(skin)) < 1.0 < abs(0.5 * (skin.bounds[0] + skin.bounds[1]))
+    assert profile_png(skin, skin) == profile_png(skin, skin, x=midline_x(skin))
+    assert profile_png(skin, skin) != profile_png(skin, skin,
+                                                  x=0.5 * (skin.bounds[0] + skin.bounds[1]))
+
+
 # --------------------------------------------------------------------------- scene
 class _FakeModel:
     """A head whose right half (patient frame x < 0) bulges out by 4 mm, and a bone block

@@ -17,7 +17,7 @@ from .. import arrays
 from .framing import frame_bounds
 from .skin_marks import CUT_COLOR
 
-__all__ = ["anterior_profile", "profile_overlay", "PRE_LABEL", "POST_LABEL", "CUT_LABEL"]
+__all__ = ["anterior_profile", "midline_x", "profile_overlay", "PRE_LABEL", "POST_LABEL", "CUT_LABEL"]
 
 PRE_LABEL = "pre-operative"
 POST_LABEL = "predicted"
@@ -74,6 +74,13 @@ def anterior_profile(skin, x, step=0.5, on_cut=False):
     return best[:, 1:].copy(), mark[order[first]] >= 0.5
 
 
+def midline_x(skin):
+    """The x (mm) of a head's midsagittal plane: the centre of the head of ``skin`` along x
+    (:func:`frame_bounds`: shoulders the scan holds do not move it)."""
+    b = frame_bounds(skin)  # display frame: x -> -x
+    return round(-0.5 * (b[0] + b[1]), 6) + 0.0  # + 0.0: no "-0.0" in a title
+
+
 def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
     """Pre-operative and predicted midsagittal profiles overlaid (matplotlib).
 
@@ -92,8 +99,7 @@ def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
         superior (+z) up, equal axes in mm.
     """
     if x is None:
-        b = frame_bounds(pre)  # display frame: x -> -x
-        x = round(-0.5 * (b[0] + b[1]), 6) + 0.0  # + 0.0: no "-0.0" in the title
+        x = midline_x(pre)
     fig = Figure(figsize=figsize)  # fixed layout: every draw gives the same image
     ax = fig.add_subplot()
     fig.subplots_adjust(left=0.2, right=0.96, bottom=0.12, top=0.93)

@@ -78,7 +78,8 @@ class Planner:
         edge = f"; {MAP_CUT_WORDS}" if self.scene.on_cut.any() else ""
         status = (f"signed displacement {skin.min():+.1f} .. {skin.max():+.1f} mm{edge} "
                   f"({self.model.kind}, {1000 * seconds:.0f} ms)")
-        return status, data_url(profile_png(self.model.skin, self.scene.predicted))
+        return status, data_url(profile_png(self.model.skin, self.scene.predicted,
+                                            x=self.scene.midline))
 
     def plan_toml(self):
         """The current plan as the TOML text :func:`pvcmf.plan.write_plan` writes."""

@@ -26,7 +26,7 @@ import pyvista as pv
 
 from .. import arrays
 from ..figures.face_views import VIEWS
-from ..figures.profiles import CUT_LABEL
+from ..figures.profiles import CUT_LABEL, midline_x
 from ..figures.skin_marks import CUT_COLOR, MAP_CUT_COLOR, cut_points
 
 __all__ = ["Scene", "data_url", "display_copy", "profile_png", "profile_segments",
@@ -116,14 +116,15 @@ def profile_png(pre, post, x=None, *, size=(4.0, 4.0), dpi=90):
     pre, post : pyvista.PolyData
         Rest and predicted skin.
     x : float, optional
-        Sagittal plane (mm); default: the middle of ``pre``'s x bounds.
+        Sagittal plane (mm); default: the head's midline (:func:`~pvcmf.figures.profiles.midline_x`
+        of ``pre``, the plane of the PNG profile overlay).
     """
     from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     if x is None:
-        x = 0.5 * (pre.bounds[0] + pre.bounds[1])
+        x = midline_x(pre)
     fig = Figure(figsize=size, dpi=dpi)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
@@ -180,6 +181,8 @@ class Scene:
         self.face = display_copy(model.skin)
         #: the skin's points on a cut of the scan: the scan's edge, not the patient's skin
         self.on_cut = cut_points(model.skin)
+        #: the profile's plane (:func:`~pvcmf.figures.profiles.midline_x`), found once
+        self.midline = midline_x(model.skin)
         self.face.point_data[SIGNED] = np.where(self.on_cut, np.nan, 0.0)
         self.bones = {}
         self.plotter.subplot(0, 0)
