@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import arrays
+from ..filters.field_of_view import cut_points
 
 __all__ = ["CUT_COLOR", "MAP_CUT_COLOR", "MAP_CUT_WORDS", "cut_points", "judged_points",
            "modelled_points"]
@@ -50,25 +51,6 @@ def modelled_points(skin):
     if arrays.SKIN_MODELLED in skin.point_data:
         return np.asarray(skin.point_data[arrays.SKIN_MODELLED]).astype(bool)
     return np.ones(skin.n_points, dtype=bool)
-
-
-def cut_points(skin):
-    """The points of ``skin`` on a cut of the scan: its ``arrays.SKIN_CUT`` array, none
-    without it.
-
-    Examples
-    --------
-    >>> import numpy as np, pyvista as pv
-    >>> skin = pv.PolyData(np.zeros((3, 3)))
-    >>> cut_points(skin).tolist()
-    [False, False, False]
-    >>> skin.point_data[arrays.SKIN_CUT] = np.array([0, 1, 0], np.uint8)
-    >>> cut_points(skin).tolist()
-    [False, True, False]
-    """
-    if arrays.SKIN_CUT in skin.point_data:
-        return np.asarray(skin.point_data[arrays.SKIN_CUT]).astype(bool)
-    return np.zeros(skin.n_points, dtype=bool)
 
 
 def judged_points(skin):

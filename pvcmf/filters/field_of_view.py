@@ -18,7 +18,9 @@ keeps (clipped-air speckle does not survive it) and that connect to the slice's 
 a circle fitted to the rim of that region (an algebraic least-squares fit, all slices at
 once), kept where it fits within a voxel and most of its rim is air (a head outlined on
 padding-valued air is all head). :func:`fov_cuts` keeps the slices whose circle cuts the
-head (``arrays.SCAN_FOV``), which :func:`on_scan_cuts` marks as it marks the planes.
+head (``arrays.SCAN_FOV``), which :func:`on_scan_cuts` marks as it marks the planes;
+:func:`cut_points` reads a skin's marks back (figures, registration and statistics leave
+those points out).
 Index axis 2 is the axial axis; the patient frame (x left, y anterior, z superior) is
 assumed for the side names. Delegates to numpy and ``scipy.ndimage`` (minimum and
 maximum filters, labelling, hole filling).
@@ -31,8 +33,8 @@ from scipy import ndimage
 
 from .. import arrays
 
-__all__ = ["clipped_sides", "cut_planes", "cuts_array", "fov_circles", "fov_cuts",
-           "on_scan_cuts"]
+__all__ = ["clipped_sides", "cut_planes", "cut_points", "cuts_array", "fov_circles",
+           "fov_cuts", "on_scan_cuts"]
 
 #: a slice's padding region is a round field of view when the circle fitted to its rim
 #: leaves at most this RMS residual (voxels) ...
@@ -409,3 +411,23 @@ def _on_circles(p, rows, spacing, reach):
     r = rows[np.where(np.abs(z[below] - p[:, 2]) < np.abs(z[above] - p[:, 2]), below, above)]
     same = np.abs(r[:, 0] - p[:, 2]) <= 0.5 * float(spacing[2]) + 1e-9
     return same & (np.hypot(p[:, 0] - r[:, 1], p[:, 1] - r[:, 2]) >= r[:, 3] - reach)
+
+
+def cut_points(skin):
+    """The points of ``skin`` on a cut of the scan: its ``arrays.SKIN_CUT`` array (as
+    :func:`on_scan_cuts` marks them), none without it.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> skin = pv.PolyData(np.zeros((3, 3)))
+    >>> cut_points(skin).tolist()
+    [False, False, False]
+    >>> skin.point_data[arrays.SKIN_CUT] = np.array([0, 1, 0], np.uint8)
+    >>> cut_points(skin).tolist()
+    [False, True, False]
+    """
+    if arrays.SKIN_CUT in skin.point_data:
+        return np.asarray(skin.point_data[arrays.SKIN_CUT]).reshape(-1).astype(bool)
+    return np.zeros(skin.n_points, dtype=bool)

@@ -29,6 +29,7 @@ from scipy.spatial import cKDTree
 from .. import arrays
 from ..progress import Progress
 from ._checks import check_finite_points
+from .field_of_view import cut_points
 
 log = logging.getLogger(__name__)
 
@@ -52,13 +53,6 @@ def _rotation(omega):
     k = omega / theta
     kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
-
-
-def _cut_mask(target):
-    """The target's points on a cut of the scan (its ``arrays.SKIN_CUT``; none without)."""
-    if arrays.SKIN_CUT not in target.point_data:
-        return np.zeros(target.n_points, dtype=bool)
-    return np.asarray(target.point_data[arrays.SKIN_CUT]).reshape(-1).astype(bool)
 
 
 def _region_mask(region, points):
@@ -297,7 +291,7 @@ def register(
     tgt_pts = np.asarray(target.points, dtype=float)
     normals = _target_normals(target)
     tree = cKDTree(tgt_pts)
-    usable = _region_mask(region, tgt_pts) & ~_border_mask(target, tree) & ~_cut_mask(target)
+    usable = _region_mask(region, tgt_pts) & ~_border_mask(target, tree) & ~cut_points(target)
     if usable.sum() < min_pairs:
         raise ValueError(
             f"region leaves {int(usable.sum())} target points, fewer than min_pairs={min_pairs}"

@@ -46,6 +46,7 @@ import pyvista as pv
 
 from .. import arrays
 from ..filters.boundary_conditions import apply_plan
+from ..filters.field_of_view import cut_points
 from ..filters.osteotomy import cut_bones
 from ..filters.surface_mapping import transfer_operator
 from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
@@ -493,9 +494,7 @@ class PlanResponse:
         zero)."""
         if self._skin is None:
             raise ValueError("plan_response was built without skin=: no skin statistics")
-        judged = self.modelled
-        if arrays.SKIN_CUT in self.skin.point_data:
-            judged = judged & ~np.asarray(self.skin.point_data[arrays.SKIN_CUT]).astype(bool)
+        judged = self.modelled & ~cut_points(self.skin)
         count = max(int(judged.sum()), 1) if modelled else len(self.modelled)
         select = judged if modelled else None
         params = [self.parameters(p) for p in plans]
