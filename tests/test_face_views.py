@@ -135,6 +135,23 @@ def test_profile_overlay(verify_chart):
     verify_chart(fv.profile_overlay(pre, post, figsize=(3.5, 4.5)))
 
 
+def test_profile_overlay_legend_covers_no_line():
+    """The legend lies below the axes, so no part of either silhouette is hidden (a
+    legend inside the axes covered the neck's end of a real scan's predicted line)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    pre, post = _pre_post()
+    for size in ((3.5, 4.5), (4.5, 6.0)):
+        fig = fv.profile_overlay(pre, post, figsize=size)
+        FigureCanvasAgg(fig).draw()
+        renderer = fig.canvas.get_renderer()
+        (legend,) = fig.legends
+        box, axes = legend.get_window_extent(renderer), fig.axes[0].get_window_extent(renderer)
+        labels = fig.axes[0].xaxis.label.get_window_extent(renderer)
+        assert box.y1 <= min(axes.y0, labels.y0) and box.y0 >= 0.0, (box, axes, labels)
+        assert [t.get_text() for t in legend.get_texts()] == ["pre-operative", "predicted"]
+
+
 def test_views_are_checked():
     head, _ = _head()
     with pytest.raises(ValueError, match="view"):

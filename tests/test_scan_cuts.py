@@ -232,7 +232,7 @@ def test_the_profile_overlay_marks_the_silhouette_on_the_scan_s_edge():
     plain, cut = profile_overlay(skin, skin), profile_overlay(marked, marked)
     FigureCanvasAgg(plain), FigureCanvasAgg(cut)
     assert cut_pixels(plain) == 0 and cut_pixels(cut) > 200
-    assert "the scan's edge (cut)" in [t.get_text() for t in cut.axes[0].get_legend().get_texts()]
+    assert "the scan's edge (cut)" in [t.get_text() for t in cut.legends[0].get_texts()]
 
 
 def test_the_run_s_pre_operative_faces_draw_the_cut_skin_in_its_own_colour():

@@ -102,7 +102,7 @@ def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
         x = midline_x(pre)
     fig = Figure(figsize=figsize)  # fixed layout: every draw gives the same image
     ax = fig.add_subplot()
-    fig.subplots_adjust(left=0.2, right=0.96, bottom=0.12, top=0.93)
+    fig.subplots_adjust(left=0.2, right=0.96, bottom=0.17, top=0.93)
     lines, cut_label = [], CUT_LABEL
     for skin, label, style in ((pre, PRE_LABEL, dict(color="0.35", lw=2.2, ls="--")),
                                (post, POST_LABEL, dict(color="tab:red", lw=1.6))):
@@ -120,6 +120,8 @@ def profile_overlay(pre, post, x=None, figsize=(4.5, 6.0)):
     ax.set_xlabel("anterior (y, mm)")
     ax.set_ylabel("superior (z, mm)")
     ax.set_title(f"midsagittal profile (x = {x:.1f} mm)")
-    ax.legend(loc="lower left")
+    # below the axes: a legend inside would hide part of a line (the neck's end, a chin)
+    fig.legend(*ax.get_legend_handles_labels(), loc="lower center", ncol=2, frameon=False,
+               fontsize="small", bbox_to_anchor=(0.5, 0.0))
     ax.grid(alpha=0.3)
     return fig

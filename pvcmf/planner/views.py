@@ -143,8 +143,10 @@ def profile_png(pre, post, x=None, *, size=(4.0, 4.0), dpi=90):
     ax.set_aspect("equal")
     ax.set_xlabel("anterior-posterior y (mm)")
     ax.set_ylabel("vertical z (mm)")
-    ax.legend(loc="lower left", fontsize=8)
-    fig.subplots_adjust(left=0.17, right=0.97, bottom=0.12, top=0.97)
+    # below the axes, as the profile overlay's: inside, it would hide part of a line
+    fig.legend(*ax.get_legend_handles_labels(), loc="lower center", ncol=3, frameon=False,
+               fontsize=8, bbox_to_anchor=(0.5, 0.0))
+    fig.subplots_adjust(left=0.17, right=0.97, bottom=0.19, top=0.97)
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     return buf.getvalue()
