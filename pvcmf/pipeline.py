@@ -33,6 +33,7 @@ from ._atomic import write_text
 from .filters.bone_segments import segment_volumes
 from .filters.meshing.skin_fit import on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
+from .filters.segment_coverage import check_coverage
 from .filters.segmentation import tissue_volumes
 from .filters.skin import NECK_BELOW_BOX, head_skin  # noqa: F401 (public here too)
 from .filters.skin_prediction import (FAR_REDUCTION, TRANSFER_REACH,  # noqa: F401 (public)
@@ -462,8 +463,9 @@ def _read_step(run, ct, units, orient):
 
 
 def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
-    """Steps "segment", "classify" and "bone segments", then the plan's cuts: the label
-    image."""
+    """Steps "segment", "classify" and "bone segments", then the plan's cuts and a warning
+    for each planned segment the scan does not hold whole (:func:`check_coverage`): the
+    label image."""
     if labels is None:
         if not isinstance(ct, pv.ImageData):
             raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
@@ -482,7 +484,7 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
         labels = run.run("bone segments", _transfer_bone_segments, labels, bones)
     else:
         run.skip("bone segments", _segment_sources(labels, plan))
-    return cut_bones(labels, plan)
+    return check_coverage(cut_bones(labels, plan), plan)
 
 
 def _segment_sources(labels, plan):
