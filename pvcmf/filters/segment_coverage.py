@@ -66,20 +66,25 @@ def segment_coverage(labels, segment_ids):
     dims = tuple(int(d) for d in labels.dimensions)
     spacing = np.asarray(labels.spacing, dtype=float)
     vol = bone.reshape(dims, order="F")
+    wanted = np.asarray(list(dict.fromkeys(int(s) for s in segment_ids)), dtype=np.int64)
+    ids = np.flatnonzero(np.isin(bone, wanted))
+    which = bone[ids]
+    on = on_scan_cuts(voxel_points(labels, ids), labels)  # once for every segment
     out = {}
-    for sid in dict.fromkeys(int(s) for s in segment_ids):
-        ids = np.flatnonzero(bone == sid)
-        if not ids.size:
+    for sid in wanted.tolist():
+        mine = which == sid
+        if not mine.any():
             continue
         ends = []
         for (axis, sign) in SIDES:
             index = 0 if sign < 0 else dims[axis] - 1
-            n = int(np.count_nonzero(np.take(vol, index, axis=axis) == sid))
+            plane = (slice(None),) * axis + (index,)  # a view (np.take would copy)
+            n = int(np.count_nonzero(vol[plane] == sid))
             if n:
                 area = n * float(np.prod(np.delete(spacing, axis)))
                 ends.append((axis, sign, n, area))
-        on = on_scan_cuts(voxel_points(labels, ids), labels)
-        out[sid] = {"ends": ends, "on_cuts": int(on.sum()), "voxels": int(ids.size)}
+        out[sid] = {"ends": ends, "on_cuts": int(np.count_nonzero(on[mine])),
+                    "voxels": int(np.count_nonzero(mine))}
     return out
 
 
