@@ -378,8 +378,8 @@ def displacement_views(skin, component="ap", views=("frontal", "profile"), perce
     """A signed displacement component on the skin, with a range from its visible points.
 
     Its points on a cut of the scan (``arrays.SKIN_CUT``, :func:`cut_points`) are drawn in
-    :data:`~pvcmf.figures.skin_marks.MAP_CUT_COLOR`, not in the map's colours (they are the scan's edge, not the
-    patient's skin), set no range, and the caption says so.
+    :data:`~pvcmf.figures.skin_marks.MAP_CUT_COLOR`, not in the map's colours (they are
+    the scan's edge, not the patient's skin), set no range, and the caption says so.
 
     Parameters
     ----------

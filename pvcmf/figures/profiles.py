@@ -17,7 +17,8 @@ from .. import arrays
 from .framing import frame_bounds
 from .skin_marks import CUT_COLOR
 
-__all__ = ["anterior_profile", "midline_x", "profile_overlay", "PRE_LABEL", "POST_LABEL", "CUT_LABEL"]
+__all__ = ["anterior_profile", "midline_x", "profile_overlay", "PRE_LABEL", "POST_LABEL",
+           "CUT_LABEL"]
 
 PRE_LABEL = "pre-operative"
 POST_LABEL = "predicted"

@@ -10,8 +10,9 @@ round field of view). :func:`check_coverage` (a step of :func:`pvcmf.pipeline.si
 after :func:`pvcmf.filters.cut_bones`) warns with :func:`coverage_message` and adds an
 inferior end that cuts a segment to the labels' cuts (:func:`with_inferior_cut`): the
 segmentation never reports that end itself, since the neck always leaves the scan
-there, but a jaw reaching it means the face is cut there too. Delegates to numpy. Index axis 2 is the axial axis and the patient frame (x left, y anterior, z
-superior) is assumed for the side names, as in :mod:`pvcmf.filters.field_of_view`.
+there, but a jaw reaching it means the face is cut there too. Delegates to numpy. Index
+axis 2 is the axial axis and the patient frame (x left, y anterior, z superior) is
+assumed for the side names, as in :mod:`pvcmf.filters.field_of_view`.
 """
 
 from __future__ import annotations
