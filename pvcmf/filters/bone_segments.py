@@ -9,10 +9,14 @@
   columns that hold both crowns; the hard tissue along it, over the arch and in front of
   it, is cut;
 * the **mandible**: the hard tissue, split at the occlusal level inside the dental arch's
-  footprint (where the upper and lower teeth touch), is eroded one voxel at a time until the
-  part holding the lower teeth no longer holds the upper teeth or the skull's top (the
-  temporomandibular joints and tooth contacts give way first); the removed voxels go back to
-  the nearest part (a nearest-label fill, :func:`scipy.ndimage.distance_transform_edt`);
+  footprint (where the upper and lower teeth touch), connected to the lower teeth. Where
+  that part still holds the upper teeth or the skull's top (the condyles touch their
+  fossae: a joint space lost to thick slices or partial volume; teeth in contact beyond
+  the arch), it is split along its narrowest cut
+  (:func:`pvcmf.filters.narrowest_cut.narrowest_cut`, a minimum cut in mm^2 of voxel faces)
+  between the bone under the lower teeth and those parts; the voxels the occlusal split
+  removed go back to the nearest side (a nearest-label fill,
+  :func:`scipy.ndimage.distance_transform_edt`);
 * the **maxilla** (Le Fort I): the remaining hard tissue from the occlusal level up to
   ``LEFORT_ABOVE_FLOOR`` mm above the nasal floor (the lowest air inside the head above the
   upper teeth: the cut runs through the lateral nasal walls and the maxillary sinuses, the
@@ -25,8 +29,8 @@
   and front), cut ``LEFORT_ABOVE_FLOOR`` mm above the nasal floor found over the palate,
   and ends behind at the posterior nasal spine.
 
-Everything else is ``CRANIUM``. Delegates to :mod:`scipy.ndimage` (labelling, erosion,
-distance transforms); no loop over voxels.
+Everything else is ``CRANIUM``. Delegates to :mod:`scipy.ndimage` (labelling, distance
+transforms) and :mod:`scipy.sparse.csgraph` (the cut's maximum flow); no loop over voxels.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from scipy.spatial import Delaunay, QhullError
 
 from .. import arrays
 from .morphology import _beyond, _c_copy
+from .narrowest_cut import narrowest_cut
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +71,8 @@ ALVEOLAR_MM = 15.0
 PALATE_MM2 = 50.0
 #: least area (mm^2) of nasal floor seen on the palate in one slice of a narrow nasal cavity
 PALATE_MIN_MM2 = 10.0
-#: height (mm) above the teeth or ridge searched for the nasal floor of a narrow nasal
-#: cavity (the palate lies 10-20 mm above the alveolar crest)
+#: height (mm) above the teeth or ridge searched for the nasal floor (the palate lies
+#: 10-20 mm above the alveolar crest)
 NASAL_SEARCH_MM = 25.0
 #: thickness (mm) of the nasal mucosa between the palate's bone and the nasal air
 MUCOSA_MM = 4.0
@@ -95,8 +100,6 @@ MAXILLA_AHEAD = 20.0
 #: depth (mm) of an edentulous maxilla behind the lower teeth's front (the hard palate is
 #: 45-50 mm long, from the incisive papilla to the posterior nasal spine)
 MAXILLA_DEPTH = 60.0
-#: most erosion steps tried to free the mandible from the skull
-MAX_EROSION = 4
 
 
 def segment_volumes(labels):
@@ -347,9 +350,10 @@ def _quadric(pts, fit):
 
 
 def _mandible(hard, upper, lower, z_occ, spacing, contact=None):
-    """Hard tissue connected to the lower teeth once freed from the skull (see module);
-    none without lower teeth (a scan cut above them). ``contact``: the upper side of the
-    arches' contact surface, for arches in occlusion (cut instead of the occlusal slice)."""
+    """Hard tissue connected to the lower teeth, split from the skull along the narrowest cut
+    where they touch (see module); none without lower teeth (a scan cut above them).
+    ``contact``: the upper side of the arches' contact surface, for arches in occlusion (cut
+    instead of the occlusal slice)."""
     if not lower.any():
         log.warning("find_jaws: no lower tooth: no mandible found")
         return np.zeros_like(hard)
@@ -361,37 +365,42 @@ def _mandible(hard, upper, lower, z_occ, spacing, contact=None):
         cut &= ~contact
     elif upper.any():
         cut[:, :, z_occ][foot] = False
+    lab, _ = ndimage.label(cut, _FACES)
+    ids = np.bincount(lab[lower & cut], minlength=lab.max() + 1)
+    ids[0] = 0
+    if not ids.any():
+        log.warning("find_jaws: the occlusal split leaves no lower tooth: no mandible found")
+        return np.zeros_like(hard)
+    jaw = lab == int(np.argmax(ids))
     top = np.zeros_like(hard)
     top[:, :, -max(1, int(round(5.0 / spacing[2]))):] = True
-    anchor = (upper | top) & cut  # what must not be mandible
-    work = cut
-    for step in range(MAX_EROSION + 1):
-        lab, _ = ndimage.label(work, _FACES)
-        ids = np.bincount(lab[lower & work], minlength=lab.max() + 1)
-        ids[0] = 0
-        if not ids.any():
-            break
-        jaw = int(np.argmax(ids))
-        if not np.any(lab[anchor & work] == jaw):
-            log.debug("find_jaws: mandible free after %d erosion(s)", step)
-            jaw = _regrow(lab == jaw, work, hard, step, spacing)
-            return jaw & ~upper
-        work = ndimage.binary_erosion(work, _FACES)
-    log.warning("find_jaws: the mandible stays joined to the skull after %d erosions; it is "
-                "the lower teeth's part below the occlusal level", MAX_EROSION)
-    below = hard.copy()
-    below[:, :, z_occ + 1:] = False
-    lab, _ = ndimage.label(below, _FACES)
-    ids = np.bincount(lab[lower], minlength=lab.max() + 1)
-    ids[0] = 0
-    return lab == int(np.argmax(ids))
+    anchor = (upper | top) & jaw  # what must not be mandible
+    if anchor.any():
+        jaw, area = narrowest_cut(jaw, _under_teeth(lower, spacing) & ~anchor, anchor, spacing)
+        log.info("find_jaws: the lower teeth's bone is joined to the skull (the joints or "
+                 "the teeth touch); split along the narrowest cut, %.0f mm^2", area)
+    else:
+        log.debug("find_jaws: the mandible is free of the skull")
+    return _regrow(jaw, cut, hard, spacing) & ~upper
 
 
-def _regrow(jaw, work, hard, step, spacing):
-    """The hard voxels nearer to the eroded ``jaw`` than to the rest of ``work``: the
-    mandible at full size. Only the jaw's box, ``step + 2`` voxels wider, can change."""
-    grow = step + 2
-    box = _bounds(jaw, grow)
+def _under_teeth(lower, spacing):
+    """The lower teeth and the ``ALVEOLAR_MM`` below their lowest voxel inside their
+    footprint (3 mm wider): the alveolar process and the body that hold their roots,
+    mandible for sure."""
+    foot = ndimage.binary_dilation(lower.any(axis=2),
+                                   iterations=max(1, int(round(3.0 / spacing[0]))))
+    z_low = int(np.nonzero(lower.any(axis=(0, 1)))[0][0])
+    out = lower.copy()
+    out[:, :, max(z_low - int(round(ALVEOLAR_MM / spacing[2])), 0):z_low + 1] |= foot[:, :, None]
+    return out
+
+
+def _regrow(jaw, work, hard, spacing):
+    """The hard voxels nearer to ``jaw`` than to the rest of ``work``: the voxels the
+    occlusal cut removed from ``hard`` go back to the nearer side. Only the jaw's box, 2
+    voxels wider, can change."""
+    box = _bounds(jaw, 2)
     seeds = np.where(jaw[box], 1, np.where(work[box], 2, 0)).astype(np.uint8)
     _, idx = ndimage.distance_transform_edt(seeds == 0, sampling=spacing,
                                             return_indices=True)
@@ -447,11 +456,13 @@ def _maxilla(rest, upper, lower, air, z_occ, spacing):
 
 
 def _nasal_floor(rest, air, foot, z_top, spacing):
-    """Slice of the nasal floor: the lowest slice above ``z_top`` where the palate (non-mandible
-    bone over the arch's footprint) has air at most ``MUCOSA_MM`` above it over at least
-    ``PALATE_MM2``; else the lowest slice with half the largest such area within
-    ``NASAL_SEARCH_MM`` above ``z_top`` (at least ``PALATE_MIN_MM2``); 15 mm above the
-    teeth where neither exists."""
+    """Slice of the nasal floor: the lowest slice within ``NASAL_SEARCH_MM`` above ``z_top``
+    where the palate (non-mandible bone over the arch's footprint) has air at most
+    ``MUCOSA_MM`` above it over at least ``PALATE_MM2`` (higher up, the floors of the orbits
+    and the roofs of the sinuses can have as much); else the lowest slice there with half
+    the largest such area (at least ``PALATE_MIN_MM2``); else the lowest slice higher up
+    with ``PALATE_MM2`` (a nasal cavity filled low down); 15 mm above the teeth where none
+    exists."""
     reach = max(1, int(round(MUCOSA_MM / spacing[2])))
     air_above = np.zeros_like(air)
     for k in range(1, reach + 1):  # a few shifts along z
@@ -459,17 +470,22 @@ def _nasal_floor(rest, air, foot, z_top, spacing):
     on_bone = rest & air_above & foot[:, :, None]
     area = on_bone.sum(axis=(0, 1)) * spacing[0] * spacing[1]
     area[:z_top + 1] = 0
-    z = np.flatnonzero(area >= PALATE_MM2)
+    near = area[:z_top + 1 + int(round(NASAL_SEARCH_MM / spacing[2]))]
+    z = np.flatnonzero(near >= PALATE_MM2)
     if len(z):
         return int(z[0])
-    # a narrow nasal cavity (swollen mucosa, turbinates): the lowest slice with half the
-    # largest such area within NASAL_SEARCH_MM above the teeth
-    near = area[:z_top + 1 + int(round(NASAL_SEARCH_MM / spacing[2]))]
+    # a narrow nasal cavity (swollen mucosa, turbinates) or thick slices (partial volume
+    # hides the thin mucosa's air): the lowest slice with half the largest such area
     if near.max() >= PALATE_MIN_MM2:
         z = int(np.flatnonzero(near >= 0.5 * near.max())[0])
         log.info("find_jaws: nasal floor at slice %d, where the palate has %.0f mm^2 of nasal "
                  "air within %.0f mm above it", z, area[z], MUCOSA_MM)
         return z
+    z = np.flatnonzero(area >= PALATE_MM2)  # a nasal cavity filled low down (mucus, blood)
+    if len(z):
+        log.info("find_jaws: nasal floor at slice %d, %.0f mm above the teeth", z[0],
+                 (z[0] - z_top) * spacing[2])
+        return int(z[0])
     log.warning("find_jaws: no nasal floor found above the teeth; the Le Fort I level is "
                 "15 mm above them")
     return z_top + int(round(15.0 / spacing[2]))
