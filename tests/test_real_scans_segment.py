@@ -317,3 +317,15 @@ def test_thick_slices_keep_the_jaws(name, request):
         a, b = fine == segment, coarse == segment
         score = 2.0 * np.count_nonzero(a & b) / (np.count_nonzero(a) + np.count_nonzero(b))
         assert score >= 0.95, f"{arrays.BONE_NAMES[segment]} Dice {score:.3f}"
+
+
+def test_teeth_in_occlusion_on_slices_too_thick_are_warned(male, caplog):
+    """Every fourth slice of the male (1 x 1 x 4 mm): his teeth in occlusion show no gap
+    between the crowns, so the arches cannot be told apart; find_jaws says so (and takes one
+    arch) instead of passing a wrong split off as a found one."""
+    ct, _ = male
+    lab = pvcmf.filters.segment(_thick(ct, 4))
+    with caplog.at_level(logging.WARNING, logger="pvcmf"):
+        pvcmf.filters.find_jaws(lab)
+    assert any("no occlusal surface shows between them" in r.getMessage()
+               for r in caplog.records), [r.getMessage() for r in caplog.records]

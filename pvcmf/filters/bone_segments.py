@@ -244,11 +244,16 @@ def _arches(teeth, hard, spacing):
     bone = (hard & ~teeth)[foot].sum(axis=0)
     below, above = bone[max(lo - gap, 0):lo].sum(), bone[hi + 1:hi + 1 + gap].sum()
     none = np.zeros_like(teeth)
-    if min(below, above) >= OCCLUSION_BONE * max(below, above):
+    touch = min(below, above) >= OCCLUSION_BONE * max(below, above)
+    if touch:
         # bone of both jaws' alveolar processes next to one run of teeth: the arches touch
         split = _occlusion(teeth, hard, spacing, lo, hi)
         if split is not None:
             return split
+        log.warning("find_jaws: the teeth have the bone of both jaws beside them (arches in "
+                    "occlusion?), but no occlusal surface shows between them (slices %.1f mm "
+                    "apart); taken as one arch: the segments may be wrong, give the plan cut "
+                    "planes", spacing[2])
     if below >= above:
         log.info("find_jaws: one dental arch, the lower one (bone below it %d, above %d "
                  "voxels); no upper tooth", below, above)
