@@ -436,7 +436,7 @@ def _maxilla(rest, upper, lower, air, z_occ, spacing):
     z_cut = max(z_floor + int(round(LEFORT_ABOVE_FLOOR / spacing[2])), z_top + 1)
     if upper.any():
         y_back = min(int(np.nonzero(upper)[1].min()) - int(round(POSTERIOR_MARGIN / spacing[1])),
-                     _palate_end(rest, air, foot, z_occ, spacing))
+                     _palate_end(rest, air, foot, z_occ, z_floor, spacing))
     else:
         y_back = _posterior_nasal_spine(rest, foot, z_floor + int(round(MUCOSA_MM / spacing[2])),
                                         spacing)
@@ -460,14 +460,13 @@ def _maxilla(rest, upper, lower, air, z_occ, spacing):
     return keep[lab] | (upper & rest)
 
 
-def _nasal_floor(rest, air, foot, z_top, spacing):
+def _nasal_floor(rest, air, foot, z_top, spacing, fallback=None):
     """Slice of the nasal floor: the lowest slice within ``NASAL_SEARCH_MM`` above ``z_top``
     where the palate (non-mandible bone over the arch's footprint) has air at most
     ``MUCOSA_MM`` above it over at least ``PALATE_MM2`` (higher up, the floors of the orbits
     and the roofs of the sinuses can have as much); else the lowest slice there with half
-    the largest such area (at least ``PALATE_MIN_MM2``); else the lowest slice higher up
-    with ``PALATE_MM2`` (a nasal cavity filled low down); 15 mm above the teeth where none
-    exists."""
+    the largest such area (at least ``PALATE_MIN_MM2``); else ``fallback``, or (None given)
+    15 mm above the teeth, with a warning."""
     reach = max(1, int(round(MUCOSA_MM / spacing[2])))
     air_above = np.zeros_like(air)
     for k in range(1, reach + 1):  # a few shifts along z
@@ -486,11 +485,8 @@ def _nasal_floor(rest, air, foot, z_top, spacing):
         log.info("find_jaws: nasal floor at slice %d, where the palate has %.0f mm^2 of nasal "
                  "air within %.0f mm above it", z, area[z], MUCOSA_MM)
         return z
-    z = np.flatnonzero(area >= PALATE_MM2)  # a nasal cavity filled low down (mucus, blood)
-    if len(z):
-        log.info("find_jaws: nasal floor at slice %d, %.0f mm above the teeth", z[0],
-                 (z[0] - z_top) * spacing[2])
-        return int(z[0])
+    if fallback is not None:
+        return fallback
     log.warning("find_jaws: no nasal floor found above the teeth; the Le Fort I level is "
                 "15 mm above them")
     return z_top + int(round(15.0 / spacing[2]))
@@ -522,13 +518,15 @@ def _midline_band(foot, spacing):
     return band
 
 
-def _palate_end(rest, air, foot, z_occ, spacing):
+def _palate_end(rest, air, foot, z_occ, z_floor, spacing):
     """y index of the back end of the hard palate under the nasal cavity (the posterior nasal
     spine) of a dentate maxilla: the nasal floor is sought above the occlusal level in the
     midline +-``NASAL_HALF_WIDTH`` mm (the maxillary sinuses beside it may reach lower than
-    the nasal floor, the roots higher), and the palate followed back in its top
-    ``MUCOSA_MM``, just under the nasal air."""
-    z_floor = _nasal_floor(rest, air, foot & _midline_band(foot, spacing), z_occ, spacing)
+    the nasal floor, the roots higher; ``z_floor``, the floor over the whole arch, where
+    the midline shows none), and the palate followed back in its top ``MUCOSA_MM``, just
+    under the nasal air."""
+    z_floor = _nasal_floor(rest, air, foot & _midline_band(foot, spacing), z_occ, spacing,
+                           fallback=z_floor)
     return _posterior_nasal_spine(rest, foot, z_floor + int(round(MUCOSA_MM / spacing[2])),
                                   spacing)
 
