@@ -280,16 +280,56 @@ def test_dicom_folder_without_images(tmp_path):
         read_file(tmp_path)
 
 
-def test_dicom_uneven_slices(tmp_path):
-    raw = known_values()
-    write_dicom_series(tmp_path, raw, SPACING, ORIGIN, extra_file=False)
-    victim = sorted(tmp_path.iterdir())[0]
-    pydicom = pytest.importorskip("pydicom")
-    ds = pydicom.dcmread(victim)
-    ds.ImagePositionPatient = [ORIGIN[0], ORIGIN[1], ORIGIN[2] + 0.3]
-    ds.save_as(victim)
-    with pytest.raises(ValueError, match="misses slices|uneven"):
+def _move_slices(pydicom, folder, z_of):
+    """Set each slice's z position to ``z_of[its z position]``."""
+    for path in folder.glob("*.dcm"):
+        ds = pydicom.dcmread(path)
+        ds.ImagePositionPatient = [*ds.ImagePositionPatient[:2],
+                                   z_of[round(float(ds.ImagePositionPatient[2]), 6)]]
+        ds.save_as(path)
+
+
+def test_dicom_uneven_slices_resampled_onto_the_finest_step(tmp_path, caplog):
+    """Slices 1 mm apart, then 2 mm apart (a protocol whose step changes): resampled onto
+    1 mm slices with a warning naming the steps; a CT linear along z comes back exactly."""
+    z = np.array([0.0, 1.0, 2.0, 3.0, 5.0, 7.0, 9.0, 11.0])
+    raw = np.zeros((4, 5, len(z)), np.int16)
+    raw += (10 * z).astype(np.int16)[None, None, :] + np.arange(4, dtype=np.int16)[:, None, None]
+    pydicom = write_dicom_series(tmp_path, raw, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0),
+                                 intercept=0.0, extra_file=False)
+    _move_slices(pydicom, tmp_path, dict(zip(np.arange(len(z), dtype=float), z)))
+    with caplog.at_level("WARNING"):
+        out = read_file(tmp_path)
+    assert "uneven slice spacing (steps [1.0, 2.0] mm)" in caplog.text
+    assert out.dimensions == (4, 5, 12) and out.spacing[2] == pytest.approx(1.0)
+    vol = out[arrays.CT].reshape(out.dimensions, order="F")
+    expect = 10 * np.arange(12.0)[None, None, :] + np.arange(4.0)[:, None, None]
+    np.testing.assert_allclose(vol, np.broadcast_to(expect, vol.shape), atol=1e-4)
+
+
+def test_dicom_missing_slice_in_a_changing_step_is_named(tmp_path):
+    """A gap of twice the step inside the 2 mm part is missing slices; the change of step
+    from 1 to 2 mm is not."""
+    z = np.array([0.0, 1.0, 2.0, 3.0, 5.0, 7.0, 11.0, 13.0, 15.0])
+    pydicom = write_dicom_series(tmp_path, np.zeros((4, 5, len(z)), np.int16), (1.0, 1.0, 1.0),
+                                 (0.0, 0.0, 0.0), extra_file=False)
+    _move_slices(pydicom, tmp_path, dict(zip(np.arange(len(z), dtype=float), z)))
+    with pytest.raises(ValueError, match=r"misses slices \(gaps along the slice normal at "
+                                         r"7.00..11.00 mm;"):
         read_file(tmp_path)
+
+
+def test_dicom_displaced_slice_resampled(tmp_path, caplog):
+    """The first slice 0.3 mm off its place (steps 1.7, 2, 2, ... mm): resampled onto 1.7 mm
+    slices from it."""
+    pydicom = write_dicom_series(tmp_path, known_values(), SPACING, ORIGIN, extra_file=False)
+    z = ORIGIN[2] + SPACING[2] * np.arange(known_values().shape[2])
+    _move_slices(pydicom, tmp_path, {**dict(zip(z, z)), ORIGIN[2]: ORIGIN[2] + 0.3})
+    with caplog.at_level("WARNING"):
+        out = read_file(tmp_path)
+    assert "uneven slice spacing" in caplog.text
+    assert out.spacing[2] == pytest.approx(SPACING[2] - 0.3)
+    assert out.origin[2] == pytest.approx(ORIGIN[2] + 0.3)
 
 
 # --------------------------------------------------------------------------- errors

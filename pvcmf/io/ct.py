@@ -35,8 +35,8 @@ own world frame.
 
 DICOM folders: files that are not DICOM are ignored; with several series the CT series with
 the most slices is read and the others are listed in the log (``series=`` picks one by UID,
-number or description). Missing slices, uneven or duplicate slice positions are errors that
-say where. Zero, negative or non-finite spacing and 2-D images are refused in every format.
+number or description). Missing slices and duplicate slice positions are errors that say
+where; uneven slice spacing is resampled onto the finest step (with a warning). Zero, negative or non-finite spacing and 2-D images are refused in every format.
 
 The readers are pydicom (DICOM), VTK (NIfTI pixels and matrices, MetaImage pixels), a small
 numpy NRRD reader and pyvista (VTI). SimpleITK reads MetaImage, NIfTI and NRRD well too, but
@@ -114,7 +114,7 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="patient", series=None):
     ValueError
         For an unsupported format, an unknown ``frame``, a corrupt or truncated file, a
         folder without a readable DICOM series (or a ``series`` that matches none), missing
-        or uneven DICOM slices, zero/negative spacing, a 2-D image, a volume that is not
+        or duplicate DICOM slices, zero/negative spacing, a 2-D image, a volume that is not
         scalar, or a bad ``offset``/``scale``.
 
     Examples

@@ -3,10 +3,12 @@
 A folder may hold several series and files that are not DICOM: the latter are ignored, and of
 the series the CT with the most slices is read (the others are logged) unless ``series``
 names one (UID, number or part of the description). Slices are sorted along the slice normal;
-RescaleSlope/RescaleIntercept are applied (a CT comes out in HU); a missing slice, uneven or
-duplicate slice positions are errors that say where. A tilted-gantry series (slice origins
-drifting in-plane along the stack) is resampled slice by slice (linear) onto an orthogonal
-stack. VTK's ``vtkDICOMImageReader`` flips rows and can reverse the slice order without
+RescaleSlope/RescaleIntercept are applied (a CT comes out in HU); missing slices (a step well
+above the steps either side of it) and duplicate slice positions are errors that say where.
+Uneven slice spacing (a protocol whose slice step changes along the stack, a displaced
+slice) is resampled (linear along the normal) onto the finest step, with a warning that
+names the steps. A tilted-gantry series (slice origins drifting in-plane along the stack)
+is resampled slice by slice (linear) onto an orthogonal stack. VTK's ``vtkDICOMImageReader`` flips rows and can reverse the slice order without
 saying so, so it is not used.
 """
 
@@ -73,24 +75,30 @@ def _slice_geometry(folder, slices):
     if len(slices) < 2:
         raise ValueError(f"read_ct: the DICOM series in {str(folder)!r} has one slice: a 2-D "
                          "image, expected a 3-D CT volume")
-    steps = np.diff(pos @ normal)
+    along = pos @ normal
+    steps = np.diff(along)
     dz = float(np.median(steps))
     if dz <= 0 or np.any(steps <= 1e-3 * max(dz, 1e-3)):
         raise ValueError(f"read_ct: the DICOM series in {str(folder)!r} has two slices at the "
                          "same position (duplicates or two series with one UID)")
-    gap = np.nonzero(steps > 1.5 * dz)[0]
+    gap = np.nonzero(steps > 1.5 * _neighbour_steps(steps))[0]
     if gap.size:
-        where = ", ".join(f"{(pos @ normal)[i]:.2f}..{(pos @ normal)[i + 1]:.2f} mm"
-                          for i in gap[:5])
+        where = ", ".join(f"{along[i]:.2f}..{along[i + 1]:.2f} mm" for i in gap[:5])
         raise ValueError(f"read_ct: the DICOM series in {str(folder)!r} misses slices "
                          f"(gaps along the slice normal at {where}; slice step {dz:.3g} mm)")
     if np.ptp(steps) > 0.01 * dz + 1e-3:
-        raise ValueError(f"read_ct: the DICOM series in {str(folder)!r} has uneven slice "
-                         f"spacing (steps {np.unique(np.round(steps, 3))} mm); resample it")
+        dz = float(steps.min())  # resampled onto the finest step (read_dicom_series)
     # gantry tilt: slice origins drift in-plane along the stack
     drift = pos - pos[0] - np.outer((pos - pos[0]) @ normal, normal)
     shift = np.column_stack([drift @ row_dir, drift @ col_dir])  # mm along row, column
-    return slices, pos[0], (row_dir, col_dir, normal), dz, shift
+    return slices, pos[0], (row_dir, col_dir, normal), dz, shift, along - along[0]
+
+
+def _neighbour_steps(steps):
+    """The larger of the steps either side of each step (the step itself at the ends): a
+    step well above both is a gap of missing slices, a change of step that lasts is not."""
+    padded = np.concatenate([steps[:1], steps, steps[-1:]])
+    return np.maximum(padded[:-2], padded[2:]) if len(steps) > 1 else steps
 
 
 def read_dicom_series(folder, wanted=None):
@@ -115,7 +123,8 @@ def read_dicom_series(folder, wanted=None):
             ".vti file)"
         )
     slices = _pick_series(folder, headers, wanted)
-    slices, origin, (row_dir, col_dir, normal), dz, shift = _slice_geometry(folder, slices)
+    slices, origin, (row_dir, col_dir, normal), dz, shift, along = _slice_geometry(
+        folder, slices)
     first = slices[0][1]
     rows, cols = int(first.Rows), int(first.Columns)
     dy, dx = (float(v) for v in first.PixelSpacing)  # row spacing, column spacing
@@ -140,7 +149,9 @@ def read_dicom_series(folder, wanted=None):
         volume[k] += np.float32(inter)
     if np.abs(shift).max() > 0.01 * min(dx, dy):
         volume = _untilt(volume, shift, dx, dy, folder)
-    image = pv.ImageData(dimensions=(cols, rows, len(slices)), spacing=(dx, dy, dz))
+    if np.ptp(np.diff(along)) > 0.01 * dz + 1e-3:
+        volume = _regular(volume, along, dz, folder)
+    image = pv.ImageData(dimensions=(cols, rows, volume.shape[0]), spacing=(dx, dy, dz))
     image.direction_matrix = np.column_stack([row_dir, col_dir, normal])
     image.origin = origin
     return image, volume.ravel()
@@ -158,4 +169,22 @@ def _untilt(volume, shift, dx, dy, folder):
     for k in range(volume.shape[0]):  # one 2-D shift per slice, vectorised within the slice
         out[k] = ndimage.shift(volume[k], (shift[k, 1] / dy, shift[k, 0] / dx), order=1,
                                mode="constant", cval=fill)
+    return out
+
+
+def _regular(volume, along, dz, folder):
+    """Slices at uneven positions ``along`` (mm from the first, along the normal) resampled
+    (linear between the two slices around each new one) onto slices ``dz`` mm apart from
+    the first slice: the finest step, so no part of the stack loses detail."""
+    steps = np.unique(np.round(np.diff(along), 3))
+    n = int(np.floor(along[-1] / dz + 1e-6)) + 1
+    z = np.arange(n) * dz
+    hi = np.clip(np.searchsorted(along, z, side="right"), 1, len(along) - 1)
+    w = ((z - along[hi - 1]) / (along[hi] - along[hi - 1])).astype(np.float32)
+    log.warning("read_ct: %s has uneven slice spacing (steps %s mm): resampled (linear) onto "
+                "%d slices %.3g mm apart", folder, steps.tolist(), n, dz)
+    out = np.empty((n,) + volume.shape[1:], dtype=volume.dtype)
+    for k in range(n):  # one weighted sum of two slices per new slice
+        np.multiply(volume[hi[k] - 1], 1 - w[k], out=out[k])
+        out[k] += w[k] * volume[hi[k]]
     return out
