@@ -304,7 +304,9 @@ def _thick(ct, step):
 def test_thick_slices_keep_the_jaws(name, request):
     """Every third slice kept (1 x 1 x 3 mm): partial volume fills the joint spaces, so the
     lower teeth's bone touches the skull. The mandible and the Le Fort I maxilla found on the
-    thick slices match those of the 1 mm scan on the slices both hold (Dice >= 0.95)."""
+    thick slices match those of the 1 mm scan on the slices both hold: Dice >= 0.95 for the
+    mandible, >= 0.9 for the maxilla (its Le Fort I level is a slice, 3 mm: a slab of about
+    a tenth of its bone)."""
     ct, lab = request.getfixturevalue(name)
     fine = _vol(pvcmf.filters.find_jaws(lab), arrays.BONE)[:, :, ::3]
     coarse_lab = pvcmf.filters.segment(_thick(ct, 3))
@@ -313,10 +315,10 @@ def test_thick_slices_keep_the_jaws(name, request):
     pieces, _ = ndimage.label(hard)
     joined = np.intersect1d(pieces[coarse == arrays.MANDIBLE], pieces[coarse == arrays.CRANIUM])
     assert joined.size, "the thick slices' mandible is not joined to the skull"
-    for segment in (arrays.MANDIBLE, arrays.MAXILLA):
+    for segment, least in ((arrays.MANDIBLE, 0.95), (arrays.MAXILLA, 0.9)):
         a, b = fine == segment, coarse == segment
         score = 2.0 * np.count_nonzero(a & b) / (np.count_nonzero(a) + np.count_nonzero(b))
-        assert score >= 0.95, f"{arrays.BONE_NAMES[segment]} Dice {score:.3f}"
+        assert score >= least, f"{arrays.BONE_NAMES[segment]} Dice {score:.3f}"
 
 
 def test_teeth_in_occlusion_on_slices_too_thick_are_warned(male, caplog):
@@ -329,3 +331,35 @@ def test_teeth_in_occlusion_on_slices_too_thick_are_warned(male, caplog):
         pvcmf.filters.find_jaws(lab)
     assert any("no occlusal surface shows between them" in r.getMessage()
                for r in caplog.records), [r.getMessage() for r in caplog.records]
+
+
+def _turned(volume, spacing, degrees, order, cval):
+    """``volume`` turned ``degrees`` about the x axis through its centre (chin down for a
+    negative angle)."""
+    a = np.radians(degrees)
+    turn = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    s = np.asarray(spacing, float)
+    c = (np.asarray(volume.shape) - 1) / 2
+    matrix = (turn.T * s[None, :]) / s[:, None]
+    return ndimage.affine_transform(volume, matrix, offset=c - matrix @ c, order=order,
+                                    cval=cval)
+
+
+def test_male_scanned_chin_down(male):
+    """The male's scan turned 15 degrees chin down (his arches then tilt about 30 degrees
+    from the axial slices, where an axial occlusal slice or Le Fort I level cuts through
+    the teeth and the palate), on a grid 40 mm wider front and back, above and below so
+    that nothing leaves it: the jaws found match those of the scan as it is, turned the same
+    way (Dice >= 0.9; both images are resampled)."""
+    ct, lab = male
+    pad = ((0, 0), (40, 40), (40, 40))
+    v = np.pad(_vol(ct, arrays.CT).astype(np.float32), pad, constant_values=-1024.0)
+    img = pv.ImageData(dimensions=v.shape, spacing=ct.spacing, origin=ct.origin)
+    img[arrays.CT] = _turned(v, ct.spacing, -15.0, 1, -1024.0).ravel(order="F")
+    found = _vol(pvcmf.filters.find_jaws(pvcmf.filters.segment(img)), arrays.BONE)
+    upright = np.pad(_vol(pvcmf.filters.find_jaws(lab), arrays.BONE), pad)
+    upright = _turned(upright, ct.spacing, -15.0, 0, 0)
+    for segment in (arrays.MANDIBLE, arrays.MAXILLA):
+        a, b = found == segment, upright == segment
+        score = 2.0 * np.count_nonzero(a & b) / (np.count_nonzero(a) + np.count_nonzero(b))
+        assert score >= 0.9, f"{arrays.BONE_NAMES[segment]} Dice {score:.3f}"

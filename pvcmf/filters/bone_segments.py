@@ -1,13 +1,13 @@
 """Bone segments from the anatomy: mandible and Le Fort I maxilla without cut planes.
 
-:func:`find_jaws` labels, in a segmented head (``tissue`` with hard tissue, teeth and metal):
+:func:`find_jaws` labels, in a segmented head (``tissue`` with hard tissue, teeth and metal),
+on the bone's box turned level with the dental arches where they tilt
+(:mod:`pvcmf.filters.jaw_pose`; the labels found there are turned back):
 
-* the **occlusal level**: the axial plane of fewest tooth voxels between the upper and the
-  lower dental arch (the two largest peaks of the tooth voxels' height profile). Teeth in
-  occlusion (one run of teeth with the alveolar bone of both jaws beside it) are split by
-  the **occlusal surface** instead: a quadratic surface fitted to the contact gaps of the
-  columns that hold both crowns; the hard tissue along it, over the arch and in front of
-  it, is cut;
+* the **occlusal level** (:func:`pvcmf.filters.dental_arches.dental_arches`): the axial
+  plane of fewest tooth voxels between the upper and the lower dental arch. Teeth in
+  occlusion are split by the **occlusal surface** instead, and the hard tissue along it,
+  over the arch and in front of it, is cut;
 * the **mandible**: the hard tissue, split at the occlusal level inside the dental arch's
   footprint (where the upper and lower teeth touch), connected to the lower teeth. Where
   that part still holds the upper teeth or the skull's top (the condyles touch their
@@ -40,10 +40,11 @@ import logging
 import numpy as np
 import pyvista as pv
 from scipy import ndimage
-from scipy.spatial import Delaunay, QhullError
 
 from .. import arrays
 from .morphology import _beyond, _c_copy
+from .dental_arches import ALVEOLAR_MM, dental_arches
+from .jaw_pose import Level, arch_pose
 from .narrowest_cut import narrowest_cut
 
 log = logging.getLogger(__name__)
@@ -63,10 +64,6 @@ POSTERIOR_MARGIN = 25.0
 LEFORT_ABOVE_FLOOR = 6.0
 #: dense bone (petrous temporal bone) this close (mm) to the intracranial volume is no tooth
 SKULL_BASE_MM = 15.0
-#: height (mm) of the alveolar process beside the roots that tells a lone arch's side: the
-#: roots are 13-17 mm long (Wheeler's Dental Anatomy: maxillary canine root 17 mm,
-#: mandibular incisor root 12.5 mm)
-ALVEOLAR_MM = 15.0
 #: smallest area (mm^2) of nasal floor seen on the palate in one slice
 PALATE_MM2 = 50.0
 #: least area (mm^2) of nasal floor seen on the palate in one slice of a narrow nasal cavity
@@ -81,16 +78,6 @@ MUCOSA_MM = 4.0
 NASAL_HALF_WIDTH = 8.0
 #: height (mm) of an edentulous alveolar ridge taken as the maxilla's seed
 RIDGE_MM = 5.0
-#: bone next to a lone run of teeth on its other side, as a share of the bone on its
-#: busier side, that tells two arches in occlusion (a lone arch has soft tissue or air
-#: beyond its crowns)
-OCCLUSION_BONE = 0.25
-#: least share of the teeth on each side of an occlusion split (else one arch)
-MIN_ARCH_SHARE = 0.15
-#: samples (mm) farther than this from the fitted occlusal surface are left out of the fit
-OCCLUSAL_TRIM = 2.0
-#: fewest columns with a contact gap that fit an occlusal surface
-MIN_SAMPLES = 20
 #: half width (mm) of an edentulous maxilla about the lower arch's midline (the maxillary
 #: arch is 55-65 mm wide over its tuberosities)
 MAXILLA_HALF_WIDTH = 30.0
@@ -171,15 +158,27 @@ def find_jaws(labels, *, progress_bar=False):
     if teeth.sum() < 10:
         raise ValueError("find_jaws: fewer than 10 tooth voxels: cannot find the jaws from the "
                          "anatomy; give the plan's osteotomies cut planes")
-    z_occ, upper, lower, contact = _arches(teeth, hard, spacing)
-    say("find_jaws: occlusal level at slice %d of the bone box (%d upper, %d lower tooth "
-        "voxels)", z_occ, int(upper.sum()), int(lower.sum()))
-    mandible = _mandible(hard, upper, lower, z_occ, spacing, contact)
-    maxilla = _maxilla(hard & ~mandible, upper, lower, tissue == arrays.AIR, z_occ, spacing)
+    turn, tilt, arches = arch_pose(teeth, hard, spacing)
+    if turn is None:
+        sub = _segments(tissue, hard, teeth, spacing, say, arches)
+    else:
+        log.info("find_jaws: the dental arches tilt %.1f degrees from the axial plane; the "
+                 "segments are found on the image turned level with them", tilt)
+        level = Level(hard.shape, spacing, turn)
+        turned = level.forward(tissue, cval=arrays.AIR)
+        cut = _bounds(np.isin(turned, arrays.HARD_LABELS), 0)
+        turned = _c_copy(turned[cut])
+        found = np.zeros(level.level_shape, dtype=np.uint8)
+        found[cut] = _segments(turned, np.isin(turned, arrays.HARD_LABELS),
+                               level.forward(teeth.view(np.uint8))[cut] > 0, spacing, say)
+        sub = level.back(found, hard)
+        sub[hard & (sub == arrays.BONE_NONE)] = arrays.CRANIUM
+        # the nearest-voxel round trip can cut a one-voxel link: the mandible is one bone
+        pieces, n = ndimage.label(sub == arrays.MANDIBLE, _CUBE)
+        if n > 1:
+            largest = 1 + int(np.argmax(np.bincount(pieces.ravel())[1:]))
+            sub[(pieces > 0) & (pieces != largest)] = arrays.CRANIUM
     bone = np.zeros(dims, dtype=np.uint8, order="F")
-    sub = np.where(hard, arrays.CRANIUM, arrays.BONE_NONE).astype(np.uint8)
-    sub[maxilla] = arrays.MAXILLA
-    sub[mandible] = arrays.MANDIBLE
     bone[box] = sub
     out = labels.copy()
     out[arrays.BONE] = bone.ravel(order="F")
@@ -188,6 +187,23 @@ def find_jaws(labels, *, progress_bar=False):
         f"{arrays.BONE_NAMES[i]} {np.count_nonzero(sub == i) * voxel:.1f}"
         for i in (arrays.CRANIUM, arrays.MAXILLA, arrays.MANDIBLE)))
     return out
+
+
+def _segments(tissue, hard, teeth, spacing, say, arches=None):
+    """Bone labels (BONE_NONE, CRANIUM, MAXILLA, MANDIBLE) of the hard voxels of a box whose
+    axial slices are level with the dental arches (``arches``: their
+    :func:`~pvcmf.filters.dental_arches.dental_arches`, if known)."""
+    if arches is None:
+        arches = dental_arches(teeth, hard, spacing)
+    z_occ, upper, lower, contact = arches
+    say("find_jaws: occlusal level at slice %d of the bone box (%d upper, %d lower tooth "
+        "voxels)", z_occ, int(upper.sum()), int(lower.sum()))
+    mandible = _mandible(hard, upper, lower, z_occ, spacing, contact)
+    maxilla = _maxilla(hard & ~mandible, upper, lower, tissue == arrays.AIR, z_occ, spacing)
+    sub = np.where(hard, arrays.CRANIUM, arrays.BONE_NONE).astype(np.uint8)
+    sub[maxilla] = arrays.MAXILLA
+    sub[mandible] = arrays.MANDIBLE
+    return sub
 
 
 def _bounds(mask, margin):
@@ -210,148 +226,6 @@ def _far_from(mask, spacing, distance):
     for ax in range(3):
         far = np.repeat(far, 2, axis=ax)
     return far[tuple(slice(0, n) for n in mask.shape)]
-
-
-def _arches(teeth, hard, spacing):
-    """Occlusal slice, the upper and lower tooth voxels and the hard voxels of their contact
-    (None where the arches are apart: the occlusal slice separates them).
-
-    Two arches: the slice of fewest tooth voxels between the two largest peaks of the teeth's
-    height profile. One arch (an edentulous jaw, or an open mouth whose arches share no
-    slice of teeth): the arch is the lower one when its footprint holds more bone in the
-    ``ALVEOLAR_MM`` below the teeth than above them (the alveolar process and the body
-    hold the roots below the lower crowns, the alveolar process and palate above the upper
-    ones), and the occlusal level is at its crowns' free end.
-    """
-    profile = teeth.sum(axis=(0, 1)).astype(float)
-    smooth = ndimage.gaussian_filter1d(profile, max(1.0, 1.5 / spacing[2]))
-    z = np.flatnonzero(profile)
-    lo, hi = int(z[0]), int(z[-1])
-    inner = np.arange(lo + 1, hi)
-    peaks = inner[(smooth[inner] >= smooth[inner - 1]) & (smooth[inner] > smooth[inner + 1])]
-    gap = int(round(ALVEOLAR_MM / spacing[2]))
-    if len(peaks) >= 2:
-        a, b = sorted(peaks[np.argsort(smooth[peaks])[-2:]])
-        # two peaks of one arch (enamel of the crowns and its partial volume) are closer
-        # than a crown's height apart and have teeth in every slice between them
-        if b - a > gap // 2 or np.any(profile[a:b + 1] == 0):
-            z_occ = int(a + np.argmin(smooth[a:b + 1]))
-            upper = teeth.copy()
-            upper[:, :, :z_occ + 1] = False
-            return z_occ, upper, teeth & ~upper, None
-    foot = ndimage.binary_dilation(teeth.any(axis=2),
-                                   iterations=max(1, int(round(3.0 / spacing[0]))))
-    bone = (hard & ~teeth)[foot].sum(axis=0)
-    below, above = bone[max(lo - gap, 0):lo].sum(), bone[hi + 1:hi + 1 + gap].sum()
-    none = np.zeros_like(teeth)
-    touch = min(below, above) >= OCCLUSION_BONE * max(below, above)
-    if touch:
-        # bone of both jaws' alveolar processes next to one run of teeth: the arches touch
-        split = _occlusion(teeth, hard, spacing, lo, hi)
-        if split is not None:
-            return split
-        log.warning("find_jaws: the teeth have the bone of both jaws beside them (arches in "
-                    "occlusion?), but no occlusal surface shows between them (slices %.1f mm "
-                    "apart); taken as one arch: the segments may be wrong, give the plan cut "
-                    "planes", spacing[2])
-    if below >= above:
-        log.info("find_jaws: one dental arch, the lower one (bone below it %d, above %d "
-                 "voxels); no upper tooth", below, above)
-        return hi, none, teeth.copy(), None
-    log.info("find_jaws: one dental arch, the upper one (bone below it %d, above %d voxels); "
-             "no lower tooth", below, above)
-    return lo - 1, teeth.copy(), none, None
-
-
-def _occlusion(teeth, hard, spacing, lo, hi):
-    """Upper and lower teeth of two arches in occlusion, split by the occlusal surface.
-
-    Where the crowns of both arches stand in one column (x, y), the column's tooth voxels
-    have a gap at the contact (the enamel of the cusps meets over less than a voxel, its
-    partial volume falls below the teeth's threshold): the centre of each column's largest
-    inner gap is a sample of the occlusal surface. A quadratic surface z(x, y) (the curves of
-    Spee and Wilson: the occlusal surface lies close to a sphere, Monson) is fitted to the
-    samples by least squares, twice trimmed of samples more than ``OCCLUSAL_TRIM`` mm off
-    it. Tooth voxels above it are upper, below it lower. Returns (z of the surface's lowest
-    point, upper, lower, the hard voxels on the surface inside the arch's footprint), or
-    None where the samples are too few or fewer than ``MIN_ARCH_SHARE`` of the teeth fall
-    on one side (one arch after all).
-    """
-    sub = teeth[:, :, lo:hi + 1]
-    k = np.arange(lo, hi + 1, dtype=float)
-    # per column: the largest run of non-tooth slices between two tooth voxels
-    above = np.maximum.accumulate(np.where(sub, k, -np.inf), axis=2)  # last tooth at or below
-    below = np.minimum.accumulate(np.where(sub, k, np.inf)[:, :, ::-1], axis=2)[:, :, ::-1]
-    gap = np.where(~sub & np.isfinite(above) & np.isfinite(below), below - above, 0.0)
-    size = gap.max(axis=2)
-    cols = size >= 2  # at least one empty slice between two tooth voxels
-    if cols.sum() < MIN_SAMPLES:
-        return None
-    arg = np.argmax(gap, axis=2)
-    xi, yi = np.nonzero(cols)
-    lower_top = above[xi, yi, arg[xi, yi]]
-    zs = lower_top + 0.5 * size[xi, yi]
-    pts = np.column_stack([xi * spacing[0], yi * spacing[1]])
-    keep = np.ones(len(zs), dtype=bool)
-    for _ in range(3):
-        coef = _fit_quadric(pts[keep], zs[keep] * spacing[2])
-        off = np.abs(_quadric(pts, coef) - zs * spacing[2])
-        keep = off <= OCCLUSAL_TRIM
-        if keep.sum() < MIN_SAMPLES:
-            return None
-    nx, ny, nz = teeth.shape
-    gx, gy = np.meshgrid(np.arange(nx) * spacing[0], np.arange(ny) * spacing[1], indexing="ij")
-    surf = _quadric(np.column_stack([gx.ravel(), gy.ravel()]), coef).reshape(nx, ny)
-    surf = surf / spacing[2]  # slice index of the surface per column
-    zz = np.arange(nz)[None, None, :]
-    upper = teeth & (zz > surf[:, :, None])
-    lower = teeth & ~upper
-    n_up, n_low = int(upper.sum()), int(lower.sum())
-    log.debug("find_jaws: occlusal surface from %d of %d columns, %d upper, %d lower tooth "
-              "voxels", int(keep.sum()), len(zs), n_up, n_low)
-    if min(n_up, n_low) < MIN_ARCH_SHARE * (n_up + n_low):
-        return None
-    foot = _arch_area(teeth.any(axis=2), spacing)
-    contact = hard & (np.abs(zz - surf[:, :, None]) < 1.0) & foot[:, :, None]
-    log.info("find_jaws: the dental arches touch (occlusion): %d upper and %d lower tooth "
-             "voxels either side of the occlusal surface", n_up, n_low)
-    z_low = int(np.floor(surf[foot].min())) if foot.any() else lo
-    return max(z_low, 0), upper, lower, contact
-
-
-def _arch_area(foot, spacing):
-    """Where the arches meet, seen from above: the convex hull of the teeth's footprint
-    (:class:`scipy.spatial.Delaunay`), 3 mm wider, and everything in front of it (incisors
-    and canines below the tooth threshold stand in front of the hull's chord)."""
-    ij = np.argwhere(foot)
-    inside = np.zeros_like(foot)
-    try:
-        hull = Delaunay(ij)
-    except (QhullError, ValueError):  # collinear footprint
-        inside = foot.copy()
-    else:
-        lo, hi = ij.min(axis=0), ij.max(axis=0) + 1
-        grid = np.indices(hi - lo).reshape(2, -1).T + lo
-        inside[lo[0]:hi[0], lo[1]:hi[1]] = (hull.find_simplex(grid) >= 0).reshape(hi - lo)
-    inside = ndimage.binary_dilation(inside, iterations=max(1, int(round(3.0 / spacing[0]))))
-    return np.maximum.accumulate(inside, axis=1)  # and in front of it (+y)
-
-
-def _quadric_terms(pts):
-    x, y = pts[:, 0], pts[:, 1]
-    return np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
-
-
-def _fit_quadric(pts, z):
-    """Least-squares quadratic surface z(x, y) (coordinates centred for conditioning)."""
-    c = pts.mean(axis=0)
-    coef, *_ = np.linalg.lstsq(_quadric_terms(pts - c), z, rcond=None)
-    return c, coef
-
-
-def _quadric(pts, fit):
-    c, coef = fit
-    return _quadric_terms(pts - c) @ coef
 
 
 def _mandible(hard, upper, lower, z_occ, spacing, contact=None):
