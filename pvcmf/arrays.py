@@ -307,6 +307,11 @@ SCAN_FOV = "scan_fov"
 SKIN_CUT = "skin_cut"
 #: summary / field data: skin points on a cut of the scan (:data:`SKIN_CUT`)
 SKIN_CUT_POINTS = "skin_cut_points"
+#: field (labels of ``find_jaws``), float64, 1 value where the teeth form a flat arch: the
+#: pitch (degrees) of the upper dental arch's plane from the image's axial plane, positive
+#: where it descends anteriorly (as the occlusal plane does against the Frankfort
+#: horizontal) (:func:`pvcmf.filters.jaw_pose.check_pose`)
+ARCH_PITCH = "arch_pitch"
 
 
 # --------------------------------------------------------------------------- solution checks

@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 from . import arrays, filters, mtm
 from ._atomic import write_text
 from .filters.bone_segments import segment_volumes
+from .filters.jaw_pose import check_pose
 from .filters.meshing.skin_fit import on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
 from .filters.segment_coverage import check_coverage
@@ -463,9 +464,9 @@ def _read_step(run, ct, units, orient):
 
 
 def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
-    """Steps "segment", "classify" and "bone segments", then the plan's cuts and a warning
-    for each planned segment the scan does not hold whole (:func:`check_coverage`): the
-    label image."""
+    """Steps "segment", "classify" and "bone segments", then the plan's cuts, a warning for
+    each planned segment the scan does not hold whole (:func:`check_coverage`) and one for a
+    head the scan holds tilted (:func:`check_pose`): the label image."""
     if labels is None:
         if not isinstance(ct, pv.ImageData):
             raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
@@ -484,7 +485,9 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
         labels = run.run("bone segments", _transfer_bone_segments, labels, bones)
     else:
         run.skip("bone segments", _segment_sources(labels, plan))
-    return check_coverage(cut_bones(labels, plan), plan)
+    labels = check_coverage(cut_bones(labels, plan), plan)
+    check_pose(labels)
+    return labels
 
 
 def _segment_sources(labels, plan):

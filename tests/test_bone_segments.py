@@ -134,6 +134,10 @@ def _pitched(volume, spacing, degrees, cval):
     return ndimage.affine_transform(volume, matrix, offset=c - matrix @ c, order=0, cval=cval)
 
 
+def _upright_pitch(patient1):
+    return float(find_jaws(patient1[1]).field_data[arrays.ARCH_PITCH][0])
+
+
 @pytest.mark.parametrize("degrees", [-20.0, 15.0])
 def test_jaws_of_a_head_scanned_tilted(patient1, degrees):
     """The virtual patient scanned with the chin 20 degrees down, or 15 up: the segments are
@@ -149,8 +153,12 @@ def test_jaws_of_a_head_scanned_tilted(patient1, degrees):
                      degrees, arrays.BONE_NONE)
     img = pv.ImageData(dimensions=d, spacing=lab.spacing, origin=lab.origin)
     img[arrays.TISSUE] = t.ravel(order="F")
-    found = np.asarray(find_jaws(img)[arrays.BONE]).reshape(d, order="F")
+    jaws = find_jaws(img)
+    found = np.asarray(jaws[arrays.BONE]).reshape(d, order="F")
     hard = np.isin(t, arrays.HARD_LABELS)
+    # the arch's pitch turns with the head (chin down raises it)
+    assert float(jaws.field_data[arrays.ARCH_PITCH][0]) == pytest.approx(
+        _upright_pitch(patient1) - degrees, abs=2.0)
     for segment, least in ((arrays.MANDIBLE, 0.95), (arrays.MAXILLA, 0.94)):
         score = dice(found == segment, (truth == segment) & hard)
         assert score >= least, f"{arrays.BONE_NAMES[segment]} Dice {score:.3f}"

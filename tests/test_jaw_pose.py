@@ -78,3 +78,31 @@ def test_level_turns_the_arch_flat_and_back_keeps_every_label():
     assert np.all(back[teeth] > 0) and not back[~teeth].any()
     assert np.mean(back[teeth] == labels[teeth]) > 0.97
     assert not np.shares_memory(back, labels)
+
+
+def test_pitch_sign_and_the_warning_for_a_tilted_head(caplog):
+    """A plane descending anteriorly (+y) has a positive pitch; labels whose upper arch
+    pitches beyond the occlusal plane's usual cant are warned about, others not."""
+    import logging
+
+    import pyvista as pv
+
+    from pvcmf import arrays
+    from pvcmf.filters.jaw_pose import OCCLUSAL_CANT, OCCLUSAL_CANT_SD, check_pose, pitch
+
+    a = np.radians(20.0)
+    assert pitch(np.array([0.0, np.sin(a), np.cos(a)])) == pytest.approx(20.0)
+    assert pitch(np.array([0.0, -np.sin(a), np.cos(a)])) == pytest.approx(-20.0)
+    img = pv.ImageData(dimensions=(2, 2, 2))
+    assert check_pose(img) is None
+    limit = 3.0 * OCCLUSAL_CANT_SD
+    for angle, warned in ((OCCLUSAL_CANT, False), (OCCLUSAL_CANT + 0.9 * limit, False),
+                          (OCCLUSAL_CANT + 1.1 * limit, True), (OCCLUSAL_CANT - 1.1 * limit, True)):
+        img.field_data[arrays.ARCH_PITCH] = np.array([angle])
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="pvcmf"):
+            message = check_pose(img)
+        assert (message is not None) is warned
+        assert ("head lies tilted" in caplog.text) is warned
+        if warned:
+            assert ("chin down" if angle > OCCLUSAL_CANT else "chin up") in message

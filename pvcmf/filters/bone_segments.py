@@ -44,7 +44,7 @@ from scipy import ndimage
 from .. import arrays
 from .morphology import _beyond, _c_copy
 from .dental_arches import ALVEOLAR_MM, dental_arches
-from .jaw_pose import Level, arch_pose
+from .jaw_pose import Level, arch_pose, pitch
 from .narrowest_cut import narrowest_cut
 
 log = logging.getLogger(__name__)
@@ -158,7 +158,7 @@ def find_jaws(labels, *, progress_bar=False):
     if teeth.sum() < 10:
         raise ValueError("find_jaws: fewer than 10 tooth voxels: cannot find the jaws from the "
                          "anatomy; give the plan's osteotomies cut planes")
-    turn, tilt, arches = arch_pose(teeth, hard, spacing)
+    turn, tilt, arches, normal = arch_pose(teeth, hard, spacing)
     if turn is None:
         sub = _segments(tissue, hard, teeth, spacing, say, arches)
     else:
@@ -182,6 +182,8 @@ def find_jaws(labels, *, progress_bar=False):
     bone[box] = sub
     out = labels.copy()
     out[arrays.BONE] = bone.ravel(order="F")
+    if normal is not None:
+        out.field_data[arrays.ARCH_PITCH] = np.array([pitch(normal)])
     voxel = float(np.prod(spacing)) / 1000.0
     log.info("find_jaws: segments (mL) %s", ", ".join(
         f"{arrays.BONE_NAMES[i]} {np.count_nonzero(sub == i) * voxel:.1f}"

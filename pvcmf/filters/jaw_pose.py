@@ -25,11 +25,12 @@ import logging
 import numpy as np
 from scipy import ndimage
 
+from .. import arrays
 from .dental_arches import dental_arches
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Level", "arch_pose", "occlusal_tilt"]
+__all__ = ["Level", "arch_pose", "check_pose", "occlusal_tilt", "pitch"]
 
 #: tilt (degrees) below which the grid is left as it is: the occlusal plane then rises
 #: less than 4 mm (half a crown's height) over the arch's 45 mm depth, which the axial
@@ -39,6 +40,10 @@ MIN_TILT_DEG = 5.0
 #: scanner at most this far from its axial plane, while a row of front teeth alone stands
 #: upright, its plane near vertical
 MAX_TILT_DEG = 45.0
+#: cant (degrees) of the occlusal plane to the Frankfort horizontal, descending anteriorly,
+#: and its spread among adults (Downs, Am J Orthod 1948: mean 9.3, range 1.5-14)
+OCCLUSAL_CANT = 9.3
+OCCLUSAL_CANT_SD = 3.8
 #: pitch and roll (degrees) searched for the first estimate of the arches' plane
 SEARCH_PITCH = 40.0
 SEARCH_ROLL = 20.0
@@ -100,18 +105,20 @@ def arch_pose(teeth, hard, spacing):
 
     Returns
     -------
-    (numpy.ndarray or None, float, tuple or None)
+    (numpy.ndarray or None, float, tuple or None, numpy.ndarray or None)
         The rotation (None: leave the box as it is: the teeth are no flat arch, or tilt
-        less than ``MIN_TILT_DEG`` or more than ``MAX_TILT_DEG``), the tilt (degrees) and,
-        when the box stays, its :func:`~pvcmf.filters.dental_arches.dental_arches`.
+        less than ``MIN_TILT_DEG`` or more than ``MAX_TILT_DEG``), the tilt (degrees),
+        when the box stays its :func:`~pvcmf.filters.dental_arches.dental_arches`, and the
+        plane's unit normal (None where the teeth are no flat arch).
     """
     spacing = np.asarray(spacing, dtype=float)
     first = _onto_z(_densest_normal(np.argwhere(teeth) * spacing, float(spacing.max())))
     if _tilt(first[2]) < MIN_TILT_DEG:
         arches = dental_arches(teeth, hard, spacing)
-        first, tilt = occlusal_tilt(_plane_teeth(arches, teeth), spacing)
-        if first is None:
-            return None, tilt, arches
+        normal = _plane_normal(_plane_teeth(arches, teeth), spacing)
+        if normal is None or not MIN_TILT_DEG <= _tilt(normal) <= MAX_TILT_DEG:
+            return None, 0.0 if normal is None else _tilt(normal), arches, normal
+        first = _onto_z(normal)
     level = Level(teeth.shape, spacing, first)
     teeth1 = level.forward(teeth.view(np.uint8)) > 0
     arches1 = dental_arches(teeth1, level.forward(hard.view(np.uint8)) > 0, spacing,
@@ -120,8 +127,35 @@ def arch_pose(teeth, hard, spacing):
     turn = None if normal is None else _onto_z(normal) @ first
     tilt = 0.0 if turn is None else _tilt(turn[2])
     if turn is None or not MIN_TILT_DEG <= tilt <= MAX_TILT_DEG:
-        return None, tilt, dental_arches(teeth, hard, spacing)
-    return turn, tilt, None
+        return None, tilt, dental_arches(teeth, hard, spacing), \
+            None if turn is None else turn[2].copy()
+    return turn, tilt, None, turn[2].copy()
+
+
+def pitch(normal):
+    """Pitch (degrees) of a plane of unit ``normal`` from the axial plane: positive where it
+    descends anteriorly (+y)."""
+    return float(np.degrees(np.arctan2(normal[1], normal[2])))
+
+
+def check_pose(labels):
+    """Warn where the upper dental arch (``arrays.ARCH_PITCH`` of ``labels``) pitches
+    outside the occlusal plane's usual cant to the Frankfort horizontal, ``OCCLUSAL_CANT``
+    +- three ``OCCLUSAL_CANT_SD``: the head lies tilted in the scan, and a plan's directions
+    (forward, up) are the image's axes, not the face's. Returns the warning, or None."""
+    if arrays.ARCH_PITCH not in labels.field_data:
+        return None
+    angle = float(np.asarray(labels.field_data[arrays.ARCH_PITCH]).ravel()[0])
+    off = angle - OCCLUSAL_CANT
+    if abs(off) <= 3.0 * OCCLUSAL_CANT_SD:
+        return None
+    message = (f"find_jaws: the upper dental arch pitches {angle:.0f} degrees from the image's "
+               f"axial plane, {abs(off):.0f} degrees {'chin down' if off > 0 else 'chin up'} "
+               f"of its usual cant to the Frankfort horizontal ({OCCLUSAL_CANT:g} +- "
+               f"{OCCLUSAL_CANT_SD:g} degrees): the head lies tilted in the scan, and the "
+               "plan's directions (forward, up) are the image's axes, not the face's")
+    log.warning(message)
+    return message
 
 
 def _plane_teeth(arches, teeth):

@@ -95,11 +95,13 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
     bone = _check_inputs(labels, plan, "cut_bones")
     missing = [o.segment for o in plan.osteotomies
                if not o.cut and not np.any(bone == o.segment_id)]
+    jaws = None
     if missing and arrays.TISSUE in labels.point_data:
         log.info("cut_bones: %s not labelled and no cut planes: found from the anatomy",
                  ", ".join(missing))
         try:
-            found = np.asarray(find_jaws(labels, progress_bar=progress_bar)[arrays.BONE])
+            jaws = find_jaws(labels, progress_bar=progress_bar)
+            found = np.asarray(jaws[arrays.BONE])
         except ValueError as err:
             have = sorted(arrays.BONE_NAMES[int(b)] for b in np.unique(bone) if b > 0)
             raise ValueError(
@@ -129,6 +131,8 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
         log.info("cut_bones: %s = %d voxels inside %d plane(s)", o.segment, int(inside.sum()),
                  len(o.cut))
     out[arrays.BONE] = new
+    if jaws is not None and arrays.ARCH_PITCH in jaws.field_data:  # the pose it measured
+        out.field_data[arrays.ARCH_PITCH] = np.array(jaws.field_data[arrays.ARCH_PITCH])
     if missing or any(o.cut for o in plan.osteotomies):  # else every segment is labelled
         plan.check_segments(out)
     if log.isEnabledFor(logging.INFO):  # the volumes take a pass over the image each
