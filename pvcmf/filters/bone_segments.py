@@ -165,12 +165,15 @@ def find_jaws(labels, *, progress_bar=False):
         log.info("find_jaws: the dental arches tilt %.1f degrees from the axial plane; the "
                  "segments are found on the image turned level with them", tilt)
         level = Level(hard.shape, spacing, turn)
-        turned = level.forward(tissue, cval=arrays.AIR)
+        # one resampling: the dense bone by the skull base that is not teeth goes as bone
+        dense = np.isin(tissue, (arrays.TEETH, arrays.METAL))
+        turned = level.forward(np.where(dense & ~teeth, arrays.BONE_TISSUE, tissue),
+                               cval=arrays.AIR)
         cut = _bounds(np.isin(turned, arrays.HARD_LABELS), 0)
         turned = _c_copy(turned[cut])
         found = np.zeros(level.level_shape, dtype=np.uint8)
         found[cut] = _segments(turned, np.isin(turned, arrays.HARD_LABELS),
-                               level.forward(teeth.view(np.uint8))[cut] > 0, spacing, say)
+                               np.isin(turned, (arrays.TEETH, arrays.METAL)), spacing, say)
         sub = level.back(found, hard)
         sub[hard & (sub == arrays.BONE_NONE)] = arrays.CRANIUM
         # the nearest-voxel round trip can cut a one-voxel link: the mandible is one bone
