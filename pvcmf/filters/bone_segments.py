@@ -10,9 +10,10 @@ on the bone's box turned level with the dental arches where they tilt
   over the arch and in front of it, is cut;
 * the **mandible**: the hard tissue, split at the occlusal level inside the dental arch's
   footprint (where the upper and lower teeth touch), connected to the lower teeth. Where
-  that part still holds the upper teeth or the skull's top (the condyles touch their
-  fossae: a joint space lost to thick slices or partial volume; teeth in contact beyond
-  the arch), it is split along its narrowest cut
+  that part still holds the upper teeth, the skull's top or bone ``SKULL_ABOVE_MM`` above
+  the occlusal level (the condyles touch their fossae: a joint space lost to thick slices
+  or partial volume; teeth in contact beyond the arch), it is split along its narrowest
+  cut
   (:func:`pvcmf.filters.narrowest_cut.narrowest_cut`, a minimum cut in mm^2 of voxel faces)
   between the bone under the lower teeth and those parts; the voxels the occlusal split
   removed go back to the nearest side (a nearest-label fill,
@@ -68,6 +69,10 @@ SKULL_BASE_MM = 15.0
 PALATE_MM2 = 50.0
 #: least area (mm^2) of nasal floor seen on the palate in one slice of a narrow nasal cavity
 PALATE_MIN_MM2 = 10.0
+#: height (mm) above the occlusal level that no mandible reaches: the condyles and the
+#: coronoid processes rise 25-35 mm above the occlusal plane, which crosses the ramus about
+#: half-way up (at the mandibular foramen), the ramus being 55-65 mm high
+SKULL_ABOVE_MM = 50.0
 #: height (mm) above the teeth or ridge searched for the nasal floor (the palate lies
 #: 10-20 mm above the alveolar crest)
 NASAL_SEARCH_MM = 25.0
@@ -256,7 +261,8 @@ def _mandible(hard, upper, lower, z_occ, spacing, contact=None):
         log.warning("find_jaws: the occlusal split leaves no lower tooth: no mandible found")
         return np.zeros_like(hard)
     jaw = lab == int(np.argmax(ids))
-    top = np.zeros_like(hard)
+    top = np.zeros_like(hard)  # the skull's top, and what is too high for any mandible
+    top[:, :, min(z_occ + int(round(SKULL_ABOVE_MM / spacing[2])), hard.shape[2] - 1):] = True
     top[:, :, -max(1, int(round(5.0 / spacing[2]))):] = True
     anchor = (upper | top) & jaw  # what must not be mandible
     if anchor.any():

@@ -44,9 +44,6 @@ MAX_TILT_DEG = 45.0
 #: and its spread among adults (Downs, Am J Orthod 1948: mean 9.3, range 1.5-14)
 OCCLUSAL_CANT = 9.3
 OCCLUSAL_CANT_SD = 3.8
-#: margin (mm) of the teeth's box that the trial split of the arches sees: the bone
-#: beside the roots (``dental_arches.ALVEOLAR_MM``) and more
-AROUND_MM = 20.0
 #: pitch and roll (degrees) searched for the first estimate of the arches' plane
 SEARCH_PITCH = 40.0
 SEARCH_ROLL = 20.0
@@ -122,11 +119,9 @@ def arch_pose(teeth, hard, spacing):
         if normal is None or not MIN_TILT_DEG <= _tilt(normal) <= MAX_TILT_DEG:
             return None, 0.0 if normal is None else _tilt(normal), arches, normal
         first = _onto_z(normal)
-    # the trial split on the teeth's box, ``AROUND_MM`` wider: the bone beside the roots
-    box = _around(teeth, np.ceil(AROUND_MM / spacing).astype(int))
-    level = Level(teeth[box].shape, spacing, first)
-    teeth1 = level.forward(teeth[box].view(np.uint8)) > 0
-    arches1 = dental_arches(teeth1, level.forward(hard[box].view(np.uint8)) > 0, spacing,
+    level = Level(teeth.shape, spacing, first)
+    teeth1 = level.forward(teeth.view(np.uint8)) > 0
+    arches1 = dental_arches(teeth1, level.forward(hard.view(np.uint8)) > 0, spacing,
                             quiet=True)
     normal = _plane_normal(_plane_teeth(arches1, teeth1), spacing)
     turn = None if normal is None else _onto_z(normal) @ first
@@ -161,13 +156,6 @@ def check_pose(labels):
                "plan's directions (forward, up) are the image's axes, not the face's")
     log.warning(message)
     return message
-
-
-def _around(mask, margin):
-    """Index box of a non-empty mask, ``margin`` voxels (per axis) wider."""
-    hit = np.argwhere(mask)
-    lo, hi = hit.min(axis=0) - margin, hit.max(axis=0) + margin + 1
-    return tuple(slice(max(int(a), 0), min(int(b), n)) for a, b, n in zip(lo, hi, mask.shape))
 
 
 def _plane_teeth(arches, teeth):
