@@ -33,15 +33,17 @@ and an anatomy-based check of the axes are :func:`pvcmf.filters.standardize`'s j
 ``frame='file'`` keeps the file's voxel order, origin, spacing and direction in the file's
 own world frame.
 
-DICOM folders: files that are not DICOM are ignored; with several series the CT series with
-the most slices is read and the others are listed in the log (``series=`` picks one by UID,
+DICOM folders (and their subfolders, :mod:`pvcmf.io.dicom`): files that are not DICOM are
+ignored; compressed pixel data pydicom cannot decode here is decoded by GDCM (SimpleITK);
+with several series the CT series with the most slices is read and the others are listed in the log (``series=`` picks one by UID,
 number or description). Missing slices and duplicate slice positions are errors that say
 where; uneven slice spacing is resampled onto the finest step (with a warning). Zero, negative or non-finite spacing and 2-D images are refused in every format.
 
 The readers are pydicom (DICOM), VTK (NIfTI pixels and matrices, MetaImage pixels), a small
 numpy NRRD reader and pyvista (VTI). SimpleITK reads MetaImage, NIfTI and NRRD well too, but
-it is not a dependency of pvcmf and refuses NRRD headers that mix ``spacings`` and ``space``
-(VTK's headsq); the tests use SimpleITK and nibabel as independent writers.
+it refuses NRRD headers that mix ``spacings`` and ``space`` (VTK's headsq), so it only
+decodes the DICOM pixel data pydicom cannot; the tests use SimpleITK and nibabel as
+independent writers.
 
 Values
 ------
@@ -88,8 +90,8 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="patient", series=None):
     Parameters
     ----------
     path : str or pathlib.Path
-        A folder holding one DICOM series, or a ``.nii``, ``.nii.gz``, ``.nrrd``, ``.nhdr``,
-        ``.mha``, ``.mhd`` or ``.vti`` file.
+        A folder holding DICOM series (in subfolders too: an export's root), or a
+        ``.nii``, ``.nii.gz``, ``.nrrd``, ``.nhdr``, ``.mha``, ``.mhd`` or ``.vti`` file.
     offset, scale : float
         Linear map to Hounsfield units: ``ct = scale * value + offset``. The defaults keep
         the file's values (DICOM and NIfTI rescale slopes are applied before).

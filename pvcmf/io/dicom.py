@@ -1,20 +1,30 @@
 """DICOM series for :func:`pvcmf.read_ct`, read with pydicom.
 
-A folder may hold several series and files that are not DICOM: the latter are ignored, and of
-the series the CT with the most slices is read (the others are logged) unless ``series``
-names one (UID, number or part of the description). Slices are sorted along the slice normal;
-RescaleSlope/RescaleIntercept are applied (a CT comes out in HU); missing slices (a step well
-above the steps either side of it) and duplicate slice positions are errors that say where.
-Uneven slice spacing (a protocol whose slice step changes along the stack, a displaced
-slice) is resampled (linear along the normal) onto the finest step, with a warning that
-names the steps. A tilted-gantry series (slice origins drifting in-plane along the stack)
-is resampled slice by slice (linear) onto an orthogonal stack. VTK's ``vtkDICOMImageReader`` flips rows and can reverse the slice order without
-saying so, so it is not used.
+A folder may hold several series and files that are not DICOM, in subfolders too (a PACS
+or CD export: a DICOMDIR beside folders of extension-less image files): the files that are
+not DICOM images are ignored, and of the series found in the folder and its subfolders the
+CT with the most slices is read (the others are logged with their folders) unless
+``series`` names one (UID, number or part of the description). Slices are sorted along the
+slice normal; RescaleSlope/RescaleIntercept are applied (a CT comes out in HU); missing
+slices (a step well above the steps either side of it) and duplicate slice positions are
+errors that say where. Uneven slice spacing (a protocol whose slice step changes along the
+stack, a displaced slice) is resampled (linear along the normal) onto the finest step, with
+a warning that names the steps. A tilted-gantry series (slice origins drifting in-plane
+along the stack) is resampled slice by slice (linear) onto an orthogonal stack.
+
+Compressed pixel data that pydicom has no decoder for in this environment (JPEG Lossless,
+the usual lossless compression of PACS exports, JPEG-LS, 12-bit JPEG) is decoded by GDCM
+through SimpleITK (a dependency), which applies the rescale itself; a series marked lossy
+compressed (LossyImageCompression "01") is read with a warning: its HU carry the
+compression's error. VTK's ``vtkDICOMImageReader`` flips rows and can reverse the slice
+order without saying so, so it is not used.
 """
 
 from __future__ import annotations
 
 import logging
+import os
+from pathlib import Path
 
 import numpy as np
 import pyvista as pv
@@ -39,9 +49,11 @@ def _pick_series(folder, headers, wanted):
         series.setdefault(str(ds.get("SeriesInstanceUID", "")), []).append((file, ds))
 
     def describe(uid):
-        ds = series[uid][0][1]
+        file, ds = series[uid][0]
+        where = file.parent.relative_to(folder)
         return (f"series {ds.get('SeriesNumber', '?')} {str(ds.get('SeriesDescription', ''))!r} "
-                f"({ds.get('Modality', '?')}, {len(series[uid])} slices, UID {uid})")
+                f"({ds.get('Modality', '?')}, {len(series[uid])} slices, UID {uid}"
+                + ("" if where == Path(".") else f", in {str(where)!r}") + ")")
 
     if wanted is not None:
         text = str(wanted)
@@ -109,7 +121,7 @@ def read_dicom_series(folder, wanted=None):
     from pydicom.errors import InvalidDicomError
 
     headers = []
-    for file in sorted(p for p in folder.iterdir() if p.is_file()):
+    for file in _files(folder):
         try:
             ds = pydicom.dcmread(file, stop_before_pixels=True)
         except (InvalidDicomError, OSError, EOFError, ValueError):
@@ -118,7 +130,8 @@ def read_dicom_series(folder, wanted=None):
             headers.append((file, ds))
     if not headers:
         raise ValueError(
-            f"read_ct: folder {str(folder)!r} holds no readable DICOM image slice "
+            f"read_ct: folder {str(folder)!r} holds no readable DICOM image slice, nor do its "
+            "subfolders "
             "(expected a DICOM series folder, or a .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd or "
             ".vti file)"
         )
@@ -129,24 +142,14 @@ def read_dicom_series(folder, wanted=None):
     rows, cols = int(first.Rows), int(first.Columns)
     dy, dx = (float(v) for v in first.PixelSpacing)  # row spacing, column spacing
     check_spacing([dx, dy, dz], folder)
+    _check_lossy(folder, slices)
     volume = np.empty((len(slices), rows, cols), dtype=np.float32)
+    decoded_by = set()
     for k, (file, _) in enumerate(slices):  # one file per slice: I/O, not a voxel loop
-        try:
-            ds = pydicom.dcmread(file)
-            pixels = ds.pixel_array
-        except Exception as err:
-            raise ValueError(
-                f"read_ct: cannot decode DICOM pixel data of {str(file)!r} "
-                f"({type(err).__name__}: {err})"
-            ) from err
-        if pixels.shape != (rows, cols):
-            raise ValueError(
-                f"read_ct: DICOM slice {str(file)!r} is {pixels.shape}, expected {(rows, cols)}"
-            )
-        slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
-        inter = float(ds.get("RescaleIntercept", 0.0) or 0.0)
-        np.multiply(pixels, np.float32(slope), out=volume[k], casting="unsafe")
-        volume[k] += np.float32(inter)
+        decoded_by.add(_slice_values(pydicom.dcmread(file), file, volume[k]))
+    if "GDCM" in decoded_by:
+        log.info("read_ct: %s: compressed pixel data pydicom has no decoder for here, "
+                 "decoded by GDCM (SimpleITK)", folder)
     if np.abs(shift).max() > 0.01 * min(dx, dy):
         volume = _untilt(volume, shift, dx, dy, folder)
     if np.ptp(np.diff(along)) > 0.01 * dz + 1e-3:
@@ -155,6 +158,71 @@ def read_dicom_series(folder, wanted=None):
     image.direction_matrix = np.column_stack([row_dir, col_dir, normal])
     image.origin = origin
     return image, volume.ravel()
+
+
+def _files(folder):
+    """Every file in ``folder`` and its subfolders (symbolic links to folders not followed),
+    sorted by path."""
+    found = []
+    for root, dirs, names in os.walk(folder):
+        dirs.sort()
+        found.extend(Path(root) / name for name in sorted(names))
+    return [f for f in found if f.is_file()]
+
+
+def _check_lossy(folder, slices):
+    """Warn where the series' pixel data went through lossy compression."""
+    lossy = [ds for _, ds in slices if str(ds.get("LossyImageCompression", "")) == "01"]
+    if lossy:
+        ratio = lossy[0].get("LossyImageCompressionRatio", None)
+        log.warning("read_ct: %s: %d of %d slices are marked lossy compressed%s: their HU "
+                    "carry the compression's error (ask for the original or a lossless "
+                    "export)", folder, len(lossy), len(slices),
+                    "" if ratio is None else f" (ratio {ratio})")
+
+
+def _slice_values(ds, file, out):
+    """Write slice ``ds``'s values in HU into ``out`` (rows, columns); return the decoder
+    ("pydicom", or "GDCM" for compressed data pydicom cannot decode here)."""
+    try:
+        pixels = ds.pixel_array
+    except Exception as err:  # pydicom's decoders raise several types
+        syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+        if syntax is None or not syntax.is_compressed:
+            raise ValueError(f"read_ct: cannot decode DICOM pixel data of {str(file)!r} "
+                             f"({type(err).__name__}: {err})") from err
+        values = _gdcm_values(file, syntax, err)
+        _check_shape(values, out, file)
+        out[...] = values
+        return "GDCM"
+    _check_shape(pixels, out, file)
+    slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
+    inter = float(ds.get("RescaleIntercept", 0.0) or 0.0)
+    np.multiply(pixels, np.float32(slope), out=out, casting="unsafe")
+    out += np.float32(inter)
+    return "pydicom"
+
+
+def _gdcm_values(file, syntax, pydicom_error):
+    """One compressed slice decoded by GDCM (SimpleITK), rescaled to HU by it."""
+    import SimpleITK as sitk
+
+    try:
+        reader = sitk.ImageFileReader()
+        reader.SetImageIO("GDCMImageIO")
+        reader.SetFileName(str(file))
+        values = sitk.GetArrayFromImage(reader.Execute())
+    except RuntimeError as err:
+        raise ValueError(
+            f"read_ct: cannot decode the {syntax.name} pixel data of {str(file)!r}: pydicom "
+            f"({type(pydicom_error).__name__}: {pydicom_error}) nor GDCM ({err})") from err
+    return values[0] if values.ndim == 3 and values.shape[0] == 1 else values
+
+
+def _check_shape(pixels, out, file):
+    if pixels.shape != out.shape:
+        raise ValueError(
+            f"read_ct: DICOM slice {str(file)!r} is {pixels.shape}, expected {out.shape}")
 
 
 def _untilt(volume, shift, dx, dy, folder):

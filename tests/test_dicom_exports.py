@@ -1,0 +1,171 @@
+"""DICOM series as PACS and CD exports deliver them: compressed pixel data (JPEG Lossless,
+JPEG 2000), lossy compression marked in the header, and nested folders of extension-less
+files beside a DICOMDIR.
+
+Compressed copies are made from uncompressed series: the stored pixel values encoded by
+GDCM (SimpleITK's writer) and put back into the original dataset under the new transfer
+syntax, so each compressed file differs from its original in its pixel data encoding only.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+import pvcmf
+from pvcmf import arrays
+
+from test_io import DIMS, ORIGIN, SPACING, known_values, write_dicom_series
+
+pydicom = pytest.importorskip("pydicom")
+sitk = pytest.importorskip("SimpleITK")
+
+#: SimpleITK's compressor names and the transfer syntax GDCM writes for each
+SYNTAXES = {"JPEG": "1.2.840.10008.1.2.4.70", "JPEG2000": "1.2.840.10008.1.2.4.90"}
+
+
+def write_series(folder, raw, **options):
+    folder.mkdir(parents=True, exist_ok=True)
+    write_dicom_series(folder, raw, SPACING, ORIGIN, **options)
+
+
+def compress_file(src, dst, compressor):
+    """``src`` with its stored pixel values encoded by GDCM (``compressor``), to ``dst``."""
+    ds = pydicom.dcmread(src)
+    stored = sitk.GetImageFromArray(ds.pixel_array.astype(np.int16)[None])
+    tmp = dst.with_name(dst.name + ".gdcm.dcm")
+    writer = sitk.ImageFileWriter()
+    writer.SetImageIO("GDCMImageIO")
+    writer.SetFileName(str(tmp))
+    writer.SetUseCompression(True)
+    writer.SetCompressor(compressor)
+    writer.Execute(stored)
+    encoded = pydicom.dcmread(tmp)
+    tmp.unlink()
+    assert encoded.file_meta.TransferSyntaxUID == SYNTAXES[compressor]
+    ds.file_meta.TransferSyntaxUID = encoded.file_meta.TransferSyntaxUID
+    ds.PixelData = encoded.PixelData
+    ds["PixelData"].VR = "OB"
+    ds["PixelData"].is_undefined_length = True
+    ds.save_as(dst, enforce_file_format=True)
+
+
+def compress_folder(src, dst, compressor, pattern="*"):
+    dst.mkdir(parents=True, exist_ok=True)
+    for path in sorted(src.glob(pattern)):
+        if path.suffix == ".dcm":
+            compress_file(path, dst / path.name, compressor)
+
+
+def pydicom_decodes(path):
+    try:
+        pydicom.dcmread(path).pixel_array
+    except Exception:  # noqa: BLE001 - any decoder failure
+        return False
+    return True
+
+
+@pytest.mark.parametrize("compressor", sorted(SYNTAXES))
+def test_compressed_series_reads_as_its_original(tmp_path, compressor, caplog):
+    raw = known_values()
+    write_series(tmp_path / "plain", raw, slope=2.0, intercept=-1024.0)
+    compress_folder(tmp_path / "plain", tmp_path / "packed", compressor)
+    with caplog.at_level("INFO", logger="pvcmf"):
+        packed = pvcmf.read_ct(tmp_path / "packed")
+    plain = pvcmf.read_ct(tmp_path / "plain")
+    assert packed.dimensions == DIMS
+    np.testing.assert_array_equal(packed[arrays.CT], plain[arrays.CT])
+    np.testing.assert_array_equal(np.sort(plain[arrays.CT]),
+                                  np.sort(2.0 * raw.ravel().astype(float) - 1024.0))
+    first = next((tmp_path / "packed").glob("*.dcm"))
+    gdcm = "decoded by GDCM" in caplog.text
+    assert gdcm == (not pydicom_decodes(first)), caplog.text
+
+
+def test_jpeg_lossless_is_decoded_without_a_pydicom_plugin(tmp_path, monkeypatch):
+    """JPEG Lossless (process 14), the usual PACS export, read where pydicom has no decoder
+    for it (as in a plain ``pip install pvcmf``): GDCM decodes it."""
+    write_series(tmp_path / "plain", known_values())
+    compress_folder(tmp_path / "plain", tmp_path / "packed", "JPEG")
+
+    def no_decoder(self):
+        raise RuntimeError(f"no plugin for {self.file_meta.TransferSyntaxUID.name}")
+
+    plain = pvcmf.read_ct(tmp_path / "plain")
+    monkeypatch.setattr(pydicom.dataset.Dataset, "pixel_array", property(no_decoder))
+    packed = pvcmf.read_ct(tmp_path / "packed")
+    np.testing.assert_array_equal(packed[arrays.CT], plain[arrays.CT])
+    with pytest.raises(ValueError, match="cannot decode DICOM pixel data of .*IM"):
+        pvcmf.read_ct(tmp_path / "plain")  # uncompressed data pydicom fails on: no fallback
+
+
+def test_undecodable_compressed_slice_is_named(tmp_path):
+    write_series(tmp_path / "plain", known_values(), extra_file=False)
+    compress_folder(tmp_path / "plain", tmp_path / "packed", "JPEG")
+    victim = sorted((tmp_path / "packed").glob("*.dcm"))[2]
+    ds = pydicom.dcmread(victim)
+    ds.PixelData = ds.PixelData[:40]  # the stream cut short
+    ds["PixelData"].is_undefined_length = True
+    ds.save_as(victim, enforce_file_format=True)
+    with pytest.raises(ValueError, match=f"{victim.name}.*JPEG Lossless"):
+        pvcmf.read_ct(tmp_path / "packed")
+
+
+def test_lossy_compressed_series_is_warned(tmp_path, caplog):
+    write_dicom_series(tmp_path, known_values(), SPACING, ORIGIN, extra_file=False)
+    for path in sorted(tmp_path.glob("*.dcm"))[:3]:
+        ds = pydicom.dcmread(path)
+        ds.LossyImageCompression, ds.LossyImageCompressionRatio = "01", "8.5"
+        ds.save_as(path, enforce_file_format=True)
+    with caplog.at_level("WARNING"):
+        pvcmf.read_ct(tmp_path)
+    assert "3 of 7 slices are marked lossy compressed (ratio 8.5)" in caplog.text
+
+
+def test_nested_export_folder(tmp_path, caplog):
+    """A CD export: DICOMDIR at the root, series in nested folders, files without suffix."""
+    raw = known_values()
+    series = tmp_path / "DICOM" / "ST000000" / "SE000001"
+    scout = tmp_path / "DICOM" / "ST000000" / "SE000000"
+    for folder, vol, name in ((series, raw, "head 1.0 H30s"), (scout, raw[:, :, :3], "scout")):
+        folder.mkdir(parents=True)
+        write_dicom_series(folder, vol, SPACING, ORIGIN, description=name, extra_file=False)
+        for k, path in enumerate(sorted(folder.glob("*.dcm"))):
+            path.rename(folder / f"IM{k:06d}")
+    (tmp_path / "DICOMDIR").write_bytes(b"\0" * 128 + b"DICM")  # a directory record, no image
+    with caplog.at_level("WARNING"):
+        out = pvcmf.read_ct(tmp_path)
+    reference = pvcmf.read_ct(series)
+    assert out.dimensions == DIMS
+    np.testing.assert_array_equal(out[arrays.CT], reference[arrays.CT])
+    assert "2 DICOM series" in caplog.text
+    assert "'scout'" in caplog.text and "SE000000" in caplog.text
+    assert pvcmf.read_ct(tmp_path, series="scout").dimensions == DIMS[:2] + (3,)
+
+
+def test_folder_without_images_in_any_subfolder(tmp_path):
+    (tmp_path / "a" / "b").mkdir(parents=True)
+    (tmp_path / "a" / "b" / "notes.txt").write_text("no images here")
+    with pytest.raises(ValueError, match="no readable DICOM image slice, nor do its subfolders"):
+        pvcmf.read_ct(tmp_path)
+
+
+def test_real_scan_exported_as_jpeg_lossless(data_dir, tmp_path):
+    """Forty slices of the female head CT, compressed as a PACS exports them, read back to
+    the same HU as the uncompressed files."""
+    src = data_dir / "vhp_female_head"
+    files = sorted(src.glob("*.dcm"))
+    if len(files) < 200:
+        pytest.skip(f"{src} not in the data folder")
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for path in files[150:190]:  # the teeth and the jaws: bone, enamel and air
+        shutil.copy(path, plain / path.name)
+    compress_folder(plain, tmp_path / "packed", "JPEG")
+    packed = pvcmf.read_ct(tmp_path / "packed")
+    reference = pvcmf.read_ct(plain)
+    assert packed.dimensions == reference.dimensions and packed.dimensions[2] == 40
+    np.testing.assert_array_equal(packed[arrays.CT], reference[arrays.CT])
+    assert np.ptp(reference[arrays.CT]) > 2000  # air to enamel: the data is not trivial
