@@ -1,6 +1,7 @@
 """DICOM series as PACS and CD exports deliver them: compressed pixel data (JPEG Lossless,
-JPEG 2000), lossy compression marked in the header, and nested folders of extension-less
-files beside a DICOMDIR.
+JPEG 2000), lossy compression marked in the header, nested folders of extension-less
+files beside a DICOMDIR, and Enhanced CT multi-frame files (the whole stack in one file,
+its geometry in functional groups).
 
 Compressed copies are made from uncompressed series: the stored pixel values encoded by
 GDCM (SimpleITK's writer) and put back into the original dataset under the new transfer
@@ -169,3 +170,175 @@ def test_real_scan_exported_as_jpeg_lossless(data_dir, tmp_path):
     assert packed.dimensions == reference.dimensions and packed.dimensions[2] == 40
     np.testing.assert_array_equal(packed[arrays.CT], reference[arrays.CT])
     assert np.ptp(reference[arrays.CT]) > 2000  # air to enamel: the data is not trivial
+
+
+# --------------------------------------------------------------------------- multi-frame
+def enhanced_from_slices(paths, dst, *, order=None, per_frame_rescale=False):
+    """The classic slices ``paths`` as one Enhanced CT multi-frame file ``dst``: frames in
+    ``order`` (default: as given), geometry and rescale in functional groups only."""
+    from pydicom.dataset import Dataset, FileMetaDataset
+    from pydicom.sequence import Sequence
+    from pydicom.uid import EnhancedCTImageStorage, ExplicitVRLittleEndian, generate_uid
+
+    slices = [pydicom.dcmread(p) for p in paths]
+    order = range(len(slices)) if order is None else order
+    slices = [slices[i] for i in order]
+    first = slices[0]
+
+    def item(**values):
+        ds = Dataset()
+        for key, value in values.items():
+            setattr(ds, key, value)
+        return ds
+
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID, meta.MediaStorageSOPInstanceUID = (
+        EnhancedCTImageStorage, generate_uid())
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID, ds.SOPInstanceUID = EnhancedCTImageStorage, meta.MediaStorageSOPInstanceUID
+    for key in ("Modality", "StudyInstanceUID", "SeriesInstanceUID", "FrameOfReferenceUID",
+                "PatientName", "PatientID", "SeriesDescription", "SeriesNumber", "Rows",
+                "Columns", "SamplesPerPixel", "PhotometricInterpretation", "BitsAllocated",
+                "BitsStored", "HighBit", "PixelRepresentation"):
+        setattr(ds, key, first[key].value)
+    ds.NumberOfFrames = len(slices)
+    rescale = lambda s: item(RescaleSlope=s.RescaleSlope,  # noqa: E731
+                             RescaleIntercept=s.RescaleIntercept, RescaleType="HU")
+    shared = item(
+        PixelMeasuresSequence=Sequence([item(PixelSpacing=first.PixelSpacing,
+                                             SliceThickness=first.SliceThickness)]),
+        PlaneOrientationSequence=Sequence([item(
+            ImageOrientationPatient=first.ImageOrientationPatient)]))
+    if not per_frame_rescale:
+        shared.PixelValueTransformationSequence = Sequence([rescale(first)])
+    ds.SharedFunctionalGroupsSequence = Sequence([shared])
+    frames = []
+    for s in slices:
+        own = item(PlanePositionSequence=Sequence([item(
+            ImagePositionPatient=s.ImagePositionPatient)]))
+        if per_frame_rescale:
+            own.PixelValueTransformationSequence = Sequence([rescale(s)])
+        frames.append(own)
+    ds.PerFrameFunctionalGroupsSequence = Sequence(frames)
+    ds.PixelData = b"".join(s.PixelData for s in slices)
+    ds.save_as(dst, enforce_file_format=True)
+
+
+@pytest.mark.parametrize("per_frame_rescale", [False, True])
+def test_enhanced_multiframe_ct_reads_as_its_slices(tmp_path, per_frame_rescale):
+    raw = known_values()
+    write_series(tmp_path / "plain", raw, slope=2.0, intercept=-1024.0, extra_file=False)
+    paths = sorted((tmp_path / "plain").glob("*.dcm"))
+    if per_frame_rescale:  # each frame its own rescale: the stored values differ per frame
+        for k, path in enumerate(paths):
+            ds = pydicom.dcmread(path)
+            ds.RescaleIntercept = -1024.0 + 10 * k
+            ds.save_as(path, enforce_file_format=True)
+    (tmp_path / "multi").mkdir()
+    order = np.random.default_rng(3).permutation(len(paths))  # frames not in slice order
+    enhanced_from_slices(paths, tmp_path / "multi" / "ct.dcm", order=order,
+                         per_frame_rescale=per_frame_rescale)
+    multi, plain = pvcmf.read_ct(tmp_path / "multi"), pvcmf.read_ct(tmp_path / "plain")
+    assert multi.dimensions == DIMS
+    np.testing.assert_allclose(multi.origin, plain.origin)
+    np.testing.assert_allclose(multi.spacing, SPACING)
+    np.testing.assert_array_equal(multi[arrays.CT], plain[arrays.CT])
+    assert len(np.unique(plain[arrays.CT])) == raw.size  # every voxel told apart
+
+
+def test_enhanced_multiframe_without_geometry_is_not_an_image(tmp_path):
+    write_series(tmp_path / "plain", known_values(), extra_file=False)
+    (tmp_path / "multi").mkdir()
+    enhanced_from_slices(sorted((tmp_path / "plain").glob("*.dcm")), tmp_path / "multi" / "a")
+    ds = pydicom.dcmread(tmp_path / "multi" / "a")
+    del ds.PerFrameFunctionalGroupsSequence[2].PlanePositionSequence
+    ds.save_as(tmp_path / "multi" / "a", enforce_file_format=True)
+    with pytest.raises(ValueError, match="no readable DICOM image slice"):
+        pvcmf.read_ct(tmp_path / "multi")
+
+
+def test_enhanced_multiframe_pydicom_cannot_decode_is_named(tmp_path, monkeypatch):
+    write_series(tmp_path / "plain", known_values(), extra_file=False)
+    (tmp_path / "multi").mkdir()
+    enhanced_from_slices(sorted((tmp_path / "plain").glob("*.dcm")), tmp_path / "multi" / "a")
+
+    def no_decoder(self):
+        raise RuntimeError("no plugin")
+
+    monkeypatch.setattr(pydicom.dataset.Dataset, "pixel_array", property(no_decoder))
+    with pytest.raises(ValueError, match="multi-frame file .*/a'"):
+        pvcmf.read_ct(tmp_path / "multi")
+
+
+def compress_enhanced(paths, dst, tmp, **options):
+    """:func:`enhanced_from_slices` with JPEG Lossless frames (GDCM's, one per slice)."""
+    from pydicom.encaps import encapsulate, generate_frames
+
+    packed = [tmp / f"jpeg_{p.name}" for p in paths]
+    for path, out in zip(paths, packed):
+        compress_file(path, out, "JPEG")
+    enhanced_from_slices(paths, dst, **options)
+    ds = pydicom.dcmread(dst)
+    order = options.get("order", range(len(paths)))
+    frames = [next(generate_frames(pydicom.dcmread(packed[i]).PixelData, number_of_frames=1))
+              for i in order]
+    ds.file_meta.TransferSyntaxUID = SYNTAXES["JPEG"]
+    ds.PixelData = encapsulate(frames)
+    ds["PixelData"].VR = "OB"
+    ds["PixelData"].is_undefined_length = True
+    ds.save_as(dst, enforce_file_format=True)
+
+
+def no_pydicom_decoder(monkeypatch):
+    def no_decoder(self):
+        raise RuntimeError(f"no plugin for {self.file_meta.TransferSyntaxUID.name}")
+
+    monkeypatch.setattr(pydicom.dataset.Dataset, "pixel_array", property(no_decoder))
+
+
+def test_enhanced_multiframe_jpeg_lossless_decoded_by_gdcm(tmp_path, monkeypatch):
+    write_series(tmp_path / "plain", known_values(), slope=2.0, intercept=-1024.0,
+                 extra_file=False)
+    paths = sorted((tmp_path / "plain").glob("*.dcm"))
+    (tmp_path / "multi").mkdir()
+    compress_enhanced(paths, tmp_path / "multi" / "ct", tmp_path,
+                      order=np.random.default_rng(5).permutation(len(paths)))
+    plain = pvcmf.read_ct(tmp_path / "plain")
+    no_pydicom_decoder(monkeypatch)
+    multi = pvcmf.read_ct(tmp_path / "multi")
+    np.testing.assert_array_equal(multi[arrays.CT], plain[arrays.CT])
+
+
+def test_enhanced_multiframe_gdcm_cannot_rescale_per_frame(tmp_path, monkeypatch):
+    """GDCM applies one rescale to every frame: frames with their own are refused."""
+    write_series(tmp_path / "plain", known_values(), extra_file=False)
+    paths = sorted((tmp_path / "plain").glob("*.dcm"))
+    (tmp_path / "multi").mkdir()
+    compress_enhanced(paths, tmp_path / "multi" / "ct", tmp_path, per_frame_rescale=True)
+    ds = pydicom.dcmread(tmp_path / "multi" / "ct")
+    ds.PerFrameFunctionalGroupsSequence[1].PixelValueTransformationSequence[0] \
+        .RescaleIntercept = -1000.0
+    ds.save_as(tmp_path / "multi" / "ct", enforce_file_format=True)
+    no_pydicom_decoder(monkeypatch)
+    with pytest.raises(ValueError, match="JPEG Lossless.*multi-frame.*pip install pylibjpeg"):
+        pvcmf.read_ct(tmp_path / "multi")
+
+
+def test_real_scan_as_enhanced_multiframe(data_dir, tmp_path):
+    """Forty slices of the female head CT as one Enhanced CT file read as the slices do."""
+    files = sorted((data_dir / "vhp_female_head").glob("*.dcm"))
+    if len(files) < 200:
+        pytest.skip("vhp_female_head not in the data folder")
+    (tmp_path / "multi").mkdir()
+    enhanced_from_slices(files[150:190], tmp_path / "multi" / "IM1",
+                         order=np.random.default_rng(0).permutation(40))
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    for path in files[150:190]:
+        shutil.copy(path, plain / path.name)
+    multi, reference = pvcmf.read_ct(tmp_path / "multi"), pvcmf.read_ct(plain)
+    assert multi.dimensions == reference.dimensions
+    np.testing.assert_allclose(multi.origin, reference.origin)
+    np.testing.assert_array_equal(multi[arrays.CT], reference[arrays.CT])

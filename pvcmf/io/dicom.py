@@ -4,10 +4,11 @@ A folder may hold several series and files that are not DICOM, in subfolders too
 or CD export: a DICOMDIR beside folders of extension-less image files): the files that are
 not DICOM images are ignored, and of the series found in the folder and its subfolders the
 CT with the most slices is read (the others are logged with their folders) unless
-``series`` names one (UID, number or part of the description). Slices are sorted along the
-slice normal; RescaleSlope/RescaleIntercept are applied (a CT comes out in HU); missing
-slices (a step well above the steps either side of it) and duplicate slice positions are
-errors that say where. Uneven slice spacing (a protocol whose slice step changes along the
+``series`` names one (UID, number or part of the description). An enhanced multi-frame
+file (one file per series, :mod:`pvcmf.io.dicom_frames`) gives one slice per frame. Slices
+are sorted along the slice normal; RescaleSlope/RescaleIntercept are applied (a CT comes
+out in HU); missing slices (a step well above the steps either side of it) and duplicate
+slice positions are errors that say where. Uneven slice spacing (a protocol whose slice step changes along the
 stack, a displaced slice) is resampled (linear along the normal) onto the finest step, with
 a warning that names the steps. A tilted-gantry series (slice origins drifting in-plane
 along the stack) is resampled slice by slice (linear) onto an orthogonal stack.
@@ -28,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 import pyvista as pv
+
+from .dicom_frames import FrameCache, frame_headers, frame_index, gdcm_read
 
 log = logging.getLogger(__name__)
 
@@ -128,6 +131,8 @@ def read_dicom_series(folder, wanted=None):
             continue  # not DICOM: ignored
         if "ImagePositionPatient" in ds and "PixelSpacing" in ds and "Rows" in ds:
             headers.append((file, ds))
+        elif int(ds.get("NumberOfFrames", 1) or 1) > 1:  # enhanced multi-frame: per frame
+            headers.extend((file, head) for head in frame_headers(ds))
     if not headers:
         raise ValueError(
             f"read_ct: folder {str(folder)!r} holds no readable DICOM image slice, nor do its "
@@ -144,9 +149,10 @@ def read_dicom_series(folder, wanted=None):
     check_spacing([dx, dy, dz], folder)
     _check_lossy(folder, slices)
     volume = np.empty((len(slices), rows, cols), dtype=np.float32)
-    decoded_by = set()
-    for k, (file, _) in enumerate(slices):  # one file per slice: I/O, not a voxel loop
-        decoded_by.add(_slice_values(pydicom.dcmread(file), file, volume[k]))
+    decoded_by, frames = set(), FrameCache()
+    for k, (file, head) in enumerate(slices):  # one file per slice: I/O, not a voxel loop
+        decoded_by.add(_slice_values(pydicom.dcmread(file), file, volume[k])
+                       if frame_index(head) is None else frames.values(file, head, volume[k]))
     if "GDCM" in decoded_by:
         log.info("read_ct: %s: compressed pixel data pydicom has no decoder for here, "
                  "decoded by GDCM (SimpleITK)", folder)
@@ -205,13 +211,8 @@ def _slice_values(ds, file, out):
 
 def _gdcm_values(file, syntax, pydicom_error):
     """One compressed slice decoded by GDCM (SimpleITK), rescaled to HU by it."""
-    import SimpleITK as sitk
-
     try:
-        reader = sitk.ImageFileReader()
-        reader.SetImageIO("GDCMImageIO")
-        reader.SetFileName(str(file))
-        values = sitk.GetArrayFromImage(reader.Execute())
+        values = gdcm_read(file)
     except RuntimeError as err:
         raise ValueError(
             f"read_ct: cannot decode the {syntax.name} pixel data of {str(file)!r}: pydicom "
