@@ -342,3 +342,24 @@ def test_real_scan_as_enhanced_multiframe(data_dir, tmp_path):
     assert multi.dimensions == reference.dimensions
     np.testing.assert_allclose(multi.origin, reference.origin)
     np.testing.assert_array_equal(multi[arrays.CT], reference[arrays.CT])
+
+
+def test_localizer_in_the_series_is_left_out(tmp_path, caplog):
+    """A lateral localizer filed under the axial series' UID: read without it, warned."""
+    raw = known_values()
+    write_series(tmp_path, raw, extra_file=False)
+    ds = pydicom.dcmread(sorted(tmp_path.glob("*.dcm"))[0])
+    ds.ImageOrientationPatient = [0.0, 1.0, 0.0, 0.0, 0.0, -1.0]  # sagittal
+    ds.Rows, ds.Columns = 5, 8
+    ds.PixelData = np.arange(40, dtype="<i2").tobytes()
+    ds.ImagePositionPatient = [0.0, -100.0, 100.0]
+    ds.SOPInstanceUID = ds.file_meta.MediaStorageSOPInstanceUID = pydicom.uid.generate_uid()
+    ds.save_as(tmp_path / "localizer.dcm", enforce_file_format=True)
+    with caplog.at_level("WARNING"):
+        out = pvcmf.read_ct(tmp_path)
+    assert out.dimensions == DIMS
+    np.testing.assert_array_equal(out[arrays.CT], pvcmf.read_ct(tmp_path, series="CT")[arrays.CT])
+    assert "leaving out 1 of orientation [0.0, 1.0, 0.0, 0.0, 0.0, -1.0], 5x8 pixels" \
+        in caplog.text
+    (tmp_path / "localizer.dcm").unlink()
+    np.testing.assert_array_equal(pvcmf.read_ct(tmp_path)[arrays.CT], out[arrays.CT])

@@ -8,10 +8,12 @@ CT with the most slices is read (the others are logged with their folders) unles
 file (one file per series, :mod:`pvcmf.io.dicom_frames`) gives one slice per frame. Slices
 are sorted along the slice normal; RescaleSlope/RescaleIntercept are applied (a CT comes
 out in HU); missing slices (a step well above the steps either side of it) and duplicate
-slice positions are errors that say where. Uneven slice spacing (a protocol whose slice step changes along the
-stack, a displaced slice) is resampled (linear along the normal) onto the finest step, with
-a warning that names the steps. A tilted-gantry series (slice origins drifting in-plane
-along the stack) is resampled slice by slice (linear) onto an orthogonal stack.
+slice positions are errors that say where. Images of another orientation or size filed
+under the series' UID (a localizer, a reformat) are left out, with a warning. Uneven slice
+spacing (a protocol whose slice step changes along the stack, a displaced slice) is
+resampled (linear along the normal) onto the finest step, with a warning that names the
+steps. A tilted-gantry series (slice origins drifting in-plane along the stack) is
+resampled slice by slice (linear) onto an orthogonal stack.
 
 Compressed pixel data that pydicom has no decoder for in this environment (JPEG Lossless,
 the usual lossless compression of PACS exports, JPEG-LS, 12-bit JPEG) is decoded by GDCM
@@ -78,6 +80,29 @@ def _pick_series(folder, headers, wanted):
     return series[chosen]
 
 
+def _one_stack(folder, slices):
+    """The slices of the series' stack: those sharing the most common orientation, size and
+    pixel spacing (a localizer or a reformat filed under the series' UID is left out, with
+    a warning)."""
+    def key(ds):
+        return (tuple(np.round(np.asarray(ds.ImageOrientationPatient, dtype=float), 3).tolist()),
+                int(ds.Rows), int(ds.Columns),
+                tuple(np.round(np.asarray(ds.PixelSpacing, dtype=float), 4).tolist()))
+
+    keys = [key(ds) for _, ds in slices]
+    counts = {k: keys.count(k) for k in set(keys)}
+    if len(counts) == 1:
+        return slices
+    main = max(counts, key=lambda k: (counts[k], k[1] * k[2]))
+    others = "; ".join(f"{n} of orientation {list(k[0])}, {k[1]}x{k[2]} pixels of "
+                       f"{list(k[3])} mm" for k, n in counts.items() if k != main)
+    log.warning("read_ct: %s: the series holds images of %d orientations or sizes; reading "
+                "its %d slices of orientation %s, %dx%d pixels, and leaving out %s (a "
+                "localizer or a reformat)", folder, len(counts), counts[main], list(main[0]),
+                main[1], main[2], others)
+    return [sl for sl, k in zip(slices, keys) if k == main]
+
+
 def _slice_geometry(folder, slices):
     """Sort the slices; return them, the slice step, and the in-plane shift per slice (tilt)."""
     first = slices[0][1]
@@ -140,7 +165,7 @@ def read_dicom_series(folder, wanted=None):
             "(expected a DICOM series folder, or a .nii, .nii.gz, .nrrd, .nhdr, .mha, .mhd or "
             ".vti file)"
         )
-    slices = _pick_series(folder, headers, wanted)
+    slices = _one_stack(folder, _pick_series(folder, headers, wanted))
     slices, origin, (row_dir, col_dir, normal), dz, shift, along = _slice_geometry(
         folder, slices)
     first = slices[0][1]
