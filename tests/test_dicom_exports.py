@@ -363,3 +363,22 @@ def test_localizer_in_the_series_is_left_out(tmp_path, caplog):
         in caplog.text
     (tmp_path / "localizer.dcm").unlink()
     np.testing.assert_array_equal(pvcmf.read_ct(tmp_path)[arrays.CT], out[arrays.CT])
+
+
+def test_a_series_exported_twice_is_read_once(tmp_path, caplog):
+    """The same images in two folders of an export (the same SOPInstanceUIDs): read once."""
+    export = tmp_path / "export"
+    write_series(export / "SE1", known_values(), extra_file=False)
+    shutil.copytree(export / "SE1", export / "backup" / "SE1")
+    with caplog.at_level("WARNING"):
+        out = pvcmf.read_ct(export)
+    assert "7 copies of images already found" in caplog.text
+    np.testing.assert_array_equal(out[arrays.CT], pvcmf.read_ct(export / "SE1")[arrays.CT])
+    (tmp_path / "multi").mkdir()  # a multi-frame file copied: its frames read once too
+    enhanced_from_slices(sorted((export / "SE1").glob("*.dcm")), tmp_path / "multi" / "a")
+    shutil.copy(tmp_path / "multi" / "a", tmp_path / "multi" / "b")
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        multi = pvcmf.read_ct(tmp_path / "multi")
+    assert "7 copies of images already found" in caplog.text
+    np.testing.assert_array_equal(multi[arrays.CT], out[arrays.CT])

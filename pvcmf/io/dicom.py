@@ -2,7 +2,8 @@
 
 A folder may hold several series and files that are not DICOM, in subfolders too (a PACS
 or CD export: a DICOMDIR beside folders of extension-less image files): the files that are
-not DICOM images are ignored, and of the series found in the folder and its subfolders the
+not DICOM images are ignored, an image found twice (the same SOPInstanceUID) is read
+once, and of the series found in the folder and its subfolders the
 CT with the most slices is read (the others are logged with their folders) unless
 ``series`` names one (UID, number or part of the description). An enhanced multi-frame
 file (one file per series, :mod:`pvcmf.io.dicom_frames`) gives one slice per frame. Slices
@@ -89,6 +90,7 @@ def _one_stack(folder, slices):
                 int(ds.Rows), int(ds.Columns),
                 tuple(np.round(np.asarray(ds.PixelSpacing, dtype=float), 4).tolist()))
 
+    slices = _once(folder, slices)
     keys = [key(ds) for _, ds in slices]
     counts = {k: keys.count(k) for k in set(keys)}
     if len(counts) == 1:
@@ -101,6 +103,22 @@ def _one_stack(folder, slices):
                 "localizer or a reformat)", folder, len(counts), counts[main], list(main[0]),
                 main[1], main[2], others)
     return [sl for sl, k in zip(slices, keys) if k == main]
+
+
+def _once(folder, slices):
+    """Each image once: copies of a file (the same SOPInstanceUID and frame, an export
+    holding a series twice) are read from the first path only, with a warning."""
+    seen, kept = set(), []
+    for file, ds in slices:
+        uid = str(ds.get("SOPInstanceUID", "")) or str(file)
+        key = (uid, frame_index(ds))
+        if key not in seen:
+            seen.add(key)
+            kept.append((file, ds))
+    if len(kept) < len(slices):
+        log.warning("read_ct: %s holds %d copies of images already found (the same "
+                    "SOPInstanceUID); each image is read once", folder, len(slices) - len(kept))
+    return kept
 
 
 def _slice_geometry(folder, slices):

@@ -22,9 +22,9 @@ __all__ = ["FrameCache", "frame_headers", "frame_index", "gdcm_read"]
 #: the attribute of a per-frame header that holds its frame's index in the file
 _FRAME = "pvcmf_frame_index"
 #: top-level attributes every frame's header carries over from the file
-_COPIED = ("SeriesInstanceUID", "SeriesNumber", "SeriesDescription", "Modality", "Rows",
-           "Columns", "LossyImageCompression", "LossyImageCompressionRatio",
-           "RescaleSlope", "RescaleIntercept")
+_COPIED = ("SOPInstanceUID", "SeriesInstanceUID", "SeriesNumber", "SeriesDescription",
+           "Modality", "Rows", "Columns", "LossyImageCompression",
+           "LossyImageCompressionRatio", "RescaleSlope", "RescaleIntercept")
 
 
 def frame_index(header):
