@@ -375,8 +375,9 @@ def _read_nifti(path):
     image = _run_vtk(reader, path)
     values = np.asarray(image.point_data.active_scalars)
     slope, inter = reader.GetRescaleSlope(), reader.GetRescaleIntercept()
-    if slope not in (0.0, 1.0) or inter != 0.0:  # NIfTI: slope 0 means "no scaling"
-        values = values.astype(np.float64) * slope + inter
+    # NIfTI: a slope of 0 (nibabel: or not finite) means "no scaling", the intercept too
+    if np.isfinite(slope) and slope != 0.0 and (slope != 1.0 or inter != 0.0):
+        values = values.astype(np.float64) * slope + (inter if np.isfinite(inter) else 0.0)
     matrix = reader.GetSFormMatrix() or reader.GetQFormMatrix()
     geometry = pv.ImageData(dimensions=image.dimensions, spacing=image.spacing)
     if matrix is not None:
