@@ -1,13 +1,15 @@
-"""The jaws found from the anatomy on scans reconstructed in thick slices and on heads scanned
-tilted, against the same scan's jaws at 1 mm and upright (Visible Human female and male),
-and against the virtual patient's true segments.
+"""The jaws found from the anatomy on scans reconstructed in thick slices, on heads scanned
+tilted and on noisy or blurred scans, against the same scan's jaws at 1 mm, upright and as
+scanned (Visible Human female and male), and against the virtual patient's true segments.
 
-Not run by CI. ``python benchmarks/jaws.py [--write]`` (needs ``PVCMF_DATA_DIR``; about 10
+Not run by CI. ``python benchmarks/jaws.py [--write]`` (needs ``PVCMF_DATA_DIR``; about 15
 minutes on two cores). Thick slices: every ``step``-th slice of the 1 mm scan kept, from
 each slice position (``phase``); the Dice of the mandible and the Le Fort I maxilla against
-the 1 mm scan's on the slices kept. Tilted: the 1 mm scan turned about the left-right axis
-through its centre (trilinear; chin down for a negative angle), against the upright scan's
-jaws turned the same way (nearest voxel). Virtual patient 1 (2 mm): its labels and its true
+the 1 mm scan's on the slices kept. Tilted: the 1 mm scan turned through its centre about
+the left-right axis (trilinear; chin down for a negative angle), the vertical one (yaw) or
+the anterior one (roll), against the upright scan's jaws turned the same way (nearest
+voxel). Degraded: correlated Gaussian noise added (``NOISE_HU``), or the scan blurred by a
+Gaussian of ``BLUR_VOXELS`` voxels. Virtual patient 1 (2 mm): its labels and its true
 segments turned the same way (nearest voxel). ``--write`` also writes
 ``docs/benchmarks/jaws.md`` with the command and the machine.
 """
@@ -35,6 +37,14 @@ ROOT = Path(__file__).resolve().parents[1]
 SCANS = {"female": "vhp_female_head", "male": "vhp_male_head"}
 STEPS = ((2, (0, 1)), (3, (0, 1, 2)), (4, (0, 2)), (5, (0, 3)))
 PITCH = (-15.0, -8.0, 15.0)
+#: other turns (degrees) of the head: about the vertical axis (yaw) and the anterior one (roll)
+TURNS = (("z", 10.0), ("y", 6.0), ("y", -10.0))
+#: standard deviations (HU) of the added noise (Gaussian, correlated over about a voxel, as a
+#: low-dose reconstruction's)
+NOISE_HU = (30.0, 60.0)
+#: standard deviation (voxels) of the Gaussian blur standing for a smoother reconstruction
+#: kernel than the scan's own
+BLUR_VOXELS = 1.0
 PHANTOM_PITCH = (-30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0)
 
 
@@ -62,9 +72,12 @@ def jaws(img):
     return found, [w for w in said if w.startswith("find_jaws")]
 
 
-def turned(values, spacing, degrees, order, cval):
+def turned(values, spacing, degrees, order, cval, axis="x"):
     a = np.radians(degrees)
-    turn = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    c_, s_ = np.cos(a), np.sin(a)
+    turn = {"x": np.array([[1, 0, 0], [0, c_, -s_], [0, s_, c_]]),
+            "y": np.array([[c_, 0, s_], [0, 1, 0], [-s_, 0, c_]]),
+            "z": np.array([[c_, -s_, 0], [s_, c_, 0], [0, 0, 1]])}[axis]
     s = np.asarray(spacing, float)
     c = (np.asarray(values.shape) - 1) / 2
     matrix = (turn.T * s[None, :]) / s[:, None]
@@ -105,6 +118,31 @@ def real_rows(name, folder):
         rows.append(row(name, f"turned {degrees:+g} degrees", found,
                         turned(ref, ct.spacing, degrees, 0, 0), warned))
         print(rows[-1], flush=True)
+    for axis, degrees in TURNS:
+        img = image(turned(v, ct.spacing, degrees, 1, float(v.min()), axis), ct.spacing,
+                    ct.origin)
+        found, warned = jaws(img)
+        what = {"z": "vertical axis (yaw)", "y": "anterior axis (roll)"}[axis]
+        rows.append(row(name, f"turned {degrees:+g} degrees about the {what}", found,
+                        turned(ref, ct.spacing, degrees, 0, 0, axis), warned))
+        print(rows[-1], flush=True)
+    return rows + degraded_rows(name, ct, v, ref)
+
+
+def degraded_rows(name, ct, v, ref):
+    """The scan with noise added and blurred, against its own jaws."""
+    rows = []
+    rng = np.random.default_rng(0)
+    for sd in NOISE_HU:
+        noise = ndimage.gaussian_filter(rng.normal(0.0, 1.0, v.shape).astype(np.float32), 0.8)
+        found, warned = jaws(image(v + noise * np.float32(sd / noise.std()), ct.spacing,
+                                   ct.origin))
+        rows.append(row(name, f"noise {sd:g} HU", found, ref, warned))
+        print(rows[-1], flush=True)
+    sigma = np.round(BLUR_VOXELS * np.asarray(ct.spacing), 2).tolist()
+    found, warned = jaws(image(ndimage.gaussian_filter(v, BLUR_VOXELS), ct.spacing, ct.origin))
+    rows.append(row(name, f"blurred (Gaussian, sigma {sigma} mm)", found, ref, warned))
+    print(rows[-1], flush=True)
     return rows
 
 
@@ -143,12 +181,15 @@ def main():
     rows += phantom_rows()
     command = "PVCMF_DATA_DIR=/path/to/data python benchmarks/jaws.py --write"
     text = "\n".join([
-        "# Jaws from the anatomy: thick slices and tilted heads",
+        "# Jaws from the anatomy: thick slices, tilted heads, noise and blur",
         "",
         "`pvcmf.filters.find_jaws` on the Visible Human heads reconstructed in thick slices "
-        "(every 2nd to 5th slice of the 1 mm scan kept, from each slice position) and turned "
-        "about the left-right axis (negative: chin down), against the same scan's jaws at "
-        "1 mm and upright (on the slices kept; turned the same way, nearest voxel); and the "
+        "(every 2nd to 5th slice of the 1 mm scan kept, from each slice position), turned "
+        "about the left-right axis (negative: chin down), the vertical axis and the anterior "
+        "one, with noise added (Gaussian, correlated over about a voxel) and blurred (a "
+        "Gaussian of one voxel, standing for a smoother reconstruction kernel), against the "
+        "same scan's jaws at 1 mm, upright and as scanned (on the slices kept; turned the "
+        "same way, nearest voxel); and the "
         "virtual patient's labels turned likewise against its true segments. Dice of the "
         "hard tissue as a whole (what the resampling and the segmentation of the thick or "
         "turned image leave: the segments cannot agree better), of the mandible and of the "
