@@ -244,6 +244,10 @@ def build_parser():
     sim.add_argument("--ct", required=True, type=Path,
                      help="CT file or DICOM folder (read by pvcmf.read_ct), or 'headsq' for "
                           "VTK's real head CT (pvcmf.datasets.headsq, in the patient frame)")
+    sim.add_argument("--series", default=None,
+                     help="for a DICOM folder holding several series: the number, UID or part "
+                          "of the description of the one to read (default: the CT series with "
+                          "the most slices; the log lists the others)")
     sim.add_argument("--plan", required=True, type=Path,
                      help="plan file (.toml or .json); an osteotomy may give a 4x4 'matrix' or "
                           "a 'transform' file (ITK/Slicer .tfm/.h5) instead of translation/"
@@ -323,7 +327,7 @@ def _simulate(args):
         ct = headsq(offset=args.offset if args.offset_given else None,
                     scale=args.scale if args.scale_given else None)
     else:
-        ct = read_ct(args.ct, offset=args.offset, scale=args.scale)
+        ct = read_ct(args.ct, offset=args.offset, scale=args.scale, series=args.series)
     if args.flip:
         ct = flip_axes(ct, args.flip)
     seconds = time.perf_counter() - start

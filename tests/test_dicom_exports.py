@@ -276,3 +276,33 @@ def test_a_series_exported_twice_is_read_once(tmp_path, caplog):
         multi = pvcmf.read_ct(tmp_path / "multi")
     assert "7 copies of images already found" in caplog.text
     np.testing.assert_array_equal(multi[arrays.CT], out[arrays.CT])
+
+
+def test_series_on_the_command_line(tmp_path, monkeypatch):
+    """``--series`` reaches read_ct from ``pvcmf simulate`` and ``pvcmf plan``."""
+    import pvcmf.cli as cli
+    from pvcmf.planner import app
+
+    seen = []
+
+    def fake_read(path, **options):
+        seen.append(options.get("series"))
+        raise SystemExit(0)
+
+    monkeypatch.setattr(cli, "read_ct", fake_read)
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[osteotomy]]\nsegment = "maxilla"\ntranslation = [0, 0, 3]\n')
+    with pytest.raises(SystemExit):
+        cli.main(["simulate", "--ct", str(tmp_path), "--plan", str(plan), "--out",
+                  str(tmp_path / "out"), "--series", "bone kernel", "--no-progress"])
+    monkeypatch.setattr(pvcmf.io, "read_ct", fake_read)
+    args = cli.build_parser().parse_args(["plan", "--ct", str(tmp_path), "--series", "3"])
+    with pytest.raises(SystemExit):
+        app._load_ct(args)
+    assert seen == ["bone kernel", "3"]
+
+
+def test_series_of_a_file_is_refused(tmp_path):
+    (tmp_path / "a.nii").write_bytes(b"")
+    with pytest.raises(ValueError, match="series='2' picks a series of a DICOM folder"):
+        pvcmf.read_ct(tmp_path / "a.nii", series="2")

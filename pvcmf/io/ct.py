@@ -142,6 +142,9 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="patient", series=None):
     if path.is_dir():
         image, values = _read_dicom_series(path, series)
         world = "LPS"
+    elif series is not None:
+        raise ValueError(f"read_ct: series={series!r} picks a series of a DICOM folder; "
+                         f"{str(path)!r} is a file")
     else:
         name = path.name.lower()
         suffix = ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()

@@ -198,6 +198,8 @@ def add_plan_parser(sub):
     p.add_argument("--ct", required=True,
                    help="CT file or DICOM folder, 'headsq' (VTK's head CT) or 'phantom[:N]' "
                         "(virtual patient N, 1-4)")
+    p.add_argument("--series", default=None,
+                   help="for a DICOM folder with several series: the one to read (see simulate)")
     p.add_argument("--plan", type=Path, default=None,
                    help="starting plan (.toml/.json); its cut planes define the segments")
     p.add_argument("--port", type=int, default=8080, help="port on 127.0.0.1 (default 8080)")
@@ -225,7 +227,7 @@ def _load_ct(args):
         ct = datasets.headsq()
     else:
         from ..io import read_ct
-        ct = read_ct(text)
+        ct = read_ct(text, series=args.series)
     if args.flip:
         from ..pipeline import flip_axes
         ct = flip_axes(ct, args.flip)
