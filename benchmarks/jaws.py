@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 from pathlib import Path
 
@@ -31,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's 
 import pvcmf  # noqa: E402
 from pvcmf import arrays  # noqa: E402
 from pvcmf.filters.bone_segments import segment_volumes  # noqa: E402
-from segmentation import machine  # noqa: E402  (benchmarks/segmentation.py)
+from segmentation import data_folder, write_page  # noqa: E402  (benchmarks/segmentation.py)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCANS = {"female": "vhp_female_head", "male": "vhp_male_head"}
@@ -171,18 +170,14 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--write", action="store_true", help="write docs/benchmarks/jaws.md")
     args = ap.parse_args()
-    root = Path(os.environ.get("PVCMF_DATA_DIR", ROOT / ".." / "shared" / "data"))
-    if not (root / SCANS["female"]).is_dir():
-        raise SystemExit(f"{root / SCANS['female']} not found: set PVCMF_DATA_DIR")
+    root = data_folder(SCANS["female"]).parent
     rows = ["| head | scan | Dice hard tissue | mandible (mL) | maxilla (mL) | Dice mandible | "
             "Dice maxilla | warned |", "|---|---|---:|---:|---:|---:|---:|---|"]
     for name, folder in SCANS.items():
         rows += real_rows(name, root / folder)
     rows += phantom_rows()
     command = "PVCMF_DATA_DIR=/path/to/data python benchmarks/jaws.py --write"
-    text = "\n".join([
-        "# Jaws from the anatomy: thick slices, tilted heads, noise and blur",
-        "",
+    write_page("jaws", "Jaws from the anatomy: thick slices, tilted heads, noise and blur", [
         "`pvcmf.filters.find_jaws` on the Visible Human heads reconstructed in thick slices "
         "(every 2nd to 5th slice of the 1 mm scan kept, from each slice position), turned "
         "about the left-right axis (negative: chin down), the vertical axis and the anterior "
@@ -197,14 +192,7 @@ def main():
         "split, no nasal floor).",
         "",
         *rows,
-        "",
-        f"Command: `{command}`",
-        "",
-        f"Machine: {machine()}.\n",
-    ])
-    print(text)
-    if args.write:
-        (ROOT / "docs" / "benchmarks" / "jaws.md").write_text(text)
+    ], command, args.write)
 
 
 if __name__ == "__main__":

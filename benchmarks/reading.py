@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import shutil
 import sys
 import tempfile
@@ -30,7 +29,7 @@ sys.path.insert(0, str(ROOT / "tests"))  # the export writers the tests use
 import pvcmf  # noqa: E402
 from dicom_helpers import compress_folder, enhanced_from_slices  # noqa: E402
 from pvcmf import arrays  # noqa: E402
-from segmentation import machine  # noqa: E402  (benchmarks/segmentation.py)
+from segmentation import data_folder, write_page  # noqa: E402  (benchmarks/segmentation.py)
 
 SCANS = {"female": "vhp_female_head", "male": "vhp_male_head"}
 
@@ -91,9 +90,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--write", action="store_true", help="write docs/benchmarks/reading.md")
     args = ap.parse_args()
-    data = Path(os.environ.get("PVCMF_DATA_DIR", ROOT / ".." / "shared" / "data"))
-    if not (data / SCANS["female"]).is_dir():
-        raise SystemExit(f"{data / SCANS['female']} not found: set PVCMF_DATA_DIR")
+    data = data_folder(SCANS["female"]).parent
     rows = ["| head | as | voxels | MB | read, CPU s | / plain | same volume |",
             "|---|---|---|---:|---:|---:|---|"]
     tmp = Path(tempfile.mkdtemp(prefix="pvcmf-reading-"))
@@ -102,10 +99,9 @@ def main():
             rows += rows_for(name, data / folder, tmp, args.repeat)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    command = f"PVCMF_DATA_DIR=/path/to/data python benchmarks/reading.py --repeat {args.repeat} --write"
-    text = "\n".join([
-        "# Reading DICOM exports",
-        "",
+    command = ("PVCMF_DATA_DIR=/path/to/data python benchmarks/reading.py "
+               f"--repeat {args.repeat} --write")
+    write_page("reading", "Reading DICOM exports", [
         "The Visible Human heads' plain DICOM slices written as exports deliver them and read "
         "by `pvcmf.read_ct`: a CD or PACS export (a DICOMDIR beside nested folders of files "
         "without a suffix) with every slice JPEG Lossless (GDCM's encoding: the usual lossless "
@@ -115,14 +111,7 @@ def main():
         "volume equals the plain read voxel for voxel with the same origin and spacing.",
         "",
         *rows,
-        "",
-        f"Command: `{command}`",
-        "",
-        f"Machine: {machine()}.\n",
-    ])
-    print(text)
-    if args.write:
-        (ROOT / "docs" / "benchmarks" / "reading.md").write_text(text)
+    ], command, args.write)
 
 
 if __name__ == "__main__":

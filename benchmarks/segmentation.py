@@ -61,15 +61,33 @@ def machine():
     return f"{cpu}, {cores} cores available, Python {platform.python_version()}"
 
 
+def data_folder(name):
+    """The data folder ``name`` (``PVCMF_DATA_DIR``, default ``../shared/data``); exits
+    naming it where it is missing."""
+    folder = Path(os.environ.get("PVCMF_DATA_DIR", ROOT / ".." / "shared" / "data")) / name
+    if not folder.is_dir():
+        raise SystemExit(f"{folder} not found: set PVCMF_DATA_DIR")
+    return folder
+
+
+def write_page(name, title, lines, command, write):
+    """Print a benchmark page (``title``, ``lines``, the command and the machine) and, where
+    ``write``, write it to ``docs/benchmarks/<name>.md``."""
+    text = "\n".join([f"# {title}", "", *lines, "", f"Command: `{command}`", "",
+                      f"Machine: {machine()}.", ""])
+    print(text)
+    if write:
+        out = ROOT / "docs" / "benchmarks" / f"{name}.md"
+        out.write_text(text)
+        print(f"wrote {out}")
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--write", action="store_true", help="write docs/benchmarks/segmentation.md")
     args = ap.parse_args()
-    root = Path(os.environ.get("PVCMF_DATA_DIR", ROOT / ".." / "shared" / "data"))
-    folder = root / "vhp_female_head"
-    if not folder.is_dir():
-        raise SystemExit(f"{folder} not found: set PVCMF_DATA_DIR")
+    folder = data_folder("vhp_female_head")
     runs = []
     for _ in range(args.repeats):
         seconds, classified, jaws, ct = one_run(folder)
@@ -83,9 +101,7 @@ def main():
     vols = {**{k: round(v, 1) for k, v in tissue_volumes(classified).items()},
             **{k: round(v, 1) for k, v in segment_volumes(jaws).items()}}
     command = "PVCMF_DATA_DIR=/path/to/data python benchmarks/segmentation.py --write"
-    text = "\n".join([
-        "# Segmentation speed on a real head CT",
-        "",
+    write_page("segmentation", "Segmentation speed on a real head CT", [
         "Visible Human female head CT, 1 mm, dimensions "
         f"{' x '.join(str(d) for d in ct.dimensions)}: seconds per step, median of "
         f"{args.repeats} runs. CPU seconds count every thread of the process.",
@@ -93,17 +109,7 @@ def main():
         *rows,
         "",
         "Volumes (mL) found: " + ", ".join(f"{k} {v}" for k, v in vols.items()) + ".",
-        "",
-        f"Command: `{command}`",
-        "",
-        f"Machine: {machine()}.",
-        "",
-    ])
-    print(text)
-    if args.write:
-        out = ROOT / "docs" / "benchmarks" / "segmentation.md"
-        out.write_text(text)
-        print(f"wrote {out}")
+    ], command, args.write)
 
 
 if __name__ == "__main__":
