@@ -26,6 +26,7 @@ __all__ = ["CMFAccessor", "METHODS"]
 #: accessor method -> (module, function) it delegates to
 METHODS = {
     "standardize": ("pvcmf.filters", "standardize"),
+    "working_grid": ("pvcmf.filters", "working_grid"),
     "segment": ("pvcmf.filters", "segment"),
     "find_jaws": ("pvcmf.filters", "find_jaws"),
     "classify_tissue": ("pvcmf.filters", "classify_tissue"),

@@ -302,6 +302,12 @@ SCAN_CUTS = "scan_cuts"
 #: cuts the head: z, the circle's centre x and y, its radius (mm)
 #: (:func:`pvcmf.filters.field_of_view.fov_cuts`)
 SCAN_FOV = "scan_fov"
+#: field (the CT of :func:`pvcmf.filters.working_grid`), int64, 3 values: the blocks of scan
+#: voxels averaged into one working voxel along x, y and z (1, 1, 1: the scan's own grid)
+WORKING_FACTORS = "working_factors"
+#: field (the CT of :func:`pvcmf.filters.working_grid`), float64, 3 values: the scan's own
+#: voxel spacing (mm) before the blocks
+SCAN_SPACING = "scan_spacing"
 #: point (skin), uint8, 1 where the skin lies on such a cut, the scan's edge and not the
 #: patient's skin (present when the labels have ``SCAN_CUTS`` or ``SCAN_FOV``)
 SKIN_CUT = "skin_cut"

@@ -115,6 +115,17 @@ def _orient(text):
     return code
 
 
+def _working_spacing(text):
+    """``--working-spacing``: 'auto', 'none' or a voxel size in mm (> 0)."""
+    if text.strip().lower() in ("auto", "none"):
+        return None if text.strip().lower() == "none" else "auto"
+    try:
+        return _positive_float(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected 'auto', 'none' or a voxel size in mm > 0, got {text!r}") from None
+
+
 def _flip(text):
     """``--flip``: distinct letters of 'xyz' (may be empty)."""
     axes = text.strip().lower()
@@ -271,6 +282,11 @@ def build_parser():
     sim.add_argument("--flip", type=_flip, default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")
+    sim.add_argument("--working-spacing", type=_working_spacing, default="auto",
+                     help="'auto' (a scan of more than 134 million voxels, e.g. a cone-beam CT "
+                          "at 0.2 mm, is averaged over blocks of whole voxels until it fits; "
+                          "default), a voxel size in mm to work at, or 'none' (the scan's grid "
+                          "whatever its size: about 50 bytes of memory per voxel)")
     _add_validate_parser(sub)
     add_sweep_parser(sub)  # `pvcmf sweep`: parameter studies on Dask (pvcmf/sweeps.py)
     add_plan_parser(sub)  # `pvcmf plan`: interactive planner (pvcmf/planner)
@@ -338,7 +354,7 @@ def _simulate(args):
                       predict=not args.no_predict, muscles=not args.no_muscles,
                       classify=args.classify, fit_skin=args.fit_skin,
                       figures=not args.no_figures, progress_bar=not args.no_progress,
-                      units=units, orient=args.orient)
+                      units=units, orient=args.orient, working_spacing=args.working_spacing)
     result.timings = {"read": seconds, **result.timings}
     if args.export is not None and result.post is not None:  # --export: the solved model
         result.files["export"] = export(result.post, args.export)

@@ -270,6 +270,8 @@ def write_outputs(result, out, images=None):
                "files": {k: Path(v).name for k, v in files.items()}}
     if result.ct_report:
         summary["ct"] = result.ct_report
+    if getattr(result, "working_grid", None):
+        summary["working_grid"] = result.working_grid
     for key in ("tissue_volumes", "segment_volumes"):  # mL per tissue / bone segment
         if getattr(result, key, None):
             summary[f"{key}_ml"] = getattr(result, key)

@@ -1,10 +1,11 @@
 """End-to-end prediction: CT + surgical plan -> predicted post-operative face.
 
 :func:`simulate` chains the pipeline steps of :mod:`pvcmf.filters` and :mod:`pvcmf.mtm`
-(segmentation, fat/muscle classification, muscles, meshing, materials, plan -> boundary conditions, MTM solve,
-skin), times every step, and, given an output folder, writes the predicted skin (VTP),
-the deformed mesh (VTU) and offscreen PNGs, each atomically (temporary file in the same
-folder + ``os.replace``: an interrupted run leaves no half-written file).
+(a working grid for very fine scans, segmentation, fat/muscle classification, muscles,
+meshing, materials, plan -> boundary conditions, MTM solve, skin), times every step, and,
+given an output folder, writes the predicted skin (VTP), the deformed mesh (VTU) and
+offscreen PNGs, each atomically (temporary file in the same folder + ``os.replace``: an
+interrupted run leaves no half-written file).
 
 Each stage (:data:`STEPS`) is a named function calling the filter of that name in
 :mod:`pvcmf.filters`; steps the caller turns off (muscles, prediction) or that decline on
@@ -25,15 +26,14 @@ from pathlib import Path
 
 import numpy as np
 import pyvista as pv
-from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from . import arrays, filters, mtm
 from ._atomic import write_text
-from .filters.bone_segments import segment_volumes
+from .filters.bone_segments import segment_volumes, transfer_segments
 from .filters.jaw_pose import check_pose
 from .filters.meshing.skin_fit import on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
+from .filters.resolution import describe_grid, working_factors
 from .filters.segment_coverage import check_coverage
 from .filters.segmentation import tissue_volumes
 from .filters.skin import NECK_BELOW_BOX, head_skin  # noqa: F401 (public here too)
@@ -54,7 +54,7 @@ log = logging.getLogger(__name__)
 __all__ = ["Result", "simulate", "head_skin", "STEPS", "write_outputs"]
 
 #: the steps of :func:`simulate`, in order, as named in the timing summary
-STEPS = ("read", "segment", "classify", "bone segments", "muscles", "mesh", "skin fit", "fibres",
+STEPS = ("read", "working grid", "segment", "classify", "bone segments", "muscles", "mesh", "skin fit", "fibres",
          "materials", "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
 
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
@@ -98,6 +98,10 @@ class Result:
     ct_report : dict
         Units and orientation found in the CT (:func:`pvcmf.filters.standardize`); empty
         when the CT was not checked.
+    working_grid : dict
+        The blocks of scan voxels averaged into the voxels segmented
+        (:func:`pvcmf.filters.working_grid`): ``factors``, ``scan_spacing_mm``,
+        ``spacing_mm``, ``scan_voxels``, ``voxels``; empty on the scan's own grid.
     skipped : dict
         Step name -> why it did not run.
     skin_fit : dict
@@ -120,6 +124,7 @@ class Result:
     tissue_volumes: dict = field(default_factory=dict)
     segment_volumes: dict = field(default_factory=dict)
     ct_report: dict = field(default_factory=dict)
+    working_grid: dict = field(default_factory=dict)
     skipped: dict = field(default_factory=dict)
     skin_fit: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
@@ -178,31 +183,6 @@ class _Runner:
 
 
 # --------------------------------------------------------------------------- steps
-def _transfer_bone_segments(labels, bones):
-    """Give every segmented bone voxel the segment id of the nearest ``bones`` voxel."""
-    ref = np.asarray(arrays.require_array(bones, arrays.BONE, "point", dtype="iu"))
-    ours = np.asarray(labels[arrays.BONE]) if arrays.BONE in labels.point_data else None
-    tissue = np.asarray(labels[arrays.TISSUE])
-    hard = np.isin(tissue, arrays.HARD_LABELS) | ((ours > 0) if ours is not None else False)
-    same = (tuple(bones.dimensions) == tuple(labels.dimensions)
-            and np.allclose(bones.origin, labels.origin)
-            and np.allclose(bones.spacing, labels.spacing))
-    new = np.zeros(labels.n_points, dtype=np.uint8)
-    if same:
-        vol = ref.reshape(tuple(bones.dimensions), order="F")
-        _, idx = ndimage.distance_transform_edt(vol == 0, sampling=bones.spacing,
-                                                return_indices=True)
-        nearest = vol[tuple(idx)].ravel(order="F")
-        new[hard] = nearest[hard]
-    else:
-        ref_pts = np.asarray(bones.points)[ref > 0]
-        _, near = cKDTree(ref_pts).query(np.asarray(labels.points)[hard])
-        new[hard] = ref[ref > 0][near]
-    out = labels.copy()
-    out[arrays.BONE] = new
-    return out
-
-
 def _segment(ct, options):
     return filters.segment(ct, **options)
 
@@ -307,7 +287,8 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              material_options=None, bc_options=None, solve_options=None, classify=True,
              muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
-             fit_skin=False, progress_bar=False, units=None, orient=None):
+             fit_skin=False, progress_bar=False, units=None, orient=None,
+             working_spacing="auto"):
     """Predict the post-operative face from a CT and a surgical plan.
 
     Parameters
@@ -378,6 +359,15 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         an offset; ``'auto'``, ``'none'`` or a code such as ``'LPI'``). Default: ``'auto'``
         for a CT read from a path, no check for a CT given in memory. What was found goes
         to :attr:`Result.ct_report` and ``summary.json`` (``"ct"``).
+    working_spacing : 'auto', float or None, default 'auto'
+        Step "working grid" (:func:`pvcmf.filters.working_grid`, before the units check and
+        the segmentation): ``'auto'`` keeps the scan's grid up to
+        :data:`pvcmf.filters.resolution.MAX_VOXELS` voxels and averages a finer scan (a
+        cone-beam CT at 0.2 mm) over blocks of whole voxels until it fits, with a warning;
+        a number asks for working voxels of about that size (mm); None keeps the scan's
+        grid whatever its size (about 50 bytes of memory per voxel). What was done:
+        :attr:`Result.working_grid` and ``summary.json`` (``"working_grid"``). Not used
+        when ``labels`` are given.
 
     Returns
     -------
@@ -399,6 +389,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     plan, opts = _check_inputs(plan, n_tets, face_fraction, bones, segment_options=segment_options,
                                mesh_options=mesh_options, material_options=material_options,
                                bc_options=bc_options, solve_options=solve_options)
+    working_factors((1, 1, 1), (1.0, 1.0, 1.0), working_spacing)  # refused before any work
     if not isinstance(fit_skin, (bool, dict)):  # options of fit_to_skin, or whether to fit
         raise TypeError(f"fit_skin must be a bool or a dict, got {type(fit_skin).__name__}")
     opts["fit_options"] = dict(fit_skin) if isinstance(fit_skin, dict) else ({} if fit_skin else None)
@@ -407,7 +398,8 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     with run_lock(out), capture_warnings(result.warnings), \
             Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
         run = _Runner(result, bar)
-        ct = _read_step(run, ct, units, orient)
+        ct = _read_step(run, ct, units, orient, "labels given" if labels is not None
+                        else working_spacing)
         labels = _label_steps(run, ct, labels, bones, plan, opts, classify)
         if muscles and predict:
             with_muscles = run.run("muscles", _muscles, labels, landmarks)
@@ -448,19 +440,43 @@ def _check_inputs(plan, n_tets, face_fraction, bones, **options):
     return plan, opts
 
 
-def _read_step(run, ct, units, orient):
-    """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`), then its units
-    and axes checked on the image (:func:`pvcmf.filters.standardize`): always for a CT read
-    from a path, for a CT in memory when ``units`` or ``orient`` is given."""
+def _read_step(run, ct, units, orient, working_spacing):
+    """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`); step "working
+    grid" (:func:`_working_grid`); then its units and axes checked on the image
+    (:func:`pvcmf.filters.standardize`): always for a CT read from a path, for a CT in
+    memory when ``units`` or ``orient`` is given."""
     if isinstance(ct, (str, Path)):
         ct = run.run("read", read_ct, ct)
         units, orient = units or "auto", orient or "auto"
     else:
         run.skip("read", "CT given in memory")
+    ct = _working_grid(run, ct, working_spacing)
     if units is not None or orient is not None:
         ct, run.result.ct_report = standardize(ct, units=units or "auto",
                                                orient=orient or "auto")
     return ct
+
+
+def _working_grid(run, ct, working_spacing):
+    """Step "working grid": a scan finer than ``working_spacing`` asks averaged over blocks
+    of whole voxels (:func:`pvcmf.filters.working_grid`), recorded in
+    :attr:`Result.working_grid`; warned about where ``'auto'`` chose it."""
+    if working_spacing == "labels given" or working_spacing is None:
+        run.skip("working grid", working_spacing or "working_spacing=None")
+        return ct
+    if not isinstance(ct, pv.ImageData):  # (refused by the segmentation)
+        run.skip("working grid", "no CT image")
+        return ct
+    factors = working_factors(ct.dimensions, ct.spacing, working_spacing)
+    if factors == (1, 1, 1):
+        run.skip("working grid", "the scan's own grid")
+        return ct
+    work = run.run("working grid", filters.working_grid, ct, working_spacing)
+    run.result.working_grid, text = describe_grid(ct, work)
+    (log.warning if working_spacing == "auto" else log.info)(
+        "simulate: %s (working_spacing=%r; None, or --working-spacing none, keeps the scan's "
+        "grid at about %.0f GB)", text, working_spacing, 50 * ct.n_points / 1e9)
+    return work
 
 
 def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
@@ -482,7 +498,7 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
         run.skip("segment", "labels given")
         run.skip("classify", "labels given")
     if bones is not None:
-        labels = run.run("bone segments", _transfer_bone_segments, labels, bones)
+        labels = run.run("bone segments", transfer_segments, labels, bones)
     else:
         run.skip("bone segments", _segment_sources(labels, plan))
     labels = check_coverage(cut_bones(labels, plan), plan)

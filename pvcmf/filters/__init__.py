@@ -21,6 +21,7 @@ register                  ``registration``            000 sec. V: ICP (point-to-
 distance_to               ``distance``                000 Fig. 6: signed distance maps
 map_to_surface            ``surface_mapping``         001: tet -> dense skin, Gaussian
 standardize               ``orientation``             CT in HU, face +y, vertex +z
+working_grid              ``resolution``              a very fine scan averaged in blocks
 ========================  ==========================  =====================================
 
 Modules are imported lazily, so ``import pvcmf`` stays fast and a heavy dependency
@@ -53,6 +54,7 @@ _REGISTRY = {
     "map_to_surface": "surface_mapping",
     "transfer_operator": "surface_mapping",
     "crumple_metric": "surface_mapping",
+    "working_grid": "resolution",
     "standardize": "orientation",  # check_units, orient_head: pvcmf.filters.orientation
 }
 

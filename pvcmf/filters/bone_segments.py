@@ -41,6 +41,7 @@ import logging
 import numpy as np
 import pyvista as pv
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from .. import arrays
 from .morphology import _beyond, _c_copy
@@ -50,7 +51,7 @@ from .narrowest_cut import narrowest_cut
 
 log = logging.getLogger(__name__)
 
-__all__ = ["find_jaws", "segment_volumes"]
+__all__ = ["find_jaws", "segment_volumes", "transfer_segments"]
 
 _FACES = ndimage.generate_binary_structure(3, 1)
 _CUBE = np.ones((3, 3, 3), dtype=bool)
@@ -433,3 +434,31 @@ def _posterior_nasal_spine(rest, foot, z_floor, spacing):
     gap = max(1, int(round(3.0 / spacing[1])))
     big = np.flatnonzero(-np.diff(bone_y) > gap)
     return int(bone_y[big[0]]) if len(big) else int(bone_y[-1])
+
+
+def transfer_segments(labels, bones):
+    """A copy of ``labels`` whose hard tissue takes, voxel by voxel, the segment id
+    (``bone``) of the nearest ``bones`` voxel of a segment (a distance transform where
+    both images share a grid, else a :class:`scipy.spatial.cKDTree` query): the segments
+    of another label image (e.g. a virtual patient's ``truth``), on any grid."""
+    ref = np.asarray(arrays.require_array(bones, arrays.BONE, "point", dtype="iu"))
+    ours = np.asarray(labels[arrays.BONE]) if arrays.BONE in labels.point_data else None
+    tissue = np.asarray(labels[arrays.TISSUE])
+    hard = np.isin(tissue, arrays.HARD_LABELS) | ((ours > 0) if ours is not None else False)
+    same = (tuple(bones.dimensions) == tuple(labels.dimensions)
+            and np.allclose(bones.origin, labels.origin)
+            and np.allclose(bones.spacing, labels.spacing))
+    new = np.zeros(labels.n_points, dtype=np.uint8)
+    if same:
+        vol = ref.reshape(tuple(bones.dimensions), order="F")
+        _, idx = ndimage.distance_transform_edt(vol == 0, sampling=bones.spacing,
+                                                return_indices=True)
+        nearest = vol[tuple(idx)].ravel(order="F")
+        new[hard] = nearest[hard]
+    else:
+        ref_pts = np.asarray(bones.points)[ref > 0]
+        _, near = cKDTree(ref_pts).query(np.asarray(labels.points)[hard])
+        new[hard] = ref[ref > 0][near]
+    out = labels.copy()
+    out[arrays.BONE] = new
+    return out
