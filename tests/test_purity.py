@@ -60,6 +60,7 @@ def chain():
     case = pvcmf.datasets.phantom(patient=3, spacing=3.0)
     out = {}
     _pure("standardize", f.standardize, case.ct)
+    out["working"] = _pure("working_grid", f.working_grid, case.ct, 6.0)
     labels = _pure("segment", f.segment, case.ct)
     labels = _pure("classify_tissue", f.classify_tissue, labels)
     labels = _pure("embed_muscles", f.embed_muscles, labels, landmarks=case.landmarks,
