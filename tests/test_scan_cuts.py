@@ -55,6 +55,37 @@ def test_the_skin_on_the_cut_is_marked_and_nothing_else(cut_run):
     assert np.all(cut[y >= end - 0.5 * res.labels.spacing[1]])
 
 
+def test_the_crumple_metric_leaves_the_scan_s_edge_out(cut_run, monkeypatch):
+    """The skin on the cut is modelled (it moves with the face) but is no skin to crumple:
+    the crumple metric checks none of its edges, and the summary's modelled points still
+    count it."""
+    from scipy.spatial import cKDTree
+
+    from pvcmf.filters import skin_prediction
+    from pvcmf.pipeline import simulate
+
+    res, _, _ = cut_run
+    seen = []
+
+    def spy(skin, *args, modelled=None, **kwargs):
+        seen.append((np.array(skin.points), np.array(modelled)))
+        return metric(skin, *args, modelled=modelled, **kwargs)
+
+    metric = skin_prediction.crumple_metric
+    monkeypatch.setattr(skin_prediction, "crumple_metric", spy)
+    run = simulate(None, res.plan, labels=res.labels, n_tets=3000, muscles=False,
+                   figures=False)
+    skin = run.skin_post
+    cut = np.asarray(skin[arrays.SKIN_CUT]).astype(bool)
+    modelled = np.asarray(skin[arrays.SKIN_MODELLED]).astype(bool)
+    assert (cut & modelled).sum() > 20  # the cut moves with the face
+    (points, checked), = seen
+    gap, near = cKDTree(np.asarray(run.skin_pre.points)).query(points)
+    assert gap.max() < 1e-6
+    assert checked.any() and not np.any(checked & cut[near])
+    assert skin.field_data[arrays.SKIN_MODELLED_POINTS][0] == modelled.sum()
+
+
 def test_without_cuts_nothing_is_on_a_cut():
     labels = pv.ImageData(dimensions=(5, 5, 5))
     assert not on_scan_cuts(np.zeros((4, 3)), labels).any()

@@ -9,10 +9,12 @@ the transfer itself is beyond ``2 band``; the band is the mesh's,
 :func:`pvcmf.filters.surface_mapping.mesh_band`: a coarse mesh models the skin farther
 from its surface). Skin on bare teeth or bone is not modelled
 (:func:`pvcmf.filters.meshing.skin_fit.on_hard_tissue`); the crumple metric
-(:func:`pvcmf.filters.surface_mapping.crumple_metric`) is taken over the modelled skin.
-Where the scan cut the head (flat: the labels' ``arrays.SCAN_CUTS``; by its round field
-of view: ``arrays.SCAN_FOV``), the skin points on the cut get ``arrays.SKIN_CUT`` = 1 (:func:`pvcmf.filters.field_of_view.on_scan_cuts`):
-the scan's edge, not the patient's skin, which the figures draw apart.
+(:func:`pvcmf.filters.surface_mapping.crumple_metric`) is taken over the modelled skin
+that is not on a cut of the scan. Where the scan cut the head (flat: the labels'
+``arrays.SCAN_CUTS``; by its round field of view: ``arrays.SCAN_FOV``), the skin points
+on the cut get ``arrays.SKIN_CUT`` = 1 (:func:`pvcmf.filters.field_of_view.on_scan_cuts`):
+the scan's edge, not the patient's skin, which the figures draw apart and the crumple
+metric leaves out (its sharp rim is no crumple of the face).
 """
 
 from __future__ import annotations
@@ -110,8 +112,12 @@ def predict_skin(labels, post, pre=None, box=None):
     transfer = Transfer(post, part, band=band)
     disp_part = transfer(u_nodes)
     modelled_part = transfer.modelled & ~on_hard_tissue(part.points, labels)
+    checked = modelled_part  # the scan's edge is not the patient's skin: no crumple
+    if arrays.SKIN_CUT in pre.point_data:
+        checked = checked & (np.asarray(pre[arrays.SKIN_CUT])[ids] == 0)
     metric = crumple_metric(part, disp_part, post, u_nodes, transfer=transfer,
-                            modelled=modelled_part)
+                            modelled=checked)
+    metric[arrays.SKIN_MODELLED_POINTS] = int(modelled_part.sum())
     log.info("skin: %d points (%d within reach of the model, %d modelled), %d edges stretched "
              "beyond the mesh's gradients (max ratio %.3g)", pre.n_points, len(ids),
              metric[arrays.SKIN_MODELLED_POINTS], metric[arrays.CRUMPLE_VIOLATIONS],
