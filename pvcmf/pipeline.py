@@ -33,7 +33,7 @@ from .filters.bone_segments import segment_volumes, transfer_segments
 from .filters.jaw_pose import check_pose
 from .filters.meshing.skin_fit import on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
-from .filters.resolution import describe_grid, working_factors
+from .filters.resolution import BYTES_PER_VOXEL, describe_grid, working_factors
 from .filters.segment_coverage import check_coverage
 from .filters.segmentation import tissue_volumes
 from .filters.skin import NECK_BELOW_BOX, head_skin  # noqa: F401 (public here too)
@@ -54,8 +54,8 @@ log = logging.getLogger(__name__)
 __all__ = ["Result", "simulate", "head_skin", "STEPS", "write_outputs"]
 
 #: the steps of :func:`simulate`, in order, as named in the timing summary
-STEPS = ("read", "working grid", "segment", "classify", "bone segments", "muscles", "mesh", "skin fit", "fibres",
-         "materials", "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
+STEPS = ("read", "working grid", "segment", "classify", "bone segments", "muscles", "mesh",
+         "skin fit", "fibres", "materials", "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
 
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
 DEFAULT_N_TETS = 25_000
@@ -398,8 +398,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     with run_lock(out), capture_warnings(result.warnings), \
             Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
         run = _Runner(result, bar)
-        ct = _read_step(run, ct, units, orient, "labels given" if labels is not None
-                        else working_spacing)
+        ct = _read_step(run, ct, units, orient, working_spacing, labels is not None)
         labels = _label_steps(run, ct, labels, bones, plan, opts, classify)
         if muscles and predict:
             with_muscles = run.run("muscles", _muscles, labels, landmarks)
@@ -440,7 +439,7 @@ def _check_inputs(plan, n_tets, face_fraction, bones, **options):
     return plan, opts
 
 
-def _read_step(run, ct, units, orient, working_spacing):
+def _read_step(run, ct, units, orient, working_spacing, labels_given):
     """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`); step "working
     grid" (:func:`_working_grid`); then its units and axes checked on the image
     (:func:`pvcmf.filters.standardize`): always for a CT read from a path, for a CT in
@@ -450,19 +449,19 @@ def _read_step(run, ct, units, orient, working_spacing):
         units, orient = units or "auto", orient or "auto"
     else:
         run.skip("read", "CT given in memory")
-    ct = _working_grid(run, ct, working_spacing)
+    ct = _working_grid(run, ct, working_spacing, labels_given)
     if units is not None or orient is not None:
         ct, run.result.ct_report = standardize(ct, units=units or "auto",
                                                orient=orient or "auto")
     return ct
 
 
-def _working_grid(run, ct, working_spacing):
+def _working_grid(run, ct, working_spacing, labels_given):
     """Step "working grid": a scan finer than ``working_spacing`` asks averaged over blocks
     of whole voxels (:func:`pvcmf.filters.working_grid`), recorded in
     :attr:`Result.working_grid`; warned about where ``'auto'`` chose it."""
-    if working_spacing == "labels given" or working_spacing is None:
-        run.skip("working grid", working_spacing or "working_spacing=None")
+    if labels_given or working_spacing is None:
+        run.skip("working grid", "labels given" if labels_given else "working_spacing=None")
         return ct
     if not isinstance(ct, pv.ImageData):  # (refused by the segmentation)
         run.skip("working grid", "no CT image")
@@ -475,7 +474,7 @@ def _working_grid(run, ct, working_spacing):
     run.result.working_grid, text = describe_grid(ct, work)
     (log.warning if working_spacing == "auto" else log.info)(
         "simulate: %s (working_spacing=%r; None, or --working-spacing none, keeps the scan's "
-        "grid at about %.0f GB)", text, working_spacing, 50 * ct.n_points / 1e9)
+        "grid at about %.0f GB)", text, working_spacing, BYTES_PER_VOXEL * ct.n_points / 1e9)
     return work
 
 

@@ -76,7 +76,8 @@ def _pick_series(folder, headers, wanted):
             str(series[uid][0][1].get("Modality", "CT")).upper() == "CT", len(series[uid])))
     if len(series) > 1:
         log.warning("read_ct: %s holds %d DICOM series; reading %s (choose another with "
-                    "series=..., on the command line --series): %s", folder, len(series), describe(chosen),
+                    "series=..., on the command line --series): %s", folder, len(series),
+                    describe(chosen),
                     "; ".join(describe(uid) for uid in series if uid != chosen))
     return series[chosen]
 
