@@ -89,14 +89,15 @@ def _positive_float(text):
 
 
 def _units(text):
-    """``--units``: 'auto', 'hu' or a number (the offset to add to reach HU)."""
-    if text.strip().lower() in ("auto", "hu"):
+    """``--units``: 'auto', 'hu', 'rescale' or a number (the offset to add to reach HU)."""
+    if text.strip().lower() in ("auto", "hu", "rescale"):
         return text.strip().lower()
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"expected 'auto', 'hu' or a number (the offset to add), got {text!r}") from None
+            f"expected 'auto', 'hu', 'rescale' or a number (the offset to add), got "
+            f"{text!r}") from None
     if not np.isfinite(value):
         raise argparse.ArgumentTypeError(f"expected a finite offset, got {text!r}")
     return value
@@ -274,8 +275,10 @@ def build_parser():
                           "headsq: its loader's default)")
     sim.add_argument("--scale", type=float, default=None, help="see --offset (default 1)")
     sim.add_argument("--units", type=_units, default="auto",
-                     help="'auto' (detect scanner units from the histogram; default), 'hu', or "
-                          "the offset to add to reach HU; --offset/--scale imply 'hu'")
+                     help="'auto' (detect scanner units from the histogram; default), 'hu', "
+                          "'rescale' (a cone-beam CT's grey values: air and soft tissue "
+                          "mapped to -1000 and +40 HU), or the offset to add to reach HU; "
+                          "--offset/--scale imply 'hu'")
     sim.add_argument("--orient", type=_orient, default="auto",
                      help="'auto' (face +y and vertex +z checked from the anatomy; default), "
                           "'none' (trust the file), or where the image axes point, e.g. 'LPI'")

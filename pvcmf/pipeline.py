@@ -355,8 +355,9 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     progress_bar : bool, default False
         Show a progress bar over the steps (:class:`pvcmf.progress.Progress`).
     units, orient : str, optional
-        Units and axes check of :func:`pvcmf.filters.standardize` (``'auto'``, ``'hu'`` or
-        an offset; ``'auto'``, ``'none'`` or a code such as ``'LPI'``). Default: ``'auto'``
+        Units and axes check of :func:`pvcmf.filters.standardize` (``'auto'``, ``'hu'``,
+        ``'rescale'`` for a cone-beam CT's grey values, or an offset; ``'auto'``, ``'none'``
+        or a code such as ``'LPI'``). Default: ``'auto'``
         for a CT read from a path, no check for a CT given in memory. What was found goes
         to :attr:`Result.ct_report` and ``summary.json`` (``"ct"``).
     working_spacing : 'auto', float or None, default 'auto'

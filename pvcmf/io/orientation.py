@@ -5,16 +5,11 @@
 it back in Hounsfield units with the face toward +y and the vertex toward +z, plus a report
 of what it found and did.
 
-Units (:func:`check_units`)
-    Otsu's threshold on a subsample of the voxels splits air from the body; the mode of each
-    side gives the air peak ``A`` and the soft-tissue peak ``S`` (brain, muscle). A head CT
-    also has bone: a tail of voxels far above ``S``. Without the two peaks and the bone tail
-    the image is refused (an MR volume, a uniform phantom). In HU ``A`` is near -1000 and
-    ``S`` near +40; scanner units differ by a constant offset (CT conventions store
-    ``HU + 1000`` or ``HU + 1024``). The offset is the convention (0, -1000, -1024, -32768)
-    closest to both peaks, the soft-tissue peak counting twice (air is often clamped at the
-    storage minimum whatever the convention), or, when none fits, the offset that puts ``S``
-    at +40 HU.
+Units (:func:`check_units`, :mod:`pvcmf.io.units`)
+    The air and soft-tissue peaks of the histogram and the bone tail far above them make a
+    CT; scanner units differ from HU by a storage offset, found from the peaks
+    (``units='auto'``); a cone-beam CT's grey values by a scale too, mapped by the line
+    through the peaks (``units='rescale'``).
 Orientation (:func:`orient_head`)
     Decided on a copy pooled to about 3 mm voxels (block mean for the body, block maximum for
     thin bone). Three anatomical facts, none fitted to a scan:
@@ -44,188 +39,23 @@ Delegates to numpy and :mod:`scipy.ndimage` (labelling, morphology).
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
-import pyvista as pv
 from scipy import ndimage as ndi
 
-from .. import arrays
 from .head_check import TEETH_STEPS, _teeth_ml, check_head  # noqa: F401 (re-export)
+from .units import (AIR_HU, HU_OFFSETS, SOFT_HU, _peaks, _volume,  # noqa: F401 (re-export)
+                    _with_volume, check_units)
 
 log = logging.getLogger(__name__)
 
 __all__ = ["check_head", "check_units", "orient_head", "orientation_code", "reorient", "standardize",
            "HU_OFFSETS"]
 
-#: offsets (HU = value + offset) of the usual CT storage conventions
-HU_OFFSETS = (0.0, -1000.0, -1024.0, -32768.0)
-#: nominal HU of air and of the soft-tissue peak (brain, muscle)
-AIR_HU, SOFT_HU = -1000.0, 40.0
 #: voxel size (mm) of the pooled copy the orientation is decided on
 DECISION_VOXEL = 3.0
 _LETTERS = {"L": (0, 1), "R": (0, -1), "A": (1, 1), "P": (1, -1), "S": (2, 1), "I": (2, -1)}
 _NAMES = {(0, 1): "L", (0, -1): "R", (1, 1): "A", (1, -1): "P", (2, 1): "S", (2, -1): "I"}
-
-
-# --------------------------------------------------------------------------- helpers
-def _volume(image, name="image"):
-    if not isinstance(image, pv.ImageData):
-        raise TypeError(f"{name} must be a pyvista.ImageData, got {type(image).__name__}")
-    if arrays.CT not in image.point_data:
-        raise ValueError(f"{name} needs a point array {arrays.CT!r} (pvcmf.read_ct makes it)")
-    dims = tuple(int(d) for d in image.dimensions)
-    if min(dims) < 2:
-        raise ValueError(f"{name} must be a 3-D volume, got dimensions {dims}")
-    return np.asarray(image.point_data[arrays.CT]).reshape(dims, order="F")
-
-
-def _with_volume(image, vol, spacing=None):
-    out = pv.ImageData(dimensions=vol.shape, spacing=image.spacing if spacing is None else spacing,
-                       origin=image.origin)
-    out.point_data[arrays.CT] = np.asarray(vol, dtype=np.float32).ravel(order="F")
-    return out
-
-
-def _otsu(x, bins=256):
-    hist, edges = np.histogram(x, bins=bins)
-    c = 0.5 * (edges[1:] + edges[:-1])
-    w = np.cumsum(hist, dtype=float)
-    m = np.cumsum(hist * c)
-    w2 = w[-1] - w
-    ok = (w > 0) & (w2 > 0)
-    var = np.zeros_like(c)
-    var[ok] = (m[-1] * w[ok] / w[-1] - m[ok]) ** 2 / (w[ok] * w2[ok])
-    return float(c[np.argmax(var)])
-
-
-def _mode(x, lo, hi, width):
-    bins = max(8, int(math.ceil((hi - lo) / width)))
-    hist, edges = np.histogram(x, bins=bins, range=(lo, hi))
-    smooth = ndi.gaussian_filter1d(hist.astype(float), 1.5)
-    i = int(np.argmax(smooth))
-    return float(0.5 * (edges[i] + edges[i + 1]))
-
-
-def _peaks(vol):
-    """Air peak, soft-tissue peak and the air/body threshold of a subsample of ``vol``."""
-    step = max(1, int(round((vol.size / 2e6) ** (1 / 3))))
-    sub = vol[::step, ::step, ::step].ravel().astype(np.float64)
-    lo, hi = np.percentile(sub, [0.5, 99.5])
-    if not hi > lo:
-        return None
-    t = _otsu(np.clip(sub, lo, hi))
-    air, body = sub[sub < t], sub[(sub >= t) & (sub <= hi)]
-    if air.size < 0.01 * sub.size or body.size < 0.01 * sub.size:
-        return None
-    width = (hi - lo) / 256
-    a = _mode(air, float(air.min()), t, width)
-    s = _mode(body, t, hi, width)
-    bone = float(np.mean(sub[sub >= t] > s + 0.6 * (s - a)))
-    return a, s, t, bone
-
-
-# --------------------------------------------------------------------------- units
-#: HU by which both the air and the soft-tissue peak may miss their values under given units
-#: before the units are refused (cone-beam grey values stray by a few hundred; scanner units
-#: read as HU by about a thousand)
-GIVEN_UNITS_TOLERANCE = 500.0
-
-
-def _check_given_units(air, soft, offset, given):
-    """Refuse given units (``'hu'`` or an offset) under which both peaks miss their HU by
-    more than :data:`GIVEN_UNITS_TOLERANCE`, naming the offset the peaks ask for."""
-    air_hu, soft_hu = air + offset, soft + offset
-    if abs(air_hu - AIR_HU) <= GIVEN_UNITS_TOLERANCE or \
-            abs(soft_hu - SOFT_HU) <= GIVEN_UNITS_TOLERANCE:
-        return
-    cost = [2 * abs(SOFT_HU - soft - o) + abs(AIR_HU - air - o) for o in HU_OFFSETS]
-    best = HU_OFFSETS[int(np.argmin(cost))]
-    raise ValueError(
-        f"check_units: with {given}, air lies at {air_hu:.0f} HU and soft "
-        f"tissue at {soft_hu:.0f} HU (a CT has them near {AIR_HU:g} and {SOFT_HU:g}): the "
-        f"values are not in HU under these units; expected units='auto' (pvcmf simulate: "
-        f"--units auto and no --offset), or the offset the peaks ask for: HU = value "
-        f"{best:+g} on the values read")
-
-
-def check_units(image, units="auto"):
-    """Bring a CT into Hounsfield units, detecting scanner units from its histogram.
-
-    Parameters
-    ----------
-    image : pyvista.ImageData
-        Point array ``ct``.
-    units : {'auto', 'hu'} or float
-        ``'auto'`` detects the units (module notes); ``'hu'`` keeps the values; a number is
-        the offset to add (HU = value + offset). The image is checked to be a CT in every case.
-
-    Returns
-    -------
-    image : pyvista.ImageData
-        A new image in HU.
-    report : dict
-        ``units`` ('hu' or 'scanner'), ``offset`` applied, ``air_peak`` and ``soft_peak``
-        (in the input's values), ``how`` (a sentence).
-
-    Raises
-    ------
-    ValueError
-        If the image has no air peak, no soft-tissue peak or no bone (not a CT of a body
-        part with bone), or ``units`` is not understood.
-
-    Examples
-    --------
-    >>> import numpy as np, pyvista as pv
-    >>> from pvcmf.filters.orientation import check_units
-    >>> img = pv.ImageData(dimensions=(40, 40, 40))
-    >>> r = np.linalg.norm(img.points - 19.5, axis=1)
-    >>> img["ct"] = np.where(r < 15, 1040.0, 0.0) + np.where((r > 12) & (r < 14), 1200.0, 0)
-    >>> hu, rep = check_units(img)
-    >>> rep["units"], rep["offset"]
-    ('scanner', -1000.0)
-    """
-    vol = _volume(image)
-    if isinstance(units, str) and units not in ("auto", "hu"):
-        raise ValueError(f"units must be 'auto', 'hu' or a number, got {units!r}")
-    found = _peaks(vol)
-    if found is None:
-        raise ValueError("check_units: the image has no separate air and tissue peaks in its "
-                         "histogram: not a CT (a uniform or empty volume?)")
-    a, s, _, bone = found
-    span = s - a
-    if not (600.0 <= span <= 1600.0) or bone < 0.002:
-        raise ValueError(
-            f"check_units: not a CT of a body part with bone: air peak {a:.0f}, soft-tissue "
-            f"peak {s:.0f} (a CT has them about 1040 apart), {100 * bone:.2f} % of the body "
-            "far above soft tissue (bone); an MR or a phantom without bone?")
-    report = {"air_peak": round(a, 1), "soft_peak": round(s, 1)}
-    if units == "hu":
-        offset, how = 0.0, "kept as HU (units='hu')"
-    elif not isinstance(units, str):
-        offset, how = float(units), f"offset {float(units):g} given"
-    else:
-        from_soft, from_air = SOFT_HU - s, AIR_HU - a
-        cost = [2 * abs(from_soft - o) + abs(from_air - o) for o in HU_OFFSETS]
-        best = HU_OFFSETS[int(np.argmin(cost))]
-        if abs(from_soft - best) <= 100 and abs(from_air - best) <= 150:
-            offset = best
-            how = (f"air peak {a:.0f} and soft-tissue peak {s:.0f} match the convention "
-                   f"HU = value {best:+g}")
-        else:
-            offset = float(round(from_soft))
-            how = (f"air peak {a:.0f} and soft-tissue peak {s:.0f} fit no usual convention: "
-                   f"offset {offset:+g} puts soft tissue at {SOFT_HU:g} HU")
-    if units != "auto":
-        _check_given_units(a, s, offset, "units='hu'" if units == "hu" else f"units={offset:g}")
-    report.update(units="hu" if offset == 0 else "scanner", offset=offset, how=how)
-    if offset != 0:
-        log.warning("check_units: scanner units; HU = value %+g (%s)", offset, how)
-        out = _with_volume(image, vol.astype(np.float32, order="F") + np.float32(offset))
-    else:
-        log.info("check_units: Hounsfield units (%s)", how)
-        out = _with_volume(image, vol.astype(np.float32, order="F", copy=True))
-    return out, report
 
 
 # --------------------------------------------------------------------------- orientation
@@ -555,7 +385,7 @@ def standardize(image, *, units="auto", orient="auto"):
     ----------
     image : pyvista.ImageData
         Point array ``ct``, as :func:`pvcmf.read_ct` returns it.
-    units : {'auto', 'hu'} or float
+    units : {'auto', 'hu', 'rescale'} or float
         See :func:`check_units`.
     orient : str
         ``'auto'``, ``'none'`` or a code; see :func:`orient_head`.
@@ -575,8 +405,8 @@ def standardize(image, *, units="auto", orient="auto"):
         told (see above).
     """
     out, units_report = check_units(image, units)
-    offset = units_report["offset"]
-    air, soft = units_report["air_peak"] + offset, units_report["soft_peak"] + offset
+    slope, offset = units_report["slope"], units_report["offset"]
+    air, soft = (slope * units_report[k] + offset for k in ("air_peak", "soft_peak"))
     cues = _cues(_volume(out), np.asarray(out.spacing, dtype=float), air, soft)
     check_head(cues[0])
     code, orient_report = _orientation(out, orient, air, soft, cues)

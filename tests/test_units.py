@@ -1,0 +1,139 @@
+"""Grey values that are not Hounsfield units: a scale as well as an offset (pvcmf.io.units).
+
+A cone-beam CT's grey values are often not HU: its air and soft-tissue peaks lie closer
+together or farther apart than a CT's 1040. ``units='rescale'`` maps the two peaks to -1000
+and +40 HU by a line; ``'auto'`` refuses peaks that are not a CT's distance apart (an MR
+volume shows two peaks too) and names ``'rescale'``. The virtual patient (HU) stored with a
+scale and an offset must come back; so must the segmentation of a real scan.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import pvcmf
+from pvcmf import arrays
+from pvcmf.cli import build_parser
+from pvcmf.filters.orientation import check_units, standardize
+from pvcmf.io.units import AIR_HU, SOFT_HU
+
+from ct_helpers import image_of
+
+
+@pytest.fixture(scope="module")
+def head():
+    ct = pvcmf.datasets.phantom(patient=1, spacing=3.0).ct.copy()
+    ct[arrays.CT] = np.round(ct[arrays.CT])
+    return ct
+
+
+def _scaled(image, slope, offset):
+    """``image`` stored as ``slope * HU + offset`` (the grey values of another device)."""
+    out = image.copy()
+    out[arrays.CT] = (slope * np.asarray(image[arrays.CT], dtype=np.float64)
+                      + offset).astype(np.float32)
+    return out
+
+
+@pytest.mark.parametrize("slope, offset", [(0.5, -500.0), (1.8, 0.0), (0.7, 1000.0)])
+def test_rescale_gives_the_hu_back(head, slope, offset):
+    """The line through the peaks undoes the device's line: every voxel within a few HU of
+    the original (the peaks are found on a histogram of bins a few grey values wide)."""
+    out, report = check_units(_scaled(head, slope, offset), units="rescale")
+    assert report["units"] == "rescaled"
+    assert report["slope"] == pytest.approx(1.0 / slope, rel=0.01)
+    hu = np.asarray(head[arrays.CT], dtype=float)
+    back = np.asarray(out[arrays.CT], dtype=float)
+    for level in (AIR_HU, SOFT_HU):  # the two peaks land on their HU
+        at = np.abs(hu - level) < 1
+        assert np.abs(back[at] - level).max() < 12
+    soft = np.abs(hu) < 300  # within the peaks' span: the line's error is a few HU
+    assert np.abs(back[soft] - hu[soft]).max() < 12
+    assert np.abs(back - hu).max() < 0.01 * np.ptp(hu) + 12
+
+
+@pytest.mark.parametrize("slope", [0.5, 1.8])
+def test_auto_refuses_peaks_not_a_ct_apart_and_names_rescale(head, slope):
+    with pytest.raises(ValueError, match=r"not a CT.*apart in a CT.*units='rescale'"):
+        check_units(_scaled(head, slope, -200.0))
+    with pytest.raises(ValueError, match=r"units='rescale'"):
+        check_units(_scaled(head, slope, -200.0), units="hu")
+
+
+def test_auto_within_a_ct_span_says_rescale_where_the_scale_is_off(head, caplog):
+    """Peaks 700 apart still pass 'auto' (an offset only: the segmentation places its
+    levels on the image's own peaks), and the report says how to map the scale too."""
+    with caplog.at_level(logging.WARNING, logger="pvcmf.io.orientation"):
+        _, report = check_units(_scaled(head, 0.67, 300.0))
+    assert report["units"] == "scanner" and report["slope"] == 1.0
+    assert "units='rescale'" in report["how"] and "units='rescale'" in caplog.text
+    _, plain = check_units(_scaled(head, 1.0, 1000.0))
+    assert "rescale" not in plain["how"]
+
+
+def test_rescale_still_asks_for_bone_and_a_head():
+    """'rescale' asks the bone tail only (the user says the image is a CT): a volume without
+    one is refused; an MR-like volume, whose peaks 'auto' refuses, is refused as no head."""
+    flat = np.where(np.sqrt(((np.indices((40, 40, 40)) - 19.5) ** 2).sum(axis=0)) < 16,
+                    300.0, 0.0)
+    with pytest.raises(ValueError, match="not a CT of a body part with bone"):
+        check_units(image_of(flat + np.random.default_rng(0).normal(0, 5, flat.shape)),
+                    units="rescale")
+    g = np.indices((40, 40, 40)).astype(float) - 19.5
+    r = np.sqrt((g ** 2).sum(axis=0))
+    mr = np.where(r < 16, 400.0 + 15.0 * g[2], 0.0) + np.random.default_rng(0).normal(0, 5, r.shape)
+    with pytest.raises(ValueError, match="not a CT"):
+        check_units(image_of(mr))
+    with pytest.raises(ValueError, match="not a head CT"):
+        standardize(image_of(mr), units="rescale")
+
+
+@pytest.mark.parametrize("bad", ["kelvin", float("nan"), True, None, [1.0]])
+def test_bad_units_named(head, bad):
+    with pytest.raises(ValueError, match="units must be"):
+        check_units(head, bad)
+
+
+def test_cli_takes_rescale():
+    args = build_parser().parse_args(["simulate", "--ct", "scan", "--plan", "p.toml",
+                                      "--out", "out", "--units", "Rescale"])
+    assert args.units == "rescale"
+
+
+def _female_2mm():
+    root = Path(os.environ.get("PVCMF_DATA_DIR", Path(__file__).parents[1] / ".." / "shared"
+                               / "data"))
+    folder = root / "vhp_female_head"
+    if not folder.is_dir():
+        pytest.skip(f"{folder} not found (set PVCMF_DATA_DIR to the real-data folder)")
+    return pvcmf.filters.working_grid(pvcmf.read_ct(folder, frame="patient"), 2.0)
+
+
+def test_a_real_scan_with_cone_beam_grey_values_segments_as_in_hu():
+    """The Visible Human female (2 mm blocks) stored with air and soft tissue 520 apart:
+    refused by 'auto'; with 'rescale' the same values as the scan in HU rescaled (the line
+    through its own peaks: its air lies at -1024), and the same head, tissues and jaws as
+    the scan in HU."""
+    ct = _female_2mm()
+    device = _scaled(ct, 0.5, -480.0)
+    with pytest.raises(ValueError, match="units='rescale'"):
+        standardize(device)
+    ref, ref_report = standardize(ct)
+    out, report = standardize(device, units="rescale")
+    assert report["units"]["units"] == "rescaled"
+    assert report["orientation"]["code"] == ref_report["orientation"]["code"]
+    own = np.asarray(check_units(ct, units="rescale")[0][arrays.CT])
+    assert np.median(np.abs(np.asarray(out[arrays.CT]) - own)) < 10
+    jaws = [pvcmf.filters.find_jaws(pvcmf.filters.segment(img, check=False))
+            for img in (ref, out)]
+    for name, label in ((arrays.TISSUE, arrays.INTRACRANIAL), (arrays.TISSUE, arrays.TEETH),
+                        (arrays.BONE, arrays.MANDIBLE), (arrays.BONE, arrays.MAXILLA)):
+        a, b = (np.asarray(j[name]) == label for j in jaws)
+        assert a.sum() > 0
+        dice = 2 * (a & b).sum() / (a.sum() + b.sum())
+        assert dice > 0.97, (name, label, dice)
