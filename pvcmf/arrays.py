@@ -308,6 +308,11 @@ WORKING_FACTORS = "working_factors"
 #: field (the CT of :func:`pvcmf.filters.working_grid`), float64, 3 values: the scan's own
 #: voxel spacing (mm) before the blocks
 SCAN_SPACING = "scan_spacing"
+#: field (the CT of :func:`pvcmf.read_ct` from a DICOM series), string, 1 value: the series'
+#: DICOM Modality (``"CT"`` for CT and most cone-beam CT; absent where the file does not
+#: say): :func:`pvcmf.io.units.check_units` refuses another imaging modality and maps a CT's
+#: grey values that are not HU
+MODALITY = "modality"
 #: point (skin), uint8, 1 where the skin lies on such a cut, the scan's edge and not the
 #: patient's skin (present when the labels have ``SCAN_CUTS`` or ``SCAN_FOV``)
 SKIN_CUT = "skin_cut"

@@ -105,26 +105,29 @@ def test_cli_takes_rescale():
     assert args.units == "rescale"
 
 
-def _female_2mm():
+def _female_folder():
     root = Path(os.environ.get("PVCMF_DATA_DIR", Path(__file__).parents[1] / ".." / "shared"
                                / "data"))
     folder = root / "vhp_female_head"
     if not folder.is_dir():
         pytest.skip(f"{folder} not found (set PVCMF_DATA_DIR to the real-data folder)")
-    return pvcmf.filters.working_grid(pvcmf.read_ct(folder, frame="patient"), 2.0)
+    return folder
+
+
+def _female_2mm():
+    return pvcmf.filters.working_grid(pvcmf.read_ct(_female_folder(), frame="patient"), 2.0)
 
 
 def test_a_real_scan_with_cone_beam_grey_values_segments_as_in_hu():
     """The Visible Human female (2 mm blocks) stored with air and soft tissue 520 apart:
-    refused by 'auto'; with 'rescale' the same values as the scan in HU rescaled (the line
-    through its own peaks: its air lies at -1024), and the same head, tissues and jaws as
-    the scan in HU."""
+    'auto' rescales it (its DICOM header says CT; without one, 'rescale' does), to the
+    same values as the scan in HU rescaled (the line through its own peaks: its air lies
+    at -1024), and the same head, tissues and jaws as the scan in HU."""
     ct = _female_2mm()
     device = _scaled(ct, 0.5, -480.0)
-    with pytest.raises(ValueError, match="units='rescale'"):
-        standardize(device)
     ref, ref_report = standardize(ct)
-    out, report = standardize(device, units="rescale")
+    assert ref_report["units"]["units"] == "hu"
+    out, report = standardize(device)
     assert report["units"]["units"] == "rescaled"
     assert report["orientation"]["code"] == ref_report["orientation"]["code"]
     own = np.asarray(check_units(ct, units="rescale")[0][arrays.CT])
@@ -137,3 +140,45 @@ def test_a_real_scan_with_cone_beam_grey_values_segments_as_in_hu():
         assert a.sum() > 0
         dice = 2 * (a & b).sum() / (a.sum() + b.sum())
         assert dice > 0.97, (name, label, dice)
+
+
+def _series_copy(folder, dst, count, **header):
+    """``count`` slices of the DICOM series ``folder`` from its middle, with ``header``'s
+    values set (the stored pixels unchanged)."""
+    import pydicom
+
+    files = sorted(folder.glob("*.dcm"))
+    mid = len(files) // 2
+    dst.mkdir()
+    for path in files[mid - count // 2: mid - count // 2 + count]:
+        ds = pydicom.dcmread(path)
+        for key, value in header.items():
+            setattr(ds, key, value(ds) if callable(value) else value)
+        ds.save_as(dst / path.name)
+    return dst
+
+
+def test_a_dicom_ct_series_with_cone_beam_grey_values_is_rescaled_by_auto(tmp_path):
+    """A DICOM series whose header says CT is a CT: 'auto' maps its grey values whatever
+    their scale (the female's slices with a rescale slope and intercept that store
+    0.5 * HU - 480); one whose header says MR is refused whatever ``units`` says."""
+    folder = _female_folder()
+    hu = pvcmf.read_ct(_series_copy(folder, tmp_path / "hu", 40), frame="patient")
+    assert hu.field_data[arrays.MODALITY].tolist() == ["CT"]
+    device = pvcmf.read_ct(_series_copy(
+        folder, tmp_path / "cbct", 40,
+        RescaleSlope=lambda ds: 0.5 * float(ds.RescaleSlope),
+        RescaleIntercept=lambda ds: 0.5 * float(ds.RescaleIntercept) - 480.0), frame="patient")
+    out, report = check_units(device)
+    assert report["units"] == "rescaled" and report["modality"] == "CT"
+    assert "DICOM Modality CT" in report["how"]
+    own = np.asarray(check_units(hu, units="rescale")[0][arrays.CT])
+    assert np.median(np.abs(np.asarray(out[arrays.CT]) - own)) < 10
+    without = device.copy()
+    without.field_data.clear()
+    with pytest.raises(ValueError, match="units='rescale'"):
+        check_units(without)  # no header to say it is a CT: refused, 'rescale' named
+    mr = pvcmf.read_ct(_series_copy(folder, tmp_path / "mr", 40, Modality="MR"))
+    for units in ("auto", "hu", "rescale", -1000.0):
+        with pytest.raises(ValueError, match="DICOM MR series.*not a CT"):
+            check_units(mr, units)

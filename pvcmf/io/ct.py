@@ -107,7 +107,8 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="patient", series=None):
     Returns
     -------
     pyvista.ImageData
-        One point array ``ct`` (float32); geometry as ``frame`` says.
+        One point array ``ct`` (float32); geometry as ``frame`` says; from a DICOM
+        series, the field ``modality`` (:data:`pvcmf.arrays.MODALITY`).
 
     Raises
     ------
@@ -194,6 +195,8 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="patient", series=None):
     out.point_data[arrays.CT] = np.asarray(ct, dtype=np.float32)
     if frame == "patient":
         out = _to_patient_frame(out, world, path)
+    if arrays.MODALITY in image.field_data:  # a DICOM series' modality (module arrays)
+        out.field_data[arrays.MODALITY] = np.array(image.field_data[arrays.MODALITY])
     log.info(
         "read_ct %s: %s voxels, spacing %s mm, ct range [%.0f, %.0f]",
         path, out.dimensions, tuple(round(s, 4) for s in out.spacing),

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
+from .. import arrays
 from .dicom_frames import FrameCache, frame_headers, frame_index, gdcm_read
 
 log = logging.getLogger(__name__)
@@ -207,6 +208,9 @@ def read_dicom_series(folder, wanted=None):
     image = pv.ImageData(dimensions=(cols, rows, volume.shape[0]), spacing=(dx, dy, dz))
     image.direction_matrix = np.column_stack([row_dir, col_dir, normal])
     image.origin = origin
+    modality = str(first.get("Modality", "") or "").strip().upper()
+    if modality:
+        image.field_data[arrays.MODALITY] = np.array([modality])
     return image, volume.ravel()
 
 

@@ -11,7 +11,10 @@ the image is refused (an MR volume, a uniform phantom). In HU ``A`` is near -100
   closest to both peaks, the soft-tissue peak counting twice (air is often clamped at the
   storage minimum whatever the convention), or, when none fits, the offset that puts ``S``
   at +40 HU. Peaks about 1040 apart (600 to 1600) are asked of a CT: an image whose peaks
-  are not is refused, since an MR volume can show two such peaks too.
+  are not is refused, since an MR volume can show two such peaks too, except a DICOM
+  series whose header says CT (:data:`pvcmf.arrays.MODALITY`), which is rescaled as below.
+  A DICOM series of another imaging modality (MR, PET, nuclear medicine, ultrasound) is
+  refused whatever ``units`` says.
 * ``units='rescale'``: a cone-beam CT's grey values are often not HU: air and soft tissue
   lie closer together or farther apart than 1040 (a scale as well as an offset). The line
   through the two peaks maps them to -1000 and +40 HU (``HU = slope * value + offset``);
@@ -34,7 +37,7 @@ from .. import arrays
 
 log = logging.getLogger("pvcmf.io.orientation")
 
-__all__ = ["check_units", "AIR_HU", "SOFT_HU", "HU_OFFSETS", "CT_SPAN", "UNITS"]
+__all__ = ["check_units", "AIR_HU", "SOFT_HU", "HU_OFFSETS", "CT_SPAN", "NOT_CT", "UNITS"]
 
 #: offsets (HU = value + offset) of the usual CT storage conventions
 HU_OFFSETS = (0.0, -1000.0, -1024.0, -32768.0)
@@ -46,6 +49,9 @@ CT_SPAN = (600.0, 1600.0)
 #: relative difference of the peaks' distance from a CT's (1040) above which ``units='auto'``
 #: says that the values may need ``units='rescale'``
 SPAN_NOTE = 0.2
+#: DICOM modalities that are no X-ray attenuation image (refused by :func:`check_units`)
+NOT_CT = {"MR": "magnetic resonance", "PT": "positron emission tomography",
+          "NM": "nuclear medicine", "US": "ultrasound"}
 #: the words ``units`` takes besides a number (the offset)
 UNITS = ("auto", "hu", "rescale")
 
@@ -137,10 +143,11 @@ def check_units(image, units="auto"):
     image : pyvista.ImageData
         Point array ``ct``.
     units : {'auto', 'hu', 'rescale'} or float
-        ``'auto'`` detects the offset of scanner units (module notes); ``'rescale'`` maps the
-        air and soft-tissue peaks to -1000 and +40 HU by a line (a cone-beam CT's grey
-        values); ``'hu'`` keeps the values; a number is the offset to add (HU = value +
-        offset). The image is checked to be a CT in every case.
+        ``'auto'`` detects the offset of scanner units (module notes), and rescales a DICOM
+        CT series whose peaks are not a CT's distance apart; ``'rescale'`` maps the air and
+        soft-tissue peaks to -1000 and +40 HU by a line (a cone-beam CT's grey values);
+        ``'hu'`` keeps the values; a number is the offset to add (HU = value + offset). The
+        image is checked to be a CT in every case.
 
     Returns
     -------
@@ -149,14 +156,15 @@ def check_units(image, units="auto"):
     report : dict
         ``units`` ('hu', 'scanner' or 'rescaled'), ``slope`` and ``offset`` applied (HU =
         slope * value + offset), ``air_peak`` and ``soft_peak`` (in the input's values),
-        ``how`` (a sentence).
+        ``how`` (a sentence), ``modality`` (where the image has one).
 
     Raises
     ------
     ValueError
         If the image has no air peak, no soft-tissue peak or no bone (not a CT of a body
         part with bone), its peaks are not a CT's distance apart (except with
-        ``'rescale'``), or ``units`` is not understood.
+        ``'rescale'`` or a DICOM CT series), it is a DICOM series of another imaging
+        modality, or ``units`` is not understood.
 
     Examples
     --------
@@ -182,19 +190,26 @@ def check_units(image, units="auto"):
                                            and math.isfinite(float(units))):
         raise ValueError(f"units must be one of {', '.join(map(repr, UNITS))} or a finite "
                          f"number (the offset), got {units!r}")
+    modality = _modality(image)
     found = _peaks(vol)
     if found is None:
         raise ValueError("check_units: the image has no separate air and tissue peaks in its "
                          "histogram: not a CT (a uniform or empty volume?)")
     a, s, _, bone = found
-    _check_ct(a, s, bone, units)
     report = {"air_peak": round(a, 1), "soft_peak": round(s, 1)}
+    said = ""
+    if units == "auto" and modality == "CT" and not CT_SPAN[0] <= s - a <= CT_SPAN[1]:
+        units, said = "rescale", (f"a CT series (DICOM Modality CT) whose peaks are "
+                                  f"{s - a:.0f} apart, not about {SOFT_HU - AIR_HU:g}: a "
+                                  f"cone-beam CT's grey values; ")
+    _check_ct(a, s, bone, units)
     slope = 1.0
     if units == "rescale":
         slope = (SOFT_HU - AIR_HU) / (s - a)
         offset = AIR_HU - slope * a
-        how = (f"air peak {a:.0f} and soft-tissue peak {s:.0f} mapped to {AIR_HU:g} and "
-               f"{SOFT_HU:g} HU (units='rescale'): HU = {slope:.4g} * value {offset:+.4g}")
+        how = (f"{said}air peak {a:.0f} and soft-tissue peak {s:.0f} mapped to {AIR_HU:g} "
+               f"and {SOFT_HU:g} HU (units='rescale'): HU = {slope:.4g} * value "
+               f"{offset:+.4g}")
     elif units == "hu":
         offset, how = 0.0, "kept as HU (units='hu')"
     elif not isinstance(units, str):
@@ -205,6 +220,8 @@ def check_units(image, units="auto"):
         _check_given_units(a, s, offset, "units='hu'" if units == "hu" else f"units={offset:g}")
     kind = "rescaled" if units == "rescale" else "hu" if offset == 0 else "scanner"
     report.update(units=kind, slope=slope, offset=offset, how=how)
+    if modality:
+        report["modality"] = modality
     if kind == "hu":
         log.info("check_units: Hounsfield units (%s)", how)
         out = _with_volume(image, vol.astype(np.float32, order="F", copy=True))
@@ -215,6 +232,21 @@ def check_units(image, units="auto"):
             vol.astype(np.float32, order="F") + np.float32(offset)
         out = _with_volume(image, hu)
     return out, report
+
+
+def _modality(image):
+    """The image's DICOM Modality (:data:`pvcmf.arrays.MODALITY`, upper case; '' where it
+    has none); refused where it names an imaging modality that is not X-ray attenuation."""
+    if arrays.MODALITY not in image.field_data:
+        return ""
+    values = np.asarray(image.field_data[arrays.MODALITY]).ravel()
+    modality = str(values[0]).strip().upper() if values.size else ""
+    if modality in NOT_CT:
+        raise ValueError(
+            f"check_units: the image is a DICOM {modality} series ({NOT_CT[modality]}), not "
+            "a CT: pvcmf segments the bone and soft tissue of a CT or cone-beam CT (a folder "
+            "with several series: read_ct(..., series=...), on the command line --series)")
+    return modality
 
 
 def _check_ct(air, soft, bone, units):
