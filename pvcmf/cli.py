@@ -47,7 +47,7 @@ from .datasets import headsq
 from . import report
 from .io import (check_export, export, read_ct, read_landmarks, read_plan_file,
                  write_surface)
-from .io.orientation import orientation_code
+from .arguments import orient_argument, units_argument
 from .figures.offscreen import prefer_egl
 from .io.surfaces import SURFACE_FORMATS
 from .outputs import check_output_dir, check_output_file
@@ -86,34 +86,6 @@ def _positive_float(text):
     if not value > 0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
     return value
-
-
-def _units(text):
-    """``--units``: 'auto', 'hu', 'rescale' or a number (the offset to add to reach HU)."""
-    if text.strip().lower() in ("auto", "hu", "rescale"):
-        return text.strip().lower()
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected 'auto', 'hu', 'rescale' or a number (the offset to add), got "
-            f"{text!r}") from None
-    if not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite offset, got {text!r}")
-    return value
-
-
-def _orient(text):
-    """``--orient``: 'auto', 'none' or a 3-letter code such as 'LPI'."""
-    if text.strip().lower() in ("auto", "none"):
-        return text.strip().lower()
-    try:
-        code = orientation_code(text.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            "expected 'auto', 'none' or a 3-letter code, one letter per image axis from L/R, "
-            f"A/P, S/I, each pair once (e.g. 'LPI'), got {text!r}") from None
-    return code
 
 
 def _working_spacing(text):
@@ -274,12 +246,12 @@ def build_parser():
                      help="HU = scale * value + offset (for scanner units; default 0, "
                           "headsq: its loader's default)")
     sim.add_argument("--scale", type=float, default=None, help="see --offset (default 1)")
-    sim.add_argument("--units", type=_units, default="auto",
+    sim.add_argument("--units", type=units_argument, default="auto",
                      help="'auto' (detect scanner units from the histogram; default), 'hu', "
                           "'rescale' (a cone-beam CT's grey values: air and soft tissue "
                           "mapped to -1000 and +40 HU), or the offset to add to reach HU; "
                           "--offset/--scale imply 'hu'")
-    sim.add_argument("--orient", type=_orient, default="auto",
+    sim.add_argument("--orient", type=orient_argument, default="auto",
                      help="'auto' (face +y and vertex +z checked from the anatomy; default), "
                           "'none' (trust the file), or where the image axes point, e.g. 'LPI'")
     sim.add_argument("--flip", type=_flip, default="",

@@ -354,3 +354,46 @@ def test_plan_help_describes_the_command_and_its_exit_statuses(capsys, tmp_path)
     assert "Exit status: 0 the server stopped, 2 bad input" in text
     assert main(["plan", "--ct", str(tmp_path / "missing.nrrd")]) == 2
     assert "pvcmf plan: error:" in capsys.readouterr().err
+
+
+def test_plan_checks_the_units_and_axes_of_a_ct_it_reads(monkeypatch, tmp_path):
+    """``pvcmf plan --ct FILE`` checks the scan's units and axes as ``pvcmf simulate`` does
+    (``--units``/``--orient``, 'auto' by default), headsq's axes only, and a virtual
+    patient not at all; ``prepare_model`` hands them to ``simulate``."""
+    from pvcmf import cli
+    from pvcmf.planner import app, model
+
+    ct = pv.ImageData(dimensions=(3, 3, 3))
+    monkeypatch.setattr(pvcmf.io, "read_ct", lambda path, **options: ct)
+    seen = []
+
+    def fake_prepare(ct_, plan, **options):
+        seen.append({k: options.get(k) for k in ("units", "orient")})
+        raise SystemExit(0)
+
+    monkeypatch.setattr(app, "prepare_model", fake_prepare)
+    for argv, expected in (([], ("auto", "auto")),
+                           (["--units", "rescale", "--orient", "lpi"], ("rescale", "LPI")),
+                           (["--units", "-1024"], (-1024.0, "auto"))):
+        args = cli.build_parser().parse_args(["plan", "--ct", str(tmp_path), *argv])
+        with pytest.raises(SystemExit):
+            app.run_plan(args)
+        assert (seen[-1]["units"], seen[-1]["orient"]) == expected
+    monkeypatch.setattr(pvcmf.datasets, "headsq", lambda: ct)
+    with pytest.raises(SystemExit):
+        app.run_plan(cli.build_parser().parse_args(["plan", "--ct", "headsq"]))
+    assert seen[-1] == {"units": "hu", "orient": "auto"}
+    with pytest.raises(SystemExit):
+        app.run_plan(cli.build_parser().parse_args(["plan", "--ct", "phantom:1"]))
+    assert seen[-1] == {"units": None, "orient": None}
+
+    calls = []
+
+    def fake_simulate(ct_, plan, **options):
+        calls.append({k: options.get(k) for k in ("units", "orient")})
+        raise SystemExit(0)
+
+    monkeypatch.setattr(model, "simulate", fake_simulate)
+    with pytest.raises(SystemExit):
+        model.prepare_model(ct, Plan(()), units="rescale", orient="auto")
+    assert calls == [{"units": "rescale", "orient": "auto"}]

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 from .. import datasets
+from ..arguments import orient_argument, units_argument
 from ..figures.skin_marks import MAP_CUT_WORDS
 from ..plan import read_plan, write_plan
 from .model import prepare_model
@@ -210,6 +211,12 @@ def add_plan_parser(sub):
     p.add_argument("--spacing", type=float, default=3.0,
                    help="voxel size (mm) of a virtual patient (default 3)")
     p.add_argument("--flip", default="", help="mirror the CT along these axes (see simulate)")
+    p.add_argument("--units", type=units_argument, default="auto",
+                   help="units of a CT file or folder: 'auto' (default), 'hu', 'rescale' or "
+                        "the offset to add (see simulate)")
+    p.add_argument("--orient", type=orient_argument, default="auto",
+                   help="axes of the CT: 'auto' (default), 'none' or a code such as 'LPI' "
+                        "(see simulate)")
     p.add_argument("--no-muscles", action="store_true", help="homogeneous soft tissue")
     p.add_argument("--browser", action="store_true", help="open the page in a browser")
     p.add_argument("-v", "--verbose", action="count", default=0, help="log more")
@@ -217,30 +224,34 @@ def add_plan_parser(sub):
 
 
 def _load_ct(args):
-    """``(ct, bones, landmarks, start plan)`` for the ``--ct`` argument."""
+    """``(ct, bones, landmarks, start plan, checks)`` for the ``--ct`` argument;
+    ``checks``: the units and axes check :func:`prepare_model` runs on the CT (as
+    ``pvcmf simulate``: ``--units`` and ``--orient`` on a scan read from a path; headsq is
+    in HU already; a virtual patient is exact and is not checked)."""
     text = str(args.ct)
     if text.startswith("phantom") and not Path(text).exists():
         patient = int(text.split(":")[1]) if ":" in text else 1
         case = datasets.phantom(patient=patient, spacing=args.spacing)
-        return case.ct, case.truth, case.landmarks, case.plan
+        return case.ct, case.truth, case.landmarks, case.plan, {}
     if text == "headsq" and not Path(text).exists():
-        ct = datasets.headsq()
+        ct, checks = datasets.headsq(), {"units": "hu", "orient": args.orient}
     else:
         from ..io import read_ct
-        ct = read_ct(text, series=args.series)
+        ct, checks = read_ct(text, series=args.series), {"units": args.units,
+                                                         "orient": args.orient}
     if args.flip:
         from ..pipeline import flip_axes
         ct = flip_axes(ct, args.flip)
-    return ct, None, None, None
+    return ct, None, None, None, checks
 
 
 def run_plan(args):
     """``pvcmf plan``: prepare the model (with a progress bar), then serve the page."""
     plan = read_plan(args.plan) if args.plan is not None else None
-    ct, bones, landmarks, case_plan = _load_ct(args)
+    ct, bones, landmarks, case_plan, checks = _load_ct(args)
     model = prepare_model(ct, plan if plan is not None else case_plan, bones=bones,
                           landmarks=landmarks, n_tets=args.n_tets, muscles=not args.no_muscles,
-                          progress_bar=True)
+                          progress_bar=True, **checks)
     log.warning("planner ready (%s): http://127.0.0.1:%d/ (Ctrl+C stops it)", model.kind,
                 args.port)
     serve(model, port=args.port, save_path=args.save, open_browser=args.browser)

@@ -169,7 +169,7 @@ def _zero_plan(segments):
 
 def prepare_model(ct, plan=None, *, bones=None, labels=None, landmarks=None, n_tets=5000,
                   muscles=True, face_fraction=DEFAULT_FACE_FRACTION, bc_options=None,
-                  progress_bar=False):
+                  units=None, orient=None, progress_bar=False):
     """Prepare the planner's model once: labels, mesh, skin, skeleton and predictor.
 
     Parameters
@@ -179,8 +179,9 @@ def prepare_model(ct, plan=None, *, bones=None, labels=None, landmarks=None, n_t
     plan : pvcmf.Plan, optional
         Starting plan; its cut planes define the segments. Without, the label image must
         already hold the maxilla and/or mandible (a virtual patient with ``bones``).
-    bones, labels, landmarks, face_fraction, bc_options
-        As in :func:`pvcmf.pipeline.simulate`.
+    bones, labels, landmarks, face_fraction, bc_options, units, orient
+        As in :func:`pvcmf.pipeline.simulate` (``units``, ``orient``: the check of a CT
+        given in memory; ``pvcmf plan`` passes ``'auto'`` for a CT it reads).
     n_tets : int, default 5000
         Requested number of tetrahedra (small: the full-pipeline fallback solves per plan).
     muscles : bool, default True
@@ -204,7 +205,7 @@ def prepare_model(ct, plan=None, *, bones=None, labels=None, landmarks=None, n_t
     with Progress(total=len(PREPARE_STEPS), desc="planner", enabled=progress_bar) as bar:
         start = time.perf_counter()
         res = simulate(ct, first, labels=labels, bones=bones, predict=False, solve=False,
-                       muscles=False, face_fraction=face_fraction)
+                       muscles=False, face_fraction=face_fraction, units=units, orient=orient)
         lab, skin = res.labels, res.skin_pre
         present = set(np.unique(np.asarray(lab[arrays.BONE])).tolist())
         segments = tuple(s for s in MOVABLE_SEGMENTS if arrays.BONE_LABELS[s] in present)

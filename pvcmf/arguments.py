@@ -1,0 +1,41 @@
+"""Command-line argument types shared by ``pvcmf simulate`` and ``pvcmf plan``: the units and
+the axes of a CT, parsed by :mod:`argparse` into what :func:`pvcmf.filters.standardize` takes.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from .io.orientation import orientation_code
+
+__all__ = ["units_argument", "orient_argument"]
+
+
+def units_argument(text):
+    """``--units``: 'auto', 'hu', 'rescale' or a number (the offset to add to reach HU)."""
+    if text.strip().lower() in ("auto", "hu", "rescale"):
+        return text.strip().lower()
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected 'auto', 'hu', 'rescale' or a number (the offset to add), got "
+            f"{text!r}") from None
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite offset, got {text!r}")
+    return value
+
+
+def orient_argument(text):
+    """``--orient``: 'auto', 'none' or a 3-letter code such as 'LPI'."""
+    if text.strip().lower() in ("auto", "none"):
+        return text.strip().lower()
+    try:
+        code = orientation_code(text.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            "expected 'auto', 'none' or a 3-letter code, one letter per image axis from L/R, "
+            f"A/P, S/I, each pair once (e.g. 'LPI'), got {text!r}") from None
+    return code
