@@ -1,4 +1,4 @@
-"""Units of a CT, checked from the image itself: Hounsfield units from the air and soft-tissue peaks.
+"""Units of a CT, checked from the image itself: HU from its air and soft-tissue peaks.
 
 Otsu's threshold on a subsample of the voxels splits air from the body; the mode of each
 side gives the air peak ``A`` and the soft-tissue peak ``S`` (brain, muscle). A head CT
@@ -35,7 +35,7 @@ from scipy import ndimage as ndi
 
 from .. import arrays
 
-log = logging.getLogger("pvcmf.io.orientation")
+log = logging.getLogger("pvcmf.io.orientation")  # the check standardize runs, logged as such
 
 __all__ = ["check_units", "AIR_HU", "SOFT_HU", "HU_OFFSETS", "CT_SPAN", "NOT_CT", "UNITS"]
 
