@@ -313,6 +313,11 @@ SCAN_SPACING = "scan_spacing"
 #: say): :func:`pvcmf.io.units.check_units` refuses another imaging modality and maps a CT's
 #: grey values that are not HU
 MODALITY = "modality"
+#: field (the CT of :func:`pvcmf.read_ct`), string, 1 value: the file or folder it was read
+#: from; :func:`pvcmf.pipeline.simulate` checks the units and axes of a CT given in memory
+#: as read_ct returned it, as it does for a path (:func:`pvcmf.filters.standardize`'s
+#: new image has no such field)
+SOURCE_PATH = "source_path"
 #: point (skin), uint8, 1 where the skin lies on such a cut, the scan's edge and not the
 #: patient's skin (present when the labels have ``SCAN_CUTS`` or ``SCAN_FOV``)
 SKIN_CUT = "skin_cut"

@@ -357,9 +357,10 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     units, orient : str, optional
         Units and axes check of :func:`pvcmf.filters.standardize` (``'auto'``, ``'hu'``,
         ``'rescale'`` for a cone-beam CT's grey values, or an offset; ``'auto'``, ``'none'``
-        or a code such as ``'LPI'``). Default: ``'auto'``
-        for a CT read from a path, no check for a CT given in memory. What was found goes
-        to :attr:`Result.ct_report` and ``summary.json`` (``"ct"``).
+        or a code such as ``'LPI'``). Default: ``'auto'`` for a CT read from a path or
+        given as :func:`pvcmf.read_ct` returned it (field ``source_path``), no check for
+        another CT given in memory (a virtual patient, a CT ``standardize`` returned).
+        What was found goes to :attr:`Result.ct_report` and ``summary.json`` (``"ct"``).
     working_spacing : 'auto', float or None, default 'auto'
         Step "working grid" (:func:`pvcmf.filters.working_grid`, before the units check and
         the segmentation): ``'auto'`` keeps the scan's grid up to
@@ -443,13 +444,15 @@ def _check_inputs(plan, n_tets, face_fraction, bones, **options):
 def _read_step(run, ct, units, orient, working_spacing, labels_given):
     """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`); step "working
     grid" (:func:`_working_grid`); then its units and axes checked on the image
-    (:func:`pvcmf.filters.standardize`): always for a CT read from a path, for a CT in
-    memory when ``units`` or ``orient`` is given."""
+    (:func:`pvcmf.filters.standardize`): always for a CT read from a path or given as
+    read_ct returned it, for another CT in memory when ``units`` or ``orient`` is given."""
     if isinstance(ct, (str, Path)):
         ct = run.run("read", read_ct, ct)
         units, orient = units or "auto", orient or "auto"
     else:
         run.skip("read", "CT given in memory")
+        if isinstance(ct, pv.ImageData) and arrays.SOURCE_PATH in ct.field_data:
+            units, orient = units or "auto", orient or "auto"  # unchecked: as from a path
     ct = _working_grid(run, ct, working_spacing, labels_given)
     if units is not None or orient is not None:
         ct, run.result.ct_report = standardize(ct, units=units or "auto",

@@ -21,6 +21,7 @@ from pvcmf import arrays
 from pvcmf.cli import build_parser
 from pvcmf.filters.orientation import check_units, standardize
 from pvcmf.io.units import AIR_HU, SOFT_HU
+from pvcmf.plan import Osteotomy, Plan
 
 from ct_helpers import image_of
 
@@ -182,3 +183,36 @@ def test_a_dicom_ct_series_with_cone_beam_grey_values_is_rescaled_by_auto(tmp_pa
     for units in ("auto", "hu", "rescale", -1000.0):
         with pytest.raises(ValueError, match="DICOM MR series.*not a CT"):
             check_units(mr, units)
+
+
+def test_simulate_checks_a_ct_as_read_ct_returned_it(head, tmp_path, monkeypatch):
+    """A CT given in memory as read_ct returned it (field ``source_path``) has its units and
+    axes checked as one read from a path; a CT standardize returned, or a virtual
+    patient, is not checked again; given units win."""
+    from pvcmf import pipeline
+
+    path = tmp_path / "scan.vti"
+    head.save(path)
+    ct = pvcmf.read_ct(path)
+    assert ct.field_data[arrays.SOURCE_PATH].tolist() == [str(path)]
+    calls = []
+
+    def fake_standardize(image, **options):
+        calls.append(options)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(pipeline, "standardize", fake_standardize)
+    plan = Plan((Osteotomy("maxilla", translation=(0, 2, 0)),))
+    for kwargs, expected in (({}, {"units": "auto", "orient": "auto"}),
+                             ({"units": "rescale"}, {"units": "rescale", "orient": "auto"})):
+        with pytest.raises(SystemExit):
+            pipeline.simulate(ct, plan, working_spacing=None, **kwargs)
+        assert calls[-1] == expected
+    checked, _ = standardize(ct)
+    assert arrays.SOURCE_PATH not in checked.field_data
+    monkeypatch.setattr(pipeline, "_label_steps", lambda *a, **k: (_ for _ in ()).throw(
+        SystemExit(1)))
+    for image in (checked, head):
+        with pytest.raises(SystemExit):
+            pipeline.simulate(image, plan, working_spacing=None)
+    assert len(calls) == 2

@@ -107,8 +107,9 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="patient", series=None):
     Returns
     -------
     pyvista.ImageData
-        One point array ``ct`` (float32); geometry as ``frame`` says; from a DICOM
-        series, the field ``modality`` (:data:`pvcmf.arrays.MODALITY`).
+        One point array ``ct`` (float32); geometry as ``frame`` says; the field
+        ``source_path`` (:data:`pvcmf.arrays.SOURCE_PATH`) and, from a DICOM series,
+        ``modality`` (:data:`pvcmf.arrays.MODALITY`).
 
     Raises
     ------
@@ -197,6 +198,7 @@ def read_ct(path, *, offset=0.0, scale=1.0, frame="patient", series=None):
         out = _to_patient_frame(out, world, path)
     if arrays.MODALITY in image.field_data:  # a DICOM series' modality (module arrays)
         out.field_data[arrays.MODALITY] = np.array(image.field_data[arrays.MODALITY])
+    out.field_data[arrays.SOURCE_PATH] = np.array([str(path)])
     log.info(
         "read_ct %s: %s voxels, spacing %s mm, ct range [%.0f, %.0f]",
         path, out.dimensions, tuple(round(s, 4) for s in out.spacing),
