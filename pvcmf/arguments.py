@@ -1,5 +1,5 @@
-"""Command-line argument types shared by ``pvcmf simulate`` and ``pvcmf plan``: the units and
-the axes of a CT, parsed by :mod:`argparse` into what :func:`pvcmf.filters.standardize` takes.
+"""Command-line options shared by ``pvcmf simulate`` and ``pvcmf plan``: the units and the
+axes of a CT, parsed by :mod:`argparse` into what :func:`pvcmf.filters.standardize` takes.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 
 from .io.orientation import orientation_code
 
-__all__ = ["units_argument", "orient_argument"]
+__all__ = ["add_ct_checks", "units_argument", "orient_argument"]
 
 
 def units_argument(text):
@@ -39,3 +39,17 @@ def orient_argument(text):
             "expected 'auto', 'none' or a 3-letter code, one letter per image axis from L/R, "
             f"A/P, S/I, each pair once (e.g. 'LPI'), got {text!r}") from None
     return code
+
+
+def add_ct_checks(parser, units_note=""):
+    """Add ``--units`` and ``--orient`` (the units and axes check of the CT, 'auto' by
+    default) to ``parser``; ``units_note``: a sentence appended to ``--units``'s help."""
+    parser.add_argument("--units", type=units_argument, default="auto",
+                        help="'auto' (detect scanner units from the histogram; default), "
+                             "'hu', 'rescale' (a cone-beam CT's grey values: air and soft "
+                             "tissue mapped to -1000 and +40 HU), or the offset to add to "
+                             "reach HU" + units_note)
+    parser.add_argument("--orient", type=orient_argument, default="auto",
+                        help="'auto' (face +y and vertex +z checked from the anatomy; "
+                             "default), 'none' (trust the file), or where the image axes "
+                             "point, e.g. 'LPI'")

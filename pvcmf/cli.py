@@ -47,7 +47,7 @@ from .datasets import headsq
 from . import report
 from .io import (check_export, export, read_ct, read_landmarks, read_plan_file,
                  write_surface)
-from .arguments import orient_argument, units_argument
+from .arguments import add_ct_checks
 from .figures.offscreen import prefer_egl
 from .io.surfaces import SURFACE_FORMATS
 from .outputs import check_output_dir, check_output_file
@@ -246,14 +246,7 @@ def build_parser():
                      help="HU = scale * value + offset (for scanner units; default 0, "
                           "headsq: its loader's default)")
     sim.add_argument("--scale", type=float, default=None, help="see --offset (default 1)")
-    sim.add_argument("--units", type=units_argument, default="auto",
-                     help="'auto' (detect scanner units from the histogram; default), 'hu', "
-                          "'rescale' (a cone-beam CT's grey values: air and soft tissue "
-                          "mapped to -1000 and +40 HU), or the offset to add to reach HU; "
-                          "--offset/--scale imply 'hu'")
-    sim.add_argument("--orient", type=orient_argument, default="auto",
-                     help="'auto' (face +y and vertex +z checked from the anatomy; default), "
-                          "'none' (trust the file), or where the image axes point, e.g. 'LPI'")
+    add_ct_checks(sim, "; --offset/--scale imply 'hu'")
     sim.add_argument("--flip", type=_flip, default="",
                      help="mirror the CT along these axes to reach the patient frame (x left, "
                           "y anterior, z superior), e.g. 'yz' for VTK's headsq")

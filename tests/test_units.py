@@ -120,7 +120,7 @@ def _female_2mm():
 
 
 def test_a_real_scan_with_cone_beam_grey_values_segments_as_in_hu():
-    """The Visible Human female (2 mm blocks) stored with air and soft tissue 520 apart:
+    """The Visible Human female (2 mm blocks) stored at half the HU scale:
     'auto' rescales it (its DICOM header says CT; without one, 'rescale' does), to the
     same values as the scan in HU rescaled (the line through its own peaks: its air lies
     at -1024), and the same head, tissues and jaws as the scan in HU."""

@@ -176,7 +176,7 @@ def check_units(image, units="auto"):
     >>> hu, rep = check_units(img)
     >>> rep["units"], rep["offset"]
     ('scanner', -1000.0)
-    >>> img["ct"] = 0.5 * img["ct"]  # a cone-beam CT: air and soft tissue 520 apart
+    >>> img["ct"] = 0.5 * img["ct"]  # a cone-beam CT at half the HU scale
     >>> hu, rep = check_units(img, units="rescale")
     >>> rep["units"], round(rep["slope"], 1), round(float(hu["ct"].max()), -1)
     ('rescaled', 2.0, 1240.0)

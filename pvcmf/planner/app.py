@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 from .. import datasets
-from ..arguments import orient_argument, units_argument
+from ..arguments import add_ct_checks
 from ..figures.skin_marks import MAP_CUT_WORDS
 from ..plan import read_plan, write_plan
 from .model import prepare_model
@@ -211,12 +211,7 @@ def add_plan_parser(sub):
     p.add_argument("--spacing", type=float, default=3.0,
                    help="voxel size (mm) of a virtual patient (default 3)")
     p.add_argument("--flip", default="", help="mirror the CT along these axes (see simulate)")
-    p.add_argument("--units", type=units_argument, default="auto",
-                   help="units of a CT file or folder: 'auto' (default), 'hu', 'rescale' or "
-                        "the offset to add (see simulate)")
-    p.add_argument("--orient", type=orient_argument, default="auto",
-                   help="axes of the CT: 'auto' (default), 'none' or a code such as 'LPI' "
-                        "(see simulate)")
+    add_ct_checks(p, "; for a CT file or folder (headsq is in HU already)")
     p.add_argument("--no-muscles", action="store_true", help="homogeneous soft tissue")
     p.add_argument("--browser", action="store_true", help="open the page in a browser")
     p.add_argument("-v", "--verbose", action="count", default=0, help="log more")
