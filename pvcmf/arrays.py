@@ -328,6 +328,10 @@ SKIN_CUT_POINTS = "skin_cut_points"
 #: where it descends anteriorly (as the occlusal plane does against the Frankfort
 #: horizontal) (:func:`pvcmf.filters.jaw_pose.check_pose`)
 ARCH_PITCH = "arch_pitch"
+#: field (labels of ``find_jaws``), float64, 3 values where the teeth form a flat arch: the
+#: unit normal (superior) of the upper dental arch's plane, in the image's axes (a plan's
+#: ``axes = "occlusal"``, :func:`pvcmf.filters.plan_axes`)
+ARCH_NORMAL = "arch_normal"
 
 
 # --------------------------------------------------------------------------- solution checks

@@ -19,6 +19,7 @@ from scipy import ndimage
 
 import pvcmf
 from pvcmf import arrays
+from pvcmf.filters.bone_segments import occlusal_normal
 from pvcmf.filters.metal import streak_zone
 from pvcmf.plan import Osteotomy, Plan
 
@@ -350,14 +351,22 @@ def test_male_scanned_chin_down(male):
     from the axial slices, where an axial occlusal slice or Le Fort I level cuts through
     the teeth and the palate), on a grid 40 mm wider front and back, above and below so
     that nothing leaves it: the jaws found match those of the scan as it is, turned the same
-    way (Dice >= 0.9; both images are resampled)."""
+    way (Dice >= 0.9; both images are resampled), and the occlusal plane found is the
+    upright one turned (within 2 degrees)."""
     ct, lab = male
     pad = ((0, 0), (40, 40), (40, 40))
     v = np.pad(_vol(ct, arrays.CT).astype(np.float32), pad, constant_values=-1024.0)
     img = pv.ImageData(dimensions=v.shape, spacing=ct.spacing, origin=ct.origin)
     img[arrays.CT] = _turned(v, ct.spacing, -15.0, 1, -1024.0).ravel(order="F")
-    found = _vol(pvcmf.filters.find_jaws(pvcmf.filters.segment(img)), arrays.BONE)
-    upright = np.pad(_vol(pvcmf.filters.find_jaws(lab), arrays.BONE), pad)
+    jaws = pvcmf.filters.find_jaws(pvcmf.filters.segment(img))
+    level = pvcmf.filters.find_jaws(lab)
+    # the occlusal plane (a plan's axes = "occlusal") turns with the head
+    a = np.radians(-15.0)
+    turn = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    normals = [occlusal_normal(jaws), turn @ occlusal_normal(level)]
+    assert np.degrees(np.arccos(min(normals[0] @ normals[1], 1.0))) < 2.0, normals
+    found = _vol(jaws, arrays.BONE)
+    upright = np.pad(_vol(level, arrays.BONE), pad)
     upright = _turned(upright, ct.spacing, -15.0, 0, 0)
     for segment in (arrays.MANDIBLE, arrays.MAXILLA):
         a, b = found == segment, upright == segment

@@ -141,29 +141,8 @@ def find_jaws(labels, *, progress_bar=False):
     ValueError
         If there is no tissue array, no hard tissue or no teeth (give the plan cut planes).
     """
-    if not isinstance(labels, pv.ImageData):
-        raise TypeError(f"labels must be a pyvista.ImageData, got {type(labels).__name__}")
     say = log.info if progress_bar else log.debug
-    tissue = np.asarray(arrays.require_array(labels, arrays.TISSUE, "point", dtype="u",
-                                             producer="segment"))
-    dims = tuple(int(d) for d in labels.dimensions)
-    spacing = np.asarray(labels.spacing, float)
-    tissue = tissue.reshape(dims, order="F")
-    hard_all = np.zeros(dims, dtype=bool, order="F")
-    for label in arrays.HARD_LABELS:  # comparisons in memory order, no flattening copy
-        hard_all |= tissue == label
-    if not hard_all.any():
-        raise ValueError("find_jaws: the image has no hard tissue (tissue BONE/TEETH/METAL)")
-    box = _bounds(hard_all, 0)
-    # C-ordered copies of the bone's box: labelling and elementwise operations on the
-    # Fortran-ordered image (or mixed orders) run several times slower
-    hard = _c_copy(hard_all[box])
-    tissue = _c_copy(tissue[box])
-    teeth = (tissue == arrays.TEETH) | (tissue == arrays.METAL)
-    teeth &= _far_from(tissue == arrays.INTRACRANIAL, spacing, SKULL_BASE_MM)
-    if teeth.sum() < 10:
-        raise ValueError("find_jaws: fewer than 10 tooth voxels: cannot find the jaws from the "
-                         "anatomy; give the plan's osteotomies cut planes")
+    dims, spacing, box, hard, tissue, teeth = _jaw_box(labels, "find_jaws")
     turn, tilt, arches, normal = arch_pose(teeth, hard, spacing)
     if turn is None:
         sub = _segments(tissue, hard, teeth, spacing, say, arches)
@@ -193,6 +172,7 @@ def find_jaws(labels, *, progress_bar=False):
     out[arrays.BONE] = bone.ravel(order="F")
     if normal is not None:
         out.field_data[arrays.ARCH_PITCH] = np.array([pitch(normal)])
+        out.field_data[arrays.ARCH_NORMAL] = np.asarray(normal, dtype=float)
     voxel = float(np.prod(spacing)) / 1000.0
     log.info("find_jaws: segments (mL) %s", ", ".join(
         f"{arrays.BONE_NAMES[i]} {np.count_nonzero(sub == i) * voxel:.1f}"
@@ -215,6 +195,56 @@ def _segments(tissue, hard, teeth, spacing, say, arches=None):
     sub[maxilla] = arrays.MAXILLA
     sub[mandible] = arrays.MANDIBLE
     return sub
+
+
+def _jaw_box(labels, caller):
+    """The box of the hard tissue of ``labels`` and, in it (C order), the hard tissue, the
+    tissue labels and the teeth away from the skull base: ``(dims, spacing, box, hard,
+    tissue, teeth)``."""
+    if not isinstance(labels, pv.ImageData):
+        raise TypeError(f"labels must be a pyvista.ImageData, got {type(labels).__name__}")
+    tissue = np.asarray(arrays.require_array(labels, arrays.TISSUE, "point", dtype="u",
+                                             producer="segment"))
+    dims = tuple(int(d) for d in labels.dimensions)
+    spacing = np.asarray(labels.spacing, float)
+    tissue = tissue.reshape(dims, order="F")
+    hard_all = np.zeros(dims, dtype=bool, order="F")
+    for label in arrays.HARD_LABELS:  # comparisons in memory order, no flattening copy
+        hard_all |= tissue == label
+    if not hard_all.any():
+        raise ValueError(f"{caller}: the image has no hard tissue (tissue BONE/TEETH/METAL)")
+    box = _bounds(hard_all, 0)
+    # C-ordered copies of the bone's box: labelling and elementwise operations on the
+    # Fortran-ordered image (or mixed orders) run several times slower
+    hard = _c_copy(hard_all[box])
+    tissue = _c_copy(tissue[box])
+    teeth = (tissue == arrays.TEETH) | (tissue == arrays.METAL)
+    teeth &= _far_from(tissue == arrays.INTRACRANIAL, spacing, SKULL_BASE_MM)
+    if teeth.sum() < 10:
+        raise ValueError(f"{caller}: fewer than 10 tooth voxels: cannot find the jaws from the "
+                         "anatomy; give the plan's osteotomies cut planes")
+    return dims, spacing, box, hard, tissue, teeth
+
+
+def occlusal_normal(labels):
+    """Unit normal (superior) of the upper dental arch's plane in ``labels``: the value
+    :func:`find_jaws` keeps as ``arrays.ARCH_NORMAL``, else measured as it measures it
+    (:func:`~pvcmf.filters.jaw_pose.arch_pose`).
+
+    Raises
+    ------
+    ValueError
+        Fewer than 10 tooth voxels, or teeth that form no flat arch.
+    """
+    if arrays.ARCH_NORMAL in labels.field_data:
+        normal = np.asarray(labels.field_data[arrays.ARCH_NORMAL], dtype=float).ravel()
+        return normal / np.linalg.norm(normal)
+    _, spacing, _, hard, _, teeth = _jaw_box(labels, "occlusal_normal")
+    normal = arch_pose(teeth, hard, spacing)[3]
+    if normal is None:
+        raise ValueError("occlusal_normal: the teeth of labels form no flat dental arch "
+                         "(a few front teeth alone, or none): no occlusal plane to plan in")
+    return np.asarray(normal, dtype=float)
 
 
 def _bounds(mask, margin):
