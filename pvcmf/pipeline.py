@@ -30,6 +30,7 @@ import pyvista as pv
 from . import arrays, filters, mtm
 from ._atomic import write_text
 from .filters.bone_segments import segment_volumes, transfer_segments
+from .filters.face_axes import check_plan_landmarks, with_plan_axes
 from .filters.jaw_pose import check_pose
 from .filters.meshing.skin_fit import on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
@@ -392,6 +393,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
                                mesh_options=mesh_options, material_options=material_options,
                                bc_options=bc_options, solve_options=solve_options)
     working_factors((1, 1, 1), (1.0, 1.0, 1.0), working_spacing)  # refused before any work
+    check_plan_landmarks(plan, landmarks, fit=muscles and predict)  # before any work
     if not isinstance(fit_skin, (bool, dict)):  # options of fit_to_skin, or whether to fit
         raise TypeError(f"fit_skin must be a bool or a dict, got {type(fit_skin).__name__}")
     opts["fit_options"] = dict(fit_skin) if isinstance(fit_skin, dict) else ({} if fit_skin else None)
@@ -407,6 +409,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
             labels = labels if with_muscles is None else with_muscles
         else:
             run.skip("muscles", "muscles=False" if predict else "predict=False")
+        labels = with_plan_axes(labels, plan, landmarks)
         result.labels = labels
         result.tissue_volumes = tissue_volumes(labels)
         if arrays.BONE in labels.point_data:
@@ -505,7 +508,7 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
     else:
         run.skip("bone segments", _segment_sources(labels, plan))
     labels = check_coverage(cut_bones(labels, plan), plan)
-    check_pose(labels)
+    check_pose(labels, plan.axes)
     return labels
 
 

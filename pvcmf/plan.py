@@ -39,6 +39,20 @@ Plans are read and written as TOML or JSON (:meth:`Plan.from_file`, :meth:`Plan.
     point = [0.0, 0.0, -20.0]
     normal = [0.0, 0.0, -1.0]
 
+Axes
+----
+``axes`` says which three directions the numbers are in. ``"image"`` (the default): the
+image's own axes, as above. A head the scanner holds tilted (chin down, rolled) then gets
+its moves in the scanner's directions, not the face's; ``"occlusal"`` puts them in the
+plane of the upper dental arch found in the image (vertical: its normal; horizontal: the
+image's left-right direction in that plane; anterior-posterior: the third), and
+``"frankfort"`` in the Frankfort horizontal through the porions and the orbitales (the
+landmarks of the label image). :func:`pvcmf.filters.plan_axes` turns them into the image's
+axes; a pivot and the cut planes stay points and planes of the image::
+
+    name = "advancement along the occlusal plane"
+    axes = "occlusal"
+
 Unknown keys, non-finite numbers, rotations over :data:`MAX_ROTATION_DEG`, translations
 over :data:`MAX_TRANSLATION_MM` and segments
 the bone label image does not contain (:meth:`Plan.check_segments`) raise
@@ -64,7 +78,9 @@ MAX_ROTATION_DEG = 30.0
 MAX_TRANSLATION_MM = 50.0
 #: segments a plan may move
 MOVABLE_SEGMENTS = tuple(k for k in arrays.BONE_LABELS if k not in ("none", "cranium"))
-_PLAN_KEYS = ("name", "osteotomy")
+_PLAN_KEYS = ("name", "axes", "osteotomy")
+#: directions a plan's translations and rotations can be given in (:attr:`Plan.axes`)
+AXES = ("image", "occlusal", "frankfort")
 _OSTEOTOMY_KEYS = ("segment", "translation", "rotation", "pivot", "cut", "matrix")
 _CUT_KEYS = ("point", "normal")
 
@@ -79,6 +95,15 @@ def _check_keys(data, allowed, where, required=()):
     missing = [k for k in required if k not in data]
     if missing:
         raise ValueError(f"{where} is missing key(s) {missing}")
+
+
+def _rotation3(value):
+    """``value`` as a 3x3 rotation, or a ValueError."""
+    m = np.asarray(value, dtype=float)
+    if (m.shape != (3, 3) or not np.all(np.isfinite(m))
+            or not np.allclose(m.T @ m, np.eye(3), atol=1e-6) or np.linalg.det(m) < 0):
+        raise ValueError(f"axes must be a 3x3 rotation matrix, got {value!r}")
+    return m
 
 
 def _vector3(value, name):
@@ -265,13 +290,17 @@ class Osteotomy:
         """Bone label id of the moved segment."""
         return arrays.BONE_LABELS[self.segment]
 
-    def matrix(self, centroid=None):
+    def matrix(self, centroid=None, axes=None):
         """Return the 4x4 rigid transform in the patient frame (mm).
 
         Parameters
         ----------
         centroid : array_like, optional
             Pivot to use when ``pivot`` is ``None``; defaults to the origin.
+        axes : array_like, optional
+            3x3 rotation whose columns are the plan's (x, y, z) directions in the image
+            (:func:`pvcmf.filters.plan_axes`): the translation and the rotation are given in
+            them; default the image's own axes.
         """
         pivot = np.asarray(self.pivot if self.pivot is not None else
                            (centroid if centroid is not None else (0.0, 0.0, 0.0)), dtype=float)
@@ -287,6 +316,9 @@ class Osteotomy:
             rot = r @ rot
         shift = np.zeros(3)
         shift[list(arrays.PLAN_AXES)] = self.translation
+        if axes is not None:
+            frame = _rotation3(axes)
+            rot, shift = frame @ rot @ frame.T, frame @ shift
         out = np.eye(4)
         out[:3, :3] = rot
         out[:3, 3] = pivot - rot @ pivot + shift
@@ -295,7 +327,8 @@ class Osteotomy:
 
 @dataclass(frozen=True)
 class Plan:
-    """A surgical plan: one or more osteotomies.
+    """A surgical plan: one or more osteotomies, their moves given in ``axes``
+    (:data:`AXES`: ``"image"``, ``"occlusal"`` or ``"frankfort"``; see the module docs).
 
     Examples
     --------
@@ -309,8 +342,11 @@ class Plan:
 
     osteotomies: tuple = field(default_factory=tuple)
     name: str = ""
+    axes: str = "image"
 
     def __post_init__(self):
+        if self.axes not in AXES:
+            raise ValueError(f"axes must be one of {list(AXES)}, got {self.axes!r}")
         osteotomies = tuple(self.osteotomies)
         for o in osteotomies:
             if not isinstance(o, Osteotomy):
@@ -331,6 +367,8 @@ class Plan:
     def to_dict(self):
         """Return the plan as plain Python data (what the TOML/JSON files hold)."""
         out = {"name": self.name} if self.name else {}
+        if self.axes != "image":
+            out["axes"] = self.axes
         out["osteotomy"] = [o.to_dict() for o in self.osteotomies]
         return out
 
@@ -354,9 +392,15 @@ class Plan:
         name = data.get("name", "")
         if not isinstance(name, str):
             raise ValueError(f"plan name must be a string, got {name!r}")
+        axes = data.get("axes", "image")
+        if axes not in AXES:
+            raise ValueError(f"plan axes must be one of {list(AXES)}, got {axes!r}")
+        if axes != "image" and any(isinstance(i, dict) and "matrix" in i for i in items):
+            raise ValueError(f"plan axes = {axes!r} with an osteotomy given as a matrix: a "
+                             "matrix is in the image's frame; use axes = 'image'")
         osteotomies = tuple(Osteotomy.from_dict(item, f"osteotomy[{i}]")
                             for i, item in enumerate(items))
-        return cls(osteotomies, name=name)
+        return cls(osteotomies, name=name, axes=axes)
 
     # ------------------------------------------------------------------ files
     @classmethod

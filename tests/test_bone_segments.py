@@ -11,6 +11,7 @@ from scipy import ndimage
 import pvcmf
 from pvcmf import arrays
 from pvcmf.filters.bone_segments import find_jaws, segment_volumes
+from pvcmf.filters.face_axes import occlusal_axes
 from pvcmf.plan import Osteotomy, Plan
 
 
@@ -54,6 +55,8 @@ def test_no_teeth_is_an_error(patient1):
     noteeth[arrays.TISSUE] = t
     with pytest.raises(ValueError, match="cut planes"):
         find_jaws(noteeth)
+    with pytest.raises(ValueError, match="occlusal_normal: fewer than 10 tooth voxels"):
+        occlusal_axes(noteeth)  # a plan in the occlusal axes needs teeth too
 
 
 @pytest.mark.parametrize("patient", [1, 2, 3, 4])

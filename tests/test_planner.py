@@ -217,6 +217,23 @@ def test_model_predicts_and_moves_the_skeleton(model):
     assert np.allclose(bones["maxilla"].points, model.bones["maxilla"].points)
 
 
+def test_model_takes_a_plan_in_the_occlusal_axes(model):
+    """The skeleton and the face of a plan along the occlusal plane are those of the same
+    move written in the image's axes."""
+    from pvcmf.filters.face_axes import occlusal_axes
+
+    F = occlusal_axes(model.labels)
+    along = Plan((Osteotomy("mandible", translation=(0.0, 0.0, 5.0)),), axes="occlusal")
+    forward = 5.0 * F[:, 1]
+    same = Plan((Osteotomy("mandible", translation=tuple(forward[[0, 2, 1]])),))
+    assert abs(forward[2]) > 0.05  # the phantom's arch is not level
+    bones = model.skeleton(along)
+    shift = np.asarray(bones["mandible"].points) - np.asarray(model.bones["mandible"].points)
+    assert np.allclose(shift, forward)
+    np.testing.assert_allclose(model.predict(along)[arrays.DISPLACEMENT],
+                               model.predict(same)[arrays.DISPLACEMENT], atol=1e-9)
+
+
 # --------------------------------------------------------------------------- web page
 def _chromium():
     for name in ("chromium", "chromium-browser", "google-chrome"):

@@ -7,6 +7,7 @@ compared with it afterwards: points, cells and every point, cell and field array
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -87,7 +88,10 @@ def chain():
     _pure("transfer_operator", f.transfer_operator, post, np.asarray(skin.points[:200]))
     _pure("crumple_metric", f.crumple_metric, skin, out["mapped"][arrays.DISPLACEMENT], post,
           post[arrays.DISPLACEMENT])
-    _pure("find_jaws", f.find_jaws, case.truth)
+    jaws = _pure("find_jaws", f.find_jaws, case.truth)
+    for axes, image in (("occlusal", jaws), ("frankfort", labels)):
+        plan = dataclasses.replace(case.plan, axes=axes)
+        _pure("plan_axes", f.plan_axes, image, plan)
     moved = skin.translate((0.5, -0.3, 0.2), inplace=False)
     out["registered"] = _pure("register", f.register, moved, skin)
     out["distance"] = _pure("distance_to", f.distance_to, moved, skin)

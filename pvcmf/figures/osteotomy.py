@@ -36,6 +36,8 @@ def plan_lines(plan):
     >>> from pvcmf.plan import Osteotomy, Plan
     >>> plan_lines(Plan([Osteotomy("maxilla", translation=(0.0, 2.0, -4.0))]))
     ['maxilla: 4.0 mm back, 2.0 mm up']
+    >>> plan_lines(Plan([Osteotomy("mandible", translation=(0.0, 0.0, 5.0))], axes="occlusal"))
+    ['mandible: 5.0 mm forward (occlusal axes)']
     """
     names = (("left", "right"), ("up", "down"), ("forward", "back"))
     rot_names = ("pitch", "yaw", "roll")
@@ -46,7 +48,8 @@ def plan_lines(plan):
                               (0, o.translation[0])) if abs(v) >= 0.05]
         turns = [f"{rot_names[i]} {v:+.1f} deg" for i, v in enumerate(o.rotation)
                  if abs(v) >= 0.05]
-        out.append(f"{o.segment}: " + (", ".join(moves + turns) or "not moved"))
+        axes = f" ({plan.axes} axes)" if plan.axes != "image" and (moves or turns) else ""
+        out.append(f"{o.segment}: " + (", ".join(moves + turns) or "not moved") + axes)
     return out
 
 

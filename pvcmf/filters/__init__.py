@@ -16,6 +16,7 @@ average_voxels            ``fractions``               001: per-tetrahedron voxel
 assign_materials          ``materials``               000 Table I / 001 materials
 cut_bones, move_bones     ``osteotomy``               000 Fig. 5: bone segments and plan
 apply_plan                ``boundary_conditions``     000 Fig. 4: sliding / joint / fixed
+plan_axes                 ``face_axes``               a plan's moves in the face's axes
 extract_skin              ``skin``                    skin surface of a label image or mesh
 register                  ``registration``            000 sec. V: ICP (point-to-plane)
 distance_to               ``distance``                000 Fig. 6: signed distance maps
@@ -48,6 +49,7 @@ _REGISTRY = {
     "move_bones": "osteotomy",
     "find_jaws": "bone_segments",
     "apply_plan": "boundary_conditions",
+    "plan_axes": "face_axes",
     "extract_skin": "skin",
     "register": "registration",
     "distance_to": "distance",

@@ -138,11 +138,13 @@ def pitch(normal):
     return float(np.degrees(np.arctan2(normal[1], normal[2])))
 
 
-def check_pose(labels):
+def check_pose(labels, axes="image"):
     """Warn where the upper dental arch (``arrays.ARCH_PITCH`` of ``labels``) pitches
     outside the occlusal plane's usual cant to the Frankfort horizontal, ``OCCLUSAL_CANT``
     +- three ``OCCLUSAL_CANT_SD``: the head lies tilted in the scan, and a plan's directions
-    (forward, up) are the image's axes, not the face's. Returns the warning, or None."""
+    (forward, up) are the image's axes, not the face's. A plan in the face's ``axes``
+    (``"occlusal"``, ``"frankfort"``: :mod:`pvcmf.filters.face_axes`) follows the head: the
+    tilt is then only logged. Returns the warning, or None."""
     if arrays.ARCH_PITCH not in labels.field_data:
         return None
     angle = float(np.asarray(labels.field_data[arrays.ARCH_PITCH]).ravel()[0])
@@ -154,6 +156,12 @@ def check_pose(labels):
                f"of its usual cant to the Frankfort horizontal ({OCCLUSAL_CANT:g} +- "
                f"{OCCLUSAL_CANT_SD:g} degrees): the head lies tilted in the scan, and the "
                "plan's directions (forward, up) are the image's axes, not the face's")
+    if axes != "image":
+        log.info("check_pose: the head lies %.0f degrees %s of the usual occlusal cant; the "
+                 "plan's moves are in its %s axes, which follow the face", abs(off),
+                 "chin down" if off > 0 else "chin up", axes)
+        return None
+    message += ' (a plan with axes = "occlusal" or "frankfort" follows the face)'
     log.warning(message)
     return message
 

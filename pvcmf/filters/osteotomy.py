@@ -31,6 +31,7 @@ from .. import arrays
 from ..arrays import voxel_points
 from ..plan import Plan
 from .bone_segments import find_jaws, segment_volumes
+from .face_axes import plan_axes
 
 log = logging.getLogger(__name__)
 
@@ -131,8 +132,9 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
         log.info("cut_bones: %s = %d voxels inside %d plane(s)", o.segment, int(inside.sum()),
                  len(o.cut))
     out[arrays.BONE] = new
-    if jaws is not None and arrays.ARCH_PITCH in jaws.field_data:  # the pose it measured
-        out.field_data[arrays.ARCH_PITCH] = np.array(jaws.field_data[arrays.ARCH_PITCH])
+    for name in (arrays.ARCH_PITCH, arrays.ARCH_NORMAL):  # the pose find_jaws measured
+        if jaws is not None and name in jaws.field_data:
+            out.field_data[name] = np.array(jaws.field_data[name])
     if missing or any(o.cut for o in plan.osteotomies):  # else every segment is labelled
         plan.check_segments(out)
     if log.isEnabledFor(logging.INFO):  # the volumes take a pass over the image each
@@ -145,7 +147,9 @@ def segment_transforms(labels, plan):
     """Return ``{segment id: 4x4 matrix}`` for the plan's segments in ``labels``.
 
     The pivot of an osteotomy without one is the centroid of its voxels in the ``bone``
-    array (cut the image first with :func:`cut_bones` when the plan has cut planes).
+    array (cut the image first with :func:`cut_bones` when the plan has cut planes). The
+    moves are turned into the image's axes from the plan's ``axes``
+    (:func:`~pvcmf.filters.face_axes.plan_axes`).
 
     Examples
     --------
@@ -162,12 +166,13 @@ def segment_transforms(labels, plan):
     ids = {o.segment_id: np.flatnonzero(bone == o.segment_id) for o in plan.osteotomies}
     if any(o.cut for o in plan.osteotomies) or not all(v.size for v in ids.values()):
         plan.check_segments(labels)  # (a plan without cut planes needs its segments only)
+    axes = plan_axes(labels, plan)
     out = {}
     for o in plan.osteotomies:
         centroid = None
         if o.pivot is None:
             centroid = voxel_points(labels, ids[o.segment_id]).mean(axis=0)
-        out[o.segment_id] = o.matrix(centroid)
+        out[o.segment_id] = o.matrix(centroid, axes=axes)
     return out
 
 

@@ -57,5 +57,6 @@ def plan_grid(segment, *, translations=None, rotations=None, base=None):
         tr = tuple(t[i].tolist()) if t is not None else tuple(ref.translation)
         ro = tuple(r[i].tolist()) if r is not None else tuple(ref.rotation)
         o = Osteotomy(segment, translation=tr, rotation=ro, pivot=ref.pivot, cut=ref.cut)
-        plans.append(Plan(others + (o,), name=base.name if base is not None else ""))
+        plans.append(Plan(others + (o,), name=base.name if base is not None else "",
+                          axes=base.axes if base is not None else "image"))
     return plans

@@ -46,6 +46,7 @@ import pyvista as pv
 
 from .. import arrays
 from ..filters.boundary_conditions import apply_plan
+from ..filters.face_axes import plan_axes
 from ..filters.field_of_view import cut_points
 from ..filters.osteotomy import cut_bones
 from ..filters.surface_mapping import transfer_operator
@@ -202,6 +203,7 @@ class PlanResponse:
         self.timings = {}
         self.threads = solver_options.get("threads", 1)  # BLAS threads of the products
         self.float32_error = None
+        self._axes = {}
         cpu0 = time.thread_time()
         with Progress(total=4, desc="plan_response", enabled=progress_bar, logger=log) as bar:
             pending = None if skin is None else transfer_in_background(mesh, skin)
@@ -366,10 +368,12 @@ class PlanResponse:
         if any(o.cut != cuts[o.segment_id] for o in plan.osteotomies):
             return None
         a = np.zeros(12 * len(self.segments))
+        if plan.axes not in self._axes:  # the plan's directions in the image, once per kind
+            self._axes[plan.axes] = plan_axes(self.labels, plan)
         for o in plan.osteotomies:
             s = self.segments.index(o.segment_id)
             c = self.centroids[o.segment_id]
-            M = o.matrix(c)
+            M = o.matrix(c, axes=self._axes[plan.axes])
             A = M[:3, :] - np.eye(4)[:3, :]
             A[:, 3] = A[:, :3] @ c + A[:, 3]  # centred: x = (x - c) + c
             a[12 * s:12 * s + 12] = A.ravel()

@@ -28,6 +28,7 @@ import numpy as np
 import pyvista as pv
 
 from .. import arrays, filters, mtm
+from ..filters.face_axes import plan_axes
 from ..filters.osteotomy import move_bones, voxel_points
 from ..pipeline import DEFAULT_BC_OPTIONS, DEFAULT_FACE_FRACTION, simulate
 from ..plan import MOVABLE_SEGMENTS, Osteotomy, Plan
@@ -124,6 +125,7 @@ class PlannerModel:
     timings: dict = field(default_factory=dict)
     _predict: object = field(default=None, repr=False)
     _centroids: dict | None = field(default=None, repr=False)
+    _axes: dict = field(default_factory=dict, repr=False)
 
     def displacement(self, plan):
         """Skin displacement (n, 3) in mm for ``plan``; zero for a plan that moves nothing."""
@@ -150,7 +152,10 @@ class PlannerModel:
             bone = np.asarray(self.labels[arrays.BONE])
             self._centroids = {s: voxel_points(self.labels, np.flatnonzero(
                 bone == arrays.BONE_LABELS[s])).mean(axis=0) for s in self.segments}
-        matrices = {o.segment_id: o.matrix(self._centroids.get(o.segment))
+        if plan.axes not in self._axes:  # the plan's directions in the image, once per kind
+            self._axes[plan.axes] = plan_axes(self.labels, plan)
+        matrices = {o.segment_id: o.matrix(self._centroids.get(o.segment),
+                                           axes=self._axes[plan.axes])
                     for o in plan.osteotomies}
         out = pv.MultiBlock()
         for name in self.bones.keys():

@@ -144,7 +144,8 @@ class PlanSliders:
                                          cut=old.cut if old else (), **move))
         if name is None:
             name = self.template.name if self.template is not None else ""
-        return Plan(tuple(osteotomies), name=name)
+        axes = self.template.axes if self.template is not None else "image"
+        return Plan(tuple(osteotomies), name=name, axes=axes)
 
     def ranges(self, key):
         """``(min, max, step)`` of slider ``key``."""

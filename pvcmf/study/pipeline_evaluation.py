@@ -347,7 +347,7 @@ class PipelineEvaluation(Evaluation):
                     vec[axis] = v
                 move[attr] = tuple(vec)
             osteotomies.append(dataclasses.replace(o, **move))
-        return Plan(tuple(osteotomies), name=base.name)
+        return Plan(tuple(osteotomies), name=base.name, axes=base.axes)
 
     def _plan_displacement(self, state, plan, material, method, tol, material_key, mapping):
         """Skin displacement of a plan point, from the case's plan-response operator

@@ -1,0 +1,241 @@
+"""The directions a plan's moves are given in: the image's, the occlusal plane's, or the
+Frankfort horizontal's.
+
+A plan's translations and rotations are (horizontal, vertical, anterior-posterior) numbers.
+With ``axes = "image"`` (the default) these are the image's own axes, which are the face's
+only when the head lies level in the scanner. A head scanned chin down or rolled then
+moves the maxilla "forward" partly downward, by the sine of the tilt (a quarter of the move
+at 15 degrees). :func:`plan_axes` gives the 3x3 rotation whose columns are the plan's
+(x, y, z) directions in the image, which :meth:`pvcmf.plan.Osteotomy.matrix` turns the
+moves with:
+
+* ``"occlusal"``: the plane of the upper dental arch found in the image
+  (:func:`~pvcmf.filters.bone_segments.occlusal_normal`, fixed to the skull: the lower jaw may
+  hang open). Vertical is its normal, horizontal the image's left-right direction laid into
+  the plane, anterior-posterior the third. Derived from the image alone.
+* ``"frankfort"``: the Frankfort horizontal, the plane through both porions (the tops of the
+  ear canals) and the orbitales (the lowest points of the orbit rims; their midpoint).
+  Horizontal runs from the right porion to the left one, vertical is the plane's normal.
+  The landmarks are the label image's (``arrays.LANDMARK_NAMES`` / ``LANDMARK_POINTS``:
+  those given to :func:`pvcmf.pipeline.simulate` or :func:`~pvcmf.filters.embed_muscles`,
+  else the atlas fit's own, which can lie several millimetres off a real scan's ear canal).
+
+A frame more than :data:`MAX_AXES_DEG` from the image's axes is refused: the landmarks are
+swapped or in another frame, or the teeth found are no arch.
+
+Delegates to :func:`numpy.linalg.norm` and :func:`numpy.cross`; the arch's plane to
+:mod:`pvcmf.filters.jaw_pose`.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+import numpy as np
+
+from .. import arrays
+from ..plan import AXES, Plan
+from .bone_segments import occlusal_normal
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FRANKFORT_LANDMARKS", "MAX_AXES_DEG", "check_plan_landmarks", "frankfort_axes",
+           "occlusal_axes", "plan_axes", "with_plan_axes"]
+
+#: landmarks the Frankfort horizontal goes through
+FRANKFORT_LANDMARKS = ("porion_left", "porion_right", "orbitale_left", "orbitale_right")
+#: largest angle (degrees) between a plan's axes and the image's: a head lies in a scanner
+#: at most this far from its axes (as :data:`pvcmf.filters.jaw_pose.MAX_TILT_DEG`)
+MAX_AXES_DEG = 45.0
+#: nearest the landmarks may lie (mm): porions (adults: 100-150 mm apart) and the orbitales'
+#: midpoint from the porions' (70-90 mm)
+MIN_SPAN_MM = 20.0
+
+
+def _angle(frame):
+    """Angle (degrees) of the rotation ``frame``."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(frame) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _checked(frame, what):
+    angle = _angle(frame)
+    if angle > MAX_AXES_DEG:
+        raise ValueError(
+            f"{what} turn {angle:.0f} degrees from the image's axes, more than a head lies "
+            f"tilted in a scanner ({MAX_AXES_DEG:g}): the landmarks are swapped or in another "
+            "frame, or the image is not in the patient frame (pvcmf.filters.standardize)")
+    return frame
+
+
+def occlusal_axes(labels):
+    """The occlusal plane's axes in the image: columns (left, anterior, superior).
+
+    Parameters
+    ----------
+    labels : pyvista.ImageData
+        Label image with ``tissue`` (teeth), or the output of :func:`find_jaws` (its
+        ``arrays.ARCH_NORMAL``).
+
+    Returns
+    -------
+    numpy.ndarray, shape (3, 3)
+        A rotation: vertical is the upper arch's normal, horizontal the image's x laid into
+        the arch's plane.
+
+    Examples
+    --------
+    >>> import numpy as np, pyvista as pv
+    >>> from pvcmf import arrays
+    >>> labels = pv.ImageData(dimensions=(2, 2, 2))
+    >>> a = np.radians(10.0)  # an arch descending 10 degrees anteriorly
+    >>> labels.field_data[arrays.ARCH_NORMAL] = [0.0, np.sin(a), np.cos(a)]
+    >>> np.round(occlusal_axes(labels)[:, 1], 3).tolist()  # anterior points down 10 deg
+    [0.0, 0.985, -0.174]
+    """
+    normal = occlusal_normal(labels)
+    x = np.array([1.0, 0.0, 0.0]) - normal[0] * normal
+    if np.linalg.norm(x) < 0.5:
+        raise ValueError(f"occlusal_axes: the arch's normal {np.round(normal, 3).tolist()} is "
+                         "nearly the image's left-right axis: no occlusal plane")
+    x /= np.linalg.norm(x)
+    frame = np.column_stack([x, np.cross(normal, x), normal])
+    return _checked(frame, "the occlusal plane's axes")
+
+
+def _landmarks(labels):
+    """The label image's landmarks as a dict, or None."""
+    fd = labels.field_data
+    if arrays.LANDMARK_NAMES not in fd or arrays.LANDMARK_POINTS not in fd:
+        return None
+    points = np.asarray(fd[arrays.LANDMARK_POINTS], dtype=float).reshape(-1, 3)
+    return dict(zip((str(n) for n in fd[arrays.LANDMARK_NAMES]), points))
+
+
+def frankfort_axes(landmarks):
+    """The Frankfort horizontal's axes in the image: columns (left, anterior, superior).
+
+    Parameters
+    ----------
+    landmarks : dict or pyvista.ImageData
+        ``{name: (x, y, z)}`` (mm) with :data:`FRANKFORT_LANDMARKS`, or a label image
+        holding them (``arrays.LANDMARK_NAMES`` / ``LANDMARK_POINTS``).
+
+    Returns
+    -------
+    numpy.ndarray, shape (3, 3)
+        A rotation: horizontal from the right porion to the left, vertical the normal of
+        the plane through both porions and the orbitales' midpoint.
+
+    Raises
+    ------
+    ValueError
+        A landmark missing or not finite, landmarks too close to span a plane
+        (:data:`MIN_SPAN_MM`), or axes beyond :data:`MAX_AXES_DEG` from the image's.
+
+    Examples
+    --------
+    >>> marks = {"porion_left": (60, 0, 0), "porion_right": (-60, 0, 0),
+    ...          "orbitale_left": (30, 80, -8), "orbitale_right": (-30, 80, -8)}
+    >>> import numpy as np
+    >>> np.round(frankfort_axes(marks)[:, 1], 3).tolist()  # the orbitales lie 8 mm lower
+    [0.0, 0.995, -0.1]
+    """
+    given = landmarks if isinstance(landmarks, dict) else _landmarks(landmarks)
+    if given is None:
+        raise ValueError(
+            "plan axes 'frankfort' need the landmarks " + ", ".join(FRANKFORT_LANDMARKS)
+            + ": the label image holds none (give landmarks= to simulate, or run "
+            "embed_muscles first)")
+    missing = [n for n in FRANKFORT_LANDMARKS if n not in given]
+    if missing:
+        raise ValueError(f"plan axes 'frankfort' need the landmarks {missing}; got "
+                         f"{sorted(given)}")
+    pl, pr, ol, orr = (np.asarray(given[n], dtype=float) for n in FRANKFORT_LANDMARKS)
+    if not all(p.shape == (3,) and np.isfinite(p).all() for p in (pl, pr, ol, orr)):
+        raise ValueError("the Frankfort landmarks must be 3 finite numbers each (mm), got "
+                         + str({n: given[n] for n in FRANKFORT_LANDMARKS}))
+    across, forward = pl - pr, (ol + orr) / 2.0 - (pl + pr) / 2.0
+    if min(np.linalg.norm(across), np.linalg.norm(forward)) < MIN_SPAN_MM:
+        raise ValueError(
+            f"the Frankfort landmarks span no plane: porions {np.linalg.norm(across):.1f} mm "
+            f"apart, orbitales {np.linalg.norm(forward):.1f} mm from them (at least "
+            f"{MIN_SPAN_MM:g} mm each)")
+    x = across / np.linalg.norm(across)
+    z = np.cross(x, forward)
+    z /= np.linalg.norm(z)
+    frame = np.column_stack([x, np.cross(z, x), z])
+    return _checked(frame, "the Frankfort horizontal's axes")
+
+
+def plan_axes(labels, plan):
+    """The 3x3 rotation whose columns are ``plan``'s (x, y, z) directions in the image.
+
+    Parameters
+    ----------
+    labels : pyvista.ImageData
+        The label image the plan moves (its teeth or arch normal for ``"occlusal"``, its
+        landmarks for ``"frankfort"``).
+    plan : pvcmf.Plan or str
+        A plan, or one of :data:`pvcmf.plan.AXES`.
+
+    Returns
+    -------
+    numpy.ndarray, shape (3, 3)
+        The identity for ``"image"``.
+
+    Examples
+    --------
+    >>> import pyvista as pv
+    >>> from pvcmf.plan import Osteotomy, Plan
+    >>> plan = Plan((Osteotomy("mandible", translation=(0.0, 0.0, 5.0)),))
+    >>> plan_axes(pv.ImageData(dimensions=(2, 2, 2)), plan).tolist()  # the image's axes
+    [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    """
+    axes = plan.axes if isinstance(plan, Plan) else plan
+    if axes not in AXES:
+        raise ValueError(f"axes must be one of {list(AXES)}, got {axes!r}")
+    if axes == "image":
+        return np.eye(3)
+    frame = occlusal_axes(labels) if axes == "occlusal" else frankfort_axes(labels)
+    log.debug("plan axes %r: %.1f degrees from the image's", axes, _angle(frame))
+    return frame
+
+
+def check_plan_landmarks(plan, landmarks, *, fit):
+    """Refuse, before any work, a Frankfort plan without its landmarks: ``landmarks``
+    given (checked), or ``fit`` (the atlas fit of the muscle step will place them)."""
+    if plan.axes != "frankfort":
+        return
+    if landmarks is not None:
+        frankfort_axes(dict(landmarks))
+    elif not fit:
+        raise ValueError("plan axes 'frankfort' need the landmarks " + ", ".join(
+            FRANKFORT_LANDMARKS) + ": give landmarks=, or keep muscles=True (the atlas fit "
+            "then places them)")
+
+
+def with_plan_axes(labels, plan, landmarks=None):
+    """``labels`` with what ``plan``'s axes need, checked and logged before the mesh.
+
+    A Frankfort plan's ``landmarks`` are stored in a shallow copy's field data where the
+    labels hold none (no muscle step); without given landmarks the atlas fit's are used,
+    with a warning. Returns ``labels`` itself for a plan in the image's axes.
+    """
+    if plan.axes == "image":
+        return labels
+    if plan.axes == "frankfort" and landmarks is not None and (
+            arrays.LANDMARK_NAMES not in labels.field_data):
+        labels = labels.copy(deep=False)
+        names = sorted(landmarks)
+        labels.field_data[arrays.LANDMARK_NAMES] = np.array(names)
+        labels.field_data[arrays.LANDMARK_POINTS] = np.array(
+            [np.asarray(landmarks[n], dtype=float) for n in names])
+    elif plan.axes == "frankfort" and landmarks is None:
+        warnings.warn(
+            "plan axes 'frankfort' from the atlas fit's porions and orbitales: the fit can "
+            "place a porion several millimetres off a real scan's ear canal (a few degrees "
+            "of roll); give landmarks= for a precise frame", UserWarning, stacklevel=3)
+    frame = plan_axes(labels, plan)
+    log.info("plan axes %r: %.1f degrees from the image's axes", plan.axes, _angle(frame))
+    return labels

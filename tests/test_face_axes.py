@@ -1,0 +1,253 @@
+"""Plans in the face's axes (``Plan.axes``, :mod:`pvcmf.filters.face_axes`): a move given
+along the occlusal plane or the Frankfort horizontal turns with the head, so a head scanned
+tilted gets the move the surgeon means, not the scanner's."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import warnings
+
+import numpy as np
+import pytest
+import pyvista as pv
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+
+import pvcmf
+from pvcmf import arrays, datasets
+from pvcmf.filters import apply_plan, find_jaws, plan_axes
+from pvcmf.filters.bone_segments import occlusal_normal
+from pvcmf.filters.face_axes import FRANKFORT_LANDMARKS, frankfort_axes, occlusal_axes
+from pvcmf.filters.jaw_pose import check_pose
+from pvcmf.filters.osteotomy import segment_transforms
+from pvcmf.mtm import solve
+from pvcmf.mtm.response import plan_grid, plan_response
+from pvcmf.plan import Osteotomy, Plan
+from pvcmf.planner.state import PlanSliders
+
+MARKS = {"porion_left": (62.0, 0.0, 0.0), "porion_right": (-60.0, 1.0, 0.5),
+         "orbitale_left": (33.0, 80.0, -7.0), "orbitale_right": (-31.0, 81.0, -8.0)}
+
+
+def _turned_marks(rotation, marks=MARKS):
+    return {k: rotation @ np.asarray(v) for k, v in marks.items()}
+
+
+def test_frankfort_axes_turn_with_the_landmarks():
+    """Landmarks turned by R give axes turned by R (to round-off); the axes are a rotation
+    whose horizontal joins the porions and whose vertical is normal to the plane through
+    them and the orbitales' midpoint."""
+    base = frankfort_axes(MARKS)
+    np.testing.assert_allclose(base.T @ base, np.eye(3), atol=1e-12)
+    assert np.linalg.det(base) == pytest.approx(1.0)
+    pl, pr = np.asarray(MARKS["porion_left"]), np.asarray(MARKS["porion_right"])
+    np.testing.assert_allclose(base[:, 0], (pl - pr) / np.linalg.norm(pl - pr))
+    mid = (np.asarray(MARKS["orbitale_left"]) + np.asarray(MARKS["orbitale_right"])) / 2
+    for p in (pl, pr, mid):  # the three points lie in the plane normal to the vertical
+        assert abs((p - pl) @ base[:, 2]) < 1e-9
+    for seed in range(5):
+        R = Rotation.from_rotvec(np.random.default_rng(seed).uniform(-0.4, 0.4, 3)).as_matrix()
+        np.testing.assert_allclose(frankfort_axes(_turned_marks(R)), R @ base, atol=1e-12)
+
+
+def test_frankfort_axes_refuse_what_spans_no_frame():
+    with pytest.raises(ValueError, match=r"need the landmarks \['orbitale_right'\]"):
+        frankfort_axes({k: v for k, v in MARKS.items() if k != "orbitale_right"})
+    with pytest.raises(ValueError, match="3 finite numbers"):
+        frankfort_axes({**MARKS, "porion_left": (np.nan, 0.0, 0.0)})
+    with pytest.raises(ValueError, match="span no plane: porions 1.0 mm apart"):
+        frankfort_axes({**MARKS, "porion_left": (-59.0, 1.0, 0.5)})
+    swapped = {**MARKS, "porion_left": MARKS["porion_right"],
+               "porion_right": MARKS["porion_left"]}
+    with pytest.raises(ValueError, match="180 degrees from the image's axes"):
+        frankfort_axes(swapped)
+    with pytest.raises(ValueError, match="label image holds none"):
+        frankfort_axes(pv.ImageData(dimensions=(2, 2, 2)))
+    with pytest.raises(ValueError, match="axes must be one of"):
+        plan_axes(pv.ImageData(dimensions=(2, 2, 2)), "scanner")
+
+
+def test_a_move_in_turned_axes_is_the_move_turned():
+    """Osteotomy.matrix in axes F equals the move made in F's coordinates and turned back
+    (an independent route: points into F's frame, the plan there, points back)."""
+    o = Osteotomy("maxilla", translation=(1.5, -2.0, 4.0), rotation=(6.0, -3.0, 9.0))
+    c = np.array([3.0, 60.0, -20.0])
+    x = np.random.default_rng(0).normal(size=(20, 3)) * 30
+    for seed in range(4):
+        F = Rotation.from_rotvec(np.random.default_rng(seed).uniform(-0.5, 0.5, 3)).as_matrix()
+        M = o.matrix(c, axes=F)
+        local = o.matrix(F.T @ c)
+        expected = ((x @ F) @ local[:3, :3].T + local[:3, 3]) @ F.T
+        np.testing.assert_allclose(x @ M[:3, :3].T + M[:3, 3], expected, atol=1e-9)
+    np.testing.assert_array_equal(o.matrix(c, axes=np.eye(3)), o.matrix(c))
+    with pytest.raises(ValueError, match="3x3 rotation"):
+        o.matrix(c, axes=np.diag([1.0, 1.0, -1.0]))
+
+
+def test_plan_files_keep_their_axes(tmp_path):
+    plan = Plan((Osteotomy("maxilla", (0.0, 1.0, 3.0)),), name="p", axes="occlusal")
+    assert Plan.from_file(plan.to_file(tmp_path / "p.toml")) == plan
+    assert Plan.from_file(plan.to_file(tmp_path / "p.json")) == plan
+    assert 'axes = "occlusal"' in (tmp_path / "p.toml").read_text()
+    assert "axes" not in dataclasses.replace(plan, axes="image").to_dict()
+    with pytest.raises(ValueError, match=r"axes must be one of \['image', 'occlusal', "):
+        Plan((Osteotomy("maxilla"),), axes="scanner")
+    (tmp_path / "bad.toml").write_text('axes = "face"\n[[osteotomy]]\nsegment = "maxilla"\n')
+    with pytest.raises(ValueError, match="bad.toml: plan axes must be one of"):
+        Plan.from_file(tmp_path / "bad.toml")
+    eye = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    with pytest.raises(ValueError, match="a matrix is in the image's frame"):
+        Plan.from_dict({"axes": "occlusal", "osteotomy": [{"segment": "maxilla",
+                                                            "matrix": eye}]})
+    # plans made from a plan keep its axes: sweeps and the planner's sliders
+    assert {p.axes for p in plan_grid("maxilla", translations=[[0, 0, 1], [0, 0, 2]],
+                                      base=plan)} == {"occlusal"}
+    state = PlanSliders(("maxilla", "mandible"), template=plan)
+    assert state.to_plan(state.from_plan(plan)).axes == "occlusal"
+    from pvcmf.study.pipeline_evaluation import PipelineEvaluation
+
+    swept = PipelineEvaluation.plan_of({"plan": plan, "labels": object()},
+                                       {"mandible_t_ap": 3.0})
+    assert swept.axes == "occlusal" and swept.segments == ("maxilla", "mandible")
+
+
+def _turn_labels(labels, degrees_x, degrees_y):
+    """``labels``'s tissue turned about its centre (nearest voxel) on a grid padded so
+    nothing leaves it, and the rotation (image coordinates)."""
+    R = Rotation.from_euler("xy", [degrees_x, degrees_y], degrees=True).as_matrix()
+    pad = 12
+    v = np.pad(np.asarray(labels[arrays.TISSUE]).reshape(labels.dimensions, order="F"), pad)
+    s = np.asarray(labels.spacing, float)
+    c = (np.asarray(v.shape) - 1) / 2
+    matrix = (R.T * s[None, :]) / s[:, None]
+    out = ndimage.affine_transform(v, matrix, offset=c - matrix @ c, order=0, cval=0)
+    img = pv.ImageData(dimensions=v.shape, spacing=labels.spacing,
+                       origin=np.asarray(labels.origin) - pad * s)
+    img[arrays.TISSUE] = out.ravel(order="F")
+    return img, R
+
+
+@pytest.fixture(scope="module")
+def upright_and_turned():
+    case = datasets.phantom(patient=1, spacing=2.0)
+    upright, _ = _turn_labels(case.truth, 0.0, 0.0)
+    turned, R = _turn_labels(case.truth, -15.0, 8.0)  # chin down 15 degrees, rolled 8
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return find_jaws(upright), find_jaws(turned), R
+
+
+def test_occlusal_axes_turn_with_the_head(upright_and_turned):
+    """The virtual patient's labels turned 15 degrees chin down and rolled 8: the occlusal
+    axes found on them are the upright ones turned (within 3 degrees), a mandible advance
+    given along them moves the turned mandible as the upright one turned, and the same plan
+    in the image's axes does not (it is off by the tilt)."""
+    upright, turned, R = upright_and_turned
+    a, b = occlusal_axes(upright), occlusal_axes(turned)
+    off = Rotation.from_matrix(b.T @ R @ a).magnitude()
+    assert np.degrees(off) < 3.0, np.degrees(off)  # (nearest-voxel turn of 2 mm voxels)
+    assert np.degrees(Rotation.from_matrix(b).magnitude()) > 10.0  # the head is tilted
+    plan = Plan((Osteotomy("mandible", translation=(0.0, 0.0, 6.0), rotation=(4.0, 0, 0)),),
+                axes="occlusal")
+    moved = {}
+    for name, labels in (("upright", upright), ("turned", turned)):
+        for axes in ("occlusal", "image"):
+            moved[name, axes] = segment_transforms(
+                labels, dataclasses.replace(plan, axes=axes))[arrays.MANDIBLE]
+    # the move's translation part at the (turned) centroid: the upright one turned
+    for axes, close in (("occlusal", True), ("image", False)):
+        up, tu = moved["upright", axes], moved["turned", axes]
+        diff = np.linalg.norm(tu[:3, :3] @ R - R @ up[:3, :3])
+        pivot_up = segment_centroid(upright)
+        step_up = up[:3, :3] @ pivot_up + up[:3, 3] - pivot_up
+        pivot_tu = segment_centroid(turned)
+        step_tu = tu[:3, :3] @ pivot_tu + tu[:3, 3] - pivot_tu
+        miss = np.linalg.norm(step_tu - R @ step_up)
+        if close:
+            assert miss < 0.35 and diff < 0.06, (miss, diff)
+        else:
+            assert miss > 1.0, miss
+
+
+def segment_centroid(labels):
+    bone = np.asarray(labels[arrays.BONE])
+    return np.asarray(labels.points)[bone == arrays.MANDIBLE].mean(axis=0)
+
+
+def test_occlusal_normal_is_measured_where_find_jaws_did_not_keep_it(upright_and_turned):
+    _, turned, _ = upright_and_turned
+    bare = turned.copy()
+    bare.field_data.clear()
+    np.testing.assert_allclose(occlusal_normal(bare), occlusal_normal(turned), atol=1e-9)
+
+
+def test_a_tilted_head_is_not_warned_about_for_a_plan_in_the_face_s_axes(caplog):
+    labels = pv.ImageData(dimensions=(2, 2, 2))
+    labels.field_data[arrays.ARCH_PITCH] = [40.0]
+    with caplog.at_level(logging.INFO, logger="pvcmf"):
+        assert "axes = \"occlusal\"" in check_pose(labels)
+        assert check_pose(labels, "occlusal") is None
+    levels = [r.levelname for r in caplog.records]
+    assert levels == ["WARNING", "INFO"], levels
+
+
+def _tilted(labels, degrees):
+    """A shallow copy of ``labels`` whose upper arch descends ``degrees`` anteriorly."""
+    out = labels.copy(deep=False)
+    a = np.radians(degrees)
+    out.field_data[arrays.ARCH_NORMAL] = [0.0, np.sin(a), np.cos(a)]
+    return out
+
+
+def test_plan_response_equals_the_full_solve_in_occlusal_axes():
+    """The plan response operator takes a plan in the occlusal axes as apply_plan + solve
+    does (1e-9 mm), and its prediction differs from the same numbers in the image's axes."""
+    img = pv.ImageData(dimensions=(15, 15, 15), origin=(-7, -7, -7))
+    p = np.asarray(img.points)
+    inner = (np.abs(p) <= 3).all(axis=1)
+    img[arrays.BONE] = np.where(inner, np.where(p[:, 2] > 0, arrays.MAXILLA, arrays.MANDIBLE),
+                                0).astype(np.uint8)
+    img[arrays.TISSUE] = np.where(inner, arrays.BONE_TISSUE, arrays.FAT).astype(np.uint8)
+    soft = ~(np.abs(img.cell_centers().points) < 3).all(axis=1)
+    grid = img.extract_cells(np.flatnonzero(soft)).triangulate().clean()
+    grid.clear_data()
+    grid.cell_data[arrays.E_FIBER] = np.full(grid.n_cells, 3e-3)
+    grid.cell_data[arrays.NU] = np.full(grid.n_cells, 0.45)
+    labels = _tilted(img, 20.0)
+    opts = {"fix_unmoved_bone": True}
+    resp = plan_response(grid, labels, bc_options=opts)
+    plan = Plan((Osteotomy("maxilla", (0.5, -1.0, 2.0), (5.0, -4.0, 3.0)),
+                 Osteotomy("mandible", (0.0, 1.0, 3.0), (-6.0, 2.0, 0.0))), axes="occlusal")
+    u = np.asarray(solve(apply_plan(grid, plan, labels, **opts))[arrays.DISPLACEMENT])
+    assert np.abs(resp.predict_nodes(plan) - u[resp.surface_ids]).max() < 1e-9
+    image = resp.predict_nodes(dataclasses.replace(plan, axes="image"))
+    assert np.abs(image - u[resp.surface_ids]).max() > 0.3
+
+
+def test_simulate_frankfort_plan_needs_its_landmarks(tmp_path):
+    """A Frankfort plan without landmarks and without the atlas fit is refused before any
+    work; with landmarks it moves the mandible along their horizontal."""
+    case = datasets.phantom(patient=1, spacing=4.0)
+    plan = Plan((Osteotomy("mandible", translation=(0.0, 0.0, 4.0)),), axes="frankfort")
+    with pytest.raises(ValueError, match="plan axes 'frankfort' need the landmarks"):
+        pvcmf.pipeline.simulate(case.ct, plan, tmp_path / "out", muscles=False)
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(ValueError, match="span no plane"):
+        pvcmf.pipeline.simulate(case.ct, plan, muscles=False,
+                                landmarks={**MARKS, "porion_left": MARKS["porion_right"]})
+    R = Rotation.from_euler("x", -12.0, degrees=True).as_matrix()
+    marks = _turned_marks(R)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = pvcmf.pipeline.simulate(case.ct, plan, bones=case.truth, muscles=False,
+                                      landmarks=marks, n_tets=2000, solve=False,
+                                      figures=False)
+    code = np.asarray(res.mesh[arrays.BC])
+    disp = np.asarray(res.mesh[arrays.BC_DISPLACEMENT])[code == arrays.BC_JOINT]
+    expected = 4.0 * (R @ frankfort_axes(MARKS))[:, 1]  # forward along their horizontal
+    assert np.degrees(np.arcsin(-expected[2] / 4.0)) > 15.0  # far from the image's forward
+    np.testing.assert_allclose(disp, np.broadcast_to(expected, disp.shape), atol=1e-9)
+    assert set(FRANKFORT_LANDMARKS) <= set(res.labels.field_data[arrays.LANDMARK_NAMES])
+    np.testing.assert_allclose(plan_axes(res.labels, plan), R @ frankfort_axes(MARKS),
+                               atol=1e-12)
