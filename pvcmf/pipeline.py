@@ -393,7 +393,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
                                mesh_options=mesh_options, material_options=material_options,
                                bc_options=bc_options, solve_options=solve_options)
     working_factors((1, 1, 1), (1.0, 1.0, 1.0), working_spacing)  # refused before any work
-    check_plan_landmarks(plan, landmarks, fit=muscles and predict)  # before any work
+    check_plan_landmarks(plan, landmarks, fit=muscles and predict, labels=labels)
     if not isinstance(fit_skin, (bool, dict)):  # options of fit_to_skin, or whether to fit
         raise TypeError(f"fit_skin must be a bool or a dict, got {type(fit_skin).__name__}")
     opts["fit_options"] = dict(fit_skin) if isinstance(fit_skin, dict) else ({} if fit_skin else None)

@@ -234,6 +234,25 @@ def test_model_takes_a_plan_in_the_occlusal_axes(model):
                                model.predict(same)[arrays.DISPLACEMENT], atol=1e-9)
 
 
+def test_model_takes_a_frankfort_plan_with_its_landmarks():
+    """A start plan in the Frankfort axes: the planner stores the landmarks given (no muscle
+    fit) and moves the skeleton along their horizontal."""
+    from pvcmf.filters.face_axes import frankfort_axes
+
+    case = pvcmf.datasets.phantom(patient=1, spacing=4.0)
+    plan = Plan((Osteotomy("mandible", translation=(0.0, 0.0, 5.0)),), axes="frankfort")
+    turned = {k: np.asarray(v) @ np.array([[1, 0, 0], [0, 0.96, 0.28], [0, -0.28, 0.96]])
+              for k, v in case.landmarks.items()}  # the face pitched 16 degrees
+    model = prepare_model(case.ct, plan, bones=case.truth, landmarks=turned, n_tets=2000,
+                          muscles=False)
+    bones = model.skeleton(plan)
+    shift = np.asarray(bones["mandible"].points) - np.asarray(model.bones["mandible"].points)
+    assert np.allclose(shift, 5.0 * frankfort_axes(turned)[:, 1])
+    assert abs(shift[0, 2]) > 1.0
+    with pytest.raises(ValueError, match="need the landmarks"):
+        prepare_model(case.ct, plan, bones=case.truth, n_tets=2000, muscles=False)
+
+
 # --------------------------------------------------------------------------- web page
 def _chromium():
     for name in ("chromium", "chromium-browser", "google-chrome"):

@@ -202,13 +202,16 @@ def plan_axes(labels, plan):
     return frame
 
 
-def check_plan_landmarks(plan, landmarks, *, fit):
+def check_plan_landmarks(plan, landmarks, *, fit, labels=None):
     """Refuse, before any work, a Frankfort plan without its landmarks: ``landmarks``
-    given (checked), or ``fit`` (the atlas fit of the muscle step will place them)."""
+    given (checked), held by the given ``labels``, or ``fit`` (the atlas fit of the muscle
+    step will place them)."""
     if plan.axes != "frankfort":
         return
     if landmarks is not None:
         frankfort_axes(dict(landmarks))
+    elif labels is not None and _landmarks(labels) is not None:
+        frankfort_axes(labels)
     elif not fit:
         raise ValueError("plan axes 'frankfort' need the landmarks " + ", ".join(
             FRANKFORT_LANDMARKS) + ": give landmarks=, or keep muscles=True (the atlas fit "
@@ -219,8 +222,9 @@ def with_plan_axes(labels, plan, landmarks=None):
     """``labels`` with what ``plan``'s axes need, checked and logged before the mesh.
 
     A Frankfort plan's ``landmarks`` are stored in a shallow copy's field data where the
-    labels hold none (no muscle step); without given landmarks the atlas fit's are used,
-    with a warning. Returns ``labels`` itself for a plan in the image's axes.
+    labels hold none (no muscle step); without given landmarks those the labels hold (the
+    atlas fit's, in :func:`pvcmf.pipeline.simulate`) are used, with a warning. Returns
+    ``labels`` itself for a plan in the image's axes.
     """
     if plan.axes == "image":
         return labels
@@ -233,9 +237,10 @@ def with_plan_axes(labels, plan, landmarks=None):
             [np.asarray(landmarks[n], dtype=float) for n in names])
     elif plan.axes == "frankfort" and landmarks is None:
         warnings.warn(
-            "plan axes 'frankfort' from the atlas fit's porions and orbitales: the fit can "
-            "place a porion several millimetres off a real scan's ear canal (a few degrees "
-            "of roll); give landmarks= for a precise frame", UserWarning, stacklevel=3)
+            "plan axes 'frankfort' from the porions and orbitales the label image holds, "
+            "not from landmarks given: where the atlas fit placed them, a porion can lie "
+            "several millimetres off a real scan's ear canal (a few degrees of roll); give "
+            "landmarks= for a precise frame", UserWarning, stacklevel=3)
     frame = plan_axes(labels, plan)
     log.info("plan axes %r: %.1f degrees from the image's axes", plan.axes, _angle(frame))
     return labels

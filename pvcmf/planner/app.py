@@ -161,7 +161,11 @@ def build_app(planner, server=None):
 
 
 def _slider_panel(planner, v3, html):
-    """Six sliders per segment, grouped by segment and kind."""
+    """Six sliders per segment, grouped by segment and kind (and the plan's axes, where
+    they are the face's)."""
+    if planner.plan.axes != "image":
+        html.Div(f"moves in the {planner.plan.axes} axes", id="plan-axes",
+                 classes="text-caption px-2 pt-2")
     for segment in planner.sliders.segments:
         html.Div(segment, classes="text-subtitle-1 px-2 pt-2")
         for kind, label, unit, _ in KINDS:

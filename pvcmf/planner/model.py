@@ -19,6 +19,7 @@ those of :func:`pvcmf.pipeline.simulate`; rigid segment moves are
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import logging
 import time
@@ -209,8 +210,10 @@ def prepare_model(ct, plan=None, *, bones=None, labels=None, landmarks=None, n_t
     timings = {}
     with Progress(total=len(PREPARE_STEPS), desc="planner", enabled=progress_bar) as bar:
         start = time.perf_counter()
-        res = simulate(ct, first, labels=labels, bones=bones, predict=False, solve=False,
-                       muscles=False, face_fraction=face_fraction, units=units, orient=orient)
+        # the labels alone: the plan's axes (a Frankfort plan's landmarks) come later
+        res = simulate(ct, dataclasses.replace(first, axes="image"), labels=labels,
+                       bones=bones, predict=False, solve=False, muscles=False,
+                       face_fraction=face_fraction, units=units, orient=orient)
         lab, skin = res.labels, res.skin_pre
         present = set(np.unique(np.asarray(lab[arrays.BONE])).tolist())
         segments = tuple(s for s in MOVABLE_SEGMENTS if arrays.BONE_LABELS[s] in present)
@@ -230,11 +233,12 @@ def prepare_model(ct, plan=None, *, bones=None, labels=None, landmarks=None, n_t
         timings["muscles"] = time.perf_counter() - start
         bar.step("muscles")
         start = time.perf_counter()
-        res = simulate(None, first, labels=lab, predict=True, solve=False, muscles=False,
-                       n_tets=n_tets, face_fraction=face_fraction, bc_options=bc_options,
+        res = simulate(None, first, labels=lab, landmarks=landmarks, predict=True,
+                       solve=False, muscles=False, n_tets=n_tets, face_fraction=face_fraction, bc_options=bc_options,
                        progress_bar=False)
         if res.mesh is None:
             raise RuntimeError(f"meshing gave no model: {res.skipped}")
+        lab = res.labels  # (with the landmarks a Frankfort plan was given)
         timings["mesh"] = time.perf_counter() - start
         bar.step(f"mesh: {res.mesh.n_cells} tetrahedra")
         start = time.perf_counter()
