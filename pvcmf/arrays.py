@@ -30,6 +30,9 @@ PLAN_AXES = (0, 2, 1)
 
 # --------------------------------------------------------------------------- image arrays
 CT = "ct"  #: point, float32, Hounsfield units (or scanner units rescaled to HU)
+#: field (labels of ``segment``), float64, 4 values: the image's own skin, bone, teeth and
+#: metal levels (HU) the segmentation used
+THRESHOLDS = "thresholds"
 TISSUE = "tissue"  #: point (image) / cell (grid), uint8, tissue label, see TISSUE_LABELS
 MUSCLE = "muscle"  #: point (image) / cell (grid), uint8, 0 none, 1.. index into MUSCLES + 1
 BONE = "bone"  #: point (image), uint8, bone segment id, see BONE_LABELS

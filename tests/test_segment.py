@@ -43,7 +43,7 @@ def test_table_dropped_sinus_air_teeth_found(synthetic):
     core = ndimage.binary_erosion(t == arrays.AIR) & ndimage.binary_fill_holes(t != arrays.AIR)
     assert core.sum() > 20 and np.all(s[core] == arrays.AIR)
     vals = labels(ct, arrays.CT)
-    teeth_thr, metal_thr = seg.field_data["thresholds"][2:]
+    teeth_thr, metal_thr = seg.field_data[arrays.THRESHOLDS][2:]
     assert abs(teeth_thr - TEETH_THRESHOLD) < 150  # placed on the histogram, near the HU level
     assert np.array_equal(s == arrays.TEETH,
                           (vals >= teeth_thr) & (vals < metal_thr) & (s != arrays.AIR))

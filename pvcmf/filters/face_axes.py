@@ -240,7 +240,8 @@ def with_plan_axes(labels, plan, landmarks=None):
             "plan axes 'frankfort' from the porions and orbitales the label image holds, "
             "not from landmarks given: where the atlas fit placed them, a porion can lie "
             "several millimetres off a real scan's ear canal (a few degrees of roll); give "
-            "landmarks= for a precise frame", UserWarning, stacklevel=3)
+            "the landmarks (landmarks=, --landmarks) for a precise frame", UserWarning,
+            stacklevel=3)
     frame = plan_axes(labels, plan)
     log.info("plan axes %r: %.1f degrees from the image's axes", plan.axes, _angle(frame))
     return labels

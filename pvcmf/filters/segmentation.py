@@ -297,7 +297,7 @@ def segment(
     bar.step()
 
     out = _write(ct, vol.shape, box, soft, hard, teeth, metal, intracranial)
-    out.field_data["thresholds"] = np.array([thr[k] for k in ("skin", "bone", "teeth", "metal")])
+    out.field_data[arrays.THRESHOLDS] = np.array([thr[k] for k in ("skin", "bone", "teeth", "metal")])
     out.field_data["warnings"] = np.array(warnings if warnings else [""], dtype=str)
     if cuts:
         out.field_data[arrays.SCAN_CUTS] = cuts_array(cuts)
