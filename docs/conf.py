@@ -84,7 +84,7 @@ intersphinx_mapping = {}
 _FAST = [
     "plot_virtual_patient", "plot_fig1_sampling", "plot_fig1_gmm_classification",
     "plot_fig2a_muscles", "plot_fig2b_label_slice", "plot_fig2c_mesh", "plot_fig3_obb",
-    "plot_fig4_boundary_conditions", "plot_fig5_osteotomy", "plot_tables",
+    "plot_fig4_boundary_conditions", "plot_fig5_osteotomy", "plot_tables", "plot_plan_axes",
 ]
 _which = os.environ.get("PVCMF_DOCS_GALLERY", "fast")
 _pattern = {"all": r"plot_", "none": r"^$"}.get(_which, "(" + "|".join(_FAST) + r")\.py$")
