@@ -18,7 +18,8 @@ import pvcmf
 from pvcmf import arrays, datasets
 from pvcmf.filters import apply_plan, find_jaws, plan_axes
 from pvcmf.filters.bone_segments import occlusal_normal
-from pvcmf.filters.face_axes import FRANKFORT_LANDMARKS, frankfort_axes, occlusal_axes
+from pvcmf.filters.face_axes import (FRANKFORT_LANDMARKS, frankfort_axes, occlusal_axes,
+                                     with_plan_axes)
 from pvcmf.filters.jaw_pose import check_pose
 from pvcmf.filters.osteotomy import segment_transforms
 from pvcmf.mtm import solve
@@ -251,3 +252,26 @@ def test_simulate_frankfort_plan_needs_its_landmarks(tmp_path):
     assert set(FRANKFORT_LANDMARKS) <= set(res.labels.field_data[arrays.LANDMARK_NAMES])
     np.testing.assert_allclose(plan_axes(res.labels, plan), R @ frankfort_axes(MARKS),
                                atol=1e-12)
+
+
+def test_fitted_frankfort_landmarks_are_warned_with_their_roll_from_the_teeth():
+    """Landmarks the labels hold (an atlas fit's) are used with a warning that says how far
+    their horizontal rolls from the upper arch's plane; landmarks given win over them."""
+    labels = pv.ImageData(dimensions=(2, 2, 2))
+    labels.field_data[arrays.ARCH_NORMAL] = [0.0, 0.0, 1.0]  # a level arch
+    R = Rotation.from_euler("y", 6.0, degrees=True).as_matrix()  # one porion 13 mm higher
+    fitted = _turned_marks(R)
+    names = sorted(fitted)
+    labels.field_data[arrays.LANDMARK_NAMES] = names
+    labels.field_data[arrays.LANDMARK_POINTS] = [fitted[n] for n in names]
+    plan = Plan((Osteotomy("mandible", translation=(0.0, 0.0, 5.0)),), axes="frankfort")
+    roll = np.degrees(np.arcsin(frankfort_axes(fitted)[2, 0]))
+    assert abs(roll) > 5.0
+    with pytest.warns(UserWarning, match=f"rolls {roll:+.1f} degrees from the upper dental"):
+        same = with_plan_axes(labels, plan)
+    assert same is labels
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        given = with_plan_axes(labels, plan, MARKS)
+    np.testing.assert_allclose(plan_axes(given, plan), frankfort_axes(MARKS), atol=1e-12)
+    np.testing.assert_allclose(plan_axes(labels, plan), frankfort_axes(fitted), atol=1e-12)

@@ -218,30 +218,51 @@ def check_plan_landmarks(plan, landmarks, *, fit, labels=None):
             "then places them)")
 
 
+def _with_landmarks(labels, landmarks):
+    """A shallow copy of ``labels`` holding ``landmarks`` (over those it holds)."""
+    merged = {**(_landmarks(labels) or {}), **dict(landmarks)}
+    out = labels.copy(deep=False)
+    names = sorted(merged)
+    out.field_data[arrays.LANDMARK_NAMES] = np.array(names)
+    out.field_data[arrays.LANDMARK_POINTS] = np.array(
+        [np.asarray(merged[n], dtype=float) for n in names])
+    return out
+
+
+def _roll_against_teeth(labels, frame):
+    """Degrees the Frankfort ``frame`` rolls from the upper dental arch's plane, or None
+    where the labels hold no arch."""
+    try:
+        teeth = occlusal_axes(labels)
+    except ValueError:
+        return None
+    return float(np.degrees(np.arcsin(np.clip(frame[2, 0], -1, 1))
+                            - np.arcsin(np.clip(teeth[2, 0], -1, 1))))
+
+
 def with_plan_axes(labels, plan, landmarks=None):
     """``labels`` with what ``plan``'s axes need, checked and logged before the mesh.
 
-    A Frankfort plan's ``landmarks`` are stored in a shallow copy's field data where the
-    labels hold none (no muscle step); without given landmarks those the labels hold (the
-    atlas fit's, in :func:`pvcmf.pipeline.simulate`) are used, with a warning. Returns
-    ``labels`` itself for a plan in the image's axes.
+    A Frankfort plan's ``landmarks`` are stored in a shallow copy's field data (over those
+    the labels hold); without them those the labels hold (the atlas fit's, in
+    :func:`pvcmf.pipeline.simulate`) are used, with a warning that says how far their
+    horizontal rolls from the upper dental arch's plane (faces are near symmetric: a few
+    degrees point to a misplaced porion, or to a canted arch). Returns ``labels`` itself
+    for a plan in the image's axes.
     """
     if plan.axes == "image":
         return labels
-    if plan.axes == "frankfort" and landmarks is not None and (
-            arrays.LANDMARK_NAMES not in labels.field_data):
-        labels = labels.copy(deep=False)
-        names = sorted(landmarks)
-        labels.field_data[arrays.LANDMARK_NAMES] = np.array(names)
-        labels.field_data[arrays.LANDMARK_POINTS] = np.array(
-            [np.asarray(landmarks[n], dtype=float) for n in names])
-    elif plan.axes == "frankfort" and landmarks is None:
+    if plan.axes == "frankfort" and landmarks is not None:
+        labels = _with_landmarks(labels, landmarks)
+    frame = plan_axes(labels, plan)
+    if plan.axes == "frankfort" and landmarks is None:
+        roll = _roll_against_teeth(labels, frame)
         warnings.warn(
             "plan axes 'frankfort' from the porions and orbitales the label image holds, "
             "not from landmarks given: where the atlas fit placed them, a porion can lie "
-            "several millimetres off a real scan's ear canal (a few degrees of roll); give "
-            "the landmarks (landmarks=, --landmarks) for a precise frame", UserWarning,
-            stacklevel=3)
-    frame = plan_axes(labels, plan)
+            "several millimetres off a real scan's ear canal (a few degrees of roll)"
+            + ("" if roll is None else f"; this horizontal rolls {roll:+.1f} degrees from "
+               "the upper dental arch's plane") + "; give the landmarks (landmarks=, "
+            "--landmarks) for a precise frame", UserWarning, stacklevel=3)
     log.info("plan axes %r: %.1f degrees from the image's axes", plan.axes, _angle(frame))
     return labels
