@@ -392,6 +392,37 @@ def test_plan_help_describes_the_command_and_its_exit_statuses(capsys, tmp_path)
     assert "pvcmf plan: error:" in capsys.readouterr().err
 
 
+def test_plan_axes_option_sets_the_sliders_axes(monkeypatch, tmp_path):
+    """``pvcmf plan --axes occlusal`` starts from a plan in those axes (one that moves
+    nothing without --plan), and refuses a starting plan given in other axes."""
+    from pvcmf import cli
+    from pvcmf.planner import app
+
+    seen = []
+
+    def fake_prepare(ct_, plan, **options):
+        seen.append(plan)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(app, "prepare_model", fake_prepare)
+    monkeypatch.setattr(pvcmf.io, "read_ct", lambda path, **options: pv.ImageData())
+    with pytest.raises(SystemExit):
+        app.run_plan(cli.build_parser().parse_args(
+            ["plan", "--ct", str(tmp_path), "--axes", "occlusal"]))
+    assert seen[-1] == Plan((), axes="occlusal")
+    start = tmp_path / "start.toml"
+    Plan((Osteotomy("mandible", translation=(0.0, 0.0, 3.0)),)).to_file(start)
+    with pytest.raises(ValueError, match="--axes frankfort contradicts the starting plan's"):
+        app.run_plan(cli.build_parser().parse_args(
+            ["plan", "--ct", str(tmp_path), "--plan", str(start), "--axes", "frankfort"]))
+    with pytest.raises(SystemExit):
+        app.run_plan(cli.build_parser().parse_args(
+            ["plan", "--ct", str(tmp_path), "--plan", str(start), "--axes", "image"]))
+    assert seen[-1] == Plan.from_file(start)
+    with pytest.raises(SystemExit):
+        cli.build_parser().parse_args(["plan", "--ct", "x", "--axes", "scanner"])
+
+
 def test_plan_checks_the_units_and_axes_of_a_ct_it_reads(monkeypatch, tmp_path):
     """``pvcmf plan --ct FILE`` checks the scan's units and axes as ``pvcmf simulate`` does
     (``--units``/``--orient``, 'auto' by default), headsq's axes only, and a virtual

@@ -25,7 +25,8 @@ from pathlib import Path
 from .. import datasets
 from ..arguments import add_ct_checks
 from ..figures.skin_marks import MAP_CUT_WORDS
-from ..plan import read_plan, write_plan
+from ..plan import AXES as PLAN_AXES
+from ..plan import Plan, read_plan, write_plan
 from .model import prepare_model
 from .state import AXES, KINDS, PlanSliders, slider_key
 from .views import Scene, data_url, profile_png
@@ -207,6 +208,9 @@ def add_plan_parser(sub):
                    help="for a DICOM folder with several series: the one to read (see simulate)")
     p.add_argument("--plan", type=Path, default=None,
                    help="starting plan (.toml/.json); its cut planes define the segments")
+    p.add_argument("--axes", choices=PLAN_AXES, default=None,
+                   help="directions the sliders move in: the image's, the occlusal plane's or "
+                        "the Frankfort horizontal's (default: the starting plan's, else image)")
     p.add_argument("--port", type=int, default=8080, help="port on 127.0.0.1 (default 8080)")
     p.add_argument("--save", type=Path, default=Path("plan.toml"),
                    help="file the Save button writes (default plan.toml)")
@@ -244,11 +248,25 @@ def _load_ct(args):
     return ct, None, None, None, checks
 
 
+def _start_plan(plan, axes):
+    """The starting plan in ``axes`` (``--axes``): a plan that moves nothing where none was
+    given; refused where it contradicts the plan's own axes (its numbers mean those)."""
+    if axes is None:
+        return plan
+    if plan is None:
+        return Plan((), axes=axes)
+    if plan.axes != axes:
+        raise ValueError(f"--axes {axes} contradicts the starting plan's axes = "
+                         f"{plan.axes!r}: its numbers are given in those")
+    return plan
+
+
 def run_plan(args):
     """``pvcmf plan``: prepare the model (with a progress bar), then serve the page."""
     plan = read_plan(args.plan) if args.plan is not None else None
     ct, bones, landmarks, case_plan, checks = _load_ct(args)
-    model = prepare_model(ct, plan if plan is not None else case_plan, bones=bones,
+    plan = _start_plan(plan if plan is not None else case_plan, args.axes)
+    model = prepare_model(ct, plan, bones=bones,
                           landmarks=landmarks, n_tets=args.n_tets, muscles=not args.no_muscles,
                           progress_bar=True, **checks)
     log.warning("planner ready (%s): http://127.0.0.1:%d/ (Ctrl+C stops it)", model.kind,
