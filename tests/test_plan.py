@@ -174,6 +174,30 @@ def test_cut_bones_errors(skull):
         cut_bones(pv.ImageData(dimensions=(2, 2, 2)), TABLE_II[1])
 
 
+def test_segment_surface_on_its_box_is_that_of_the_whole_image():
+    """A segment's surface is contoured on the segment's box (plus a margin wider than the
+    smoothing) instead of the whole image: the same points, bit for bit, for a segment
+    inside the image and one the image's border cuts."""
+    from scipy import ndimage
+
+    from pvcmf.filters.osteotomy import _segment_surface
+
+    img = pv.ImageData(dimensions=(70, 60, 50), spacing=(1.0, 0.8, 1.25), origin=(-30, -20, -25))
+    p = np.asarray(img.points)
+    for mask in ((p[:, 0] / 12) ** 2 + (p[:, 1] / 9) ** 2 + (p[:, 2] / 10) ** 2 <= 1,
+                 (np.abs(p[:, 0] - 20) <= 20) & (np.abs(p[:, 1]) <= 8) & (p[:, 2] < -5)):
+        ours = _segment_surface(img, mask, 0.6)
+        vol = ndimage.gaussian_filter(mask.reshape(img.dimensions, order="F").astype(np.float32),
+                                      0.6, mode="constant")
+        whole = pv.ImageData(dimensions=np.asarray(img.dimensions) + 2, spacing=img.spacing,
+                             origin=np.asarray(img.origin) - np.asarray(img.spacing))
+        whole["m"] = np.pad(vol, 1).ravel(order="F")
+        reference = whole.contour([0.5], scalars="m", method="flying_edges")
+        assert ours.n_points == reference.n_points > 100
+        np.testing.assert_array_equal(ours.points, reference.points)
+        np.testing.assert_array_equal(ours.faces, reference.faces)
+
+
 def test_move_bones_surfaces_and_labels(skull):
     plan = Plan((Osteotomy("mandible", (1.0, -2.0, 3.0), (4.0, 0.0, 0.0),
                            cut=(((0, 0, -0.5), (0, 0, -1)),)),))

@@ -116,3 +116,40 @@ def test_open_boundary_of_a_head_inside_the_image_is_the_closed_skin(head):
     assert skin.n_points == closed.n_points
     assert np.allclose(skin.points, closed.points, atol=1e-4)
     assert skin.n_open_edges == 0
+
+
+def _sorted_points(surface):
+    p = np.asarray(surface.points, dtype=float)
+    return p[np.lexsort(p.T[::-1])]
+
+
+def _contour_of_whole_image(mask, spacing, origin, sigma):
+    """The reference: holes filled, smoothed and contoured over the whole padded image."""
+    from scipy import ndimage
+
+    vol = ndimage.gaussian_filter(ndimage.binary_fill_holes(np.pad(mask, 2)).astype(np.float32),
+                                  sigma)
+    grid = pv.ImageData(dimensions=vol.shape, spacing=spacing,
+                        origin=np.asarray(origin) - 2 * np.asarray(spacing))
+    grid["f"] = vol.ravel(order="F")
+    surf = grid.contour([0.5], scalars="f", method="flying_edges")
+    return surf.connectivity("largest").extract_surface(algorithm="dataset_surface").clean()
+
+
+@pytest.mark.parametrize("touch", [False, True], ids=["inside", "cut by the image's end"])
+def test_skin_made_on_the_head_s_box_is_that_of_the_whole_image(touch):
+    """The skin is contoured on the head's box (plus a margin of air) to spare the air of a
+    scan's field of view: its points are those of the whole image, bit for bit, for a head
+    well inside the image and for one the image's end cuts."""
+    img = pv.ImageData(dimensions=(90, 80, 60), spacing=(1.0, 1.2, 1.5), origin=(-40, -50, -30))
+    p = np.asarray(img.points)
+    head = ((p[:, 0] - 5) / 22) ** 2 + (p[:, 1] / 18) ** 2 + ((p[:, 2] - 5) / 20) ** 2 <= 1
+    head &= ~(((p[:, 0] - 5) / 6) ** 2 + (p[:, 1] / 5) ** 2 + ((p[:, 2] - 5) / 5) ** 2 <= 1)
+    if touch:
+        head |= (np.hypot(p[:, 0] - 5, p[:, 1]) <= 9) & (p[:, 2] < 0)  # a neck to the end
+    img[arrays.TISSUE] = np.where(head, arrays.FAT, arrays.AIR).astype(np.uint8)
+    mask = head.reshape(img.dimensions, order="F")
+    ours = extract_skin(img, sinc=0)
+    reference = _contour_of_whole_image(mask, img.spacing, img.origin, 1.0)
+    assert ours.n_points == reference.n_points
+    np.testing.assert_array_equal(_sorted_points(ours), _sorted_points(reference))

@@ -32,6 +32,7 @@ from ..arrays import voxel_points
 from ..plan import Plan
 from .bone_segments import find_jaws, segment_volumes
 from .face_axes import plan_axes
+from .morphology import _box
 
 log = logging.getLogger(__name__)
 
@@ -177,16 +178,23 @@ def segment_transforms(labels, plan):
 
 
 def _segment_surface(labels, mask, smooth):
-    """Closed surface around ``mask`` (flying edges on a lightly smoothed indicator)."""
+    """Closed surface around ``mask`` (flying edges on a lightly smoothed indicator), made on
+    the mask's box with a margin wider than the smoothing kernel: the same points as on the
+    whole image, in a fraction of the time."""
     from scipy import ndimage
 
     dims = tuple(labels.dimensions)
-    vol = mask.reshape(dims, order="F").astype(np.float32)
+    full = mask.reshape(dims, order="F")
+    box = (_box(full, int(4.0 * max(float(smooth), 0.0) + 0.5) + 2) if full.any()
+           else tuple(slice(0, n) for n in dims))
+    lo = [b.start for b in box]
+    vol = full[box].astype(np.float32)
     if smooth > 0:
         vol = ndimage.gaussian_filter(vol, smooth, mode="constant")
-    img = pv.ImageData(dimensions=[d + 2 for d in dims], spacing=labels.spacing,
-                       origin=np.asarray(labels.origin) - np.asarray(labels.spacing))
     padded = np.pad(vol, 1)  # closes segments touching the image border
+    img = pv.ImageData(dimensions=padded.shape, spacing=labels.spacing,
+                       origin=np.asarray(labels.origin) - np.asarray(labels.spacing))
+    img.extent = tuple(v for a, n in zip(lo, padded.shape) for v in (a, a + n - 1))
     img["m"] = padded.ravel(order="F")
     surf = img.contour([0.5], scalars="m", method="flying_edges")
     surf.clear_data()

@@ -1,8 +1,10 @@
 """The outer skin surface of a label image, a CT, or a tetrahedral soft-tissue grid.
 
-* Image (``tissue`` labels, or ``ct`` thresholded): the air/head boundary. Everything that
-  is not air, plus every cavity enclosed by the head (sinuses, airway pockets: scipy's
-  :func:`scipy.ndimage.binary_fill_holes`), lightly smoothed
+* Image (``tissue`` labels, or ``ct`` thresholded): the air/head boundary, on the head's box
+  (a margin of air wider than the smoothing kernel: a scan's field of view is mostly air).
+  Everything that is not air, plus every cavity enclosed by the head (sinuses, airway
+  pockets: the air :func:`scipy.ndimage.label` does not connect to the box's border, as
+  :func:`scipy.ndimage.binary_fill_holes` fills), lightly smoothed
   (:func:`scipy.ndimage.gaussian_filter`) and contoured at one half by VTK's flying edges
   (:meth:`pyvista.ImageDataFilters.contour`); the largest connected piece is kept
   (``vtkPolyDataConnectivityFilter``), the voxel terraces the contour still has are
@@ -41,6 +43,7 @@ from scipy import ndimage
 
 from .. import arrays
 from ..progress import Progress
+from .morphology import _box, _fill
 
 log = logging.getLogger(__name__)
 
@@ -85,12 +88,18 @@ def _image_skin(image, threshold, smooth, fill_holes, sinc, open_boundary=False)
     vol = head.reshape(dims[::-1]).transpose(2, 1, 0)  # VTK x-fastest -> (x, y, z)
     if not vol.any():
         raise ValueError("image has no head voxels (all air): no skin to extract")
+    # the head's box with a margin of air wider than the smoothing kernel: the filling,
+    # smoothing and contour of the whole image give the same surface there, and a scan's
+    # field of view is mostly air around the head
+    box = _box(vol, int(4.0 * float(smooth or 0.0) + 0.5) + 2)
+    vol, corner = vol[box], np.array([b.start for b in box], dtype=float)
+    vol = np.ascontiguousarray(vol)
     if open_boundary:  # the head goes on beyond the image: no cap where it leaves it
-        vol = np.pad(ndimage.binary_fill_holes(vol) if fill_holes else vol, 2, mode="edge")
+        vol = np.pad(_fill(vol, None) if fill_holes else vol, 2, mode="edge")
     else:
         vol = np.pad(vol, 2, constant_values=False)
         if fill_holes:
-            vol = ndimage.binary_fill_holes(vol)
+            vol = _fill(vol, None)
     field = vol.astype(np.float32)
     if smooth:
         field = ndimage.gaussian_filter(field, smooth)
@@ -99,6 +108,9 @@ def _image_skin(image, threshold, smooth, fill_holes, sinc, open_boundary=False)
     if hasattr(image, "direction_matrix") and not np.allclose(image.direction_matrix, np.eye(3)):
         raise ValueError("extract_skin supports axis-aligned images only (identity direction)")
     grid = pv.ImageData(dimensions=field.shape, spacing=spacing, origin=origin)
+    first = corner.astype(int)  # the box's voxels keep their points (origin + index spacing)
+    grid.extent = tuple(int(v) for pair in zip(first, first + np.asarray(field.shape) - 1)
+                        for v in pair)
     grid.point_data[arrays.SCRATCH_HEAD] = field.transpose(2, 1, 0).ravel()
     surf = grid.contour([0.5], scalars=arrays.SCRATCH_HEAD, method="flying_edges", progress_bar=False)
     if surf.n_points == 0:
@@ -113,7 +125,7 @@ def _image_skin(image, threshold, smooth, fill_holes, sinc, open_boundary=False)
         return _outward_normals(surf)
     surf = _within(surf, np.asarray(image.bounds, dtype=float), 1e-3 * float(spacing.min()),
                    snap=SLIVER_FRACTION * float(spacing.min()))
-    return _open_outward_normals(surf, field, origin, spacing)
+    return _open_outward_normals(surf, field, origin + corner * spacing, spacing)
 
 
 def _within(surface, bounds, tol, snap=0.0):
