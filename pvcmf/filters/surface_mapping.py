@@ -455,7 +455,10 @@ def _edges(surface):
     else:
         lines = poly.extract_all_edges(use_all_points=True).lines.reshape(-1, 3)
         e = lines[:, 1:]
-    return np.unique(np.sort(e, axis=1), axis=0)
+    a, b = np.minimum(e[:, 0], e[:, 1]).astype(np.int64), np.maximum(e[:, 0], e[:, 1])
+    n = int(b.max(initial=-1)) + 1  # one int64 key per edge: a flat sort, not a row sort
+    key = np.unique(a * n + b)
+    return np.column_stack([key // n, key % n])
 
 
 def crumple_metric(skin_pre, u_skin, grid, u_nodes, *, k=DEFAULT_K, band=None,
