@@ -78,25 +78,31 @@ def rasterize_surface(image, surface):
     >>> int(mask.sum())  # the 739 lattice points with |p| < 5.5
     739
     """
+    mask = np.zeros(int(np.prod(image.dimensions)), dtype=bool)
+    mask[_inside_ids(image, surface)] = True
+    return mask
+
+
+def _inside_ids(image, surface):
+    """Point ids (VTK order, increasing) of the image points inside a closed surface: the
+    voxelised sub-block around it, so that the cost scales with the surface's box."""
     dims = np.asarray(image.dimensions)
-    mask = np.zeros(int(np.prod(dims)), dtype=bool)
     surf = surface.triangulate() if not surface.is_all_triangles else surface
     if surf.n_points == 0:
-        return mask
+        return np.zeros(0, dtype=np.int64)
     ijk = to_index(image, surf.points)
     lo = np.maximum(np.floor(ijk.min(axis=0)).astype(int) - 1, 0)
     hi = np.minimum(np.ceil(ijk.max(axis=0)).astype(int) + 1, dims - 1)
     if (hi < lo).any():
-        return mask
+        return np.zeros(0, dtype=np.int64)
     sub_dims = hi - lo + 1
     ref = pv.ImageData(dimensions=sub_dims, origin=lo.astype(float), spacing=(1.0, 1.0, 1.0))
     local = pv.PolyData(ijk, surf.faces)
     sub = local.voxelize_binary_mask(reference_volume=ref)
-    # "mask": the name PyVista's voxelize_binary_mask gives its output
-    block = np.asarray(sub.point_data["mask"]).reshape(sub_dims, order="F").astype(bool)
-    full = mask.reshape(dims, order="F")
-    full[lo[0] : hi[0] + 1, lo[1] : hi[1] + 1, lo[2] : hi[2] + 1] = block
-    return mask
+    # "mask": the name PyVista's voxelize_binary_mask gives its output (x fastest)
+    inside = np.flatnonzero(np.asarray(sub.point_data["mask"]))
+    i, j, k = np.unravel_index(inside, sub_dims, order="F")
+    return np.ravel_multi_index((i + lo[0], j + lo[1], k + lo[2]), dims, order="F")
 
 
 def _soft_mask(tissue):
@@ -268,14 +274,14 @@ def _paint_muscles(labels, warped, new_tissue, muscle, min_soft_fraction, bar):
     assigned = np.zeros(new_tissue.shape, dtype=bool)
     dims = np.asarray(labels.dimensions)
     problems = []
-    for name in arrays.MUSCLES:
+    for name in arrays.MUSCLES:  # on each muscle's voxels, not the whole image
         surf = warped.muscles.get(name)
         if surf is None:
             continue
-        inside = rasterize_surface(labels, surf)
-        n_in = int(inside.sum())
-        in_soft = inside & soft
-        n_soft = int(in_soft.sum())
+        inside = _inside_ids(labels, surf)
+        n_in = len(inside)
+        in_soft = inside[soft[inside]]
+        n_soft = len(in_soft)
         share_soft = n_soft / n_in if n_in else 0.0
         ijk = to_index(labels, surf.points)
         share_image = float(np.mean(((ijk >= -0.5) & (ijk <= dims - 0.5)).all(axis=1)))
@@ -284,11 +290,11 @@ def _paint_muscles(labels, warped, new_tissue, muscle, min_soft_fraction, bar):
                 f"{name}: {100 * share_soft:.0f}% of its {n_in} voxels in soft tissue, "
                 f"{100 * share_image:.0f}% of its surface inside the image"
             )
-        overlap = int((in_soft & assigned).sum())
+        overlap = int(np.count_nonzero(assigned[in_soft]))
         if overlap:
             log.debug("%s overlaps earlier muscles in %d voxels", name, overlap)
         muscle[in_soft] = arrays.MUSCLE_IDS[name]
         new_tissue[in_soft] = arrays.MUSCLE_TISSUE
-        assigned |= in_soft
+        assigned[in_soft] = True
         bar.step(f"{name}: {n_in} voxels ({n_soft} in soft tissue)")
     return assigned, problems
