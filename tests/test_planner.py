@@ -234,6 +234,29 @@ def test_model_takes_a_plan_in_the_occlusal_axes(model):
                                model.predict(same)[arrays.DISPLACEMENT], atol=1e-9)
 
 
+def test_planner_switches_the_axes_its_sliders_move_in(model, tmp_path):
+    """The page's axes buttons (Planner.set_axes): the same slider values move the mandible
+    along the occlusal plane; axes the labels cannot give are refused, the plan kept."""
+    from pvcmf.filters.face_axes import occlusal_axes
+    from pvcmf.planner.app import Planner
+
+    planner = Planner(model, tmp_path / "plan.toml")
+    values = {**planner.values, "mandible_t_ap": 5.0}
+    planner.set_values(values)
+    before = model.skeleton(planner.plan)["mandible"].points.copy()
+    planner.set_axes("occlusal")
+    assert planner.plan.axes == "occlusal" and 'axes = "occlusal"' in planner.plan_toml()
+    assert planner.sliders.from_plan(planner.plan) == planner.values
+    after = model.skeleton(planner.plan)["mandible"].points
+    turned = occlusal_axes(model.labels)
+    assert np.allclose(after - before, 5.0 * (turned[:, 1] - [0.0, 1.0, 0.0]), atol=1e-9)
+    with pytest.raises(ValueError, match="need the landmarks"):
+        planner.set_axes("frankfort")  # no muscle fit, no landmarks given
+    assert planner.plan.axes == "occlusal"
+    with pytest.raises(ValueError, match="axes must be one of"):
+        planner.set_axes("scanner")
+
+
 def test_model_takes_a_frankfort_plan_with_its_landmarks():
     """A start plan in the Frankfort axes: the planner stores the landmarks given (no muscle
     fit) and moves the skeleton along their horizontal."""
@@ -370,6 +393,10 @@ def test_page_slider_updates_view_and_saves_plan(planner_server):
             page.click("#save-button")
             page.wait_for_function(
                 "() => document.querySelector('#saved').innerText.startsWith('saved')")
+            page.click("#axes-occlusal")  # the same sliders along the occlusal plane
+            page.wait_for_function(
+                "() => document.querySelector('#plan-toml').innerText"
+                ".includes('axes = \"occlusal\"')")
         finally:
             browser.close()
     saved = read_plan(save)

@@ -17,6 +17,7 @@ redraws.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import tempfile
 import time
@@ -25,6 +26,7 @@ from pathlib import Path
 from .. import datasets
 from ..arguments import add_ct_checks
 from ..figures.skin_marks import MAP_CUT_WORDS
+from ..filters.face_axes import plan_axes
 from ..plan import AXES as PLAN_AXES
 from ..plan import Plan, read_plan, write_plan
 from .model import prepare_model
@@ -83,6 +85,24 @@ class Planner:
         return status, data_url(profile_png(self.model.skin, self.scene.predicted,
                                             x=self.scene.midline))
 
+    def set_axes(self, axes):
+        """Move the sliders in ``axes`` (:data:`pvcmf.plan.AXES`), keeping their values;
+        return ``(status text, profile data URL)``.
+
+        Raises
+        ------
+        ValueError
+            Unknown axes, or axes the model's labels cannot give (no teeth for
+            ``"occlusal"``, no landmarks for ``"frankfort"``); the plan is left as it was.
+        """
+        if axes not in PLAN_AXES:
+            raise ValueError(f"axes must be one of {list(PLAN_AXES)}, got {axes!r}")
+        template = self.model.plan if self.model.plan is not None else Plan(())
+        sliders = PlanSliders(self.model.segments, dataclasses.replace(template, axes=axes))
+        plan_axes(self.model.labels, sliders.to_plan(self.values))  # refused before use
+        self.sliders = sliders
+        return self.set_values(self.values)
+
     def plan_toml(self):
         """The current plan as the TOML text :func:`pvcmf.plan.write_plan` writes."""
         with tempfile.TemporaryDirectory() as folder:
@@ -108,6 +128,7 @@ def build_app(planner, server=None):
     keys = planner.sliders.keys
     for key, value in planner.values.items():
         state[key] = value
+    state.plan_axes = planner.plan.axes
     state.save_path = str(planner.save_path)
     state.saved = ""
     state.status, state.profile_src = planner.set_values(planner.values)
@@ -131,6 +152,19 @@ def build_app(planner, server=None):
         else:
             state.saved = f"saved {path}"
             log.info("plan saved to %s", path)
+
+    @state.change("plan_axes")
+    def _on_axes(**_):
+        axes = state.plan_axes
+        if axes == planner.plan.axes:
+            return
+        try:
+            state.status, state.profile_src = planner.set_axes(axes)
+            state.plan_toml = planner.plan_toml()
+        except (ValueError, RuntimeError) as err:
+            state.status = f"cannot move in the {axes} axes: {err}"
+            state.plan_axes = planner.plan.axes
+        ctrl.view_update()
 
     ctrl.save_plan = _save
     with Layout(server) as layout:
@@ -162,11 +196,13 @@ def build_app(planner, server=None):
 
 
 def _slider_panel(planner, v3, html):
-    """Six sliders per segment, grouped by segment and kind (and the plan's axes, where
-    they are the face's)."""
-    if planner.plan.axes != "image":
-        html.Div(f"moves in the {planner.plan.axes} axes", id="plan-axes",
-                 classes="text-caption px-2 pt-2")
+    """The axes the sliders move in (the image's or the face's), then six sliders per
+    segment, grouped by segment and kind."""
+    html.Div("axes", classes="text-caption px-2 pt-2")
+    with v3.VBtnToggle(v_model=("plan_axes",), mandatory=True, density="compact",
+                       classes="px-2", id="plan-axes"):
+        for axes in PLAN_AXES:
+            v3.VBtn(axes, value=axes, id=f"axes-{axes}", size="small")
     for segment in planner.sliders.segments:
         html.Div(segment, classes="text-subtitle-1 px-2 pt-2")
         for kind, label, unit, _ in KINDS:
