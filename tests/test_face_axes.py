@@ -181,6 +181,11 @@ def test_occlusal_normal_is_measured_where_find_jaws_did_not_keep_it(upright_and
     bare = turned.copy()
     bare.field_data.clear()
     np.testing.assert_allclose(occlusal_normal(bare), occlusal_normal(turned), atol=1e-9)
+    # simulate measures it once and keeps it for every later step (a copy: bare unchanged)
+    kept = with_plan_axes(bare, Plan((Osteotomy("mandible"),), axes="occlusal"))
+    assert arrays.ARCH_NORMAL not in bare.field_data
+    np.testing.assert_allclose(kept.field_data[arrays.ARCH_NORMAL], occlusal_normal(turned),
+                               atol=1e-9)
 
 
 def test_a_tilted_head_is_not_warned_about_for_a_plan_in_the_face_s_axes(caplog):

@@ -244,7 +244,8 @@ def with_plan_axes(labels, plan, landmarks=None):
     """``labels`` with what ``plan``'s axes need, checked and logged before the mesh.
 
     A Frankfort plan's ``landmarks`` are stored in a shallow copy's field data (over those
-    the labels hold); without them those the labels hold (the atlas fit's, in
+    the labels hold), as is an occlusal plan's arch normal where the labels do not hold it
+    (``arrays.ARCH_NORMAL``: measured once, read by every later step); without landmarks those the labels hold (the atlas fit's, in
     :func:`pvcmf.pipeline.simulate`) are used, with a warning that says how far their
     horizontal rolls from the upper dental arch's plane (faces are near symmetric: a few
     degrees point to a misplaced porion, or to a canted arch). Returns ``labels`` itself
@@ -254,6 +255,10 @@ def with_plan_axes(labels, plan, landmarks=None):
         return labels
     if plan.axes == "frankfort" and landmarks is not None:
         labels = _with_landmarks(labels, landmarks)
+    if plan.axes == "occlusal" and arrays.ARCH_NORMAL not in labels.field_data:
+        normal = occlusal_normal(labels)  # measured once: every later step reads it
+        labels = labels.copy(deep=False)
+        labels.field_data[arrays.ARCH_NORMAL] = normal
     frame = plan_axes(labels, plan)
     if plan.axes == "frankfort" and landmarks is None:
         roll = _roll_against_teeth(labels, frame)

@@ -159,6 +159,13 @@ def _c_copy(a):
     return out
 
 
+def _smoothing_margin(sigma):
+    """Voxels of zeros beyond an object that keep :func:`scipy.ndimage.gaussian_filter`
+    (``sigma`` voxels, its default truncation at 4 sigma) the same near the object as on
+    the whole image, plus two."""
+    return int(4.0 * max(float(sigma or 0.0), 0.0) + 0.5) + 2
+
+
 def _box(mask, margin):
     idx = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != ax)))
            for ax in range(3)]

@@ -32,7 +32,7 @@ from ..arrays import voxel_points
 from ..plan import Plan
 from .bone_segments import find_jaws, segment_volumes
 from .face_axes import plan_axes
-from .morphology import _box
+from .morphology import _box, _smoothing_margin
 
 log = logging.getLogger(__name__)
 
@@ -185,8 +185,8 @@ def _segment_surface(labels, mask, smooth):
 
     dims = tuple(labels.dimensions)
     full = mask.reshape(dims, order="F")
-    box = (_box(full, int(4.0 * max(float(smooth), 0.0) + 0.5) + 2) if full.any()
-           else tuple(slice(0, n) for n in dims))
+    box = _box(full, _smoothing_margin(smooth)) if full.any() else tuple(
+        slice(0, n) for n in dims)
     lo = [b.start for b in box]
     vol = full[box].astype(np.float32)
     if smooth > 0:

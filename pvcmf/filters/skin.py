@@ -43,7 +43,7 @@ from scipy import ndimage
 
 from .. import arrays
 from ..progress import Progress
-from .morphology import _box, _fill
+from .morphology import _box, _fill, _smoothing_margin
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +91,7 @@ def _image_skin(image, threshold, smooth, fill_holes, sinc, open_boundary=False)
     # the head's box with a margin of air wider than the smoothing kernel: the filling,
     # smoothing and contour of the whole image give the same surface there, and a scan's
     # field of view is mostly air around the head
-    box = _box(vol, int(4.0 * float(smooth or 0.0) + 0.5) + 2)
+    box = _box(vol, _smoothing_margin(smooth))
     vol, corner = vol[box], np.array([b.start for b in box], dtype=float)
     vol = np.ascontiguousarray(vol)
     if open_boundary:  # the head goes on beyond the image: no cap where it leaves it

@@ -26,7 +26,6 @@ from pathlib import Path
 from .. import datasets
 from ..arguments import add_ct_checks
 from ..figures.skin_marks import MAP_CUT_WORDS
-from ..filters.face_axes import plan_axes
 from ..plan import AXES as PLAN_AXES
 from ..plan import Plan, read_plan, write_plan
 from .model import prepare_model
@@ -99,7 +98,7 @@ class Planner:
             raise ValueError(f"axes must be one of {list(PLAN_AXES)}, got {axes!r}")
         template = self.model.plan if self.model.plan is not None else Plan(())
         sliders = PlanSliders(self.model.segments, dataclasses.replace(template, axes=axes))
-        plan_axes(self.model.labels, sliders.to_plan(self.values))  # refused before use
+        self.model.plan_axes(sliders.to_plan(self.values))  # refused before use
         self.sliders = sliders
         return self.set_values(self.values)
 

@@ -147,16 +147,21 @@ class PlannerModel:
         out.point_data[arrays.DISPLACEMENT] = disp
         return out
 
+    def plan_axes(self, plan):
+        """``plan``'s directions in the image (:func:`pvcmf.filters.plan_axes`), measured
+        once per kind of axes."""
+        if plan.axes not in self._axes:
+            self._axes[plan.axes] = plan_axes(self.labels, plan)
+        return self._axes[plan.axes]
+
     def skeleton(self, plan):
         """The bone segment surfaces moved by ``plan`` (rest segments copied)."""
         if self._centroids is None:  # pivots by default: the segments' voxel centroids
             bone = np.asarray(self.labels[arrays.BONE])
             self._centroids = {s: voxel_points(self.labels, np.flatnonzero(
                 bone == arrays.BONE_LABELS[s])).mean(axis=0) for s in self.segments}
-        if plan.axes not in self._axes:  # the plan's directions in the image, once per kind
-            self._axes[plan.axes] = plan_axes(self.labels, plan)
-        matrices = {o.segment_id: o.matrix(self._centroids.get(o.segment),
-                                           axes=self._axes[plan.axes])
+        axes = self.plan_axes(plan)
+        matrices = {o.segment_id: o.matrix(self._centroids.get(o.segment), axes=axes)
                     for o in plan.osteotomies}
         out = pv.MultiBlock()
         for name in self.bones.keys():
