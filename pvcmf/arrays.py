@@ -335,6 +335,10 @@ ARCH_PITCH = "arch_pitch"
 #: unit normal (superior) of the upper dental arch's plane, in the image's axes (a plan's
 #: ``axes = "occlusal"``, :func:`pvcmf.filters.plan_axes`)
 ARCH_NORMAL = "arch_normal"
+#: field (labels of ``find_jaws``), float64, 1 value with ``ARCH_NORMAL``: the teeth's spread
+#: (mm, standard deviation) across their row in that plane, an arch's depth as opposed to
+#: a row of front teeth (:data:`pvcmf.filters.jaw_pose.MIN_ARCH_SPAN_MM`)
+ARCH_SPAN = "arch_span"
 
 
 # --------------------------------------------------------------------------- solution checks

@@ -17,10 +17,10 @@ from scipy.spatial.transform import Rotation
 import pvcmf
 from pvcmf import arrays, datasets
 from pvcmf.filters import apply_plan, find_jaws, plan_axes
-from pvcmf.filters.bone_segments import occlusal_normal
+from pvcmf.filters.bone_segments import occlusal_normal, occlusal_plane
 from pvcmf.filters.face_axes import (FRANKFORT_LANDMARKS, frankfort_axes, occlusal_axes,
                                      with_plan_axes)
-from pvcmf.filters.jaw_pose import check_pose
+from pvcmf.filters.jaw_pose import MIN_ARCH_SPAN_MM, check_pose
 from pvcmf.filters.osteotomy import segment_transforms
 from pvcmf.mtm import solve
 from pvcmf.mtm.response import plan_grid, plan_response
@@ -188,6 +188,29 @@ def test_occlusal_normal_is_measured_where_find_jaws_did_not_keep_it(upright_and
                                atol=1e-9)
 
 
+def test_a_row_of_front_teeth_gives_no_occlusal_axes(upright_and_turned):
+    """Teeth that span a row (the back teeth missing, or below the scan's teeth level, as on
+    the Visible Human female) give no plane to plan in: the plane of a row may turn about
+    it. The arch kept in the labels is refused the same way."""
+    upright, _, _ = upright_and_turned
+    _, span = occlusal_plane(upright)
+    assert span > 1.5 * MIN_ARCH_SPAN_MM  # the virtual patient's whole arch
+    row = upright.copy()
+    row.field_data.clear()
+    tissue = np.asarray(row[arrays.TISSUE]).copy()
+    p = np.asarray(row.points)
+    teeth = np.isin(tissue, (arrays.TEETH, arrays.METAL))
+    front = p[teeth, 1].max() - 8.0  # the front 8 mm of the teeth
+    tissue[teeth & (p[:, 1] < front)] = arrays.BONE_TISSUE
+    row[arrays.TISSUE] = tissue
+    with pytest.raises(ValueError, match="across their row .*a row of front teeth"):
+        occlusal_axes(row)
+    kept = upright.copy()
+    kept.field_data[arrays.ARCH_SPAN] = [3.0]
+    with pytest.raises(ValueError, match="spread 3.0 mm across their row"):
+        plan_axes(kept, "occlusal")
+
+
 def test_a_tilted_head_is_not_warned_about_for_a_plan_in_the_face_s_axes(caplog):
     labels = pv.ImageData(dimensions=(2, 2, 2))
     labels.field_data[arrays.ARCH_PITCH] = [40.0]
@@ -203,6 +226,7 @@ def _tilted(labels, degrees):
     out = labels.copy(deep=False)
     a = np.radians(degrees)
     out.field_data[arrays.ARCH_NORMAL] = [0.0, np.sin(a), np.cos(a)]
+    out.field_data[arrays.ARCH_SPAN] = [13.0]  # mm across the row: an arch
     return out
 
 
@@ -264,6 +288,7 @@ def test_fitted_frankfort_landmarks_are_warned_with_their_roll_from_the_teeth():
     their horizontal rolls from the upper arch's plane; landmarks given win over them."""
     labels = pv.ImageData(dimensions=(2, 2, 2))
     labels.field_data[arrays.ARCH_NORMAL] = [0.0, 0.0, 1.0]  # a level arch
+    labels.field_data[arrays.ARCH_SPAN] = [13.0]
     R = Rotation.from_euler("y", 6.0, degrees=True).as_matrix()  # one porion 13 mm higher
     fitted = _turned_marks(R)
     names = sorted(fitted)

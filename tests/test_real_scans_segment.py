@@ -20,6 +20,7 @@ from scipy import ndimage
 import pvcmf
 from pvcmf import arrays
 from pvcmf.filters.bone_segments import occlusal_normal
+from pvcmf.filters.face_axes import occlusal_axes
 from pvcmf.filters.metal import streak_zone
 from pvcmf.plan import Osteotomy, Plan
 
@@ -150,9 +151,13 @@ def test_male_no_hard_tissue_from_metal_streaks(male):
 def test_female_jaws(female_jaws):
     """The female's maxilla is edentulous and her mouth open: one dental arch (the lower
     incisors and canines); the mandible is one piece with both condyles, and the maxilla is
-    seeded by the alveolar ridge. At 1 mm: the joint space is thinner than 2 mm."""
+    seeded by the alveolar ridge. At 1 mm: the joint space is thinner than 2 mm. Her few
+    teeth are a row, not an arch: they give no occlusal plane to plan in (refused)."""
     _, lab = female_jaws
-    bone = _vol(pvcmf.filters.find_jaws(lab), arrays.BONE)
+    jaws = pvcmf.filters.find_jaws(lab)
+    with pytest.raises(ValueError, match="across their row"):
+        occlusal_axes(jaws)
+    bone = _vol(jaws, arrays.BONE)
     mand = bone == arrays.MANDIBLE
     _, n = ndimage.label(mand, np.ones((3, 3, 3), bool))
     assert n == 1

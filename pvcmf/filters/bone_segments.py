@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 from .. import arrays
 from .morphology import _beyond, _c_copy
 from .dental_arches import ALVEOLAR_MM, dental_arches
-from .jaw_pose import Level, arch_pose, pitch
+from .jaw_pose import MIN_ARCH_SPAN_MM, Level, arch_pose, arch_span, pitch
 from .narrowest_cut import narrowest_cut
 
 log = logging.getLogger(__name__)
@@ -173,6 +173,7 @@ def find_jaws(labels, *, progress_bar=False):
     if normal is not None:
         out.field_data[arrays.ARCH_PITCH] = np.array([pitch(normal)])
         out.field_data[arrays.ARCH_NORMAL] = np.asarray(normal, dtype=float)
+        out.field_data[arrays.ARCH_SPAN] = np.array([arch_span(teeth, spacing, normal)])
     voxel = float(np.prod(spacing)) / 1000.0
     log.info("find_jaws: segments (mL) %s", ", ".join(
         f"{arrays.BONE_NAMES[i]} {np.count_nonzero(sub == i) * voxel:.1f}"
@@ -226,25 +227,47 @@ def _jaw_box(labels, caller):
     return dims, spacing, box, hard, tissue, teeth
 
 
-def occlusal_normal(labels):
-    """Unit normal (superior) of the upper dental arch's plane in ``labels``: the value
-    :func:`find_jaws` keeps as ``arrays.ARCH_NORMAL``, else measured as it measures it
-    (:func:`~pvcmf.filters.jaw_pose.arch_pose`).
+def occlusal_plane(labels):
+    """Unit normal (superior) of the upper dental arch's plane in ``labels`` and the teeth's
+    spread across their row in it (mm): the values :func:`find_jaws` keeps as
+    ``arrays.ARCH_NORMAL`` and ``ARCH_SPAN``, else measured as it measures them
+    (:func:`~pvcmf.filters.jaw_pose.arch_pose`, :func:`~pvcmf.filters.jaw_pose.arch_span`).
 
     Raises
     ------
     ValueError
         Fewer than 10 tooth voxels, or teeth that form no flat arch.
     """
-    if arrays.ARCH_NORMAL in labels.field_data:
-        normal = np.asarray(labels.field_data[arrays.ARCH_NORMAL], dtype=float).ravel()
-        return normal / np.linalg.norm(normal)
+    fd = labels.field_data
+    if arrays.ARCH_NORMAL in fd and arrays.ARCH_SPAN in fd:
+        normal = np.asarray(fd[arrays.ARCH_NORMAL], dtype=float).ravel()
+        return normal / np.linalg.norm(normal), float(np.asarray(fd[arrays.ARCH_SPAN]).ravel()[0])
     _, spacing, _, hard, _, teeth = _jaw_box(labels, "occlusal_normal")
     normal = arch_pose(teeth, hard, spacing)[3]
     if normal is None:
         raise ValueError("occlusal_normal: the teeth of labels form no flat dental arch "
                          "(a few front teeth alone, or none): no occlusal plane to plan in")
-    return np.asarray(normal, dtype=float)
+    return np.asarray(normal, dtype=float), arch_span(teeth, spacing, normal)
+
+
+def occlusal_normal(labels):
+    """The normal of :func:`occlusal_plane`, refused where the teeth span a row rather than
+    an arch (less than :data:`~pvcmf.filters.jaw_pose.MIN_ARCH_SPAN_MM` across it: the
+    plane of a row may turn about it, so it gives no plane to plan in).
+
+    Raises
+    ------
+    ValueError
+        As :func:`occlusal_plane`, or a row of teeth.
+    """
+    normal, span = occlusal_plane(labels)
+    if span < MIN_ARCH_SPAN_MM:
+        raise ValueError(
+            f"occlusal_normal: the teeth found spread {span:.1f} mm across their row (an arch "
+            f"spreads 12-15 mm; at least {MIN_ARCH_SPAN_MM:g}): a row of front teeth (the "
+            "others missing, or below the image's teeth level) gives no occlusal plane to "
+            "plan in; use axes = 'frankfort' with landmarks, or 'image'")
+    return normal
 
 
 def _bounds(mask, margin):

@@ -12,7 +12,8 @@ moves with:
 * ``"occlusal"``: the plane of the upper dental arch found in the image
   (:func:`~pvcmf.filters.bone_segments.occlusal_normal`, fixed to the skull: the lower jaw may
   hang open). Vertical is its normal, horizontal the image's left-right direction laid into
-  the plane, anterior-posterior the third. Derived from the image alone.
+  the plane, anterior-posterior the third. Derived from the image alone; refused where the
+  teeth found are a row rather than an arch (a row's plane may turn about it).
 * ``"frankfort"``: the Frankfort horizontal, the plane through both porions (the tops of the
   ear canals) and the orbitales (the lowest points of the orbit rims; their midpoint).
   Horizontal runs from the right porion to the left one, vertical is the plane's normal.
@@ -36,7 +37,7 @@ import numpy as np
 
 from .. import arrays
 from ..plan import AXES, Plan
-from .bone_segments import occlusal_normal
+from .bone_segments import occlusal_normal, occlusal_plane
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +91,7 @@ def occlusal_axes(labels):
     >>> labels = pv.ImageData(dimensions=(2, 2, 2))
     >>> a = np.radians(10.0)  # an arch descending 10 degrees anteriorly
     >>> labels.field_data[arrays.ARCH_NORMAL] = [0.0, np.sin(a), np.cos(a)]
+    >>> labels.field_data[arrays.ARCH_SPAN] = [13.0]  # mm across the row: an arch
     >>> np.round(occlusal_axes(labels)[:, 1], 3).tolist()  # anterior points down 10 deg
     [0.0, 0.985, -0.174]
     """
@@ -244,8 +246,9 @@ def with_plan_axes(labels, plan, landmarks=None):
     """``labels`` with what ``plan``'s axes need, checked and logged before the mesh.
 
     A Frankfort plan's ``landmarks`` are stored in a shallow copy's field data (over those
-    the labels hold), as is an occlusal plan's arch normal where the labels do not hold it
-    (``arrays.ARCH_NORMAL``: measured once, read by every later step); without landmarks those the labels hold (the atlas fit's, in
+    the labels hold), as is an occlusal plan's arch where the labels do not hold it
+    (``arrays.ARCH_NORMAL``, ``ARCH_SPAN``: measured once, read by every later step);
+    without landmarks those the labels hold (the atlas fit's, in
     :func:`pvcmf.pipeline.simulate`) are used, with a warning that says how far their
     horizontal rolls from the upper dental arch's plane (faces are near symmetric: a few
     degrees point to a misplaced porion, or to a canted arch). Returns ``labels`` itself
@@ -255,10 +258,12 @@ def with_plan_axes(labels, plan, landmarks=None):
         return labels
     if plan.axes == "frankfort" and landmarks is not None:
         labels = _with_landmarks(labels, landmarks)
-    if plan.axes == "occlusal" and arrays.ARCH_NORMAL not in labels.field_data:
-        normal = occlusal_normal(labels)  # measured once: every later step reads it
+    fd = labels.field_data
+    if plan.axes == "occlusal" and not (arrays.ARCH_NORMAL in fd and arrays.ARCH_SPAN in fd):
+        normal, span = occlusal_plane(labels)  # measured once: every later step reads it
         labels = labels.copy(deep=False)
         labels.field_data[arrays.ARCH_NORMAL] = normal
+        labels.field_data[arrays.ARCH_SPAN] = np.array([span])
     frame = plan_axes(labels, plan)
     if plan.axes == "frankfort" and landmarks is None:
         roll = _roll_against_teeth(labels, frame)

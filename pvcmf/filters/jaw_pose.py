@@ -30,7 +30,8 @@ from .dental_arches import dental_arches
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Level", "arch_pose", "check_pose", "occlusal_tilt", "pitch"]
+__all__ = ["Level", "MIN_ARCH_SPAN_MM", "arch_pose", "arch_span", "check_pose", "occlusal_tilt",
+           "pitch"]
 
 #: tilt (degrees) below which the grid is left as it is: the occlusal plane then rises
 #: less than 4 mm (half a crown's height) over the arch's 45 mm depth, which the axial
@@ -44,6 +45,11 @@ MAX_TILT_DEG = 45.0
 #: and its spread among adults (Downs, Am J Orthod 1948: mean 9.3, range 1.5-14)
 OCCLUSAL_CANT = 9.3
 OCCLUSAL_CANT_SD = 3.8
+#: smallest spread (mm, standard deviation) of the teeth across their row, in their plane,
+#: that defines a plane to plan in: an arch 45-55 mm wide and deep spreads 12-15 mm both
+#: ways, a row of front teeth (the rest missing, or below the teeth level) a few mm, and
+#: the plane of a row may turn about it
+MIN_ARCH_SPAN_MM = 8.0
 #: pitch and roll (degrees) searched for the first estimate of the arches' plane
 SEARCH_PITCH = 40.0
 SEARCH_ROLL = 20.0
@@ -130,6 +136,19 @@ def arch_pose(teeth, hard, spacing):
         return None, tilt, dental_arches(teeth, hard, spacing), \
             None if turn is None else turn[2].copy()
     return turn, tilt, None, turn[2].copy()
+
+
+def arch_span(teeth, spacing, normal):
+    """Spread (mm, standard deviation) of the tooth voxels ``teeth`` across their row within
+    the plane of unit ``normal``: the smaller principal spread of their projection on it."""
+    points = np.argwhere(teeth) * np.asarray(spacing, dtype=float)
+    if len(points) < 3:
+        return 0.0
+    points = points - points.mean(axis=0)
+    normal = np.asarray(normal, dtype=float)
+    flat = points - np.outer(points @ normal, normal)
+    spread = np.linalg.eigvalsh(np.cov(flat.T))  # (the normal's own is ~0)
+    return float(np.sqrt(max(spread[1], 0.0)))
 
 
 def pitch(normal):
