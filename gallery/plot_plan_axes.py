@@ -1,18 +1,20 @@
-"""A plan on a head scanned chin down: the image's axes or the face's
-====================================================================
+"""A plan on a head scanned chin down and turned: the image's axes or the face's
+=============================================================================
 
-A head often lies tilted in the scanner (chin down to keep the eyes out of the beam). A
-plan's numbers are in the image's axes by default, so "6 mm forward" then moves the
-mandible along the scanner's axis: in the face's terms, forward and partly up. With
-``axes = "occlusal"`` the plan moves along the plane of the upper dental arch found in the
-image (:func:`pvcmf.filters.plan_axes`), which turns with the head.
+A head often lies tilted in the scanner (chin down to keep the eyes out of the beam) and
+turned a little about its vertical axis. A plan's numbers are in the image's axes by
+default, so "6 mm forward" then moves the mandible along the scanner's axis: in the face's
+terms, forward, partly up and partly sideways. With ``axes = "occlusal"`` the plan moves
+along the plane of the upper dental arch found in the image, across the skull's mirror
+plane (:func:`pvcmf.filters.plan_axes`, :func:`pvcmf.filters.mirror_plane`), which turn
+with the head.
 
-Virtual patient 1 is scanned upright and turned 15 degrees chin down (its CT and its bone
-segments, about the image's centre). The same plan, the mandible 6 mm forward, is predicted
+Virtual patient 1 is scanned upright, and turned 15 degrees chin down and 10 degrees about
+its vertical axis (its CT and its bone segments, about the image's centre). The same plan, the mandible 6 mm forward, is predicted
 on both (:func:`pvcmf.planner.prepare_model`, one plan-response operator each). The
 predicted midsagittal profiles of the turned head are turned back for the figure, so all
 three panels show the face upright: in the image's axes the chin goes up as well as
-forward; in the occlusal axes the turned head gets the upright head's move.
+forward and to the side; in the occlusal axes the turned head gets the upright head's move.
 """
 
 import dataclasses
@@ -34,10 +36,13 @@ pv.OFF_SCREEN = True
 OUT = Path(os.environ.get("PVCMF_GALLERY_OUT") or Path(__file__).resolve().parent / "_out")
 OUT.mkdir(parents=True, exist_ok=True)
 TILT = -15.0  # degrees about the left-right axis: chin down
+YAW = 10.0  # degrees about the vertical axis
 
 case = pvcmf.datasets.phantom(patient=1, spacing=3.0)
 a = np.radians(TILT)
-TURN = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+b = np.radians(YAW)
+TURN = (np.array([[np.cos(b), -np.sin(b), 0], [np.sin(b), np.cos(b), 0], [0, 0, 1]])
+        @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]]))
 CENTRE = np.asarray(case.ct.center)
 
 
@@ -60,7 +65,7 @@ def turned(image, names, order, fill):
 ct = turned(case.ct, [arrays.CT], order=1, fill=-1000.0)
 truth = turned(case.truth, [arrays.TISSUE, arrays.BONE], order=0, fill=0)
 models = {"upright": prepare_model(case.ct, bones=case.truth, n_tets=4000, muscles=False),
-          "chin down": prepare_model(ct, bones=truth, n_tets=4000, muscles=False)}
+          "turned": prepare_model(ct, bones=truth, n_tets=4000, muscles=False)}
 plan = Plan((Osteotomy("mandible", translation=(0.0, 0.0, 6.0)),), name="mandible 6 mm forward",
             axes="occlusal")
 
@@ -74,7 +79,7 @@ def upright(surface, name):
     return out
 
 
-panels = [("upright", "occlusal"), ("chin down", "image"), ("chin down", "occlusal")]
+panels = [("upright", "occlusal"), ("turned", "image"), ("turned", "occlusal")]
 fig = Figure(figsize=(10, 5.2))
 x = midline_x(models["upright"].skin)
 for i, (name, axes) in enumerate(panels):
@@ -92,12 +97,12 @@ for i, (name, axes) in enumerate(panels):
     ax.set_xlim(20, 140)
     ax.set_ylim(-130, -15)
     ax.set_title(f"{name}, {axes} axes\nmandible {shift[1]:+.1f} mm forward, "
-                 f"{shift[2]:+.1f} mm up", fontsize=9)
+                 f"{shift[2]:+.1f} up, {shift[0]:+.1f} left", fontsize=9)
     ax.set_xlabel("anterior (y, mm)")
     if i == 0:
         ax.set_ylabel("superior (z, mm)")
         ax.legend(loc="lower left", fontsize=8)
-fig.suptitle("The same plan (mandible 6 mm forward) on an upright and a chin-down scan, "
-             "shown upright")
+fig.suptitle("The same plan (mandible 6 mm forward) on an upright scan and one turned chin "
+             "down and sideways, shown upright")
 fig.tight_layout()
 fig.savefig(OUT / "plan_axes.png", dpi=90)

@@ -339,6 +339,10 @@ ARCH_NORMAL = "arch_normal"
 #: (mm, standard deviation) across their row in that plane, an arch's depth as opposed to
 #: a row of front teeth (:data:`pvcmf.filters.jaw_pose.MIN_ARCH_SPAN_MM`)
 ARCH_SPAN = "arch_span"
+#: field, float64, 3 values: the unit normal of the head's mirror (midsagittal) plane, the
+#: head's left-right direction in the image's axes, from its hard tissue's symmetry
+#: (:func:`pvcmf.filters.mirror_plane`; a plan's ``axes = "occlusal"`` takes its horizontal)
+MIRROR_NORMAL = "mirror_normal"
 
 
 # --------------------------------------------------------------------------- solution checks

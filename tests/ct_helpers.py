@@ -30,3 +30,19 @@ def stored_as(image, code, add=0.0):
         if sign < 0:
             vol = np.flip(vol, i)
     return image_of(vol + add, np.asarray(image.spacing)[order])
+
+
+def turned_labels(labels, R, pad=12):
+    """``labels``'s tissue turned by the rotation ``R`` about the grid's centre (nearest
+    voxel), on a grid ``pad`` voxels wider each way so that nothing leaves it."""
+    from scipy import ndimage
+
+    v = np.pad(np.asarray(labels[arrays.TISSUE]).reshape(labels.dimensions, order="F"), pad)
+    s = np.asarray(labels.spacing, float)
+    c = (np.asarray(v.shape) - 1) / 2
+    matrix = (R.T * s[None, :]) / s[:, None]
+    out = ndimage.affine_transform(v, matrix, offset=c - matrix @ c, order=0, cval=0)
+    img = pv.ImageData(dimensions=v.shape, spacing=labels.spacing,
+                       origin=np.asarray(labels.origin) - pad * s)
+    img[arrays.TISSUE] = out.ravel(order="F")
+    return img

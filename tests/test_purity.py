@@ -92,6 +92,7 @@ def chain():
     for axes, image in (("occlusal", jaws), ("frankfort", labels)):
         plan = dataclasses.replace(case.plan, axes=axes)
         _pure("plan_axes", f.plan_axes, image, plan)
+    _pure("mirror_plane", f.mirror_plane, jaws, jaws.field_data[arrays.ARCH_NORMAL])
     moved = skin.translate((0.5, -0.3, 0.2), inplace=False)
     out["registered"] = _pure("register", f.register, moved, skin)
     out["distance"] = _pure("distance_to", f.distance_to, moved, skin)

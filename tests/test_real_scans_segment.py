@@ -24,6 +24,8 @@ from pvcmf.filters.face_axes import occlusal_axes
 from pvcmf.filters.metal import streak_zone
 from pvcmf.plan import Osteotomy, Plan
 
+from ct_helpers import turned_labels
+
 
 def _read(name):
     root = Path(os.environ.get("PVCMF_DATA_DIR", Path(__file__).parents[1] / ".." / "shared"
@@ -377,3 +379,21 @@ def test_male_scanned_chin_down(male):
         a, b = found == segment, upright == segment
         score = 2.0 * np.count_nonzero(a & b) / (np.count_nonzero(a) + np.count_nonzero(b))
         assert score >= 0.9, f"{arrays.BONE_NAMES[segment]} Dice {score:.3f}"
+
+
+def test_male_turned_about_his_vertical(male):
+    """The male's labels (amalgam streaks, a face cut by the field of view) turned 10
+    degrees about the upper arch's normal, nearest voxel: the head's mirror plane found on
+    them is the upright one turned (within 1 degree), so a plan in his occlusal axes moves
+    forward as his face points, not as the scanner's y axis."""
+    from scipy.spatial.transform import Rotation
+
+    _, lab = male
+    normal = occlusal_normal(pvcmf.filters.find_jaws(lab))
+    level = pvcmf.filters.mirror_plane(lab, normal)
+    R = Rotation.from_rotvec(np.radians(10.0) * normal).as_matrix()
+    turned = turned_labels(lab, R, pad=30)
+    found = pvcmf.filters.mirror_plane(turned, R @ normal)
+    angle = np.degrees(np.arccos(min(abs(found.direction @ (R @ level.direction)), 1.0)))
+    assert angle < 1.0, angle
+    assert found.overlap > 0.6 and abs(found.turn - level.turn - 10.0) < 1.5, found

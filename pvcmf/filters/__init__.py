@@ -17,6 +17,7 @@ assign_materials          ``materials``               000 Table I / 001 material
 cut_bones, move_bones     ``osteotomy``               000 Fig. 5: bone segments and plan
 apply_plan                ``boundary_conditions``     000 Fig. 4: sliding / joint / fixed
 plan_axes                 ``face_axes``               a plan's moves in the face's axes
+mirror_plane              ``symmetry``                the head's left-right direction
 extract_skin              ``skin``                    skin surface of a label image or mesh
 register                  ``registration``            000 sec. V: ICP (point-to-plane)
 distance_to               ``distance``                000 Fig. 6: signed distance maps
@@ -50,6 +51,7 @@ _REGISTRY = {
     "find_jaws": "bone_segments",
     "apply_plan": "boundary_conditions",
     "plan_axes": "face_axes",
+    "mirror_plane": "symmetry",  # not "mirror_plane": same shadowing as segment
     "extract_skin": "skin",
     "register": "registration",
     "distance_to": "distance",

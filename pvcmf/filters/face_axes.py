@@ -5,15 +5,17 @@ A plan's translations and rotations are (horizontal, vertical, anterior-posterio
 With ``axes = "image"`` (the default) these are the image's own axes, which are the face's
 only when the head lies level in the scanner. A head scanned chin down or rolled then
 moves the maxilla "forward" partly downward, by the sine of the tilt (a quarter of the move
-at 15 degrees). :func:`plan_axes` gives the 3x3 rotation whose columns are the plan's
+at 15 degrees), and a head turned about its vertical axis moves it partly sideways. :func:`plan_axes` gives the 3x3 rotation whose columns are the plan's
 (x, y, z) directions in the image, which :meth:`pvcmf.plan.Osteotomy.matrix` turns the
 moves with:
 
 * ``"occlusal"``: the plane of the upper dental arch found in the image
   (:func:`~pvcmf.filters.bone_segments.occlusal_normal`, fixed to the skull: the lower jaw may
-  hang open). Vertical is its normal, horizontal the image's left-right direction laid into
-  the plane, anterior-posterior the third. Derived from the image alone; refused where the
-  teeth found are a row rather than an arch (a row's plane may turn about it).
+  hang open). Vertical is its normal, horizontal the normal of the head's mirror plane
+  through it (the symmetry of the skull's hard tissue, :func:`~pvcmf.filters.mirror_plane`,
+  so a head turned about its vertical axis is turned back too), anterior-posterior the
+  third. Derived from the image alone; refused where the teeth found are a row rather than
+  an arch (a row's plane may turn about it) or where the hard tissue has no mirror plane.
 * ``"frankfort"``: the Frankfort horizontal, the plane through both porions (the tops of the
   ear canals) and the orbitales (the lowest points of the orbit rims; their midpoint).
   Horizontal runs from the right porion to the left one, vertical is the plane's normal.
@@ -25,7 +27,7 @@ A frame more than :data:`MAX_AXES_DEG` from the image's axes is refused: the lan
 swapped or in another frame, or the teeth found are no arch.
 
 Delegates to :func:`numpy.linalg.norm` and :func:`numpy.cross`; the arch's plane to
-:mod:`pvcmf.filters.jaw_pose`.
+:mod:`pvcmf.filters.jaw_pose`, the mirror plane to :mod:`pvcmf.filters.symmetry`.
 """
 
 from __future__ import annotations
@@ -38,11 +40,13 @@ import numpy as np
 from .. import arrays
 from ..plan import AXES, Plan
 from .bone_segments import occlusal_normal, occlusal_plane
+from .jaw_pose import MIN_ARCH_SPAN_MM
+from .symmetry import mirror_plane
 
 log = logging.getLogger(__name__)
 
 __all__ = ["FRANKFORT_LANDMARKS", "MAX_AXES_DEG", "check_plan_landmarks", "frankfort_axes",
-           "occlusal_axes", "plan_axes", "with_plan_axes"]
+           "mirror_normal", "occlusal_axes", "plan_axes", "with_plan_axes"]
 
 #: landmarks the Frankfort horizontal goes through
 FRANKFORT_LANDMARKS = ("porion_left", "porion_right", "orbitale_left", "orbitale_right")
@@ -75,14 +79,15 @@ def occlusal_axes(labels):
     Parameters
     ----------
     labels : pyvista.ImageData
-        Label image with ``tissue`` (teeth), or the output of :func:`find_jaws` (its
-        ``arrays.ARCH_NORMAL``).
+        Label image with ``tissue`` (teeth and bones), or holding the arch and the head's
+        left-right direction already (``arrays.ARCH_NORMAL``, ``ARCH_SPAN``,
+        ``MIRROR_NORMAL``: :func:`with_plan_axes` stores them).
 
     Returns
     -------
     numpy.ndarray, shape (3, 3)
-        A rotation: vertical is the upper arch's normal, horizontal the image's x laid into
-        the arch's plane.
+        A rotation: vertical is the upper arch's normal, horizontal the normal of the head's
+        mirror plane through it (:func:`mirror_normal`), anterior the third.
 
     Examples
     --------
@@ -92,17 +97,34 @@ def occlusal_axes(labels):
     >>> a = np.radians(10.0)  # an arch descending 10 degrees anteriorly
     >>> labels.field_data[arrays.ARCH_NORMAL] = [0.0, np.sin(a), np.cos(a)]
     >>> labels.field_data[arrays.ARCH_SPAN] = [13.0]  # mm across the row: an arch
+    >>> labels.field_data[arrays.MIRROR_NORMAL] = [1.0, 0.0, 0.0]  # the head lies straight
     >>> np.round(occlusal_axes(labels)[:, 1], 3).tolist()  # anterior points down 10 deg
     [0.0, 0.985, -0.174]
     """
     normal = occlusal_normal(labels)
-    x = np.array([1.0, 0.0, 0.0]) - normal[0] * normal
+    across = mirror_normal(labels, normal)
+    x = across - (across @ normal) * normal
     if np.linalg.norm(x) < 0.5:
         raise ValueError(f"occlusal_axes: the arch's normal {np.round(normal, 3).tolist()} is "
-                         "nearly the image's left-right axis: no occlusal plane")
+                         "nearly the head's left-right direction: no occlusal plane")
     x /= np.linalg.norm(x)
     frame = np.column_stack([x, np.cross(normal, x), normal])
     return _checked(frame, "the occlusal plane's axes")
+
+
+def mirror_normal(labels, normal):
+    """The head's left-right direction: ``arrays.MIRROR_NORMAL`` where ``labels`` hold it,
+    else the normal of the mirror plane of their hard tissue that contains ``normal``
+    (:func:`~pvcmf.filters.symmetry.mirror_plane`)."""
+    fd = labels.field_data
+    if arrays.MIRROR_NORMAL in fd:
+        across = np.asarray(fd[arrays.MIRROR_NORMAL], dtype=float).ravel()
+        if across.shape != (3,) or not np.isfinite(across).all() or not across.any():
+            raise ValueError(f"labels' field {arrays.MIRROR_NORMAL!r} must be 3 finite numbers, "
+                             f"not all zero; got {across.tolist()}")
+        across = across / np.linalg.norm(across)
+        return across if across[0] >= 0 else -across
+    return mirror_plane(labels, normal).direction
 
 
 def _landmarks(labels):
@@ -232,22 +254,42 @@ def _with_landmarks(labels, landmarks):
 
 
 def _roll_against_teeth(labels, frame):
-    """Degrees the Frankfort ``frame`` rolls from the upper dental arch's plane, or None
-    where the labels hold no arch."""
+    """Degrees the Frankfort ``frame``'s horizontal rises out of the upper dental arch's
+    plane towards the left, or None where the labels hold no arch."""
     try:
-        teeth = occlusal_axes(labels)
+        normal = occlusal_normal(labels)
     except ValueError:
         return None
-    return float(np.degrees(np.arcsin(np.clip(frame[2, 0], -1, 1))
-                            - np.arcsin(np.clip(teeth[2, 0], -1, 1))))
+    return float(np.degrees(np.arcsin(np.clip(frame[:, 0] @ normal, -1.0, 1.0))))
+
+
+def _with_arch(labels):
+    """``labels``, or a shallow copy holding the arch and the head's left-right direction
+    (``arrays.ARCH_NORMAL``, ``ARCH_SPAN``, ``MIRROR_NORMAL``), each measured where missing
+    (once: every later step reads them)."""
+    fd = labels.field_data
+    if all(name in fd for name in (arrays.ARCH_NORMAL, arrays.ARCH_SPAN, arrays.MIRROR_NORMAL)):
+        return labels
+    normal, span = occlusal_plane(labels)
+    out = labels.copy(deep=False)
+    out.field_data[arrays.ARCH_NORMAL] = normal
+    out.field_data[arrays.ARCH_SPAN] = np.array([span])
+    if arrays.MIRROR_NORMAL not in fd and span >= MIN_ARCH_SPAN_MM:  # else refused anyway
+        mirror = mirror_plane(labels, normal)
+        out.field_data[arrays.MIRROR_NORMAL] = mirror.direction
+        log.info("plan axes 'occlusal': the head turns %+.1f degrees about its vertical axis "
+                 "from the image's (its mirror plane's overlap %.2f)", mirror.turn,
+                 mirror.overlap)
+    return out
 
 
 def with_plan_axes(labels, plan, landmarks=None):
     """``labels`` with what ``plan``'s axes need, checked and logged before the mesh.
 
     A Frankfort plan's ``landmarks`` are stored in a shallow copy's field data (over those
-    the labels hold), as is an occlusal plan's arch where the labels do not hold it
-    (``arrays.ARCH_NORMAL``, ``ARCH_SPAN``: measured once, read by every later step);
+    the labels hold), as are an occlusal plan's arch and the head's left-right direction
+    where the labels do not hold them (``arrays.ARCH_NORMAL``, ``ARCH_SPAN``,
+    ``MIRROR_NORMAL``: measured once, read by every later step);
     without landmarks those the labels hold (the atlas fit's, in
     :func:`pvcmf.pipeline.simulate`) are used, with a warning that says how far their
     horizontal rolls from the upper dental arch's plane (faces are near symmetric: a few
@@ -259,11 +301,8 @@ def with_plan_axes(labels, plan, landmarks=None):
     if plan.axes == "frankfort" and landmarks is not None:
         labels = _with_landmarks(labels, landmarks)
     fd = labels.field_data
-    if plan.axes == "occlusal" and not (arrays.ARCH_NORMAL in fd and arrays.ARCH_SPAN in fd):
-        normal, span = occlusal_plane(labels)  # measured once: every later step reads it
-        labels = labels.copy(deep=False)
-        labels.field_data[arrays.ARCH_NORMAL] = normal
-        labels.field_data[arrays.ARCH_SPAN] = np.array([span])
+    if plan.axes == "occlusal":
+        labels = _with_arch(labels)
     frame = plan_axes(labels, plan)
     if plan.axes == "frankfort" and landmarks is None:
         roll = _roll_against_teeth(labels, frame)

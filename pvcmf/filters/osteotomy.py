@@ -133,7 +133,8 @@ def cut_bones(labels, plan, *, keep_labelled=True, progress_bar=False):
         log.info("cut_bones: %s = %d voxels inside %d plane(s)", o.segment, int(inside.sum()),
                  len(o.cut))
     out[arrays.BONE] = new
-    for name in (arrays.ARCH_PITCH, arrays.ARCH_NORMAL, arrays.ARCH_SPAN):  # find_jaws's pose
+    for name in (arrays.ARCH_PITCH, arrays.ARCH_NORMAL, arrays.ARCH_SPAN,  # the jaws' pose
+                 arrays.MIRROR_NORMAL):
         if jaws is not None and name in jaws.field_data:
             out.field_data[name] = np.array(jaws.field_data[name])
     if missing or any(o.cut for o in plan.osteotomies):  # else every segment is labelled
