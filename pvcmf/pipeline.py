@@ -32,6 +32,7 @@ from ._atomic import write_text
 from .filters.bone_segments import segment_volumes, transfer_segments
 from .filters.face_axes import check_plan_landmarks, with_plan_axes
 from .filters.jaw_pose import check_pose
+from .filters.symmetry import check_turn
 from .filters.meshing.skin_fit import on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
 from .filters.resolution import BYTES_PER_VOXEL, describe_grid, working_factors
@@ -488,7 +489,8 @@ def _working_grid(run, ct, working_spacing, labels_given):
 def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
     """Steps "segment", "classify" and "bone segments", then the plan's cuts, a warning for
     each planned segment the scan does not hold whole (:func:`check_coverage`) and one for a
-    head the scan holds tilted (:func:`check_pose`): the label image."""
+    head the scan holds tilted or turned (:func:`check_pose`, :func:`check_turn`): the label
+    image."""
     if labels is None:
         if not isinstance(ct, pv.ImageData):
             raise TypeError(f"ct must be a pyvista.ImageData or a path, got {type(ct).__name__}")
@@ -509,6 +511,7 @@ def _label_steps(run, ct, labels, bones, plan, opts, classify=True):
         run.skip("bone segments", _segment_sources(labels, plan))
     labels = check_coverage(cut_bones(labels, plan), plan)
     check_pose(labels, plan.axes)
+    check_turn(labels, plan.axes)
     return labels
 
 

@@ -4,6 +4,8 @@ and the refusals."""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import pyvista as pv
@@ -12,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from pvcmf import arrays, datasets
 from pvcmf.filters import find_jaws, mirror_plane
 from pvcmf.filters.bone_segments import occlusal_normal
-from pvcmf.filters.symmetry import MIN_OVERLAP
+from pvcmf.filters.symmetry import MIN_OVERLAP, check_turn
 
 from ct_helpers import turned_labels
 
@@ -107,3 +109,20 @@ def test_refusals():
     with pytest.raises(ValueError, match="no mirror plane within 30 degrees"):
         mirror_plane(turned)
     assert mirror_plane(turned, max_turn=50).turn == pytest.approx(40.0, abs=0.5)
+
+
+def test_a_turned_head_is_warned_for_a_plan_in_the_image_axes(caplog):
+    """The virtual patient turned 12 degrees about its vertical: a plan in the image's axes
+    is warned (its forward goes a fifth of the move sideways); the upright head is not, and
+    a plan in the face's axes follows the head (nothing measured, nothing said)."""
+    labels = datasets.phantom(patient=1, spacing=2.0).truth
+    R = Rotation.from_euler("z", 12.0, degrees=True).as_matrix()
+    turned = turned_labels(labels, R)
+    with caplog.at_level(logging.WARNING, logger="pvcmf"):
+        message = check_turn(turned)
+    assert message is not None and "turned +12 degrees" in message, message
+    assert "goes 21 % of the move sideways" in message
+    assert any(r.getMessage() == message for r in caplog.records)
+    assert check_turn(labels) is None
+    assert check_turn(turned, "occlusal") is None
+    assert check_turn(turned, "frankfort") is None

@@ -39,7 +39,8 @@ from .. import arrays
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GRID_MM", "MAX_TURN_DEG", "MIN_OVERLAP", "MirrorPlane", "mirror_plane"]
+__all__ = ["GRID_MM", "MAX_TURN_DEG", "MIN_OVERLAP", "TURN_WARN_DEG", "MirrorPlane",
+           "check_turn", "mirror_plane"]
 
 #: spacing (mm) the hard tissue is averaged to before the search (a voxel coarser stays)
 GRID_MM = 2.0
@@ -51,6 +52,9 @@ SAMPLES = 8000
 MAX_TURN_DEG = 30.0
 #: offsets (mm) of the plane from the hard tissue's centroid on the coarse grid
 OFFSET_MM = 12.0
+#: turn (degrees) of the head about its vertical axis beyond which a plan in the image's axes
+#: is warned about: its "forward" then goes sideways by more than 9 % of the move
+TURN_WARN_DEG = 5.0
 #: least overlap of the mirror image, as a share of the hard tissue's overlap with itself (a
 #: skull's bones, teeth and their metal, streaks included, are far more symmetric than this;
 #: half a head is not)
@@ -201,3 +205,31 @@ def mirror_plane(labels, normal=(0.0, 0.0, 1.0), *, max_turn=MAX_TURN_DEG):
     direction = np.cos(t) * e1 + np.sin(t) * e2
     log.debug("mirror_plane: turned %.2f degrees about the vertical, overlap %.2f", turn, share)
     return MirrorPlane(direction, centre + offset * direction, turn, share)
+
+
+def check_turn(labels, axes="image"):
+    """Warn where the head lies turned about its vertical axis (the upper dental arch's
+    normal, ``arrays.ARCH_NORMAL``, where ``labels`` hold it; else the image's z) by more
+    than :data:`TURN_WARN_DEG` from the image's axes, for a plan in the image's ``axes``:
+    its forward then goes partly sideways. A plan in the face's axes follows the head
+    (nothing is measured). Returns the warning, or None (also where the hard tissue holds
+    no mirror plane, which is logged)."""
+    if axes != "image":
+        return None
+    fd = labels.field_data
+    vertical = (np.asarray(fd[arrays.ARCH_NORMAL], dtype=float).ravel()
+                if arrays.ARCH_NORMAL in fd else (0.0, 0.0, 1.0))
+    try:
+        mirror = mirror_plane(labels, vertical)
+    except ValueError as exc:
+        log.info("check_turn: %s", exc)
+        return None
+    if abs(mirror.turn) <= TURN_WARN_DEG:
+        return None
+    side = 100.0 * np.sin(np.radians(abs(mirror.turn)))
+    message = (f"check_turn: the head lies turned {mirror.turn:+.0f} degrees about its vertical "
+               f"axis from the image's (its skull's mirror plane): the plan's forward, in the "
+               f"image's axes, goes {side:.0f} % of the move sideways "
+               '(a plan with axes = "occlusal" or "frankfort" follows the face)')
+    log.warning(message)
+    return message
