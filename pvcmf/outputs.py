@@ -28,6 +28,7 @@ from ._atomic import _signals_held, atomic_dir, atomic_path, remove_temporaries,
 from .cache import file_lock
 from .figures import face_views
 from .figures.osteotomy import osteotomy_panel
+from .figures.plan_frame import figure_frame, turned_into
 
 log = logging.getLogger(__name__)
 
@@ -196,15 +197,16 @@ def render(result):
     ``profile_overlay.png``, the signed displacement maps ``displacement_ap.png`` and
     ``displacement_normal.png`` and the magnitude ``displacement.png`` (colour ranges from
     the visible modelled face's 99th percentile). With a skeleton: ``osteotomy.png``.
-    See :mod:`pvcmf.figures.face_views`.
+    See :mod:`pvcmf.figures.face_views`. A plan in the face's axes shows the surfaces turned
+    into them (:mod:`pvcmf.figures.plan_frame`), and the face rows say so.
     """
     images = {}
     views = tuple(face_views.VIEWS)
-    pre, post = result.skin_pre, result.skin_post
+    pre, post, skeleton, axes = _in_plan_frame(result)
     if pre is not None:
-        images["face_pre.png"] = _shot(_row(pre, views, "pre-operative"))
+        images["face_pre.png"] = _shot(_row(pre, views, "pre-operative" + axes))
     if pre is not None and post is not None:
-        images["face_post.png"] = _shot(_row(post, views, "predicted"))
+        images["face_post.png"] = _shot(_row(post, views, "predicted" + axes))
         for view in views:
             images[f"face_{view}.png"] = _shot(face_views.face_comparison(pre, post, (view,)))
         images["profile_overlay.png"] = face_views.chart_image(face_views.profile_overlay(pre, post))
@@ -218,10 +220,23 @@ def render(result):
                                 ("magnitude", "displacement.png")):
             images[name] = _shot(face_views.displacement_views(skin, component, shown,
                                                                visible=seen))
-    if result.skeleton is not None and result.labels is not None:
+    if skeleton is not None and result.labels is not None:
         images["osteotomy.png"] = _shot(osteotomy_panel(result.labels, result.plan, skin=pre,
-                                                        skeleton=result.skeleton))
+                                                        skeleton=skeleton))
     return images
+
+
+def _in_plan_frame(result):
+    """The pre-operative and predicted skins and the skeleton, turned into the plan's axes
+    where it gives its moves in the face's (:mod:`pvcmf.figures.plan_frame`), and the note
+    the face rows' titles then carry."""
+    pre, post, skeleton = result.skin_pre, result.skin_post, result.skeleton
+    frame = None if pre is None else figure_frame(result.labels, result.plan)
+    if frame is None:
+        return pre, post, skeleton, ""
+    centre = np.asarray(pre.center)
+    turned = [None if m is None else turned_into(m, frame, centre) for m in (pre, post, skeleton)]
+    return (*turned, f", {result.plan.axes} axes")
 
 
 def _row(skin, views, label):
