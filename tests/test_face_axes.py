@@ -215,12 +215,14 @@ def test_a_tilted_head_is_not_warned_about_for_a_plan_in_the_face_s_axes(caplog)
     assert levels == ["WARNING", "INFO"], levels
 
 
-def _tilted(labels, degrees):
-    """A shallow copy of ``labels`` whose upper arch descends ``degrees`` anteriorly."""
+def _tilted(labels, degrees, turn=0.0):
+    """A shallow copy of ``labels`` whose upper arch descends ``degrees`` anteriorly and
+    whose head is turned ``turn`` degrees about the vertical (its mirror plane's normal)."""
     out = labels.copy(deep=False)
-    a = np.radians(degrees)
+    a, t = np.radians(degrees), np.radians(turn)
     out.field_data[arrays.ARCH_NORMAL] = [0.0, np.sin(a), np.cos(a)]
     out.field_data[arrays.ARCH_SPAN] = [13.0]  # mm across the row: an arch
+    out.field_data[arrays.MIRROR_NORMAL] = [np.cos(t), np.sin(t), 0.0]
     return out
 
 
@@ -238,7 +240,7 @@ def test_plan_response_equals_the_full_solve_in_occlusal_axes():
     grid.clear_data()
     grid.cell_data[arrays.E_FIBER] = np.full(grid.n_cells, 3e-3)
     grid.cell_data[arrays.NU] = np.full(grid.n_cells, 0.45)
-    labels = _tilted(img, 20.0)
+    labels = _tilted(img, 20.0, turn=10.0)
     opts = {"fix_unmoved_bone": True}
     resp = plan_response(grid, labels, bc_options=opts)
     plan = Plan((Osteotomy("maxilla", (0.5, -1.0, 2.0), (5.0, -4.0, 3.0)),

@@ -126,3 +126,24 @@ def test_a_turned_head_is_warned_for_a_plan_in_the_image_axes(caplog):
     assert check_turn(labels) is None
     assert check_turn(turned, "occlusal") is None
     assert check_turn(turned, "frankfort") is None
+
+
+def test_a_deviated_lower_jaw_is_left_out_where_the_labels_name_it():
+    """A symmetric body with a "lower jaw" pushed to one side below it: the jaw pulls the
+    plane off where the labels do not say what it is, and not where ``bone`` names it the
+    mandible (a jaw hanging deviated, or the asymmetry the operation corrects)."""
+    labels, R = _body(6.3, 1.2)
+    u, v, w = (np.asarray(labels.points) @ R).T
+    t = np.radians(25.0)  # the jaw's own midline turned 25 degrees, 8 mm to the side
+    ju, jv = np.cos(t) * (u - 9.2) + np.sin(t) * v, -np.sin(t) * (u - 9.2) + np.cos(t) * v
+    jaw = (ju / 24) ** 2 + ((jv - 6) / 12) ** 2 + ((w + 15) / 5) ** 2 < 1
+    tissue = np.asarray(labels[arrays.TISSUE]).copy()
+    tissue[jaw] = arrays.BONE_TISSUE
+    labels[arrays.TISSUE] = tissue
+    unnamed = mirror_plane(labels, R[:, 2])
+    assert abs(unnamed.turn - 6.3) > 0.8, unnamed  # (measured 1.1 degrees off)
+    bone = np.where(jaw, arrays.MANDIBLE, np.where(tissue == arrays.BONE_TISSUE,
+                                                   arrays.CRANIUM, arrays.BONE_NONE))
+    labels[arrays.BONE] = bone.astype(np.uint8)
+    named = mirror_plane(labels, R[:, 2])
+    assert abs(named.turn - 6.3) < 0.4 and abs(named.point @ R[:, 0] - 1.2) < 0.3, named

@@ -5,7 +5,9 @@ image's left-right axis is not the face's. The skull is close to mirror symmetri
 midsagittal plane; :func:`mirror_plane` finds that plane as the one whose mirror image of
 the hard tissue (bone, teeth, metal) overlaps the hard tissue most:
 
-1. the hard tissue on a grid of about :data:`GRID_MM` (blocks of whole voxels averaged,
+1. the hard tissue (without the mandible where the labels' ``bone`` names it: the lower jaw
+   may hang open or deviated in the scan, and its asymmetry is often what the operation
+   corrects) on a grid of about :data:`GRID_MM` (blocks of whole voxels averaged,
    the hard tissue's box only), blurred by a Gaussian of :data:`SIGMA_MM` so that the
    overlap is a smooth function of the plane;
 2. up to :data:`SAMPLES` of its voxels (a fixed draw), mirrored about candidate planes
@@ -92,7 +94,10 @@ def _hard_grid(labels):
     tissue = np.asarray(arrays.require_array(labels, arrays.TISSUE, "point", dtype="u",
                                              producer="segment"))
     dims = tuple(int(d) for d in labels.dimensions)
-    hard = np.isin(tissue.reshape(dims, order="F"), arrays.HARD_LABELS)
+    hard = np.isin(tissue, arrays.HARD_LABELS)
+    if arrays.BONE in labels.point_data:  # the lower jaw may hang open or deviated
+        hard &= np.asarray(labels.point_data[arrays.BONE]) != arrays.MANDIBLE
+    hard = hard.reshape(dims, order="F")
     if not hard.any():
         raise ValueError("mirror_plane: labels hold no hard tissue (tissue BONE/TEETH/METAL)")
     spacing = np.asarray(labels.spacing, dtype=float)
@@ -129,7 +134,8 @@ def mirror_plane(labels, normal=(0.0, 0.0, 1.0), *, max_turn=MAX_TURN_DEG):
     Parameters
     ----------
     labels : pyvista.ImageData
-        Label image with ``tissue`` (:func:`pvcmf.filters.segment`).
+        Label image with ``tissue`` (:func:`pvcmf.filters.segment`); with ``bone`` (bone
+        segments, :func:`pvcmf.filters.cut_bones`), the mandible is left out.
     normal : sequence of 3 floats
         The head's vertical direction in the image, which the plane contains (the upper
         dental arch's normal, :func:`pvcmf.filters.bone_segments.occlusal_normal`); the
