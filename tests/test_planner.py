@@ -250,6 +250,15 @@ def test_planner_switches_the_axes_its_sliders_move_in(model, tmp_path):
     after = model.skeleton(planner.plan)["mandible"].points
     turned = occlusal_axes(model.labels)
     assert np.allclose(after - before, 5.0 * (turned[:, 1] - [0.0, 1.0, 0.0]), atol=1e-9)
+    # the profile is cut from both skins turned into those axes, at their midline
+    pre, post, x = planner.profile_surfaces()
+    centre = np.asarray(model.skin.center)
+    np.testing.assert_allclose(pre.points, (np.asarray(model.skin.points) - centre) @ turned
+                               + centre, atol=1e-9)
+    moved = np.asarray(post[arrays.DISPLACEMENT])
+    np.testing.assert_allclose(moved, np.asarray(planner.scene.predicted[arrays.DISPLACEMENT])
+                               @ turned, atol=1e-12)
+    assert abs(x - (pre.bounds[0] + pre.bounds[1]) / 2) < 30.0
     with pytest.raises(ValueError, match="need the landmarks"):
         planner.set_axes("frankfort")  # no muscle fit, no landmarks given
     assert planner.plan.axes == "occlusal"

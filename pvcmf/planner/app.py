@@ -23,8 +23,12 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from .. import datasets
 from ..arguments import add_ct_checks
+from ..figures.plan_frame import turned_into
+from ..figures.profiles import midline_x
 from ..figures.skin_marks import MAP_CUT_WORDS
 from ..plan import AXES as PLAN_AXES
 from ..plan import Plan, read_plan, write_plan
@@ -66,6 +70,7 @@ class Planner:
         self.sliders = PlanSliders(model.segments, model.plan)
         self.save_path = Path(save_path)
         self.scene = Scene(model)
+        self._midlines = {}  # the profile's plane per kind of face axes
         self.values = (self.sliders.from_plan(model.plan) if model.plan is not None
                        else self.sliders.zero_values())
         self.plan = self.sliders.to_plan(self.values)
@@ -81,8 +86,20 @@ class Planner:
         edge = f"; {MAP_CUT_WORDS}" if self.scene.on_cut.any() else ""
         status = (f"signed displacement {skin.min():+.1f} .. {skin.max():+.1f} mm{edge} "
                   f"({self.model.kind}, {1000 * seconds:.0f} ms)")
-        return status, data_url(profile_png(self.model.skin, self.scene.predicted,
-                                            x=self.scene.midline))
+        return status, data_url(profile_png(*self.profile_surfaces()))
+
+    def profile_surfaces(self):
+        """``(rest skin, predicted skin, x)`` of the profile: for a plan in the face's axes
+        both turned into them (:func:`~pvcmf.figures.plan_frame.turned_into`) and cut at
+        their midline, so a head scanned turned shows its midsagittal profile."""
+        pre, post = self.model.skin, self.scene.predicted
+        if self.plan.axes == "image":
+            return pre, post, self.scene.midline
+        frame, centre = self.model.plan_axes(self.plan), np.asarray(pre.center)
+        if self.plan.axes not in self._midlines:  # the turned rest skin's midline, once
+            self._midlines[self.plan.axes] = midline_x(turned_into(pre, frame, centre))
+        return (turned_into(pre, frame, centre), turned_into(post, frame, centre),
+                self._midlines[self.plan.axes])
 
     def set_axes(self, axes):
         """Move the sliders in ``axes`` (:data:`pvcmf.plan.AXES`), keeping their values;
