@@ -296,6 +296,15 @@ def test_fitted_frankfort_landmarks_are_warned_with_their_roll_from_the_teeth():
     with pytest.warns(UserWarning, match=f"rolls {roll:+.1f} degrees from the upper dental"):
         same = with_plan_axes(labels, plan)
     assert same is labels
+    # a skull whose mirror plane's normal lies 4 degrees anterior of the fitted porions'
+    # line on the left (the line turns -4 degrees from it): said too
+    F = frankfort_axes(fitted)
+    mirrored = labels.copy(deep=False)
+    a = np.radians(4.0)
+    mirrored.field_data[arrays.MIRROR_NORMAL] = np.cos(a) * F[:, 0] + np.sin(a) * F[:, 1]
+    with pytest.warns(UserWarning, match=r"dental arch's plane and turns -4\.0 degrees from "
+                                         "the skull's mirror plane"):
+        with_plan_axes(mirrored, plan)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         given = with_plan_axes(labels, plan, MARKS)

@@ -263,6 +263,17 @@ def _roll_against_teeth(labels, frame):
     return float(np.degrees(np.arcsin(np.clip(frame[:, 0] @ normal, -1.0, 1.0))))
 
 
+def _turn_against_mirror(labels, frame):
+    """Degrees the Frankfort ``frame``'s horizontal turns, about its vertical, from the
+    normal of the skull's mirror plane, or None where the labels hold no mirror plane."""
+    try:
+        across = mirror_normal(labels, frame[:, 2])
+    except ValueError:
+        return None
+    across = across - (across @ frame[:, 2]) * frame[:, 2]
+    return -float(np.degrees(np.arctan2(across @ frame[:, 1], across @ frame[:, 0])))
+
+
 def _with_arch(labels):
     """``labels``, or a shallow copy holding the arch and the head's left-right direction
     (``arrays.ARCH_NORMAL``, ``ARCH_SPAN``, ``MIRROR_NORMAL``), each measured where missing
@@ -292,8 +303,9 @@ def with_plan_axes(labels, plan, landmarks=None):
     ``MIRROR_NORMAL``: measured once, read by every later step);
     without landmarks those the labels hold (the atlas fit's, in
     :func:`pvcmf.pipeline.simulate`) are used, with a warning that says how far their
-    horizontal rolls from the upper dental arch's plane (faces are near symmetric: a few
-    degrees point to a misplaced porion, or to a canted arch). Returns ``labels`` itself
+    horizontal rolls from the upper dental arch's plane and turns from the skull's mirror
+    plane (faces are near symmetric: a few degrees point to a misplaced porion, or to a
+    canted arch). Returns ``labels`` itself
     for a plan in the image's axes.
     """
     if plan.axes == "image":
@@ -305,13 +317,16 @@ def with_plan_axes(labels, plan, landmarks=None):
         labels = _with_arch(labels)
     frame = plan_axes(labels, plan)
     if plan.axes == "frankfort" and landmarks is None:
-        roll = _roll_against_teeth(labels, frame)
+        roll, turn = _roll_against_teeth(labels, frame), _turn_against_mirror(labels, frame)
+        checks = ([] if roll is None else [f"rolls {roll:+.1f} degrees from the upper dental "
+                                           "arch's plane"]) + \
+            ([] if turn is None else [f"turns {turn:+.1f} degrees from the skull's mirror plane"])
         warnings.warn(
             "plan axes 'frankfort' from the porions and orbitales the label image holds, "
             "not from landmarks given: where the atlas fit placed them, a porion can lie "
             "several millimetres off a real scan's ear canal (a few degrees of roll)"
-            + ("" if roll is None else f"; this horizontal rolls {roll:+.1f} degrees from "
-               "the upper dental arch's plane") + "; give the landmarks (landmarks=, "
-            "--landmarks) for a precise frame", UserWarning, stacklevel=3)
+            + ("; this horizontal " + " and ".join(checks) if checks else "")
+            + "; give the landmarks (landmarks=, --landmarks) for a precise frame",
+            UserWarning, stacklevel=3)
     log.info("plan axes %r: %.1f degrees from the image's axes", plan.axes, _angle(frame))
     return labels
