@@ -147,3 +147,36 @@ def test_a_deviated_lower_jaw_is_left_out_where_the_labels_name_it():
     labels[arrays.BONE] = bone.astype(np.uint8)
     named = mirror_plane(labels, R[:, 2])
     assert abs(named.turn - 6.3) < 0.4 and abs(named.point @ R[:, 0] - 1.2) < 0.3, named
+
+
+def test_a_head_cut_on_one_side_by_the_image_is_judged_on_what_both_sides_hold():
+    """The virtual patient's image ending on its left, 40 % of the skull's half width from
+    its middle (a head off-centre in a small field of view): what the mirror image puts
+    beyond the image is not counted as missing bone, so the plane is found (within 1.5
+    degrees of the whole head's) and its overlap stays a whole head's."""
+    labels = find_jaws(datasets.phantom(patient=1, spacing=2.0).truth)
+    normal = occlusal_normal(labels)
+    whole = mirror_plane(labels, normal)
+    x = np.asarray(labels.points)[np.isin(np.asarray(labels[arrays.TISSUE]),
+                                          arrays.HARD_LABELS), 0]
+    end = np.median(x) + 0.4 * (np.percentile(x, 99) - np.percentile(x, 1)) / 2
+    i = int(round((end - labels.origin[0]) / labels.spacing[0]))
+    d = labels.dimensions
+    cut = labels.extract_subset((0, i, 0, d[1] - 1, 0, d[2] - 1))
+    found = mirror_plane(cut, normal)
+    assert abs(found.turn - whole.turn) < 1.5, (found.turn, whole.turn)
+    assert found.overlap > 0.9 * whole.overlap, (found.overlap, whole.overlap)
+
+
+def test_where_the_scan_saw():
+    """Inside the image, on the head's side of a flat cut (``arrays.SCAN_CUTS``: the cut
+    faces +y at y = 9) and inside the round field of view of a slice where it cut the head
+    (``arrays.SCAN_FOV``: radius 5 about the axis at z = 0)."""
+    from pvcmf.filters.symmetry import _known
+
+    labels = pv.ImageData(dimensions=(21, 21, 5), origin=(-10.0, -10.0, -2.0))
+    labels.field_data[arrays.SCAN_CUTS] = [1.0, 1.0, 9.0, -5.0, 5.0, -2.0, 2.0, 1.0]
+    labels.field_data[arrays.SCAN_FOV] = [0.0, 0.0, 0.0, 5.0]
+    points = np.array([[0.0, 8.0, 2.0], [0.0, 9.5, 2.0], [4.0, 0.0, 0.0], [6.0, 0.0, 0.0],
+                       [6.0, 0.0, 1.0], [0.0, 0.0, 2.6], [-10.4, 0.0, 1.0]])
+    assert _known(labels)(points).tolist() == [True, False, True, False, True, False, True]

@@ -14,7 +14,9 @@ the hard tissue (bone, teeth, metal) overlaps the hard tissue most:
    that contain a given vertical direction (the upper dental arch's normal for a plan's
    ``axes = "occlusal"``): the plane turned by ``theta`` about that direction from the
    image's left-right axis and shifted by ``offset`` from the hard tissue's centroid;
-3. the overlap (the mean blurred hard tissue at the mirrored voxels) on a coarse grid of
+3. the overlap (the mean blurred hard tissue at the mirrored voxels, those that fall where
+   the scan saw: a head cut on one side by the image's end or its field of view is judged
+   on what both sides hold) on a coarse grid of
    ``theta`` within ``max_turn`` and offsets within :data:`OFFSET_MM`, then refined from the
    best (Nelder-Mead).
 
@@ -57,6 +59,9 @@ OFFSET_MM = 12.0
 #: turn (degrees) of the head about its vertical axis beyond which a plan in the image's axes
 #: is warned about: its "forward" then goes sideways by more than 9 % of the move
 TURN_WARN_DEG = 5.0
+#: least share of the mirrored voxels that must fall where the scan saw (inside the image
+#: and its field of view) for a plane to count
+MIN_SEEN = 0.5
 #: least overlap of the mirror image, as a share of the hard tissue's overlap with itself (a
 #: skull's bones, teeth and their metal, streaks included, are far more symmetric than this;
 #: half a head is not)
@@ -121,6 +126,34 @@ def _hard_grid(labels):
     return blurred, origin, step, np.argwhere(mean >= 0.5)
 
 
+def _known(labels):
+    """Which points (n, 3) lie where the scan saw: inside the image, on the head's side of
+    every plane where the scan cut it flat (``arrays.SCAN_CUTS``) and inside the round
+    field of view of the slices where it cut the head (``arrays.SCAN_FOV``). A mirror
+    image that falls beyond them says nothing about the head's symmetry."""
+    spacing, origin = np.asarray(labels.spacing, float), np.asarray(labels.origin, float)
+    lo = origin - 0.5 * spacing
+    hi = origin + (np.asarray(labels.dimensions) - 0.5) * spacing
+    fd = labels.field_data
+    cuts = np.asarray(fd[arrays.SCAN_CUTS], float).reshape(-1, 8) if arrays.SCAN_CUTS in fd \
+        else np.zeros((0, 8))
+    fov = np.asarray(fd[arrays.SCAN_FOV], float).reshape(-1, 4) if arrays.SCAN_FOV in fd \
+        else np.zeros((0, 4))
+
+    def known(points):
+        ok = ((points >= lo) & (points <= hi)).all(axis=1)
+        for axis, sign, at in cuts[:, :3]:
+            ok &= sign * (points[:, int(axis)] - at) <= 0.0
+        if len(fov):
+            row = np.abs(points[:, 2, None] - fov[None, :, 0]).argmin(axis=1)
+            near = np.abs(points[:, 2] - fov[row, 0]) <= 0.5 * spacing[2]
+            off = np.hypot(points[:, 0] - fov[row, 1], points[:, 1] - fov[row, 2]) > fov[row, 3]
+            ok &= ~(near & off)
+        return ok
+
+    return known
+
+
 def _checked_inputs(labels, max_turn):
     if not isinstance(labels, pv.ImageData):
         raise TypeError(f"labels must be a pyvista.ImageData, got {type(labels).__name__}")
@@ -182,11 +215,16 @@ def mirror_plane(labels, normal=(0.0, 0.0, 1.0), *, max_turn=MAX_TURN_DEG):
     points = origin + voxels * step
     centre = points.mean(axis=0)
 
+    known = _known(labels)
+
     def overlap(theta_deg, offset):
         t = np.radians(theta_deg)
         m = np.cos(t) * e1 + np.sin(t) * e2
         mirrored = points - 2.0 * ((points - centre) @ m - offset)[:, None] * m
-        return float(ndimage.map_coordinates(blurred, ((mirrored - origin) / step).T,
+        seen = known(mirrored)
+        if seen.mean() < MIN_SEEN:  # most of the mirror image beyond what the scan saw
+            return 0.0
+        return float(ndimage.map_coordinates(blurred, ((mirrored[seen] - origin) / step).T,
                                              order=1, mode="constant").mean())
 
     turns = np.arange(-max_turn, max_turn + 1e-9, 2.0)
