@@ -112,11 +112,11 @@ def _hard_grid(labels):
         hit = np.flatnonzero(hard.any(axis=tuple(a for a in range(3) if a != axis)))
         lo.append(int(hit[0]))
         hi.append(int(hit[0]) + -(-(int(hit[-1]) + 1 - int(hit[0])) // f[axis]) * f[axis])
-    box = np.zeros([h - s for s, h in zip(lo, hi)], dtype=np.float32)
-    part = hard[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    box[:part.shape[0], :part.shape[1], :part.shape[2]] = part
+    part = hard[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]  # (a box short of the image's end
+    box = np.pad(part, [(0, h - s - n) for s, h, n in zip(lo, hi, part.shape)])  # is padded)
     shape = [s // k for s, k in zip(box.shape, f)]
-    mean = box.reshape(shape[0], f[0], shape[1], f[1], shape[2], f[2]).mean(axis=(1, 3, 5))
+    mean = box.reshape(shape[0], f[0], shape[1], f[1], shape[2], f[2]).sum(
+        axis=(1, 3, 5), dtype=np.int32) / float(np.prod(f))
     step = spacing * f
     origin = np.asarray(labels.origin, float) + (np.array(lo) + (f - 1) / 2.0) * spacing
     pad = int(np.ceil(3 * SIGMA_MM / step.min())) + 1  # room for the blur
