@@ -231,12 +231,13 @@ def _in_plan_frame(result):
     where it gives its moves in the face's (:mod:`pvcmf.figures.plan_frame`), and the note
     the face rows' titles then carry."""
     pre, post, skeleton = result.skin_pre, result.skin_post, result.skeleton
-    frame = None if pre is None else figure_frame(result.labels, result.plan)
+    plan = getattr(result, "plan", None)  # (a result-like object may carry no plan)
+    frame = None if pre is None else figure_frame(getattr(result, "labels", None), plan)
     if frame is None:
         return pre, post, skeleton, ""
     centre = np.asarray(pre.center)
     turned = [None if m is None else turned_into(m, frame, centre) for m in (pre, post, skeleton)]
-    return (*turned, f", {result.plan.axes} axes")
+    return (*turned, f", {plan.axes} axes")
 
 
 def _row(skin, views, label):
