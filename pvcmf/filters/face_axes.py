@@ -5,9 +5,9 @@ A plan's translations and rotations are (horizontal, vertical, anterior-posterio
 With ``axes = "image"`` (the default) these are the image's own axes, which are the face's
 only when the head lies level in the scanner. A head scanned chin down or rolled then
 moves the maxilla "forward" partly downward, by the sine of the tilt (a quarter of the move
-at 15 degrees), and a head turned about its vertical axis moves it partly sideways. :func:`plan_axes` gives the 3x3 rotation whose columns are the plan's
-(x, y, z) directions in the image, which :meth:`pvcmf.plan.Osteotomy.matrix` turns the
-moves with:
+at 15 degrees), and a head turned about its vertical axis moves it partly sideways.
+:func:`plan_axes` gives the 3x3 rotation whose columns are the plan's (x, y, z) directions
+in the image, which :meth:`pvcmf.plan.Osteotomy.matrix` turns the moves with:
 
 * ``"occlusal"``: the plane of the upper dental arch found in the image
   (:func:`~pvcmf.filters.bone_segments.occlusal_normal`, fixed to the skull: the lower jaw may
@@ -305,8 +305,7 @@ def with_plan_axes(labels, plan, landmarks=None):
     :func:`pvcmf.pipeline.simulate`) are used, with a warning that says how far their
     horizontal rolls from the upper dental arch's plane and turns from the skull's mirror
     plane (faces are near symmetric: a few degrees point to a misplaced porion, or to a
-    canted arch). Returns ``labels`` itself
-    for a plan in the image's axes.
+    canted arch). Returns ``labels`` itself for a plan in the image's axes.
     """
     if plan.axes == "image":
         return labels

@@ -27,7 +27,8 @@ the hard tissue holds no mirror plane near the image's (half a head in the field
 a scan of something else).
 
 Delegates to :func:`scipy.ndimage.gaussian_filter`, :func:`scipy.ndimage.map_coordinates`
-and :func:`scipy.optimize.minimize`.
+and :func:`scipy.optimize.minimize`; the box and the block means to the helpers of
+:mod:`pvcmf.filters.bone_segments` and :mod:`pvcmf.filters.resolution`.
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ import pyvista as pv
 from scipy import ndimage, optimize
 
 from .. import arrays
+from .bone_segments import _bounds
+from .resolution import _block_means
 
 log = logging.getLogger(__name__)
 
@@ -107,18 +110,11 @@ def _hard_grid(labels):
         raise ValueError("mirror_plane: labels hold no hard tissue (tissue BONE/TEETH/METAL)")
     spacing = np.asarray(labels.spacing, dtype=float)
     f = np.maximum(1, np.round(GRID_MM / spacing).astype(int))
-    lo, hi = [], []
-    for axis in range(3):
-        hit = np.flatnonzero(hard.any(axis=tuple(a for a in range(3) if a != axis)))
-        lo.append(int(hit[0]))
-        hi.append(int(hit[0]) + -(-(int(hit[-1]) + 1 - int(hit[0])) // f[axis]) * f[axis])
-    part = hard[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]  # (a box short of the image's end
-    box = np.pad(part, [(0, h - s - n) for s, h, n in zip(lo, hi, part.shape)])  # is padded)
-    shape = [s // k for s, k in zip(box.shape, f)]
-    mean = box.reshape(shape[0], f[0], shape[1], f[1], shape[2], f[2]).sum(
-        axis=(1, 3, 5), dtype=np.int32) / float(np.prod(f))
+    box = _bounds(hard, 0)
+    mean = _block_means(hard[box], f)  # (a partial block at the far end: what it holds)
+    lo = np.array([b.start for b in box])
     step = spacing * f
-    origin = np.asarray(labels.origin, float) + (np.array(lo) + (f - 1) / 2.0) * spacing
+    origin = np.asarray(labels.origin, float) + (lo + (f - 1) / 2.0) * spacing
     pad = int(np.ceil(3 * SIGMA_MM / step.min())) + 1  # room for the blur
     mean = np.pad(mean, pad)
     origin = origin - pad * step

@@ -70,7 +70,7 @@ class Planner:
         self.sliders = PlanSliders(model.segments, model.plan)
         self.save_path = Path(save_path)
         self.scene = Scene(model)
-        self._midlines = {}  # the profile's plane per kind of face axes
+        self._turned = {}  # per kind of face axes: the profile's rest skin, frame, midline
         self.values = (self.sliders.from_plan(model.plan) if model.plan is not None
                        else self.sliders.zero_values())
         self.plan = self.sliders.to_plan(self.values)
@@ -95,11 +95,12 @@ class Planner:
         pre, post = self.model.skin, self.scene.predicted
         if self.plan.axes == "image":
             return pre, post, self.scene.midline
-        frame, centre = self.model.plan_axes(self.plan), np.asarray(pre.center)
-        if self.plan.axes not in self._midlines:  # the turned rest skin's midline, once
-            self._midlines[self.plan.axes] = midline_x(turned_into(pre, frame, centre))
-        return (turned_into(pre, frame, centre), turned_into(post, frame, centre),
-                self._midlines[self.plan.axes])
+        if self.plan.axes not in self._turned:  # the rest skin turned, and its midline, once
+            frame, centre = self.model.plan_axes(self.plan), np.asarray(pre.center)
+            rest = turned_into(pre, frame, centre)
+            self._turned[self.plan.axes] = (rest, frame, centre, midline_x(rest))
+        rest, frame, centre, midline = self._turned[self.plan.axes]
+        return rest, turned_into(post, frame, centre), midline
 
     def set_axes(self, axes):
         """Move the sliders in ``axes`` (:data:`pvcmf.plan.AXES`), keeping their values;
