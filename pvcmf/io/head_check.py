@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
-__all__ = ["check_head"]
+__all__ = ["arch_trend", "check_head"]
 
 #: tooth-dense range as multiples of the air -> soft tissue step above soft tissue (enamel
 #: and dentine from about 2000 HU; metal from about 3000 HU), as in pvcmf.filters.segment
@@ -20,20 +20,61 @@ MIN_TEETH_ML = 0.1
 #: share of the body's volume of enclosed air above which it is named lungs (a head's
 #: sinuses and airway are a few per cent of it; the lungs a fifth to a half of a chest)
 LUNG_SHARE = 0.1
+#: least tooth-dense blocks whose layout is read as a dental arch (a few teeth at 3 mm)
+MIN_ARCH_BLOCKS = 10
 
 
-def _teeth_ml(dense, ds):
-    """Volume (mL) of the tooth-dense blocks in components no longer than a dental arch
-    (``ARCH_MM``): the crowns and roots of the teeth, or the petrous bone; the cortex of a
-    long bone as dense runs longer."""
+def _teeth_blocks(dense, ds):
+    """The tooth-dense blocks in components no longer than a dental arch (``ARCH_MM``): the
+    crowns and roots of the teeth, or the petrous bone; the cortex of a long bone as dense
+    runs longer."""
     lab, n = ndi.label(dense, structure=np.ones((3, 3, 3), dtype=bool))
     if n == 0:
-        return 0.0
+        return np.zeros(dense.shape, dtype=bool)
     keep = np.zeros(n + 1, dtype=bool)
     for i, sl in enumerate(ndi.find_objects(lab), start=1):  # one entry per component
         keep[i] = max((s.stop - s.start) * d for s, d in zip(sl, ds)) <= ARCH_MM
     keep[0] = False
-    return float(np.count_nonzero(keep[lab])) * float(np.prod(ds)) / 1e3
+    return keep[lab]
+
+
+def _teeth_ml(dense, ds):
+    """Volume (mL) of :func:`_teeth_blocks`."""
+    return float(np.count_nonzero(_teeth_blocks(dense, ds))) * float(np.prod(ds)) / 1e3
+
+
+def arch_trend(teeth, ds, lr, midline):
+    """How the teeth lie along each image axis: the correlation between a tooth block's
+    distance from the mid-sagittal plane and its coordinate along the axis (0 for the
+    left-right axis ``lr`` itself), or None with fewer than ``MIN_ARCH_BLOCKS`` blocks.
+
+    A dental arch is a U open toward the back of the head: the farther a tooth lies from
+    the midline (molars), the farther back it lies. Along the anterior axis the correlation
+    is strongly negative; it holds for a face-only scan (a cone-beam field around the jaws)
+    whose skull base and spine make the bone share grow backward.
+
+    ``teeth``: mask of tooth-dense blocks (:func:`_teeth_blocks`) of size ``ds`` (mm);
+    ``midline``: the mid-sagittal plane's index along ``lr``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> teeth = np.zeros((20, 20, 3), dtype=bool)
+    >>> for x in range(2, 18):  # an arch in x-y, its front toward +y
+    ...     teeth[x, 16 - (x - 10) ** 2 // 5, 1] = True
+    >>> [round(c, 2) for c in arch_trend(teeth, (3, 3, 3), 0, 10.0)]
+    [0.0, -0.96, 0.0]
+    """
+    idx = np.nonzero(teeth)
+    if len(idx[0]) < MIN_ARCH_BLOCKS:
+        return None
+    side = np.abs(idx[lr] - midline) * ds[lr]
+    out = []
+    for a in range(3):
+        x = idx[a] * ds[a]
+        ok = a != lr and np.ptp(side) > 0 and np.ptp(x) > 0
+        out.append(float(np.corrcoef(side, x)[0, 1]) if ok else 0.0)
+    return out
 
 
 def check_head(cues):

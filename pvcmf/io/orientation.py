@@ -22,7 +22,13 @@ Orientation (:func:`orient_head`)
       two orientations) lies superior to the rest of the body;
     * the skeleton's share of the body grows toward the vertex (skull) and toward the face
       (jaws, teeth), and the air inside the head (sinuses, nasal cavity, pharynx) lies in
-      front of the cranial cavity.
+      front of the cranial cavity;
+    * the dental arch is a U open toward the back (:func:`~pvcmf.io.head_check.arch_trend`).
+
+    A face-only scan (a cone-beam field around the jaws) holds no cranial cavity, and its
+    skull base and spine make the bone share grow backward: there the arch alone tells the
+    face side, the vertex side comes from a strong bone-share trend along the body axis, and
+    a weak trend that does not contradict the file keeps the file's vertex side (reported).
 
     Left and right cannot be told from anatomy (the head is symmetric): the left-right sign
     is taken from the file, so the re-orientation is a proper rotation, never a mirroring.
@@ -43,7 +49,8 @@ import logging
 import numpy as np
 from scipy import ndimage as ndi
 
-from .head_check import TEETH_STEPS, _teeth_ml, check_head  # noqa: F401 (re-export)
+from .head_check import (TEETH_STEPS, _teeth_blocks, _teeth_ml,  # noqa: F401 (re-export)
+                         arch_trend, check_head)
 from .units import (AIR_HU, HU_OFFSETS, SOFT_HU, _peaks, _volume,  # noqa: F401 (re-export)
                     _with_volume, check_units)
 
@@ -55,6 +62,15 @@ __all__ = ["check_head", "check_units", "orient_head", "orientation_code", "reor
 #: voxel size (mm) of the pooled copy the orientation is decided on
 DECISION_VOXEL = 3.0
 _LETTERS = {"L": (0, 1), "R": (0, -1), "A": (1, 1), "P": (1, -1), "S": (2, 1), "I": (2, -1)}
+#: least correlation (absolute) of a bone-share trend that counts as a cue
+TREND = 0.3
+#: least correlation (absolute) of the dental arch's trend that counts as a cue: teeth lie
+#: farther back the farther they lie from the midline, so a whole arch is near -1
+ARCH_TREND = 0.5
+#: least correlation (absolute) of the bone-share trend along the body axis that tells the
+#: vertex side without a cranial cavity (the orbits and skull base weigh against the jaws
+#: there); a weaker trend that does not contradict the file leaves the file's vertex side
+TREND_NO_CAVITY = 0.5
 _NAMES = {(0, 1): "L", (0, -1): "R", (1, 1): "A", (1, -1): "P", (2, 1): "S", (2, -1): "I"}
 
 
@@ -124,7 +140,8 @@ def _pool(vol, spacing, body_level, bone_level, dense_levels=None):
 
     Body: the voxel at each block's corner above ``body_level``; bone: any voxel of the block
     above ``bone_level`` (thin skull survives the pooling). With ``dense_levels`` (lo, hi),
-    also the blocks whose maximum lies in [lo, hi) (tooth-dense, not metal).
+    also the blocks whose maximum lies in [lo, hi) (tooth-dense, not metal) and those whose
+    maximum is ``hi`` or more (metal).
     """
     f = [min(max(1, int(round(DECISION_VOXEL / s))), n) for s, n in zip(spacing, vol.shape)]
     shape = [n // k * k for n, k in zip(vol.shape, f)]
@@ -143,7 +160,7 @@ def _pool(vol, spacing, body_level, bone_level, dense_levels=None):
     body, top = np.ascontiguousarray(body), np.ascontiguousarray(top)
     if dense_levels is None:
         return body, top > 0, ds
-    return body, top > 0, ds, top == 2
+    return body, top > 0, ds, top == 2, top == 3
 
 
 def _block_max(a, f):
@@ -208,12 +225,13 @@ def _mirror_overlap(mask, axis):
 def _cues(vol, spacing, air, soft):
     """Anatomical measurements on the pooled copy (see the module notes)."""
     step = soft - air
-    body, bone, ds, dense = _pool(vol, spacing, 0.5 * (air + soft), soft + 0.35 * step,
-                                  (soft + TEETH_STEPS[0] * step, soft + TEETH_STEPS[1] * step))
+    body, bone, ds, dense, metal = _pool(
+        vol, spacing, 0.5 * (air + soft), soft + 0.35 * step,
+        (soft + TEETH_STEPS[0] * step, soft + TEETH_STEPS[1] * step))
     if body.any():  # crop to the body plus a margin; faces the body touches stay faces
         nz = np.nonzero(body)
         box = tuple(slice(max(int(i.min()) - 3, 0), int(i.max()) + 4) for i in nz)
-        body, bone, dense = body[box], bone[box], dense[box]
+        body, bone, dense, metal = body[box], bone[box], dense[box], metal[box]
     body = _largest(ndi.binary_opening(body, iterations=2))
     head = body | _enclosed(body)
     bone &= head
@@ -233,6 +251,10 @@ def _cues(vol, spacing, air, soft):
     cues["cavity_ml"] = round(float(cavity.sum()) * voxel_ml) if has_cavity else 0
     centre = np.array(ndi.center_of_mass(head)) * ds
     cues["mirror"] = [round(_mirror_overlap(bone, a), 3) for a in range(3)]
+    lr = int(np.argmax(cues["mirror"]))  # fillings and crowns lie on the arch too
+    trend = arch_trend(_teeth_blocks((dense | metal) & head, ds), ds, lr,
+                       float(np.nonzero(bone)[lr].mean()))
+    cues["arch_trend"] = None if trend is None else [round(c, 3) for c in trend]
     face_area = [float(head.take(0, a).sum() + head.take(-1, a).sum())
                  * float(np.prod(np.delete(ds, a))) for a in range(3)]
     cues["cut_area_mm2"] = [round(x) for x in face_area]
@@ -255,41 +277,66 @@ def _cues(vol, spacing, air, soft):
     return cues, True
 
 
+def _face_votes(cues, ap, cavity):
+    """Which way the face points along image axis ``ap`` (+1, -1), one vote per cue that
+    speaks: the bone share, the inner air and the dental arch (:func:`arch_trend`). Without a
+    cranial cavity the arch alone where it speaks: the bone share of a face-only scan grows
+    toward its skull base and spine, and its inner air has no cavity to lie in front of."""
+    arch = cues.get("arch_trend")
+    arch_vote = ([-int(np.sign(arch[ap]))] if arch is not None and abs(arch[ap]) >= ARCH_TREND
+                 else [])
+    if arch_vote and not cavity:
+        return arch_vote
+    votes = []
+    trend = cues["bone_share_trend"]
+    if abs(trend[ap]) >= TREND:
+        votes.append(int(np.sign(trend[ap])))
+    if "inner_air_offset_mm" in cues and abs(cues["inner_air_offset_mm"][ap]) >= 10.0:
+        votes.append(int(np.sign(cues["inner_air_offset_mm"][ap])))
+    return votes + arch_vote
+
+
 def _decide(cues):
-    """Orientation code from the cues, or (None, why) when they do not settle it."""
+    """``(code, from_file, why)``: the orientation code from the cues (None where they do
+    not settle it, and why), and whether the vertex side is the file's."""
     mirror = np.asarray(cues["mirror"])
     lr = int(np.argmax(mirror))
     rest = [a for a in range(3) if a != lr]
     if mirror[lr] - max(mirror[rest]) < 0.15:
-        return None, (f"no single plane of mirror symmetry (bone overlap {cues['mirror']} "
+        return None, False, (f"no single plane of mirror symmetry (bone overlap {cues['mirror']} "
                       "for the x, y, z mirrors): not a head, or a head cut too much")
     trend = np.asarray(cues["bone_share_trend"])
     cut = np.asarray(cues["cut_area_mm2"], dtype=float)
-    si = None
+    si, from_file = None, False
     if "body_below_cavity_mm" in cues:
         d = np.asarray(cues["body_below_cavity_mm"])
         k = rest[int(np.argmax(np.abs(d[rest])))]
         other = rest[0] if k == rest[1] else rest[1]
         if abs(d[k]) >= 15.0 and abs(d[k]) >= 2 * abs(d[other]):
             si, si_sign = k, -int(np.sign(d[k]))
-    if si is None:
+    if si is None:  # no cranial cavity: a face-only scan, or a head cut below the vault
         k = rest[int(np.argmax(cut[rest]))]
         other = rest[0] if k == rest[1] else rest[1]
-        if cut[k] < 1000.0 or cut[k] < 2 * cut[other] or abs(trend[k]) < 0.3:
-            return None, ("no cranial cavity, and the scan range does not show which axis is "
-                          f"the body axis (cut areas {cues['cut_area_mm2']} mm2, bone-share "
-                          f"trends {cues['bone_share_trend']})")
-        si, si_sign = k, int(np.sign(trend[k]))
+        if cut[k] < 1000.0 or cut[k] < 2 * cut[other]:
+            return None, False, ("no cranial cavity, and the scan range does not show which axis is "
+                          f"the body axis (cut areas {cues['cut_area_mm2']} mm2)")
+        if abs(trend[k]) >= TREND_NO_CAVITY:
+            si, si_sign = k, int(np.sign(trend[k]))
+        elif k == 2 and trend[k] > -TREND:  # not contradicted: the file's
+            si, si_sign, from_file = 2, 1, True
+        else:
+            return None, False, ("no cranial cavity, and neither the bone-share trend along the body "
+                          "axis nor the file's axes show the vertex side (the scan range cuts "
+                          f"the body along image axis {'xyz'[k]}: cut areas "
+                          f"{cues['cut_area_mm2']} mm2; bone-share trends "
+                          f"{cues['bone_share_trend']})")
     ap = rest[0] if si == rest[1] else rest[1]
-    votes = []
-    if abs(trend[ap]) >= 0.3:
-        votes.append(int(np.sign(trend[ap])))
-    if "inner_air_offset_mm" in cues and abs(cues["inner_air_offset_mm"][ap]) >= 10.0:
-        votes.append(int(np.sign(cues["inner_air_offset_mm"][ap])))
+    votes = _face_votes(cues, ap, cavity="body_below_cavity_mm" in cues)
     if not votes or len(set(votes)) > 1:
-        return None, ("the face side is not clear (bone-share trend "
+        return None, False, ("the face side is not clear (bone-share trend "
                       f"{cues['bone_share_trend']}, inner-air offset "
-                      f"{cues.get('inner_air_offset_mm')})")
+                      f"{cues.get('inner_air_offset_mm')}, dental-arch trend "
+                      f"{cues.get('arch_trend')})")
     picks = {si: (2, si_sign), ap: (1, votes[0])}
     m = np.zeros((3, 3))
     for i, (axis, sign) in picks.items():
@@ -298,7 +345,7 @@ def _decide(cues):
     if np.linalg.det(m) < 0:  # left/right from the file: a rotation, never a mirroring
         m[0, lr] = -1
     picks[lr] = (0, int(m[0, lr]))
-    return "".join(_NAMES[picks[i]] for i in range(3)), None
+    return "".join(_NAMES[picks[i]] for i in range(3)), from_file, None
 
 
 def orient_head(image, orient="auto", *, air=None, soft=None):
@@ -361,19 +408,23 @@ def _orientation(image, orient, air, soft, cues=None):
         cues, ok = _cues(vol, np.asarray(image.spacing, dtype=float), float(air), float(soft))
     else:
         cues, ok = cues
-    code, why = _decide(cues) if ok else (None, "no body with bone found")
+    code, from_file, why = _decide(cues) if ok else (None, False, "no body with bone found")
     if code is None:
         raise ValueError(
             f"orient_head: cannot tell the head's orientation from the image: {why}. Pass "
             "orient='none' to trust the file's axes, or a code such as orient='LPI' (one of "
             "L/R, A/P, S/I per image axis)")
+    report = {"mode": "auto", "code": code, "reoriented": code != "LAS", "left_right": lr_note}
+    if from_file:
+        report["vertex"] = ("vertex side taken from the file: the scan holds no cranial "
+                            "cavity (a face-only scan), and its bone share does not show it")
+        log.info("orient_head: %s", report["vertex"])
     if code == "LAS":
         log.info("orient_head: the anatomy confirms the file's axes (face +y, vertex +z)")
     else:
         log.warning("orient_head: the anatomy says the image axes point %s, not LAS: "
                     "re-oriented (face +y, vertex +z); %s", code, lr_note)
-    return code, {"mode": "auto", "code": code, "reoriented": code != "LAS",
-                  "left_right": lr_note, "cues": cues}
+    return code, {**report, "cues": cues}
 
 
 def standardize(image, *, units="auto", orient="auto"):

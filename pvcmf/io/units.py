@@ -43,6 +43,9 @@ __all__ = ["check_units", "AIR_HU", "SOFT_HU", "HU_OFFSETS", "CT_SPAN", "NOT_CT"
 HU_OFFSETS = (0.0, -1000.0, -1024.0, -32768.0)
 #: nominal HU of air and of the soft-tissue peak (brain, muscle)
 AIR_HU, SOFT_HU = -1000.0, 40.0
+#: nominal HU of fat: a scan of the lower face and neck can hold more fat than lean tissue,
+#: and its soft-tissue peak then lies at fat
+FAT_HU = -100.0
 #: distance between the air and soft-tissue peaks (image values) that ``units='auto'`` and
 #: given units ask of a CT (HU: 1040; scanner units keep it)
 CT_SPAN = (600.0, 1600.0)
@@ -265,12 +268,14 @@ def _check_ct(air, soft, bone, units):
 
 
 def _auto_offset(air, soft):
-    """``(offset, how)``: the storage convention the peaks match, else the offset that
-    puts the soft-tissue peak at ``SOFT_HU``."""
+    """``(offset, how)``: the storage convention the peaks match (air near ``AIR_HU``, the
+    soft-tissue peak from ``FAT_HU`` to ``SOFT_HU``), else the offset that puts the
+    soft-tissue peak at ``SOFT_HU``."""
     from_soft, from_air = SOFT_HU - soft, AIR_HU - air
     cost = [2 * abs(from_soft - o) + abs(from_air - o) for o in HU_OFFSETS]
     best = HU_OFFSETS[int(np.argmin(cost))]
-    if abs(from_soft - best) <= 100 and abs(from_air - best) <= 150:
+    # the soft-tissue peak lies from fat to lean tissue (fat-rich heads and necks)
+    if FAT_HU - 50 <= soft + best <= SOFT_HU + 100 and abs(from_air - best) <= 150:
         return best, (f"air peak {air:.0f} and soft-tissue peak {soft:.0f} match the "
                       f"convention HU = value {best:+g}")
     offset = float(round(from_soft))
