@@ -46,3 +46,45 @@ def turned_labels(labels, R, pad=12):
                        origin=np.asarray(labels.origin) - pad * s)
     img[arrays.TISSUE] = out.ravel(order="F")
     return img
+
+
+def cone_beam_field(data_dir, name, radius=80.0, below=60.0, above=80.0, behind=10.0):
+    """The real head CT ``name`` of the data folder (skipped where it lacks it) as a cone-beam
+    scanner holds a face: a cylinder of ``radius`` mm about a vertical axis ``behind`` mm
+    behind the teeth's centre, from ``below`` to ``above`` mm about it (no cranial cavity),
+    in grey values that are not HU (0.6 HU + 200), the minimum outside the field, on the
+    field's box. The teeth are found on a 2 mm copy (``segment``)."""
+    import pytest
+
+    import pvcmf
+    from pvcmf.filters.orientation import standardize
+
+    path = data_dir / name
+    if not path.exists():
+        pytest.skip(f"{path} not in the data folder")
+    ct, _ = standardize(pvcmf.read_ct(path))
+    half = image_of(volume(ct)[::2, ::2, ::2], np.asarray(ct.spacing) * 2)
+    half.origin = ct.origin
+    labels = half.cmf.segment()
+    teeth = np.asarray(labels.points)[np.asarray(labels[arrays.TISSUE]) == arrays.TEETH]
+    return _field(ct, np.median(teeth, axis=0), radius, below, above, behind)
+
+
+def _field(ct, teeth, radius, below, above, behind):
+    """``ct`` (HU) in the field of :func:`cone_beam_field` about the teeth's centre
+    ``teeth`` (mm)."""
+    vol = volume(ct)
+    sp, org = np.asarray(ct.spacing), np.asarray(ct.origin)
+    axis = np.asarray(teeth) - (0.0, behind, 0.0)
+    lo = np.maximum(np.floor((axis - (radius, radius, below) - org) / sp).astype(int), 0)
+    hi = np.minimum(np.ceil((axis + (radius, radius, above) - org) / sp).astype(int) + 1,
+                    vol.shape)
+    box = vol[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    gx, gy = np.meshgrid(org[0] + sp[0] * np.arange(lo[0], hi[0]),
+                         org[1] + sp[1] * np.arange(lo[1], hi[1]), indexing="ij")
+    inside = (gx - axis[0]) ** 2 + (gy - axis[1]) ** 2 <= radius**2
+    grey = 0.6 * box + 200.0
+    grey = np.where(inside[:, :, None], grey, grey[inside].min())
+    out = image_of(grey, sp)
+    out.origin = org + lo * sp
+    return out

@@ -18,7 +18,7 @@ from pvcmf import arrays
 from pvcmf.filters.orientation import standardize
 from pvcmf.io.orientation import _decide
 
-from ct_helpers import image_of, stored_as, volume
+from ct_helpers import cone_beam_field, image_of, stored_as, volume
 
 
 # --------------------------------------------------------------------------- the decision
@@ -88,39 +88,9 @@ def test_a_lower_head_comes_back(lower_head, code):
 
 
 # --------------------------------------------------------------------------- real heads
-def cone_beam_field(ct, teeth, radius=80.0, below=60.0, above=80.0, behind=10.0):
-    """``ct`` (HU) as a cone-beam scanner holds a face: a cylinder of ``radius`` about a
-    vertical axis ``behind`` mm behind the teeth's centre (``teeth``, mm), from ``below`` to
-    ``above`` mm about it, in grey values that are not HU (0.6 HU + 200), the minimum outside
-    the field, on the field's box."""
-    vol = volume(ct)
-    sp, org = np.asarray(ct.spacing), np.asarray(ct.origin)
-    axis = np.asarray(teeth) - (0.0, behind, 0.0)
-    lo = np.maximum(np.floor((axis - (radius, radius, below) - org) / sp).astype(int), 0)
-    hi = np.minimum(np.ceil((axis + (radius, radius, above) - org) / sp).astype(int) + 1,
-                    vol.shape)
-    box = vol[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    gx, gy = np.meshgrid(org[0] + sp[0] * np.arange(lo[0], hi[0]),
-                         org[1] + sp[1] * np.arange(lo[1], hi[1]), indexing="ij")
-    inside = (gx - axis[0]) ** 2 + (gy - axis[1]) ** 2 <= radius**2
-    grey = 0.6 * box + 200.0
-    grey = np.where(inside[:, :, None], grey, grey[inside].min())
-    out = image_of(grey, sp)
-    out.origin = org + lo * sp
-    return out
-
-
 @pytest.fixture(scope="module", params=["vhp_female_head", "vhp_male_head"])
 def face_scan(request, data_dir):
-    path = data_dir / request.param
-    if not path.exists():
-        pytest.skip(f"{path} not in the data folder")
-    ct, _ = standardize(pvcmf.read_ct(path))
-    half = image_of(volume(ct)[::2, ::2, ::2], np.asarray(ct.spacing) * 2)
-    half.origin = ct.origin
-    labels = half.cmf.segment()
-    teeth = np.asarray(labels.points)[np.asarray(labels[arrays.TISSUE]) == arrays.TEETH]
-    return cone_beam_field(ct, np.median(teeth, axis=0))
+    return cone_beam_field(data_dir, request.param)
 
 
 def test_a_cone_beam_field_keeps_its_axes(face_scan):

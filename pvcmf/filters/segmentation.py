@@ -16,8 +16,9 @@ voxels), the costly decisions on a copy downsampled to about ``coarse`` mm:
    and so do dense objects lying on the skin (:mod:`pvcmf.filters.surface_objects`). Small
    enclosed holes (< ``min_cavity`` mm^3) become tissue; larger ones (sinuses, airway) stay
    air.
-3. **hard tissue**: ``ct >= bone`` in the head; ``>= teeth`` is TEETH (except near the
-   intracranial volume: the otic capsule of the petrous bone is as dense); ``>= metal`` is
+3. **hard tissue**: ``ct >= bone`` in the head; ``>= teeth`` is TEETH (except the otic
+   capsule of the petrous bone, as dense: near the intracranial volume, or apart from the
+   dentition, :mod:`pvcmf.filters.teeth`); ``>= metal`` is
    METAL (fillings, crowns, plates), hard tissue of its segment. Around the metal
    (:mod:`pvcmf.filters.metal`) thin bright streaks are not bone and thin dark streaks are not
    air.
@@ -62,6 +63,7 @@ from ..progress import Progress
 from . import metal as _metal
 from .surface_objects import DENSE_STEPS, drop_film, drop_surface_objects
 from .field_of_view import cut_planes, cuts_array, fov_circles, fov_cuts
+from .teeth import teeth_of_the_dentition
 
 log = logging.getLogger(__name__)
 
@@ -80,10 +82,6 @@ METAL_THRESHOLD = 3000.0
 #: thresholds as multiples of the air -> soft tissue step, above the soft-tissue peak
 #: (skin: below it). On a calibrated scan (step ~1040 HU) they give the levels above.
 SCALE = {"skin": -0.5, "bone": 0.48, "teeth": 1.88, "metal": 2.85}
-#: dense bone within this distance (mm) of the intracranial volume is not teeth: the otic
-#: capsule of the petrous bone is as dense as dentine, ~5-10 mm from the brain; the
-#: teeth are > 25 mm from it (the maxillary sinus and the orbits lie between)
-TEETH_BRAIN_MM = 15.0
 #: smallest radius (voxels) of the skull-closing ball: 1.5 takes the in-slice diagonal
 
 
@@ -280,7 +278,7 @@ def segment(
     if intracranial is None:
         log.warning("segment: found no volume enclosed by the skull; no INTRACRANIAL label")
         intracranial = np.zeros_like(hard)
-    teeth = _teeth_off_the_brain(teeth, intracranial, spacing, factor)
+    teeth = teeth_of_the_dentition(teeth, intracranial, spacing, factor)
     bar.step()
 
     soft = head & ~hard & ~intracranial
@@ -483,39 +481,6 @@ def _write(ct, shape, box, soft, hard, teeth, metal, intracranial):
     out.point_data[arrays.TISSUE] = tissue.ravel(order="F")
     out.point_data[arrays.BONE] = bone.ravel(order="F")
     out.point_data.active_scalars_name = arrays.TISSUE
-    return out
-
-
-def _teeth_off_the_brain(teeth, intracranial, spacing, factor, reach=TEETH_BRAIN_MM):
-    """Teeth without the tooth-dense bone of the skull base: components of ``teeth`` that
-    come within ``reach`` mm of the intracranial volume (distance on the coarse grid) are
-    bone."""
-    if not teeth.any() or not intracranial.any():
-        return teeth
-    # only the teeth's box matters: the coarse distance map of it, ``reach`` wider
-    cspace = spacing * factor
-    f = [int(v) for v in factor]
-    grow = np.ceil(reach / cspace).astype(int) + 1
-    tbox = _box(teeth, 0)
-    start = [max(b.start // k - g, 0) * k for b, k, g in zip(tbox, f, grow)]  # block-aligned
-    wide = tuple(slice(a, min(b.stop + (g + 1) * k, n))
-                 for a, b, k, g, n in zip(start, tbox, f, grow, teeth.shape))
-    ic = _down(intracranial[wide], f, "any")
-    if not ic.any():
-        return teeth
-    dist = np.sqrt(_sq_edt(~ic, cspace))
-    sub = teeth[tbox]
-    comp, n = ndimage.label(sub, structure=np.ones((3, 3, 3), dtype=bool))
-    idx = np.nonzero(sub)
-    coarse_idx = tuple((i + b.start - a) // k for i, b, a, k in zip(idx, tbox, start, f))
-    near = np.full(n + 1, np.inf)
-    np.minimum.at(near, comp[idx], dist[coarse_idx])
-    drop = near < reach
-    if drop[1:].any():
-        log.debug("segment: %d dense bone component(s) within %.0f mm of the brain are not "
-                  "teeth", int(drop[1:].sum()), reach)
-    out = teeth.copy()
-    out[tbox] &= ~drop[comp]
     return out
 
 

@@ -1,0 +1,50 @@
+"""The real heads as a cone-beam scanner holds a face (a field around the jaws that reaches
+the ears, no cranial cavity, grey values that are not HU; ``ct_helpers.cone_beam_field``):
+labelled and cut into jaws as the whole scan is.
+
+The female's field holds her otic capsules, as dense as teeth and, without the brain in the
+scan, not told from teeth by their distance to it: they must not become an upper arch.
+Skipped where the data folder lacks the scans.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from pvcmf import arrays
+from pvcmf.filters import find_jaws
+from pvcmf.filters.orientation import standardize
+
+from ct_helpers import cone_beam_field
+
+
+@pytest.fixture(scope="module", params=["vhp_female_head", "vhp_male_head"])
+def field_labels(request, data_dir):
+    ct, report = standardize(cone_beam_field(data_dir, request.param), units="rescale")
+    assert report["orientation"]["code"] == "LAS"
+    return request.param, ct.cmf.segment()
+
+
+def test_the_teeth_are_one_dentition(field_labels):
+    """Every tooth voxel lies within a dental arch's reach of the others: no otic capsule
+    several centimetres behind and above them."""
+    _, labels = field_labels
+    teeth = np.asarray(labels.points)[np.asarray(labels[arrays.TISSUE]) == arrays.TEETH]
+    assert len(teeth) > 100
+    extent = np.ptp(teeth, axis=0)
+    assert extent[1] < 60.0 and extent[2] < 60.0, extent
+
+
+def test_the_jaws_are_found_as_in_the_whole_scan(field_labels, caplog):
+    name, labels = field_labels
+    with caplog.at_level(logging.WARNING, logger="pvcmf"):
+        jaws = find_jaws(labels)
+    messages = [r.getMessage() for r in caplog.records]
+    assert not any("no nasal floor" in m for m in messages), messages
+    bone = np.asarray(jaws[arrays.BONE])
+    ml = {k: np.count_nonzero(bone == arrays.BONE_LABELS[k]) * np.prod(jaws.spacing) / 1e3
+          for k in ("maxilla", "mandible")}
+    assert ml["mandible"] > 20.0 and ml["maxilla"] > 3.0, ml
