@@ -27,6 +27,7 @@ __all__ = ["CMFAccessor", "METHODS"]
 METHODS = {
     "standardize": ("pvcmf.filters", "standardize"),
     "working_grid": ("pvcmf.filters", "working_grid"),
+    "flatten_shading": ("pvcmf.filters", "flatten_shading"),
     "segment": ("pvcmf.filters", "segment"),
     "find_jaws": ("pvcmf.filters", "find_jaws"),
     "classify_tissue": ("pvcmf.filters", "classify_tissue"),

@@ -42,8 +42,9 @@ def orient_argument(text):
 
 
 def add_ct_checks(parser, units_note=""):
-    """Add ``--units`` and ``--orient`` (the units and axes check of the CT, 'auto' by
-    default) to ``parser``; ``units_note``: a sentence appended to ``--units``'s help."""
+    """Add ``--units``, ``--orient`` and ``--shading`` (the units and axes check of the CT
+    and the cone-beam shading step, 'auto' by default) to ``parser``; ``units_note``: a
+    sentence appended to ``--units``'s help."""
     parser.add_argument("--units", type=units_argument, default="auto",
                         help="'auto' (detect scanner units from the histogram; default), "
                              "'hu', 'rescale' (a cone-beam CT's grey values: air and soft "
@@ -53,3 +54,7 @@ def add_ct_checks(parser, units_note=""):
                         help="'auto' (face +y and vertex +z checked from the anatomy; "
                              "default), 'none' (trust the file), or where the image axes "
                              "point, e.g. 'LPI'")
+    parser.add_argument("--shading", choices=("auto", "n4", "none"), default="auto",
+                        help="the slow shading of a cone-beam scan's field divided out (N4): "
+                             "'auto' for grey values rescaled to HU (default), 'n4' for any "
+                             "scan, 'none'")

@@ -311,6 +311,9 @@ WORKING_FACTORS = "working_factors"
 #: field (the CT of :func:`pvcmf.filters.working_grid`), float64, 3 values: the scan's own
 #: voxel spacing (mm) before the blocks
 SCAN_SPACING = "scan_spacing"
+#: field (the CT of :func:`pvcmf.filters.flatten_shading`), float64, 2 values: the 5th and
+#: 95th percentiles over the tissue of the shading field divided out (median 1; 1, 1: none)
+SHADING = "shading"
 #: field (the CT of :func:`pvcmf.read_ct` from a DICOM series), string, 1 value: the series'
 #: DICOM Modality (``"CT"`` for CT and most cone-beam CT; absent where the file does not
 #: say): :func:`pvcmf.io.units.check_units` refuses another imaging modality and maps a CT's

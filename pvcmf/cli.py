@@ -322,7 +322,8 @@ def _simulate(args):
                       predict=not args.no_predict, muscles=not args.no_muscles,
                       classify=args.classify, fit_skin=args.fit_skin,
                       figures=not args.no_figures, progress_bar=not args.no_progress,
-                      units=units, orient=args.orient, working_spacing=args.working_spacing)
+                      units=units, orient=args.orient, working_spacing=args.working_spacing,
+                      shading=args.shading)
     result.timings = {"read": seconds, **result.timings}
     if args.export is not None and result.post is not None:  # --export: the solved model
         result.files["export"] = export(result.post, args.export)

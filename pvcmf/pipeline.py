@@ -35,28 +35,27 @@ from .filters.jaw_pose import check_pose
 from .filters.symmetry import check_turn
 from .filters.meshing.skin_fit import on_hard_tissue
 from .filters.osteotomy import cut_bones, move_bones
-from .filters.resolution import BYTES_PER_VOXEL, describe_grid, working_factors
+from .filters.resolution import working_factors
 from .filters.segment_coverage import check_coverage
 from .filters.segmentation import tissue_volumes
 from .filters.skin import NECK_BELOW_BOX, head_skin  # noqa: F401 (public here too)
 from .filters.skin_prediction import (FAR_REDUCTION, TRANSFER_REACH,  # noqa: F401 (public)
                                       SKIN_SUMMARY, near_box, predict_skin)
 from .filters.surface_mapping import mesh_band
-from .io import read_ct
 from .io.ct import flip_axes  # noqa: F401 (public here too)
-from .io.orientation import standardize
 from .outputs import check_output_dir, render, run_lock, write_outputs, write_run
 from .filters.model_region import drop_floating_parts, face_box  # noqa: F401 (public here too)
 from .plan import Plan, read_plan
 from .progress import Progress
 from .run_warnings import capture_warnings
+from .scan_steps import check_shading, read_step
 
 log = logging.getLogger(__name__)
 
 __all__ = ["Result", "simulate", "head_skin", "STEPS", "write_outputs"]
 
 #: the steps of :func:`simulate`, in order, as named in the timing summary
-STEPS = ("read", "working grid", "segment", "classify", "bone segments", "muscles", "mesh",
+STEPS = ("read", "working grid", "shading", "segment", "classify", "bone segments", "muscles", "mesh",
          "skin fit", "fibres", "materials", "boundary conditions", "solve", "skin", "skeleton", "figures", "write")
 
 #: default number of tetrahedra: coarse enough for a < 2 min demo on 2 cores
@@ -290,7 +289,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
              muscles=True,
              face_fraction=DEFAULT_FACE_FRACTION, predict=True, solve=True, figures=True,
              fit_skin=False, progress_bar=False, units=None, orient=None,
-             working_spacing="auto"):
+             working_spacing="auto", shading="auto"):
     """Predict the post-operative face from a CT and a surgical plan.
 
     Parameters
@@ -372,6 +371,11 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
         grid whatever its size (about 50 bytes of memory per voxel). What was done:
         :attr:`Result.working_grid` and ``summary.json`` (``"working_grid"``). Not used
         when ``labels`` are given.
+    shading : {'auto', 'n4', 'none'}, default 'auto'
+        Step "shading" (:func:`pvcmf.filters.flatten_shading`, after the units check): the
+        slow shading of a cone-beam scan's field divided out, for a scan whose grey values
+        were rescaled to HU (``'auto'``), any scan (``'n4'``) or none. What was done:
+        :attr:`Result.ct_report` and ``summary.json`` (``"ct"``, ``"shading"``).
 
     Returns
     -------
@@ -394,6 +398,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
                                mesh_options=mesh_options, material_options=material_options,
                                bc_options=bc_options, solve_options=solve_options)
     working_factors((1, 1, 1), (1.0, 1.0, 1.0), working_spacing)  # refused before any work
+    shading = check_shading(shading)
     check_plan_landmarks(plan, landmarks, fit=muscles and predict, labels=labels)
     if not isinstance(fit_skin, (bool, dict)):  # options of fit_to_skin, or whether to fit
         raise TypeError(f"fit_skin must be a bool or a dict, got {type(fit_skin).__name__}")
@@ -403,7 +408,7 @@ def simulate(ct, plan, out=None, *, labels=None, bones=None, landmarks=None,
     with run_lock(out), capture_warnings(result.warnings), \
             Progress(total=len(STEPS), desc="simulate", enabled=progress_bar) as bar:
         run = _Runner(result, bar)
-        ct = _read_step(run, ct, units, orient, working_spacing, labels is not None)
+        ct = read_step(run, ct, units, orient, working_spacing, labels is not None, shading)
         labels = _label_steps(run, ct, labels, bones, plan, opts, classify)
         if muscles and predict:
             with_muscles = run.run("muscles", _muscles, labels, landmarks)
@@ -443,47 +448,6 @@ def _check_inputs(plan, n_tets, face_fraction, bones, **options):
     if bones is not None and not isinstance(bones, pv.ImageData):
         raise TypeError(f"bones must be a pyvista.ImageData or None, got {type(bones).__name__}")
     return plan, opts
-
-
-def _read_step(run, ct, units, orient, working_spacing, labels_given):
-    """Step "read": the CT from a file or folder (:func:`pvcmf.io.read_ct`); step "working
-    grid" (:func:`_working_grid`); then its units and axes checked on the image
-    (:func:`pvcmf.filters.standardize`): always for a CT read from a path or given as
-    read_ct returned it, for another CT in memory when ``units`` or ``orient`` is given."""
-    if isinstance(ct, (str, Path)):
-        ct = run.run("read", read_ct, ct)
-        units, orient = units or "auto", orient or "auto"
-    else:
-        run.skip("read", "CT given in memory")
-        if isinstance(ct, pv.ImageData) and arrays.SOURCE_PATH in ct.field_data:
-            units, orient = units or "auto", orient or "auto"  # unchecked: as from a path
-    ct = _working_grid(run, ct, working_spacing, labels_given)
-    if units is not None or orient is not None:
-        ct, run.result.ct_report = standardize(ct, units=units or "auto",
-                                               orient=orient or "auto")
-    return ct
-
-
-def _working_grid(run, ct, working_spacing, labels_given):
-    """Step "working grid": a scan finer than ``working_spacing`` asks averaged over blocks
-    of whole voxels (:func:`pvcmf.filters.working_grid`), recorded in
-    :attr:`Result.working_grid`; warned about where ``'auto'`` chose it."""
-    if labels_given or working_spacing is None:
-        run.skip("working grid", "labels given" if labels_given else "working_spacing=None")
-        return ct
-    if not isinstance(ct, pv.ImageData):  # (refused by the segmentation)
-        run.skip("working grid", "no CT image")
-        return ct
-    factors = working_factors(ct.dimensions, ct.spacing, working_spacing)
-    if factors == (1, 1, 1):
-        run.skip("working grid", "the scan's own grid")
-        return ct
-    work = run.run("working grid", filters.working_grid, ct, working_spacing)
-    run.result.working_grid, text = describe_grid(ct, work)
-    (log.warning if working_spacing == "auto" else log.info)(
-        "simulate: %s (working_spacing=%r; None, or --working-spacing none, keeps the scan's "
-        "grid at about %.0f GB)", text, working_spacing, BYTES_PER_VOXEL * ct.n_points / 1e9)
-    return work
 
 
 def _label_steps(run, ct, labels, bones, plan, opts, classify=True):

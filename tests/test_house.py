@@ -59,7 +59,7 @@ LAYERS = [
     ("mtm", ("pvcmf.mtm",)),
     # figures of one case and the run's output files: what the pipeline writes
     ("case figures/outputs", ("pvcmf.figures", "pvcmf.outputs")),
-    ("pipeline", ("pvcmf.pipeline",)),
+    ("pipeline", ("pvcmf.pipeline", "pvcmf.scan_steps")),
     ("truth/study", ("pvcmf.truth", "pvcmf.study", "pvcmf.reference", "pvcmf.postop",
                      "pvcmf.validation", "pvcmf.sweeps")),
     # figures of a study (sweeps, validation) and the report that shows them

@@ -62,6 +62,7 @@ def chain():
     out = {}
     _pure("standardize", f.standardize, case.ct)
     out["working"] = _pure("working_grid", f.working_grid, case.ct, 6.0)
+    out["flat"] = _pure("flatten_shading", f.flatten_shading, out["working"])
     labels = _pure("segment", f.segment, case.ct)
     labels = _pure("classify_tissue", f.classify_tissue, labels)
     labels = _pure("embed_muscles", f.embed_muscles, labels, landmarks=case.landmarks,

@@ -48,3 +48,41 @@ def test_the_jaws_are_found_as_in_the_whole_scan(field_labels, caplog):
     ml = {k: np.count_nonzero(bone == arrays.BONE_LABELS[k]) * np.prod(jaws.spacing) / 1e3
           for k in ("maxilla", "mandible")}
     assert ml["mandible"] > 20.0 and ml["maxilla"] > 3.0, ml
+
+
+@pytest.fixture(scope="module")
+def female_fields(data_dir):
+    """The female's field as scanned (no shading) and with strong cupping (the attenuation
+    20 % darker on the field's axis), in HU."""
+    clean = cone_beam_field(data_dir, "vhp_female_head")
+    cupped = cone_beam_field(data_dir, "vhp_female_head", cupping=0.2)
+    return (standardize(clean, units="rescale")[0], standardize(cupped, units="rescale")[0])
+
+
+def _jaw_volumes(ct):
+    labels = ct.cmf.segment()
+    bone = np.asarray(find_jaws(labels)[arrays.BONE])
+    hard = np.isin(np.asarray(labels[arrays.TISSUE]), arrays.HARD_LABELS)
+    ml = {k: np.count_nonzero(bone == arrays.BONE_LABELS[k]) * np.prod(ct.spacing) / 1e3
+          for k in ("maxilla", "mandible")}
+    return ml, hard
+
+
+def test_cupping_flattened_gives_the_jaws_of_the_unshaded_field(female_fields):
+    """Cupping moves the bone level the histogram gives off the bone in the field's middle
+    or at its edge; flatten_shading brings the hard tissue and the jaws back."""
+    clean, cupped = female_fields
+    ref, ref_hard = _jaw_volumes(clean)
+    raw, raw_hard = _jaw_volumes(cupped)
+    flat_ct = cupped.cmf.flatten_shading()
+    flat, flat_hard = _jaw_volumes(flat_ct)
+
+    def dice(a):
+        return 2 * np.count_nonzero(a & ref_hard) / (np.count_nonzero(a) + np.count_nonzero(ref_hard))
+
+    assert dice(flat_hard) > 0.96 and dice(flat_hard) > dice(raw_hard) + 0.05
+    for k in ref:
+        assert abs(flat[k] - ref[k]) < 0.15 * ref[k], (k, ref, raw, flat)
+    assert abs(raw["maxilla"] - ref["maxilla"]) > 0.5 * ref["maxilla"], (ref, raw)
+    low, high = flat_ct.field_data[arrays.SHADING]
+    assert high / low > 1.15

@@ -24,6 +24,7 @@ distance_to               ``distance``                000 Fig. 6: signed distanc
 map_to_surface            ``surface_mapping``         001: tet -> dense skin, Gaussian
 standardize               ``orientation``             CT in HU, face +y, vertex +z
 working_grid              ``resolution``              a very fine scan averaged in blocks
+flatten_shading           ``shading``                 a cone-beam scan's shading divided out
 ========================  ==========================  =====================================
 
 Modules are imported lazily, so ``import pvcmf`` stays fast and a heavy dependency
@@ -59,6 +60,7 @@ _REGISTRY = {
     "transfer_operator": "surface_mapping",
     "crumple_metric": "surface_mapping",
     "working_grid": "resolution",
+    "flatten_shading": "shading",
     "standardize": "orientation",  # check_units, orient_head: pvcmf.filters.orientation
 }
 

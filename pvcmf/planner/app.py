@@ -282,7 +282,7 @@ def add_plan_parser(sub):
 def _load_ct(args):
     """``(ct, bones, landmarks, start plan, checks)`` for the ``--ct`` argument;
     ``checks``: the units and axes check :func:`prepare_model` runs on the CT (as
-    ``pvcmf simulate``: ``--units`` and ``--orient`` on a scan read from a path; headsq is
+    ``pvcmf simulate``: ``--units``, ``--orient`` and ``--shading`` on a scan read from a path; headsq is
     in HU already; a virtual patient is exact and is not checked)."""
     text = str(args.ct)
     if text.startswith("phantom") and not Path(text).exists():
@@ -290,11 +290,12 @@ def _load_ct(args):
         case = datasets.phantom(patient=patient, spacing=args.spacing)
         return case.ct, case.truth, case.landmarks, case.plan, {}
     if text == "headsq" and not Path(text).exists():
-        ct, checks = datasets.headsq(), {"units": "hu", "orient": args.orient}
+        ct, checks = datasets.headsq(), {"units": "hu", "orient": args.orient,
+                                         "shading": args.shading}
     else:
         from ..io import read_ct
-        ct, checks = read_ct(text, series=args.series), {"units": args.units,
-                                                         "orient": args.orient}
+        ct, checks = read_ct(text, series=args.series), {
+            "units": args.units, "orient": args.orient, "shading": args.shading}
     if args.flip:
         from ..pipeline import flip_axes
         ct = flip_axes(ct, args.flip)

@@ -180,7 +180,7 @@ def _zero_plan(segments):
 
 def prepare_model(ct, plan=None, *, bones=None, labels=None, landmarks=None, n_tets=5000,
                   muscles=True, face_fraction=DEFAULT_FACE_FRACTION, bc_options=None,
-                  units=None, orient=None, progress_bar=False):
+                  units=None, orient=None, shading="auto", progress_bar=False):
     """Prepare the planner's model once: labels, mesh, skin, skeleton and predictor.
 
     Parameters
@@ -190,7 +190,7 @@ def prepare_model(ct, plan=None, *, bones=None, labels=None, landmarks=None, n_t
     plan : pvcmf.Plan, optional
         Starting plan; its cut planes define the segments. Without, the label image must
         already hold the maxilla and/or mandible (a virtual patient with ``bones``).
-    bones, labels, landmarks, face_fraction, bc_options, units, orient
+    bones, labels, landmarks, face_fraction, bc_options, units, orient, shading
         As in :func:`pvcmf.pipeline.simulate` (``units``, ``orient``: the check of a CT
         given in memory; ``pvcmf plan`` passes ``'auto'`` for a CT it reads).
     n_tets : int, default 5000
@@ -218,7 +218,8 @@ def prepare_model(ct, plan=None, *, bones=None, labels=None, landmarks=None, n_t
         # the labels alone: the plan's axes (a Frankfort plan's landmarks) come later
         res = simulate(ct, dataclasses.replace(first, axes="image"), labels=labels,
                        bones=bones, predict=False, solve=False, muscles=False,
-                       face_fraction=face_fraction, units=units, orient=orient)
+                       face_fraction=face_fraction, units=units, orient=orient,
+                       shading=shading)
         lab, skin = res.labels, res.skin_pre
         present = set(np.unique(np.asarray(lab[arrays.BONE])).tolist())
         segments = tuple(s for s in MOVABLE_SEGMENTS if arrays.BONE_LABELS[s] in present)
