@@ -86,3 +86,20 @@ def test_cupping_flattened_gives_the_jaws_of_the_unshaded_field(female_fields):
     assert abs(raw["maxilla"] - ref["maxilla"]) > 0.5 * ref["maxilla"], (ref, raw)
     low, high = flat_ct.field_data[arrays.SHADING]
     assert high / low > 1.15
+
+
+@pytest.mark.parametrize("value", [0.0, 1500.0])
+def test_a_field_filled_outside_with_a_constant_reads_as_air(data_dir, value):
+    """The male's field with its outside written as one grey value, not the lowest: read as
+    air, his head comes out as with the outside at air."""
+    field = cone_beam_field(data_dir, "vhp_male_head")
+    ref, _ = standardize(field, units="rescale")
+    grey = np.asarray(field[arrays.CT])
+    filled = field.copy()
+    filled[arrays.CT] = np.where(grey == grey.min(), value, grey).astype(np.float32)
+    out, report = standardize(filled, units="rescale")
+    assert report["units"]["fill"]["value"] == value
+    assert report["orientation"]["code"] == "LAS"
+    teeth = [np.count_nonzero(np.asarray(ct.cmf.segment()[arrays.TISSUE]) == arrays.TEETH)
+             for ct in (ref, out)]
+    assert abs(teeth[1] - teeth[0]) < 0.05 * teeth[0], teeth

@@ -20,7 +20,7 @@ import pvcmf
 from pvcmf import arrays
 from pvcmf.cli import build_parser
 from pvcmf.filters.orientation import check_units, standardize
-from pvcmf.io.units import AIR_HU, SOFT_HU
+from pvcmf.io.units import AIR_HU, FILL_SHARE, SOFT_HU
 from pvcmf.plan import Osteotomy, Plan
 
 from ct_helpers import image_of
@@ -189,7 +189,7 @@ def test_simulate_checks_a_ct_as_read_ct_returned_it(head, tmp_path, monkeypatch
     """A CT given in memory as read_ct returned it (field ``source_path``) has its units and
     axes checked as one read from a path; a CT standardize returned, or a virtual
     patient, is not checked again; given units win."""
-    from pvcmf import pipeline
+    from pvcmf import pipeline, scan_steps
 
     path = tmp_path / "scan.vti"
     head.save(path)
@@ -201,7 +201,7 @@ def test_simulate_checks_a_ct_as_read_ct_returned_it(head, tmp_path, monkeypatch
         calls.append(options)
         raise SystemExit(0)
 
-    monkeypatch.setattr(pipeline, "standardize", fake_standardize)
+    monkeypatch.setattr(scan_steps, "standardize", fake_standardize)
     plan = Plan((Osteotomy("maxilla", translation=(0, 2, 0)),))
     for kwargs, expected in (({}, {"units": "auto", "orient": "auto"}),
                              ({"units": "rescale"}, {"units": "rescale", "orient": "auto"})):
@@ -216,3 +216,39 @@ def test_simulate_checks_a_ct_as_read_ct_returned_it(head, tmp_path, monkeypatch
         with pytest.raises(SystemExit):
             pipeline.simulate(image, plan, working_spacing=None)
     assert len(calls) == 2
+
+
+# --------------------------------------------------------------------------- fills
+def _with_fill(ct, value, radius=110.0):
+    """``ct`` with everything outside a vertical cylinder of ``radius`` mm about its centre
+    set to the constant ``value``: the outside of a cone-beam scanner's round field."""
+    x, y, _ = (np.asarray(ct.points) - np.asarray(ct.center)).T
+    out = ct.copy()
+    out[arrays.CT] = np.where(x**2 + y**2 > radius**2, value,
+                              np.asarray(ct[arrays.CT])).astype(np.float32)
+    return out
+
+
+@pytest.mark.parametrize("value", [0.0, -600.0, 1000.0, -3000.0])
+def test_a_constant_fill_outside_the_field_reads_as_air(head, value):
+    """Whatever constant a scanner writes outside its field (between air and soft tissue,
+    above soft tissue, far below air), the peaks, the units and the head come out as with
+    that outside at air."""
+    ref_img, ref = standardize(_with_fill(head, -1000.0))
+    out, report = standardize(_with_fill(head, value))
+    units = report["units"]
+    assert units["fill"]["value"] == value and units["fill"]["share"] > FILL_SHARE
+    assert abs(units["air_peak"] - ref["units"]["air_peak"]) < 15.0
+    assert abs(units["soft_peak"] - ref["units"]["soft_peak"]) < 15.0
+    assert units["offset"] == ref["units"]["offset"] and report["orientation"]["code"] == "LAS"
+    labels, ref_labels = out.cmf.segment(), ref_img.cmf.segment()
+    same = np.mean(np.asarray(labels[arrays.TISSUE]) == np.asarray(ref_labels[arrays.TISSUE]))
+    assert same > 0.99
+
+
+def test_clipped_air_is_not_a_fill(head):
+    """Air clipped at the scanner's lowest value, next to the air's other values, stays."""
+    clipped = head.copy()
+    clipped[arrays.CT] = np.maximum(np.asarray(head[arrays.CT]), -1000.0).astype(np.float32)
+    _, report = check_units(clipped)
+    assert "fill" not in report

@@ -97,10 +97,72 @@ def _mode(x, lo, hi, width):
     return float(0.5 * (edges[i] + edges[i + 1]))
 
 
-def _peaks(vol):
-    """Air peak, soft-tissue peak and the air/body threshold of a subsample of ``vol``."""
+#: an exact value that at least this share of the voxels hold, standing above the values
+#: near it, is a fill (the outside of a cone-beam scanner's round field, written as one
+#: constant), not a tissue: a tissue's values spread over a peak of similar counts
+FILL_SHARE = 0.02
+#: "near" the fill: within this share of the image's value range (0.5th to 99.5th
+#: percentile) of it; "standing above": held ``FILL_RATIO`` times more often than any value
+#: near it
+FILL_REACH, FILL_RATIO = 0.01, 20.0
+#: least share of the body far above soft tissue (bone) that a CT shows
+MIN_BONE = 0.002
+
+
+def _fill(vol):
+    """``(value, share)`` of a constant fill of ``vol`` (see :data:`FILL_SHARE`), or None:
+    a fill above the image's minimum stands above the values near it, even inside a
+    tissue's peak; one at the minimum (clipped air, or padding below air) counts only where
+    a gap separates it from the other values."""
+    step = max(1, int(round((vol.size / 2e6) ** (1 / 3))))
+    sub = vol[::step, ::step, ::step].ravel()
+    values, counts = np.unique(sub, return_counts=True)
+    i = int(np.argmax(counts))
+    if counts[i] < FILL_SHARE * sub.size or counts[i] == sub.size:
+        return None
+    value = values[i]
+    rest = sub[sub != value]
+    lo, hi = np.percentile(rest, [0.5, 99.5])
+    reach = FILL_REACH * float(hi - lo)
+    if value < rest.min():  # at the minimum: a fill only across a gap
+        if float(rest.min()) - float(value) <= reach:
+            return None
+    else:
+        near = (np.abs(values - value) <= reach) & (values != value)
+        if counts[i] < FILL_RATIO * counts[near].max(initial=0):
+            return None
+    return float(value), float(counts[i] / sub.size)
+
+
+def _peaks_without_fill(vol):
+    """``(fill, peaks)``: :func:`_fill` and :func:`_peaks` of the other values; where
+    leaving the fill out leaves no CT's peaks and bone (a noise-free image's air is one
+    value too), no fill and the peaks of all values."""
+    fill = _fill(vol)
+    if fill is not None:
+        found = _peaks(vol, fill[0])
+        if found is not None and found[3] >= MIN_BONE:
+            return fill, found
+    return None, _peaks(vol)
+
+
+def _as_air(vol, fill, air):
+    """``vol`` with its fill (:func:`_fill`) set to the air peak ``air`` (a new array):
+    the outside of the field reads as air, as the padding of a CT's field does."""
+    value, share = fill
+    log.info("check_units: %.0f %% of the image holds exactly %g, apart from the tissue "
+             "values: the fill outside the scanner's field, set to the air peak %.0f",
+             100 * share, value, air)
+    return np.where(vol == value, vol.dtype.type(air), vol)
+
+
+def _peaks(vol, fill=None):
+    """Air peak, soft-tissue peak and the air/body threshold of a subsample of ``vol``
+    (``fill``: a value left out, :func:`_fill`)."""
     step = max(1, int(round((vol.size / 2e6) ** (1 / 3))))
     sub = vol[::step, ::step, ::step].ravel().astype(np.float64)
+    if fill is not None:
+        sub = sub[sub != fill]
     lo, hi = np.percentile(sub, [0.5, 99.5])
     if not hi > lo:
         return None
@@ -159,7 +221,9 @@ def check_units(image, units="auto"):
     report : dict
         ``units`` ('hu', 'scanner' or 'rescaled'), ``slope`` and ``offset`` applied (HU =
         slope * value + offset), ``air_peak`` and ``soft_peak`` (in the input's values),
-        ``how`` (a sentence), ``modality`` (where the image has one).
+        ``how`` (a sentence), ``modality`` (where the image has one), ``fill`` (where the
+        image holds one: the constant written outside a scanner's field, ``value``,
+        ``share`` of the voxels, ``set_to``: the air peak, so that it reads as air).
 
     Raises
     ------
@@ -194,12 +258,15 @@ def check_units(image, units="auto"):
         raise ValueError(f"units must be one of {', '.join(map(repr, UNITS))} or a finite "
                          f"number (the offset), got {units!r}")
     modality = _modality(image)
-    found = _peaks(vol)
+    fill, found = _peaks_without_fill(vol)
     if found is None:
         raise ValueError("check_units: the image has no separate air and tissue peaks in its "
                          "histogram: not a CT (a uniform or empty volume?)")
     a, s, _, bone = found
     report = {"air_peak": round(a, 1), "soft_peak": round(s, 1)}
+    if fill is not None:  # (in the input's values)
+        vol = _as_air(vol, fill, a)
+        report["fill"] = {"value": fill[0], "share": round(fill[1], 4), "set_to": round(a, 1)}
     said = ""
     if units == "auto" and modality == "CT" and not CT_SPAN[0] <= s - a <= CT_SPAN[1]:
         units, said = "rescale", (f"a CT series (DICOM Modality CT) whose peaks are "
@@ -256,8 +323,8 @@ def _check_ct(air, soft, bone, units):
     """Refuse an image without a bone tail, or whose peaks are not a CT's distance apart
     (``units='rescale'`` asks the bone tail only)."""
     span = soft - air
-    if bone < 0.002 or (units != "rescale" and not CT_SPAN[0] <= span <= CT_SPAN[1]):
-        hint = "" if units == "rescale" or bone < 0.002 else (
+    if bone < MIN_BONE or (units != "rescale" and not CT_SPAN[0] <= span <= CT_SPAN[1]):
+        hint = "" if units == "rescale" or bone < MIN_BONE else (
             "; a cone-beam CT whose grey values are not HU: units='rescale' (pvcmf simulate "
             "--units rescale) maps the two peaks to -1000 and +40 HU")
         raise ValueError(
