@@ -49,14 +49,13 @@ def turned_labels(labels, R, pad=12):
 
 
 def cone_beam_field(data_dir, name, radius=80.0, below=60.0, above=80.0, behind=10.0,
-                    cupping=0.0):
+                    cupping=0.0, beside=0.0):
     """The real head CT ``name`` of the data folder (skipped where it lacks it) as a cone-beam
-    scanner holds a face: a cylinder of ``radius`` mm about a vertical axis ``behind`` mm
-    behind the teeth's centre, from ``below`` to ``above`` mm about it (no cranial cavity),
-    in grey values that are not HU (0.6 HU + 200), the minimum outside the field, on the
-    field's box; ``cupping``: the attenuation (HU + 1000) darkened by this share on the
-    field's axis, less toward its edge (``1 - cupping (1 - r^2 / radius^2)``). The teeth are
-    found on a 2 mm copy (``segment``)."""
+    scanner holds a face (:func:`pvcmf.datasets.cone_beam_field`): a cylinder of ``radius``
+    mm about a vertical axis ``behind`` mm behind the teeth's centre, from ``below`` to
+    ``above`` mm about it (no cranial cavity), in grey values 0.6 HU + 200, the lowest
+    inside the field outside it; ``cupping`` as there; ``beside``: the axis that far (mm)
+    toward +x of the teeth's centre. The teeth are found on a 2 mm copy (``segment``)."""
     import pytest
 
     import pvcmf
@@ -70,26 +69,7 @@ def cone_beam_field(data_dir, name, radius=80.0, below=60.0, above=80.0, behind=
     half.origin = ct.origin
     labels = half.cmf.segment()
     teeth = np.asarray(labels.points)[np.asarray(labels[arrays.TISSUE]) == arrays.TEETH]
-    return _field(ct, np.median(teeth, axis=0), radius, below, above, behind, cupping)
-
-
-def _field(ct, teeth, radius, below, above, behind, cupping=0.0):
-    """``ct`` (HU) in the field of :func:`cone_beam_field` about the teeth's centre
-    ``teeth`` (mm)."""
-    vol = volume(ct)
-    sp, org = np.asarray(ct.spacing), np.asarray(ct.origin)
-    axis = np.asarray(teeth) - (0.0, behind, 0.0)
-    lo = np.maximum(np.floor((axis - (radius, radius, below) - org) / sp).astype(int), 0)
-    hi = np.minimum(np.ceil((axis + (radius, radius, above) - org) / sp).astype(int) + 1,
-                    vol.shape)
-    box = vol[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    gx, gy = np.meshgrid(org[0] + sp[0] * np.arange(lo[0], hi[0]),
-                         org[1] + sp[1] * np.arange(lo[1], hi[1]), indexing="ij")
-    r2 = ((gx - axis[0]) ** 2 + (gy - axis[1]) ** 2) / radius**2
-    inside = r2 <= 1.0
-    shade = 1.0 - cupping * (1.0 - np.minimum(r2, 1.0))
-    grey = 0.6 * ((box + 1000.0) * shade[:, :, None] - 1000.0) + 200.0
-    grey = np.where(inside[:, :, None], grey, grey[inside].min())
-    out = image_of(grey, sp)
-    out.origin = org + lo * sp
-    return out
+    centre = np.median(teeth, axis=0) + (beside, 0.0, 0.0)
+    return pvcmf.datasets.cone_beam_field(ct, centre, radius=radius,
+                                          below=below, above=above, behind=behind,
+                                          cupping=cupping)

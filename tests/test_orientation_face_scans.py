@@ -119,3 +119,13 @@ def test_a_cone_beam_field_stored_upside_down_is_turned_or_refused(face_scan):
         return
     assert report["orientation"]["code"] == "RAI"
     np.testing.assert_array_equal(volume(out), volume(standardize(face_scan, units="rescale")[0]))
+
+
+@pytest.mark.parametrize("beside", [-12.0, 12.0])
+def test_a_field_beside_the_midline_keeps_its_axes(data_dir, beside):
+    """A smaller field centred 12 mm beside the male's midline cuts one side's bone more
+    than the other's: the mirror plane is sought beside the bone's centre plane."""
+    field = cone_beam_field(data_dir, "vhp_male_head", radius=60.0, below=45.0, above=60.0,
+                            behind=30.0, beside=beside)
+    _, report = standardize(field, units="rescale")
+    assert report["orientation"]["code"] == "LAS", report["orientation"]

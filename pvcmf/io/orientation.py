@@ -62,6 +62,9 @@ __all__ = ["check_head", "check_units", "orient_head", "orientation_code", "reor
 #: voxel size (mm) of the pooled copy the orientation is decided on
 DECISION_VOXEL = 3.0
 _LETTERS = {"L": (0, 1), "R": (0, -1), "A": (1, 1), "P": (1, -1), "S": (2, 1), "I": (2, -1)}
+#: the mirror plane is sought within this distance (mm) of the bone's centre plane: a
+#: cone-beam field centred beside the midline cuts one side's bone more than the other's
+MIRROR_REACH_MM = 15.0
 #: least correlation (absolute) of a bone-share trend that counts as a cue
 TREND = 0.3
 #: least correlation (absolute) of the dental arch's trend that counts as a cue: teeth lie
@@ -211,15 +214,21 @@ def _enclosed(mask, axis=None):
     return free & ~np.isin(lab, list(border))
 
 
-def _mirror_overlap(mask, axis):
-    """Share of ``mask`` that its mirror image about its own centre plane overlaps."""
+def _mirror_overlap(mask, axis, reach=0):
+    """Share of ``mask`` that its mirror image overlaps, about the best of the planes across
+    ``axis`` within ``reach`` voxels of its own centre plane (half-voxel steps): a field of
+    view off the head's midline leaves the bone's centre off it. Mirrored voxels beyond the
+    array count as missed."""
     idx = np.nonzero(mask)
     c = idx[axis].mean()
-    mirrored = np.rint(2 * c - idx[axis]).astype(int)
-    inside = (mirrored >= 0) & (mirrored < mask.shape[axis])
-    pts = [i[inside] for i in idx]
-    pts[axis] = mirrored[inside]
-    return float(mask[tuple(pts)].sum() / max(len(idx[0]), 1))
+    best = 0.0
+    for plane in c + 0.5 * np.arange(-2 * int(reach), 2 * int(reach) + 1):
+        mirrored = np.rint(2 * plane - idx[axis]).astype(int)
+        inside = (mirrored >= 0) & (mirrored < mask.shape[axis])
+        pts = [i[inside] for i in idx]
+        pts[axis] = mirrored[inside]
+        best = max(best, float(mask[tuple(pts)].sum() / max(len(idx[0]), 1)))
+    return best
 
 
 def _cues(vol, spacing, air, soft):
@@ -250,7 +259,8 @@ def _cues(vol, spacing, air, soft):
     has_cavity = bool(cavity.sum() >= 0.05 * head.sum() and min(extent) >= 50.0)
     cues["cavity_ml"] = round(float(cavity.sum()) * voxel_ml) if has_cavity else 0
     centre = np.array(ndi.center_of_mass(head)) * ds
-    cues["mirror"] = [round(_mirror_overlap(bone, a), 3) for a in range(3)]
+    cues["mirror"] = [round(_mirror_overlap(bone, a, round(MIRROR_REACH_MM / ds[a])), 3)
+                      for a in range(3)]
     lr = int(np.argmax(cues["mirror"]))  # fillings and crowns lie on the arch too
     trend = arch_trend(_teeth_blocks((dense | metal) & head, ds), ds, lr,
                        float(np.nonzero(bone)[lr].mean()))
