@@ -215,19 +215,20 @@ def _enclosed(mask, axis=None):
 
 
 def _mirror_overlap(mask, axis, reach=0):
-    """Share of ``mask`` that its mirror image overlaps, about the best of the planes across
-    ``axis`` within ``reach`` voxels of its own centre plane (half-voxel steps): a field of
-    view off the head's midline leaves the bone's centre off it. Mirrored voxels beyond the
-    array count as missed."""
+    """``(share, plane)``: the share of ``mask`` that its mirror image overlaps about the
+    best of the planes across ``axis`` within ``reach`` voxels of its own centre plane
+    (half-voxel steps; a field of view off the head's midline leaves the bone's centre off
+    it), and that plane (index along ``axis``). Mirrored voxels beyond the array count as
+    missed."""
     idx = np.nonzero(mask)
     c = idx[axis].mean()
-    best = 0.0
+    best = (0.0, c)
     for plane in c + 0.5 * np.arange(-2 * int(reach), 2 * int(reach) + 1):
         mirrored = np.rint(2 * plane - idx[axis]).astype(int)
         inside = (mirrored >= 0) & (mirrored < mask.shape[axis])
         pts = [i[inside] for i in idx]
         pts[axis] = mirrored[inside]
-        best = max(best, float(mask[tuple(pts)].sum() / max(len(idx[0]), 1)))
+        best = max(best, (float(mask[tuple(pts)].sum() / max(len(idx[0]), 1)), plane))
     return best
 
 
@@ -259,11 +260,10 @@ def _cues(vol, spacing, air, soft):
     has_cavity = bool(cavity.sum() >= 0.05 * head.sum() and min(extent) >= 50.0)
     cues["cavity_ml"] = round(float(cavity.sum()) * voxel_ml) if has_cavity else 0
     centre = np.array(ndi.center_of_mass(head)) * ds
-    cues["mirror"] = [round(_mirror_overlap(bone, a, round(MIRROR_REACH_MM / ds[a])), 3)
-                      for a in range(3)]
+    mirrors = [_mirror_overlap(bone, a, round(MIRROR_REACH_MM / ds[a])) for a in range(3)]
+    cues["mirror"] = [round(m[0], 3) for m in mirrors]
     lr = int(np.argmax(cues["mirror"]))  # fillings and crowns lie on the arch too
-    trend = arch_trend(_teeth_blocks((dense | metal) & head, ds), ds, lr,
-                       float(np.nonzero(bone)[lr].mean()))
+    trend = arch_trend(_teeth_blocks((dense | metal) & head, ds), ds, lr, mirrors[lr][1])
     cues["arch_trend"] = None if trend is None else [round(c, 3) for c in trend]
     face_area = [float(head.take(0, a).sum() + head.take(-1, a).sum())
                  * float(np.prod(np.delete(ds, a))) for a in range(3)]
