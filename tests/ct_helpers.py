@@ -1,7 +1,10 @@
-"""CT volumes for the orientation tests: the voxel array of an image, an image of an array,
-and an image stored as a file with turned axes and scanner units would hold it."""
+"""CT volumes for the tests: the voxel array of an image, an image of an array, an image
+stored as a file with turned axes and scanner units would hold it, labels turned, and the
+real heads as cone-beam fields (each head read once per test run)."""
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 import pyvista as pv
@@ -59,17 +62,26 @@ def cone_beam_field(data_dir, name, radius=80.0, below=60.0, above=80.0, behind=
     import pytest
 
     import pvcmf
-    from pvcmf.filters.orientation import standardize
 
     path = data_dir / name
     if not path.exists():
         pytest.skip(f"{path} not in the data folder")
+    ct, teeth = _head_and_teeth(str(path))
+    return pvcmf.datasets.cone_beam_field(ct, teeth + (beside, 0.0, 0.0), radius=radius,
+                                          below=below, above=above, behind=behind,
+                                          cupping=cupping)
+
+
+@functools.lru_cache(maxsize=2)
+def _head_and_teeth(path):
+    """The CT at ``path`` in HU and the patient frame, and its teeth's centre (mm), read once
+    per test run (the fields of :func:`cone_beam_field` are cut from it)."""
+    import pvcmf
+    from pvcmf.filters.orientation import standardize
+
     ct, _ = standardize(pvcmf.read_ct(path))
     half = image_of(volume(ct)[::2, ::2, ::2], np.asarray(ct.spacing) * 2)
     half.origin = ct.origin
     labels = half.cmf.segment()
     teeth = np.asarray(labels.points)[np.asarray(labels[arrays.TISSUE]) == arrays.TEETH]
-    centre = np.median(teeth, axis=0) + (beside, 0.0, 0.0)
-    return pvcmf.datasets.cone_beam_field(ct, centre, radius=radius,
-                                          below=below, above=above, behind=behind,
-                                          cupping=cupping)
+    return ct, np.median(teeth, axis=0)
