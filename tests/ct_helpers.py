@@ -52,13 +52,14 @@ def turned_labels(labels, R, pad=12):
 
 
 def cone_beam_field(data_dir, name, radius=80.0, below=60.0, above=80.0, behind=10.0,
-                    cupping=0.0, beside=0.0):
+                    cupping=0.0, beside=0.0, noise=0.0):
     """The real head CT ``name`` of the data folder (skipped where it lacks it) as a cone-beam
     scanner holds a face (:func:`pvcmf.datasets.cone_beam_field`): a cylinder of ``radius``
     mm about a vertical axis ``behind`` mm behind the teeth's centre, from ``below`` to
     ``above`` mm about it (no cranial cavity), in grey values 0.6 HU + 200, the lowest
     inside the field outside it; ``cupping`` as there; ``beside``: the axis that far (mm)
-    toward +x of the teeth's centre. The teeth are found on a 2 mm copy (``segment``)."""
+    toward +x of the teeth's centre; ``noise``: Gaussian noise (grey values, seed 0). The
+    teeth are found on a 2 mm copy (``segment``)."""
     import pytest
 
     import pvcmf
@@ -69,7 +70,7 @@ def cone_beam_field(data_dir, name, radius=80.0, below=60.0, above=80.0, behind=
     ct, teeth = _head_and_teeth(str(path))
     return pvcmf.datasets.cone_beam_field(ct, teeth + (beside, 0.0, 0.0), radius=radius,
                                           below=below, above=above, behind=behind,
-                                          cupping=cupping)
+                                          cupping=cupping, noise=noise)
 
 
 @functools.lru_cache(maxsize=2)

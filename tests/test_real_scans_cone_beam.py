@@ -50,6 +50,23 @@ def test_the_jaws_are_found_as_in_the_whole_scan(field_labels, caplog):
     assert ml["mandible"] > 20.0 and ml["maxilla"] > 3.0, ml
 
 
+def test_a_noisy_field_keeps_the_jaws(data_dir):
+    """The male's field with noise of about 33 HU (20 grey values; cone-beam scans are
+    noisy): the tooth voxels scatter, the occlusal gaps sampled in part of the arch fit a
+    sharply folded surface, which must not cut the mandible's front off nor set the
+    occlusal level below the teeth. Both jaws keep a Dice of 0.75 against the clean
+    field's."""
+    jaws = {}
+    for noise in (0.0, 20.0):
+        ct, _ = standardize(cone_beam_field(data_dir, "vhp_male_head", noise=noise),
+                            units="rescale")
+        jaws[noise] = np.asarray(find_jaws(ct.cmf.segment())[arrays.BONE])
+    for k in ("maxilla", "mandible"):
+        a, b = (jaws[n] == arrays.BONE_LABELS[k] for n in (20.0, 0.0))
+        score = 2 * np.count_nonzero(a & b) / (np.count_nonzero(a) + np.count_nonzero(b))
+        assert score > 0.75, (k, score)
+
+
 @pytest.fixture(scope="module")
 def female_fields(data_dir):
     """The female's field as scanned (no shading) and with strong cupping (the attenuation

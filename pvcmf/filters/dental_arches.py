@@ -41,6 +41,10 @@ MIN_ARCH_SHARE = 0.15
 OCCLUSAL_TRIM = 2.0
 #: fewest columns with a contact gap that fit an occlusal surface
 MIN_SAMPLES = 20
+#: smallest radius of curvature (mm) of a fitted occlusal surface: the curves of Spee and
+#: Wilson lie on a sphere of about 100 mm radius (Monson's 4 inches); a sharper fit is
+#: taken as a plane
+OCCLUSAL_MIN_RADIUS = 50.0
 
 
 def _silent(*args, **kwargs):
@@ -149,11 +153,16 @@ def _occlusion(teeth, hard, spacing, lo, hi, tell):
     if min(n_up, n_low) < MIN_ARCH_SHARE * (n_up + n_low):
         return None
     foot = _arch_area(teeth.any(axis=2), spacing)
-    contact = hard & (np.abs(zz - surf[:, :, None]) < 1.0) & foot[:, :, None]
+    # the crowns meet within the teeth's slices: where the surface leaves them (bent by
+    # noisy samples at the footprint's edge) it crosses bone, not a contact
+    contact = (hard & (np.abs(zz - surf[:, :, None]) < 1.0) & foot[:, :, None]
+               & (zz >= lo) & (zz <= hi))
     tell(logging.INFO, "find_jaws: the dental arches touch (occlusion): %d upper and %d lower "
          "tooth voxels either side of the occlusal surface", n_up, n_low)
+    # the surface's lowest point over the arch, within the teeth's slices: a surface fitted
+    # to noisy gaps can bend far below the crowns at the footprint's edge
     z_low = int(np.floor(surf[foot].min())) if foot.any() else lo
-    return max(z_low, 0), upper, lower, contact
+    return int(np.clip(z_low, lo, hi)), upper, lower, contact
 
 
 def _arch_area(foot, spacing):
@@ -180,9 +189,17 @@ def _quadric_terms(pts):
 
 
 def _fit_quadric(pts, z):
-    """Least-squares quadratic surface z(x, y) (coordinates centred for conditioning)."""
+    """Least-squares quadratic surface z(x, y) (coordinates centred for conditioning); a
+    plane where the quadric bends more sharply than any occlusal surface
+    (:data:`OCCLUSAL_MIN_RADIUS`): samples from part of the arch, scattered by noise, can
+    fit a fold that the surface then carries through the bone beyond them."""
     c = pts.mean(axis=0)
-    coef, *_ = np.linalg.lstsq(_quadric_terms(pts - c), z, rcond=None)
+    terms = _quadric_terms(pts - c)
+    coef, *_ = np.linalg.lstsq(terms, z, rcond=None)
+    hessian = np.array([[2 * coef[3], coef[4]], [coef[4], 2 * coef[5]]])
+    if np.abs(np.linalg.eigvalsh(hessian)).max() > 1.0 / OCCLUSAL_MIN_RADIUS:
+        plane, *_ = np.linalg.lstsq(terms[:, :3], z, rcond=None)
+        coef = np.concatenate([plane, np.zeros(3)])
     return c, coef
 
 
