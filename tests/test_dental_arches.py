@@ -75,3 +75,21 @@ def test_the_contact_cut_lies_where_the_crowns_meet(tilted_bite):
     assert np.array_equal(upper, teeth & (np.arange(teeth.shape[2]) > gap))
     cut = np.nonzero(contact)[2]
     assert cut.size and cut.min() >= z[0] and cut.max() <= z[-1]
+
+
+def test_stray_tooth_dense_voxels_make_no_second_arch():
+    """One lower arch over its alveolar bone, and a few tooth-dense voxels (noise on the
+    dense cortex) 20 mm below it: their peak of the height profile is no second arch, so
+    the arch stays lower, not upper over a lower arch of stray voxels."""
+    shape = (60, 60, 70)
+    x, y = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    arch = (np.abs(np.hypot(x - 30.0, np.maximum(y - 25.0, 0.0)) - 20.0) <= 3.0) & (y >= 10)
+    z = np.arange(shape[2])[None, None, :]
+    teeth = arch[:, :, None] & (z >= 40) & (z <= 46)
+    hard = teeth | (arch[:, :, None] & (z >= 25) & (z <= 39))
+    stray = np.zeros_like(teeth)
+    stray[28:31, 14:16, 19:22] = True  # 18 voxels, under 15 % of the teeth
+    teeth |= stray
+    hard |= stray
+    z_occ, upper, lower, contact = dental_arches(teeth, hard, (1.0, 1.0, 1.0))
+    assert not upper.any() and np.array_equal(lower, teeth) and contact is None

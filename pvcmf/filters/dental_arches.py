@@ -4,7 +4,8 @@
 slices are about level with the arches) finds:
 
 * two arches apart: the axial slice of fewest tooth voxels between the two largest peaks
-  of the tooth voxels' height profile;
+  of the tooth voxels' height profile, each side holding ``MIN_ARCH_SHARE`` of the teeth
+  (a smaller peak is stray tooth-dense voxels, noise on dense bone);
 * two arches in occlusion (one run of teeth with the alveolar bone of both jaws beside
   it): the **occlusal surface**, a quadratic surface fitted to the contact gaps of the
   columns that hold both crowns, and the hard voxels along it over the arch to cut;
@@ -35,7 +36,7 @@ ALVEOLAR_MM = 15.0
 #: busier side, that tells two arches in occlusion (a lone arch has soft tissue or air
 #: beyond its crowns)
 OCCLUSION_BONE = 0.25
-#: least share of the teeth on each side of an occlusion split (else one arch)
+#: least share of the teeth on each side of a split into two arches (else one arch)
 MIN_ARCH_SHARE = 0.15
 #: samples (mm) farther than this from the fitted occlusal surface are left out of the fit
 OCCLUSAL_TRIM = 2.0
@@ -56,7 +57,7 @@ def dental_arches(teeth, hard, spacing, *, quiet=False):
     (None where the arches are apart: the occlusal slice separates them).
 
     Two arches: the slice of fewest tooth voxels between the two largest peaks of the teeth's
-    height profile. One arch (an edentulous jaw, or an open mouth whose arches share no
+    height profile, where each side holds ``MIN_ARCH_SHARE`` of the teeth. One arch (an edentulous jaw, or an open mouth whose arches share no
     slice of teeth): the arch is the lower one when its footprint holds more bone in the
     ``ALVEOLAR_MM`` below the teeth than above them (the alveolar process and the body
     hold the roots below the lower crowns, the alveolar process and palate above the upper
@@ -77,9 +78,13 @@ def dental_arches(teeth, hard, spacing, *, quiet=False):
         # than a crown's height apart and have teeth in every slice between them
         if b - a > gap // 2 or np.any(profile[a:b + 1] == 0):
             z_occ = int(a + np.argmin(smooth[a:b + 1]))
-            upper = teeth.copy()
-            upper[:, :, :z_occ + 1] = False
-            return z_occ, upper, teeth & ~upper, None
+            n_up = int(profile[z_occ + 1:].sum())
+            # two arches hold their share of the teeth each (else stray tooth-dense voxels,
+            # noise on dense bone, made the second peak: one arch)
+            if min(n_up, int(profile.sum()) - n_up) >= MIN_ARCH_SHARE * profile.sum():
+                upper = teeth.copy()
+                upper[:, :, :z_occ + 1] = False
+                return z_occ, upper, teeth & ~upper, None
     foot = ndimage.binary_dilation(teeth.any(axis=2),
                                    iterations=max(1, int(round(3.0 / spacing[0]))))
     bone = (hard & ~teeth)[foot].sum(axis=0)
