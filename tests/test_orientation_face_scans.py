@@ -129,3 +129,21 @@ def test_a_field_beside_the_midline_keeps_its_axes(data_dir, beside):
                             behind=30.0, beside=beside)
     _, report = standardize(field, units="rescale")
     assert report["orientation"]["code"] == "LAS", report["orientation"]
+
+
+@pytest.mark.parametrize("name", ["vhp_female_head", "vhp_male_head"])
+def test_a_noisy_field_keeps_its_scale_and_axes(data_dir, name):
+    """The field with noise of 100 HU (60 grey values), stored as whole grey values
+    clipped at the scanner's lowest value, three noise widths below air, which its outside
+    holds too: the air's tail reaches that value (no gap), yet the outside is a fill, not
+    the air peak, so the grey values map to HU as the field's own scale (0.6 HU + 200)
+    says, the teeth stay tooth-dense, and the arch keeps the face toward +y."""
+    field = cone_beam_field(data_dir, name, noise=60.0)
+    lowest = 0.6 * -1000.0 + 200.0 - 3 * 60.0
+    field[arrays.CT] = np.maximum(np.round(np.asarray(field[arrays.CT])), lowest)
+    _, report = standardize(field, units="rescale")
+    units = report["units"]
+    assert units["fill"]["value"] == float(np.min(np.asarray(field[arrays.CT])))
+    assert abs(units["slope"] * 0.6 - 1.0) < 0.1, units
+    assert report["orientation"]["code"] == "LAS", report["orientation"]
+    assert report["orientation"]["cues"]["teeth_ml"] > 1.0

@@ -246,6 +246,56 @@ def test_a_constant_fill_outside_the_field_reads_as_air(head, value):
     assert same > 0.99
 
 
+@pytest.mark.parametrize("noise", [60.0, 100.0])
+def test_the_lowest_value_outside_a_noisy_field_is_a_fill(head, noise):
+    """A noisy field whose outside is written as its lowest value: the air's far tail
+    reaches down to it (no gap), yet it is a fill. Taken for the air peak, it would set the
+    scale 4-5 noise widths below air and lose the teeth."""
+    rng = np.random.default_rng(3)
+    noisy = head.copy()
+    noisy[arrays.CT] = np.round(np.asarray(head[arrays.CT])
+                                + rng.normal(0.0, noise, head.n_points)).astype(np.float32)
+    inside = np.asarray(_with_fill(noisy, np.nan)[arrays.CT])
+    low = float(np.nanmin(inside))
+    _, ref = check_units(_with_fill(noisy, -1000.0))
+    _, report = check_units(_with_fill(noisy, low))
+    assert report["fill"]["value"] == low
+    tolerance = 0.25 * noise  # the peaks of a noisy histogram move by a share of the noise
+    assert abs(report["air_peak"] - ref["air_peak"]) < tolerance
+    assert abs(report["soft_peak"] - ref["soft_peak"]) < tolerance
+
+
+def test_the_lowest_value_reached_by_noisy_air_is_a_fill(head):
+    """The image clipped at its lowest value, which the outside of the field holds too,
+    three noise widths below a noisy air: the air's tail reaches it, yet it is a fill
+    (taken for air it lies 15 % of the air to soft-tissue step below the air's peak)."""
+    rng = np.random.default_rng(4)
+    img = head.copy()
+    img[arrays.CT] = np.maximum(np.round(np.asarray(head[arrays.CT])
+                                         + rng.normal(0.0, 60.0, head.n_points)), -1180.0)
+    _, report = check_units(_with_fill(img, -1180.0))
+    assert report["fill"]["value"] == -1180.0
+    assert abs(report["air_peak"] + 1000.0) < 15.0
+
+
+def test_padding_just_below_a_quiet_air_is_air_enough(head):
+    """A scanner's padding 50 HU below a quiet air, a few voxels between them (partial
+    volume at the field's edge): taken for air it lies 5 % of the step below the air's
+    peak, within FILL_SHIFT, so it stays (as the Visible Human female's -1024 HU padding
+    below her air at -948)."""
+    rng = np.random.default_rng(5)
+    v = np.round(np.asarray(head[arrays.CT], dtype=float))
+    air = v < -900
+    v[air] = np.round(-1000.0 + 0.2 * (v[air] + 1000.0))  # a quiet air
+    edge = rng.random(v.size) < 5e-4
+    v[edge] = np.round(rng.uniform(-1049.0, -1000.0, edge.sum()))
+    img = head.copy()
+    img[arrays.CT] = v.astype(np.float32)
+    _, report = check_units(_with_fill(img, -1050.0))
+    assert "fill" not in report, report
+    assert report["air_peak"] < -1040.0
+
+
 def test_clipped_air_is_not_a_fill(head):
     """Air clipped at the scanner's lowest value, next to the air's other values, stays."""
     clipped = head.copy()

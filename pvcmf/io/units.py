@@ -21,6 +21,12 @@ the image is refused (an MR volume, a uniform phantom). In HU ``A`` is near -100
   only the bone tail is asked of the image.
 * ``units='hu'`` or a number (the offset): given, and checked against the peaks.
 
+A constant written outside a scanner's round field (a fill: one exact value far more common
+than the values near it, :data:`FILL_SHARE`) is left out of the peaks and set to the air
+peak. At the image's minimum it must also stand clear of the air: across a gap, or, where
+the air's tail reaches it (a noisy field), below the air's own peak by more than
+:data:`FILL_SHIFT` of the step; air clipped at the storage minimum stays air.
+
 Delegates to numpy and :mod:`scipy.ndimage` (the peaks' smoothing).
 """
 
@@ -103,17 +109,24 @@ def _mode(x, lo, hi, width):
 FILL_SHARE = 0.02
 #: "near" the fill: within this share of the image's value range (0.5th to 99.5th
 #: percentile) of it; "standing above": held ``FILL_RATIO`` times more often than any value
-#: near it
+#: near it, or, at the image's minimum, than all the values within that reach above it
 FILL_REACH, FILL_RATIO = 0.01, 20.0
+#: a fill at the image's minimum that the air's tail reaches is air enough where, taken for
+#: the air peak, it lies below the air's own peak by at most this share of the air to
+#: soft-tissue step (the scale then moves by about as much)
+FILL_SHIFT = 0.1
 #: least share of the body far above soft tissue (bone) that a CT shows
 MIN_BONE = 0.002
 
 
 def _fill(vol):
-    """``(value, share)`` of a constant fill of ``vol`` (see :data:`FILL_SHARE`), or None:
+    """``(value, share, reached)`` of a constant fill of ``vol`` (see :data:`FILL_SHARE`),
+    or None (``reached``: a fill at the minimum that the other values reach, no gap between):
     a fill above the image's minimum stands above the values near it, even inside a
-    tissue's peak; one at the minimum (clipped air, or padding below air) counts only where
-    a gap separates it from the other values."""
+    tissue's peak; one at the minimum stands above all the values just above it together:
+    padding below air (a gap above it), or the lowest value written outside a noisy field
+    (the air's far tail above it), but not air clipped at the scanner's lowest value (the
+    bulk of the air above it)."""
     step = max(1, int(round((vol.size / 2e6) ** (1 / 3))))
     sub = vol[::step, ::step, ::step].ravel()
     values, counts = np.unique(sub, return_counts=True)
@@ -124,25 +137,38 @@ def _fill(vol):
     rest = sub[sub != value]
     lo, hi = np.percentile(rest, [0.5, 99.5])
     reach = FILL_REACH * float(hi - lo)
-    if value < rest.min():  # at the minimum: a fill only across a gap
-        if float(rest.min()) - float(value) <= reach:
+    if value < rest.min():  # at the minimum: against every value within reach above it
+        if counts[i] < FILL_RATIO * np.count_nonzero(rest <= value + reach):
             return None
+        if float(rest.min()) - float(value) <= reach:  # the air's tail reaches it
+            return float(value), float(counts[i] / sub.size), True
     else:
         near = (np.abs(values - value) <= reach) & (values != value)
         if counts[i] < FILL_RATIO * counts[near].max(initial=0):
             return None
-    return float(value), float(counts[i] / sub.size)
+    return float(value), float(counts[i] / sub.size), False
 
 
 def _peaks_without_fill(vol):
     """``(fill, peaks)``: :func:`_fill` and :func:`_peaks` of the other values; where
     leaving the fill out leaves no CT's peaks and bone (a noise-free image's air is one
-    value too), no fill and the peaks of all values."""
+    value too), no fill and the peaks of all values. A fill at the minimum that the air's
+    tail reaches is kept only where leaving it out moves the air peak up by more than
+    :data:`FILL_SHIFT` of the air to soft-tissue step (clipped air, or padding at about the
+    air's level, is air enough: taken for the air peak it moves the scale by less), and
+    into the lower half between the peaks of all values (else the air was clipped into
+    it: what is left of the air is too little to be the air peak, and soft tissue takes
+    its place)."""
     fill = _fill(vol)
     if fill is not None:
         found = _peaks(vol, fill[0])
-        if found is not None and found[3] >= MIN_BONE:
-            return fill, found
+        kept = found is not None and found[3] >= MIN_BONE
+        if kept and fill[2]:
+            every = _peaks(vol)
+            step = None if every is None else every[1] - every[0]
+            kept = step is None or FILL_SHIFT * step < found[0] - every[0] < 0.5 * step
+        if kept:
+            return fill[:2], found
     return None, _peaks(vol)
 
 
