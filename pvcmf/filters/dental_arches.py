@@ -57,12 +57,13 @@ def dental_arches(teeth, hard, spacing, *, quiet=False):
     (None where the arches are apart: the occlusal slice separates them).
 
     Two arches: the slice of fewest tooth voxels between the two largest peaks of the teeth's
-    height profile, where each side holds ``MIN_ARCH_SHARE`` of the teeth. One arch (an edentulous jaw, or an open mouth whose arches share no
-    slice of teeth): the arch is the lower one when its footprint holds more bone in the
-    ``ALVEOLAR_MM`` below the teeth than above them (the alveolar process and the body
-    hold the roots below the lower crowns, the alveolar process and palate above the upper
-    ones), and the occlusal level is at its crowns' free end. ``quiet``: log nothing (a
-    trial split).
+    height profile, where each side holds ``MIN_ARCH_SHARE`` of the teeth. One arch (an
+    edentulous jaw, or an open mouth whose arches share no slice of teeth, or stray
+    tooth-dense voxels beside one arch): the arch is the lower one when its footprint holds
+    more bone in the ``ALVEOLAR_MM`` below the teeth than above them (the alveolar process
+    and the body hold the roots below the lower crowns, the alveolar process and palate
+    above the upper ones), and the occlusal level is at its crowns' free end. ``quiet``:
+    log nothing (a trial split).
     """
     tell = _silent if quiet else log.log
     profile = teeth.sum(axis=(0, 1)).astype(float)
