@@ -159,7 +159,7 @@ def _peaks_without_fill(vol):
     into the lower half between the peaks of all values (else the air was clipped into
     it: what is left of the air is too little to be the air peak, and soft tissue takes
     its place)."""
-    fill = _fill(vol)
+    fill, every = _fill(vol), None
     if fill is not None:
         found = _peaks(vol, fill[0])
         kept = found is not None and found[3] >= MIN_BONE
@@ -169,7 +169,7 @@ def _peaks_without_fill(vol):
             kept = step is None or FILL_SHIFT * step < found[0] - every[0] < 0.5 * step
         if kept:
             return fill[:2], found
-    return None, _peaks(vol)
+    return None, _peaks(vol) if every is None else every
 
 
 def _as_air(vol, fill, air):
