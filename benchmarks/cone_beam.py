@@ -116,6 +116,10 @@ def fill_rows(heads):
     return rows
 
 
+def _dice(a, b):
+    return 2 * np.count_nonzero(a & b) / (np.count_nonzero(a) + np.count_nonzero(b))
+
+
 def _jaws(ct):
     labels = ct.cmf.segment()
     bone = np.asarray(find_jaws(labels)[arrays.BONE])
@@ -139,11 +143,8 @@ def shading_rows(heads):
             seconds = time.perf_counter() - start
             flat_hard, flat_ml = _jaws(flat)
 
-            def dice(a):
-                return 2 * np.count_nonzero(a & ref) / (np.count_nonzero(a) + np.count_nonzero(ref))
-
-            rows.append(f"| {name} | {100 * cupping:.0f} % | {dice(hard):.3f} | "
-                        f"{dice(flat_hard):.3f} | {ml['maxilla']:.1f} / {ml['mandible']:.1f} | "
+            rows.append(f"| {name} | {100 * cupping:.0f} % | {_dice(hard, ref):.3f} | "
+                        f"{_dice(flat_hard, ref):.3f} | {ml['maxilla']:.1f} / {ml['mandible']:.1f} | "
                         f"{flat_ml['maxilla']:.1f} / {flat_ml['mandible']:.1f} | {seconds:.1f} |")
     return rows
 
@@ -184,17 +185,13 @@ def noise_rows(heads):
             hard = np.isin(np.asarray(labels[arrays.TISSUE]), arrays.HARD_LABELS)
             bone = np.asarray(find_jaws(labels)[arrays.BONE])
             ref = (hard, bone) if ref is None else ref
-
-            def dice(a, b):
-                return 2 * np.count_nonzero(a & b) / (np.count_nonzero(a) + np.count_nonzero(b))
-
-            jaw = {k: dice(bone == arrays.BONE_LABELS[k], ref[1] == arrays.BONE_LABELS[k])
+            jaw = {k: _dice(bone == arrays.BONE_LABELS[k], ref[1] == arrays.BONE_LABELS[k])
                    for k in ("maxilla", "mandible")}
             ml = [np.count_nonzero(bone == arrays.BONE_LABELS[k]) * np.prod(hu.spacing) / 1e3
                   for k in ("maxilla", "mandible")]
             rows.append(f"| {name} | {noise:.0f} | {noise_hu(hu):.0f} | "
                         f"{report['orientation']['code']} | "
-                        f"{report['units']['slope'] * 0.6:.3f} | {dice(hard, ref[0]):.3f} "
+                        f"{report['units']['slope'] * 0.6:.3f} | {_dice(hard, ref[0]):.3f} "
                         f"| {jaw['maxilla']:.3f} | {jaw['mandible']:.3f} | "
                         f"{ml[0]:.1f} / {ml[1]:.1f} |")
     return rows
